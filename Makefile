@@ -1,0 +1,34 @@
+# The two commands a new machine needs (see README):
+#   make goaling   set up .venv and run the main job (python -m hairexp experiment=goaling)
+#   make test      set up .venv and run the default test suite
+PY      ?= python3
+VENV    := .venv
+VPY     := $(VENV)/bin/python
+STAMP   := $(VENV)/.installed
+
+.PHONY: setup goaling test test-slow bench clean
+
+$(STAMP): pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(VPY) -m pip install -q --upgrade pip
+	# torch first, with the exact CPU pin, so nothing else can pull a CUDA build
+	$(VPY) -m pip install -q torch==2.13.0
+	$(VPY) -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+goaling: $(STAMP)
+	$(VPY) -m hairexp experiment=goaling
+
+test: $(STAMP)
+	$(VPY) -m pytest
+
+test-slow: $(STAMP)
+	$(VPY) -m pytest -m slow
+
+bench: $(STAMP)
+	$(VPY) experiments/bench_free.py
+
+clean:
+	rm -rf $(VENV) outputs multirun

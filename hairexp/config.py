@@ -1,0 +1,135 @@
+"""Structured-config schema, registered in Hydra's ConfigStore at import time (so joblib
+and submitit workers have it too).  A typo in a key or a wrong type or choice fails at
+start with Hydra's message naming the key."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any, Optional
+
+from hydra.core.config_store import ConfigStore
+
+
+class Interpolation(str, Enum):
+    cubic = "cubic"
+    linear = "linear"
+
+
+class Derivatives(str, Enum):
+    closed_form = "closed_form"   # closed forms, each tested against autograd
+    autograd = "autograd"         # batched torch autograd + eigenvalue clamping
+
+
+class OnFailure(str, Enum):
+    substep = "substep"   # retry a failed step as two half steps, recursively
+    warn = "warn"         # keep a finite non-converged state, flag it in the metrics
+    raise_ = "raise"      # stop the run with an error
+
+
+class Builder(str, Enum):
+    wisp = "wisp"
+    ponytail = "ponytail"
+
+
+class ControllerName(str, Enum):
+    free = "free"
+
+
+@dataclass
+class MotionConfig:
+    """Keyframed rigid motion of the body the roots are attached to."""
+    interpolation: Interpolation = Interpolation.cubic
+    times: list[float] = field(default_factory=lambda: [0.0])                  # s
+    translations: list[list[float]] = field(default_factory=lambda: [[0.0, 0.0, 0.0]])  # m
+    rotations_deg: list[list[float]] = field(default_factory=lambda: [[0.0, 0.0, 0.0]])  # rotation vectors, degrees
+
+
+@dataclass
+class HairConfig:
+    """Material of the detail hair (SI)."""
+    linear_density: float = 2e-4      # kg/m (a simulated strand stands for a few real hairs)
+    stretch_stiffness: float = 20.0   # EA, N
+    bending_stiffness: float = 2e-6   # EI, N m^2
+    edge_damping: float = 0.0         # N s, damping of stretch rate
+    air_drag: float = 0.0             # 1/s, drag against still air
+
+
+@dataclass
+class SceneConfig:
+    name: str = "wisp"
+    builder: Builder = Builder.wisp
+    n_strands: int = 40
+    n_vertices: int = 20
+    length: float = 0.3               # m
+    root_radius: float = 0.02         # m, radius of the disk the roots are spread over
+    root_center: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # m, body frame
+    direction: list[float] = field(default_factory=lambda: [0.0, -1.0, 0.0])   # strand direction at rest
+    spread: float = 0.0               # rad, random tilt of each strand away from ``direction``
+    seed: int = 0
+    gravity: list[float] = field(default_factory=lambda: [0.0, -9.81, 0.0])    # m/s^2, Y up
+    hair: HairConfig = field(default_factory=HairConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+
+
+@dataclass
+class ControllerConfig:
+    name: ControllerName = ControllerName.free
+
+
+@dataclass
+class SolverConfig:
+    dt: float = 0.04                  # s; the frame interval is split into ceil(1/(fps dt)) steps
+    rtol: float = 1e-5                # |grad H| <= atol + rtol * force scale
+    atol: float = 1e-10
+    max_iterations: int = 30
+    max_backtracks: int = 30
+    derivatives: Derivatives = Derivatives.closed_form
+    on_failure: OnFailure = OnFailure.substep
+    max_substep_levels: int = 4       # a failing step is split into at most 2^levels substeps
+
+
+@dataclass
+class LoggingConfig:
+    rerun: bool = True                # write recording.rrd (rerun is not imported when false)
+    progress: bool = True             # progress bar (always quiet when CI is set)
+    strict: bool = False              # rerun strict mode: bad shapes become errors
+
+
+@dataclass
+class Config:
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    logging: LoggingConfig = field(default_factory=LoggingConfig)
+    experiment: Optional[str] = None  # name of the experiment, set by conf/experiment/*.yaml
+    frames: int = 50                  # output frames after the initial one
+    fps: float = 25.0
+
+
+def register() -> None:
+    cs = ConfigStore.instance()
+    cs.store(name="base_config", node=Config)
+    cs.store(group="scene", name="base_scene", node=SceneConfig)
+    cs.store(group="controller", name="base_controller", node=ControllerConfig)
+    cs.store(group="solver", name="base_solver", node=SolverConfig)
+    cs.store(group="logging", name="base_logging", node=LoggingConfig)
+
+
+register()
+
+
+def to_plain(cfg: Any) -> Any:
+    """OmegaConf node -> plain Python containers with Enums as their values."""
+    from omegaconf import OmegaConf
+
+    def conv(o):
+        if isinstance(o, Enum):
+            return o.value
+        if isinstance(o, dict):
+            return {k: conv(v) for k, v in o.items()}
+        if isinstance(o, list):
+            return [conv(v) for v in o]
+        return o
+
+    return conv(OmegaConf.to_container(cfg, resolve=True, enum_to_str=False) if not isinstance(cfg, dict) else cfg)

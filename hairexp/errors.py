@@ -1,0 +1,21 @@
+"""Error types.  Every error names the input and the place it came from, so that the
+command line can print one clear line and exit non-zero."""
+
+
+class HairexpError(Exception):
+    """Base class of the errors hairexp raises on purpose."""
+
+
+class InputError(HairexpError, ValueError):
+    """Bad input: NaN/inf, wrong shapes, zero-length edges, empty clusters, unreadable files.
+
+    ``where`` names the file, prim, strand index or config key at fault.
+    """
+
+    def __init__(self, message: str, where: str | None = None):
+        self.where = where
+        super().__init__(f"{where}: {message}" if where else message)
+
+
+class SimulationError(HairexpError, RuntimeError):
+    """The solver could not produce a finite state, even after the configured recovery."""

@@ -1,0 +1,85 @@
+"""Sparse assembly straight into LAPACK lower banded storage, pattern computed once.
+
+DOFs are the free vertices, ordered strand by strand (3 per vertex), so a stencil of
+consecutive vertices couples DOFs at most ``3 * (k - 1) + 2`` apart: half-bandwidth 8 for
+bending triples.  ``ab[i - j, j] = A[i, j]`` for ``i >= j`` (``scipy.linalg.solveh_banded``
+with ``lower=True``).  Each term's element entries are scattered with one ``np.bincount``
+over precomputed flat destinations; entries touching kinematic vertices are dropped (their
+positions are prescribed).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+
+@dataclass
+class _Scatter:
+    hess_src: np.ndarray   # (n_sel,) flat index into the (n, 3k * 3k) element Hessians
+    hess_dst: np.ndarray   # (n_sel,) flat index into ab (bw + 1, N)
+    grad_src: np.ndarray   # flat index into (n, 3k) element gradients
+    grad_dst: np.ndarray   # DOF index
+
+
+class BandedAssembler:
+    def __init__(self, free_index: np.ndarray, stencils: list[np.ndarray]):
+        self.free_index = np.asarray(free_index)
+        self.n_dofs = 3 * int((self.free_index >= 0).sum())
+        bw = 0
+        for st in stencils:
+            f = self.free_index[st]
+            f = np.where(f >= 0, f, np.nan)
+            if st.shape[1] > 1 and np.isfinite(f).any():
+                span = np.nanmax(f, axis=1) - np.nanmin(f, axis=1)
+                span = span[np.isfinite(span)]
+                if span.size:
+                    bw = max(bw, int(3 * span.max() + 2))
+        self.bandwidth = max(bw, 2)  # a vertex's own 3x3 block needs 2
+        self.scatters = [self._pattern(st) for st in stencils]
+        self._grad_dst = np.concatenate([s.grad_dst for s in self.scatters])
+        self._hess_dst = np.concatenate([s.hess_dst for s in self.scatters])
+
+    def _pattern(self, stencil: np.ndarray) -> _Scatter:
+        n, k = stencil.shape
+        m = 3 * k
+        dof = (3 * self.free_index[stencil][:, :, None] + np.arange(3)).reshape(n, m)  # (n, 3k), negative if kinematic
+        free = (self.free_index[stencil] >= 0).repeat(3, axis=1)
+        # Hessian: lower triangle of the global matrix
+        a, b = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")  # local row a, column b
+        gi, gj = dof[:, a.ravel()], dof[:, b.ravel()]
+        ok = free[:, a.ravel()] & free[:, b.ravel()] & (gi >= gj)
+        e_idx, loc = np.nonzero(ok)
+        hess_src = e_idx * (m * m) + loc
+        N = self.n_dofs
+        hess_dst = (gi[e_idx, loc] - gj[e_idx, loc]) * N + gj[e_idx, loc]
+        if np.any(gi[e_idx, loc] - gj[e_idx, loc] > self.bandwidth):
+            raise AssertionError("stencil exceeds the band; DOFs are not ordered strand by strand")
+        ge, gl = np.nonzero(free)
+        return _Scatter(hess_src, hess_dst, ge * m + gl, dof[ge, gl])
+
+    def gradient(self, grads: list[np.ndarray]) -> np.ndarray:
+        """Sum element gradients (one (n, 3k) array per stencil) into a DOF vector (N,)."""
+        val = np.concatenate([g.reshape(-1)[s.grad_src] for s, g in zip(self.scatters, grads)])
+        return np.bincount(self._grad_dst, weights=val, minlength=self.n_dofs)
+
+    def banded(self, hessians: list[np.ndarray], diagonal: np.ndarray | None = None) -> np.ndarray:
+        """Lower banded storage (bw + 1, N) of the summed element Hessians (one (n, 3k, 3k)
+        array per stencil) plus ``diagonal``."""
+        val = np.concatenate([H.reshape(-1)[s.hess_src] for s, H in zip(self.scatters, hessians)])
+        N = self.n_dofs
+        ab = np.bincount(self._hess_dst, weights=val, minlength=(self.bandwidth + 1) * N)
+        ab = ab.reshape(self.bandwidth + 1, N)
+        if diagonal is not None:
+            ab[0] += diagonal
+        return ab
+
+    @staticmethod
+    def to_sparse(ab: np.ndarray) -> sp.csc_matrix:
+        """Full symmetric CSC matrix from lower banded storage (for reference solves and tests)."""
+        bw1, N = ab.shape
+        diags = [ab[d, : N - d] for d in range(bw1)]
+        L = sp.diags(diags, offsets=[-d for d in range(bw1)], shape=(N, N), format="csc")
+        return (L + sp.triu(L.T, k=1)).tocsc()

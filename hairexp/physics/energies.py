@@ -1,0 +1,227 @@
+"""Elastic and external energies of mass-spring hair (paper 3.4, "mass-spring chains that
+resist stretching and bending, but not twisting" [RCT91]).  All in SI units, float64.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from hairexp.physics.terms import DTYPE, Term
+
+#: Below this |kb| the bending direction is treated as undefined (straight within round-off).
+KB_EPS = 1e-14
+
+
+def _t(a) -> torch.Tensor:
+    return torch.tensor(np.asarray(a), dtype=DTYPE)
+
+
+#: [[1, -1], [-1, 1]] (x) ones(3, 3): the layout of a two-vertex element Hessian [[K, -K], [-K, K]].
+_PAIR_SIGN = torch.kron(torch.tensor([[1.0, -1.0], [-1.0, 1.0]], dtype=DTYPE), torch.ones(3, 3, dtype=DTYPE))
+
+
+def pair_hessian(K: torch.Tensor) -> torch.Tensor:
+    """(n, 3, 3) block K of an edge element -> (n, 6, 6) Hessian [[K, -K], [-K, K]]."""
+    return K.repeat(1, 2, 2) * _PAIR_SIGN
+
+
+class Stretch(Term):
+    """Springs on edges: E = 1/2 (k / l0) (l - l0)^2, k the stretch stiffness EA (N)."""
+
+    name = "stretch"
+
+    def __init__(self, edges: np.ndarray, rest_lengths: np.ndarray, k: float | np.ndarray):
+        self.stencil = np.asarray(edges)
+        self.l0 = _t(rest_lengths)
+        self.k = _t(np.broadcast_to(k, rest_lengths.shape))
+
+    def energy(self, xs):
+        l = torch.linalg.vector_norm(xs[:, 1] - xs[:, 0], dim=-1)
+        return 0.5 * self.k / self.l0 * (l - self.l0) ** 2
+
+    def closed_form(self, xs, need_hessian):
+        # dE/dx1 = (k/l0)(l - l0) e_hat.  Hessian w.r.t. the edge vector:
+        # (k/l0)[e_hat e_hat^T + max(0, 1 - l0/l)(I - e_hat e_hat^T)]: the transverse
+        # coefficient is negative under compression and clamped at 0 (exact PSD projection).
+        e = xs[:, 1] - xs[:, 0]
+        l = torch.linalg.vector_norm(e, dim=-1)
+        u = e / l.unsqueeze(-1)
+        s = self.k / self.l0
+        f = (s * (l - self.l0)).unsqueeze(-1) * u
+        g = torch.cat([-f, f], dim=1)
+        if not need_hessian:
+            return g, None
+        c = (1.0 - self.l0 / l).clamp_min(0.0)
+        us = u * torch.sqrt(s * (1.0 - c)).unsqueeze(-1)
+        K = torch.diag_embed((s * c).unsqueeze(-1).expand(-1, 3)) + us.unsqueeze(-1) * us.unsqueeze(-2)
+        return g, pair_hessian(K)
+
+
+def curvature_binormal(e0: torch.Tensor, e1: torch.Tensor) -> torch.Tensor:
+    """kb = 2 e0 x e1 / (|e0||e1| + e0.e1)  (Bergou et al. 2008).  |kb| = 2 tan(theta/2).
+
+    Smooth at straight configurations, unlike atan2 forms (see FACTS.md)."""
+    l0 = torch.linalg.vector_norm(e0, dim=-1, keepdim=True)
+    l1 = torch.linalg.vector_norm(e1, dim=-1, keepdim=True)
+    return 2.0 * torch.linalg.cross(e0, e1) / (l0 * l1 + (e0 * e1).sum(-1, keepdim=True))
+
+
+def _skew(v: torch.Tensor) -> torch.Tensor:
+    z = torch.zeros_like(v[..., 0])
+    return torch.stack([
+        torch.stack([z, -v[..., 2], v[..., 1]], -1),
+        torch.stack([v[..., 2], z, -v[..., 0]], -1),
+        torch.stack([-v[..., 1], v[..., 0], z], -1),
+    ], -2)
+
+
+class Bending(Term):
+    """Rotation-invariant bending on vertex triples with rest curvature.
+
+    E = B / (l0_a + l0_b) * (|kb| - |kb_rest|)^2, B the bending stiffness EI (N m^2).
+
+    It depends on the configuration only through |kb| = 2 tan(theta/2), so it is invariant
+    under every rotation.  With a straight rest shape (|kb_rest| = 0) it is exactly
+    B/(l0_a+l0_b) |kb|^2, smooth with a non-zero Hessian at straight strands.  With rest
+    curvature it keeps the rest bending *angle* (a model without twist has no material
+    frame to keep the bending plane), and it has a kink at the straight configuration.
+    """
+
+    name = "bending"
+
+    def __init__(self, bends: np.ndarray, rest_positions: np.ndarray, B: float | np.ndarray):
+        self.stencil = np.asarray(bends)
+        xr = _t(rest_positions)[torch.as_tensor(self.stencil)]
+        e0r, e1r = xr[:, 1] - xr[:, 0], xr[:, 2] - xr[:, 1]
+        kb_rest = curvature_binormal(e0r, e1r)
+        s = torch.linalg.vector_norm(kb_rest, dim=-1)
+        self.s_rest = torch.where(s < 1e-12, torch.zeros_like(s), s)  # exactly straight -> exactly quadratic
+        lsum = torch.linalg.vector_norm(e0r, dim=-1) + torch.linalg.vector_norm(e1r, dim=-1)
+        self.w = _t(np.broadcast_to(B, (len(self.stencil),))) / lsum
+
+    def energy(self, xs):
+        kb = curvature_binormal(xs[:, 1] - xs[:, 0], xs[:, 2] - xs[:, 1])
+        sq = (kb * kb).sum(-1)
+        # |kb| only where a rest curvature multiplies it; the sqrt is guarded at 0 (a kink there).
+        nrm = torch.sqrt(torch.where(self.s_rest > 0, sq, torch.ones_like(sq)).clamp_min(1e-300))
+        mid = torch.where(self.s_rest > 0, 2.0 * self.s_rest * nrm, torch.zeros_like(sq))
+        return self.w * (sq - mid + self.s_rest ** 2)
+
+    def kb_jacobian(self, xs):
+        """kb (n, 3) and its Jacobian (n, 3, 9) w.r.t. (x0, x1, x2), in closed form:
+        d kb / d e0 = (-2[e1]x - kb (l1 e0_hat + e1)^T) / chi,
+        d kb / d e1 = ( 2[e0]x - kb (l0 e1_hat + e0)^T) / chi,  chi = l0 l1 + e0.e1."""
+        e0, e1 = xs[:, 1] - xs[:, 0], xs[:, 2] - xs[:, 1]
+        l0 = torch.linalg.vector_norm(e0, dim=-1, keepdim=True)
+        l1 = torch.linalg.vector_norm(e1, dim=-1, keepdim=True)
+        chi = (l0 * l1 + (e0 * e1).sum(-1, keepdim=True)).unsqueeze(-1)
+        kb = 2.0 * torch.linalg.cross(e0, e1) / chi[..., 0]
+        J0 = (-2.0 * _skew(e1) - kb.unsqueeze(-1) * (l1 * e0 / l0 + e1).unsqueeze(-2)) / chi
+        J1 = (2.0 * _skew(e0) - kb.unsqueeze(-1) * (l0 * e1 / l1 + e0).unsqueeze(-2)) / chi
+        return kb, torch.cat([-J0, J0 - J1, J1], dim=2)
+
+    def closed_form(self, xs, need_hessian):
+        # E = w (|kb| - s)^2.  grad = 2w J^T kb (1 - s/|kb|).
+        # Gauss-Newton PSD Hessian: 2w J^T [k k^T + max(0, 1 - s/|kb|)(I - k k^T)] J, which is
+        # the exact Hessian at straight strands with s = 0 (the residual kb vanishes there).
+        kb, J = self.kb_jacobian(xs)
+        nrm = torch.linalg.vector_norm(kb, dim=-1)
+        has_s = self.s_rest > 0
+        ratio = torch.where(has_s & (nrm > KB_EPS), self.s_rest / nrm.clamp_min(KB_EPS), torch.zeros_like(nrm))
+        ratio = torch.where(has_s & (nrm <= KB_EPS), torch.ones_like(nrm), ratio)  # kink: no pull
+        r = kb * (1.0 - ratio).unsqueeze(-1)
+        g = 2.0 * self.w.unsqueeze(-1) * torch.einsum("nci,nc->ni", J, r)
+        if not need_hessian:
+            return g, None
+        # With q = J^T k_hat this is 2w [c J^T J + (1 - c) q q^T]; at the kink (|kb| = 0 with
+        # rest curvature) k_hat is undefined and c = 0: no bending stiffness there.  The
+        # scalars are folded into J and q before the products (cheaper than scaling 9x9s).
+        c = (1.0 - ratio).clamp_min(0.0)
+        Js = J * torch.sqrt(2.0 * self.w * c).view(-1, 1, 1)
+        if bool(has_s.any()):
+            khat = kb / nrm.clamp_min(KB_EPS).unsqueeze(-1)
+            khat = torch.where((nrm > KB_EPS).unsqueeze(-1), khat, torch.zeros_like(khat))
+            q = (khat.unsqueeze(-1) * J).sum(1, keepdim=True) * torch.sqrt(2.0 * self.w * (1.0 - c)).view(-1, 1, 1)
+            Js = torch.cat([Js, q], dim=1)  # (n, 4, 9): H = Js^T Js in one product
+        H = Js.transpose(1, 2) @ Js
+        return g, H
+
+
+class Gravity(Term):
+    """E = -sum_i m_i g . x_i  (linear; zero Hessian)."""
+
+    name = "gravity"
+
+    def __init__(self, masses: np.ndarray, g: np.ndarray, vertices: np.ndarray | None = None):
+        vertices = np.arange(len(masses)) if vertices is None else np.asarray(vertices)
+        self.stencil = vertices.reshape(-1, 1)
+        self.mg = _t(masses)[torch.as_tensor(vertices)].unsqueeze(-1) * _t(g).view(1, 3)
+
+    def energy(self, xs):
+        return -(self.mg * xs[:, 0]).sum(-1)
+
+    def closed_form(self, xs, need_hessian):
+        g = -self.mg
+        return g, (torch.zeros(len(g), 3, 3, dtype=DTYPE) if need_hessian else None)
+
+
+class EdgeDamping(Term):
+    """Variational stretch damping over one step (a quadratic dissipation potential):
+
+    D = c / (2 dt l0) * ((dx_b - dx_a) . u_n)^2,  dx = x - x_n,  u_n the edge direction at
+    the start of the step.  Its gradient is the damping force c/l0 (relative velocity along
+    the edge), c in N s.  Reset each step with ``set_reference``."""
+
+    name = "edge_damping"
+
+    def __init__(self, edges: np.ndarray, rest_lengths: np.ndarray, c: float):
+        self.stencil = np.asarray(edges)
+        self.l0 = _t(rest_lengths)
+        self.c = float(c)
+
+    def set_reference(self, x_n: torch.Tensor, dt: float) -> None:
+        xe = x_n[self.stencil_t]
+        e = xe[:, 1] - xe[:, 0]
+        self.u = e / torch.linalg.vector_norm(e, dim=-1, keepdim=True)
+        self.xref = xe
+        self.s = self.c / (dt * self.l0)
+
+    def energy(self, xs):
+        d = xs - self.xref
+        rel = ((d[:, 1] - d[:, 0]) * self.u).sum(-1)
+        return 0.5 * self.s * rel ** 2
+
+    def closed_form(self, xs, need_hessian):
+        d = xs - self.xref
+        rel = ((d[:, 1] - d[:, 0]) * self.u).sum(-1)
+        f = (self.s * rel).unsqueeze(-1) * self.u
+        g = torch.cat([-f, f], 1)
+        if not need_hessian:
+            return g, None
+        K = self.s.view(-1, 1, 1) * (self.u.unsqueeze(-1) * self.u.unsqueeze(-2))
+        return g, pair_hessian(K)
+
+
+class AirDrag(Term):
+    """Drag against still air over one step: D = gamma m / (2 dt) |x - x_n|^2 (gamma in 1/s)."""
+
+    name = "air_drag"
+
+    def __init__(self, masses: np.ndarray, gamma: float, vertices: np.ndarray):
+        self.stencil = np.asarray(vertices).reshape(-1, 1)
+        self.m = _t(masses)[torch.as_tensor(vertices)]
+        self.gamma = float(gamma)
+
+    def set_reference(self, x_n: torch.Tensor, dt: float) -> None:
+        self.xref = x_n[self.stencil_t][:, 0]
+        self.s = self.gamma * self.m / dt
+
+    def energy(self, xs):
+        return 0.5 * self.s * ((xs[:, 0] - self.xref) ** 2).sum(-1)
+
+    def closed_form(self, xs, need_hessian):
+        g = self.s.unsqueeze(-1) * (xs[:, 0] - self.xref)
+        if not need_hessian:
+            return g, None
+        return g, self.s.view(-1, 1, 1) * torch.eye(3, dtype=DTYPE).expand(len(g), 3, 3)

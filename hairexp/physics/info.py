@@ -1,0 +1,49 @@
+"""Info records returned by the solvers.  Pure data: sinks turn them into metrics."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+#: Status values of a step.
+CONVERGED = "converged"
+MAX_ITERATIONS = "max_iterations"
+LINE_SEARCH_FAILED = "line_search_failed"
+DIVERGED = "diverged"
+
+
+@dataclass
+class SolveInfo:
+    """One nonlinear solve (Newton or SQP) over one time step of size ``dt``."""
+
+    status: str = CONVERGED
+    iterations: int = 0
+    backtracks: int = 0
+    grad_norm: float = 0.0          # final |grad H| (free) or |grad L| (SQP)
+    force_scale: float = 0.0        # what the gradient is compared against
+    constraint_norm: float = 0.0    # SQP only: max |C|
+    seconds: dict = field(default_factory=lambda: {"derivatives": 0.0, "assembly": 0.0, "solve": 0.0})
+
+    @property
+    def converged(self) -> bool:
+        return self.status == CONVERGED
+
+
+@dataclass
+class StepInfo:
+    """One time step as the integrator took it: possibly several substeps after a failure."""
+
+    time: float                      # end-of-step time (s)
+    dt: float
+    status: str
+    iterations: int                  # summed over substeps
+    backtracks: int
+    substeps: int                    # 1 unless recovery split the step
+    grad_norm: float
+    force_scale: float
+    constraint_norm: float = 0.0
+    recovered: bool = False          # a failed attempt was replaced by substeps
+    seconds: dict = field(default_factory=dict)   # derivatives, assembly, solve, collision, other, total
+
+    @property
+    def converged(self) -> bool:
+        return self.status == CONVERGED

@@ -1,0 +1,105 @@
+"""The time step, phase by phase:
+
+1. kinematics: root positions of the rigid body at t + dt;
+2. solve: minimise the implicit Euler objective (eq. 5) - Newton for the free controller;
+3. velocities: v_{n+1} = (x_{n+1} - x_n) / dt;
+4. recovery: a step that diverged or did not converge is retried as two half steps
+   (``solver.on_failure=substep``, recursively), kept and flagged (``warn``), or stops the
+   run (``raise``).  A non-finite state is never returned.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from hairexp import limit_blas_threads
+from hairexp.errors import SimulationError
+from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
+from hairexp.physics.info import CONVERGED, DIVERGED, SolveInfo, StepInfo
+from hairexp.physics.newton import NewtonOptions, newton_solve
+from hairexp.physics.objective import ImplicitEulerObjective
+from hairexp.scene.scene import Scene, State
+
+TIME_KEYS = ("derivatives", "assembly", "solve", "collision", "other")
+
+
+def _value(x):
+    return getattr(x, "value", x)
+
+
+class Simulator:
+    def __init__(self, scene: Scene, solver_cfg):
+        limit_blas_threads()
+        self.scene = scene
+        self.cfg = solver_cfg
+        s, m = scene.strands, scene.material
+        terms = [Stretch(s.edges, s.rest_lengths, m.stretch_stiffness),
+                 Bending(s.bends, s.rest, m.bending_stiffness)]
+        free_vertices = np.flatnonzero(~s.kinematic)
+        if m.edge_damping > 0:
+            terms.append(EdgeDamping(s.edges, s.rest_lengths, m.edge_damping))
+        if m.air_drag > 0:
+            terms.append(AirDrag(s.masses, m.air_drag, free_vertices))
+        external = [Gravity(s.masses, scene.gravity, free_vertices)] if np.any(scene.gravity != 0) else []
+        self.terms, self.external = terms, external
+        self.objective = ImplicitEulerObjective(terms, s.masses, s.kinematic, s.free_index,
+                                                str(_value(solver_cfg.derivatives)), external)
+        self.newton = NewtonOptions(solver_cfg.rtol, solver_cfg.atol, solver_cfg.max_iterations, solver_cfg.max_backtracks)
+        self.on_failure = str(_value(solver_cfg.on_failure))
+
+    def initial_state(self) -> State:
+        """Hair at rest in the body frame, moving rigidly with the body at t = 0."""
+        sc = self.scene
+        x = sc.motion.transform(sc.root_body, 0.0)
+        v = sc.motion.point_velocity(sc.root_body, 0.0)
+        return State(0.0, x, v)
+
+    # -- one attempt ----------------------------------------------------------------------
+    def _solve(self, state: State, dt: float) -> tuple[State, SolveInfo]:
+        t_next = state.time + dt
+        obj = self.objective
+        obj.begin_step(state.x, state.v, self.scene.root_positions(t_next), dt)
+        xf, info = newton_solve(obj, obj.initial_guess(), self.newton)
+        x_new = obj.positions(xf).numpy()
+        v_new = (x_new - state.x) / dt
+        if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()):
+            info.status = DIVERGED
+        return State(t_next, x_new, v_new), info
+
+    def _advance(self, state: State, dt: float, level: int) -> tuple[State, list[SolveInfo]]:
+        new, info = self._solve(state, dt)
+        if info.converged:
+            return new, [info]
+        if self.on_failure == "substep" and level < self.cfg.max_substep_levels:
+            mid, a = self._advance(state, 0.5 * dt, level + 1)
+            end, b = self._advance(mid, 0.5 * dt, level + 1)
+            return end, a + b
+        if info.status == DIVERGED:
+            raise SimulationError(
+                f"step from t={state.time:.6g} s with dt={dt:.3g} s diverged (non-finite state) "
+                f"after {info.iterations} iterations; try a smaller solver.dt or solver.on_failure=substep")
+        if self.on_failure == "raise":
+            raise SimulationError(
+                f"step from t={state.time:.6g} s with dt={dt:.3g} s did not converge ({info.status}, "
+                f"|grad|={info.grad_norm:.3g} vs force scale {info.force_scale:.3g}, {info.iterations} iterations)")
+        return new, [info]
+
+    # -- public ---------------------------------------------------------------------------
+    def step(self, state: State, dt: float) -> tuple[State, StepInfo]:
+        t0 = time.perf_counter()
+        new, infos = self._advance(state, dt, 0)
+        total = time.perf_counter() - t0
+        last = infos[-1]
+        worst = next((i for i in infos if not i.converged), last)
+        sec = {k: sum(i.seconds.get(k, 0.0) for i in infos) for k in TIME_KEYS}
+        sec["other"] = max(total - sum(sec[k] for k in TIME_KEYS if k != "other"), 0.0)
+        sec["total"] = total
+        info = StepInfo(time=new.time, dt=dt, status=worst.status, iterations=sum(i.iterations for i in infos),
+                        backtracks=sum(i.backtracks for i in infos), substeps=len(infos),
+                        grad_norm=last.grad_norm, force_scale=last.force_scale,
+                        recovered=len(infos) > 1 and all(i.converged for i in infos), seconds=sec)
+        if len(infos) > 1 and info.recovered:
+            info.status = CONVERGED
+        return new, info

@@ -1,0 +1,107 @@
+"""The variational implicit Euler objective, paper eq. (5):
+
+    H(x) = 1/2 dv^T M dv + E(x),   dv = (x - x_n)/dt - v_n,
+
+minimised over the free vertex positions (kinematic root vertices are prescribed).  Its
+gradient is M dv / dt + grad E (the backward Euler residual) and its Hessian
+M / dt^2 + hess E.  The same objective serves the free step (Newton) and the tracked step
+(SQP, 3.4); it is the single source of truth for both.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from hairexp.physics.assembly import BandedAssembler
+from hairexp.physics.terms import DTYPE, Term
+
+
+@dataclass
+class Evaluation:
+    """Objective pieces at one iterate (N = number of free DOFs)."""
+
+    value: float
+    grad: np.ndarray                 # (N,)
+    banded: np.ndarray | None        # (bw + 1, N) lower band of the PSD Hessian, or None
+    force_scale: float               # |inertial| + |internal| + |external| force norms
+    seconds: dict = field(default_factory=dict)
+
+
+class ImplicitEulerObjective:
+    """Eq. (5) for one time step.  Built once per run; ``begin_step`` sets x_n, v_n, dt."""
+
+    def __init__(self, terms: list[Term], masses: np.ndarray, kinematic: np.ndarray, free_index: np.ndarray,
+                 derivatives: str = "closed_form", external: list[Term] = ()):
+        """``terms``: energies with Hessians (assembled each iteration); ``external``: linear
+        potentials (gravity) whose gradient is constant and is computed once here."""
+        self.terms = list(terms)
+        self.external = list(external)
+        self.free_vertices = np.flatnonzero(~np.asarray(kinematic))
+        self.m_free = np.asarray(masses)[self.free_vertices]
+        self.m_dof = np.repeat(self.m_free, 3)
+        self.assembler = BandedAssembler(free_index, [t.stencil for t in self.terms])
+        self.derivatives = derivatives
+        self.n_dofs = self.assembler.n_dofs
+        self.g_ext = np.zeros(self.n_dofs)
+        if self.external:
+            ext_asm = BandedAssembler(free_index, [t.stencil for t in self.external])
+            x0 = torch.zeros(len(free_index), 3, dtype=DTYPE)
+            with torch.no_grad():
+                self.g_ext = ext_asm.gradient([t.grad_hess(x0[t.stencil_t], False)[0].numpy() for t in self.external])
+        self.ext_norm = float(np.linalg.norm(self.g_ext))
+
+    # -- per step -------------------------------------------------------------------------
+    def begin_step(self, x_n: np.ndarray, v_n: np.ndarray, x_kinematic_next: np.ndarray, dt: float) -> None:
+        """x_n, v_n: (V, 3) start-of-step state; x_kinematic_next: (V, 3) whose kinematic rows
+        hold the prescribed end-of-step root positions."""
+        self.dt = float(dt)
+        self.x_n = np.asarray(x_n)
+        self.x_full = np.array(x_kinematic_next, dtype=np.float64)
+        x_n_t = torch.as_tensor(self.x_n, dtype=DTYPE)
+        for t in self.terms:
+            if hasattr(t, "set_reference"):
+                t.set_reference(x_n_t, self.dt)
+        self.x_pred = (self.x_n + self.dt * np.asarray(v_n))[self.free_vertices].reshape(-1)  # x_n + dt v_n
+        self.mass_diag = self.m_dof / self.dt ** 2
+
+    def initial_guess(self) -> np.ndarray:
+        return self.x_pred.copy()
+
+    def positions(self, xf: np.ndarray) -> torch.Tensor:
+        """(V, 3) tensor: prescribed kinematic rows, free rows from the DOF vector xf."""
+        x = self.x_full.copy()
+        x[self.free_vertices] = xf.reshape(-1, 3)
+        return torch.from_numpy(x)
+
+    # -- evaluation -----------------------------------------------------------------------
+    def value(self, xf: np.ndarray) -> float:
+        d = xf - self.x_pred
+        inertia = 0.5 * float(np.dot(self.mass_diag * d, d))  # 1/2 dv^T M dv
+        x = self.positions(xf)
+        with torch.no_grad():
+            e = sum(float(t.total(x)) for t in self.terms + self.external)
+        return inertia + e
+
+    def evaluate(self, xf: np.ndarray, need_hessian: bool = True, need_value: bool = False) -> Evaluation:
+        t0 = time.perf_counter()
+        x = self.positions(xf)
+        grads, hessians = [], []
+        with torch.no_grad():
+            for term in self.terms:
+                g, H = term.grad_hess(x[term.stencil_t], need_hessian, self.derivatives)
+                grads.append(g.numpy())
+                if need_hessian:
+                    hessians.append(H.numpy())
+        t1 = time.perf_counter()
+        g_int = self.assembler.gradient(grads)
+        f_inertia = self.mass_diag * (xf - self.x_pred)
+        grad = f_inertia + g_int + self.g_ext
+        scale = float(np.linalg.norm(f_inertia) + np.linalg.norm(g_int) + self.ext_norm)
+        ab = self.assembler.banded(hessians, self.mass_diag) if need_hessian else None
+        t2 = time.perf_counter()
+        value = self.value(xf) if need_value else float("nan")
+        return Evaluation(value, grad, ab, scale, {"derivatives": t1 - t0, "assembly": t2 - t1})

@@ -1,0 +1,127 @@
+"""Run one experiment: build the scene, step it, feed the sinks, write the run folder.
+
+Files (see README "Run folder"): metrics.parquet, summary.json, recording.rrd, result.npz.
+On an error, summary.json records ``"status": "failed"`` with the message, no result.npz is
+written and the recording keeps its ``.partial`` name; the error propagates (non-zero exit).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hairexp.config import to_plain
+from hairexp.errors import InputError
+from hairexp.physics.integrator import Simulator
+from hairexp.scene.builders import build_scene
+from hairexp.sinks.files import ResultRecorder, write_json
+from hairexp.sinks.metrics import MetricsTable, measure
+from hairexp.sinks.progress import Progress, progress_enabled
+
+
+def step_schedule(fps: float, dt: float, frames: int) -> tuple[int, float]:
+    """Steps per frame and the step size that divides the frame interval evenly."""
+    if not (fps > 0 and math.isfinite(fps)):
+        raise InputError(f"must be > 0, got {fps}", "fps")
+    if not (dt > 0 and math.isfinite(dt)):
+        raise InputError(f"must be > 0, got {dt}", "solver.dt")
+    if frames < 1:
+        raise InputError(f"must be >= 1, got {frames}", "frames")
+    frame_dt = 1.0 / fps
+    n = max(1, int(math.ceil(frame_dt / dt - 1e-9)))
+    return n, frame_dt / n
+
+
+def config_hash(plain: dict) -> str:
+    return hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def versions() -> dict:
+    import scipy
+    import torch
+
+    return {"python": platform.python_version(), "numpy": np.__version__, "scipy": scipy.__version__,
+            "torch": torch.__version__}
+
+
+def summarize(table, plain: dict, scene_name: str, controller: str, wall: float, status: str,
+              error: str | None = None) -> dict:
+    df = table.frame()
+    n = len(df)
+    agg = {}
+    if n:
+        agg = {
+            "steps": n,
+            "iterations_mean": float(df["iterations"].mean()),
+            "iterations_max": int(df["iterations"].max()),
+            "converged_fraction": float(df["converged"].mean()),
+            "recovered_steps": int(df["recovered"].sum()),
+            "step_seconds_median": float(df["step_seconds"].median()),
+            "stretch_max": float(df["stretch_max"].max()),
+        }
+    return {
+        "scene": scene_name, "controller": controller, "experiment": plain.get("experiment"),
+        "status": status, "error": error, "success": None, "measures": {},
+        **agg, "wall_seconds": wall, "config_hash": config_hash(plain), "versions": versions(), "config": plain,
+    }
+
+
+def run(cfg, out_dir: str | Path) -> dict:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    plain = to_plain(cfg)
+    controller = plain["controller"]["name"]
+    t_start = time.perf_counter()
+    table = MetricsTable()
+    scene_name = plain["scene"]["name"]
+    rerun_sink = progress = None
+    ok = False
+    try:
+        n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
+        scene = build_scene(cfg.scene)
+        sim = Simulator(scene, cfg.solver)
+        recorder = ResultRecorder(scene)
+        if cfg.logging.rerun:
+            from hairexp.sinks.rerun_sink import RerunSink  # rerun is imported only here
+
+            rerun_sink = RerunSink(str(out / "recording.rrd"), scene, strict=cfg.logging.strict)
+        progress = Progress(cfg.frames * n_sub, progress_enabled(cfg.logging.progress), desc=scene_name)
+        state = sim.initial_state()
+        recorder.log_frame(0, state)
+        if rerun_sink:
+            rerun_sink.log_frame(0, state)
+        step = 0
+        for frame in range(1, cfg.frames + 1):
+            for _ in range(n_sub):
+                state, info = sim.step(state, dt)
+                step += 1
+                row = measure(scene, state, info, sim, step, frame, controller)
+                for sink in (table, rerun_sink, progress):
+                    if sink is not None:
+                        sink.on_step(row, state)
+            recorder.log_frame(frame, state)
+            if rerun_sink:
+                rerun_sink.log_frame(frame, state)
+        recorder.write(out / "result.npz")
+        ok = True
+    except Exception as exc:
+        summary = summarize(table, plain, scene_name, controller, time.perf_counter() - t_start, "failed", str(exc))
+        write_json(out / "summary.json", summary)
+        if len(table.rows):
+            table.frame().to_parquet(out / "metrics.parquet")
+        raise
+    finally:
+        if progress is not None:
+            progress.close()
+        if rerun_sink is not None:
+            rerun_sink.close(success=ok)
+    table.frame().to_parquet(out / "metrics.parquet")
+    summary = summarize(table, plain, scene_name, controller, time.perf_counter() - t_start, "completed")
+    write_json(out / "summary.json", summary)
+    return summary

@@ -1,0 +1,110 @@
+"""Keyframed rigid motion: translation plus rotation, interpolated smoothly, with velocities.
+
+A pose maps body coordinates X to world coordinates ``x = R(t) X + T(t)``.  Keyframes hold
+translations (m) and rotations (rotation vectors, radians).  Interpolation:
+
+* ``cubic``:  C2 cubic spline of the translation (zero end velocities, "clamped") and a C2
+  rotation spline (``scipy.spatial.transform.RotationSpline``);
+* ``linear``: piecewise-linear translation and slerp: constant velocity per segment, so a
+  keyframe can stop the body *suddenly* (the goaling scene's "stops suddenly").
+
+Outside the keyed range the first/last pose is held with zero velocity.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation, RotationSpline, Slerp
+
+from hairexp.errors import InputError
+
+
+@dataclass
+class RigidMotion:
+    times: np.ndarray          # (K,) s, strictly increasing
+    translations: np.ndarray   # (K, 3) m
+    rotvecs: np.ndarray        # (K, 3) rad
+    interpolation: str = "cubic"
+
+    def __post_init__(self) -> None:
+        self.times = np.asarray(self.times, dtype=np.float64).reshape(-1)
+        K = self.times.size
+        self.translations = np.asarray(self.translations, dtype=np.float64).reshape(K, 3) if K else np.zeros((0, 3))
+        self.rotvecs = np.asarray(self.rotvecs, dtype=np.float64).reshape(K, 3) if K else np.zeros((0, 3))
+        if K == 0:
+            raise InputError("a rigid motion needs at least one keyframe", "motion.times")
+        if not (np.isfinite(self.times).all() and np.isfinite(self.translations).all() and np.isfinite(self.rotvecs).all()):
+            raise InputError("keyframes contain NaN or inf", "motion")
+        if K > 1 and np.any(np.diff(self.times) <= 0):
+            raise InputError(f"keyframe times must increase strictly, got {self.times.tolist()}", "motion.times")
+        if self.interpolation not in ("cubic", "linear"):
+            raise InputError(f"unknown interpolation {self.interpolation!r} (cubic|linear)", "motion.interpolation")
+        rots = Rotation.from_rotvec(self.rotvecs)
+        if K == 1:
+            self._pos = self._rot = None
+        elif self.interpolation == "cubic":
+            self._pos = CubicSpline(self.times, self.translations, bc_type="clamped")
+            self._rot = RotationSpline(self.times, rots) if K > 2 else Slerp(self.times, rots)
+        else:
+            self._pos = None
+            self._rot = Slerp(self.times, rots)
+        self._rots = rots
+
+    @staticmethod
+    def static() -> "RigidMotion":
+        return RigidMotion(np.zeros(1), np.zeros((1, 3)), np.zeros((1, 3)))
+
+    def _clamp(self, t: float) -> tuple[float, bool]:
+        lo, hi = self.times[0], self.times[-1]
+        return float(min(max(t, lo), hi)), bool(t < lo or t > hi)
+
+    def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Rotation matrix (3, 3) and translation (3,) at time t."""
+        if self._rot is None:
+            return self._rots[0].as_matrix(), self.translations[0].copy()
+        tc, _ = self._clamp(t)
+        if self._pos is not None:
+            T = self._pos(tc)
+        else:
+            T = np.array([np.interp(tc, self.times, self.translations[:, c]) for c in range(3)])
+        return self._rot(tc).as_matrix().reshape(3, 3), np.asarray(T, dtype=np.float64)
+
+    def velocity(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """World angular velocity omega (3,) rad/s and translational velocity (3,) m/s at t.
+
+        For linear interpolation, at a keyframe the velocity of the *following* segment is
+        returned (right-continuous)."""
+        if self._rot is None:
+            return np.zeros(3), np.zeros(3)
+        tc, outside = self._clamp(t)
+        if outside or (self.interpolation == "linear" and t >= self.times[-1]):
+            return np.zeros(3), np.zeros(3)
+        R, _ = self.pose(tc)
+        if self.interpolation == "cubic":
+            Tdot = np.asarray(self._pos(tc, 1), dtype=np.float64)
+            if isinstance(self._rot, RotationSpline):
+                w_body = np.asarray(self._rot(tc, 1), dtype=np.float64).reshape(3)
+                return R @ w_body, Tdot
+        k = int(np.clip(np.searchsorted(self.times, tc, side="right") - 1, 0, len(self.times) - 2))
+        dt = self.times[k + 1] - self.times[k]
+        rel = (self._rots[k].inv() * self._rots[k + 1]).as_rotvec() / dt  # body-frame rate of this segment
+        w = self._rots[k].as_matrix() @ rel
+        if self.interpolation == "linear":
+            Tdot = (self.translations[k + 1] - self.translations[k]) / dt
+        return w, Tdot
+
+    def transform(self, X_body: np.ndarray, t: float) -> np.ndarray:
+        R, T = self.pose(t)
+        return X_body @ R.T + T
+
+    def point_velocity(self, X_body: np.ndarray, t: float) -> np.ndarray:
+        R, T = self.pose(t)
+        w, Tdot = self.velocity(t)
+        return np.cross(w, (X_body @ R.T)) + Tdot
+
+    def to_body(self, x_world: np.ndarray, t: float) -> np.ndarray:
+        R, T = self.pose(t)
+        return (x_world - T) @ R

@@ -1,0 +1,58 @@
+"""Scene (static: never changes during a run) and State (changes every step)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hairexp.scene.rigid import RigidMotion
+from hairexp.scene.strands import Strands
+
+
+@dataclass
+class Material:
+    linear_density: float        # kg/m
+    stretch_stiffness: float     # EA, N
+    bending_stiffness: float     # EI, N m^2
+    edge_damping: float = 0.0    # N s
+    air_drag: float = 0.0        # 1/s
+
+
+@dataclass
+class Scene:
+    """Everything about a run that does not change from step to step.
+
+    ``root_body``: (V, 3) rest positions in the body frame of ``motion`` (used for the
+    kinematic root vertices, which the body carries rigidly)."""
+
+    name: str
+    strands: Strands
+    material: Material
+    motion: RigidMotion
+    gravity: np.ndarray
+    root_body: np.ndarray
+    colliders: list = field(default_factory=list)
+
+    def root_positions(self, t: float) -> np.ndarray:
+        """(V, 3) with the kinematic rows set to the root positions at time t (others: rest)."""
+        x = self.strands.rest.copy()
+        k = self.strands.kinematic
+        x[k] = self.motion.transform(self.root_body[k], t)
+        return x
+
+    def root_velocities(self, t: float) -> np.ndarray:
+        v = np.zeros_like(self.strands.rest)
+        k = self.strands.kinematic
+        v[k] = self.motion.point_velocity(self.root_body[k], t)
+        return v
+
+
+@dataclass
+class State:
+    time: float
+    x: np.ndarray   # (V, 3) positions, m
+    v: np.ndarray   # (V, 3) velocities, m/s
+
+    def copy(self) -> "State":
+        return State(self.time, self.x.copy(), self.v.copy())

@@ -1,0 +1,90 @@
+"""The rerun recording of a run.  Only imported when ``logging.rerun=true``.
+
+Entities: /world/hair (line strips), /world/body (rigid body transform and box),
+/world/roots (root vertices), /metrics/<name> (scalars on the ``frame``, ``sim_time`` and
+``step`` timelines).  A default blueprint puts the 3D view beside the metric plots.  Each
+recording has an explicit recording id, so parallel workers never share one.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+#: Metrics plotted (a subset of the row; all numeric row entries are logged).
+PLOTTED = ("iterations", "stretch_max", "residual_rel_max", "variance_ratio_mean", "step_seconds", "contacts")
+
+
+def blueprint() -> rrb.Blueprint:
+    plots = [rrb.TimeSeriesView(origin=f"/metrics/{m}", name=m) for m in PLOTTED]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="/world", name="hair"),
+            rrb.Vertical(*plots),
+            column_shares=[2, 1],
+        ),
+        rrb.TimePanel(state="collapsed"),
+        collapse_panels=False,
+    )
+
+
+class RerunSink:
+    def __init__(self, path: str, scene, application_id: str = "hairexp", recording_id: str | None = None,
+                 strict: bool = False):
+        if strict:
+            rr.set_strict_mode(True)
+        self.path = path
+        self.partial = path + ".partial"
+        self.recording_id = recording_id or str(uuid.uuid4())
+        self.rec = rr.RecordingStream(application_id, recording_id=self.recording_id)
+        self.rec.save(self.partial, default_blueprint=blueprint())
+        self.scene = scene
+        self.offsets = scene.strands.offsets
+        self.scalars: dict[str, list] = {}
+        self.steps, self.frames, self.times = [], [], []
+        rec = self.rec
+        rec.log("/world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
+        L = float(np.median(scene.strands.strand_lengths()))
+        self.radius = 0.004 * L
+        rec.log("/world/body/box", rr.Boxes3D(half_sizes=[[0.5 * L * 0.1] * 3], colors=[[180, 180, 190]]), static=True)
+
+    def log_frame(self, frame: int, state) -> None:
+        rec = self.rec
+        rec.set_time("frame", sequence=frame)
+        rec.set_time("sim_time", duration=state.time)
+        strips = np.split(state.x.astype(np.float32), self.offsets[1:-1])
+        rec.log("/world/hair", rr.LineStrips3D(strips, radii=self.radius, colors=[[200, 150, 90]]))
+        roots = state.x[self.scene.strands.kinematic]
+        rec.log("/world/roots", rr.Points3D(roots.astype(np.float32), radii=1.5 * self.radius, colors=[[60, 60, 200]]))
+        R, T = self.scene.motion.pose(state.time)
+        from scipy.spatial.transform import Rotation
+
+        q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
+        rec.log("/world/body", rr.Transform3D(translation=T, quaternion=q))
+
+    def on_step(self, row: dict, state) -> None:
+        self.steps.append(row["step"])
+        self.frames.append(row["frame"])
+        self.times.append(row["time"])
+        for k, v in row.items():
+            if isinstance(v, (bool, np.bool_)):
+                v = float(v)
+            if isinstance(v, (int, float, np.integer, np.floating)) and k not in ("step", "frame", "time"):
+                self.scalars.setdefault(k, []).append(float(v))
+
+    def close(self, success: bool) -> None:
+        rec = self.rec
+        if self.steps:
+            idx = [rr.TimeColumn("step", sequence=self.steps), rr.TimeColumn("frame", sequence=self.frames),
+                   rr.TimeColumn("sim_time", duration=self.times)]
+            for k, vals in self.scalars.items():
+                rec.send_columns(f"/metrics/{k}", indexes=idx, columns=rr.Scalars.columns(scalars=np.asarray(vals)))
+                rec.log(f"/metrics/{k}", rr.SeriesLines(names=k), static=True)
+        rec.flush()
+        rec.disconnect()
+        if success:
+            os.replace(self.partial, self.path)
