@@ -27,7 +27,16 @@ def pair_hessian(K: torch.Tensor) -> torch.Tensor:
 
 
 class Stretch(Term):
-    """Springs on edges: E = 1/2 (k / l0) (l - l0)^2, k the stretch stiffness EA (N)."""
+    """Springs on edges: E = 1/2 (k / l0) (l - l0)^2, k the stretch stiffness EA (N).
+
+    Primal-dual Hessian (compliant constraints, Tournier et al. 2015 "Stable constrained
+    dynamics"): with ``tension`` set, the geometric stiffness T/l (I - u u^T) of each edge uses
+    that tension iterate instead of (k/l0)(l - l0) from the current stretch.  The gradient, and
+    so the converged state, is unchanged; only Newton's model is.  For stiff springs the
+    stretch at an off-manifold iterate is a poor tension estimate, and the penalty form needs
+    about twice the Newton iterations (experiments/bench_free.py).  Newton updates the tension
+    by its linearisation (``linearized_tension``) and warm-starts it from the previous step.
+    """
 
     name = "stretch"
 
@@ -35,26 +44,42 @@ class Stretch(Term):
         self.stencil = np.asarray(edges)
         self.l0 = _t(rest_lengths)
         self.k = _t(np.broadcast_to(k, rest_lengths.shape))
+        self.k_l0 = self.k / self.l0
+        self.tension: torch.Tensor | None = None  # (E,) N, the dual iterate; None: from the stretch
 
     def energy(self, xs):
         l = torch.linalg.vector_norm(xs[:, 1] - xs[:, 0], dim=-1)
         return 0.5 * self.k / self.l0 * (l - self.l0) ** 2
 
+    def tension_of(self, xs) -> torch.Tensor:
+        """(E,) spring tension (k/l0)(l - l0) in N at element positions xs."""
+        return self.k_l0 * (torch.linalg.vector_norm(xs[:, 1] - xs[:, 0], dim=-1) - self.l0)
+
+    def linearized_tension(self, xs, dxs) -> torch.Tensor:
+        """Tension after the step dxs, linearised: (k/l0)(l - l0 + u . (dx1 - dx0))."""
+        e = xs[:, 1] - xs[:, 0]
+        l = torch.linalg.vector_norm(e, dim=-1)
+        return self.k_l0 * (l - self.l0 + ((dxs[:, 1] - dxs[:, 0]) * e).sum(-1) / l)
+
     def closed_form(self, xs, need_hessian):
-        # dE/dx1 = (k/l0)(l - l0) e_hat.  Hessian w.r.t. the edge vector:
-        # (k/l0)[e_hat e_hat^T + max(0, 1 - l0/l)(I - e_hat e_hat^T)]: the transverse
-        # coefficient is negative under compression and clamped at 0 (exact PSD projection).
+        # dE/dx1 = (k/l0)(l - l0) u.  Hessian w.r.t. the edge vector:
+        # (k/l0) u u^T + max(T, 0)/l (I - u u^T), T the tension: T = (k/l0)(l - l0) gives the
+        # exact Hessian of a stretched spring and clamps the negative transverse stiffness of a
+        # compressed one at 0 (the exact PSD projection).
         e = xs[:, 1] - xs[:, 0]
         l = torch.linalg.vector_norm(e, dim=-1)
         u = e / l.unsqueeze(-1)
-        s = self.k / self.l0
-        f = (s * (l - self.l0)).unsqueeze(-1) * u
+        T_now = self.k_l0 * (l - self.l0)
+        f = T_now.unsqueeze(-1) * u
         g = torch.cat([-f, f], dim=1)
         if not need_hessian:
             return g, None
-        c = (1.0 - self.l0 / l).clamp_min(0.0)
-        us = u * torch.sqrt(s * (1.0 - c)).unsqueeze(-1)
-        K = torch.diag_embed((s * c).unsqueeze(-1).expand(-1, 3)) + us.unsqueeze(-1) * us.unsqueeze(-2)
+        T = T_now if self.tension is None else self.tension
+        c = T.clamp_min(0.0) / l
+        us = u * torch.sqrt((self.k_l0 - c).clamp_min(0.0)).unsqueeze(-1)
+        # k/l0 uu^T + c (I - uu^T) = c I + (k/l0 - c) uu^T; if c > k/l0 (T > k l/l0, strain > 100 %)
+        # the uu^T coefficient would go negative: it is clamped too.
+        K = torch.diag_embed(c.unsqueeze(-1).expand(-1, 3)) + us.unsqueeze(-1) * us.unsqueeze(-2)
         return g, pair_hessian(K)
 
 

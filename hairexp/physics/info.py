@@ -22,6 +22,7 @@ class SolveInfo:
     force_scale: float = 0.0        # what the gradient is compared against
     constraint_norm: float = 0.0    # SQP only: max |C|
     seconds: dict = field(default_factory=lambda: {"derivatives": 0.0, "assembly": 0.0, "solve": 0.0})
+    duals: dict = field(default_factory=dict)   # converged dual iterates (warm start of the next step)
 
     @property
     def converged(self) -> bool:

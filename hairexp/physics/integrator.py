@@ -60,13 +60,13 @@ class Simulator:
     def _solve(self, state: State, dt: float) -> tuple[State, SolveInfo]:
         t_next = state.time + dt
         obj = self.objective
-        obj.begin_step(state.x, state.v, self.scene.root_positions(t_next), dt)
+        obj.begin_step(state.x, state.v, self.scene.root_positions(t_next), dt, state.duals)
         xf, info = newton_solve(obj, obj.initial_guess(), self.newton)
         x_new = obj.positions(xf).numpy()
         v_new = (x_new - state.x) / dt
         if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()):
             info.status = DIVERGED
-        return State(t_next, x_new, v_new), info
+        return State(t_next, x_new, v_new, info.duals), info
 
     def _advance(self, state: State, dt: float, level: int) -> tuple[State, list[SolveInfo]]:
         new, info = self._solve(state, dt)

@@ -71,6 +71,7 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
             return x, info
         if gnorm <= opts.atol + opts.rtol * ev.force_scale:
             info.status = CONVERGED
+            info.duals = obj.settle_duals(x)
             return x, info
         if info.iterations >= opts.max_iterations:
             info.status = MAX_ITERATIONS
@@ -92,6 +93,7 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         if alpha == 0.0:
             info.status = LINE_SEARCH_FAILED
             return x, info
+        obj.update_duals(x, alpha * p)
         x = x + alpha * p
         f = f_new
         # the gradient alone first: if it says converged, no Hessian is needed

@@ -55,9 +55,11 @@ class ImplicitEulerObjective:
         self.ext_norm = float(np.linalg.norm(self.g_ext))
 
     # -- per step -------------------------------------------------------------------------
-    def begin_step(self, x_n: np.ndarray, v_n: np.ndarray, x_kinematic_next: np.ndarray, dt: float) -> None:
+    def begin_step(self, x_n: np.ndarray, v_n: np.ndarray, x_kinematic_next: np.ndarray, dt: float,
+                   duals: dict | None = None) -> None:
         """x_n, v_n: (V, 3) start-of-step state; x_kinematic_next: (V, 3) whose kinematic rows
-        hold the prescribed end-of-step root positions."""
+        hold the prescribed end-of-step root positions; ``duals``: warm start of the dual
+        iterates (spring tensions) from the previous step, or None."""
         self.dt = float(dt)
         self.x_n = np.asarray(x_n)
         self.x_full = np.array(x_kinematic_next, dtype=np.float64)
@@ -67,6 +69,35 @@ class ImplicitEulerObjective:
                 t.set_reference(x_n_t, self.dt)
         self.x_pred = (self.x_n + self.dt * np.asarray(v_n))[self.free_vertices].reshape(-1)  # x_n + dt v_n
         self.mass_diag = self.m_dof / self.dt ** 2
+        for t in self._dual_terms:
+            t.tension = None if not duals or duals.get(t.name) is None else torch.as_tensor(duals[t.name])
+
+    # -- dual iterates (primal-dual stretch Hessian, see energies.Stretch) ----------------
+    @property
+    def _dual_terms(self):
+        return [t for t in self.terms if hasattr(t, "linearized_tension")] if self.derivatives == "closed_form" else []
+
+    def update_duals(self, xf: np.ndarray, step: np.ndarray) -> None:
+        """Advance the tension iterates by their linearisation along the accepted step."""
+        terms = self._dual_terms
+        if not terms:
+            return
+        x = self.positions(xf)
+        d = torch.zeros_like(x)
+        d[self.free_vertices] = torch.from_numpy(step.reshape(-1, 3))
+        with torch.no_grad():
+            for t in terms:
+                t.tension = t.linearized_tension(x[t.stencil_t], d[t.stencil_t])
+
+    def settle_duals(self, xf: np.ndarray) -> dict:
+        """Tensions of the final state (the warm start of the next step)."""
+        x = self.positions(xf)
+        out = {}
+        with torch.no_grad():
+            for t in self._dual_terms:
+                t.tension = t.tension_of(x[t.stencil_t])
+                out[t.name] = t.tension.numpy().copy()
+        return out
 
     def initial_guess(self) -> np.ndarray:
         return self.x_pred.copy()

@@ -53,6 +53,7 @@ class State:
     time: float
     x: np.ndarray   # (V, 3) positions, m
     v: np.ndarray   # (V, 3) velocities, m/s
+    duals: dict = field(default_factory=dict)  # solver iterates carried to the next step (tensions, ...)
 
     def copy(self) -> "State":
-        return State(self.time, self.x.copy(), self.v.copy())
+        return State(self.time, self.x.copy(), self.v.copy(), {k: v.copy() for k, v in self.duals.items()})
