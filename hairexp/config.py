@@ -21,6 +21,17 @@ class Derivatives(str, Enum):
     autograd = "autograd"         # batched torch autograd + eigenvalue clamping
 
 
+class StretchHessian(str, Enum):
+    primal_dual = "primal_dual"   # geometric stiffness from a tension iterate (Tournier et al. 2015)
+    penalty = "penalty"           # geometric stiffness from the current stretch
+
+
+class Compile(str, Enum):
+    auto = "auto"   # compile the derivative kernels for scenes with >= COMPILE_MIN_VERTICES vertices
+    on = "on"
+    off = "off"
+
+
 class OnFailure(str, Enum):
     substep = "substep"   # retry a failed step as two half steps, recursively
     warn = "warn"         # keep a finite non-converged state, flag it in the metrics
@@ -85,6 +96,8 @@ class SolverConfig:
     max_iterations: int = 30
     max_backtracks: int = 30
     derivatives: Derivatives = Derivatives.closed_form
+    stretch_hessian: StretchHessian = StretchHessian.primal_dual
+    compile: Compile = Compile.auto   # torch.compile of the closed forms (first step pays ~10-20 s)
     on_failure: OnFailure = OnFailure.substep
     max_substep_levels: int = 4       # a failing step is split into at most 2^levels substeps
 

@@ -31,12 +31,12 @@ class BandedAssembler:
         bw = 0
         for st in stencils:
             f = self.free_index[st]
-            f = np.where(f >= 0, f, np.nan)
-            if st.shape[1] > 1 and np.isfinite(f).any():
-                span = np.nanmax(f, axis=1) - np.nanmin(f, axis=1)
-                span = span[np.isfinite(span)]
-                if span.size:
-                    bw = max(bw, int(3 * span.max() + 2))
+            big = np.iinfo(np.int64).max
+            hi = np.where(f >= 0, f, -1).max(axis=1)
+            lo = np.where(f >= 0, f, big).min(axis=1)
+            has = hi >= 0
+            if has.any():
+                bw = max(bw, int(3 * (hi[has] - lo[has]).max() + 2))
         self.bandwidth = max(bw, 2)  # a vertex's own 3x3 block needs 2
         self.scatters = [self._pattern(st) for st in stencils]
         self._grad_dst = np.concatenate([s.grad_dst for s in self.scatters])

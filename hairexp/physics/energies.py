@@ -26,6 +26,37 @@ def pair_hessian(K: torch.Tensor) -> torch.Tensor:
     return K.repeat(1, 2, 2) * _PAIR_SIGN
 
 
+def stretch_energy(xs, k_l0, l0):
+    """(n,) E = 1/2 (k / l0) (l - l0)^2 of each edge."""
+    l = torch.linalg.vector_norm(xs[:, 1] - xs[:, 0], dim=-1)
+    return 0.5 * k_l0 * (l - l0) ** 2
+
+
+def stretch_kernel(xs, k_l0, l0, tension, need_hessian: bool):
+    """Closed-form gradient (n, 6) and PSD Hessian (n, 6, 6) of Stretch (a pure function, so
+    that torch.compile sees every input).
+
+    dE/dx1 = (k/l0)(l - l0) u.  Hessian w.r.t. the edge vector:
+    (k/l0) u u^T + max(T, 0)/l (I - u u^T), T the tension: T = (k/l0)(l - l0) gives the exact
+    Hessian of a stretched spring and clamps the negative transverse stiffness of a compressed
+    one at 0 (the exact PSD projection); ``tension`` overrides T (primal-dual Hessian)."""
+    e = xs[:, 1] - xs[:, 0]
+    l = torch.linalg.vector_norm(e, dim=-1)
+    u = e / l.unsqueeze(-1)
+    T_now = k_l0 * (l - l0)
+    f = T_now.unsqueeze(-1) * u
+    g = torch.cat([-f, f], dim=1)
+    if not need_hessian:
+        return g, None
+    T = T_now if tension is None else tension
+    c = T.clamp_min(0.0) / l
+    # k/l0 uu^T + c (I - uu^T) = c I + (k/l0 - c) uu^T; the uu^T coefficient is clamped at 0
+    # too (it would go negative only past 100 % strain).
+    us = u * torch.sqrt((k_l0 - c).clamp_min(0.0)).unsqueeze(-1)
+    K = torch.diag_embed(c.unsqueeze(-1).expand(-1, 3)) + us.unsqueeze(-1) * us.unsqueeze(-2)
+    return g, pair_hessian(K)
+
+
 class Stretch(Term):
     """Springs on edges: E = 1/2 (k / l0) (l - l0)^2, k the stretch stiffness EA (N).
 
@@ -47,9 +78,10 @@ class Stretch(Term):
         self.k_l0 = self.k / self.l0
         self.tension: torch.Tensor | None = None  # (E,) N, the dual iterate; None: from the stretch
 
-    def energy(self, xs):
-        l = torch.linalg.vector_norm(xs[:, 1] - xs[:, 0], dim=-1)
-        return 0.5 * self.k / self.l0 * (l - self.l0) ** 2
+    energy_fn = staticmethod(stretch_energy)
+
+    def energy_args(self):
+        return self.k_l0, self.l0
 
     def tension_of(self, xs) -> torch.Tensor:
         """(E,) spring tension (k/l0)(l - l0) in N at element positions xs."""
@@ -61,26 +93,10 @@ class Stretch(Term):
         l = torch.linalg.vector_norm(e, dim=-1)
         return self.k_l0 * (l - self.l0 + ((dxs[:, 1] - dxs[:, 0]) * e).sum(-1) / l)
 
-    def closed_form(self, xs, need_hessian):
-        # dE/dx1 = (k/l0)(l - l0) u.  Hessian w.r.t. the edge vector:
-        # (k/l0) u u^T + max(T, 0)/l (I - u u^T), T the tension: T = (k/l0)(l - l0) gives the
-        # exact Hessian of a stretched spring and clamps the negative transverse stiffness of a
-        # compressed one at 0 (the exact PSD projection).
-        e = xs[:, 1] - xs[:, 0]
-        l = torch.linalg.vector_norm(e, dim=-1)
-        u = e / l.unsqueeze(-1)
-        T_now = self.k_l0 * (l - self.l0)
-        f = T_now.unsqueeze(-1) * u
-        g = torch.cat([-f, f], dim=1)
-        if not need_hessian:
-            return g, None
-        T = T_now if self.tension is None else self.tension
-        c = T.clamp_min(0.0) / l
-        us = u * torch.sqrt((self.k_l0 - c).clamp_min(0.0)).unsqueeze(-1)
-        # k/l0 uu^T + c (I - uu^T) = c I + (k/l0 - c) uu^T; if c > k/l0 (T > k l/l0, strain > 100 %)
-        # the uu^T coefficient would go negative: it is clamped too.
-        K = torch.diag_embed(c.unsqueeze(-1).expand(-1, 3)) + us.unsqueeze(-1) * us.unsqueeze(-2)
-        return g, pair_hessian(K)
+    kernel = staticmethod(stretch_kernel)
+
+    def kernel_args(self):
+        return self.k_l0, self.l0, self.tension
 
 
 def curvature_binormal(e0: torch.Tensor, e1: torch.Tensor) -> torch.Tensor:
@@ -101,6 +117,59 @@ def _skew(v: torch.Tensor) -> torch.Tensor:
     ], -2)
 
 
+def kb_jacobian(xs):
+    """kb (n, 3) and its Jacobian (n, 3, 9) w.r.t. (x0, x1, x2), in closed form:
+    d kb / d e0 = (-2[e1]x - kb (l1 e0_hat + e1)^T) / chi,
+    d kb / d e1 = ( 2[e0]x - kb (l0 e1_hat + e0)^T) / chi,  chi = l0 l1 + e0.e1."""
+    e0, e1 = xs[:, 1] - xs[:, 0], xs[:, 2] - xs[:, 1]
+    l0 = torch.linalg.vector_norm(e0, dim=-1, keepdim=True)
+    l1 = torch.linalg.vector_norm(e1, dim=-1, keepdim=True)
+    chi = (l0 * l1 + (e0 * e1).sum(-1, keepdim=True)).unsqueeze(-1)
+    kb = 2.0 * torch.linalg.cross(e0, e1) / chi[..., 0]
+    J0 = (-2.0 * _skew(e1) - kb.unsqueeze(-1) * (l1 * e0 / l0 + e1).unsqueeze(-2)) / chi
+    J1 = (2.0 * _skew(e0) - kb.unsqueeze(-1) * (l0 * e1 / l1 + e0).unsqueeze(-2)) / chi
+    return kb, torch.cat([-J0, J0 - J1, J1], dim=2)
+
+
+def bending_energy(xs, w, s_rest):
+    """(n,) E = w (|kb| - s)^2 = w (|kb|^2 - 2 s |kb| + s^2); |kb| is taken only where a rest
+    curvature multiplies it (guarded at 0, where the energy has a kink), so a straight rest
+    shape gives the exactly quadratic, smooth w |kb|^2."""
+    kb = curvature_binormal(xs[:, 1] - xs[:, 0], xs[:, 2] - xs[:, 1])
+    sq = (kb * kb).sum(-1)
+    nrm = torch.sqrt(torch.where(s_rest > 0, sq, torch.ones_like(sq)).clamp_min(1e-300))
+    mid = torch.where(s_rest > 0, 2.0 * s_rest * nrm, torch.zeros_like(sq))
+    return w * (sq - mid + s_rest ** 2)
+
+
+def bending_kernel(xs, w, s_rest, curved: bool, need_hessian: bool):
+    """Closed-form gradient (n, 9) and Gauss-Newton PSD Hessian (n, 9, 9) of Bending.
+
+    E = w (|kb| - s)^2.  grad = 2w J^T kb (1 - s/|kb|).  Hessian: 2w J^T [k k^T + c (I - k k^T)] J
+    with c = max(0, 1 - s/|kb|), which is the exact Hessian at straight strands with s = 0 (the
+    residual kb vanishes there).  With q = J^T k_hat it is 2w [c J^T J + (1 - c) q q^T]; at the
+    kink (|kb| = 0 with rest curvature) k_hat is undefined and c = 0: no bending stiffness there.
+    The scalars are folded into J and q before the products (cheaper than scaling 9x9s)."""
+    kb, J = kb_jacobian(xs)
+    nrm = torch.linalg.vector_norm(kb, dim=-1)
+    has_s = s_rest > 0
+    ratio = torch.where(has_s & (nrm > KB_EPS), s_rest / nrm.clamp_min(KB_EPS), torch.zeros_like(nrm))
+    ratio = torch.where(has_s & (nrm <= KB_EPS), torch.ones_like(nrm), ratio)  # kink: no pull
+    r = kb * (1.0 - ratio).unsqueeze(-1)
+    g = 2.0 * w.unsqueeze(-1) * torch.einsum("nci,nc->ni", J, r)
+    if not need_hessian:
+        return g, None
+    c = (1.0 - ratio).clamp_min(0.0)
+    Js = J * torch.sqrt(2.0 * w * c).view(-1, 1, 1)
+    if curved:
+        khat = kb / nrm.clamp_min(KB_EPS).unsqueeze(-1)
+        khat = torch.where((nrm > KB_EPS).unsqueeze(-1), khat, torch.zeros_like(khat))
+        q = (khat.unsqueeze(-1) * J).sum(1, keepdim=True) * torch.sqrt(2.0 * w * (1.0 - c)).view(-1, 1, 1)
+        Js = torch.cat([Js, q], dim=1)  # (n, 4, 9): H = Js^T Js in one product
+    H = Js.transpose(1, 2) @ Js
+    return g, H
+
+
 class Bending(Term):
     """Rotation-invariant bending on vertex triples with rest curvature.
 
@@ -117,60 +186,27 @@ class Bending(Term):
 
     def __init__(self, bends: np.ndarray, rest_positions: np.ndarray, B: float | np.ndarray):
         self.stencil = np.asarray(bends)
-        xr = _t(rest_positions)[torch.as_tensor(self.stencil)]
+        xr = _t(rest_positions)[torch.tensor(self.stencil)]
         e0r, e1r = xr[:, 1] - xr[:, 0], xr[:, 2] - xr[:, 1]
         kb_rest = curvature_binormal(e0r, e1r)
         s = torch.linalg.vector_norm(kb_rest, dim=-1)
         self.s_rest = torch.where(s < 1e-12, torch.zeros_like(s), s)  # exactly straight -> exactly quadratic
+        self.curved = bool((self.s_rest > 0).any())  # static: no data-dependent branch in the kernel
         lsum = torch.linalg.vector_norm(e0r, dim=-1) + torch.linalg.vector_norm(e1r, dim=-1)
         self.w = _t(np.broadcast_to(B, (len(self.stencil),))) / lsum
 
-    def energy(self, xs):
-        kb = curvature_binormal(xs[:, 1] - xs[:, 0], xs[:, 2] - xs[:, 1])
-        sq = (kb * kb).sum(-1)
-        # |kb| only where a rest curvature multiplies it; the sqrt is guarded at 0 (a kink there).
-        nrm = torch.sqrt(torch.where(self.s_rest > 0, sq, torch.ones_like(sq)).clamp_min(1e-300))
-        mid = torch.where(self.s_rest > 0, 2.0 * self.s_rest * nrm, torch.zeros_like(sq))
-        return self.w * (sq - mid + self.s_rest ** 2)
+    energy_fn = staticmethod(bending_energy)
+
+    def energy_args(self):
+        return self.w, self.s_rest
+
+    kernel = staticmethod(bending_kernel)
+
+    def kernel_args(self):
+        return self.w, self.s_rest, self.curved
 
     def kb_jacobian(self, xs):
-        """kb (n, 3) and its Jacobian (n, 3, 9) w.r.t. (x0, x1, x2), in closed form:
-        d kb / d e0 = (-2[e1]x - kb (l1 e0_hat + e1)^T) / chi,
-        d kb / d e1 = ( 2[e0]x - kb (l0 e1_hat + e0)^T) / chi,  chi = l0 l1 + e0.e1."""
-        e0, e1 = xs[:, 1] - xs[:, 0], xs[:, 2] - xs[:, 1]
-        l0 = torch.linalg.vector_norm(e0, dim=-1, keepdim=True)
-        l1 = torch.linalg.vector_norm(e1, dim=-1, keepdim=True)
-        chi = (l0 * l1 + (e0 * e1).sum(-1, keepdim=True)).unsqueeze(-1)
-        kb = 2.0 * torch.linalg.cross(e0, e1) / chi[..., 0]
-        J0 = (-2.0 * _skew(e1) - kb.unsqueeze(-1) * (l1 * e0 / l0 + e1).unsqueeze(-2)) / chi
-        J1 = (2.0 * _skew(e0) - kb.unsqueeze(-1) * (l0 * e1 / l1 + e0).unsqueeze(-2)) / chi
-        return kb, torch.cat([-J0, J0 - J1, J1], dim=2)
-
-    def closed_form(self, xs, need_hessian):
-        # E = w (|kb| - s)^2.  grad = 2w J^T kb (1 - s/|kb|).
-        # Gauss-Newton PSD Hessian: 2w J^T [k k^T + max(0, 1 - s/|kb|)(I - k k^T)] J, which is
-        # the exact Hessian at straight strands with s = 0 (the residual kb vanishes there).
-        kb, J = self.kb_jacobian(xs)
-        nrm = torch.linalg.vector_norm(kb, dim=-1)
-        has_s = self.s_rest > 0
-        ratio = torch.where(has_s & (nrm > KB_EPS), self.s_rest / nrm.clamp_min(KB_EPS), torch.zeros_like(nrm))
-        ratio = torch.where(has_s & (nrm <= KB_EPS), torch.ones_like(nrm), ratio)  # kink: no pull
-        r = kb * (1.0 - ratio).unsqueeze(-1)
-        g = 2.0 * self.w.unsqueeze(-1) * torch.einsum("nci,nc->ni", J, r)
-        if not need_hessian:
-            return g, None
-        # With q = J^T k_hat this is 2w [c J^T J + (1 - c) q q^T]; at the kink (|kb| = 0 with
-        # rest curvature) k_hat is undefined and c = 0: no bending stiffness there.  The
-        # scalars are folded into J and q before the products (cheaper than scaling 9x9s).
-        c = (1.0 - ratio).clamp_min(0.0)
-        Js = J * torch.sqrt(2.0 * self.w * c).view(-1, 1, 1)
-        if bool(has_s.any()):
-            khat = kb / nrm.clamp_min(KB_EPS).unsqueeze(-1)
-            khat = torch.where((nrm > KB_EPS).unsqueeze(-1), khat, torch.zeros_like(khat))
-            q = (khat.unsqueeze(-1) * J).sum(1, keepdim=True) * torch.sqrt(2.0 * self.w * (1.0 - c)).view(-1, 1, 1)
-            Js = torch.cat([Js, q], dim=1)  # (n, 4, 9): H = Js^T Js in one product
-        H = Js.transpose(1, 2) @ Js
-        return g, H
+        return kb_jacobian(xs)
 
 
 class Gravity(Term):
@@ -181,7 +217,7 @@ class Gravity(Term):
     def __init__(self, masses: np.ndarray, g: np.ndarray, vertices: np.ndarray | None = None):
         vertices = np.arange(len(masses)) if vertices is None else np.asarray(vertices)
         self.stencil = vertices.reshape(-1, 1)
-        self.mg = _t(masses)[torch.as_tensor(vertices)].unsqueeze(-1) * _t(g).view(1, 3)
+        self.mg = _t(masses)[torch.tensor(vertices)].unsqueeze(-1) * _t(g).view(1, 3)
 
     def energy(self, xs):
         return -(self.mg * xs[:, 0]).sum(-1)
@@ -235,7 +271,7 @@ class AirDrag(Term):
 
     def __init__(self, masses: np.ndarray, gamma: float, vertices: np.ndarray):
         self.stencil = np.asarray(vertices).reshape(-1, 1)
-        self.m = _t(masses)[torch.as_tensor(vertices)]
+        self.m = _t(masses)[torch.tensor(vertices)]
         self.gamma = float(gamma)
 
     def set_reference(self, x_n: torch.Tensor, dt: float) -> None:

@@ -10,11 +10,12 @@
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
 
-from hairexp import limit_blas_threads
+from hairexp import tune_runtime
 from hairexp.errors import SimulationError
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
 from hairexp.physics.info import CONVERGED, DIVERGED, SolveInfo, StepInfo
@@ -23,6 +24,10 @@ from hairexp.physics.objective import ImplicitEulerObjective
 from hairexp.scene.scene import Scene, State
 
 TIME_KEYS = ("derivatives", "assembly", "solve", "collision", "other")
+#: ``solver.compile=auto`` compiles the derivative kernels from this many vertices on.
+COMPILE_MIN_VERTICES = 4000
+
+log = logging.getLogger(__name__)
 
 
 def _value(x):
@@ -31,7 +36,7 @@ def _value(x):
 
 class Simulator:
     def __init__(self, scene: Scene, solver_cfg):
-        limit_blas_threads()
+        tune_runtime()
         self.scene = scene
         self.cfg = solver_cfg
         s, m = scene.strands, scene.material
@@ -45,9 +50,19 @@ class Simulator:
         external = [Gravity(s.masses, scene.gravity, free_vertices)] if np.any(scene.gravity != 0) else []
         self.terms, self.external = terms, external
         self.objective = ImplicitEulerObjective(terms, s.masses, s.kinematic, s.free_index,
-                                                str(_value(solver_cfg.derivatives)), external)
+                                                str(_value(solver_cfg.derivatives)), external,
+                                                primal_dual=str(_value(solver_cfg.stretch_hessian)) == "primal_dual")
         self.newton = NewtonOptions(solver_cfg.rtol, solver_cfg.atol, solver_cfg.max_iterations, solver_cfg.max_backtracks)
         self.on_failure = str(_value(solver_cfg.on_failure))
+        mode = str(_value(getattr(solver_cfg, "compile", "off")))
+        if mode == "on" or (mode == "auto" and s.n_vertices >= COMPILE_MIN_VERTICES):
+            self._compile()
+
+    def _compile(self) -> None:
+        if str(_value(self.cfg.derivatives)) != "closed_form":
+            return
+        for t in self.terms:
+            t.compile()  # compiles lazily at the first call; falls back to eager if that fails
 
     def initial_state(self) -> State:
         """Hair at rest in the body frame, moving rigidly with the body at t = 0."""

@@ -35,7 +35,7 @@ class ImplicitEulerObjective:
     """Eq. (5) for one time step.  Built once per run; ``begin_step`` sets x_n, v_n, dt."""
 
     def __init__(self, terms: list[Term], masses: np.ndarray, kinematic: np.ndarray, free_index: np.ndarray,
-                 derivatives: str = "closed_form", external: list[Term] = ()):
+                 derivatives: str = "closed_form", external: list[Term] = (), primal_dual: bool = True):
         """``terms``: energies with Hessians (assembled each iteration); ``external``: linear
         potentials (gravity) whose gradient is constant and is computed once here."""
         self.terms = list(terms)
@@ -45,6 +45,7 @@ class ImplicitEulerObjective:
         self.m_dof = np.repeat(self.m_free, 3)
         self.assembler = BandedAssembler(free_index, [t.stencil for t in self.terms])
         self.derivatives = derivatives
+        self.primal_dual = primal_dual and derivatives == "closed_form"
         self.n_dofs = self.assembler.n_dofs
         self.g_ext = np.zeros(self.n_dofs)
         if self.external:
@@ -75,7 +76,7 @@ class ImplicitEulerObjective:
     # -- dual iterates (primal-dual stretch Hessian, see energies.Stretch) ----------------
     @property
     def _dual_terms(self):
-        return [t for t in self.terms if hasattr(t, "linearized_tension")] if self.derivatives == "closed_form" else []
+        return [t for t in self.terms if hasattr(t, "linearized_tension")] if self.primal_dual else []
 
     def update_duals(self, xf: np.ndarray, step: np.ndarray) -> None:
         """Advance the tension iterates by their linearisation along the accepted step."""

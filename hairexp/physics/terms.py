@@ -49,17 +49,64 @@ def project_psd(H: torch.Tensor, floor: float = 0.0) -> torch.Tensor:
 
 
 class Term:
-    """Base class.  Subclasses set ``name``, ``stencil`` ((n, k) vertex indices) and ``energy``."""
+    """Base class.  Subclasses set ``name``, ``stencil`` ((n, k) vertex indices) and either
+    ``energy_fn`` (a pure function ``(xs, *energy_args()) -> (n,)``) or override ``energy``."""
 
     name: str = "term"
     stencil: np.ndarray
+    energy_fn = None
+    #: Optional closed form as a *pure* function ``kernel(xs, *kernel_args(), need_hessian)
+    #: -> (grad (n, 3k), PSD Hessian (n, 3k, 3k) or None)``; pure so that ``torch.compile``
+    #: sees every input (tensors read from attributes would be baked in as constants).
+    kernel = None
+
+    def energy_args(self) -> tuple:
+        return ()
+
+    def kernel_args(self) -> tuple:
+        return ()
 
     def energy(self, xs: torch.Tensor) -> torch.Tensor:  # (n, k, 3) -> (n,)
-        raise NotImplementedError
+        return type(self).energy_fn(xs, *self.energy_args())
+
+    def total(self, x: torch.Tensor) -> torch.Tensor:
+        """Summed energy for full positions x (V, 3)."""
+        if "_compiled_total" in self.__dict__:
+            return self._guarded("_compiled_total", x, self.stencil_t, *self.energy_args())
+        return self.energy(x[self.stencil_t]).sum()
 
     def closed_form(self, xs: torch.Tensor, need_hessian: bool):
-        """Optional fast (gradient, PSD Hessian); return None to fall back to autograd."""
-        return None
+        """Fast (gradient, PSD Hessian) from ``kernel``; None if the term has no closed form."""
+        if self.kernel is None:
+            return None
+        if "_compiled_kernel" in self.__dict__:
+            return self._guarded("_compiled_kernel", xs, *self.kernel_args(), need_hessian)
+        return type(self).kernel(xs, *self.kernel_args(), need_hessian)
+
+    def compile(self) -> None:
+        """Use ``torch.compile`` for the kernel and the summed energy (fused; same numbers to
+        round-off).  They are built at the first call, which falls back to eager on failure."""
+        if type(self).kernel is not None:
+            self._compiled_kernel = torch.compile(type(self).kernel, dynamic=False)
+        if type(self).energy_fn is not None:
+            efn = type(self).energy_fn
+
+            def summed(x, stencil, *args):
+                return efn(x[stencil], *args).sum()
+
+            self._compiled_total = torch.compile(summed, dynamic=False)
+
+    def _guarded(self, attr: str, *args):
+        try:
+            return self.__dict__[attr](*args)
+        except Exception as exc:  # the compiled build failed (no compiler, ...): use eager from now on
+            import logging
+
+            logging.getLogger(__name__).warning("torch.compile failed for %s (%s); using eager", self.name, exc)
+            del self.__dict__[attr]
+            if attr == "_compiled_total":
+                return self.total(args[0])
+            return self.closed_form(args[0], args[-1])
 
     def grad_hess(self, xs: torch.Tensor, need_hessian: bool = True, mode: str = "closed_form"):
         """Element gradients (n, 3k) and PSD element Hessians (n, 3k, 3k) or None."""
@@ -70,14 +117,10 @@ class Term:
         g, H = autograd_grad_hess(self.energy, xs, need_hessian)
         return g, (project_psd(H) if need_hessian else None)
 
-    def total(self, x: torch.Tensor) -> torch.Tensor:
-        """Summed energy for full positions x (V, 3)."""
-        return self.energy(x[self.stencil_t]).sum()
-
     @property
     def stencil_t(self) -> torch.Tensor:
         st = getattr(self, "_stencil_t", None)
         if st is None:
-            st = torch.as_tensor(self.stencil, dtype=torch.long)
+            st = torch.tensor(np.asarray(self.stencil), dtype=torch.long)
             self._stencil_t = st
         return st
