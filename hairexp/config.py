@@ -35,7 +35,7 @@ class Compile(str, Enum):
 class OnFailure(str, Enum):
     substep = "substep"   # retry a failed step as two half steps, recursively
     warn = "warn"         # keep a finite non-converged state, flag it in the metrics
-    raise_ = "raise"      # stop the run with an error
+    fail = "fail"         # stop the run with an error (exit code 3)
 
 
 class Builder(str, Enum):

@@ -3,7 +3,10 @@ schema rejects unknown keys, wrong types and bad choices at composition, naming 
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
+import typing
+from enum import Enum
 
 import pytest
 from hydra.errors import HydraException
@@ -11,7 +14,7 @@ from omegaconf import OmegaConf
 
 import hairexp.config  # noqa: F401  (registers the schema)
 from helpers import CONF_DIR
-from hairexp.config import OnFailure, to_plain
+from hairexp.config import Config, OnFailure, to_plain
 from hairexp.scene.builders import build_scene
 
 EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
@@ -28,6 +31,30 @@ def full_message(exc: BaseException) -> str:
     return "\n".join(parts)
 
 
+def yaml_leaves(path, package: str = ""):
+    """(dotted key, value) of every leaf a config file sets (Hydra's ``defaults`` list excluded);
+    ``package`` is the node a group file lands in (none for ``# @package _global_`` files)."""
+    data = OmegaConf.to_container(OmegaConf.load(path))
+    data.pop("defaults", None)
+
+    def walk(node, prefix):
+        for k, v in node.items():
+            if isinstance(v, dict):
+                yield from walk(v, f"{prefix}{k}.")
+            else:
+                yield f"{prefix}{k}", v
+
+    return list(walk(data, f"{package}." if package else ""))
+
+
+def assert_file_applied(cfg, path, package=""):
+    plain = OmegaConf.create(to_plain(cfg))
+    leaves = yaml_leaves(path, package)
+    assert leaves, path
+    for key, value in leaves:
+        assert OmegaConf.select(plain, key) == value, f"{path.name}: {key}"
+
+
 def test_there_are_experiments():
     assert {"goaling", "celia"} <= set(EXPERIMENTS)
 
@@ -36,6 +63,7 @@ def test_there_are_experiments():
 def test_experiment_composes_and_builds(hydra_conf, name):
     cfg = hydra_conf([f"experiment={name}"])
     assert cfg.experiment == name
+    assert_file_applied(cfg, CONF_DIR / "experiment" / f"{name}.yaml")  # experiments are applied last
     assert OmegaConf.is_missing(cfg, "frames") is False and cfg.frames >= 1
     plain = to_plain(cfg)  # resolves every interpolation; enums become strings
     assert plain["experiment"] == name and isinstance(plain["solver"]["on_failure"], str)
@@ -47,7 +75,7 @@ def test_experiment_composes_and_builds(hydra_conf, name):
 @pytest.mark.parametrize("group,option", GROUP_OPTIONS, ids=[f"{g}={o}" for g, o in GROUP_OPTIONS])
 def test_group_option_composes(hydra_conf, group, option):
     cfg = hydra_conf([f"{group}={option}"])
-    assert group in cfg
+    assert_file_applied(cfg, CONF_DIR / group / f"{option}.yaml", package=group)
 
 
 def test_overrides_are_typed(hydra_conf):
@@ -57,16 +85,35 @@ def test_overrides_are_typed(hydra_conf):
     assert cfg.solver.dt == 0.01
 
 
-@pytest.mark.xfail(strict=True, raises=HydraException,
-                   reason="BUG config.py:27 OnFailure.raise_ = 'raise': OmegaConf converts enum overrides by "
-                          "member *name*, so the documented choice solver.on_failure=raise is rejected "
-                          "('expected one of [substep, warn, raise_]')")
-def test_on_failure_raise_is_accepted(hydra_conf):
-    from hairexp.physics.integrator import Simulator
-    from hairexp.scene.builders import build_scene as build
+def enum_fields(cls=Config, prefix=""):
+    """(dotted key, Enum type) of every Enum-typed field of the schema."""
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        t = hints[f.name]
+        if dataclasses.is_dataclass(t):
+            yield from enum_fields(t, f"{prefix}{f.name}.")
+        elif isinstance(t, type) and issubclass(t, Enum):
+            yield f"{prefix}{f.name}", t
 
-    cfg = hydra_conf(["experiment=goaling", "solver.on_failure=raise", "scene.n_strands=2", "scene.n_vertices=4"])
-    assert Simulator(build(cfg.scene), cfg.solver).on_failure == "raise"
+
+ENUM_CHOICES = [(key, m) for key, t in enum_fields() for m in t]
+
+
+def test_schema_has_enum_choices():
+    keys = {k for k, _ in ENUM_CHOICES}
+    assert {"solver.on_failure", "solver.derivatives", "scene.builder", "scene.motion.interpolation"} <= keys
+
+
+@pytest.mark.parametrize("key,member", ENUM_CHOICES, ids=[f"{k}={m.value}" for k, m in ENUM_CHOICES])
+def test_every_enum_choice_is_accepted_by_its_documented_value(hydra_conf, key, member):
+    """The value (what the YAML files, the docs and the code compare against) must be what the
+    command line accepts; OmegaConf converts strings by member *name*, so they must agree."""
+    cfg = hydra_conf([f"{key}={member.value}"])
+    assert OmegaConf.select(cfg, key) == member
+    node = to_plain(cfg)
+    for part in key.split("."):
+        node = node[part]
+    assert node == member.value
 
 
 @pytest.mark.parametrize("override,key", [

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from derivcheck import check_term, fd_gradient
+from derivcheck import check_term
 from helpers import as_t, bent_polyline, chain_stencils
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
 from hairexp.physics.terms import Term, autograd_grad_hess, project_psd
@@ -100,10 +100,6 @@ def test_gravity_gradient_matches_finite_differences():
     assert torch.allclose(rep.grad, -term.mg, rtol=1e-14, atol=0)
 
 
-@pytest.mark.xfail(strict=True, raises=RuntimeError,
-                   reason="BUG terms.py:39 autograd_grad_hess raises on a linear energy (Gravity): the "
-                          "gradient does not require grad, so the second backward pass fails instead of "
-                          "returning a zero Hessian")
 def test_gravity_autograd_hessian_is_zero():
     term = make_term("gravity", curved_rest())
     rep = check_term(term, elements(term, current()))

@@ -50,10 +50,10 @@ def stretch_kernel(xs, k_l0, l0, tension, need_hessian: bool):
         return g, None
     T = T_now if tension is None else tension
     c = T.clamp_min(0.0) / l
-    # k/l0 uu^T + c (I - uu^T) = c I + (k/l0 - c) uu^T; the uu^T coefficient is clamped at 0
-    # too (it would go negative only past 100 % strain).
-    us = u * torch.sqrt((k_l0 - c).clamp_min(0.0)).unsqueeze(-1)
-    K = torch.diag_embed(c.unsqueeze(-1).expand(-1, 3)) + us.unsqueeze(-1) * us.unsqueeze(-2)
+    # k/l0 uu^T + c (I - uu^T) = c I + (k/l0 - c) uu^T: eigenvalues c (twice) and k/l0, so PSD
+    # for every c >= 0, including a tension iterate above (k/l0) l.
+    uu = u.unsqueeze(-1) * u.unsqueeze(-2)
+    K = torch.diag_embed(c.unsqueeze(-1).expand(-1, 3)) + (k_l0 - c).view(-1, 1, 1) * uu
     return g, pair_hessian(K)
 
 

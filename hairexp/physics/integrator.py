@@ -95,7 +95,7 @@ class Simulator:
             raise SimulationError(
                 f"step from t={state.time:.6g} s with dt={dt:.3g} s diverged (non-finite state) "
                 f"after {info.iterations} iterations; try a smaller solver.dt or solver.on_failure=substep")
-        if self.on_failure == "raise":
+        if self.on_failure == "fail":
             raise SimulationError(
                 f"step from t={state.time:.6g} s with dt={dt:.3g} s did not converge ({info.status}, "
                 f"|grad|={info.grad_norm:.3g} vs force scale {info.force_scale:.3g}, {info.iterations} iterations)")

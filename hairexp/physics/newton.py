@@ -43,13 +43,18 @@ def banded_solve(ab: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         return scipy.linalg.solveh_banded(ab, rhs, lower=True, check_finite=False, overwrite_ab=True)
 
 
-def line_search(value_fn, x: np.ndarray, p: np.ndarray, f0: float, slope: float, max_backtracks: int):
+def line_search(value_fn, x: np.ndarray, p: np.ndarray, f0: float, slope: float, max_backtracks: int,
+                noise: float = 0.0):
     """Backtracking Armijo search on ``value_fn`` from x along p (slope = grad . p < 0).
+
+    ``noise``: the round-off of the values.  Near convergence the predicted decrease drops
+    below it and a strict Armijo test would reject good Newton steps (seen as a stall at
+    |grad|/F ~ 1e-7 with steps of 1e-9); a value within ``noise`` of the Armijo bound passes.
     Returns (alpha, new value, backtracks) or (0, f0, n) if no decrease was found."""
     alpha = 1.0
     for k in range(max_backtracks + 1):
         f = value_fn(x + alpha * p)
-        if np.isfinite(f) and f <= f0 + ARMIJO_C1 * alpha * slope:
+        if np.isfinite(f) and f <= f0 + ARMIJO_C1 * alpha * slope + noise:
             return alpha, f, k
         alpha *= BACKTRACK
     return 0.0, f0, max_backtracks
@@ -83,7 +88,7 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         if not np.isfinite(slope):
             info.status = DIVERGED
             return x, info
-        alpha, f_new, bt = line_search(obj.value, x, p, f, slope, opts.max_backtracks)
+        alpha, f_new, bt = line_search(obj.value, x, p, f, slope, opts.max_backtracks, obj.value_noise)
         info.backtracks += bt
         info.iterations += 1
         if alpha == 0.0:

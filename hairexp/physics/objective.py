@@ -19,6 +19,9 @@ import torch
 from hairexp.physics.assembly import BandedAssembler
 from hairexp.physics.terms import DTYPE, Term
 
+#: How many ulps of the summed term magnitudes a value of H is trusted to.
+ROUNDOFF_ULPS = 64
+
 
 @dataclass
 class Evaluation:
@@ -111,12 +114,15 @@ class ImplicitEulerObjective:
 
     # -- evaluation -----------------------------------------------------------------------
     def value(self, xf: np.ndarray) -> float:
+        """H(xf).  Also sets ``value_noise``: the round-off of that sum (a few ulps of the sum of
+        the terms' magnitudes), below which two values cannot be told apart."""
         d = xf - self.x_pred
         inertia = 0.5 * float(np.dot(self.mass_diag * d, d))  # 1/2 dv^T M dv
         x = self.positions(xf)
         with torch.no_grad():
-            e = sum(float(t.total(x)) for t in self.terms + self.external)
-        return inertia + e
+            parts = [float(t.total(x)) for t in self.terms + self.external]
+        self.value_noise = ROUNDOFF_ULPS * np.finfo(float).eps * (abs(inertia) + sum(abs(p) for p in parts))
+        return inertia + sum(parts)
 
     def evaluate(self, xf: np.ndarray, need_hessian: bool = True, need_value: bool = False) -> Evaluation:
         t0 = time.perf_counter()

@@ -34,6 +34,8 @@ def autograd_grad_hess(energy_fn, xs: torch.Tensor, need_hessian: bool = True):
         g = g.reshape(n, 3 * k)
         if not need_hessian:
             return g.detach(), None
+        if not g.requires_grad:  # the energy is linear in x: the Hessian is zero
+            return g.detach(), torch.zeros(n, 3 * k, 3 * k, dtype=xs.dtype)
         rows = []
         for c in range(3 * k):
             (hc,) = torch.autograd.grad(g[:, c].sum(), x, retain_graph=c < 3 * k - 1, allow_unused=True)

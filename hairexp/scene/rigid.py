@@ -3,8 +3,10 @@
 A pose maps body coordinates X to world coordinates ``x = R(t) X + T(t)``.  Keyframes hold
 translations (m) and rotations (rotation vectors, radians).  Interpolation:
 
-* ``cubic``:  C2 cubic spline of the translation (zero end velocities, "clamped") and a C2
-  rotation spline (``scipy.spatial.transform.RotationSpline``);
+* ``cubic``:  C2 cubic splines of the translation and of the rotation vector, both with zero
+  velocity at the first and last keyframe ("clamped"), so the body starts and stops smoothly;
+  R(t) = exp(r(t)) and omega = J_l(r) dr/dt (J_l the left Jacobian of SO(3)).  Rotation
+  vectors are interpolated as given: key them without jumps of 2 pi;
 * ``linear``: piecewise-linear translation and slerp: constant velocity per segment, so a
   keyframe can stop the body *suddenly* (the goaling scene's "stops suddenly").
 
@@ -17,9 +19,18 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import CubicSpline
-from scipy.spatial.transform import Rotation, RotationSpline, Slerp
+from scipy.spatial.transform import Rotation, Slerp
 
 from hairexp.errors import InputError
+
+
+def left_jacobian(r: np.ndarray) -> np.ndarray:
+    """J_l(r) of SO(3): the world angular velocity of exp(r(t)) is J_l(r) dr/dt."""
+    th = float(np.linalg.norm(r))
+    K = np.array([[0, -r[2], r[1]], [r[2], 0, -r[0]], [-r[1], r[0], 0]])
+    if th < 1e-6:
+        return np.eye(3) + 0.5 * K + K @ K / 6.0
+    return np.eye(3) + (1 - np.cos(th)) / th ** 2 * K + (th - np.sin(th)) / th ** 3 * K @ K
 
 
 @dataclass
@@ -47,7 +58,7 @@ class RigidMotion:
             self._pos = self._rot = None
         elif self.interpolation == "cubic":
             self._pos = CubicSpline(self.times, self.translations, bc_type="clamped")
-            self._rot = RotationSpline(self.times, rots) if K > 2 else Slerp(self.times, rots)
+            self._rot = CubicSpline(self.times, self.rotvecs, bc_type="clamped")
         else:
             self._pos = None
             self._rot = Slerp(self.times, rots)
@@ -70,7 +81,11 @@ class RigidMotion:
             T = self._pos(tc)
         else:
             T = np.array([np.interp(tc, self.times, self.translations[:, c]) for c in range(3)])
-        return self._rot(tc).as_matrix().reshape(3, 3), np.asarray(T, dtype=np.float64)
+        if self.interpolation == "cubic":
+            R = Rotation.from_rotvec(self._rot(tc)).as_matrix()
+        else:
+            R = self._rot(tc).as_matrix().reshape(3, 3)
+        return R, np.asarray(T, dtype=np.float64)
 
     def velocity(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """World angular velocity omega (3,) rad/s and translational velocity (3,) m/s at t.
@@ -85,9 +100,7 @@ class RigidMotion:
         R, _ = self.pose(tc)
         if self.interpolation == "cubic":
             Tdot = np.asarray(self._pos(tc, 1), dtype=np.float64)
-            if isinstance(self._rot, RotationSpline):
-                w_body = np.asarray(self._rot(tc, 1), dtype=np.float64).reshape(3)
-                return R @ w_body, Tdot
+            return left_jacobian(self._rot(tc)) @ self._rot(tc, 1), Tdot
         k = int(np.clip(np.searchsorted(self.times, tc, side="right") - 1, 0, len(self.times) - 2))
         dt = self.times[k + 1] - self.times[k]
         rel = (self._rots[k].inv() * self._rots[k + 1]).as_rotvec() / dt  # body-frame rate of this segment

@@ -1,0 +1,80 @@
+"""Keyframed rigid motion: poses hit the keyframes, velocities are the time derivative of the
+pose (the simulator's initial state and root velocities come from them)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from hairexp.scene.rigid import RigidMotion
+
+X = np.random.default_rng(0).normal(size=(6, 3)) * 0.1  # body points, m
+
+
+def motion(interp: str, K: int) -> RigidMotion:
+    rng = np.random.default_rng(K)
+    times = np.sort(rng.uniform(0, 1, K)) + np.arange(K) * 0.1
+    return RigidMotion(times, rng.normal(size=(K, 3)) * 0.1, rng.normal(size=(K, 3)) * 0.5, interp)
+
+
+CASES = [(i, K) for i in ("cubic", "linear") for K in (2, 3, 5)]
+
+
+@pytest.mark.parametrize("interp,K", CASES)
+def test_pose_hits_keyframes(interp, K):
+    m = motion(interp, K)
+    for t, T, rv in zip(m.times, m.translations, m.rotvecs):
+        R, T_got = m.pose(t)
+        np.testing.assert_allclose(T_got, T, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(R, Rotation.from_rotvec(rv).as_matrix(), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(R @ R.T, np.eye(3), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("interp,K", CASES)
+def test_point_velocity_is_the_derivative_of_the_pose(interp, K):
+    m = motion(interp, K)
+    h = 1e-6
+    ts = np.linspace(m.times[0], m.times[-1], 9)[1:-1] + 1e-4  # inside segments, off keyframes
+    for t in ts:
+        fd = (m.transform(X, t + h) - m.transform(X, t - h)) / (2 * h)
+        np.testing.assert_allclose(m.point_velocity(X, t), fd, rtol=0, atol=1e-8 * max(1.0, np.abs(fd).max()))
+
+
+@pytest.mark.parametrize("interp,K", CASES)
+def test_held_outside_the_keyed_range(interp, K):
+    m = motion(interp, K)
+    for t, k in ((m.times[0] - 1.0, 0), (m.times[-1] + 1.0, -1)):
+        R, T = m.pose(t)
+        np.testing.assert_allclose(T, m.translations[k], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(m.point_velocity(X, t), 0.0, rtol=0, atol=0)
+
+
+def test_linear_velocity_is_constant_per_segment_and_right_continuous():
+    m = RigidMotion(np.array([0.0, 1.0, 3.0]), np.array([[0, 0, 0], [1.0, 0, 0], [1.0, 2.0, 0]]), np.zeros((3, 3)),
+                    "linear")
+    np.testing.assert_allclose(m.velocity(0.0)[1], [1.0, 0, 0])
+    np.testing.assert_allclose(m.velocity(0.7)[1], [1.0, 0, 0])
+    np.testing.assert_allclose(m.velocity(1.0)[1], [0, 1.0, 0])  # the following segment's
+    np.testing.assert_allclose(m.velocity(2.5)[1], [0, 1.0, 0])
+    np.testing.assert_allclose(m.velocity(3.0)[1], [0, 0, 0])    # stopped at the last keyframe
+
+
+def test_cubic_translation_starts_and_ends_at_rest():
+    m = RigidMotion(np.array([0.0, 0.4, 1.0]), np.array([[0, 0, 0], [0.2, 0.1, 0], [0.3, 0, 0.1]]), np.zeros((3, 3)),
+                    "cubic")
+    for t in (0.0, 1.0):
+        np.testing.assert_allclose(m.velocity(t)[1], 0.0, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("interp,K", CASES)
+def test_to_body_inverts_transform(interp, K):
+    m = motion(interp, K)
+    t = 0.5 * (m.times[0] + m.times[-1])
+    np.testing.assert_allclose(m.to_body(m.transform(X, t), t), X, rtol=0, atol=1e-14)
+
+
+def test_static_motion_is_identity():
+    m = RigidMotion.static()
+    np.testing.assert_array_equal(m.transform(X, 3.0), X)
+    np.testing.assert_array_equal(m.point_velocity(X, 3.0), 0.0)
