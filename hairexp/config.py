@@ -45,6 +45,23 @@ class Builder(str, Enum):
 
 class ControllerName(str, Enum):
     free = "free"
+    tracking = "tracking"
+
+
+class Targets(str, Enum):
+    static = "static"     # t fixed at the rest arc length (TRACKS-style static map)
+    sliding = "sliding"   # t is an optimisation variable (paper 3.2, dynamic constraint targets)
+
+
+class KKTSolve(str, Enum):
+    schur = "schur"           # Schur complement on the constraint block (fast)
+    reference = "reference"   # plain sparse saddle-point solve (SuperLU)
+
+
+class GuideSource(str, Enum):
+    rigid = "rigid"     # rest guides carried by the rigid body
+    scaled = "scaled"   # rest guides scaled about their roots by keyframed factors, carried by the body
+    file = "file"       # npz with guide_positions (F, Vg, 3), guide_offsets, fps
 
 
 @dataclass
@@ -84,6 +101,40 @@ class SceneConfig:
 
 
 @dataclass
+class GuidesConfig:
+    """The guide animation (see hairexp/tracking/guides.py)."""
+    source: GuideSource = GuideSource.rigid
+    count: int = 1
+    n_vertices: int = 8
+    layout_radius: float = 0.5         # guide roots on a circle of this fraction of the root radius
+    scale_times: list[float] = field(default_factory=lambda: [0.0])   # s (source=scaled)
+    scale_factors: list[float] = field(default_factory=lambda: [1.0])
+    file: str = ""                     # source=file
+
+
+@dataclass
+class VarianceConfig:
+    """Spread control, paper 3.3: P = k_v(t) (V - V_bar(t))^2 per cluster."""
+    stiffness: float = 0.0             # k_v in J/m^4; 0 builds no penalty
+    times: list[float] = field(default_factory=lambda: [0.0])        # s, keyframes of the two scales
+    stiffness_scale: list[float] = field(default_factory=lambda: [1.0])
+    target_scale: list[float] = field(default_factory=lambda: [1.0])  # V_bar = rest variance x this
+    points: list[int] = field(default_factory=list)                   # tracking-point indices; [] = all
+
+
+@dataclass
+class TrackingConfig:
+    targets: Targets = Targets.sliding
+    points_per_guide: int = 8
+    kkt: KKTSolve = KKTSolve.schur
+    rtol: float = 1e-5                 # |grad_x L| <= atol + rtol * force scale
+    atol: float = 1e-10
+    ctol_rel: float = 1e-9             # max |C_k| <= ctol_rel * mean hair length
+    max_iterations: int = 50
+    variance: VarianceConfig = field(default_factory=VarianceConfig)
+
+
+@dataclass
 class ControllerConfig:
     name: ControllerName = ControllerName.free
 
@@ -115,6 +166,8 @@ class Config:
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     solver: SolverConfig = field(default_factory=SolverConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
+    guides: GuidesConfig = field(default_factory=GuidesConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
     experiment: Optional[str] = None  # name of the experiment, set by conf/experiment/*.yaml
     frames: int = 50                  # output frames after the initial one
     fps: float = 25.0

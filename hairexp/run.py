@@ -20,6 +20,7 @@ from hairexp.config import to_plain
 from hairexp.errors import InputError
 from hairexp.physics.integrator import Simulator
 from hairexp.scene.builders import build_scene
+from hairexp.tracking.guides import build_guides
 from hairexp.sinks.files import ResultRecorder, write_json
 from hairexp.sinks.metrics import MetricsTable, measure
 from hairexp.sinks.progress import Progress, progress_enabled
@@ -85,30 +86,45 @@ def run(cfg, out_dir: str | Path) -> dict:
     try:
         n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
         scene = build_scene(cfg.scene)
-        sim = Simulator(scene, cfg.solver)
+        guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
+        tracked = controller == "tracking"
+        sim = Simulator(scene, cfg.solver, cfg.tracking if tracked else None, guides if tracked else None)
+        tracker = sim.tracker
+        guides.save(out / "guides.npz")
         recorder = ResultRecorder(scene)
+
+        def observe(state):
+            if tracker is None:
+                return {"guides": guides.shape_at(state.time)}
+            return tracker.measure(sim.free_dofs(state.x), state.time, state.duals)
         if cfg.logging.rerun:
             from hairexp.sinks.rerun_sink import RerunSink  # rerun is imported only here
 
             rerun_sink = RerunSink(str(out / "recording.rrd"), scene, strict=cfg.logging.strict)
         progress = Progress(cfg.frames * n_sub, progress_enabled(cfg.logging.progress), desc=scene_name)
-        state = sim.initial_state()
-        recorder.log_frame(0, state)
         if rerun_sink:
-            rerun_sink.log_frame(0, state)
+            rerun_sink.log_static(guides, tracker)
+        state = sim.initial_state()
+        obs = observe(state)
+        recorder.log_frame(0, state, obs.get("guides"), obs.get("targets"), obs.get("com"))
+        if rerun_sink:
+            rerun_sink.log_frame(0, state, obs)
         step = 0
         for frame in range(1, cfg.frames + 1):
             for _ in range(n_sub):
                 state, info = sim.step(state, dt)
                 step += 1
-                row = measure(scene, state, info, sim, step, frame, controller)
+                obs = observe(state)
+                extra = {k: v for k, v in obs.items() if np.isscalar(v)}
+                row = measure(scene, state, info, sim, step, frame, controller, extra)
                 for sink in (table, rerun_sink, progress):
                     if sink is not None:
                         sink.on_step(row, state)
-            recorder.log_frame(frame, state)
+            recorder.log_frame(frame, state, obs.get("guides"), obs.get("targets"), obs.get("com"))
             if rerun_sink:
-                rerun_sink.log_frame(frame, state)
-        recorder.write(out / "result.npz")
+                rerun_sink.log_frame(frame, state, obs)
+        cov = None if tracker is None else tracker.corr.cluster_of_vertex
+        recorder.write(out / "result.npz", guides.offsets, cov)
         ok = True
     except Exception as exc:
         summary = summarize(table, plain, scene_name, controller, time.perf_counter() - t_start, "failed", str(exc))

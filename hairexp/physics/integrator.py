@@ -21,6 +21,7 @@ from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Str
 from hairexp.physics.info import CONVERGED, DIVERGED, SolveInfo, StepInfo
 from hairexp.physics.newton import NewtonOptions, newton_solve
 from hairexp.physics.objective import ImplicitEulerObjective
+from hairexp.tracking.sqp import sqp_solve
 from hairexp.scene.scene import Scene, State
 
 TIME_KEYS = ("derivatives", "assembly", "solve", "collision", "other")
@@ -35,7 +36,9 @@ def _value(x):
 
 
 class Simulator:
-    def __init__(self, scene: Scene, solver_cfg):
+    def __init__(self, scene: Scene, solver_cfg, tracking_cfg=None, guides=None):
+        """``tracking_cfg`` and ``guides`` given: the tracked controller (SQP with constraints);
+        otherwise the free controller (Newton, no constraints are built)."""
         tune_runtime()
         self.scene = scene
         self.cfg = solver_cfg
@@ -54,6 +57,11 @@ class Simulator:
                                                 primal_dual=str(_value(solver_cfg.stretch_hessian)) == "primal_dual")
         self.newton = NewtonOptions(solver_cfg.rtol, solver_cfg.atol, solver_cfg.max_iterations, solver_cfg.max_backtracks)
         self.on_failure = str(_value(solver_cfg.on_failure))
+        self.tracker = None
+        if tracking_cfg is not None:
+            from hairexp.tracking.controller import TrackingController
+
+            self.tracker = TrackingController(scene, guides, tracking_cfg, self.objective.assembler.bandwidth)
         mode = str(_value(getattr(solver_cfg, "compile", "off")))
         if mode == "on" or (mode == "auto" and s.n_vertices >= COMPILE_MIN_VERTICES):
             self._compile()
@@ -64,24 +72,36 @@ class Simulator:
         for t in self.terms:
             t.compile()  # compiles lazily at the first call; falls back to eager if that fails
 
+    def free_dofs(self, x: np.ndarray) -> np.ndarray:
+        return x[self.objective.free_vertices].reshape(-1)
+
     def initial_state(self) -> State:
         """Hair at rest in the body frame, moving rigidly with the body at t = 0."""
         sc = self.scene
         x = sc.motion.transform(sc.root_body, 0.0)
         v = sc.motion.point_velocity(sc.root_body, 0.0)
-        return State(0.0, x, v)
+        duals = self.tracker.initial_duals() if self.tracker else {}
+        return State(0.0, x, v, duals)
 
     # -- one attempt ----------------------------------------------------------------------
     def _solve(self, state: State, dt: float) -> tuple[State, SolveInfo]:
         t_next = state.time + dt
         obj = self.objective
         obj.begin_step(state.x, state.v, self.scene.root_positions(t_next), dt, state.duals)
-        xf, info = newton_solve(obj, obj.initial_guess(), self.newton)
+        if self.tracker is None:
+            xf, info = newton_solve(obj, obj.initial_guess(), self.newton)
+            duals = info.duals
+        else:
+            tr = self.tracker
+            tr.begin(t_next)
+            d = state.duals
+            xf, tk, lam, info = sqp_solve(obj, tr, obj.initial_guess(), d["t"], d["lambda"], tr.opts)
+            duals = {**info.duals, "t": tk, "lambda": lam}
         x_new = obj.positions(xf).numpy()
         v_new = (x_new - state.x) / dt
         if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()):
             info.status = DIVERGED
-        return State(t_next, x_new, v_new, info.duals), info
+        return State(t_next, x_new, v_new, duals), info
 
     def _advance(self, state: State, dt: float, level: int) -> tuple[State, list[SolveInfo]]:
         new, info = self._solve(state, dt)
@@ -113,7 +133,7 @@ class Simulator:
         sec["total"] = total
         info = StepInfo(time=new.time, dt=dt, status=worst.status, iterations=sum(i.iterations for i in infos),
                         backtracks=sum(i.backtracks for i in infos), substeps=len(infos),
-                        grad_norm=last.grad_norm, force_scale=last.force_scale,
+                        grad_norm=last.grad_norm, force_scale=last.force_scale, constraint_norm=last.constraint_norm,
                         recovered=len(infos) > 1 and all(i.converged for i in infos), seconds=sec)
         if len(infos) > 1 and info.recovered:
             info.status = CONVERGED

@@ -16,7 +16,8 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 #: Metrics plotted (a subset of the row; all numeric row entries are logged).
-PLOTTED = ("iterations", "stretch_max", "residual_rel_max", "variance_ratio_mean", "step_seconds", "contacts")
+PLOTTED = ("iterations", "stretch_max", "residual_rel_max", "variance_ratio_mean", "constraint_force_rel",
+           "step_seconds")
 
 
 def blueprint() -> rrb.Blueprint:
@@ -52,7 +53,17 @@ class RerunSink:
         self.radius = 0.004 * L
         rec.log("/world/body/box", rr.Boxes3D(half_sizes=[[0.5 * L * 0.1] * 3], colors=[[180, 180, 190]]), static=True)
 
-    def log_frame(self, frame: int, state) -> None:
+    def log_static(self, guides, tracker) -> None:
+        """Cluster colours: vertices coloured by cluster (grey when in none)."""
+        self.tracker = tracker
+        self.guide_offsets = guides.offsets
+        if tracker is not None:
+            K = tracker.cons.K
+            rng = np.random.default_rng(7)
+            self.cluster_colors = (60 + 195 * rng.random((K, 3))).astype(np.uint8)
+
+    def log_frame(self, frame: int, state, obs: dict | None = None) -> None:
+        obs = obs or {}
         rec = self.rec
         rec.set_time("frame", sequence=frame)
         rec.set_time("sim_time", duration=state.time)
@@ -65,6 +76,30 @@ class RerunSink:
 
         q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
         rec.log("/world/body", rr.Transform3D(translation=T, quaternion=q))
+        if obs.get("guides") is not None:
+            g = np.split(obs["guides"].astype(np.float32), self.guide_offsets[1:-1])
+            rec.log("/world/guides", rr.LineStrips3D(g, radii=2.5 * self.radius, colors=[[230, 60, 60]]))
+        if getattr(self, "tracker", None) is not None and obs.get("com") is not None:
+            tr = self.tracker
+            cov = tr.corr.cluster_of_vertex
+            cols = np.where(cov[:, None] >= 0, self.cluster_colors[np.maximum(cov, 0)], 150).astype(np.uint8)
+            rec.log("/world/clusters", rr.Points3D(state.x.astype(np.float32), radii=self.radius, colors=cols))
+            rec.log("/world/com", rr.Points3D(obs["com"].astype(np.float32), radii=3 * self.radius,
+                                              colors=self.cluster_colors))
+            rec.log("/world/targets", rr.Points3D(obs["targets"].astype(np.float32), radii=2 * self.radius,
+                                                  colors=[[255, 255, 255]]))
+            tg = tr.cons.targets(state.time)
+            curves = []
+            for Q, s, ks in zip(tg.control, tg.knots, tg.clusters):
+                import torch
+
+                from hairexp.tracking import spline
+
+                tt = torch.linspace(float(s[0]), float(s[-1]), 24, dtype=torch.float64)
+                for j in range(len(ks)):
+                    curves.append(spline.evaluate(Q[j:j + 1].expand(len(tt), -1, -1), s, tt).numpy().astype(np.float32))
+            rec.log("/world/target_curves", rr.LineStrips3D(curves, radii=0.5 * self.radius,
+                                                            colors=self.cluster_colors[np.concatenate(tg.clusters)]))
 
     def on_step(self, row: dict, state) -> None:
         self.steps.append(row["step"])

@@ -1,0 +1,103 @@
+"""Coarse-to-fine correspondence (paper 3.1).
+
+1. Each detail strand goes to the guide with the smallest integrated squared distance, eq. (1):
+   d(d_j, g_i) = sum_k |d_jk - prox(d_jk, g_i)|^2, prox the closest point on the guide polyline.
+2. Each guide is sampled equidistantly (in arc length) with tracking points p_jk.
+3. Each detail strand is split into segments s_ik: its vertices closest to p_jk among the
+   tracking points of its guide.  A cluster C_jk is the union of segments s_ik over the strands
+   of guide j.  Only free (non-root) vertices join clusters: root vertices are prescribed by the
+   body and cannot be steered.  Empty clusters are dropped with a warning that names them.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from hairexp.errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+def closest_points_on_polyline(X: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closest points on polyline P (n, 3) to points X (m, 3): (points (m, 3), arc length (m,))."""
+    a, b = P[:-1], P[1:]
+    ab = b - a                                        # (n-1, 3)
+    L = np.einsum("ij,ij->i", ab, ab)
+    u = np.einsum("mij,ij->mi", X[:, None, :] - a[None], ab) / L
+    u = np.clip(u, 0.0, 1.0)                          # (m, n-1)
+    Q = a[None] + u[..., None] * ab[None]             # (m, n-1, 3)
+    d2 = np.sum((X[:, None, :] - Q) ** 2, axis=-1)
+    j = np.argmin(d2, axis=1)
+    seg_len = np.sqrt(L)
+    s0 = np.concatenate([[0.0], np.cumsum(seg_len)])
+    rows = np.arange(len(X))
+    return Q[rows, j], s0[j] + u[rows, j] * seg_len[j]
+
+
+@dataclass(frozen=True)
+class Correspondence:
+    """guide_of_strand (S,), tracking points (G, P, 3) with their arc lengths (P,) per guide,
+    cluster_of_vertex (V,) (-1: in no cluster), cluster_guide (K,), cluster_point (K,)."""
+
+    guide_of_strand: np.ndarray
+    tracking_points: np.ndarray
+    tracking_arclength: np.ndarray
+    cluster_of_vertex: np.ndarray
+    cluster_guide: np.ndarray
+    cluster_point: np.ndarray
+
+    @property
+    def n_clusters(self) -> int:
+        return len(self.cluster_guide)
+
+
+def sample_tracking_points(P: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points equidistant in arc length at the centres of equal intervals."""
+    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    targets = (np.arange(count) + 0.5) / count * s[-1]
+    pts = np.stack([np.interp(targets, s, P[:, c]) for c in range(3)], axis=1)
+    return pts, targets
+
+
+def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.ndarray,
+                         guides_rest: list[np.ndarray], points_per_guide: int) -> Correspondence:
+    if points_per_guide < 1:
+        raise InputError(f"must be >= 1, got {points_per_guide}", "tracking.points_per_guide")
+    if not guides_rest:
+        raise InputError("a tracked run needs at least one guide", "guides")
+    S = len(offsets) - 1
+    G = len(guides_rest)
+    # 1. eq. (1): integrated squared distance of each strand to each guide
+    dist = np.zeros((S, G))
+    strand = np.repeat(np.arange(S), np.diff(offsets))
+    for g, P in enumerate(guides_rest):
+        Q, _ = closest_points_on_polyline(detail_rest, P)
+        dist[:, g] = np.bincount(strand, weights=np.sum((detail_rest - Q) ** 2, axis=1), minlength=S)
+    if not np.isfinite(dist).all():
+        raise InputError("non-finite distance between detail hair and guides", "guides")
+    guide_of_strand = np.argmin(dist, axis=1)
+    # 2. tracking points
+    tp, tp_s = zip(*(sample_tracking_points(P, points_per_guide) for P in guides_rest))
+    tracking = np.stack(tp)
+    # 3. segments: nearest tracking point of the strand's own guide
+    gv = guide_of_strand[strand]
+    d2 = np.sum((detail_rest[:, None, :] - tracking[gv]) ** 2, axis=-1)   # (V, P)
+    point_of_vertex = np.argmin(d2, axis=1)
+    raw = gv * points_per_guide + point_of_vertex
+    raw = np.where(free, raw, -1)
+    counts = np.bincount(raw[raw >= 0], minlength=G * points_per_guide)
+    kept = np.flatnonzero(counts > 0)
+    for k in np.flatnonzero(counts == 0):
+        log.warning("cluster of guide %d, tracking point %d is empty (no free detail vertex is closest to it); "
+                    "dropped", k // points_per_guide, k % points_per_guide)
+    if kept.size == 0:
+        raise InputError("every cluster is empty: no free detail vertex is near a tracking point", "tracking")
+    remap = np.full(G * points_per_guide, -1)
+    remap[kept] = np.arange(kept.size)
+    cluster_of_vertex = np.where(raw >= 0, remap[np.maximum(raw, 0)], -1)
+    return Correspondence(guide_of_strand, tracking, np.stack(tp_s), cluster_of_vertex,
+                          kept // points_per_guide, kept % points_per_guide)

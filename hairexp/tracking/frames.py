@@ -1,0 +1,58 @@
+"""Twist-free reference frames along a guide by discrete parallel transport (paper 3.2,
+following Bergou et al. 2008): the frame at the guide root comes from the rigid body; each
+next vertex frame is the previous one rotated by the smallest rotation taking the previous
+tangent to the next (no rotation about the tangent: no twist)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def vertex_tangents(P: np.ndarray) -> np.ndarray:
+    """(n, 3) unit tangents at the vertices of a polyline (central differences, one-sided at
+    the ends)."""
+    T = np.empty_like(P)
+    T[0] = P[1] - P[0]
+    T[-1] = P[-1] - P[-2]
+    if len(P) > 2:
+        T[1:-1] = P[2:] - P[:-2]
+    return T / np.linalg.norm(T, axis=-1, keepdims=True)
+
+
+def transport(v: np.ndarray, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
+    """Parallel-transport vectors v (..., 3) from unit tangent t0 to t1 (..., 3): the rotation
+    about t0 x t1 by the angle between them (identity when they are parallel)."""
+    b = np.cross(t0, t1)
+    c = np.sum(t0 * t1, axis=-1, keepdims=True)
+    # Rodrigues with k = b/|b|, sin = |b|, cos = c:  v c + (b x v) + b (b.v) / (1 + c)
+    return v * c + np.cross(b, v) + b * np.sum(b * v, axis=-1, keepdims=True) / (1.0 + c)
+
+
+def parallel_transport(P: np.ndarray, n0: np.ndarray):
+    """Frames (T, N, B), each (n, 3), along polyline P (n, 3).  ``n0`` is the desired normal at
+    the root; it is projected orthogonal to the root tangent."""
+    T = vertex_tangents(P)
+    N = np.empty_like(P)
+    n = n0 - np.dot(n0, T[0]) * T[0]
+    nn = np.linalg.norm(n)
+    if nn < 1e-12:
+        raise ValueError("root normal is parallel to the guide's first tangent")
+    N[0] = n / nn
+    for i in range(1, len(P)):
+        v = transport(N[i - 1], T[i - 1], T[i])
+        v -= np.dot(v, T[i]) * T[i]  # remove round-off drift
+        N[i] = v / np.linalg.norm(v)
+    return T, N, np.cross(T, N)
+
+
+def parallel_transport_batch(P: np.ndarray, n0: np.ndarray):
+    """Frames for G guides at once: P (G, n, 3), n0 (G, 3) -> T, N, B each (G, n, 3)."""
+    T = np.stack([vertex_tangents(p) for p in P])
+    N = np.empty_like(P)
+    n = n0 - np.sum(n0 * T[:, 0], -1, keepdims=True) * T[:, 0]
+    N[:, 0] = n / np.linalg.norm(n, axis=-1, keepdims=True)
+    for i in range(1, P.shape[1]):
+        v = transport(N[:, i - 1], T[:, i - 1], T[:, i])
+        v -= np.sum(v * T[:, i], -1, keepdims=True) * T[:, i]
+        N[:, i] = v / np.linalg.norm(v, axis=-1, keepdims=True)
+    return T, N, np.cross(T, N)

@@ -1,0 +1,121 @@
+"""Guide animations: G guide polylines with one shape per frame, rooted on the rigid body.
+
+``GuideAnimation.shape_at(t)`` interpolates linearly between frames when the time step is
+smaller than the frame interval, and holds the first/last frame outside the animation.
+Sources (``guides.source``): ``rigid`` (rest guides carried by the body), ``scaled`` (rest
+guides scaled about their roots by keyframed factors, then carried by the body: the paper's
+Fig. 2 shrinking guide), ``file`` (an npz with ``guide_positions`` (F, Vg, 3),
+``guide_offsets`` (G + 1,) and ``fps``, such as a run's result.npz).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hairexp.errors import InputError
+from hairexp.scene.builders import disk_points
+from hairexp.scene.strands import validate_polylines
+
+
+@dataclass
+class GuideAnimation:
+    positions: np.ndarray   # (F, Vg, 3) m
+    offsets: np.ndarray     # (G + 1,)
+    fps: float
+    where: str = "guides"
+
+    def __post_init__(self):
+        self.positions = np.asarray(self.positions, dtype=np.float64)
+        self.offsets = np.asarray(self.offsets, dtype=np.int64)
+        if self.positions.ndim != 3 or self.positions.shape[-1] != 3 or self.positions.shape[0] < 1:
+            raise InputError(f"guide positions must have shape (frames, vertices, 3), got {self.positions.shape}",
+                             self.where)
+        counts = np.diff(self.offsets)
+        if counts.size == 0 or self.offsets[0] != 0:
+            raise InputError("guide offsets must start at 0 and name at least one guide", self.where)
+        if not (np.isfinite(self.fps) and self.fps > 0):
+            raise InputError(f"fps must be > 0, got {self.fps}", self.where)
+        for f in range(self.positions.shape[0]):
+            validate_polylines(self.positions[f], counts, f"{self.where} frame {f}", min_vertices=2)
+
+    @property
+    def n_guides(self) -> int:
+        return len(self.offsets) - 1
+
+    @property
+    def n_frames(self) -> int:
+        return self.positions.shape[0]
+
+    @property
+    def rest(self) -> np.ndarray:
+        return self.positions[0]
+
+    def guides(self, P: np.ndarray) -> list[np.ndarray]:
+        return [P[a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:])]
+
+    def shape_at(self, t: float) -> np.ndarray:
+        """(Vg, 3) guide vertices at time t (linear in time between frames)."""
+        u = float(np.clip(t * self.fps, 0.0, self.n_frames - 1))
+        f = min(int(np.floor(u)), self.n_frames - 2) if self.n_frames > 1 else 0
+        if self.n_frames == 1:
+            return self.positions[0]
+        a = u - f
+        return (1 - a) * self.positions[f] + a * self.positions[f + 1]
+
+    def save(self, path: Path) -> None:
+        np.savez_compressed(path, guide_positions=self.positions, guide_offsets=self.offsets, fps=self.fps)
+
+
+def rest_guides(scene_cfg, count: int, n_vertices: int, layout_radius: float) -> np.ndarray:
+    """(count * n_vertices, 3) straight rest guides in the body frame, rooted on a circle of
+    ``layout_radius`` x the root radius (the disk centre for a single guide)."""
+    if count < 1:
+        raise InputError(f"must be >= 1, got {count}", "guides.count")
+    if n_vertices < 2:
+        raise InputError(f"must be >= 2, got {n_vertices}", "guides.n_vertices")
+    d = np.asarray(scene_cfg.direction, dtype=np.float64)
+    d /= np.linalg.norm(d)
+    center = np.asarray(scene_cfg.root_center, dtype=np.float64)
+    a = np.array([1.0, 0, 0]) if abs(d[0]) < 0.9 else np.array([0, 0, 1.0])
+    u = np.cross(d, a)
+    u /= np.linalg.norm(u)
+    w = np.cross(d, u)
+    if count == 1:
+        roots = center[None]
+    else:
+        phi = 2 * np.pi * np.arange(count) / count
+        r = layout_radius * scene_cfg.root_radius
+        roots = center + r * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * w)
+    s = np.linspace(0.0, scene_cfg.length, n_vertices)
+    return np.concatenate([r0 + s[:, None] * d for r0 in roots])
+
+
+def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
+    """Guide animation for frames 0..frames from ``cfg.guides`` (see module doc)."""
+    g = cfg.guides
+    source = str(getattr(g.source, "value", g.source))
+    if source == "file":
+        path = Path(g.file)
+        try:
+            data = np.load(path)
+            pos, off, gfps = data["guide_positions"], data["guide_offsets"], float(data["fps"])
+        except (OSError, KeyError, ValueError) as exc:
+            raise InputError(f"cannot read guide animation: {exc}", f"guides.file={path}") from exc
+        return GuideAnimation(pos, off, gfps, where=str(path))
+    body = rest_guides(cfg.scene, g.count, g.n_vertices, g.layout_radius)
+    offsets = np.arange(g.count + 1) * g.n_vertices
+    times = np.arange(frames + 1) / fps
+    frames_pos = []
+    for t in times:
+        X = body
+        if source == "scaled":
+            if len(g.scale_times) != len(g.scale_factors) or not g.scale_times:
+                raise InputError("scale_times and scale_factors must be non-empty and of equal length", "guides")
+            f = float(np.interp(t, g.scale_times, g.scale_factors))
+            roots = np.repeat(body[offsets[:-1]], g.n_vertices, axis=0)
+            X = roots + f * (body - roots)
+        frames_pos.append(scene.motion.transform(X, t))
+    return GuideAnimation(np.stack(frames_pos), offsets, fps)

@@ -1,0 +1,128 @@
+"""KKT saddle-point solves of the SQP (paper eq. 8):
+
+    [ H   0   A^T ] [dx ]   [ -r_x ]      H: banded PSD Hessian over free DOFs (N)
+    [ 0   D   B^T ] [dt ] = [ -r_t ]      D: (K,) curvature of the sliding parameters
+    [ A   B   0   ] [lam]   [ -C   ]      A: constant COM Jacobian (3K x N); B: dC/dt (3K x K)
+
+``SchurKKT`` eliminates dx: with u = H^-1 r_x and S = A H^-1 A^T,
+
+    [ S    -B ] [lam]   [ C - A u ]
+    [ B^T   D ] [dt ] = [  -r_t   ],      dx = -H^-1 (r_x + A^T lam).
+
+S is built from one banded Cholesky H = L L^T as S = Y^T Y, Y = L^-1 A^T.  H is block
+diagonal over strands, so Y is computed strand by strand with batched dense triangular solves
+(torch), and the columns of A^T for clusters of *different* guides (disjoint strands) share one
+right-hand side "slot" (tracking point, coordinate): 3 x points-per-guide right-hand sides in
+all, not 3K.  ``reference_solve`` is the plain sparse saddle-point solve (SuperLU) that tests
+compare against.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import torch
+
+from hairexp.physics.assembly import BandedAssembler
+
+
+class SchurKKT:
+    def __init__(self, strands, cons, bandwidth: int):
+        s = strands
+        free = np.flatnonzero(~s.kinematic)
+        strand_of_free = s.strand_of_vertex[free]
+        S = s.n_strands
+        nf = np.bincount(strand_of_free, minlength=S)          # free vertices per strand
+        self.dof_off = 3 * np.concatenate([[0], np.cumsum(nf)])
+        n = 3 * nf
+        nmax = int(n.max())
+        self.S, self.nmax, self.bw, self.N = S, nmax, bandwidth, int(self.dof_off[-1])
+        # band -> per-strand dense lower factor map
+        src, dst = [], []
+        for d in range(bandwidth + 1):
+            j = np.arange(self.N)
+            st = np.repeat(np.arange(S), n)
+            loc = j - self.dof_off[st]
+            ok = loc + d < n[st]
+            src.append(d * self.N + j[ok])
+            dst.append((st[ok] * nmax + loc[ok] + d) * nmax + loc[ok])
+        self._src, self._dst = np.concatenate(src), np.concatenate(dst)
+        pad = [(si * nmax + k) * nmax + k for si in range(S) for k in range(n[si], nmax)]
+        self._pad = np.asarray(pad, dtype=np.int64)
+        # right-hand-side slots: (tracking point p, coordinate c) -> slot 3 p + c
+        K = cons.K
+        P = int(cons.corr.cluster_point.max()) + 1
+        self.R = 3 * P
+        AT = np.zeros((S, nmax, self.R))
+        fv = cons.free_in_cluster                                  # free-vertex indices
+        k = cons.cluster_of_free[fv]
+        st = strand_of_free[fv]
+        loc = 3 * fv - self.dof_off[st]
+        p = cons.corr.cluster_point[k]
+        for c in range(3):
+            AT[st, loc + c, 3 * p + c] = cons.weights
+        self.AT = torch.as_tensor(AT)
+        # global constraint row of each (strand, slot); 3K is a dummy row for empty slots
+        guide_of_strand = cons.corr.guide_of_strand
+        lookup = np.full((cons.guides.n_guides, P), -1)
+        lookup[cons.corr.cluster_guide, cons.corr.cluster_point] = np.arange(K)
+        kk = lookup[guide_of_strand][:, np.arange(self.R) // 3]       # (S, R)
+        rows = np.where(kk >= 0, 3 * kk + np.arange(self.R) % 3, 3 * K)
+        self._srow = (rows[:, :, None] * (3 * K + 1) + rows[:, None, :]).ravel()
+        self.K = K
+        self.A, self.AT_sparse = cons.A, cons.AT
+
+    def factor(self, ab: np.ndarray) -> None:
+        """Factor H (lower band ``ab``) and build S = A H^-1 A^T."""
+        try:
+            self.cb = scipy.linalg.cholesky_banded(ab, lower=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            ab = ab.copy()
+            ab[0] += 1e-8 * np.abs(ab[0]).max()
+            self.cb = scipy.linalg.cholesky_banded(ab, lower=True, check_finite=False)
+        Ld = np.zeros(self.S * self.nmax * self.nmax)
+        Ld[self._dst] = self.cb.reshape(-1)[self._src]
+        Ld[self._pad] = 1.0
+        L = torch.from_numpy(Ld.reshape(self.S, self.nmax, self.nmax))
+        Y = torch.linalg.solve_triangular(L, self.AT, upper=False)
+        YtY = (Y.transpose(1, 2) @ Y).numpy()
+        n = 3 * self.K + 1
+        Sfull = np.bincount(self._srow, weights=YtY.ravel(), minlength=n * n).reshape(n, n)
+        self.Smat = Sfull[:-1, :-1]
+
+    def hinv(self, r: np.ndarray) -> np.ndarray:
+        return scipy.linalg.cho_solve_banded((self.cb, True), r, check_finite=False)
+
+    def solve(self, r_x: np.ndarray, C: np.ndarray, Bmat: np.ndarray | None = None, D: np.ndarray | None = None,
+              r_t: np.ndarray | None = None):
+        """(dx, dt or None, lam) for the system above; C: (3K,), Bmat: (3K, K) or None (static)."""
+        u = self.hinv(r_x)
+        rhs_l = C - self.A @ u
+        if Bmat is None:
+            lam = np.linalg.solve(self.Smat, rhs_l)
+            dt = None
+        else:
+            K = Bmat.shape[1]
+            M = np.block([[self.Smat, -Bmat], [Bmat.T, np.diag(D)]])
+            sol = np.linalg.solve(M, np.concatenate([rhs_l, -r_t]))
+            lam, dt = sol[:3 * self.K], sol[3 * self.K:]
+        dx = -self.hinv(r_x + self.AT_sparse @ lam)
+        return dx, dt, lam
+
+
+def reference_solve(ab: np.ndarray, A: sp.spmatrix, r_x: np.ndarray, C: np.ndarray, Bmat: np.ndarray | None = None,
+                    D: np.ndarray | None = None, r_t: np.ndarray | None = None):
+    """The plain sparse saddle-point solve of the same system (SuperLU)."""
+    H = BandedAssembler.to_sparse(ab)
+    m = A.shape[0]
+    if Bmat is None:
+        Kk = sp.bmat([[H, A.T], [A, None]], format="csc")
+        sol = spla.spsolve(Kk, -np.concatenate([r_x, C]))
+        return sol[:H.shape[0]], None, sol[H.shape[0]:]
+    Bs = sp.csr_matrix(Bmat)
+    Kk = sp.bmat([[H, None, A.T], [None, sp.diags(D), Bs.T], [A, Bs, None]], format="csc")
+    sol = spla.spsolve(Kk, -np.concatenate([r_x, r_t, C]))
+    N, K = H.shape[0], Bmat.shape[1]
+    return sol[:N], sol[N:N + K], sol[N + K:]

@@ -1,0 +1,77 @@
+"""Arc-length parameterised Catmull-Rom splines (paper 3.2, "Dynamic Constraint Targets").
+
+A curve through control points P_i at knots s_i (the guide's *rest* arc lengths, so the
+parameter t is rest arc length) is the cubic Hermite interpolant with Catmull-Rom tangents
+m_i = (P_{i+1} - P_{i-1}) / (s_{i+1} - s_{i-1}) (one-sided at the ends).  It interpolates the
+P_i and is C1.  Beyond the ends it continues along the end tangent (C1, linear), so a sliding
+target may leave a guide that shrank.  Written in torch so that derivatives in t (and P) come
+from autograd; ``eval_with_derivatives`` gives value, first and second t-derivatives.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def tangents(P: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """Catmull-Rom tangents dP/dt at the knots.  P: (..., n, 3), s: (n,) -> (..., n, 3)."""
+    m = torch.empty_like(P)
+    ds = s[1:] - s[:-1]
+    m[..., 0, :] = (P[..., 1, :] - P[..., 0, :]) / ds[0]
+    m[..., -1, :] = (P[..., -1, :] - P[..., -2, :]) / ds[-1]
+    if P.shape[-2] > 2:
+        m[..., 1:-1, :] = (P[..., 2:, :] - P[..., :-2, :]) / (s[2:] - s[:-2]).unsqueeze(-1)
+    return m
+
+
+def evaluate(P: torch.Tensor, s: torch.Tensor, t: torch.Tensor, m: torch.Tensor | None = None) -> torch.Tensor:
+    """Curve points at parameters t.
+
+    P: (K, n, 3) control points of K curves sharing the knots s (n,); t: (K,) one parameter
+    per curve.  Returns (K, 3)."""
+    t = t.to(P.dtype)
+    if m is None:
+        m = tangents(P, s)
+    n = s.shape[0]
+    i = torch.clamp(torch.searchsorted(s.detach(), t.detach(), right=True) - 1, 0, n - 2)
+    k = torch.arange(P.shape[0])
+    s0, s1 = s[i], s[i + 1]
+    h = s1 - s0
+    u = ((t - s0) / h).unsqueeze(-1)
+    p0, p1, m0, m1 = P[k, i], P[k, i + 1], m[k, i], m[k, i + 1]
+    h = h.unsqueeze(-1)
+    inner = ((2 * u ** 3 - 3 * u ** 2 + 1) * p0 + (u ** 3 - 2 * u ** 2 + u) * h * m0
+             + (-2 * u ** 3 + 3 * u ** 2) * p1 + (u ** 3 - u ** 2) * h * m1)
+    before = P[k, 0] + (t - s[0]).unsqueeze(-1) * m[k, 0]
+    after = P[k, -1] + (t - s[-1]).unsqueeze(-1) * m[k, -1]
+    tt = t.unsqueeze(-1)
+    return torch.where(tt < s[0], before, torch.where(tt > s[-1], after, inner))
+
+
+def eval_with_derivatives(P: torch.Tensor, s: torch.Tensor, t: torch.Tensor):
+    """(value (K, 3), d/dt (K, 3), d2/dt2 (K, 3)) by autograd, batched over the K curves
+    (curves do not share parameters, so the gradient of a sum gives each curve's derivative)."""
+    t = t.detach().clone().requires_grad_(True)
+
+    def dt(y, create_graph):
+        out = []
+        for j in range(3):
+            g = None
+            if y.requires_grad:
+                (g,) = torch.autograd.grad(y[:, j].sum(), t, create_graph=create_graph, retain_graph=True,
+                                           allow_unused=True)
+            out.append(torch.zeros_like(t) if g is None else g)
+        return torch.stack(out, -1)
+
+    with torch.enable_grad():
+        c = evaluate(P.detach(), s, t)
+        d1 = dt(c, True)
+        d2 = dt(d1, False)
+    return c.detach(), d1.detach(), d2.detach()
+
+
+def rest_arclength(points) -> torch.Tensor:
+    """(n,) cumulative arc length of a polyline (n, 3)."""
+    P = torch.as_tensor(points, dtype=torch.float64)
+    seg = torch.linalg.vector_norm(P[1:] - P[:-1], dim=-1)
+    return torch.cat([torch.zeros(1, dtype=P.dtype), torch.cumsum(seg, 0)])

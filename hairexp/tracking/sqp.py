@@ -1,0 +1,128 @@
+"""SQP on the tracking problem (paper 3.4, eqs. 6-8).
+
+    min_{x, t}  H(x) + P(x)   s.t.  C(x, t) = c(x) - c_hat(t) = 0
+
+H is the implicit Euler objective (eq. 5), P the variance penalty (3.3).  Each iteration
+solves the KKT system (8) for (dx, dt, lam+) with the PSD Hessian of H (the variance Hessian
+is left out, as in the paper), then backtracks on the l1 merit function
+phi = H + P + mu |C|_1 (Nocedal & Wright 2006, eq. 18.27), whose directional derivative along
+a step that satisfies the linearised constraints is grad(H+P).dx - mu |C|_1 (Theorem 18.2);
+mu is kept above |lam+|_inf (eq. 18.32).  Convergence needs both residuals small:
+|grad_x L| <= atol + rtol (force scale + |A^T lam|), |grad_t L| <= rtol |lam| |c_hat'| and
+max |C_k| <= ctol.  t and lam are warm-started from the previous step.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from hairexp.physics.info import CONVERGED, DIVERGED, LINE_SEARCH_FAILED, MAX_ITERATIONS, SolveInfo
+from hairexp.tracking.kkt import reference_solve
+
+#: Sufficient-decrease constant of the merit line search (N&W eq. 18.28, eta).
+MERIT_ETA = 1e-4
+#: mu = MU_FACTOR * |lam|_inf + MU_MARGIN (N&W eq. 18.32 asks mu > |lam|_inf).
+MU_FACTOR, MU_MARGIN = 1.5, 1e-12
+#: Backtracking factor.
+BACKTRACK = 0.5
+
+
+@dataclass
+class SQPOptions:
+    rtol: float = 1e-5
+    atol: float = 1e-10
+    ctol: float = 1e-10          # m, on max_k |C_k|
+    max_iterations: int = 50
+    max_backtracks: int = 30
+    kkt: str = "schur"           # or "reference"
+
+
+def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, opts: SQPOptions):
+    """Returns (x, t, lam, SolveInfo).  ``tracker`` supplies the constraints at this step."""
+    info = SolveInfo()
+    sec = info.seconds
+    x, t, lam = x0.copy(), t0.copy(), lam0.copy()
+    cons, kkt = tracker.cons, tracker.kkt
+    sliding = cons.sliding
+    mu = MU_FACTOR * float(np.abs(lam).max(initial=0.0)) + MU_MARGIN
+
+    def merit_parts(xf, tk):
+        f = obj.value(xf) + tracker.penalty(xf)[0]
+        C = cons.residual(xf, tracker.tg, tk).reshape(-1)
+        return f, C
+
+    f, C = merit_parts(x, t)
+    while True:
+        ev = obj.evaluate(x, need_hessian=True)
+        sec["derivatives"] += ev.seconds["derivatives"]
+        sec["assembly"] += ev.seconds["assembly"]
+        t0_ = time.perf_counter()
+        _, gP = tracker.penalty(x, need_grad=True)
+        g = ev.grad + gP if gP is not None else ev.grad
+        ATlam = cons.AT @ lam
+        r_x = g + ATlam
+        if sliding:
+            _, d1, d2 = cons.target_points(tracker.tg, t, derivatives=True)
+            Bmat = np.zeros((3 * cons.K, cons.K))
+            rows = np.arange(3 * cons.K)
+            Bmat[rows, rows // 3] = -d1.reshape(-1)               # dC/dt = -c_hat'(t)
+            lam3 = lam.reshape(-1, 3)
+            r_t = -(lam3 * d1).sum(1)                              # grad_t L = lam . dC/dt
+            D = np.maximum(-(lam3 * d2).sum(1), 0.0)                 # d2L/dt2 = -lam . c_hat'', clamped PSD
+            t_scale = np.linalg.norm(lam3, axis=1) * np.linalg.norm(d1, axis=1)
+        else:
+            Bmat = D = r_t = None
+        sec["solve"] += time.perf_counter() - t0_
+        gnorm = float(np.linalg.norm(r_x))
+        cmax = float(np.abs(C).max(initial=0.0))
+        info.grad_norm, info.force_scale, info.constraint_norm = gnorm, ev.force_scale + float(np.linalg.norm(ATlam)), cmax
+        if not (np.isfinite(gnorm) and np.isfinite(f) and np.isfinite(cmax)):
+            info.status = DIVERGED
+            break
+        t_ok = True if not sliding else bool(np.all(np.abs(r_t) <= opts.rtol * t_scale + opts.atol))
+        if gnorm <= opts.atol + opts.rtol * info.force_scale and cmax <= opts.ctol and t_ok:
+            info.status = CONVERGED
+            break
+        if info.iterations >= opts.max_iterations:
+            info.status = MAX_ITERATIONS
+            break
+        t1 = time.perf_counter()
+        if opts.kkt == "reference":
+            dx, dt, lam_new = reference_solve(ev.banded, cons.A, g, C, Bmat, D, np.zeros(cons.K) if sliding else None)
+        else:
+            kkt.factor(ev.banded)
+            dx, dt, lam_new = kkt.solve(g, C, Bmat, D, np.zeros(cons.K) if sliding else None)
+        sec["solve"] += time.perf_counter() - t1
+        # l1 merit line search
+        mu = max(mu, MU_FACTOR * float(np.abs(lam_new).max(initial=0.0)) + MU_MARGIN)
+        phi0 = f + mu * float(np.abs(C).sum())
+        dphi = float(np.dot(g, dx)) - mu * float(np.abs(C).sum())
+        noise = obj.value_noise
+        alpha, bt = 1.0, 0
+        while True:
+            xa = x + alpha * dx
+            ta = t + alpha * dt if sliding else t
+            fa, Ca = merit_parts(xa, ta)
+            phia = fa + mu * float(np.abs(Ca).sum())
+            if np.isfinite(phia) and phia <= phi0 + MERIT_ETA * alpha * min(dphi, 0.0) + noise:
+                break
+            bt += 1
+            if bt > opts.max_backtracks:
+                alpha = 0.0
+                break
+            alpha *= BACKTRACK
+        info.backtracks += bt
+        info.iterations += 1
+        if alpha == 0.0:
+            info.status = LINE_SEARCH_FAILED
+            break
+        obj.update_duals(x, alpha * dx)
+        x, t = xa, ta
+        lam = lam + alpha * (lam_new - lam)
+        f, C = fa, Ca
+    if info.status == CONVERGED:
+        info.duals = obj.settle_duals(x)
+    return x, t, lam, info

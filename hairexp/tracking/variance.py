@@ -1,0 +1,76 @@
+"""Spread control, paper 3.3: P = sum_k k_v,k(t) (V_k - V_bar_k(t))^2 with the cluster
+variance V_k = sum_{i in C_k} |c_k - d_i|^2, eq. (4).
+
+V_bar defaults to the rest variance.  k_v(t) = stiffness x stiffness_scale(t) and
+V_bar(t) = rest variance x target_scale(t) are keyframed (linear between keys), and apply to
+the clusters of the listed tracking-point indices (all when the list is empty), e.g. only the
+tips.  As in the paper the penalty's Hessian is left out of the KKT matrix (it couples a whole
+cluster); only its gradient (autograd) enters.  A run with k_v = 0 builds no penalty.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from hairexp.errors import InputError
+
+
+def _keys(times, values, key: str) -> tuple[np.ndarray, np.ndarray]:
+    t = np.asarray(list(times), dtype=np.float64)
+    v = np.asarray(list(values), dtype=np.float64)
+    if t.size != v.size or t.size == 0:
+        raise InputError(f"needs as many keyframe values as times (got {v.size} and {t.size})", key)
+    if np.any(np.diff(t) <= 0) or not (np.isfinite(t).all() and np.isfinite(v).all()):
+        raise InputError("keyframe times must increase and values be finite", key)
+    return t, v
+
+
+def variance(xf: torch.Tensor, cluster: torch.Tensor, w: torch.Tensor, idx: torch.Tensor, K: int) -> torch.Tensor:
+    """(K,) V_k, eq. (4).  xf: (n_free, 3); idx: free-vertex indices in clusters, cluster: their
+    cluster, w: their mass weights m_i / M_k."""
+    x = xf[idx]
+    com = torch.zeros(K, 3, dtype=x.dtype).index_add_(0, cluster, w.unsqueeze(-1) * x)
+    return torch.zeros(K, dtype=x.dtype).index_add_(0, cluster, ((x - com[cluster]) ** 2).sum(-1))
+
+
+class VarianceControl:
+    def __init__(self, cfg, cons, rest_free: np.ndarray):
+        self.cons = cons
+        self.K = cons.K
+        self.t_k, self.k_scale = _keys(cfg.times, cfg.stiffness_scale, "tracking.variance.stiffness_scale")
+        self.t_v, self.v_scale = _keys(cfg.times, cfg.target_scale, "tracking.variance.target_scale")
+        if not cfg.stiffness >= 0:
+            raise InputError(f"must be >= 0, got {cfg.stiffness}", "tracking.variance.stiffness")
+        self.stiffness = float(cfg.stiffness)
+        pts = list(cfg.points)
+        self.mask = np.isin(cons.corr.cluster_point, pts) if pts else np.ones(self.K, dtype=bool)
+        self.idx = torch.as_tensor(cons.free_in_cluster)
+        self.cluster = torch.as_tensor(cons.cluster_of_free[cons.free_in_cluster])
+        self.w = torch.as_tensor(cons.weights)
+        self.rest = self.values(rest_free)
+
+    @property
+    def active(self) -> bool:
+        """False when k_v is zero at every keyframe: then no penalty is built at all."""
+        return self.stiffness > 0 and bool(np.any(self.k_scale > 0)) and bool(self.mask.any())
+
+    def values(self, xf: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return variance(torch.as_tensor(xf.reshape(-1, 3)), self.cluster, self.w, self.idx, self.K).numpy()
+
+    def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(k_v (K,), V_bar (K,)) at time t."""
+        k = self.stiffness * float(np.interp(t, self.t_k, self.k_scale)) * self.mask
+        return k, self.rest * float(np.interp(t, self.t_v, self.v_scale))
+
+    def value_grad(self, xf: np.ndarray, k: np.ndarray, vbar: np.ndarray, need_grad: bool = True):
+        """P and its gradient over the free DOFs (N,)."""
+        x = torch.as_tensor(xf.reshape(-1, 3)).clone().requires_grad_(need_grad)
+        with torch.enable_grad():
+            V = variance(x, self.cluster, self.w, self.idx, self.K)
+            P = (torch.as_tensor(k) * (V - torch.as_tensor(vbar)) ** 2).sum()
+            if not need_grad:
+                return float(P), None
+            (g,) = torch.autograd.grad(P, x)
+        return float(P), g.reshape(-1).numpy()
