@@ -10,6 +10,10 @@ import os as _os
 # bench_free.py).  BLAS here only sees small vectors, so it gets one thread; torch keeps its
 # own.  ``limit_blas_threads`` enforces it even when numpy was imported first.
 _os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# torch's OpenMP threads busy-wait between parallel regions by default.  With another busy
+# process on the two cores (a second sweep worker, a test run) a tracked step went from 0.15 s
+# to 7-60 s; passive waiting kept it at 0.14-0.9 s.  Read when torch loads, so set here first.
+_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 #: glibc mallopt parameters (malloc.h).

@@ -62,6 +62,7 @@ class GuideSource(str, Enum):
     rigid = "rigid"     # rest guides carried by the rigid body
     scaled = "scaled"   # rest guides scaled about their roots by keyframed factors, carried by the body
     file = "file"       # npz with guide_positions (F, Vg, 3), guide_offsets, fps
+    simulated = "simulated"  # the rest guides simulated as free strands (same body, material, gravity)
 
 
 @dataclass

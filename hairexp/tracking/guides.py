@@ -5,7 +5,9 @@ smaller than the frame interval, and holds the first/last frame outside the anim
 Sources (``guides.source``): ``rigid`` (rest guides carried by the body), ``scaled`` (rest
 guides scaled about their roots by keyframed factors, then carried by the body: the paper's
 Fig. 2 shrinking guide), ``file`` (an npz with ``guide_positions`` (F, Vg, 3),
-``guide_offsets`` (G + 1,) and ``fps``, such as a run's result.npz).
+``guide_offsets`` (G + 1,) and ``fps``, such as a run's guides.npz), ``simulated`` (the rest
+guides simulated as free strands with the scene's body motion, material and gravity: the
+paper's "initial simulation on a coarse set of guide hairs using best-guess parameters").
 """
 
 from __future__ import annotations
@@ -108,6 +110,8 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     body = rest_guides(cfg.scene, g.count, g.n_vertices, g.layout_radius)
     offsets = np.arange(g.count + 1) * g.n_vertices
     times = np.arange(frames + 1) / fps
+    if source == "simulated":
+        return simulate_guides(cfg, scene, body, offsets, frames, fps)
     frames_pos = []
     for t in times:
         X = body
@@ -119,3 +123,26 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
             X = roots + f * (body - roots)
         frames_pos.append(scene.motion.transform(X, t))
     return GuideAnimation(np.stack(frames_pos), offsets, fps)
+
+
+def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: int, fps: float) -> GuideAnimation:
+    """Free simulation of the guide strands (eq. 5, same solver settings) at the scene's rate."""
+    from hairexp.physics.integrator import Simulator
+    from hairexp.run import step_schedule
+    from hairexp.scene.scene import Scene
+    from hairexp.scene.strands import Strands
+
+    if cfg.guides.n_vertices < 3:
+        raise InputError("simulated guides need >= 3 vertices (two are held by the body)", "guides.n_vertices")
+    world = scene.motion.transform(body, 0.0)
+    strands = Strands.from_polylines(world, np.diff(offsets), scene.material.linear_density, where="guides")
+    gscene = Scene(scene.name + "_guides", strands, scene.material, scene.motion, scene.gravity, body)
+    sim = Simulator(gscene, cfg.solver)
+    n_sub, dt = step_schedule(fps, cfg.solver.dt, frames)
+    state = sim.initial_state()
+    out = [state.x.copy()]
+    for _ in range(frames):
+        for _ in range(n_sub):
+            state, _ = sim.step(state, dt)
+        out.append(state.x.copy())
+    return GuideAnimation(np.stack(out), offsets, fps)

@@ -82,10 +82,11 @@ class SchurKKT:
             ab = ab.copy()
             ab[0] += 1e-8 * np.abs(ab[0]).max()
             self.cb = scipy.linalg.cholesky_banded(ab, lower=True, check_finite=False)
-        Ld = np.zeros(self.S * self.nmax * self.nmax)
-        Ld[self._dst] = self.cb.reshape(-1)[self._src]
-        Ld[self._pad] = 1.0
-        L = torch.from_numpy(Ld.reshape(self.S, self.nmax, self.nmax))
+        if not hasattr(self, "_Ld"):  # entries off the band pattern stay zero: allocate once
+            self._Ld = np.zeros(self.S * self.nmax * self.nmax)
+            self._Ld[self._pad] = 1.0
+        self._Ld[self._dst] = self.cb.reshape(-1)[self._src]
+        L = torch.from_numpy(self._Ld.reshape(self.S, self.nmax, self.nmax))
         Y = torch.linalg.solve_triangular(L, self.AT, upper=False)
         YtY = (Y.transpose(1, 2) @ Y).numpy()
         n = 3 * self.K + 1
