@@ -132,6 +132,7 @@ class TrackingConfig:
     atol: float = 1e-10
     ctol_rel: float = 1e-9             # max |C_k| <= ctol_rel * mean hair length
     max_iterations: int = 50
+    max_guide_distance: float = 0.0    # m; > 0: a strand whose RMS distance (eq. 1) to every guide exceeds it is an error
     variance: VarianceConfig = field(default_factory=VarianceConfig)
 
 

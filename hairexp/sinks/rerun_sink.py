@@ -88,6 +88,9 @@ class RerunSink:
                                               colors=self.cluster_colors))
             rec.log("/world/targets", rr.Points3D(obs["targets"].astype(np.float32), radii=2 * self.radius,
                                                   colors=[[255, 255, 255]]))
+            for k, v in enumerate(obs.get("variance_ratios", [])):
+                if np.isfinite(v):
+                    rec.log(f"/clusters/variance_ratio/{k}", rr.Scalars(float(v)))
             tg = tr.cons.targets(state.time)
             curves = []
             for Q, s, ks in zip(tg.control, tg.knots, tg.clusters):

@@ -23,7 +23,8 @@ class TrackingController:
         s = scene.strands
         self.scene, self.guides = scene, guides
         free = ~s.kinematic
-        self.corr = build_correspondence(s.rest, s.offsets, free, guides.guides(guides.rest), tcfg.points_per_guide)
+        self.corr = build_correspondence(s.rest, s.offsets, free, guides.guides(guides.rest), tcfg.points_per_guide,
+                                         tcfg.max_guide_distance)
         targets = str(_v(tcfg.targets))
         if targets not in ("static", "sliding"):
             raise InputError(f"unknown targets {targets!r} (static|sliding)", "tracking.targets")

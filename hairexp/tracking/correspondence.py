@@ -64,7 +64,10 @@ def sample_tracking_points(P: np.ndarray, count: int) -> tuple[np.ndarray, np.nd
 
 
 def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.ndarray,
-                         guides_rest: list[np.ndarray], points_per_guide: int) -> Correspondence:
+                         guides_rest: list[np.ndarray], points_per_guide: int,
+                         max_distance: float = 0.0) -> Correspondence:
+    """``max_distance`` > 0: a strand whose RMS distance to every guide (eq. 1 over its vertex
+    count) exceeds it cannot be claimed by any guide, and is an error naming the strand."""
     if points_per_guide < 1:
         raise InputError(f"must be >= 1, got {points_per_guide}", "tracking.points_per_guide")
     if not guides_rest:
@@ -80,6 +83,14 @@ def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.
     if not np.isfinite(dist).all():
         raise InputError("non-finite distance between detail hair and guides", "guides")
     guide_of_strand = np.argmin(dist, axis=1)
+    if max_distance > 0:
+        rms = np.sqrt(dist.min(axis=1) / np.diff(offsets))
+        far = np.flatnonzero(rms > max_distance)
+        if far.size:
+            s0 = int(far[0])
+            raise InputError(f"strand {s0} is {rms[s0]:.4g} m (RMS) from the nearest guide, more than "
+                             f"tracking.max_guide_distance={max_distance}; no guide can claim it "
+                             f"({far.size} such strands)", "tracking.max_guide_distance")
     # 2. tracking points
     tp, tp_s = zip(*(sample_tracking_points(P, points_per_guide) for P in guides_rest))
     tracking = np.stack(tp)
