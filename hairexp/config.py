@@ -74,6 +74,28 @@ class MotionConfig:
     rotations_deg: list[list[float]] = field(default_factory=lambda: [[0.0, 0.0, 0.0]])  # rotation vectors, degrees
 
 
+class ColliderShape(str, Enum):
+    sphere = "sphere"
+    capsule = "capsule"       # axis along body y, half_length, radius
+    box = "box"               # half_extents
+    cylinder = "cylinder"     # axis along body y, radius, half_height, spin (rad/s): a wheel
+    plane = "plane"           # the half space below body y = 0
+
+
+@dataclass
+class ColliderConfig:
+    name: str = "collider"
+    shape: ColliderShape = ColliderShape.sphere
+    radius: float = 0.1
+    half_length: float = 0.1
+    half_height: float = 0.05
+    half_extents: list[float] = field(default_factory=lambda: [0.1, 0.1, 0.1])
+    spin: float = 0.0
+    thickness: float = 0.002          # m kept from the surface
+    friction: float = 0.3             # Coulomb coefficient
+    motion: "MotionConfig" = field(default_factory=lambda: MotionConfig())   # pose keyframes of the collider
+
+
 @dataclass
 class HairConfig:
     """Material of the detail hair (SI)."""
@@ -99,6 +121,7 @@ class SceneConfig:
     gravity: list[float] = field(default_factory=lambda: [0.0, -9.81, 0.0])    # m/s^2, Y up
     hair: HairConfig = field(default_factory=HairConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
+    colliders: list[ColliderConfig] = field(default_factory=list)
 
 
 @dataclass
@@ -156,6 +179,15 @@ class SolverConfig:
 
 
 @dataclass
+class CollisionConfig:
+    """The collision stage after each step (paper 3.4, Bridson et al. 2002)."""
+    objects: bool = True              # hair against the scene's colliders (no colliders: nothing runs)
+    hair_hair: bool = False           # hair against hair
+    hair_thickness: float = 0.001     # m, edge-edge distance kept by repulsion
+    max_passes: int = 3
+
+
+@dataclass
 class LoggingConfig:
     rerun: bool = True                # write recording.rrd (rerun is not imported when false)
     progress: bool = True             # progress bar (always quiet when CI is set)
@@ -168,6 +200,7 @@ class Config:
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     solver: SolverConfig = field(default_factory=SolverConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
+    collision: CollisionConfig = field(default_factory=CollisionConfig)
     guides: GuidesConfig = field(default_factory=GuidesConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     experiment: Optional[str] = None  # name of the experiment, set by conf/experiment/*.yaml
@@ -182,6 +215,7 @@ def register() -> None:
     cs.store(group="controller", name="base_controller", node=ControllerConfig)
     cs.store(group="solver", name="base_solver", node=SolverConfig)
     cs.store(group="logging", name="base_logging", node=LoggingConfig)
+    cs.store(group="collision", name="base_collision", node=CollisionConfig)
 
 
 register()

@@ -88,7 +88,8 @@ def run(cfg, out_dir: str | Path) -> dict:
         scene = build_scene(cfg.scene)
         guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
         tracked = controller == "tracking"
-        sim = Simulator(scene, cfg.solver, cfg.tracking if tracked else None, guides if tracked else None)
+        sim = Simulator(scene, cfg.solver, cfg.tracking if tracked else None, guides if tracked else None,
+                        cfg.collision)
         tracker = sim.tracker
         guides.save(out / "guides.npz")
         recorder = ResultRecorder(scene)

@@ -36,14 +36,18 @@ class StepInfo:
     time: float                      # end-of-step time (s)
     dt: float
     status: str
-    iterations: int                  # summed over substeps
+    iterations: int                  # summed over the substeps that make up the accepted step
     backtracks: int
     substeps: int                    # 1 unless recovery split the step
     grad_norm: float
     force_scale: float
     constraint_norm: float = 0.0
     recovered: bool = False          # a failed attempt was replaced by substeps
+    object_contacts: int = 0         # collision stage: vertices corrected against colliders
+    hair_contacts: int = 0           # collision stage: edge pairs given impulses
+    penetration_max: float = 0.0     # m, after the collision stage
     seconds: dict = field(default_factory=dict)   # derivatives, assembly, solve, collision, other, total
+    iterations_attempted: int = 0    # all iterations done, including attempts that recovery replaced
 
     @property
     def converged(self) -> bool:

@@ -35,8 +35,15 @@ def _value(x):
     return getattr(x, "value", x)
 
 
+class _NoColliders:
+    """The scene seen by the collision stage when object collisions are switched off."""
+
+    def __init__(self, scene):
+        self.strands, self.colliders = scene.strands, []
+
+
 class Simulator:
-    def __init__(self, scene: Scene, solver_cfg, tracking_cfg=None, guides=None):
+    def __init__(self, scene: Scene, solver_cfg, tracking_cfg=None, guides=None, collision_cfg=None):
         """``tracking_cfg`` and ``guides`` given: the tracked controller (SQP with constraints);
         otherwise the free controller (Newton, no constraints are built)."""
         tune_runtime()
@@ -57,6 +64,15 @@ class Simulator:
                                                 primal_dual=str(_value(solver_cfg.stretch_hessian)) == "primal_dual")
         self.newton = NewtonOptions(solver_cfg.rtol, solver_cfg.atol, solver_cfg.max_iterations, solver_cfg.max_backtracks)
         self.on_failure = str(_value(solver_cfg.on_failure))
+        # collision stage: built only when the scene has something to collide (else no code runs)
+        self.collision_cfg = collision_cfg
+        cc = collision_cfg
+        self.collide_objects = bool(cc is not None and cc.objects and scene.colliders)
+        self.hair_hair = None
+        if cc is not None and cc.hair_hair:
+            from hairexp.physics.collisions import HairHair
+
+            self.hair_hair = HairHair(s, cc.hair_thickness)
         self.tracker = None
         if tracking_cfg is not None:
             from hairexp.tracking.controller import TrackingController
@@ -101,10 +117,19 @@ class Simulator:
         v_new = (x_new - state.x) / dt
         if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()):
             info.status = DIVERGED
+        elif self.collide_objects or self.hair_hair is not None:
+            from hairexp.physics.collisions import collision_stage
+
+            sc = self.scene if self.collide_objects else _NoColliders(self.scene)
+            x_new, v_new, cinfo = collision_stage(self.collision_cfg, sc, self.hair_hair, state.x, x_new,
+                                                  state.time, t_next, dt)
+            info.seconds["collision"] = info.seconds.get("collision", 0.0) + cinfo.seconds
+            info.collision = cinfo
         return State(t_next, x_new, v_new, duals), info
 
     def _advance(self, state: State, dt: float, level: int) -> tuple[State, list[SolveInfo]]:
         new, info = self._solve(state, dt)
+        self._attempted += info.iterations
         if info.converged:
             return new, [info]
         if self.on_failure == "substep" and level < self.cfg.max_substep_levels:
@@ -124,6 +149,7 @@ class Simulator:
     # -- public ---------------------------------------------------------------------------
     def step(self, state: State, dt: float) -> tuple[State, StepInfo]:
         t0 = time.perf_counter()
+        self._attempted = 0
         new, infos = self._advance(state, dt, 0)
         total = time.perf_counter() - t0
         last = infos[-1]
@@ -134,7 +160,13 @@ class Simulator:
         info = StepInfo(time=new.time, dt=dt, status=worst.status, iterations=sum(i.iterations for i in infos),
                         backtracks=sum(i.backtracks for i in infos), substeps=len(infos),
                         grad_norm=last.grad_norm, force_scale=last.force_scale, constraint_norm=last.constraint_norm,
-                        recovered=len(infos) > 1 and all(i.converged for i in infos), seconds=sec)
+                        recovered=len(infos) > 1 and all(i.converged for i in infos), seconds=sec,
+                        iterations_attempted=self._attempted)
+        cis = [i.collision for i in infos if getattr(i, "collision", None) is not None]
+        if cis:
+            info.object_contacts = sum(c.object_contacts for c in cis)
+            info.hair_contacts = sum(c.hair_contacts for c in cis)
+            info.penetration_max = max(c.penetration_max for c in cis)
         if len(infos) > 1 and info.recovered:
             info.status = CONVERGED
         return new, info

@@ -96,4 +96,29 @@ def build_scene(cfg) -> Scene:
     counts = np.full(cfg.n_strands, cfg.n_vertices)
     strands = Strands.from_polylines(world, counts, h.linear_density, where=f"scene {cfg.name}")
     material = Material(h.linear_density, h.stretch_stiffness, h.bending_stiffness, h.edge_damping, h.air_drag)
-    return Scene(cfg.name, strands, material, motion, _vec3(cfg.gravity, "scene.gravity"), body_pts)
+    colliders = [build_collider(c, i) for i, c in enumerate(getattr(cfg, "colliders", []) or [])]
+    return Scene(cfg.name, strands, material, motion, _vec3(cfg.gravity, "scene.gravity"), body_pts, colliders)
+
+
+def build_collider(c, i: int):
+    from hairexp.physics.colliders import SHAPES
+
+    shape = str(getattr(c.shape, "value", c.shape))
+    key = f"scene.colliders[{i}]"
+    common = dict(name=c.name or f"collider{i}", motion=build_motion(c.motion), thickness=c.thickness,
+                  friction=c.friction)
+    for k in ("radius", "half_length", "half_height"):
+        if not getattr(c, k) > 0:
+            raise InputError(f"must be > 0, got {getattr(c, k)}", f"{key}.{k}")
+    if shape == "sphere":
+        return SHAPES[shape](radius=c.radius, **common)
+    if shape == "capsule":
+        return SHAPES[shape](radius=c.radius, half_length=c.half_length, **common)
+    if shape == "box":
+        he = _vec3(c.half_extents, f"{key}.half_extents")
+        if not np.all(he > 0):
+            raise InputError(f"must be > 0, got {he.tolist()}", f"{key}.half_extents")
+        return SHAPES[shape](half_extents=tuple(he), **common)
+    if shape == "cylinder":
+        return SHAPES[shape](radius=c.radius, half_height=c.half_height, spin=c.spin, **common)
+    return SHAPES[shape](**common)

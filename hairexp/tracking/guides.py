@@ -28,6 +28,8 @@ class GuideAnimation:
     offsets: np.ndarray     # (G + 1,)
     fps: float
     where: str = "guides"
+    motion: object = None   # the body the guides are rooted on: interpolate in its frame
+
 
     def __post_init__(self):
         self.positions = np.asarray(self.positions, dtype=np.float64)
@@ -42,7 +44,15 @@ class GuideAnimation:
             raise InputError(f"fps must be > 0, got {self.fps}", self.where)
         for f in range(self.positions.shape[0]):
             validate_polylines(self.positions[f], counts, f"{self.where} frame {f}", min_vertices=2)
+        self.attach(self.motion)
 
+    def attach(self, motion) -> None:
+        """Interpolate between frames in the body frame of ``motion`` and map back with its
+        exact pose, so that the guide roots follow the body between frames as the detail
+        hair roots do (a linear blend of world positions would cut corners when it turns)."""
+        self.motion = motion
+        if motion is not None:
+            self._body = np.stack([motion.to_body(P, f / self.fps) for f, P in enumerate(self.positions)])
     @property
     def n_guides(self) -> int:
         return len(self.offsets) - 1
@@ -62,10 +72,13 @@ class GuideAnimation:
         """(Vg, 3) guide vertices at time t (linear in time between frames)."""
         u = float(np.clip(t * self.fps, 0.0, self.n_frames - 1))
         f = min(int(np.floor(u)), self.n_frames - 2) if self.n_frames > 1 else 0
+        src = self.positions if self.motion is None else self._body
         if self.n_frames == 1:
-            return self.positions[0]
-        a = u - f
-        return (1 - a) * self.positions[f] + a * self.positions[f + 1]
+            B = src[0]
+        else:
+            a = u - f
+            B = (1 - a) * src[f] + a * src[f + 1]
+        return B if self.motion is None else self.motion.transform(B, t)
 
     def save(self, path: Path) -> None:
         np.savez_compressed(path, guide_positions=self.positions, guide_offsets=self.offsets, fps=self.fps)
@@ -106,7 +119,7 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
             pos, off, gfps = data["guide_positions"], data["guide_offsets"], float(data["fps"])
         except (OSError, KeyError, ValueError) as exc:
             raise InputError(f"cannot read guide animation: {exc}", f"guides.file={path}") from exc
-        return GuideAnimation(pos, off, gfps, where=str(path))
+        return GuideAnimation(pos, off, gfps, where=str(path), motion=scene.motion)
     body = rest_guides(cfg.scene, g.count, g.n_vertices, g.layout_radius)
     offsets = np.arange(g.count + 1) * g.n_vertices
     times = np.arange(frames + 1) / fps
@@ -122,7 +135,7 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
             roots = np.repeat(body[offsets[:-1]], g.n_vertices, axis=0)
             X = roots + f * (body - roots)
         frames_pos.append(scene.motion.transform(X, t))
-    return GuideAnimation(np.stack(frames_pos), offsets, fps)
+    return GuideAnimation(np.stack(frames_pos), offsets, fps, motion=scene.motion)
 
 
 def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: int, fps: float) -> GuideAnimation:
@@ -145,4 +158,4 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
         for _ in range(n_sub):
             state, _ = sim.step(state, dt)
         out.append(state.x.copy())
-    return GuideAnimation(np.stack(out), offsets, fps)
+    return GuideAnimation(np.stack(out), offsets, fps, motion=scene.motion)

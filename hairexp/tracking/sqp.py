@@ -100,7 +100,11 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
         mu = max(mu, MU_FACTOR * float(np.abs(lam_new).max(initial=0.0)) + MU_MARGIN)
         phi0 = f + mu * float(np.abs(C).sum())
         dphi = float(np.dot(g, dx)) - mu * float(np.abs(C).sum())
-        noise = obj.value_noise
+        # round-off of phi: that of H (value_noise) plus that of mu |C|_1, whose terms are
+        # differences of centre-of-mass coordinates; without the second part a large mu made the
+        # search reject steps at the solution and stall (tests: rigid translation, static targets)
+        com_scale = float(np.abs(cons.com(x)).sum())
+        noise = obj.value_noise + mu * 8.0 * np.finfo(float).eps * com_scale
         alpha, bt = 1.0, 0
         while True:
             xa = x + alpha * dx

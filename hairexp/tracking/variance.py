@@ -71,6 +71,6 @@ class VarianceControl:
             V = variance(x, self.cluster, self.w, self.idx, self.K)
             P = (torch.as_tensor(k) * (V - torch.as_tensor(vbar)) ** 2).sum()
             if not need_grad:
-                return float(P), None
+                return P.item(), None
             (g,) = torch.autograd.grad(P, x)
-        return float(P), g.reshape(-1).numpy()
+        return P.item(), g.reshape(-1).numpy()

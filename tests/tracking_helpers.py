@@ -1,0 +1,157 @@
+"""Plain helpers for the tracking-solver tests (paper 3.1-3.4): small tracked scenes built from
+the structured config (no Hydra needed), scenes built directly from polylines, and a recorder of
+every SQP attempt the integrator makes (including attempts that recovery discarded)."""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass, field
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from hairexp.config import Config, TrackingConfig
+from hairexp.physics.integrator import Simulator
+from hairexp.scene.builders import build_scene
+from hairexp.scene.rigid import RigidMotion
+from hairexp.scene.scene import Material, Scene
+from hairexp.scene.strands import Strands
+from hairexp.tracking.guides import GuideAnimation, build_guides
+
+NO_GRAVITY = [0.0, 0.0, 0.0]
+DT = 0.04  # s: one step per frame at 25 fps
+
+#: The goaling body motion (conf/experiment/goaling.yaml): piecewise-constant velocity, then a stop.
+GOALING_MOTION = {
+    "scene.motion.interpolation": "linear",
+    "scene.motion.times": [0.0, 0.2, 0.4, 0.6, 0.8, 2.24],
+    "scene.motion.translations": [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.2, 0.0, 0.0],
+                                  [0.45, 0.0, 0.0], [0.45, 0.0, 0.0]],
+    "scene.motion.rotations_deg": [[0.0, 0.0, 0.0]] * 6,
+}
+
+
+def tracked_cfg(overrides: dict | None = None):
+    """A structured ``Config`` for a small tracked run: 16 strands x 12 vertices, one straight
+    guide of 8 vertices, 4 tracking points, sliding targets, no recording.  ``overrides`` are
+    dotted keys (``{"scene.n_strands": 12, "tracking.targets": "static"}``)."""
+    cfg = OmegaConf.structured(Config)
+    base = {
+        "controller.name": "tracking",
+        "scene.name": "tracking_test",
+        "scene.n_strands": 16,
+        "scene.n_vertices": 12,
+        "guides.count": 1,
+        "tracking.points_per_guide": 4,
+        "solver.compile": "off",
+        "logging.rerun": False,
+        "logging.progress": False,
+        "frames": 25,
+    }
+    base.update(overrides or {})
+    for k, v in base.items():
+        OmegaConf.update(cfg, k, v, merge=False)
+    return cfg
+
+
+def build_tracked(cfg):
+    """(scene, guides, simulator) for a tracked config."""
+    scene = build_scene(cfg.scene)
+    guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
+    sim = Simulator(scene, cfg.solver, cfg.tracking, guides)
+    return scene, guides, sim
+
+
+def tracking_cfg(**kw):
+    """A structured ``TrackingConfig`` (``variance`` as a dict)."""
+    var = kw.pop("variance", {})
+    cfg = OmegaConf.structured(TrackingConfig)
+    for k, v in kw.items():
+        OmegaConf.update(cfg, k, v, merge=False)
+    for k, v in var.items():
+        OmegaConf.update(cfg, f"variance.{k}", v, merge=False)
+    return cfg
+
+
+def polyline_scene(polylines: list[np.ndarray], gravity=NO_GRAVITY, motion: RigidMotion | None = None,
+                   linear_density: float = 2e-4) -> Scene:
+    """A Scene built directly from detail polylines (any vertex counts), at rest at t = 0 under a
+    static body (the world frame is the body frame)."""
+    pts = np.concatenate(polylines)
+    counts = np.array([len(p) for p in polylines])
+    strands = Strands.from_polylines(pts, counts, linear_density, where="test scene")
+    mat = Material(linear_density, 20.0, 2e-6)
+    motion = RigidMotion.static() if motion is None else motion
+    return Scene("polyline_test", strands, mat, motion, np.asarray(gravity, dtype=np.float64), pts.copy())
+
+
+def static_guides(polylines: list[np.ndarray], fps: float = 25.0) -> GuideAnimation:
+    """A one-frame guide animation (guides that never move) from guide polylines."""
+    pts = np.concatenate(polylines)
+    offsets = np.concatenate([[0], np.cumsum([len(p) for p in polylines])])
+    return GuideAnimation(pts[None], offsets, fps)
+
+
+def straight(root, direction, length: float, n: int) -> np.ndarray:
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    return np.asarray(root, dtype=np.float64) + np.linspace(0.0, length, n)[:, None] * d
+
+
+def free_vertex_com(sim: Simulator, x: np.ndarray) -> np.ndarray:
+    """(K, 3) cluster centres of mass, eq. (2), computed by hand from masses and clusters."""
+    s = sim.scene.strands
+    cov = sim.tracker.corr.cluster_of_vertex
+    K = sim.tracker.cons.K
+    com = np.zeros((K, 3))
+    for k in range(K):
+        v = np.flatnonzero(cov == k)
+        com[k] = (s.masses[v, None] * x[v]).sum(0) / s.masses[v].sum()
+    return com
+
+
+@dataclass
+class Attempts:
+    """Every ``sqp_solve`` call made by the integrator: (status, iterations, backtracks)."""
+    calls: list = field(default_factory=list)
+
+    @property
+    def iterations(self) -> int:
+        return sum(c[1] for c in self.calls)
+
+    @property
+    def failed(self) -> list:
+        return [c for c in self.calls if c[0] != "converged"]
+
+
+@contextlib.contextmanager
+def record_attempts(monkeypatch):
+    """Wrap the integrator's ``sqp_solve`` to record every attempt (StepInfo only sums the
+    substeps that were kept, not an attempt that recovery replaced)."""
+    import hairexp.physics.integrator as integ
+
+    rec = Attempts()
+    orig = integ.sqp_solve
+
+    def wrapped(*a, **k):
+        out = orig(*a, **k)
+        info = out[3]
+        rec.calls.append((info.status, info.iterations, info.backtracks))
+        return out
+
+    monkeypatch.setattr(integ, "sqp_solve", wrapped)
+    try:
+        yield rec
+    finally:
+        monkeypatch.setattr(integ, "sqp_solve", orig)
+
+
+def run_steps(sim: Simulator, n: int, dt: float = DT, state=None):
+    """(states, infos): states[0] is the initial state."""
+    state = sim.initial_state() if state is None else state
+    states, infos = [state], []
+    for _ in range(n):
+        state, info = sim.step(state, dt)
+        states.append(state)
+        infos.append(info)
+    return states, infos
