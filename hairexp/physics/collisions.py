@@ -77,6 +77,7 @@ def object_stage(colliders, x0, x1, t0, t1, dt, movable):
             s[a] = s[a] + np.where(close, 0.0, step)
             beyond = ~close & (s[a] > 1.0)
             active[a[beyond]] = False
+        hit |= active       # still approaching after the iteration cap (grazing paths): stop there, conservatively
         hit |= d1[ci] < 0  # ends within the thickness (e.g. the collider moved onto it)
         s = np.clip(s, 0.0, 1.0)
         h = ci[hit]
