@@ -119,14 +119,10 @@ def test_hair_hair_impulses_conserve_linear_momentum():
     np.testing.assert_allclose(p1, p0, rtol=0, atol=1e-15 * float(np.abs(s.masses[:, None] * v).sum()) + 1e-18)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "KNOWN LIMITATION hairexp/physics/collisions.py HairHair.impulses: the continuous edge-edge test "
-    "is approximate (sign flip of the separation at the start-time closest points), not the exact "
-    "coplanarity-cubic CCD; after the first inelastic impulse the strands nearly touch, the next "
-    "step's crossing is missed and the proximity impulse then separates them on the wrong side"))
 def test_swept_strands_do_not_pass_through_each_other():
     """Strand A (launched at 1.5 m/s in +y) sweeps across strand B 2 cm above it; both are
-    rooted on a still body.  With hair-hair collisions A must stay below B where they cross."""
+    rooted on a still body.  Without hair-hair collisions A passes through B (it ends above B at
+    their closest approach); with them A stays below B."""
     n = 12
     zs = np.linspace(-0.12, 0.12, n)
     A = np.stack([np.zeros(n), np.full(n, -0.02), zs], 1)        # along z
@@ -137,11 +133,19 @@ def test_swept_strands_do_not_pass_through_each_other():
     s = Strands.from_polylines(pts, [n, n], 2e-4)
     scene = Scene("cross", s, Material(2e-4, 20.0, 2e-6), RigidMotion.static(), np.zeros(3), pts)
 
+    from hairexp.physics.collisions import _closest_segment_params
+
+    ea, eb = np.arange(n - 1), np.arange(n - 1)
+    I, J = (g.ravel() for g in np.meshgrid(ea, eb, indexing="ij"))
+
     def height_of_a_over_b(x):
+        """y of A minus y of B at the closest approach of the two polylines (< 0: A below B)."""
         a, b = x[:n], x[n:]
-        ya = np.interp(0.03, a[:, 2], a[:, 1])                    # A at B's z
-        yb = np.interp(float(np.interp(0.03, a[:, 2], a[:, 0])), b[:, 0], b[:, 1])   # B at A's x there
-        return ya - yb
+        u, v = _closest_segment_params(a[I], a[I + 1], b[J], b[J + 1])
+        p = a[I] + u[:, None] * (a[I + 1] - a[I])
+        q = b[J] + v[:, None] * (b[J + 1] - b[J])
+        k = np.argmin(np.linalg.norm(p - q, axis=1))
+        return float(p[k, 1] - q[k, 1])
 
     out = {}
     for on in (False, True):

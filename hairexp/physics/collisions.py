@@ -9,9 +9,9 @@ the rest of the move keeps only its tangential part, reduced by Coulomb friction
 the surface (spin included); the end position is projected outside; the normal relative
 velocity is made non-negative (inelastic) and the tangential one is reduced by friction.
 
-Hair against hair: edges within the hair thickness at the end of the step get repulsion
-impulses; pairs whose edges cross during the step (continuous edge-edge test on the linear
-motion) get inelastic impulses.  Impulses act at the closest points with barycentric weights,
+Hair against hair: pairs whose edges meet during the step (exact continuous edge-edge test on
+the linear motion, ``edge_ccd``) get inelastic impulses; edges within the hair thickness at the
+end of the step get repulsion impulses.  Impulses act at the closest points with barycentric weights,
 so they are equal and opposite (linear momentum is conserved).  Adjacent edges of a strand are
 excluded.  The broad phase is a ``scipy.spatial.cKDTree`` over swept edge bounds.  Passes
 repeat up to ``max_passes``.
@@ -166,51 +166,59 @@ class HairHair:
         return pairs[keep & ~adjacent]
 
     def impulses(self, x1, v1, pairs, dt, x0=None):
-        """One pass of proximity (end positions within h) and continuous (crossing during the
-        step) impulses.  Returns (v1 updated, number of contacts)."""
+        """One pass: continuous edge-edge detection over the step (exact, ``edge_ccd``) gives
+        inelastic impulses along the side the edges started on; pairs that end within the hair
+        thickness get repulsion impulses.  Returns (v1 updated, number of pairs given impulses)."""
         if len(pairs) == 0:
             return v1, 0
         E = self.E
         i, j = pairs[:, 0], pairs[:, 1]
+        verts = np.stack([E[i, 0], E[i, 1], E[j, 0], E[j, 1]], 1)
+        hit = np.zeros(len(pairs), dtype=bool)
+        n = np.zeros((len(pairs), 3))
+        wa = np.zeros(len(pairs))
+        wb = np.zeros(len(pairs))
+        target = np.zeros(len(pairs))
+        if x0 is not None:
+            from hairexp.physics.edge_ccd import edge_edge_ccd
+
+            d = x1 - x0
+            hit, _, wa_c, wb_c = edge_edge_ccd(x0[E[i, 0]], x0[E[i, 1]], x0[E[j, 0]], x0[E[j, 1]],
+                                               d[E[i, 0]], d[E[i, 1]], d[E[j, 0]], d[E[j, 1]], 0.1 * self.h)
+            if hit.any():
+                pa = x0[E[i, 0]] + wa_c[:, None] * (x0[E[i, 1]] - x0[E[i, 0]])
+                pb = x0[E[j, 0]] + wb_c[:, None] * (x0[E[j, 1]] - x0[E[j, 0]])
+                nc = pa - pb                                                 # the side a started on
+                cr = np.cross(x0[E[i, 1]] - x0[E[i, 0]], x0[E[j, 1]] - x0[E[j, 0]])
+                tiny = np.linalg.norm(nc, axis=1) < 1e-12
+                cr = cr * np.where(np.sum(cr * (x1[E[i, 0]] - x1[E[j, 0]]), 1) < 0, 1.0, -1.0)[:, None]
+                nc = np.where(tiny[:, None], cr, nc)
+                n[hit] = nc[hit]
+                wa[hit], wb[hit] = wa_c[hit], wb_c[hit]
+                target[hit] = REPULSION * self.h / dt
+        # proximity at the end of the step
         a, b = _closest_segment_params(x1[E[i, 0]], x1[E[i, 1]], x1[E[j, 0]], x1[E[j, 1]])
         p = x1[E[i, 0]] + a[:, None] * (x1[E[i, 1]] - x1[E[i, 0]])
         q = x1[E[j, 0]] + b[:, None] * (x1[E[j, 1]] - x1[E[j, 0]])
-        dvec = p - q
-        dist = np.linalg.norm(dvec, axis=1)
-        crossed = np.zeros(len(pairs), dtype=bool)
-        if x0 is not None:
-            # continuous test: the sign of the closest-point separation along the start normal flips
-            a0, b0 = _closest_segment_params(x0[E[i, 0]], x0[E[i, 1]], x0[E[j, 0]], x0[E[j, 1]])
-            p0 = x0[E[i, 0]] + a0[:, None] * (x0[E[i, 1]] - x0[E[i, 0]])
-            q0 = x0[E[j, 0]] + b0[:, None] * (x0[E[j, 1]] - x0[E[j, 0]])
-            n0 = p0 - q0
-            # end separation measured at the start-time closest parameters
-            p1 = x1[E[i, 0]] + a0[:, None] * (x1[E[i, 1]] - x1[E[i, 0]])
-            q1 = x1[E[j, 0]] + b0[:, None] * (x1[E[j, 1]] - x1[E[j, 0]])
-            crossed = (np.sum((p1 - q1) * n0, 1) < 0) & (np.linalg.norm(n0, axis=1) < self.h + 0.5 * np.linalg.norm(
-                (p1 - q1) - n0, axis=1) + 1e-12)
-            n_c = n0 / np.maximum(np.linalg.norm(n0, axis=1, keepdims=True), 1e-300)
-        close = dist < self.h
-        act = close | crossed
+        dist = np.linalg.norm(p - q, axis=1)
+        close = (dist < self.h) & ~hit
+        n[close] = (p - q)[close]
+        wa[close], wb[close] = a[close], b[close]
+        target[close] = REPULSION * (self.h - dist[close]) / dt
+        act = hit | close
         if not act.any():
             return v1, 0
-        n = dvec / np.maximum(dist[:, None], 1e-300)
-        if x0 is not None:
-            n = np.where(crossed[:, None], n_c, n)
         idx = np.flatnonzero(act)
-        w = np.stack([1 - a, a, -(1 - b), -b], 1)[idx]                   # barycentric weights
-        verts = np.stack([E[i, 0], E[i, 1], E[j, 0], E[j, 1]], 1)[idx]
-        nn = n[idx]
-        vrel = np.einsum("pk,pkc->pc", w, v1[verts])
-        vn = np.sum(vrel * nn, 1)
-        overlap = np.where(crossed[idx], self.h + np.abs(np.sum((p - q)[idx] * nn, 1)), np.maximum(self.h - dist[idx], 0.0))
-        target = REPULSION * overlap / dt                                  # gentle separation speed
-        dvn = np.maximum(target - vn, 0.0)                                 # never pull together
-        denom = np.sum(w ** 2 * self.inv_m[verts], 1)
+        nn = n[idx] / np.maximum(np.linalg.norm(n[idx], axis=1, keepdims=True), 1e-300)
+        w = np.stack([1 - wa[idx], wa[idx], -(1 - wb[idx]), -wb[idx]], 1)   # barycentric weights
+        vv = verts[idx]
+        vn = np.sum(np.einsum("pk,pkc->pc", w, v1[vv]) * nn, 1)
+        dvn = np.maximum(target[idx] - vn, 0.0)                             # stop approach, then separate gently
+        denom = np.sum(w ** 2 * self.inv_m[vv], 1)
         ok = denom > 0
-        I = np.where(ok, dvn / np.where(ok, denom, 1.0), 0.0)              # impulse magnitude (kg m/s)
-        dv = (w * self.inv_m[verts] * I[:, None])[..., None] * nn[:, None, :]
-        np.add.at(v1, verts.ravel(), dv.reshape(-1, 3))
+        I = np.where(ok, dvn / np.where(ok, denom, 1.0), 0.0)               # impulse magnitude (kg m/s)
+        dv = (w * self.inv_m[vv] * I[:, None])[..., None] * nn[:, None, :]
+        np.add.at(v1, vv.ravel(), dv.reshape(-1, 3))
         return v1, int((I > 0).sum())
 
 
