@@ -150,17 +150,26 @@ class HairHair:
         self.m = strands.masses
         self.inv_m = np.where(strands.kinematic, 0.0, 1.0 / strands.masses)
 
-    def candidate_pairs(self, x0, x1):
+    def candidate_pairs(self, x0, x1, body=None):
+        """Edge pairs whose swept bounding boxes, grown by the hair thickness, overlap.
+
+        ``body``: (X0, X1) the same positions in the frame of the body the roots are attached
+        to.  A common rigid motion does not change how hairs move relative to each other, and in
+        that frame a jerk of the head does not inflate every swept box.  A cKDTree over the box
+        centres gives the candidates; the box test then removes e.g. parallel neighbours."""
         E = self.E
-        pts = np.stack([x0[E[:, 0]], x0[E[:, 1]], x1[E[:, 0]], x1[E[:, 1]]], 1)      # (E, 4, 3)
-        c = pts.mean(1)
-        r = np.linalg.norm(pts - c[:, None], axis=-1).max(1)
+        X0, X1 = body if body is not None else (x0, x1)
+        pts = np.stack([X0[E[:, 0]], X0[E[:, 1]], X1[E[:, 0]], X1[E[:, 1]]], 1)     # (E, 4, 3)
+        lo = pts.min(1) - 0.5 * self.h
+        hi = pts.max(1) + 0.5 * self.h
+        c = 0.5 * (lo + hi)
+        r = 0.5 * np.linalg.norm(hi - lo, axis=1)
         tree = cKDTree(c)
-        pairs = tree.query_pairs(2 * float(r.max()) + self.h, output_type="ndarray")
+        pairs = tree.query_pairs(2 * float(r.max()), output_type="ndarray")
         if len(pairs) == 0:
             return pairs
         i, j = pairs[:, 0], pairs[:, 1]
-        keep = np.linalg.norm(c[i] - c[j], axis=1) <= r[i] + r[j] + self.h
+        keep = np.all((lo[i] <= hi[j]) & (lo[j] <= hi[i]), axis=1)
         ei, ej = E[i], E[j]
         adjacent = (ei[:, 0] == ej[:, 0]) | (ei[:, 0] == ej[:, 1]) | (ei[:, 1] == ej[:, 0]) | (ei[:, 1] == ej[:, 1])
         return pairs[keep & ~adjacent]
@@ -231,7 +240,8 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt):
     for p in range(max(1, cfg.max_passes)):
         n_obj = n_hh = 0
         if hh is not None:
-            pairs = hh.candidate_pairs(x0, x1)
+            body = (scene.motion.to_body(x0, t0), scene.motion.to_body(x1, t1)) if hasattr(scene, "motion") else None
+            pairs = hh.candidate_pairs(x0, x1, body)
             v1, n_hh = hh.impulses(x1, v1, pairs, dt, x0)
             x1 = np.where(movable[:, None], x0 + dt * v1, x1)
         if scene.colliders:

@@ -39,7 +39,7 @@ class _NoColliders:
     """The scene seen by the collision stage when object collisions are switched off."""
 
     def __init__(self, scene):
-        self.strands, self.colliders = scene.strands, []
+        self.strands, self.colliders, self.motion = scene.strands, [], scene.motion
 
 
 class Simulator:

@@ -54,7 +54,28 @@ class RerunSink:
         rec.log("/world/body/box", rr.Boxes3D(half_sizes=[[0.5 * L * 0.1] * 3], colors=[[180, 180, 190]]), static=True)
 
     def log_static(self, guides, tracker) -> None:
-        """Cluster colours: vertices coloured by cluster (grey when in none)."""
+        """Collider shapes (in their body frames) and cluster colours (vertices coloured by
+        cluster, grey when in none)."""
+        from scipy.spatial.transform import Rotation
+
+        z_to_y = Rotation.from_rotvec([-np.pi / 2, 0, 0]).as_quat()    # rerun's capsule/cylinder axis is +z
+        grey = [[120, 160, 200, 160]]
+        for c in self.scene.colliders:
+            kind = type(c).__name__.lower()
+            path = f"/world/colliders/{c.name}"
+            if kind == "sphere":
+                arch = rr.Ellipsoids3D(half_sizes=[[c.radius] * 3], colors=grey)
+            elif kind == "capsule":
+                arch = rr.Capsules3D(lengths=[2 * c.half_length], radii=[c.radius],
+                                     translations=[[0, -c.half_length, 0]], quaternions=[z_to_y], colors=grey)
+            elif kind == "cylinder":
+                arch = rr.Cylinders3D(lengths=[2 * c.half_height], radii=[c.radius], centers=[[0, 0, 0]],
+                                      quaternions=[z_to_y], colors=grey)
+            elif kind == "box":
+                arch = rr.Boxes3D(half_sizes=[list(c.half_extents)], colors=grey)
+            else:  # plane: a large thin slab below body y = 0
+                arch = rr.Boxes3D(half_sizes=[[1.0, 0.0005, 1.0]], centers=[[0, -0.0005, 0]], colors=grey)
+            self.rec.log(path, arch, static=True)
         self.tracker = tracker
         self.guide_offsets = guides.offsets
         if tracker is not None:
@@ -76,6 +97,9 @@ class RerunSink:
 
         q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
         rec.log("/world/body", rr.Transform3D(translation=T, quaternion=q))
+        for c in self.scene.colliders:
+            Rc, Tc = c.motion.pose(state.time)
+            rec.log(f"/world/colliders/{c.name}", rr.Transform3D(translation=Tc, quaternion=Rotation.from_matrix(Rc).as_quat()))
         if obs.get("guides") is not None:
             g = np.split(obs["guides"].astype(np.float32), self.guide_offsets[1:-1])
             rec.log("/world/guides", rr.LineStrips3D(g, radii=2.5 * self.radius, colors=[[230, 60, 60]]))
