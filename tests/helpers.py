@@ -51,3 +51,14 @@ def scene_cfg(**kw):
 
 def solver_cfg(**kw):
     return OmegaConf.structured(SolverConfig(**kw))
+
+
+def run_steps(sim, n: int, dt: float, state=None):
+    """Step ``sim`` n times: (states, infos), states[0] the initial (or given) state."""
+    state = sim.initial_state() if state is None else state
+    states, infos = [state], []
+    for _ in range(n):
+        state, info = sim.step(state, dt)
+        states.append(state)
+        infos.append(info)
+    return states, infos

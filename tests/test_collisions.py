@@ -6,6 +6,8 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
+from helpers import run_steps
+
 from hairexp.config import ColliderConfig, CollisionConfig, SceneConfig, SolverConfig
 from hairexp.physics.collisions import HairHair, object_stage
 from hairexp.physics.colliders import Cylinder, Plane, Sphere
@@ -35,12 +37,7 @@ def make_scene(colliders, motion=None, **kw):
 
 def simulate(scene, steps, cc=None):
     sim = Simulator(scene, OmegaConf.structured(SolverConfig()), collision_cfg=OmegaConf.structured(cc or CollisionConfig()))
-    st = sim.initial_state()
-    states, infos = [st], []
-    for _ in range(steps):
-        st, info = sim.step(st, DT)
-        states.append(st)
-        infos.append(info)
+    states, infos = run_steps(sim, steps, DT)
     return sim, states, infos
 
 

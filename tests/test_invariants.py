@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from helpers import scene_cfg, solver_cfg
+from helpers import scene_cfg, solver_cfg, run_steps
 from hairexp.physics.integrator import Simulator
 from hairexp.scene.builders import build_scene
 from hairexp.scene.rigid import RigidMotion
@@ -19,13 +19,7 @@ NO_GRAVITY = [0.0, 0.0, 0.0]
 
 
 def run(sim: Simulator, n: int, dt: float, state=None):
-    state = sim.initial_state() if state is None else state
-    states, infos = [state], []
-    for _ in range(n):
-        state, info = sim.step(state, dt)
-        states.append(state)
-        infos.append(info)
-    return states, infos
+    return run_steps(sim, n, dt, state)
 
 
 def strand_straightness(scene: Scene, x: np.ndarray) -> float:

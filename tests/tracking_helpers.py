@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 from dataclasses import dataclass, field
 
+import helpers
 import numpy as np
 from omegaconf import OmegaConf
 
@@ -148,10 +149,4 @@ def record_attempts(monkeypatch):
 
 def run_steps(sim: Simulator, n: int, dt: float = DT, state=None):
     """(states, infos): states[0] is the initial state."""
-    state = sim.initial_state() if state is None else state
-    states, infos = [state], []
-    for _ in range(n):
-        state, info = sim.step(state, dt)
-        states.append(state)
-        infos.append(info)
-    return states, infos
+    return helpers.run_steps(sim, n, dt, state)
