@@ -226,6 +226,16 @@ class HairHair:
         denom = np.sum(w ** 2 * self.inv_m[vv], 1)
         ok = denom > 0
         I = np.where(ok, dvn / np.where(ok, denom, 1.0), 0.0)               # impulse magnitude (kg m/s)
+        # Jacobi relaxation: a vertex in many contacts would get the sum of all their impulses
+        # (velocities blew up to metres per step in a dense ponytail); each pair's impulse is
+        # divided by the largest contact count among its vertices, which keeps every impulse
+        # equal and opposite (momentum is conserved); further passes finish the job.
+        count = np.bincount(vv[I > 0].ravel(), minlength=len(v1))
+        I = I / np.maximum(count[vv].max(axis=1), 1)
+        # a contact next to a root vertex (infinite mass) with a small weight on the free vertex
+        # would need dvn / w from that vertex (91 m/s seen): no vertex changes by more than dvn
+        vmax = np.max(np.abs(w) * self.inv_m[vv], axis=1) * I
+        I = np.where(vmax > dvn, I * dvn / np.maximum(vmax, 1e-300), I)
         dv = (w * self.inv_m[vv] * I[:, None])[..., None] * nn[:, None, :]
         np.add.at(v1, vv.ravel(), dv.reshape(-1, 3))
         return v1, int((I > 0).sum())
