@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from hairexp.physics.edge_ccd import _closest_segment_params, edge_edge_ccd
+
 #: Conservative-advancement iterations and tolerance (fraction of the thickness or 1e-6 m).
 CA_ITERATIONS, CA_TOL = 40, 1e-6
 #: Fraction of the overlap (h - d) removed per step by the repulsion impulse (Bridson 2002, 7.2).
@@ -124,24 +126,6 @@ def object_stage(colliders, x0, x1, t0, t1, dt, movable):
     return x1, v1, contacts, per
 
 
-def _closest_segment_params(p1, q1, p2, q2):
-    """Closest points of segments p1q1 and p2q2 (vectorised): parameters (a, b) in [0, 1]."""
-    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
-    a_ = np.sum(d1 * d1, 1)
-    e = np.sum(d2 * d2, 1)
-    f = np.sum(d2 * r, 1)
-    c = np.sum(d1 * r, 1)
-    b_ = np.sum(d1 * d2, 1)
-    den = a_ * e - b_ * b_
-    s = np.where(den > 1e-20, np.clip((b_ * f - c * e) / np.maximum(den, 1e-300), 0, 1), 0.0)
-    t = (b_ * s + f) / np.maximum(e, 1e-300)
-    t0 = t < 0
-    t1 = t > 1
-    s = np.where(t0, np.clip(-c / np.maximum(a_, 1e-300), 0, 1), np.where(t1, np.clip((b_ - c) / np.maximum(a_, 1e-300), 0, 1), s))
-    t = np.clip(t, 0, 1)
-    return s, t
-
-
 class HairHair:
     def __init__(self, strands, thickness: float):
         self.E = strands.edges
@@ -189,8 +173,6 @@ class HairHair:
         wb = np.zeros(len(pairs))
         target = np.zeros(len(pairs))
         if x0 is not None:
-            from hairexp.physics.edge_ccd import edge_edge_ccd
-
             d = x1 - x0
             hit, _, wa_c, wb_c = edge_edge_ccd(x0[E[i, 0]], x0[E[i, 1]], x0[E[j, 0]], x0[E[j, 1]],
                                                d[E[i, 0]], d[E[i, 1]], d[E[j, 0]], d[E[j, 1]], 0.1 * self.h)

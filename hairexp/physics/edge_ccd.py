@@ -14,10 +14,22 @@ import numpy as np
 BISECTIONS = 40
 
 
-def _closest_params(p1, q1, p2, q2):
-    from hairexp.physics.collisions import _closest_segment_params
-
-    return _closest_segment_params(p1, q1, p2, q2)
+def _closest_segment_params(p1, q1, p2, q2):
+    """Closest points of segments p1q1 and p2q2 (vectorised): parameters (a, b) in [0, 1]."""
+    d1, d2, r = q1 - p1, q2 - p2, p1 - p2
+    a_ = np.sum(d1 * d1, 1)
+    e = np.sum(d2 * d2, 1)
+    f = np.sum(d2 * r, 1)
+    c = np.sum(d1 * r, 1)
+    b_ = np.sum(d1 * d2, 1)
+    den = a_ * e - b_ * b_
+    s = np.where(den > 1e-20, np.clip((b_ * f - c * e) / np.maximum(den, 1e-300), 0, 1), 0.0)
+    t = (b_ * s + f) / np.maximum(e, 1e-300)
+    t0 = t < 0
+    t1 = t > 1
+    s = np.where(t0, np.clip(-c / np.maximum(a_, 1e-300), 0, 1), np.where(t1, np.clip((b_ - c) / np.maximum(a_, 1e-300), 0, 1), s))
+    t = np.clip(t, 0, 1)
+    return s, t
 
 
 def _triple(a, b, c):
@@ -70,7 +82,7 @@ def edge_edge_ccd(a0, a1, b0, b1, da0, da1, db0, db1, tol):
         s = np.where(flo == 0, lo, 0.5 * (lo + hi))
         A0, A1 = a0 + s[:, None] * da0, a1 + s[:, None] * da1
         B0, B1 = b0 + s[:, None] * db0, b1 + s[:, None] * db1
-        u, v = _closest_params(A0, A1, B0, B1)
+        u, v = _closest_segment_params(A0, A1, B0, B1)
         dist = np.linalg.norm(A0 + u[:, None] * (A1 - A0) - B0 - v[:, None] * (B1 - B0), axis=1)
         new = has & (dist <= tol)
         hit |= new

@@ -14,6 +14,9 @@ import uuid
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
+import torch
+
+from hairexp.tracking import spline
 
 #: Metrics plotted (a subset of the row; all numeric row entries are logged).
 PLOTTED = ("iterations", "stretch_max", "residual_rel_max", "variance_ratio_mean", "constraint_force_rel",
@@ -118,10 +121,6 @@ class RerunSink:
             tg = tr.cons.targets(state.time)
             curves = []
             for Q, s, ks in zip(tg.control, tg.knots, tg.clusters):
-                import torch
-
-                from hairexp.tracking import spline
-
                 tt = torch.linspace(float(s[0]), float(s[-1]), 24, dtype=torch.float64)
                 for j in range(len(ks)):
                     curves.append(spline.evaluate(Q[j:j + 1].expand(len(tt), -1, -1), s, tt).numpy().astype(np.float32))
