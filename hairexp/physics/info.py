@@ -23,6 +23,7 @@ class SolveInfo:
     constraint_norm: float = 0.0    # SQP only: max |C|
     seconds: dict = field(default_factory=lambda: {"derivatives": 0.0, "assembly": 0.0, "solve": 0.0})
     duals: dict = field(default_factory=dict)   # converged dual iterates (warm start of the next step)
+    collision: object = None        # CollisionInfo of the collision stage that followed, if it ran
 
     @property
     def converged(self) -> bool:

@@ -162,7 +162,7 @@ class Simulator:
                         grad_norm=last.grad_norm, force_scale=last.force_scale, constraint_norm=last.constraint_norm,
                         recovered=len(infos) > 1 and all(i.converged for i in infos), seconds=sec,
                         iterations_attempted=self._attempted)
-        cis = [i.collision for i in infos if getattr(i, "collision", None) is not None]
+        cis = [i.collision for i in infos if i.collision is not None]
         if cis:
             info.object_contacts = sum(c.object_contacts for c in cis)
             info.hair_contacts = sum(c.hair_contacts for c in cis)

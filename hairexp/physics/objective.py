@@ -27,7 +27,6 @@ ROUNDOFF_ULPS = 64
 class Evaluation:
     """Objective pieces at one iterate (N = number of free DOFs)."""
 
-    value: float
     grad: np.ndarray                 # (N,)
     banded: np.ndarray | None        # (bw + 1, N) lower band of the PSD Hessian, or None
     force_scale: float               # |inertial| + |internal| + |external| force norms
@@ -124,7 +123,7 @@ class ImplicitEulerObjective:
         self.value_noise = ROUNDOFF_ULPS * np.finfo(float).eps * (abs(inertia) + sum(abs(p) for p in parts))
         return inertia + sum(parts)
 
-    def evaluate(self, xf: np.ndarray, need_hessian: bool = True, need_value: bool = False) -> Evaluation:
+    def evaluate(self, xf: np.ndarray, need_hessian: bool = True) -> Evaluation:
         t0 = time.perf_counter()
         x = self.positions(xf)
         grads, hessians = [], []
@@ -141,5 +140,4 @@ class ImplicitEulerObjective:
         scale = float(np.linalg.norm(f_inertia) + np.linalg.norm(g_int) + self.ext_norm)
         ab = self.assembler.banded(hessians, self.mass_diag) if need_hessian else None
         t2 = time.perf_counter()
-        value = self.value(xf) if need_value else float("nan")
-        return Evaluation(value, grad, ab, scale, {"derivatives": t1 - t0, "assembly": t2 - t1})
+        return Evaluation(grad, ab, scale, {"derivatives": t1 - t0, "assembly": t2 - t1})

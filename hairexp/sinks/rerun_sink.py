@@ -118,7 +118,7 @@ class RerunSink:
             for k, v in enumerate(obs.get("variance_ratios", [])):
                 if np.isfinite(v):
                     rec.log(f"/clusters/variance_ratio/{k}", rr.Scalars(float(v)))
-            tg = tr.cons.targets(state.time)
+            tg = tr.targets_at(state.time)
             curves = []
             for Q, s, ks in zip(tg.control, tg.knots, tg.clusters):
                 tt = torch.linspace(float(s[0]), float(s[-1]), 24, dtype=torch.float64)

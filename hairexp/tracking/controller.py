@@ -37,13 +37,20 @@ class TrackingController:
         self.opts = SQPOptions(rtol=tcfg.rtol, atol=tcfg.atol, ctol=tcfg.ctol_rel * self.hair_length,
                                max_iterations=tcfg.max_iterations, kkt=str(_v(tcfg.kkt)))
         self.tg = None
+        self.time = None
         self._kv = self._vbar = None
         self.m_g_norm = float(np.linalg.norm(s.masses[free, None] * scene.gravity[None])) or 1.0
 
+    def targets_at(self, t: float):
+        """Target curves at time t; the step's own (built in ``begin``) when t is its time, so
+        the metrics and the recording of a step do not rebuild the guide frames."""
+        if self.tg is None or t != self.time:
+            self.time, self.tg = t, self.cons.targets(t)
+        return self.tg
+
     def begin(self, t: float) -> None:
         """Targets (and variance keys) at the end-of-step time t."""
-        self.time = t
-        self.tg = self.cons.targets(t)
+        self.targets_at(t)
         if self.use_variance:
             self._kv, self._vbar = self.variance.at(t)
 
@@ -57,7 +64,7 @@ class TrackingController:
 
     def measure(self, xf: np.ndarray, t: float, duals: dict) -> dict:
         """Tracking metrics of a state (free DOF vector xf) at time t."""
-        tg = self.cons.targets(t)
+        tg = self.targets_at(t)
         tk = duals.get("t", self.cons.t_rest)
         C = self.cons.residual(xf, tg, tk)
         r = np.linalg.norm(C, axis=1)
