@@ -184,6 +184,7 @@ class CollisionConfig:
     objects: bool = True              # hair against the scene's colliders (no colliders: nothing runs)
     hair_hair: bool = False           # hair against hair
     hair_thickness: float = 0.001     # m, edge-edge distance kept by repulsion
+    skin: float = 0.003               # m, hair-hair neighbour-list skin: the list is reused while no vertex moves skin/2
     max_passes: int = 3
 
 

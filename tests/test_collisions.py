@@ -108,7 +108,7 @@ def test_hair_hair_impulses_conserve_linear_momentum():
     v[:n, 1] += 0.1      # A moves up toward B, B down toward A: they approach
     v[n:, 1] -= 0.1
     v[s.kinematic] = 0.0
-    pairs = hh.candidate_pairs(x, x)
+    pairs, _ = hh.neighbours(hh.frames(x, x)[0])
     v1, k = hh.impulses(x, v.copy(), pairs, DT, x)
     assert k > 0
     p0 = (s.masses[:, None] * v).sum(0)
@@ -220,3 +220,104 @@ def test_collider_motion_and_surface_velocity():
     np.testing.assert_allclose(s.surface_velocity(x, 0.5), [[1.0, 0.0, 0.0]], atol=1e-12)
     w = Cylinder("w", RigidMotion.static(), radius=0.1, half_height=0.1, spin=2.0)
     np.testing.assert_allclose(w.surface_velocity(np.array([[0.1, 0.0, 0.0]]), 0.0), [[0.0, 0.0, -0.2]], atol=1e-12)
+
+
+def _brute_force_reachable(hh, x0, x1):
+    """All non-adjacent edge pairs whose segments come within h during the linear step,
+    by sampling the step finely (a reference for the broad phase, O(E^2))."""
+    from hairexp.physics.edge_ccd import _closest_segment_params
+
+    E = hh.E
+    i, j = np.triu_indices(len(E), 1)
+    ei, ej = E[i], E[j]
+    ok = ~((ei[:, 0] == ej[:, 0]) | (ei[:, 0] == ej[:, 1]) | (ei[:, 1] == ej[:, 0]) | (ei[:, 1] == ej[:, 1]))
+    i, j = i[ok], j[ok]
+    dmin = np.full(len(i), np.inf)
+    for s_ in np.linspace(0.0, 1.0, 41):
+        x = (1 - s_) * x0 + s_ * x1
+        a, b = _closest_segment_params(x[E[i, 0]], x[E[i, 1]], x[E[j, 0]], x[E[j, 1]])
+        p = x[E[i, 0]] + a[:, None] * (x[E[i, 1]] - x[E[i, 0]])
+        q = x[E[j, 0]] + b[:, None] * (x[E[j, 1]] - x[E[j, 0]])
+        dmin = np.minimum(dmin, np.linalg.norm(p - q, axis=1))
+    return set(zip(i[dmin < hh.h].tolist(), j[dmin < hh.h].tolist()))
+
+
+@pytest.mark.parametrize("motion", ["still", "calm", "swing", "violent"])
+def test_hair_hair_broad_phase_finds_every_pair_that_can_touch(motion):
+    """Over a sequence of steps (Verlet list reused, rebuilt, or swept boxes), every edge pair
+    that comes within the thickness during a step is among the pairs the broad phase and the
+    reachability filter hand to the narrow phase: compared with brute force over all pairs."""
+    rng = np.random.default_rng(11)
+    n_s, n_v = 14, 9
+    pts = []
+    for k in range(n_s):
+        root = np.array([0.004 * (k % 4), 0.0, 0.004 * (k // 4)])
+        d = np.array([0.3 * rng.normal(), -1.0, 0.3 * rng.normal()])
+        pts.append(root + np.linspace(0, 0.08, n_v)[:, None] * d / np.linalg.norm(d))
+    s = Strands.from_polylines(np.concatenate(pts), [n_v] * n_s, 1e-3)
+    hh = HairHair(s, thickness=0.002, skin=0.003)
+    amp = {"still": 0.0, "calm": 2e-4, "swing": 3e-3, "violent": 2e-2}[motion]
+    x0 = s.rest.copy()
+    hows = set()
+    for step in range(6):
+        # a common swing (rotation about the roots' centre) plus per-vertex noise of size amp
+        ang = 0.2 * step if motion in ("swing", "violent") else 0.0
+        Rz = np.array([[np.cos(ang), -np.sin(ang), 0], [np.sin(ang), np.cos(ang), 0], [0, 0, 1]])
+        x1 = (s.rest @ Rz.T) + amp * rng.normal(size=x0.shape)
+        Ys, frame = hh.frames(x0, x1)
+        pairs, how = hh.neighbours(Ys)
+        hows.add(how)
+        near = hh.filter_reachable(x0, x1, pairs)
+        got = set(map(tuple, np.sort(near, 1).tolist()))
+        want = _brute_force_reachable(hh, x0, x1)
+        assert want <= got, f"step {step} ({how}): missed {sorted(want - got)[:5]}"
+        hh.end_step(x1, frame)
+        x0 = x1
+    if motion == "still":
+        assert "reused" in hows
+    if motion == "violent":
+        assert "swept" in hows
+
+
+def test_list_frame_keeps_distances_between_simultaneous_points():
+    rng = np.random.default_rng(5)
+    s = Strands.from_polylines(np.concatenate([np.c_[np.zeros(6), -np.linspace(0, 0.1, 6), np.full(6, 0.01 * k)]
+                                               for k in range(3)]), [6] * 3, 1e-3)
+    hh = HairHair(s, thickness=0.001)
+    x0 = s.rest + 1e-3 * rng.normal(size=s.rest.shape)
+    x1 = x0 @ np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]).T + np.array([0.3, 0.1, 0]) + 1e-3 * rng.normal(size=x0.shape)
+    Ys, (A, b) = hh.frames(x0, x1)
+    for Y, sv in zip(Ys, (0.0, 0.5, 1.0)):
+        x = (1 - sv) * x0 + sv * x1
+        Dx = np.linalg.norm(x[:, None] - x[None], axis=-1)
+        DY = np.linalg.norm(Y[:, None] - Y[None], axis=-1)
+        np.testing.assert_allclose(DY, Dx, atol=1e-12)
+    np.testing.assert_allclose(A @ A.T, np.eye(3), atol=1e-12)
+    # the bulk rotation is removed: the list-frame motion is the noise, not the 90 degree turn
+    assert np.abs(Ys[2] - Ys[0]).max() < 0.01
+
+
+def test_neighbour_list_is_rebuilt_when_hair_drifts_together():
+    """Two strands drift toward each other by 0.6 mm a step (less than skin / 2, so each step
+    alone is calm) from 9 mm apart: the list built at the start holds no pair, and reusing it
+    for too long would miss the contact.  Every pair that comes within h is found."""
+    n = 8
+    A = np.c_[np.zeros(n), -np.linspace(0, 0.08, n), np.zeros(n)]
+    B = A + np.array([0.009, 0.0, 0.0])
+    s = Strands.from_polylines(np.concatenate([A, B]), [n, n], 1e-3)
+    hh = HairHair(s, thickness=0.002, skin=0.003)
+    shift = np.where(np.arange(2 * n)[:, None] < n, 1.0, -1.0) * np.array([0.0003, 0.0, 0.0])
+    shift[s.kinematic] = 0.0
+    x0, found_any, hows = s.rest.copy(), False, []
+    for step in range(14):
+        x1 = x0 + shift
+        Ys, frame = hh.frames(x0, x1)
+        pairs, how = hh.neighbours(Ys)
+        hows.append(how)
+        got = set(map(tuple, np.sort(hh.filter_reachable(x0, x1, pairs), 1).tolist()))
+        want = _brute_force_reachable(hh, x0, x1)
+        assert want <= got, f"step {step} ({how}): missed {sorted(want - got)[:5]}"
+        found_any |= bool(want)
+        hh.end_step(x1, frame)
+        x0 = x1
+    assert found_any and "reused" in hows and hows.count("rebuilt") >= 2

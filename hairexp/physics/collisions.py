@@ -13,8 +13,14 @@ Hair against hair: pairs whose edges meet during the step (exact continuous edge
 the linear motion, ``edge_ccd``) get inelastic impulses; edges within the hair thickness at the
 end of the step get repulsion impulses.  Impulses act at the closest points with barycentric weights,
 so they are equal and opposite (linear momentum is conserved).  Adjacent edges of a strand are
-excluded.  The broad phase is a ``scipy.spatial.cKDTree`` over swept edge bounds.  Passes
-repeat up to ``max_passes``.
+excluded.  Passes repeat up to ``max_passes``.
+
+The hair-hair broad phase (``HairHair.neighbours``) works in a frame that co-moves with the
+hair (the best-fit rigid motion of each step removed, so distances are unchanged and a
+swinging groom is nearly still), keeps a Verlet neighbour list there while the motion is calm,
+and falls back to swept boxes on violent steps; boxes are paired with ``scipy.spatial.cKDTree``
+queries.  ``filter_reachable`` then drops pairs whose start distance exceeds h plus the most
+their vertices' displacements can close it.
 """
 
 from __future__ import annotations
@@ -24,11 +30,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from hairexp.physics.edge_ccd import _closest_segment_params, edge_edge_ccd
 
 #: Conservative-advancement iterations and tolerance (fraction of the thickness or 1e-6 m).
 CA_ITERATIONS, CA_TOL = 40, 1e-6
+#: Quantiles of the bounding-sphere radius that split the broad phase's boxes into classes.
+CLASS_QUANTILES = (0.5, 0.9, 1.0)
 #: Fraction of the overlap (h - d) removed per step by the repulsion impulse (Bridson 2002, 7.2).
 REPULSION = 0.25
 
@@ -39,6 +48,8 @@ class CollisionInfo:
     hair_contacts: int = 0
     penetration_max: float = 0.0      # m, deepest end-of-step penetration into a collider's thickness after the stage
     passes: int = 0
+    broad_phases: dict = field(default_factory=dict)   # hair-hair broad phase: {"reused"|"rebuilt"|"swept": passes}
+    candidates: int = 0               # most hair-hair edge pairs that reached the narrow phase in a pass
     seconds: float = 0.0
     per_collider: dict = field(default_factory=dict)
 
@@ -127,36 +138,158 @@ def object_stage(colliders, x0, x1, t0, t1, dt, movable):
 
 
 class HairHair:
-    def __init__(self, strands, thickness: float):
+    def __init__(self, strands, thickness: float, skin: float = 0.003):
         self.E = strands.edges
         self.sov = strands.strand_of_vertex
         self.h = float(thickness)
         self.m = strands.masses
         self.inv_m = np.where(strands.kinematic, 0.0, 1.0 / strands.masses)
+        self.skin = float(skin)
+        self._list = None      # (pairs, distances, Y_ref): the neighbour list, built at list-frame positions Y_ref
+        self._frame, self._frame_x = None, None   # list frame (A, b) at the start of the next step, and x there
+        self.rebuilds = 0
 
-    def candidate_pairs(self, x0, x1, body=None):
-        """Edge pairs whose swept bounding boxes, grown by the hair thickness, overlap.
+    def frames(self, x0, x1):
+        """Positions along the step (s = 0, 1/2, 1 of the linear paths) in the list frame, and
+        the map (A, b) of the list frame at the end of the step.
 
-        ``body``: (X0, X1) the same positions in the frame of the body the roots are attached
-        to.  A common rigid motion does not change how hairs move relative to each other, and in
-        that frame a jerk of the head does not inflate every swept box.  A cKDTree over the box
-        centres gives the candidates; the box test then removes e.g. parallel neighbours."""
+        The list frame co-moves with the hair: each step, the best-fit (Kabsch) rigid motion
+        of x0 -> x1 (rotation R about the centroid c(s), which moves linearly) is removed,
+        Y(s) = F(R(s)^T (x(s) - c(s)) + c0), with R(s) slerped from I to R and F the frame at
+        the start of the step.  A rigid map per instant keeps every distance between
+        simultaneous points, and the bulk swing of a groom (its largest motion) is gone.  When
+        x0 is not where the last step ended (first step, a retried step) the frame restarts."""
+        if self._frame_x is None or self._frame_x.shape != x0.shape or not np.array_equal(self._frame_x, x0):
+            self._frame, self._frame_x, self._list = (np.eye(3), np.zeros(3)), x0.copy(), None
+        A, b = self._frame
+        c0, c1 = x0.mean(0), x1.mean(0)
+        U, _, Vt = np.linalg.svd((x0 - c0).T @ (x1 - c1))
+        R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T   # x1 - c1 ~ R (x0 - c0)
+        rv = Rotation.from_matrix(R).as_rotvec()
+        Ys, maps = [], []
+        for s in (0.0, 0.5, 1.0):
+            Rs = Rotation.from_rotvec(s * rv).as_matrix()
+            cs = (1 - s) * c0 + s * c1
+            As = A @ Rs.T                                  # Y = As x + bs
+            bs = b + A @ (c0 - Rs.T @ cs)
+            Ys.append(((1 - s) * x0 + s * x1) @ As.T + bs)
+            maps.append((As, bs))
+        return tuple(Ys), maps[-1]
+
+    def end_step(self, x1, frame) -> None:
+        """Keep the list frame at the end of the step for the next one."""
+        self._frame, self._frame_x = frame, x1.copy()
+
+    def neighbours(self, Ys):
+        """Edge pairs that can come within the thickness h during the step, from positions
+        ``Ys`` along the step (start, middle, end) in the list frame (``frames``).  Returns
+        (pairs, how the broad phase ran: "reused", "rebuilt" or "swept").
+
+        Calm motion: a Verlet neighbour list (as in molecular dynamics).  Built at Y_ref (the
+        end of a step), it holds every edge pair closer than h + skin.  In the list frame,
+        while every vertex stays within skin / 2 of Y_ref, a pair not in the list stays
+        farther apart than h + skin - 2 (skin / 2) = h: it cannot touch.  Of the listed pairs,
+        those whose distance at Y_ref minus how far their vertices have moved since is below h
+        are returned.  A settled or swinging groom reuses the list for many steps.
+
+        Violent motion (a vertex moves more than skin / 2 within the step): swept boxes of the
+        edges over the step, grown by h / 2; pairs whose boxes overlap.
+
+        The step's path is checked at three instants; between them the list frame turns
+        smoothly (slerp), which the check does not bound exactly."""
         E = self.E
-        X0, X1 = body if body is not None else (x0, x1)
-        pts = np.stack([X0[E[:, 0]], X0[E[:, 1]], X1[E[:, 0]], X1[E[:, 1]]], 1)     # (E, 4, 3)
-        lo = pts.min(1) - 0.5 * self.h
-        hi = pts.max(1) + 0.5 * self.h
-        c = 0.5 * (lo + hi)
-        r = 0.5 * np.linalg.norm(hi - lo, axis=1)
-        tree = cKDTree(c)
-        pairs = tree.query_pairs(2 * float(r.max()), output_type="ndarray")
+        if self._list is not None:
+            pairs, dist, ref = self._list
+            moved = np.max([np.einsum("ij,ij->i", Y - ref, Y - ref) for Y in Ys], axis=0)
+            if float(moved.max()) < (0.5 * self.skin) ** 2:
+                m = np.sqrt(np.maximum(moved[E[:, 0]], moved[E[:, 1]]))
+                return pairs[dist - m[pairs[:, 0]] - m[pairs[:, 1]] < self.h], "reused"
+        ref = Ys[-1]
+        moved = np.max([np.linalg.norm(Y - ref, axis=1) for Y in Ys], axis=0)
+        if float(moved.max()) < 0.5 * self.skin:
+            pairs, dist = self.near_pairs(ref, self.h + self.skin)
+            self._list = (pairs, dist, ref.copy())
+            self.rebuilds += 1
+            m = np.maximum(moved[E[:, 0]], moved[E[:, 1]])
+            return pairs[dist - m[pairs[:, 0]] - m[pairs[:, 1]] < self.h], "rebuilt"
+        self._list = None
+        return self.swept_pairs(Ys), "swept"
+
+    def near_pairs(self, X, radius: float):
+        """Non-adjacent edge pairs whose segments in positions X are closer than ``radius``,
+        and their distances."""
+        E = self.E
+        a, b = X[E[:, 0]], X[E[:, 1]]
+        pairs = self._box_pairs(np.minimum(a, b) - 0.5 * radius, np.maximum(a, b) + 0.5 * radius)
+        pairs = pairs[self._not_adjacent(pairs)]
+        i, j = pairs[:, 0], pairs[:, 1]
+        s, t = _closest_segment_params(a[i], b[i], a[j], b[j])
+        d = np.linalg.norm(a[i] + s[:, None] * (b[i] - a[i]) - a[j] - t[:, None] * (b[j] - a[j]), axis=1)
+        keep = d < radius
+        return pairs[keep], d[keep]
+
+    def swept_pairs(self, Xs):
+        """Non-adjacent edge pairs whose boxes around the edges' positions ``Xs`` (grown by
+        h / 2) overlap."""
+        E = self.E
+        P = np.stack([X[E[:, k]] for X in Xs for k in (0, 1)], 1)
+        pairs = self._box_pairs(P.min(1) - 0.5 * self.h, P.max(1) + 0.5 * self.h)
+        return pairs[self._not_adjacent(pairs)]
+
+    def _not_adjacent(self, pairs):
+        """Mask: the two edges share no vertex (adjacent edges of a strand are excluded)."""
+        ei, ej = self.E[pairs[:, 0]], self.E[pairs[:, 1]]
+        return ~((ei[:, 0] == ej[:, 0]) | (ei[:, 0] == ej[:, 1]) | (ei[:, 1] == ej[:, 0]) | (ei[:, 1] == ej[:, 1]))
+
+    @staticmethod
+    def _box_pairs(lo, hi):
+        """Pairs (i, j) of axis-aligned boxes that overlap, each once.  The boxes' bounding
+        spheres go into cKDTrees by radius class (quantiles of the radius, so a few large boxes
+        do not widen every query): ``query_pairs`` within a class, ``sparse_distance_matrix``
+        between classes; then the exact box test."""
+        if len(lo) < 2:
+            return np.zeros((0, 2), dtype=np.int64)
+        c, r = 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo, axis=1)
+        bounds = np.unique(np.quantile(r, CLASS_QUANTILES))
+        cls = np.minimum(np.searchsorted(bounds, r), len(bounds) - 1)
+        idx = np.arange(len(c))
+        groups = [(idx[cls == k], float(r[cls == k].max())) for k in range(len(bounds)) if np.any(cls == k)]
+        trees = [cKDTree(c[g]) for g, _ in groups]
+        found = []
+        for k, (gk, rk) in enumerate(groups):
+            for m in range(k, len(groups)):
+                gm, rm = groups[m]
+                if m == k:
+                    pr = trees[k].query_pairs(2.0 * rk, output_type="ndarray").reshape(-1, 2)
+                    found.append(np.stack([gk[pr[:, 0]], gk[pr[:, 1]]], 1))
+                else:
+                    sd = trees[k].sparse_distance_matrix(trees[m], rk + rm, output_type="ndarray")
+                    found.append(np.stack([gk[sd["i"]], gm[sd["j"]]], 1))
+        pairs = np.concatenate(found).astype(np.int64)
+        i, j = pairs[:, 0], pairs[:, 1]
+        ok = np.ones(len(pairs), dtype=bool)
+        for d in range(3):
+            ok &= (lo[i, d] <= hi[j, d]) & (lo[j, d] <= hi[i, d])
+        return pairs[ok]
+
+    def filter_reachable(self, x0, x1, pairs):
+        """Pairs that can come within the thickness during the step.  A point of each edge
+        moves by a convex combination of its vertices' displacements, so the distance between
+        the segments changes by at most D = max |d_i - d_j| (i on edge a, j on edge b) over the
+        step; pairs whose distance at the start exceeds h + D are dropped (exact, conservative)."""
         if len(pairs) == 0:
             return pairs
+        E = self.E
         i, j = pairs[:, 0], pairs[:, 1]
-        keep = np.all((lo[i] <= hi[j]) & (lo[j] <= hi[i]), axis=1)
-        ei, ej = E[i], E[j]
-        adjacent = (ei[:, 0] == ej[:, 0]) | (ei[:, 0] == ej[:, 1]) | (ei[:, 1] == ej[:, 0]) | (ei[:, 1] == ej[:, 1])
-        return pairs[keep & ~adjacent]
+        a0, a1, b0, b1 = x0[E[i, 0]], x0[E[i, 1]], x0[E[j, 0]], x0[E[j, 1]]
+        s, t = _closest_segment_params(a0, a1, b0, b1)
+        d0 = np.linalg.norm(a0 + s[:, None] * (a1 - a0) - b0 - t[:, None] * (b1 - b0), axis=1)
+        d = x1 - x0
+        D = np.zeros(len(pairs))
+        for va in (E[i, 0], E[i, 1]):
+            for vb in (E[j, 0], E[j, 1]):
+                D = np.maximum(D, np.linalg.norm(d[va] - d[vb], axis=1))
+        return pairs[d0 - D < self.h]
 
     def impulses(self, x1, v1, pairs, dt, x0=None):
         """One pass: continuous edge-edge detection over the step (exact, ``edge_ccd``) gives
@@ -232,9 +365,12 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt):
     for p in range(max(1, cfg.max_passes)):
         n_obj = n_hh = 0
         if hh is not None:
-            body = (scene.motion.to_body(x0, t0), scene.motion.to_body(x1, t1)) if hasattr(scene, "motion") else None
-            pairs = hh.candidate_pairs(x0, x1, body)
-            v1, n_hh = hh.impulses(x1, v1, pairs, dt, x0)
+            Ys, frame = hh.frames(x0, x1)
+            pairs, how = hh.neighbours(Ys)
+            info.broad_phases[how] = info.broad_phases.get(how, 0) + 1
+            near = hh.filter_reachable(x0, x1, pairs)
+            info.candidates = max(info.candidates, len(near))
+            v1, n_hh = hh.impulses(x1, v1, near, dt, x0)
             x1 = np.where(movable[:, None], x0 + dt * v1, x1)
         if scene.colliders:
             x1, v1, n_obj, per = object_stage(scene.colliders, x0, x1, t0, t1, dt, movable)
@@ -245,6 +381,8 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt):
         info.passes = p + 1
         if n_obj + n_hh == 0:
             break
+    if hh is not None:
+        hh.end_step(x1, hh.frames(x0, x1)[1])
     if scene.colliders:
         pen = [np.maximum(-c.distance(x1[movable], t1), 0.0).max(initial=0.0) for c in scene.colliders]
         info.penetration_max = float(max(pen))

@@ -72,7 +72,7 @@ class Simulator:
         if cc is not None and cc.hair_hair:
             from hairexp.physics.collisions import HairHair
 
-            self.hair_hair = HairHair(s, cc.hair_thickness)
+            self.hair_hair = HairHair(s, cc.hair_thickness, cc.skin)
         self.tracker = None
         if tracking_cfg is not None:
             from hairexp.tracking.controller import TrackingController

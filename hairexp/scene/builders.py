@@ -2,8 +2,10 @@
 
 * ``wisp``: strands with roots spread uniformly over a disk on the rigid body, straight at
   rest along ``direction`` (optionally tilted at random by up to ``spread``).
-* ``ponytail``: the Celia-scale ponytail (301 strands x 26 vertices by default): a wisp whose
-  roots sit on a tight disk and whose strands fan slightly.
+* ``ponytail``: the Celia-scale ponytail (301 strands x 26 vertices by default): roots on a
+  tight disk, strands fanning out as a cone whose rim strands tilt outward by ``spread``.
+  A cone never makes two strands cross or touch at rest (the gap between neighbours grows
+  along the strands), so hair-hair collisions start from a contact-free rest state.
 """
 
 from __future__ import annotations
@@ -41,8 +43,11 @@ def disk_points(n: int, radius: float) -> np.ndarray:
 
 
 def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius: float, center: np.ndarray,
-                     direction: np.ndarray, spread: float, seed: int) -> np.ndarray:
-    """(n_strands * n_vertices, 3) straight strands rooted on a disk normal to ``direction``."""
+                     direction: np.ndarray, spread: float, seed: int, fan: bool = False) -> np.ndarray:
+    """(n_strands * n_vertices, 3) straight strands rooted on a disk normal to ``direction``.
+
+    ``fan``: strand i tilts outward in proportion to its root's distance from the centre (a
+    cone, rim tilt ``spread``); otherwise each strand tilts by a random angle up to ``spread``."""
     if n_strands < 1:
         raise InputError(f"must be >= 1, got {n_strands}", "scene.n_strands")
     if n_vertices < 3:
@@ -60,7 +65,10 @@ def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius
     pts = []
     for i in range(n_strands):
         d = direction
-        if spread > 0:
+        if fan and spread > 0:
+            d = direction + np.tan(spread) * (roots[i] - center) / root_radius
+            d = d / np.linalg.norm(d)
+        elif spread > 0:
             axis = rng.normal(size=3)
             axis -= axis.dot(direction) * direction
             axis /= np.linalg.norm(axis)
@@ -81,7 +89,7 @@ def build_scene(cfg) -> Scene:
     center = _vec3(cfg.root_center, "scene.root_center")
     if builder in ("wisp", "ponytail"):
         body_pts = straight_strands(cfg.n_strands, cfg.n_vertices, cfg.length, cfg.root_radius, center,
-                                    direction, cfg.spread, cfg.seed)
+                                    direction, cfg.spread, cfg.seed, fan=builder == "ponytail")
     else:  # pragma: no cover - the schema's Enum rejects other names
         raise InputError(f"unknown builder {builder!r}", "scene.builder")
     h = cfg.hair

@@ -63,6 +63,7 @@ class RigidMotion:
             self._pos = None
             self._rot = Slerp(self.times, rots)
         self._rots = rots
+        self._cache: dict = {}
 
     @staticmethod
     def static() -> "RigidMotion":
@@ -73,7 +74,18 @@ class RigidMotion:
         return float(min(max(t, lo), hi)), bool(t < lo or t > hi)
 
     def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Rotation matrix (3, 3) and translation (3,) at time t."""
+        """Rotation matrix (3, 3) and translation (3,) at time t (the last few are cached:
+        a step asks for the same few times many times)."""
+        key = float(t)
+        hit = self._cache.get(key)
+        if hit is None:
+            hit = self._pose(key)
+            if len(self._cache) >= 16:
+                self._cache.pop(next(iter(self._cache)))
+            self._cache[key] = hit
+        return hit[0].copy(), hit[1].copy()
+
+    def _pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         if self._rot is None:
             return self._rots[0].as_matrix(), self.translations[0].copy()
         tc, _ = self._clamp(t)
