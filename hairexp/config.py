@@ -61,6 +61,7 @@ class KKTSolve(str, Enum):
 class GuideSource(str, Enum):
     rigid = "rigid"     # rest guides carried by the rigid body
     scaled = "scaled"   # rest guides scaled about their roots by keyframed factors, carried by the body
+    keyframed = "keyframed"  # guides.keyframes: body-frame poses, cubic in time (hairexp/tracking/authoring.py)
     file = "file"       # npz with guide_positions (F, Vg, 3), guide_offsets, fps
     simulated = "simulated"  # the rest guides simulated as free strands (same body, material, gravity)
 
@@ -143,6 +144,13 @@ class GuideEditConfig:
 
 
 @dataclass
+class GuideKeyframeConfig:
+    """A pose of all guides (source=keyframed): count x n_vertices body-frame points, guide by guide."""
+    time: float = 0.0                  # s
+    points: list[list[float]] = field(default_factory=list)      # m, body frame
+
+
+@dataclass
 class GuidesConfig:
     """The guide animation (see hairexp/tracking/guides.py)."""
     source: GuideSource = GuideSource.rigid
@@ -151,6 +159,7 @@ class GuidesConfig:
     layout_radius: float = 0.5         # guide roots on a circle of this fraction of the root radius
     scale_times: list[float] = field(default_factory=lambda: [0.0])   # s (source=scaled)
     scale_factors: list[float] = field(default_factory=lambda: [1.0])
+    keyframes: list[GuideKeyframeConfig] = field(default_factory=list)   # source=keyframed
     edits: list[GuideEditConfig] = field(default_factory=list)           # applied in order on top of any source
     file: str = ""                     # source=file
 

@@ -1,6 +1,6 @@
-"""Guide authoring (paper 4: an artist edits a coarse guide simulation by keyframing; Fig. 7's
-swinging guide): rotate and displace edits layered on any guide source, their keyed
-weights, input errors naming the config key, the authored guides.npz reused
+"""Guide authoring (paper 4: an artist edits a coarse guide simulation by keyframing, or keys the
+guides directly, Fig. 7): rotate and displace edits layered on any guide source, their keyed
+weights, keyframed guide poses, input errors naming the config key, the authored guides.npz reused
 as a file source, and a tracked run of an edited guide."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 
 from helpers import REPO
 from tracking_helpers import tracked_cfg
-from hairexp.config import GuideEditConfig, GuideEditKind
+from hairexp.config import GuideEditConfig, GuideEditKind, GuideKeyframeConfig
 from hairexp.errors import InputError
 from hairexp.run import run
 from hairexp.scene.builders import build_scene
@@ -210,6 +210,74 @@ def test_edits_apply_on_top_of_a_simulated_guide():
 
 
 # ---------------------------------------------------------------------------------------------
+# Keyframed guides
+# ---------------------------------------------------------------------------------------------
+
+def line(root, direction, n=4, length=0.3):
+    d = np.asarray(direction, dtype=np.float64)
+    return (np.asarray(root) + np.linspace(0, length, n)[:, None] * d / np.linalg.norm(d)).tolist()
+
+
+def keyed_cfg(keys, **overrides):
+    cfg = guide_cfg(**{"guides.source": "keyframed", "guides.count": 2, "guides.n_vertices": 4, **overrides})
+    cfg.guides.keyframes = [GuideKeyframeConfig(time=t, points=p) for t, p in keys]
+    return cfg
+
+
+KEYS = [(0.2, line([0, 0, 0], [0, -1, 0]) + line([0.01, 0, 0], [0, -1, 0])),
+        (0.6, line([0, 0, 0], [1, -1, 0]) + line([0.01, 0, 0], [0, -1, 1])),
+        (0.8, line([0, 0, 0], [-1, -2, 0]) + line([0.01, 0, 0], [1, -1, 1]))]
+
+
+def test_keyframed_guides_hit_their_keys_in_the_body_frame_and_keep_their_roots():
+    cfg = keyed_cfg(KEYS, fps=50.0, frames=50)
+    scene, _, anim = source_and_edited(cfg)
+    body = np.stack([scene.motion.to_body(P, t) for P, t in zip(anim.positions, frame_times(anim))])
+    for t, pts in KEYS:
+        np.testing.assert_allclose(body[round(t * anim.fps)], pts, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(body[:round(0.2 * anim.fps)], np.repeat(body[[round(0.2 * anim.fps)]], 10, 0), atol=1e-15)
+    np.testing.assert_allclose(body[round(0.8 * anim.fps):], np.broadcast_to(body[-1], body[40:].shape), atol=1e-15)
+    for r in anim.offsets[:-1]:
+        np.testing.assert_allclose(body[:, r], np.broadcast_to(KEYS[0][1][r], body[:, r].shape), rtol=0, atol=1e-15)
+
+    def first_and_last_moves(fps):
+        """Largest body-frame move in the frame after the first key and before the last one."""
+        c = keyed_cfg(KEYS, fps=fps, frames=round(fps))
+        a = build_guides(c, scene, c.frames, c.fps)
+        B = np.stack([scene.motion.to_body(P, t) for P, t in zip(a.positions, frame_times(a))])
+        i, j = round(0.2 * fps), round(0.8 * fps)
+        return np.abs(B[i + 1] - B[i]).max(), np.abs(B[j] - B[j - 1]).max()
+
+    # clamped cubic in time: zero velocity at the first and last key, so the move over one frame
+    # next to them shrinks like h^2 (8x finer frames: 64x smaller; a non-zero velocity: 8x)
+    coarse, fine = first_and_last_moves(50.0), first_and_last_moves(400.0)
+    assert min(coarse) > 1e-4
+    for c, f in zip(coarse, fine):
+        assert f / c == pytest.approx(1 / 64, rel=0.1)
+
+
+def test_keyframed_roots_within_tolerance_are_snapped_to_keyframe_0():
+    """Roots keyed 1e-12 m apart are accepted (within ROOT_TOLERANCE) and held exactly where
+    keyframe 0 puts them, at every frame."""
+    keys = moved(1, lambda t, p: (t, [[c + 1e-12 for c in p[0]]] + p[1:]))
+    cfg = keyed_cfg(keys)
+    scene, _, anim = source_and_edited(cfg)
+    ref = keyed_cfg(KEYS)
+    exact = build_guides(ref, scene, ref.frames, ref.fps)
+    np.testing.assert_array_equal(anim.positions[:, anim.offsets[:-1]], exact.positions[:, exact.offsets[:-1]])
+    np.testing.assert_array_equal(anim.positions, exact.positions)
+
+
+def test_keyframed_guides_take_edits_too():
+    cfg = keyed_cfg(KEYS)
+    cfg.guides.edits = [edit("displace", guide=1, offset=[0.0, 0.0, 0.05], times=[0.0], weights=[1.0])]
+    _, src, ed = source_and_edited(cfg)
+    a, b = ed.offsets[1], ed.offsets[2]
+    np.testing.assert_array_equal(ed.positions[:, :a + 1], src.positions[:, :a + 1])
+    assert np.abs(ed.positions[:, b - 1] - src.positions[:, b - 1]).max() == pytest.approx(0.05, rel=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
 # Input errors name the config key
 # ---------------------------------------------------------------------------------------------
 
@@ -252,6 +320,33 @@ def test_root_turn_limit_is_the_documented_one():
     ok = edit(**{**OK_ROT, "axis": [1.0, 0.0, 0.0], "angle_deg": MAX_ROOT_TURN_DEG - 1.0, "weights": [0.0, 1.0]})
     cfg = guide_cfg([ok])
     build_guides(cfg, build_scene(cfg.scene), cfg.frames, cfg.fps)
+
+
+def moved(i, fn):
+    keys = [(t, [list(p) for p in pts]) for t, pts in KEYS]
+    keys[i] = fn(*keys[i])
+    return keys
+
+
+@pytest.mark.parametrize("keys,key", [
+    ([], "guides.keyframes"),
+    (moved(1, lambda t, p: (t, p[:-1])), "guides.keyframes[1].points"),                       # topology change
+    (moved(1, lambda t, p: (t, p + [[0.0, -0.4, 0.0]])), "guides.keyframes[1].points"),
+    (moved(0, lambda t, p: (t, [p[0][:2]] + p[1:])), "guides.keyframes[0].points"),           # 2 coordinates
+    (moved(2, lambda t, p: (t, p[:5] + [[0.0, NAN, 0.0]] + p[6:])), "guides.keyframes[2].points"),
+    (moved(1, lambda t, p: (t, p[:2] + [p[1]] + p[3:])), "guides.keyframes[1].points"),       # zero-length edge
+    (moved(1, lambda t, p: (t, p[:4] + [[0.02, 0.0, 0.0]] + p[5:])), "guides.keyframes[1].points"),  # root moved
+    (moved(1, lambda t, p: (0.2, p)), "guides.keyframes[1].time"),                            # not increasing
+    (moved(2, lambda t, p: (0.5, p)), "guides.keyframes[2].time"),
+    (moved(0, lambda t, p: (NAN, p)), "guides.keyframes[0].time"),
+    (moved(2, lambda t, p: (t, line([0, 0, 0], [0, 1, 0]) + p[4:])), "guides.keyframes"),     # root edge flipped
+], ids=lambda v: v if isinstance(v, str) else None)
+def test_bad_keyframes_name_the_key(keys, key):
+    cfg = keyed_cfg(keys)
+    with pytest.raises(InputError) as info:
+        build_guides(cfg, build_scene(cfg.scene), cfg.frames, cfg.fps)
+    assert info.value.where == key
+    assert str(info.value).startswith(key + ":")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,7 +1,7 @@
-"""Guide authoring: keyframed edits layered on a guide animation.
+"""Guide authoring: keyframed edits layered on a guide animation, and keyframed guide poses.
 
-The tracking solver takes "a coarse animation of guide hairs as input" (paper 3); in paper 4 it
-is often an edited guide simulation, made here with edits on top of the sources of ``guides.py``:
+The tracking solver takes "a coarse animation of guide hairs as input" (paper 3); paper 4 makes
+it in two ways, both supported here on top of the sources of ``guides.py``:
 
 * **Edits** (``guides.edits``, ``apply_edits``): "an initial simulation on a coarse set of guide
   hairs using best-guess parameters" (``guides.source=simulated``), then the artist "edits the
@@ -28,6 +28,14 @@ is often an edited guide simulation, made here with edits on top of the sources 
   ``weights: [0, 1, -2, 3]`` swings a guide to and fro with growing amplitude (the stylised guide
   of Fig. 7 with ``guides.source=rigid``).
 
+* **Keyframed guides** (``guides.source=keyframed``, ``keyframed_positions``): "a keyframe
+  animation of a single guide hair" without simulation as input (4, Stylization).  Each key gives
+  all guides' vertices in the body frame; poses are interpolated by clamped cubic splines in time
+  (C2, zero velocity at the first and last key, held outside, as ``scene.motion`` with ``cubic``)
+  relative to the guide roots, which must be the same in every key: guides are rooted on the body.
+  Spline interpolation of positions does not keep edge lengths between keys (a swing keyed at its
+  extremes cuts the chord): rotate edits are the better tool for swinging.
+
 The authored animation (source + edits) is what a run saves as ``guides.npz``; it can be tracked
 again with ``guides.source=file`` (and no edits, or they would be applied twice).
 
@@ -39,13 +47,16 @@ rotation onto the first edge (paper 3.2), which is undefined at 180 degrees and 
 from __future__ import annotations
 
 import numpy as np
-from scipy.interpolate import CubicHermiteSpline
+from scipy.interpolate import CubicHermiteSpline, CubicSpline
 from scipy.spatial.transform import Rotation
 
 from hairexp.errors import InputError
+from hairexp.scene.strands import validate_polylines
 
 #: Largest turn (degrees) of a guide's first edge away from its rest direction, in the body frame.
 MAX_ROOT_TURN_DEG = 175.0
+#: Largest distance (m) between a guide's root in keyframe 0 and in another keyframe.
+ROOT_TOLERANCE = 1e-9
 
 
 def _kind(value) -> str:
@@ -186,3 +197,56 @@ def check_root_turn(P: np.ndarray, offsets: np.ndarray, R: np.ndarray, where: st
         raise InputError(f"guide {g}'s first edge turns {turn[f, g]:.1f} deg from its rest direction (frame {f}); "
                          f"the tracker's root frame is undefined at 180 deg: keep it below {MAX_ROOT_TURN_DEG:g} deg",
                          where)
+
+
+def keyframed_positions(gcfg, motion, frames: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """World guide positions (frames + 1, count * n_vertices, 3) and offsets from
+    ``guides.keyframes`` (source=keyframed; see the module doc)."""
+    keys = list(gcfg.keyframes)
+    if not keys:
+        raise InputError("source=keyframed needs at least one keyframe", "guides.keyframes")
+    count, nv = int(gcfg.count), int(gcfg.n_vertices)
+    if count < 1:
+        raise InputError(f"must be >= 1, got {count}", "guides.count")
+    if nv < 2:
+        raise InputError(f"must be >= 2, got {nv}", "guides.n_vertices")
+    key_times = np.array([float(k.time) for k in keys])
+    for i, t in enumerate(key_times):
+        if not np.isfinite(t):
+            raise InputError(f"must be finite, got {t}", f"guides.keyframes[{i}].time")
+        if i and t <= key_times[i - 1]:
+            raise InputError(f"keyframe times must increase strictly: {t} after {key_times[i - 1]}",
+                             f"guides.keyframes[{i}].time")
+    offsets = np.arange(count + 1) * nv
+    roots = offsets[:-1]
+    poses = []
+    for i, k in enumerate(keys):
+        where = f"guides.keyframes[{i}].points"
+        pts = [list(p) for p in k.points]
+        if len(pts) != count * nv:
+            raise InputError(f"has {len(pts)} points, expected guides.count x guides.n_vertices = {count} x {nv} = "
+                             f"{count * nv} (every keyframe holds the same guides, guide by guide)", where)
+        for j, p in enumerate(pts):
+            if len(p) != 3:
+                raise InputError(f"point {j} has {len(p)} coordinates, expected 3", where)
+        X, _ = validate_polylines(np.asarray(pts, dtype=np.float64), np.full(count, nv), where, min_vertices=2)
+        if poses:
+            moved = np.linalg.norm(X[roots] - poses[0][roots], axis=1)
+            if moved.max() > ROOT_TOLERANCE:
+                g = int(np.argmax(moved))
+                raise InputError(f"guide {g}'s root (its vertex 0) is {moved[g]:.3g} m from where keyframe 0 puts it: "
+                                 "guide roots are fixed on the body, only the other vertices can be keyed", where)
+        poses.append(X)
+    K = np.stack(poses)                                        # (keys, Vg, 3) body frame
+    root = np.repeat(K[0, roots], nv, axis=0)                  # (Vg, 3), exactly the same in every frame
+    rel = K - root
+    rel[:, roots] = 0.0                                        # the spline keeps the roots exactly
+    t_out = np.arange(frames + 1) / fps
+    if len(keys) == 1:
+        B = np.repeat(rel, len(t_out), axis=0)
+    else:
+        B = CubicSpline(key_times, rel, axis=0, bc_type="clamped")(np.clip(t_out, key_times[0], key_times[-1]))
+    B = B + root
+    world = np.stack([motion.transform(B[f], t) for f, t in enumerate(t_out)])
+    check_root_turn(world, offsets, np.stack([motion.pose(t)[0] for t in t_out]), "guides.keyframes")
+    return world, offsets

@@ -20,7 +20,7 @@ import numpy as np
 from hairexp.errors import InputError
 from hairexp.scene.builders import disk_points
 from hairexp.scene.strands import validate_polylines
-from hairexp.tracking.authoring import apply_edits
+from hairexp.tracking.authoring import apply_edits, keyframed_positions
 
 
 @dataclass
@@ -110,7 +110,8 @@ def rest_guides(scene_cfg, count: int, n_vertices: int, layout_radius: float) ->
 
 
 def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
-    """Guide animation for frames 0..frames from ``cfg.guides`` (see module doc), before the edits."""
+    """Guide animation for frames 0..frames from ``cfg.guides`` (see module doc; ``keyframed``:
+    ``authoring.keyframed_positions``), before the edits."""
     g = cfg.guides
     source = str(getattr(g.source, "value", g.source))
     if source == "file":
@@ -126,6 +127,9 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     times = np.arange(frames + 1) / fps
     if source == "simulated":
         return simulate_guides(cfg, scene, body, offsets, frames, fps)
+    if source == "keyframed":
+        pos, offsets = keyframed_positions(g, scene.motion, frames, fps)
+        return GuideAnimation(pos, offsets, fps, where="guides.keyframes", motion=scene.motion)
     frames_pos = []
     for t in times:
         X = body
@@ -166,7 +170,7 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     """The guide animation a run tracks and saves as guides.npz: the source's
     (``source_guides``) with the authored edits ``guides.edits`` applied in order
     (``authoring.apply_edits``; paper 4: the artist edits a coarse best-guess guide simulation by
-    keyframing)."""
+    keyframing; ``source=keyframed`` keys the guides directly)."""
     anim = source_guides(cfg, scene, frames, fps)
     if not cfg.guides.edits:
         return anim
