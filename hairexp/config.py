@@ -61,6 +61,7 @@ class KKTSolve(str, Enum):
 class GuideSource(str, Enum):
     rigid = "rigid"     # rest guides carried by the rigid body
     scaled = "scaled"   # rest guides scaled about their roots by keyframed factors, carried by the body
+    keyframed = "keyframed"  # guides.keyframes: body-frame poses, cubic in time (hairexp/tracking/authoring.py)
     file = "file"       # npz with guide_positions (F, Vg, 3), guide_offsets, fps
     simulated = "simulated"  # the rest guides simulated as free strands (same body, material, gravity)
 
@@ -124,6 +125,31 @@ class SceneConfig:
     colliders: list[ColliderConfig] = field(default_factory=list)
 
 
+class GuideEditKind(str, Enum):
+    rotate = "rotate"       # rotate the guide about its root by weight(t) x angle_deg about a body-frame axis
+    displace = "displace"   # move vertex at normalised rest arc length s by weight(t) x s^falloff x offset
+
+
+@dataclass
+class GuideEditConfig:
+    """One authored edit layered on the guide animation (hairexp/tracking/authoring.py)."""
+    guide: int = 0                     # index of the edited guide
+    kind: GuideEditKind = GuideEditKind.rotate
+    times: list[float] = field(default_factory=lambda: [0.0])     # s, strictly increasing keyframes of weight
+    weights: list[float] = field(default_factory=lambda: [1.0])   # multiplier of angle_deg / offset (any sign, may exceed 1)
+    axis: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])   # rotate: body frame, any length > 0
+    angle_deg: float = 0.0             # rotate: degrees at weight 1
+    offset: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # displace: m, body frame, at the tip at weight 1
+    falloff: float = 1.0               # displace: exponent p > 0 of s^p (s = 0 at the root, 1 at the tip)
+
+
+@dataclass
+class GuideKeyframeConfig:
+    """A pose of all guides (source=keyframed): count x n_vertices body-frame points, guide by guide."""
+    time: float = 0.0                  # s
+    points: list[list[float]] = field(default_factory=list)      # m, body frame
+
+
 @dataclass
 class GuidesConfig:
     """The guide animation (see hairexp/tracking/guides.py)."""
@@ -133,6 +159,8 @@ class GuidesConfig:
     layout_radius: float = 0.5         # guide roots on a circle of this fraction of the root radius
     scale_times: list[float] = field(default_factory=lambda: [0.0])   # s (source=scaled)
     scale_factors: list[float] = field(default_factory=lambda: [1.0])
+    keyframes: list[GuideKeyframeConfig] = field(default_factory=list)   # source=keyframed
+    edits: list[GuideEditConfig] = field(default_factory=list)           # applied in order on top of any source
     file: str = ""                     # source=file
 
 

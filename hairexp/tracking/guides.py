@@ -20,6 +20,7 @@ import numpy as np
 from hairexp.errors import InputError
 from hairexp.scene.builders import disk_points
 from hairexp.scene.strands import validate_polylines
+from hairexp.tracking.authoring import apply_edits, keyframed_positions
 
 
 @dataclass
@@ -108,8 +109,9 @@ def rest_guides(scene_cfg, count: int, n_vertices: int, layout_radius: float) ->
     return np.concatenate([r0 + s[:, None] * d for r0 in roots])
 
 
-def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
-    """Guide animation for frames 0..frames from ``cfg.guides`` (see module doc)."""
+def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
+    """Guide animation for frames 0..frames from ``cfg.guides`` (see module doc; ``keyframed``:
+    ``authoring.keyframed_positions``), before the edits."""
     g = cfg.guides
     source = str(getattr(g.source, "value", g.source))
     if source == "file":
@@ -125,6 +127,9 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     times = np.arange(frames + 1) / fps
     if source == "simulated":
         return simulate_guides(cfg, scene, body, offsets, frames, fps)
+    if source == "keyframed":
+        pos, offsets = keyframed_positions(g, scene.motion, frames, fps)
+        return GuideAnimation(pos, offsets, fps, where="guides.keyframes", motion=scene.motion)
     frames_pos = []
     for t in times:
         X = body
@@ -159,3 +164,15 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
             state, _ = sim.step(state, dt)
         out.append(state.x.copy())
     return GuideAnimation(np.stack(out), offsets, fps, motion=scene.motion)
+
+
+def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
+    """The guide animation a run tracks and saves as guides.npz: the source's
+    (``source_guides``) with the authored edits ``guides.edits`` applied in order
+    (``authoring.apply_edits``; paper 4: the artist edits a coarse best-guess guide simulation by
+    keyframing; ``source=keyframed`` keys the guides directly)."""
+    anim = source_guides(cfg, scene, frames, fps)
+    if not cfg.guides.edits:
+        return anim
+    pos = apply_edits(anim.positions, anim.offsets, anim.fps, scene.motion, cfg.guides.edits)
+    return GuideAnimation(pos, anim.offsets, anim.fps, where="guides.edits", motion=scene.motion)
