@@ -41,6 +41,7 @@ class OnFailure(str, Enum):
 class Builder(str, Enum):
     wisp = "wisp"
     ponytail = "ponytail"
+    usd = "usd"              # a USD stage: scene.usd (README "USD scenes")
 
 
 class ControllerName(str, Enum):
@@ -64,6 +65,7 @@ class GuideSource(str, Enum):
     keyframed = "keyframed"  # guides.keyframes: body-frame poses, cubic in time (hairexp/tracking/authoring.py)
     file = "file"       # npz with guide_positions (F, Vg, 3), guide_offsets, fps
     simulated = "simulated"  # the rest guides simulated as free strands (same body, material, gravity)
+    usd = "usd"         # the guide prim of the stage scene.usd (scene.usd_guides), one time sample per frame
 
 
 @dataclass
@@ -123,6 +125,12 @@ class SceneConfig:
     hair: HairConfig = field(default_factory=HairConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
     colliders: list[ColliderConfig] = field(default_factory=list)
+    # builder usd / guides.source usd: the stage and its prims (README "USD scenes")
+    usd: str = ""                       # path of a .usda/.usdc/.usd stage
+    usd_body: str = "/Root/Body"        # Xform, transform time-sampled
+    usd_hair: str = "/Root/Body/Hair"   # BasisCurves at rest, body space
+    usd_guides: str = "/Root/Guides"    # BasisCurves, world space, one time sample per frame
+    usd_colliders: str = "/Root/Colliders"  # optional: Sphere, Cube, Cylinder, Capsule, Plane children
 
 
 class GuideEditKind(str, Enum):
@@ -233,8 +241,8 @@ class Config:
     guides: GuidesConfig = field(default_factory=GuidesConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     experiment: Optional[str] = None  # name of the experiment, set by conf/experiment/*.yaml
-    frames: int = 50                  # output frames after the initial one
-    fps: float = 25.0
+    frames: Optional[int] = 50        # output frames after the initial one; null: the USD stage's endTimeCode
+    fps: Optional[float] = 25.0       # null: the USD stage's timeCodesPerSecond
 
 
 def register() -> None:

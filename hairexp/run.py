@@ -1,7 +1,8 @@
 """Run one experiment: build the scene, step it, feed the sinks, write the run folder.
 
-Files (see README "Run folder"): metrics.parquet, summary.json, recording.rrd, result.npz.
-On an error, summary.json records ``"status": "failed"`` with the message, no result.npz is
+Files (see README "Run folder"): metrics.parquet, summary.json, recording.rrd, result.npz,
+result.usda.
+On an error, summary.json records ``"status": "failed"`` with the message, no result.npz (nor result.usda) is
 written and the recording keeps its ``.partial`` name; the error propagates (non-zero exit).
 """
 
@@ -84,6 +85,11 @@ def run(cfg, out_dir: str | Path) -> dict:
     rerun_sink = progress = None
     ok = False
     try:
+        if cfg.frames is None or cfg.fps is None:  # null: from the USD stage (experiment=from_usd)
+            from hairexp.io.usd_read import stage_timing
+
+            cfg = stage_timing(cfg)
+            plain = to_plain(cfg)
         n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
         scene = build_scene(cfg.scene)
         guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
@@ -126,6 +132,10 @@ def run(cfg, out_dir: str | Path) -> dict:
                 rerun_sink.log_frame(frame, state, obs)
         cov = None if tracker is None else tracker.corr.cluster_of_vertex
         recorder.write(out / "result.npz", guides.offsets, cov)
+        from hairexp.io.usd_write import write_result_usd  # pxr is imported here
+
+        write_result_usd(out / "result.usda", scene, recorder.positions, recorder.guide_positions, guides.offsets,
+                         cfg.fps)
         ok = True
     except Exception as exc:
         summary = summarize(table, plain, scene_name, controller, time.perf_counter() - t_start, "failed", str(exc))

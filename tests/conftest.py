@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
-from helpers import CONF_DIR
+from helpers import CONF_DIR, REPO
+
+# Subprocesses (``python -m hairexp``) import this checkout's hairexp, not whichever copy the
+# virtual environment has installed (a git worktree shares the venv of another checkout).
+os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
 
 
 @pytest.fixture

@@ -60,16 +60,26 @@ def test_there_are_experiments():
 
 
 @pytest.mark.parametrize("name", EXPERIMENTS)
-def test_experiment_composes_and_builds(hydra_conf, name):
+def test_experiment_composes_and_builds(hydra_conf, name, tmp_path):
     cfg = hydra_conf([f"experiment={name}"])
     assert cfg.experiment == name
     assert_file_applied(cfg, CONF_DIR / "experiment" / f"{name}.yaml")  # experiments are applied last
+    strands, vertices = cfg.scene.n_strands, cfg.scene.n_vertices
+    if name == "from_usd":  # needs a stage (scene.usd): a small scene in the input layout
+        from usd_helpers import N_STRANDS, N_VERTICES, source_cfg, write_stage
+
+        from hairexp.io.usd_read import stage_timing
+
+        write_stage(tmp_path / "scene.usda", source_cfg())
+        cfg.scene.usd = str(tmp_path / "scene.usda")
+        cfg = stage_timing(cfg)  # frames, fps: null -> from the stage
+        strands, vertices = N_STRANDS, N_VERTICES
     assert OmegaConf.is_missing(cfg, "frames") is False and cfg.frames >= 1
     plain = to_plain(cfg)  # resolves every interpolation; enums become strings
     assert plain["experiment"] == name and isinstance(plain["solver"]["on_failure"], str)
     scene = build_scene(cfg.scene)  # the experiment's scene is valid input
-    assert scene.strands.n_strands == cfg.scene.n_strands
-    assert scene.strands.n_vertices == cfg.scene.n_strands * cfg.scene.n_vertices
+    assert scene.strands.n_strands == strands
+    assert scene.strands.n_vertices == strands * vertices
 
 
 @pytest.mark.parametrize("group,option", GROUP_OPTIONS, ids=[f"{g}={o}" for g, o in GROUP_OPTIONS])

@@ -6,6 +6,7 @@
   tight disk, strands fanning out as a cone whose rim strands tilt outward by ``spread``.
   A cone never makes two strands cross or touch at rest (the gap between neighbours grows
   along the strands), so hair-hair collisions start from a contact-free rest state.
+* ``usd``: a user's USD stage ``scene.usd`` (hairexp/io/usd_read.py, README "USD scenes").
 """
 
 from __future__ import annotations
@@ -83,8 +84,23 @@ def build_motion(cfg) -> RigidMotion:
                        rot, str(getattr(cfg.interpolation, "value", cfg.interpolation)))
 
 
+def build_material(h) -> Material:
+    """The hair material of ``scene.hair``, validated."""
+    for key in ("linear_density", "stretch_stiffness", "bending_stiffness"):
+        if not getattr(h, key) > 0:
+            raise InputError(f"must be > 0, got {getattr(h, key)}", f"scene.hair.{key}")
+    for key in ("edge_damping", "air_drag"):
+        if not getattr(h, key) >= 0:
+            raise InputError(f"must be >= 0, got {getattr(h, key)}", f"scene.hair.{key}")
+    return Material(h.linear_density, h.stretch_stiffness, h.bending_stiffness, h.edge_damping, h.air_drag)
+
+
 def build_scene(cfg) -> Scene:
     builder = str(getattr(cfg.builder, "value", cfg.builder))
+    if builder == "usd":  # a user's USD stage (pxr is imported only then)
+        from hairexp.io.usd_read import build_usd_scene
+
+        return build_usd_scene(cfg)
     direction = _unit(cfg.direction, "scene.direction")
     center = _vec3(cfg.root_center, "scene.root_center")
     if builder in ("wisp", "ponytail"):
@@ -92,18 +108,11 @@ def build_scene(cfg) -> Scene:
                                     direction, cfg.spread, cfg.seed, fan=builder == "ponytail")
     else:  # pragma: no cover - the schema's Enum rejects other names
         raise InputError(f"unknown builder {builder!r}", "scene.builder")
-    h = cfg.hair
-    for key in ("linear_density", "stretch_stiffness", "bending_stiffness"):
-        if not getattr(h, key) > 0:
-            raise InputError(f"must be > 0, got {getattr(h, key)}", f"scene.hair.{key}")
-    for key in ("edge_damping", "air_drag"):
-        if not getattr(h, key) >= 0:
-            raise InputError(f"must be >= 0, got {getattr(h, key)}", f"scene.hair.{key}")
+    material = build_material(cfg.hair)
     motion = build_motion(cfg.motion)
     world = motion.transform(body_pts, 0.0)
     counts = np.full(cfg.n_strands, cfg.n_vertices)
-    strands = Strands.from_polylines(world, counts, h.linear_density, where=f"scene {cfg.name}")
-    material = Material(h.linear_density, h.stretch_stiffness, h.bending_stiffness, h.edge_damping, h.air_drag)
+    strands = Strands.from_polylines(world, counts, material.linear_density, where=f"scene {cfg.name}")
     colliders = [build_collider(c, i) for i, c in enumerate(getattr(cfg, "colliders", []) or [])]
     return Scene(cfg.name, strands, material, motion, _vec3(cfg.gravity, "scene.gravity"), body_pts, colliders)
 

@@ -7,7 +7,8 @@ guides scaled about their roots by keyframed factors, then carried by the body: 
 Fig. 2 shrinking guide), ``file`` (an npz with ``guide_positions`` (F, Vg, 3),
 ``guide_offsets`` (G + 1,) and ``fps``, such as a run's guides.npz), ``simulated`` (the rest
 guides simulated as free strands with the scene's body motion, material and gravity: the
-paper's "initial simulation on a coarse set of guide hairs using best-guess parameters").
+paper's "initial simulation on a coarse set of guide hairs using best-guess parameters"),
+``usd`` (the guide prim of the stage ``scene.usd``, hairexp/io/usd_read.py).
 """
 
 from __future__ import annotations
@@ -122,6 +123,10 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
         except (OSError, KeyError, ValueError) as exc:
             raise InputError(f"cannot read guide animation: {exc}", f"guides.file={path}") from exc
         return GuideAnimation(pos, off, gfps, where=str(path), motion=scene.motion)
+    if source == "usd":  # the guide prim of the stage scene.usd
+        from hairexp.io.usd_read import read_guides
+
+        return read_guides(cfg, scene, frames, fps)
     body = rest_guides(cfg.scene, g.count, g.n_vertices, g.layout_radius)
     offsets = np.arange(g.count + 1) * g.n_vertices
     times = np.arange(frames + 1) / fps

@@ -1,0 +1,137 @@
+"""Colliders as USD gprims under ``/Root/Colliders`` (README "USD scenes").
+
+* sphere: Sphere ``radius``;
+* box: Cube of ``size`` 2 whose transform scales by ``half_extents`` (in general half extents
+  = size / 2 x the scale);
+* cylinder: Cylinder, ``axis`` Y, ``radius``, ``height`` = 2 x half_height, ``hairexp:spin`` (rad/s);
+* capsule: Capsule, ``axis`` Y, ``radius``, ``height`` = 2 x half_length (the cylindrical part);
+* plane: Plane, ``axis`` Y: the half space below the prim's y = 0.
+
+Each has the custom attributes ``hairexp:thickness`` (m) and ``hairexp:friction`` (defaults
+0.002 and 0.3, as in the config), and a rigid transform, time-sampled when the collider moves
+(interpolated linearly in between); only a Cube's transform may scale, and not over time.
+"""
+
+from __future__ import annotations
+
+import math
+
+from pxr import Sdf, Tf, Usd, UsdGeom
+
+from hairexp.errors import InputError
+from hairexp.io.usd_layout import (COLLIDER_DEFAULTS, COLLIDERS, FRICTION, PLANE_SIZE, SPIN, THICKNESS,
+                                   read_motion, set_transform)
+from hairexp.physics.colliders import Box, Capsule, Cylinder, Plane, Sphere
+
+SUPPORTED = ("Sphere", "Cube", "Cylinder", "Capsule", "Plane")
+
+
+def _number(prim, name: str, where: str, positive: bool = False, default=None) -> float:
+    attr = prim.GetAttribute(name)
+    value = attr.Get() if attr and attr.HasAuthoredValue() else default
+    if value is None:
+        value = attr.Get() if attr else None  # the schema's fallback
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r}", where) from None
+    if not math.isfinite(value) or value < 0 or (positive and value == 0):
+        raise InputError(f"{name} must be {'> 0' if positive else '>= 0'}, got {value}", where)
+    return value
+
+
+def _spin(prim, where: str) -> float:
+    attr = prim.GetAttribute(SPIN)
+    value = attr.Get() if attr and attr.HasAuthoredValue() else COLLIDER_DEFAULTS[SPIN]
+    if not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise InputError(f"{SPIN} must be a finite number (rad/s), got {value!r}", where)
+    return float(value)
+
+
+def _axis_y(prim, where: str) -> None:
+    axis = prim.GetAttribute("axis").Get()
+    if axis != UsdGeom.Tokens.y:
+        raise InputError(f"axis is {axis}; hairexp's {prim.GetTypeName()} colliders lie along Y "
+                         "(rotate the prim instead)", where)
+
+
+def read_colliders(stage, path: str, tcps: float, file: str) -> list:
+    """The colliders under ``path`` (none when the prim does not exist)."""
+    root = stage.GetPrimAtPath(path) if path.startswith("/") else None
+    if not root:
+        return []
+    out = []
+    for prim in root.GetChildren():
+        where = f"{file}:{prim.GetPath()}"
+        kind = prim.GetTypeName()
+        if kind not in SUPPORTED:
+            raise InputError(f"unsupported collider type {kind or '(typeless)'}; use {', '.join(SUPPORTED)}", where)
+        motion, scale = read_motion(prim, tcps, where, allow_scale=kind == "Cube")
+        common = dict(name=prim.GetName(), motion=motion,
+                      thickness=_number(prim, THICKNESS, where, default=COLLIDER_DEFAULTS[THICKNESS]),
+                      friction=_number(prim, FRICTION, where, default=COLLIDER_DEFAULTS[FRICTION]))
+        if kind != "Cylinder" and prim.GetAttribute(SPIN).HasAuthoredValue():
+            raise InputError(f"{SPIN} applies to Cylinder colliders only", where)
+        if kind == "Sphere":
+            out.append(Sphere(radius=_number(prim, "radius", where, positive=True), **common))
+        elif kind == "Cube":
+            half = 0.5 * _number(prim, "size", where, positive=True) * scale
+            out.append(Box(half_extents=tuple(float(h) for h in half), **common))
+        elif kind == "Cylinder":
+            _axis_y(prim, where)
+            out.append(Cylinder(radius=_number(prim, "radius", where, positive=True),
+                                half_height=0.5 * _number(prim, "height", where, positive=True),
+                                spin=_spin(prim, where), **common))
+        elif kind == "Capsule":
+            _axis_y(prim, where)
+            out.append(Capsule(radius=_number(prim, "radius", where, positive=True),
+                               half_length=0.5 * _number(prim, "height", where, positive=True), **common))
+        else:
+            _axis_y(prim, where)
+            out.append(Plane(**common))
+    return out
+
+
+def _custom(prim, name: str, value: float) -> None:
+    prim.CreateAttribute(name, Sdf.ValueTypeNames.Double, custom=True).Set(float(value))
+
+
+def write_colliders(stage, colliders: list, pose_samples) -> None:
+    """Define one prim per collider under ``/Root/Colliders``; ``pose_samples(motion)`` gives
+    the (time code or None for the default, matrix) pairs of its transform."""
+    if not colliders:
+        return
+    UsdGeom.Scope.Define(stage, COLLIDERS)
+    used = set()
+    for c in colliders:
+        name = Tf.MakeValidIdentifier(c.name)
+        while name in used:
+            name += "_"
+        used.add(name)
+        path = f"{COLLIDERS}/{name}"
+        if isinstance(c, Sphere):
+            g = UsdGeom.Sphere.Define(stage, path)
+            g.CreateRadiusAttr(float(c.radius))
+        elif isinstance(c, Box):
+            g = UsdGeom.Cube.Define(stage, path)
+            g.CreateSizeAttr(2.0)
+        elif isinstance(c, Cylinder):
+            g = UsdGeom.Cylinder.Define(stage, path)
+            g.CreateAxisAttr(UsdGeom.Tokens.y), g.CreateRadiusAttr(float(c.radius))
+            g.CreateHeightAttr(2.0 * c.half_height)
+            _custom(g.GetPrim(), SPIN, c.spin)
+        elif isinstance(c, Capsule):
+            g = UsdGeom.Capsule.Define(stage, path)
+            g.CreateAxisAttr(UsdGeom.Tokens.y), g.CreateRadiusAttr(float(c.radius))
+            g.CreateHeightAttr(2.0 * c.half_length)
+        elif isinstance(c, Plane):
+            g = UsdGeom.Plane.Define(stage, path)
+            g.CreateAxisAttr(UsdGeom.Tokens.y), g.CreateWidthAttr(PLANE_SIZE), g.CreateLengthAttr(PLANE_SIZE)
+        else:
+            raise TypeError(f"cannot write collider {c.name!r} of type {type(c).__name__} to USD")
+        set_transform(g, pose_samples(c.motion))
+        if isinstance(c, Box):
+            g.AddScaleOp(UsdGeom.XformOp.PrecisionDouble).Set(tuple(float(h) for h in c.half_extents))
+        _custom(g.GetPrim(), THICKNESS, c.thickness)
+        _custom(g.GetPrim(), FRICTION, c.friction)
+        g.CreateExtentAttr(UsdGeom.Boundable.ComputeExtentFromPlugins(g, Usd.TimeCode.Default()))

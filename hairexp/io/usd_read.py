@@ -1,0 +1,197 @@
+"""A scene and its guide animation from a USD stage (``experiment=from_usd``; layout in
+``usd_layout`` and README "USD scenes").
+
+* ``build_usd_scene(scene_cfg)``: the body's motion, the detail hair at rest and the colliders
+  from the stage ``scene.usd``; material and gravity from the config, as for every builder;
+* ``read_guides(cfg, scene, frames, fps)``: the guide prim, one time sample per frame;
+* ``stage_timing(cfg)``: ``frames: null`` / ``fps: null`` filled in from the stage.
+
+Transforms are sampled at their authored time samples (time code / timeCodesPerSecond = s) and
+interpolated linearly in between (``RigidMotion`` ``linear``: translation and slerp).  Every
+error is an ``InputError`` whose ``where`` is ``scene.usd=<file>:<prim>``.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+from pxr import Usd, UsdGeom
+
+from hairexp.errors import InputError
+from hairexp.io.usd_colliders import read_colliders
+from hairexp.io.usd_layout import read_motion, time_label
+from hairexp.scene.strands import N_ROOT_VERTICES, validate_polylines
+
+_open: dict = {}   # path -> stage of the last read (reloaded when the file changes)
+
+
+def _message(exc: Exception) -> str:
+    """The first quoted reason in a Tf error (``... : 'reason'``), else the text."""
+    found = re.findall(r" : '(.*)'\s*$", str(exc), flags=re.M)
+    return found[0] if found else " ".join(str(exc).split())
+
+
+def open_stage(path: str) -> tuple[Usd.Stage, str]:
+    """The stage at ``path`` (the value of ``scene.usd``) and the ``where`` prefix of its errors."""
+    if not path:
+        raise InputError("the path of a USD stage is required (scene.builder=usd or guides.source=usd)",
+                         "scene.usd")
+    where = f"scene.usd={path}"
+    if not Path(path).is_file():
+        raise InputError("no such file", where)
+    try:
+        stage = _open.get(path)
+        if stage is None:
+            stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
+        stage.Reload()  # a stage kept from an earlier read: pick up edits of the file
+    except Exception as exc:  # pxr.Tf.ErrorException: not a USD file, syntax error, ...
+        _open.pop(path, None)
+        raise InputError(f"cannot read the USD stage: {_message(exc)}", where) from exc
+    if not stage:
+        raise InputError("cannot read the USD stage", where)
+    _open.clear()
+    _open[path] = stage
+    if UsdGeom.StageHasAuthoredMetersPerUnit(stage) and abs(UsdGeom.GetStageMetersPerUnit(stage) - 1.0) > 1e-12:
+        raise InputError(f"metersPerUnit is {UsdGeom.GetStageMetersPerUnit(stage):g}; hairexp reads metres "
+                         "(metersPerUnit = 1)", where)
+    if UsdGeom.GetStageUpAxis(stage) != UsdGeom.Tokens.y:
+        raise InputError(f"upAxis is {UsdGeom.GetStageUpAxis(stage)}; hairexp scenes are Y up "
+                         "(scene.gravity points along -Y)", where)
+    return stage, where
+
+
+def get_prim(stage, path: str, where: str, what: str, key: str, schema=None) -> Usd.Prim:
+    """The prim at ``path`` (the value of config key ``key``), of type ``schema``."""
+    prim = stage.GetPrimAtPath(path) if path.startswith("/") else None
+    if not prim:
+        raise InputError(f"no prim at {path} ({what}; {key} names its path)", where)
+    if schema is not None and not prim.IsA(schema):
+        raise InputError(f"is a {prim.GetTypeName() or 'typeless prim'}, expected {schema.__name__} ({what})",
+                         f"{where}:{path}")
+    return prim
+
+
+def read_curves(prim, tc, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """(points (V, 3) float64 in the prim's space, counts (S,)) of a BasisCurves at ``tc``."""
+    curves = UsdGeom.BasisCurves(prim)
+    if curves.GetWrapAttr().Get() not in (None, UsdGeom.Tokens.nonperiodic):
+        raise InputError(f"wrap is {curves.GetWrapAttr().Get()}; hair curves are open (nonperiodic)", where)
+    pts, counts = curves.GetPointsAttr().Get(tc), curves.GetCurveVertexCountsAttr().Get(tc)
+    if pts is None or len(pts) == 0:
+        raise InputError(f"has no points at {time_label(tc)}", where)
+    if counts is None or len(counts) == 0:
+        raise InputError(f"has no curveVertexCounts at {time_label(tc)}", where)
+    return np.asarray(pts, dtype=np.float64).reshape(-1, 3), np.asarray(counts, dtype=np.int64)
+
+
+def rest_time(attr) -> Usd.TimeCode:
+    """The points' default (untimed) value if authored, else time code 0."""
+    return Usd.TimeCode.Default() if attr.Get(Usd.TimeCode.Default()) is not None else Usd.TimeCode(0)
+
+
+def apply(points: np.ndarray, M) -> np.ndarray:
+    m = np.array(M, dtype=np.float64).reshape(4, 4)
+    return points @ m[:3, :3] + m[3, :3]
+
+
+def build_usd_scene(cfg):
+    """The Scene of ``scene.usd`` (builder ``usd``); see the module doc."""
+    from hairexp.scene.builders import _vec3, build_collider, build_material
+    from hairexp.scene.scene import Scene
+    from hairexp.scene.strands import Strands
+
+    stage, file = open_stage(cfg.usd)
+    tcps = float(stage.GetTimeCodesPerSecond())
+    body = get_prim(stage, cfg.usd_body, file, "the rigid body", "scene.usd_body", UsdGeom.Xformable)
+    motion, _ = read_motion(body, tcps, f"{file}:{cfg.usd_body}")
+    hair = get_prim(stage, cfg.usd_hair, file, "the detail hair", "scene.usd_hair", UsdGeom.BasisCurves)
+    where = f"{file}:{cfg.usd_hair}"
+    tc = rest_time(UsdGeom.BasisCurves(hair).GetPointsAttr())
+    pts, counts = read_curves(hair, tc, where)
+    validate_polylines(pts, counts, where, min_vertices=N_ROOT_VERTICES + 1)  # before any transform
+    # hair space -> body space at the rest time (identity for hair authored under the body)
+    t0 = Usd.TimeCode(0) if tc.IsDefault() else tc
+    rel = (UsdGeom.Xformable(hair).ComputeLocalToWorldTransform(t0)
+           * UsdGeom.Xformable(body).ComputeLocalToWorldTransform(t0).GetInverse())
+    body_pts = pts if np.allclose(np.array(rel), np.eye(4), rtol=0, atol=1e-12) else apply(pts, rel)
+    material = build_material(cfg.hair)
+    strands = Strands.from_polylines(motion.transform(body_pts, 0.0), counts, material.linear_density, where=where)
+    colliders = read_colliders(stage, cfg.usd_colliders, tcps, file)
+    colliders += [build_collider(c, i) for i, c in enumerate(getattr(cfg, "colliders", []) or [])]
+    return Scene(cfg.name, strands, material, motion, _vec3(cfg.gravity, "scene.gravity"), body_pts, colliders)
+
+
+def guide_frames(attr, where: str) -> int:
+    """Number of frames N of a guide attribute sampled at time codes 0, 1, ..., N-1."""
+    samples = attr.GetTimeSamples()
+    if not samples:
+        raise InputError("points have no time samples: guides need one per frame at time codes 0, 1, 2, ...", where)
+    for s in samples:
+        if s != round(s) or s < 0:
+            raise InputError(f"time sample at time code {s:g} is not a frame (frames are time codes 0, 1, 2, ...)",
+                             where)
+    have = {int(s) for s in samples}
+    missing = next((f for f in range(max(have) + 1) if f not in have), None)
+    if missing is not None:
+        raise InputError(f"no time sample at time code {missing} (frame {missing}): guides need one per frame", where)
+    return len(have)
+
+
+def read_guides(cfg, scene, frames: int, fps: float):
+    """Guide animation of ``scene.usd_guides`` (world space, one time sample per frame)."""
+    from hairexp.tracking.guides import GuideAnimation
+
+    stage, file = open_stage(cfg.scene.usd)
+    path = cfg.scene.usd_guides
+    prim = get_prim(stage, path, file, "the guides", "scene.usd_guides", UsdGeom.BasisCurves)
+    where = f"{file}:{path}"
+    curves = UsdGeom.BasisCurves(prim)
+    n = guide_frames(curves.GetPointsAttr(), where)
+    tcps = float(stage.GetTimeCodesPerSecond())
+    if frames / fps > (n - 1) / tcps + 1e-9:
+        raise InputError(f"guides have time samples for frames 0..{n - 1} ({(n - 1) / tcps:g} s at {tcps:g} fps) "
+                         f"but the run needs {frames} frames at {fps:g} fps ({frames / fps:g} s)", where)
+    xf = UsdGeom.Xformable(prim)
+    frames_pos = []
+    for f in range(n):
+        pts, counts = read_curves(prim, Usd.TimeCode(f), where)
+        if f == 0:
+            counts0, n0 = counts, len(pts)
+        elif not np.array_equal(counts, counts0):
+            raise InputError(f"curveVertexCounts change at time code {f}: the guide topology must stay the same "
+                             "in every frame", where)
+        elif len(pts) != n0:
+            raise InputError(f"time code {f} has {len(pts)} points, time code 0 has {n0}: the guide topology "
+                             "must stay the same in every frame", where)
+        validate_polylines(pts, counts, f"{where} frame {f}", min_vertices=2)
+        frames_pos.append(apply(pts, xf.ComputeLocalToWorldTransform(Usd.TimeCode(f))))
+    offsets = np.concatenate([[0], np.cumsum(counts0)])
+    return GuideAnimation(np.stack(frames_pos), offsets, tcps, where=where, motion=scene.motion)
+
+
+def stage_timing(cfg):
+    """A copy of ``cfg`` with ``frames: null`` (the stage's endTimeCode, converted to the run's
+    rate) and ``fps: null`` (the stage's timeCodesPerSecond) filled in."""
+    from omegaconf import OmegaConf
+
+    if str(getattr(cfg.scene.builder, "value", cfg.scene.builder)) != "usd":
+        key = "frames" if cfg.frames is None else "fps"
+        raise InputError("null (take it from the USD stage) needs scene.builder=usd; give a number", key)
+    stage, file = open_stage(cfg.scene.usd)
+    tcps = float(stage.GetTimeCodesPerSecond())
+    fps = tcps if cfg.fps is None else float(cfg.fps)
+    frames = cfg.frames
+    if frames is None:
+        if not stage.HasAuthoredTimeCodeRange():
+            raise InputError("the stage has no endTimeCode to take frames from: set frames=N", file)
+        frames = int(math.floor(stage.GetEndTimeCode() * fps / tcps + 1e-9))
+        if frames < 1:
+            raise InputError(f"endTimeCode {stage.GetEndTimeCode():g} gives no frame after frame 0", file)
+    out = copy.deepcopy(cfg)
+    OmegaConf.set_readonly(out, False)
+    out.frames, out.fps = frames, fps
+    return out

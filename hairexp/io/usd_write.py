@@ -1,0 +1,135 @@
+"""Write scenes and run results as USD stages (layout: ``usd_layout``, README "USD scenes").
+
+* ``write_scene_usd(path, scene, guides, fps, frames)``: a scene in the input layout that
+  ``experiment=from_usd`` reads (a template for users, and the round trip);
+* ``write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps)``: a run's
+  ``result.usda``: the input layout sampled at every frame plus ``/Root/Result/Hair``.
+
+Body and collider transforms: a ``linear`` motion is written at its keyframes (it re-imports
+exactly); a ``cubic`` one, and every motion in result.usda, once per frame (it re-imports
+linear between frames); a still one as an untimed value.  Points are float32 (USD's
+``point3f``), transforms and sizes float64.  Files are written to a temporary name in the same
+folder, then renamed: a failed write leaves nothing under the final name.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+from pxr import Usd, UsdGeom, Vt
+
+from hairexp.io.usd_colliders import write_colliders
+from hairexp.io.usd_layout import (BODY, GUIDE_WIDTH, GUIDES, HAIR, HAIR_WIDTH, RESULT, RESULT_HAIR, ROOT,
+                                   matrix_from_pose, set_transform)
+
+log = logging.getLogger(__name__)
+FORMATS = (".usda", ".usdc", ".usd")
+
+
+def new_stage(fps: float, frames: int, doc: str) -> Usd.Stage:
+    stage = Usd.Stage.CreateInMemory()
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    stage.SetTimeCodesPerSecond(float(fps))
+    stage.SetFramesPerSecond(float(fps))
+    stage.SetStartTimeCode(0)
+    stage.SetEndTimeCode(int(frames))
+    stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, ROOT).GetPrim())
+    stage.GetRootLayer().documentation = doc
+    return stage
+
+
+def _code(tc: float) -> float:
+    """A time code, snapped to the frame it is within 1e-9 of (0.2 s x 25 fps -> 5, not 5.000000000000001)."""
+    return float(round(tc)) if abs(tc - round(tc)) < 1e-9 else tc
+
+
+def pose_samples(motion, fps: float, frames: int, keyframes: bool) -> list:
+    """(time code, or None for the untimed value, USD matrix) of a RigidMotion."""
+    if len(motion.times) == 1:
+        return [(None, matrix_from_pose(*motion.pose(float(motion.times[0]))))]
+    if keyframes and motion.interpolation == "linear":
+        return [(_code(float(t) * fps), matrix_from_pose(*motion.pose(float(t)))) for t in motion.times]
+    return [(float(f), matrix_from_pose(*motion.pose(f / fps))) for f in range(frames + 1)]
+
+
+def define_curves(stage, path: str, counts, width: float) -> UsdGeom.BasisCurves:
+    c = UsdGeom.BasisCurves.Define(stage, path)
+    c.CreateTypeAttr(UsdGeom.Tokens.linear)
+    c.CreateWrapAttr(UsdGeom.Tokens.nonperiodic)
+    c.CreateCurveVertexCountsAttr(Vt.IntArray([int(n) for n in counts]))
+    c.CreateWidthsAttr(Vt.FloatArray([width]))
+    c.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+    c.CreatePointsAttr()
+    c.CreateExtentAttr()
+    return c
+
+
+def set_points(curves: UsdGeom.BasisCurves, points: np.ndarray, tc=Usd.TimeCode.Default()) -> None:
+    p = np.ascontiguousarray(points, dtype=np.float32)
+    curves.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(p), tc)
+    r = 0.5 * curves.GetWidthsAttr().Get()[0]
+    extent = np.stack([p.min(axis=0) - r, p.max(axis=0) + r]).astype(np.float32)
+    curves.GetExtentAttr().Set(Vt.Vec3fArray.FromNumpy(extent), tc)
+
+
+def write_body(stage, scene, samples: list) -> None:
+    """``/Root/Body`` with its transform samples and ``/Root/Body/Hair`` at rest (body space)."""
+    set_transform(UsdGeom.Xform.Define(stage, BODY), samples)
+    set_points(define_curves(stage, HAIR, scene.strands.counts, HAIR_WIDTH), scene.root_body)
+
+
+def write_animation(stage, path: str, frames: np.ndarray, offsets: np.ndarray, width: float) -> None:
+    """BasisCurves with one time sample per frame (time code f = frame f)."""
+    curves = define_curves(stage, path, np.diff(offsets), width)
+    for f, P in enumerate(frames):
+        set_points(curves, P, Usd.TimeCode(f))
+
+
+def save(stage, path) -> None:
+    path = Path(path)
+    if path.suffix not in FORMATS:
+        raise ValueError(f"{path}: a USD file name ends with one of {', '.join(FORMATS)}")
+    tmp = path.with_name(path.stem + ".tmp" + path.suffix)  # same suffix: same file format
+    try:
+        if not stage.GetRootLayer().Export(str(tmp)):
+            raise OSError(f"cannot write {tmp}")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_scene_usd(path, scene, guides, fps: float, frames: int) -> None:
+    """``scene`` and ``guides`` (sampled at frames 0..frames) in the input layout."""
+    if scene.motion.interpolation == "cubic" and len(scene.motion.times) > 1:
+        log.warning("%s: the cubic body motion is written once per frame; it re-imports as linear between frames",
+                    path)
+    stage = new_stage(fps, frames, "hairexp scene (input layout, README 'USD scenes')")
+    samples = lambda motion: pose_samples(motion, fps, frames, keyframes=True)  # noqa: E731
+    write_body(stage, scene, samples(scene.motion))
+    shapes = np.stack([guides.shape_at(f / fps) for f in range(frames + 1)])
+    write_animation(stage, GUIDES, shapes, guides.offsets, GUIDE_WIDTH)
+    write_colliders(stage, scene.colliders, samples)
+    save(stage, path)
+
+
+def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps: float) -> None:
+    """A run's result.usda: positions (frames+1, V, 3) and guide_positions (frames+1, Vg, 3)
+    in world space, body and colliders sampled at every frame."""
+    positions, guide_positions = np.asarray(positions), np.asarray(guide_positions)
+    frames = len(positions) - 1
+    for name, a in (("positions", positions), ("guide_positions", guide_positions)):
+        if not np.isfinite(a).all():
+            raise AssertionError(f"refusing to write non-finite {name} to {path}")
+    stage = new_stage(fps, frames, "hairexp result: the input layout plus /Root/Result/Hair (README 'USD scenes')")
+    samples = lambda motion: pose_samples(motion, fps, frames, keyframes=False)  # noqa: E731
+    write_body(stage, scene, samples(scene.motion))
+    if guide_positions.ndim == 3 and guide_positions.shape[1] > 0:
+        write_animation(stage, GUIDES, guide_positions, guide_offsets, GUIDE_WIDTH)
+    write_colliders(stage, scene.colliders, samples)
+    UsdGeom.Scope.Define(stage, RESULT)
+    write_animation(stage, RESULT_HAIR, positions, scene.strands.offsets, HAIR_WIDTH)
+    save(stage, path)

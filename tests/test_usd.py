@@ -1,0 +1,242 @@
+"""USD exchange: a scene written in the input layout reads back exactly (up to USD's float32
+points), a run from that stage reproduces the run of the config, and every run's result.usda
+holds the result frames under the documented prims."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+from pxr import Usd, UsdGeom
+from usd_helpers import (COLLIDERS, FRAMES, GUIDE_VERTICES, MOTION, N_GUIDES, N_STRANDS, N_VERTICES, edit_stage,
+                         scene_overrides, set_colliders, source_cfg, usd_cfg, vec3f, write_stage)
+
+from hairexp.errors import InputError
+from hairexp.io.export_scene import export_scene, main as export_main
+from hairexp.io.usd_read import stage_timing
+from hairexp.io.usd_write import write_result_usd
+from hairexp.physics.colliders import Box, Capsule, Cylinder, Plane, Sphere
+from hairexp.run import run
+from hairexp.scene.builders import build_scene
+from hairexp.tracking.guides import build_guides
+
+FPS = 25.0
+LENGTH = 0.3          # m, hair length of the test scene
+#: Run round trip: USD stores points as float32 (half an ulp at 0.3 m is 1.5e-8 m).
+FLOAT32_REL = 1e-6
+SHAPES = {"ball": (Sphere, "Sphere"), "crate": (Box, "Cube"), "wheel": (Cylinder, "Cylinder"),
+          "pole": (Capsule, "Capsule"), "floor": (Plane, "Plane")}
+
+
+def f32(a) -> np.ndarray:
+    return np.asarray(a, dtype=np.float32).astype(np.float64)
+
+
+def assert_same_motion(m1, m2, times, tol=1e-12):
+    for t in times:
+        (R1, T1), (R2, T2) = m1.pose(t), m2.pose(t)
+        np.testing.assert_allclose(R2, R1, rtol=0, atol=tol, err_msg=f"t={t}")
+        np.testing.assert_allclose(T2, T1, rtol=0, atol=tol, err_msg=f"t={t}")
+        for a, b in zip(m1.velocity(t), m2.velocity(t)):
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-9, err_msg=f"velocity t={t}")
+
+
+def read(path, **extra):
+    cfg = stage_timing(usd_cfg(path, **extra))
+    scene = build_scene(cfg.scene)
+    return cfg, scene, build_guides(cfg, scene, cfg.frames, cfg.fps)
+
+
+def test_scene_round_trip(tmp_path):
+    """Hair (float32), body motion, guides (float32) and colliders come back as written."""
+    path = tmp_path / "scene.usda"
+    scene, guides = write_stage(path, source_cfg())
+    cfg, s2, g2 = read(path)
+    assert (cfg.frames, cfg.fps) == (FRAMES, FPS)
+    np.testing.assert_array_equal(s2.strands.offsets, scene.strands.offsets)
+    np.testing.assert_array_equal(s2.root_body, f32(scene.root_body))
+    np.testing.assert_allclose(s2.strands.rest, scene.strands.rest, rtol=0, atol=3e-8)
+    times = np.linspace(-0.04, 0.3, 69)  # every half frame, before, during and after the keys
+    assert_same_motion(scene.motion, s2.motion, times)
+    assert s2.motion.interpolation == "linear" and len(s2.motion.times) == len(MOTION["scene.motion.times"])
+    np.testing.assert_array_equal(g2.offsets, guides.offsets)
+    assert g2.n_frames == FRAMES + 1 and g2.fps == FPS
+    for f in range(FRAMES + 1):
+        np.testing.assert_array_equal(g2.positions[f], f32(guides.shape_at(f / FPS)))
+    assert [c.name for c in s2.colliders] == [c["name"] for c in COLLIDERS]
+    for c1, c2 in zip(scene.colliders, s2.colliders):
+        assert type(c2) is SHAPES[c1.name][0]
+        for k in ("radius", "half_length", "half_height", "spin", "thickness", "friction"):
+            if hasattr(c1, k):
+                assert getattr(c2, k) == pytest.approx(getattr(c1, k), rel=1e-12), (c1.name, k)
+        if isinstance(c1, Box):
+            np.testing.assert_allclose(c2.half_extents, c1.half_extents, rtol=1e-12)
+        assert_same_motion(c1.motion, c2.motion, times)
+
+
+def test_cubic_motion_is_sampled_per_frame(tmp_path, caplog):
+    path = tmp_path / "cubic.usda"
+    with caplog.at_level(logging.WARNING):
+        scene, _ = write_stage(path, source_cfg(colliders=[], **{"scene.motion.interpolation": "cubic"}))
+    assert "re-imports as linear" in caplog.text
+    _, s2, _ = read(path)
+    np.testing.assert_allclose(s2.motion.times, np.arange(FRAMES + 1) / FPS, rtol=0, atol=1e-15)
+    for f in range(FRAMES + 1):  # exact at frames (velocities differ: cubic vs linear)
+        for a, b in zip(scene.motion.pose(f / FPS), s2.motion.pose(f / FPS)):
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-12)
+    mid = 2.5 / FPS
+    assert np.abs(scene.motion.pose(mid)[1] - s2.motion.pose(mid)[1]).max() > 1e-6  # linear in between
+
+
+def test_hair_outside_the_body_is_taken_to_body_space(tmp_path):
+    """Hair authored in world space at another prim (scene.usd_hair) with its own transform."""
+    path = tmp_path / "scene.usda"
+    scene, _ = write_stage(path, source_cfg(colliders=[]))
+    shift = np.array([0.1, 0.2, -0.3])
+
+    def move_hair(stage):
+        curves = UsdGeom.BasisCurves.Define(stage, "/Root/HairWorld")
+        curves.CreateCurveVertexCountsAttr(list(scene.strands.counts.tolist()))
+        curves.CreatePointsAttr(vec3f(scene.strands.rest - shift))  # rest at time 0, in world space
+        UsdGeom.Xformable(curves).AddTranslateOp().Set(tuple(shift))
+        stage.RemovePrim("/Root/Body/Hair")
+
+    edit_stage(path, move_hair)
+    _, s2, _ = read(path, **{"scene.usd_hair": "/Root/HairWorld"})
+    np.testing.assert_allclose(s2.strands.rest, scene.strands.rest, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(s2.root_body, scene.root_body, rtol=0, atol=1e-7)
+
+
+def test_timing_from_the_stage(tmp_path):
+    path = tmp_path / "scene.usda"
+    write_stage(path, source_cfg(colliders=[]))
+    double_rate = stage_timing(usd_cfg(path, fps=50.0))
+    assert (double_rate.frames, double_rate.fps) == (2 * FRAMES, 50.0)
+    given = stage_timing(usd_cfg(path, frames=3))
+    assert (given.frames, given.fps) == (3, FPS)
+    wisp = source_cfg(colliders=[], frames=None)
+    with pytest.raises(InputError, match="^frames: null .* needs scene.builder=usd"):
+        stage_timing(wisp)
+
+
+# --------------------------------------------------------------------------------------------
+# runs: the config's scene, the same scene through USD, and a second round trip
+# --------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from helpers import CONF_DIR
+
+    tmp = tmp_path_factory.mktemp("usd_runs")
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            src = compose(config_name="config", overrides=["experiment=goaling", "controller=tracking", "logging=off"])
+            for k, v in scene_overrides().items():
+                OmegaConf.update(src, k, v, merge=False)
+            set_colliders(src)
+            export_scene(src, tmp / "scene.usda")
+            args = ["experiment=from_usd", "logging=off", "tracking.points_per_guide=4"]
+            via_usd = compose(config_name="config", overrides=[*args, f"scene.usd={tmp / 'scene.usda'}"])
+            export_scene(via_usd, tmp / "again.usda")  # the imported scene, written again
+            again = compose(config_name="config", overrides=[*args, f"scene.usd={tmp / 'again.usda'}"])
+    finally:
+        GlobalHydra.instance().clear()
+    out = {}
+    for name, cfg in (("config", src), ("usd", via_usd), ("again", again)):
+        summary = run(cfg, tmp / name)
+        assert summary["status"] == "completed"
+        out[name] = tmp / name
+    return out
+
+
+def result(folder) -> dict:
+    with np.load(folder / "result.npz") as r:
+        return {k: r[k] for k in r.files}
+
+
+def test_run_round_trip(runs):
+    a, b, c = (result(runs[k]) for k in ("config", "usd", "again"))
+    moved = np.abs(a["positions"][-1] - a["positions"][0]).max()
+    assert moved > 0.01  # the comparison is not vacuous: the hair moved centimetres
+    for k in ("positions", "guide_positions", "targets", "com"):
+        assert b[k].shape == a[k].shape, k
+        np.testing.assert_allclose(b[k], a[k], rtol=0, atol=FLOAT32_REL * LENGTH, err_msg=k)
+        np.testing.assert_allclose(c[k], b[k], rtol=0, atol=1e-12 * LENGTH, err_msg=k)  # float32 data: exact
+    np.testing.assert_array_equal(b["cluster_of_vertex"], a["cluster_of_vertex"])
+    assert (b["cluster_of_vertex"] >= 0).any()
+    import pandas as pd
+
+    for k in ("config", "usd"):
+        df = pd.read_parquet(runs[k] / "metrics.parquet")
+        assert (df["controller"] == "tracking").all() and df["contacts"].sum() > 0  # tracked, and the ball hit
+    summary = json.loads((runs["usd"] / "summary.json").read_text())
+    assert summary["config"]["frames"] == FRAMES and summary["config"]["fps"] == FPS  # null resolved
+
+
+def test_result_usda_holds_the_frames(runs):
+    folder = runs["config"]
+    r = result(folder)
+    stage = Usd.Stage.Open(str(folder / "result.usda"))
+    assert stage.GetTimeCodesPerSecond() == FPS and stage.GetFramesPerSecond() == FPS
+    assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0, FRAMES)
+    assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    types = {p.GetPath().pathString: p.GetTypeName() for p in stage.Traverse()}
+    expected = {"/Root": "Xform", "/Root/Body": "Xform", "/Root/Body/Hair": "BasisCurves",
+                "/Root/Guides": "BasisCurves", "/Root/Result/Hair": "BasisCurves",
+                **{f"/Root/Colliders/{n}": t for n, (_, t) in SHAPES.items()}}
+    assert {k: types.get(k) for k in expected} == expected
+    hair = UsdGeom.BasisCurves.Get(stage, "/Root/Result/Hair")
+    guides = UsdGeom.BasisCurves.Get(stage, "/Root/Guides")
+    assert list(hair.GetCurveVertexCountsAttr().Get()) == [N_VERTICES] * N_STRANDS
+    assert list(guides.GetCurveVertexCountsAttr().Get()) == [GUIDE_VERTICES] * N_GUIDES
+    assert hair.GetPointsAttr().GetTimeSamples() == list(range(FRAMES + 1))
+    cfg = source_cfg()
+    scene = build_scene(cfg.scene)
+    body = UsdGeom.Xformable(stage.GetPrimAtPath("/Root/Body"))
+    for k in range(FRAMES + 1):
+        np.testing.assert_array_equal(np.asarray(hair.GetPointsAttr().Get(k)), r["positions"][k].astype(np.float32))
+        np.testing.assert_array_equal(np.asarray(guides.GetPointsAttr().Get(k)),
+                                      r["guide_positions"][k].astype(np.float32))
+        R, T = scene.motion.pose(k / FPS)
+        M = np.array(body.ComputeLocalToWorldTransform(k))
+        np.testing.assert_allclose(M[:3, :3].T, R, atol=1e-12)
+        np.testing.assert_allclose(M[3, :3], T, atol=1e-12)
+    rest = UsdGeom.BasisCurves.Get(stage, "/Root/Body/Hair").GetPointsAttr()
+    assert rest.GetTimeSamples() == []
+    np.testing.assert_array_equal(np.asarray(rest.Get()), scene.root_body.astype(np.float32))
+
+
+def test_result_usda_reimports(runs):
+    """result.usda is itself a scene in the input layout."""
+    r = result(runs["config"])
+    cfg, scene, guides = read(runs["config"] / "result.usda")
+    assert cfg.frames == FRAMES and scene.strands.n_strands == N_STRANDS and len(scene.colliders) == len(COLLIDERS)
+    np.testing.assert_allclose(scene.strands.rest, r["positions"][0], rtol=0, atol=3e-8)
+    np.testing.assert_array_equal(guides.positions, f32(r["guide_positions"]))
+
+
+def test_failed_result_write_leaves_no_file(tmp_path):
+    scene = build_scene(source_cfg(colliders=[]).scene)
+    pos = np.stack([scene.strands.rest, scene.strands.rest])
+    pos[1, 3, 0] = np.nan
+    with pytest.raises(AssertionError, match="non-finite positions"):
+        write_result_usd(tmp_path / "result.usda", scene, pos, np.zeros((2, 0, 3)), np.zeros(1, int), FPS)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_export_scene_command(tmp_path, capsys):
+    path = tmp_path / "goaling.usda"
+    assert export_main([str(path), "experiment=goaling", "frames=3", "scene.n_strands=3", "scene.n_vertices=5"]) == 0
+    assert "3 strands" in capsys.readouterr().out
+    stage = Usd.Stage.Open(str(path))
+    assert stage.GetEndTimeCode() == 3 and stage.GetPrimAtPath("/Root/Guides").IsA(UsdGeom.BasisCurves)
+    assert export_main([str(tmp_path / "bad.usda"), "experiment=goaling", "scene.length=-1"]) == 2
+    assert "hairexp: error: scene.length" in capsys.readouterr().err
+    assert not (tmp_path / "bad.usda").exists()

@@ -1,0 +1,217 @@
+"""Bad USD input stops the run with an InputError naming the file, the prim and the curve (or
+frame) at fault; summary.json says failed and neither result.npz nor result.usda is written.
+On the command line: exit code 2 and one ``hairexp: error: scene.usd=<file>:<prim>: ...`` line."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from pxr import Gf, UsdGeom
+from usd_helpers import (COLLIDERS, FRAMES, GUIDE_VERTICES, N_VERTICES, edit_stage, source_cfg, usd_cfg, vec3f,
+                         write_stage)
+
+from hairexp.errors import InputError
+from hairexp.run import run
+
+HAIR, GUIDES, BODY = "/Root/Body/Hair", "/Root/Guides", "/Root/Body"
+
+
+@pytest.fixture
+def stage(tmp_path):
+    """A valid stage (6 x 8 hair, 2 x 6 guides, frames 0..5, one sphere collider)."""
+    path = tmp_path / "scene.usda"
+    write_stage(path, source_cfg(colliders=COLLIDERS[:1]))
+    return path
+
+
+def points(stage, path, tc=None) -> np.ndarray:
+    attr = UsdGeom.BasisCurves.Get(stage, path).GetPointsAttr()
+    return np.asarray(attr.Get() if tc is None else attr.Get(tc), dtype=np.float64)
+
+
+def set_points(stage, path, P, tc=None) -> None:
+    attr = UsdGeom.BasisCurves.Get(stage, path).GetPointsAttr()
+    attr.Set(vec3f(P)) if tc is None else attr.Set(vec3f(P), tc)
+
+
+def with_point(path, index, value, tc=None):
+    """An edit setting point ``index`` of ``path`` (at ``tc``) to ``value`` (a 3-vector or a
+    function of the other points)."""
+    def edit(stage):
+        P = points(stage, path, tc)
+        P[index] = value(P) if callable(value) else value
+        set_points(stage, path, P, tc)
+    return edit
+
+
+def with_counts(path, counts, tc=None):
+    def edit(stage):
+        attr = UsdGeom.BasisCurves.Get(stage, path).GetCurveVertexCountsAttr()
+        attr.Set(counts) if tc is None else attr.Set(counts, tc)
+    return edit
+
+
+def guides_attr(stage):
+    return UsdGeom.BasisCurves.Get(stage, GUIDES).GetPointsAttr()
+
+
+def body_matrix_at(tc, linear):
+    """An edit replacing the body's transform at ``tc`` by one whose linear part is ``linear``."""
+    def edit(stage):
+        op = UsdGeom.Xformable(stage.GetPrimAtPath(BODY)).GetOrderedXformOps()[0]
+        m = np.array(op.Get(tc))
+        m[:3, :3] = np.asarray(linear).T
+        op.Set(Gf.Matrix4d(m.tolist()), tc)
+    return edit
+
+
+def set_attr(prim_path, name, value):
+    return lambda stage: stage.GetPrimAtPath(prim_path).GetAttribute(name).Set(value)
+
+
+def add_fractional_sample(stage):
+    guides_attr(stage).Set(guides_attr(stage).Get(2), 2.5)
+
+
+def guide_without_samples(stage):
+    attr = guides_attr(stage)
+    rest = attr.Get(0)
+    attr.Clear()
+    attr.Set(rest)
+
+
+def grow_guide_frame_3(stage):
+    P = points(stage, GUIDES, 3)
+    set_points(stage, GUIDES, np.vstack([P, P[-1:] + 0.01]), 3)
+
+
+def add_mesh_collider(stage):
+    UsdGeom.Mesh.Define(stage, "/Root/Colliders/rock")
+
+
+def capsule_along_z(stage):
+    UsdGeom.Capsule.Define(stage, "/Root/Colliders/pole").CreateAxisAttr("Z")
+
+
+SHEAR = [[1.0, 0.1, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+H1 = N_VERTICES           # first vertex of hair curve 1
+G1 = GUIDE_VERTICES       # first vertex of guide curve 1
+
+CASES = {  # name: (edit, prim, message regex)
+    "hair_nan": (with_point(HAIR, H1 + 3, [np.nan, 0.0, 0.0]), HAIR, r"curve 1 vertex 3 is not finite"),
+    "hair_inf": (with_point(HAIR, 5 * N_VERTICES, [0.0, np.inf, 0.0]), HAIR, r"curve 5 vertex 0 is not finite"),
+    "guide_inf": (with_point(GUIDES, G1 + 1, [0.0, 0.0, -np.inf], tc=2), GUIDES + " frame 2",
+                  r"curve 1 vertex 1 is not finite"),
+    "hair_counts": (with_counts(HAIR, [N_VERTICES] * 5 + [N_VERTICES - 1]), HAIR,
+                    r"vertex counts add up to 47 but there are 48 points"),
+    "guide_counts": (with_counts(GUIDES, [GUIDE_VERTICES, GUIDE_VERTICES + 1]), GUIDES + " frame 0",
+                     r"vertex counts add up to 13 but there are 12 points"),
+    "hair_zero_edge": (with_point(HAIR, 3 * N_VERTICES + 4, lambda P: P[3 * N_VERTICES + 3]), HAIR,
+                       r"curve 3 has a zero-length edge between vertices 3 and 4"),
+    "guide_zero_edge": (with_point(GUIDES, G1 + 2, lambda P: P[G1 + 1], tc=4), GUIDES + " frame 4",
+                        r"curve 1 has a zero-length edge between vertices 1 and 2"),
+    "hair_two_vertices": (with_counts(HAIR, [N_VERTICES] * 4 + [2 * N_VERTICES - 2, 2]), HAIR,
+                          r"curve 5 has 2 vertices, needs at least 3"),
+    "guide_one_vertex": (with_counts(GUIDES, [2 * GUIDE_VERTICES - 1, 1]), GUIDES + " frame 0",
+                         r"curve 1 has 1 vertices, needs at least 2"),
+    "guide_no_samples": (guide_without_samples, GUIDES, r"points have no time samples"),
+    "guide_missing_frame": (lambda s: guides_attr(s).ClearAtTime(3), GUIDES,
+                            r"no time sample at time code 3 \(frame 3\)"),
+    "guide_fractional_sample": (add_fractional_sample, GUIDES, r"time code 2.5 is not a frame"),
+    "guide_counts_change": (lambda s: [with_counts(GUIDES, [GUIDE_VERTICES] * 2, 0)(s),
+                                       with_counts(GUIDES, [GUIDE_VERTICES - 1, GUIDE_VERTICES + 1], 2)(s)],
+                            GUIDES, r"curveVertexCounts change at time code 2"),
+    "guide_points_change": (grow_guide_frame_3, GUIDES, r"time code 3 has 13 points, time code 0 has 12"),
+    "missing_hair": (lambda s: s.RemovePrim(HAIR), None,
+                     r"no prim at /Root/Body/Hair \(the detail hair; scene.usd_hair names its path\)"),
+    "missing_guides": (lambda s: s.RemovePrim(GUIDES), None,
+                       r"no prim at /Root/Guides \(the guides; scene.usd_guides names its path\)"),
+    "missing_body": (lambda s: s.RemovePrim(BODY), None,
+                     r"no prim at /Root/Body \(the rigid body; scene.usd_body names its path\)"),
+    "body_scaled": (body_matrix_at(2, 1.5 * np.eye(3)), BODY, r"transform at time code 2 is not rigid: it scales"),
+    "body_sheared": (body_matrix_at(5, SHEAR), BODY, r"transform at time code 5 is not rigid: it shears"),
+    "centimetres": (lambda s: UsdGeom.SetStageMetersPerUnit(s, 0.01), None, r"metersPerUnit is 0.01"),
+    "z_up": (lambda s: UsdGeom.SetStageUpAxis(s, UsdGeom.Tokens.z), None, r"upAxis is Z"),
+    "mesh_collider": (add_mesh_collider, "/Root/Colliders/rock", r"unsupported collider type Mesh"),
+    "capsule_axis": (capsule_along_z, "/Root/Colliders/pole", r"axis is Z"),
+    "negative_radius": (set_attr("/Root/Colliders/ball", "radius", -1.0), "/Root/Colliders/ball",
+                        r"radius must be > 0, got -1"),
+    "nan_friction": (set_attr("/Root/Colliders/ball", "hairexp:friction", float("nan")), "/Root/Colliders/ball",
+                     r"hairexp:friction must be >= 0, got nan"),
+}
+
+
+def assert_failed_run(cfg, out, where: str, match: str) -> InputError:
+    with pytest.raises(InputError, match=match) as info:
+        run(cfg, out)
+    assert info.value.where == where
+    assert not (out / "result.npz").exists() and not (out / "result.usda").exists()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "failed" and where in summary["error"]
+    return info.value
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_bad_stage(stage, tmp_path, case):
+    edit, prim, match = CASES[case]
+    edit_stage(stage, edit)
+    where = f"scene.usd={stage}" + (f":{prim}" if prim else "")
+    assert_failed_run(usd_cfg(stage), tmp_path / "run", where, match)
+
+
+def test_too_few_guide_frames(stage, tmp_path):
+    assert_failed_run(usd_cfg(stage, frames=FRAMES + 3), tmp_path / "run", f"scene.usd={stage}:{GUIDES}",
+                      rf"time samples for frames 0..{FRAMES} .* but the run needs {FRAMES + 3} frames")
+
+
+def test_prim_of_the_wrong_type(stage, tmp_path):
+    assert_failed_run(usd_cfg(stage, **{"scene.usd_hair": BODY}), tmp_path / "run", f"scene.usd={stage}:{BODY}",
+                      r"is a Xform, expected BasisCurves \(the detail hair\)")
+
+
+def test_missing_file(tmp_path):
+    path = tmp_path / "nowhere.usda"
+    assert_failed_run(usd_cfg(path), tmp_path / "run", f"scene.usd={path}", r"no such file")
+
+
+@pytest.mark.parametrize("content", [b"this is not a stage\n", b"\x00\x01PXR-USDC garbage",
+                                     b"#usda 1.0\ndef Xform \"R\" {\n"])
+def test_unreadable_file(tmp_path, content):
+    path = tmp_path / "garbage.usda"
+    path.write_bytes(content)
+    err = assert_failed_run(usd_cfg(path), tmp_path / "run", f"scene.usd={path}", r"cannot read the USD stage")
+    assert "\n" not in str(err) and "pxrInternal" not in str(err)
+
+
+def test_empty_path(tmp_path):
+    assert_failed_run(usd_cfg(""), tmp_path / "run", "scene.usd", r"the path of a USD stage is required")
+
+
+# --------------------------------------------------------------------------------------------
+# the command line
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("case", ["garbage", "hair_zero_edge"])
+def test_cli_bad_stage_exits_2_with_one_line(stage, tmp_path, case):
+    if case == "garbage":
+        stage.write_text("not a stage\n")
+        where, match = f"scene.usd={stage}", "cannot read the USD stage"
+    else:
+        edit_stage(stage, CASES[case][0])
+        where, match = f"scene.usd={stage}:{HAIR}", "curve 3 has a zero-length edge"
+    out = tmp_path / "run"
+    env = dict(os.environ, CI="1")  # PYTHONPATH: this checkout (conftest.py)
+    proc = subprocess.run([sys.executable, "-m", "hairexp", "experiment=from_usd", f"scene.usd={stage}",
+                           f"hydra.run.dir={out}"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, (proc.stdout, proc.stderr)
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert lines == [lines[0]] and lines[0].startswith(f"hairexp: error: {where}: ") and match in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr + proc.stdout
+    assert not (out / "result.npz").exists() and not (out / "result.usda").exists()
+    assert json.loads((out / "summary.json").read_text())["status"] == "failed"
