@@ -231,6 +231,44 @@ class LoggingConfig:
     strict: bool = False              # rerun strict mode: bad shapes become errors
 
 
+class MeasureName(str, Enum):
+    none = "none"
+    collider_contact = "collider_contact"   # goaling (wheel), celia (goblet)
+    clumps = "clumps"                       # splitting
+    tip_variance = "tip_variance"           # spreading
+    block_rail = "block_rail"               # stylization
+
+
+class JudgeName(str, Enum):
+    none = "none"
+    free_misses_tracked_hits = "free_misses_tracked_hits"
+    clumps_match_guides = "clumps_match_guides"
+    variance_follows_targets = "variance_follows_targets"
+    tracked_leaves_rail = "tracked_leaves_rail"
+
+
+@dataclass
+class MeasureConfig:
+    """The scene's success measure (hairexp/scenes/measures.py), written to summary.json."""
+    name: MeasureName = MeasureName.none
+    collider: str = ""                 # collider_contact: the collider's name
+    tolerance: float = 0.002           # m, collider_contact: a hit is within thickness + tolerance
+    time: float = -1.0                 # s, clumps: when to cluster (< 0: the last frame)
+    threshold: float = 0.02            # m, clumps: single-linkage distance threshold
+    strand_fraction: float = 0.5       # clumps: a strand's feature is the mean of its vertices past this fraction
+    min_share: float = 0.1             # clumps: smallest clump that counts, as a share of the strands
+    axis: list[float] = field(default_factory=lambda: [1.0, 0.0, 0.0])   # tip_variance: "ahead" direction
+    rail_height: float = 0.0           # m, block_rail
+    rail_end: float = 0.0              # m, block_rail
+
+
+@dataclass
+class VariantConfig:
+    """One run of an experiment with a few keys changed (``key=value`` as on the command line)."""
+    name: str = "run"
+    overrides: list[str] = field(default_factory=list)
+
+
 @dataclass
 class Config:
     scene: SceneConfig = field(default_factory=SceneConfig)
@@ -241,6 +279,10 @@ class Config:
     guides: GuidesConfig = field(default_factory=GuidesConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     experiment: Optional[str] = None  # name of the experiment, set by conf/experiment/*.yaml
+    measure: MeasureConfig = field(default_factory=MeasureConfig)
+    variants: list[VariantConfig] = field(default_factory=list)   # [] = one run; else one run per variant
+    judge: JudgeName = JudgeName.none  # how the variants' measures decide the experiment's success
+    judge_tolerance: float = 0.35      # variance_follows_targets: largest relative miss of a target
     frames: Optional[int] = 50        # output frames after the initial one; null: the USD stage's endTimeCode
     fps: Optional[float] = 25.0       # null: the USD stage's timeCodesPerSecond
 

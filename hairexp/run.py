@@ -66,6 +66,8 @@ def summarize(table, plain: dict, scene_name: str, controller: str, wall: float,
             "recovered_steps": int(df["recovered"].sum()),
             "step_seconds_median": float(df["step_seconds"].median()),
             "stretch_max": float(df["stretch_max"].max()),
+            "residual_rel_max": (float(df["residual_rel_max"].max()) if df["residual_rel_max"].notna().any()
+                                 else None),
         }
     return {
         "scene": scene_name, "controller": controller, "experiment": plain.get("experiment"),
@@ -130,6 +132,11 @@ def run(cfg, out_dir: str | Path) -> dict:
             recorder.log_frame(frame, state, obs.get("guides"), obs.get("targets"), obs.get("com"))
             if rerun_sink:
                 rerun_sink.log_frame(frame, state, obs)
+        from hairexp.scenes.measures import RunData, compute
+
+        measures = compute(cfg.measure, RunData(scene, np.asarray(recorder.times), np.asarray(recorder.positions),
+                                                tracker, sim.objective.free_vertices,
+                                                getattr(recorder, "body_positions", None)))
         cov = None if tracker is None else tracker.corr.cluster_of_vertex
         recorder.write(out / "result.npz", guides.offsets, cov)
         from hairexp.io.usd_write import write_result_usd  # pxr is imported here
@@ -150,5 +157,6 @@ def run(cfg, out_dir: str | Path) -> dict:
             rerun_sink.close(success=ok)
     table.frame().to_parquet(out / "metrics.parquet")
     summary = summarize(table, plain, scene_name, controller, time.perf_counter() - t_start, "completed")
+    summary["measures"] = measures
     write_json(out / "summary.json", summary)
     return summary
