@@ -222,6 +222,7 @@ class CollisionConfig:
     hair_thickness: float = 0.001     # m, edge-edge distance kept by repulsion
     skin: float = 0.003               # m, hair-hair neighbour-list skin: the list is reused while no vertex moves skin/2
     max_passes: int = 3
+    strain_limit: float = 0.0         # > 0: after object contacts, edge lengths are clamped to (1 -+ this) x rest
 
 
 @dataclass

@@ -136,7 +136,7 @@ def run(cfg, out_dir: str | Path) -> dict:
 
         measures = compute(cfg.measure, RunData(scene, np.asarray(recorder.times), np.asarray(recorder.positions),
                                                 tracker, sim.objective.free_vertices,
-                                                getattr(recorder, "body_positions", None)))
+                                                getattr(recorder, "body_positions", None), table.frame()))
         cov = None if tracker is None else tracker.corr.cluster_of_vertex
         recorder.write(out / "result.npz", guides.offsets, cov)
         from hairexp.io.usd_write import write_result_usd  # pxr is imported here

@@ -40,7 +40,7 @@ def run_cli(args, cwd, timeout=120):
 def goaling_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("goaling")
     # run from another directory: the entry point must find its configs by itself
-    proc = run_cli(["experiment=goaling", f"frames={FRAMES}", f"scene.n_strands={N_STRANDS}",
+    proc = run_cli(["experiment=goaling", "variants=[]", f"frames={FRAMES}", f"scene.n_strands={N_STRANDS}",
                     f"scene.n_vertices={N_VERTICES}", f"hydra.run.dir={out}"], cwd=out)
     return proc, out
 
@@ -127,7 +127,7 @@ def test_rerun_off_writes_no_recording_and_never_imports_rerun(tmp_path):
         import hairexp.config
         from hairexp.run import run
         with initialize_config_dir(config_dir={str(CONF_DIR)!r}, version_base="1.3"):
-            cfg = compose(config_name="config", overrides=["experiment=goaling", "frames=2", "scene.n_strands=2",
+            cfg = compose(config_name="config", overrides=["experiment=goaling", "variants=[]", "frames=2", "scene.n_strands=2",
                                                            "scene.n_vertices=5", "logging.rerun=false"])
         summary = run(cfg, {str(tmp_path)!r})
         print(summary["status"], summary["steps"])

@@ -416,7 +416,7 @@ def test_authored_guides_npz_reused_as_file_source(tmp_path):
 def run_cli(args, out):
     """``python -m hairexp`` on a tiny goaling run; PYTHONPATH puts this checkout first."""
     env = dict(os.environ, CI="1", PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
-    return subprocess.run([sys.executable, "-m", "hairexp", "experiment=goaling", "frames=2", "scene.n_strands=2",
+    return subprocess.run([sys.executable, "-m", "hairexp", "experiment=goaling", "variants=[]", "frames=2", "scene.n_strands=2",
                            "scene.n_vertices=5", "logging.rerun=false", f"hydra.run.dir={out}", *args],
                           cwd=out.parent, env=env, capture_output=True, text=True, timeout=120)
 

@@ -144,7 +144,7 @@ def test_scene_config_errors_name_the_key(kw, key):
 # --------------------------------------------------------------------------------------------
 
 def run_cli(args, out):
-    return subprocess.run([sys.executable, "-m", "hairexp", "experiment=goaling", "frames=2", "scene.n_strands=2",
+    return subprocess.run([sys.executable, "-m", "hairexp", "experiment=goaling", "variants=[]", "frames=2", "scene.n_strands=2",
                            "scene.n_vertices=5", f"hydra.run.dir={out}", *args], cwd=out.parent,
                           env=dict(os.environ, CI="1"), capture_output=True, text=True, timeout=120)
 

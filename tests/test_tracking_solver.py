@@ -541,7 +541,7 @@ CLI_FRAMES, CLI_STRANDS, CLI_VERTICES = 3, 6, 8
 @pytest.fixture(scope="module")
 def tracked_cli_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("tracked_cli")
-    args = ["experiment=goaling", "controller=tracking", f"frames={CLI_FRAMES}", f"scene.n_strands={CLI_STRANDS}",
+    args = ["experiment=goaling", "variants=[]", "controller=tracking", f"frames={CLI_FRAMES}", f"scene.n_strands={CLI_STRANDS}",
             f"scene.n_vertices={CLI_VERTICES}", f"hydra.run.dir={out}"]
     proc = subprocess.run([sys.executable, "-m", "hairexp", *args], cwd=out, env=dict(os.environ, CI="1"),
                           capture_output=True, text=True, timeout=180)

@@ -38,6 +38,8 @@ from hairexp.physics.edge_ccd import _closest_segment_params, edge_edge_ccd
 CA_ITERATIONS, CA_TOL = 40, 1e-6
 #: Quantiles of the bounding-sphere radius that split the broad phase's boxes into classes.
 CLASS_QUANTILES = (0.5, 0.9, 1.0)
+#: Rounds of strain limiting (each followed by the object response to its moves) after a step with contacts.
+LIMIT_ROUNDS = 4
 #: Fraction of the overlap (h - d) removed per step by the repulsion impulse (Bridson 2002, 7.2).
 REPULSION = 0.25
 
@@ -49,13 +51,22 @@ class CollisionInfo:
     penetration_max: float = 0.0      # m, deepest end-of-step penetration into a collider's thickness after the stage
     passes: int = 0
     broad_phases: dict = field(default_factory=dict)   # hair-hair broad phase: {"reused"|"rebuilt"|"swept": passes}
+    strain_limited: int = 0           # edges over the strain limit after the contacts, shortened
     candidates: int = 0               # most hair-hair edge pairs that reached the narrow phase in a pass
     seconds: float = 0.0
     per_collider: dict = field(default_factory=dict)
 
 
 def object_stage(colliders, x0, x1, t0, t1, dt, movable):
-    """Returns corrected (x1, v1, contacts)."""
+    """Returns corrected (x1, v1, contacts, contacts per collider)."""
+    x1, contacts, per = object_positions(colliders, x0, x1, t0, t1, dt, movable)
+    return x1, contact_velocities(colliders, x1, (x1 - x0) / dt, t1, movable), contacts, per
+
+
+def object_positions(colliders, x0, x1, t0, t1, dt, movable):
+    """Positions of the object response: paths x0 (at t0) -> x1 (at t1) are stopped where
+    they first come within a collider's thickness, keep their tangential rest (friction,
+    surface spin over ``dt``), and end outside.  Returns (x1, contacts, per collider)."""
     x1 = x1.copy()
     contacts = 0
     idx = np.flatnonzero(movable)
@@ -118,23 +129,7 @@ def object_stage(colliders, x0, x1, t0, t1, dt, movable):
         x1[idx[h]] = Xe @ R.T + T
         contacts += h.size
         per[col.name] = int(h.size)
-    v1 = (x1 - x0) / dt
-    # inelastic: no approaching normal relative velocity at the end of the step
-    for col in colliders:
-        near = np.flatnonzero(movable)
-        d = col.distance(x1[near], t1)
-        c = near[d < 1e-3 * max(col.thickness, 1e-3) + 1e-9]
-        if c.size:
-            n = col.normal(x1[c], t1)
-            vs = col.surface_velocity(x1[c], t1)
-            vr = v1[c] - vs
-            vn = np.sum(vr * n, axis=1)
-            neg = vn < 0
-            vt = vr - vn[:, None] * n
-            tn = np.linalg.norm(vt, axis=1)
-            f = np.where(neg & (tn > 0), np.maximum(0.0, 1.0 - col.friction * (-vn) / np.maximum(tn, 1e-300)), 1.0)
-            v1[c] = vs + vt * f[:, None] + np.maximum(vn, 0.0)[:, None] * n
-    return x1, v1, contacts, per
+    return x1, contacts, per
 
 
 class HairHair:
@@ -356,8 +351,70 @@ class HairHair:
         return v1, int((I > 0).sum())
 
 
-def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt):
-    """Filter (x1, v1) for contacts.  Returns (x1, v1, CollisionInfo)."""
+def contact_velocities(colliders, x1, v1, t1, movable):
+    """Inelastic contact: vertices on a collider's shell get no approaching normal velocity
+    relative to the surface, and Coulomb friction on the tangential one."""
+    for col in colliders:
+        near = np.flatnonzero(movable)
+        d = col.distance(x1[near], t1)
+        c = near[d < 1e-3 * max(col.thickness, 1e-3) + 1e-9]
+        if c.size:
+            n = col.normal(x1[c], t1)
+            vs = col.surface_velocity(x1[c], t1)
+            vr = v1[c] - vs
+            vn = np.sum(vr * n, axis=1)
+            neg = vn < 0
+            vt = vr - vn[:, None] * n
+            tn = np.linalg.norm(vt, axis=1)
+            f = np.where(neg & (tn > 0), np.maximum(0.0, 1.0 - col.friction * (-vn) / np.maximum(tn, 1e-300)), 1.0)
+            v1[c] = vs + vt * f[:, None] + np.maximum(vn, 0.0)[:, None] * n
+    return v1
+
+
+class StrainLimit:
+    """Strain limiting after the collision response (Provot 1995, as used by Bridson et al.
+    2002): a collision stops a vertex at a surface while its neighbours finish their move, which
+    can stretch or crush an edge several times over at dt = 0.04 s.  Edge lengths are clamped to
+    [1 - limit, 1 + limit] x rest, moving their free end points in proportion to their inverse
+    masses (a root vertex does not move), in Gauss-Seidel sweeps along the strands (all strands'
+    k-th edges at once), from the root to the tip and back."""
+
+    def __init__(self, strands, limit: float, sweeps: int = 3):
+        E = strands.edges
+        self.E, self.L, self.Lmin = E, strands.rest_lengths * (1.0 + limit), strands.rest_lengths * (1.0 - limit)
+        self.w = np.where(strands.kinematic, 0.0, 1.0 / strands.masses)
+        local = E[:, 0] - strands.offsets[strands.strand_of_vertex[E[:, 0]]]
+        self.order = [np.flatnonzero(local == k) for k in range(int(local.max()) + 1)] if len(E) else []
+        self.sweeps = sweeps
+
+    def apply(self, x: np.ndarray, pinned: np.ndarray | None = None) -> int:
+        """Clamps the edge lengths of x in place; returns how many edges were outside.
+        ``pinned`` vertices (in contact with a collider) do not move: their neighbours come
+        to them, instead of the limiter pulling them into the collider."""
+        E, w = self.E, self.w if pinned is None else np.where(pinned, 0.0, self.w)
+        n = np.linalg.norm(x[E[:, 1]] - x[E[:, 0]], axis=1)
+        over = int(np.sum((n > self.L * (1 + 1e-9)) | (n < self.Lmin * (1 - 1e-9))))
+        if over == 0:
+            return 0
+        for _ in range(self.sweeps):
+            for group in self.order + self.order[::-1]:
+                a, b = E[group, 0], E[group, 1]
+                d = x[b] - x[a]
+                n = np.linalg.norm(d, axis=1)
+                excess = np.maximum(n - self.L[group], 0.0) + np.minimum(n - self.Lmin[group], 0.0)
+                ws = w[a] + w[b]
+                k = (excess != 0) & (ws > 0) & (n > 0)
+                if not k.any():
+                    continue
+                corr = (excess[k] / (n[k] * ws[k]))[:, None] * d[k]
+                x[a[k]] += w[a[k], None] * corr
+                x[b[k]] -= w[b[k], None] * corr
+        return over
+
+
+def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter: StrainLimit | None = None):
+    """Filter (x1, v1) for contacts.  Returns (x1, v1, CollisionInfo).  With ``limiter``, a
+    step with object contacts ends with strain limiting (``StrainLimit``)."""
     tic = time.perf_counter()
     info = CollisionInfo()
     movable = ~scene.strands.kinematic
@@ -381,6 +438,22 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt):
         info.passes = p + 1
         if n_obj + n_hh == 0:
             break
+    if limiter is not None and info.object_contacts > 0:
+        # strain limiting with the vertices in contact pinned; its moves are themselves
+        # stopped at the colliders (continuously: they must not cross a thin collider)
+        for _ in range(LIMIT_ROUNDS):
+            pinned = np.zeros(len(x1), dtype=bool)
+            for col in scene.colliders:
+                pinned |= col.distance(x1, t1) < 1e-3 * max(col.thickness, 1e-3) + 1e-9
+            before = x1.copy()
+            n = limiter.apply(x1, pinned)
+            info.strain_limited += n
+            if n == 0:
+                break
+            x1, hits, _ = object_positions(scene.colliders, before, x1, t1, t1, 0.0, movable)
+            if hits == 0:
+                break
+        v1 = contact_velocities(scene.colliders, x1, (x1 - x0) / dt, t1, movable)
     if hh is not None:
         hh.end_step(x1, hh.frames(x0, x1)[1])
     if scene.colliders:

@@ -47,6 +47,7 @@ class StepInfo:
     object_contacts: int = 0         # collision stage: vertices corrected against colliders
     hair_contacts: int = 0           # collision stage: edge pairs given impulses
     penetration_max: float = 0.0     # m, after the collision stage
+    collider_contacts: dict = field(default_factory=dict)   # collider name -> vertices corrected
     seconds: dict = field(default_factory=dict)   # derivatives, assembly, solve, collision, other, total
     iterations_attempted: int = 0    # all iterations done, including attempts that recovery replaced
 

@@ -68,7 +68,11 @@ class Simulator:
         self.collision_cfg = collision_cfg
         cc = collision_cfg
         self.collide_objects = bool(cc is not None and cc.objects and scene.colliders)
-        self.hair_hair = None
+        self.hair_hair = self.limiter = None
+        if (self.collide_objects or (cc is not None and cc.hair_hair)) and cc.strain_limit > 0:
+            from hairexp.physics.collisions import StrainLimit
+
+            self.limiter = StrainLimit(s, cc.strain_limit)
         if cc is not None and cc.hair_hair:
             from hairexp.physics.collisions import HairHair
 
@@ -122,7 +126,7 @@ class Simulator:
 
             sc = self.scene if self.collide_objects else _NoColliders(self.scene)
             x_new, v_new, cinfo = collision_stage(self.collision_cfg, sc, self.hair_hair, state.x, x_new,
-                                                  state.time, t_next, dt)
+                                                  state.time, t_next, dt, self.limiter)
             info.seconds["collision"] = info.seconds.get("collision", 0.0) + cinfo.seconds
             info.collision = cinfo
         return State(t_next, x_new, v_new, duals), info
@@ -167,6 +171,9 @@ class Simulator:
             info.object_contacts = sum(c.object_contacts for c in cis)
             info.hair_contacts = sum(c.hair_contacts for c in cis)
             info.penetration_max = max(c.penetration_max for c in cis)
+            for c in cis:
+                for k, n in c.per_collider.items():
+                    info.collider_contacts[k] = info.collider_contacts.get(k, 0) + n
         if len(infos) > 1 and info.recovered:
             info.status = CONVERGED
         return new, info

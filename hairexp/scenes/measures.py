@@ -6,7 +6,8 @@ the tracker) and returns a flat dict of numbers that goes into ``summary.json`` 
 
 * ``collider_contact`` (goaling's wheel, Celia's goblet): the smallest distance from a free
   hair vertex to the surface of ``measure.collider`` over all frames, and the number of frames
-  in which some vertex is within the collider's thickness + ``measure.tolerance`` (a hit).
+  in which some vertex is within the collider's thickness + ``measure.tolerance``, and the
+  collision stage's vertex contacts with it over the run; either makes a hit.
 * ``clumps`` (splitting): single-linkage clustering of the strands' lower parts (the mean of
   the vertices past ``measure.strand_fraction`` of each strand) at ``measure.time``; strands
   closer than ``measure.threshold`` join a clump; clumps with at least ``measure.min_share`` of
@@ -36,6 +37,7 @@ class RunData:
     tracker: object = None       # TrackingController of a tracked run
     free_index: np.ndarray = None  # the free vertices, in the order of the free DOF vector
     body_positions: np.ndarray = None  # (F, 3) body translation per frame, when recorded
+    metrics: object = None       # the metrics table (pandas DataFrame), one row per step
 
 
 def _collider(scene, name: str):
@@ -52,7 +54,10 @@ def collider_contact(d: RunData, p) -> dict:
     dist = np.array([float((col.sdf_body(col.to_body(x[free], t))).min()) for x, t in zip(d.positions, d.times)])
     hit = dist <= col.thickness + p.tolerance
     first = float(d.times[np.argmax(hit)]) if hit.any() else None
-    return {"min_distance": float(dist.min()), "hit_frames": int(hit.sum()), "hit": bool(hit.any()),
+    col_name = f"contacts_{p.collider}"
+    contacts = int(d.metrics[col_name].fillna(0).sum()) if d.metrics is not None and col_name in d.metrics else 0
+    return {"min_distance": float(dist.min()), "hit_frames": int(hit.sum()), "hit": bool(hit.any() or contacts > 0),
+            "contacts": contacts,
             "first_hit_time": first, "thickness": col.thickness, "tolerance": p.tolerance}
 
 

@@ -55,6 +55,8 @@ def measure(scene: Scene, state: State, info: StepInfo, sim, step: int, frame: i
         "t_derivatives": sec.get("derivatives", 0.0), "t_assembly": sec.get("assembly", 0.0),
         "t_solve": sec.get("solve", 0.0), "t_collision": sec.get("collision", 0.0), "t_other": sec.get("other", 0.0),
     }
+    for name, n in info.collider_contacts.items():
+        row[f"contacts_{name}"] = n
     if extra:
         row.update(extra)
     return row
