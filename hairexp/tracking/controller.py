@@ -59,6 +59,12 @@ class TrackingController:
             return 0.0, None
         return self.variance.value_grad(xf, self._kv, self._vbar, need_grad)
 
+    def penalty_hessian(self, xf: np.ndarray):
+        """(diagonal, U): the PSD model diag + U U^T of the variance penalty's Hessian, or None."""
+        if not self.use_variance:
+            return None
+        return self.variance.hessian_parts(xf, self._kv, self._vbar)
+
     def initial_duals(self) -> dict:
         return {"t": self.cons.t_rest.copy(), "lambda": np.zeros(3 * self.cons.K)}
 

@@ -3,8 +3,9 @@
     min_{x, t}  H(x) + P(x)   s.t.  C(x, t) = c(x) - c_hat(t) = 0
 
 H is the implicit Euler objective (eq. 5), P the variance penalty (3.3).  Each iteration
-solves the KKT system (8) for (dx, dt, lam+) with the PSD Hessian of H (the variance Hessian
-is left out, as in the paper), then backtracks on the l1 merit function
+solves the KKT system (8) for (dx, dt, lam+) with the PSD Hessian of H plus a PSD model of
+the variance penalty's Hessian (Gauss-Newton rank one per cluster by a Woodbury update, and
+the positive diagonal curvature; the paper leaves it out), then backtracks on the l1 merit function
 phi = H + P + mu |C|_1 (Nocedal & Wright 2006, eq. 18.27), whose directional derivative along
 a step that satisfies the linearised constraints is grad(H+P).dx - mu |C|_1 (Theorem 18.2);
 mu is kept above |lam+|_inf (eq. 18.32).  Convergence needs both residuals small:
@@ -90,11 +91,30 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
             info.status = MAX_ITERATIONS
             break
         t1 = time.perf_counter()
-        if opts.kkt == "reference":
-            dx, dt, lam_new = reference_solve(ev.banded, cons.A, g, C, Bmat, D, np.zeros(cons.K) if sliding else None)
-        else:
+        hp = tracker.penalty_hessian(x)
+        if hp is not None:
+            ev.banded[0] += hp[0]    # the variance penalty's positive curvature (diagonal)
+
+        def solve(r_x, c):
+            r_t = np.zeros(cons.K) if sliding else None
+            if opts.kkt == "reference":
+                return reference_solve(ev.banded, cons.A, r_x, c, Bmat, D, r_t)
+            return kkt.solve(r_x, c, Bmat, D, r_t)
+
+        if opts.kkt != "reference":
             kkt.factor(ev.banded)
-            dx, dt, lam_new = kkt.solve(g, C, Bmat, D, np.zeros(cons.K) if sliding else None)
+        dx, dt, lam_new = solve(g, C)
+        if hp is not None and hp[1].shape[1]:
+            # Woodbury: the system matrix plus U U^T (the penalty's Gauss-Newton Hessian).  The
+            # solve is linear, s(b) = -K^-1 b; with K + U U^T it is s(b) + S_U (I - U^T S_U)^-1 U^T s(b)_x
+            U = hp[1]
+            cols = [solve(U[:, j], np.zeros_like(C)) for j in range(U.shape[1])]
+            SU = np.stack([c[0] for c in cols], 1)
+            coef = np.linalg.solve(np.eye(U.shape[1]) - U.T @ SU, U.T @ dx)
+            dx = dx + SU @ coef
+            lam_new = lam_new + np.stack([c[2] for c in cols], 1) @ coef
+            if dt is not None:
+                dt = dt + np.stack([c[1] for c in cols], 1) @ coef
         sec["solve"] += time.perf_counter() - t1
         # l1 merit line search
         mu = max(mu, MU_FACTOR * float(np.abs(lam_new).max(initial=0.0)) + MU_MARGIN)
