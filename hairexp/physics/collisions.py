@@ -39,7 +39,7 @@ CA_ITERATIONS, CA_TOL = 40, 1e-6
 #: Quantiles of the bounding-sphere radius that split the broad phase's boxes into classes.
 CLASS_QUANTILES = (0.5, 0.9, 1.0)
 #: Rounds of strain limiting (each followed by the object response to its moves) after a step with contacts.
-LIMIT_ROUNDS = 4
+LIMIT_ROUNDS = 8
 #: Fraction of the overlap (h - d) removed per step by the repulsion impulse (Bridson 2002, 7.2).
 REPULSION = 0.25
 
@@ -402,13 +402,16 @@ class StrainLimit:
                 d = x[b] - x[a]
                 n = np.linalg.norm(d, axis=1)
                 excess = np.maximum(n - self.L[group], 0.0) + np.minimum(n - self.Lmin[group], 0.0)
-                ws = w[a] + w[b]
+                wa, wb = w[a], w[b]
+                both = (wa + wb == 0) & (self.w[a] + self.w[b] > 0)   # two pinned ends: both move
+                wa, wb = np.where(both, self.w[a], wa), np.where(both, self.w[b], wb)
+                ws = wa + wb
                 k = (excess != 0) & (ws > 0) & (n > 0)
                 if not k.any():
                     continue
                 corr = (excess[k] / (n[k] * ws[k]))[:, None] * d[k]
-                x[a[k]] += w[a[k], None] * corr
-                x[b[k]] -= w[b[k], None] * corr
+                x[a[k]] += wa[k, None] * corr
+                x[b[k]] -= wb[k, None] * corr
         return over
 
 
