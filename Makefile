@@ -6,7 +6,7 @@ VENV    := .venv
 VPY     := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
 
-.PHONY: setup goaling test test-slow bench clean
+.PHONY: setup goaling test test-slow bench paper-scenes clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -29,6 +29,11 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	$(VPY) experiments/bench_free.py
+	$(VPY) experiments/bench_tracking.py
+	$(VPY) experiments/bench_collisions.py
+
+paper-scenes: $(STAMP)
+	$(VPY) experiments/paper_scenes.py
 
 clean:
 	rm -rf $(VENV) outputs multirun
