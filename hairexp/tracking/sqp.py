@@ -41,6 +41,24 @@ class SQPOptions:
     kkt: str = "schur"           # or "reference"
 
 
+def woodbury(solve, U: np.ndarray, step: tuple, zero_c: np.ndarray) -> tuple:
+    """The KKT step with U U^T added to the Hessian block, from solves without it.
+
+    ``solve(r_x, C)`` is linear: (dx, dt, lam) = s(b) = -K^-1 b for the right-hand side
+    b = (r_x, C, 0).  With K + U~ U~^T (U~ = U padded with zeros outside the x block), the
+    Sherman-Morrison-Woodbury identity gives s'(b) = s(b) + S_U (I - U^T S_U)^-1 U^T s(b)_x,
+    S_U the solves of U's columns."""
+    cols = [solve(U[:, j], zero_c) for j in range(U.shape[1])]
+    SU = np.stack([c[0] for c in cols], 1)
+    dx, dt, lam = step
+    coef = np.linalg.solve(np.eye(U.shape[1]) - U.T @ SU, U.T @ dx)
+    dx = dx + SU @ coef
+    lam = lam + np.stack([c[2] for c in cols], 1) @ coef
+    if dt is not None:
+        dt = dt + np.stack([c[1] for c in cols], 1) @ coef
+    return dx, dt, lam
+
+
 def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, opts: SQPOptions):
     """Returns (x, t, lam, SolveInfo).  ``tracker`` supplies the constraints at this step."""
     info = SolveInfo()
@@ -105,16 +123,7 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
             kkt.factor(ev.banded)
         dx, dt, lam_new = solve(g, C)
         if hp is not None and hp[1].shape[1]:
-            # Woodbury: the system matrix plus U U^T (the penalty's Gauss-Newton Hessian).  The
-            # solve is linear, s(b) = -K^-1 b; with K + U U^T it is s(b) + S_U (I - U^T S_U)^-1 U^T s(b)_x
-            U = hp[1]
-            cols = [solve(U[:, j], np.zeros_like(C)) for j in range(U.shape[1])]
-            SU = np.stack([c[0] for c in cols], 1)
-            coef = np.linalg.solve(np.eye(U.shape[1]) - U.T @ SU, U.T @ dx)
-            dx = dx + SU @ coef
-            lam_new = lam_new + np.stack([c[2] for c in cols], 1) @ coef
-            if dt is not None:
-                dt = dt + np.stack([c[1] for c in cols], 1) @ coef
+            dx, dt, lam_new = woodbury(solve, hp[1], (dx, dt, lam_new), np.zeros_like(C))
         sec["solve"] += time.perf_counter() - t1
         # l1 merit line search
         mu = max(mu, MU_FACTOR * float(np.abs(lam_new).max(initial=0.0)) + MU_MARGIN)
