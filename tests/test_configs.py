@@ -41,6 +41,9 @@ def yaml_leaves(path, package: str = ""):
         for k, v in node.items():
             if isinstance(v, dict):
                 yield from walk(v, f"{prefix}{k}.")
+            elif isinstance(v, list) and v and all(isinstance(e, dict) for e in v):
+                for i, e in enumerate(v):   # lists of records (colliders, edits, variants)
+                    yield from walk(e, f"{prefix}{k}[{i}].")
             else:
                 yield f"{prefix}{k}", v
 
