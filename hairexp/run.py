@@ -45,12 +45,9 @@ def body_metrics(b: np.ndarray) -> dict:
     velocity (m/s), the hair's force on it and the rail's (N)."""
     from hairexp.scene.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 
-    out = {}
-    for name, sl in (("body", POSITION), ("body_v", VELOCITY), ("body_hair_force_", HAIR_FORCE),
-                     ("body_rail_force_", RAIL_FORCE)):
-        for c, v in zip("xyz", b[sl]):
-            out[f"{name}{'_' if name in ('body', 'body_v') else ''}{c}"] = float(v)
-    return out
+    parts = (("body_", POSITION), ("body_v_", VELOCITY), ("body_hair_force_", HAIR_FORCE),
+             ("body_rail_force_", RAIL_FORCE))
+    return {f"{prefix}{c}": float(v) for prefix, sl in parts for c, v in zip("xyz", b[sl])}
 
 
 def config_hash(plain: dict) -> str:
