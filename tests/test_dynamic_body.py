@@ -456,3 +456,19 @@ def test_stylization_free_stays_tracked_leaves_the_rail(hydra_conf, tmp_path):
     assert df["residual_rel_max"].max() < 1e-6
     v = df["variance_ratio_mean"]
     assert v.max() - v.min() > 0.5
+
+
+def test_export_writes_the_initial_pose_and_the_stage_runs_dynamic_again(hydra_conf, tmp_path):
+    """hairexp.io.export_scene of a dynamic scene writes the block at its initial pose (its motion is
+    not known before a run); the stage imported with scene.body.dynamic=true is a dynamic scene."""
+    from hairexp.io.export_scene import export_scene
+    from hairexp.run import run
+
+    export_scene(hydra_conf(["experiment=stylization_smoke", "controller=tracking", "frames=6"]), tmp_path / "s.usda")
+    cfg = hydra_conf(["experiment=from_usd", f"scene.usd={tmp_path / 's.usda'}", "scene.body.dynamic=true",
+                      "scene.body.mass=0.01", "scene.body.rail_friction=0.0", "tracking.points_per_guide=3",
+                      "logging.rerun=false"])
+    summary = run(cfg, tmp_path / "run")
+    assert summary["status"] == "completed"
+    res = np.load(tmp_path / "run" / "result.npz")
+    assert res["body_positions"].shape == (7, 3) and res["body_positions"][-1, 0] > 1e-4
