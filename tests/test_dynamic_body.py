@@ -278,12 +278,12 @@ def test_coupling_is_stable_for_the_stylization_mass_ratio():
     """A wrong coupling force decays geometrically when the block outweighs the hair: about
     m_hair / m_block per step in the stiff (axial) direction.  A block lighter than the hair (which
     build_dynamic_body refuses) amplifies it: the test can tell the two apart."""
-    scene, F = _kicked_free_fall(0.05, 15)                           # the scene's block: 23 x the hair
+    scene, F = _kicked_free_fall(0.05, 10)                           # the scene's block: 23 x the hair
     ratio = scene.motion.total_mass / hair_mass(scene)
     assert ratio > 20
-    assert F[0] < 0.1 and F[10:].max() < 1e-6                    # gone within a few steps
-    _, F15 = _kicked_free_fall(1.5 * 0.0022, 20)                   # 1.5 x the hair (with roots 1.6 x)
-    assert F15.max() < 1.0 and F15[-3:].max() < 1e-3              # decays, slower
+    assert F[0] < 0.1 and F[6:].max() < 1e-6                     # gone within a few steps
+    _, F15 = _kicked_free_fall(1.5 * 0.0022, 12)                   # 1.5 x the hair (with roots 1.6 x)
+    assert F15.max() < 1.0 and F15[-1] < 1e-3                     # decays, slower
     assert np.all(F15[1:] <= F15[:-1] * 0.9)                       # monotone, no growing oscillation
     _, Fbad = _kicked_free_fall(0.8 * 0.0022, 8, build_check=False)    # 0.8 x the hair (0.9 with roots)
     assert np.all(np.diff(Fbad) > 0) and Fbad[-1] > 5.0          # grows
