@@ -40,7 +40,7 @@ fall (tests/test_dynamic_body.py): with its 50 g block (23 x the hair) a disturb
 weight shrinks about 25x per step; at 1.6 x it shrinks by 0.4-0.63 per step; at 0.9 x it grows.
 
 The block's state (position, velocity, hair force, last rail force) lives in ``State.duals['body']``
-(``BodyState`` layout), never in this object: a step that fails and is retried as substeps starts
+(slices ``POSITION``, ``VELOCITY``, ``HAIR_FORCE``, ``RAIL_FORCE``), never in this object: a step that fails and is retried as substeps starts
 again from the same State.  This object only holds the poses of the step being solved (its
 *window*, set from the State at every attempt): ``pose``, ``velocity``, ``transform``,
 ``point_velocity`` and ``to_body`` work like ``RigidMotion``'s for times within that step
