@@ -110,6 +110,18 @@ class HairConfig:
 
 
 @dataclass
+class BodyConfig:
+    """The body the roots ride on as a dynamic block on a rail (hairexp/scene/dynamic_body.py;
+    paper 4, Stylization).  dynamic=false: the keyframed ``scene.motion`` drives it."""
+    dynamic: bool = False
+    mass: float = 0.01                # kg, the block (the root vertices it carries are added)
+    rail_height: float = 0.0          # m, world y of the block's origin when it rests on the rail
+    rail_end: float = 0.1             # m, world x where the rail ends (it extends to -x without end)
+    rail_friction: float = 0.3        # Coulomb coefficient between block and rail
+    velocity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])   # m/s at t = 0
+
+
+@dataclass
 class SceneConfig:
     name: str = "wisp"
     builder: Builder = Builder.wisp
@@ -124,6 +136,7 @@ class SceneConfig:
     gravity: list[float] = field(default_factory=lambda: [0.0, -9.81, 0.0])    # m/s^2, Y up
     hair: HairConfig = field(default_factory=HairConfig)
     motion: MotionConfig = field(default_factory=MotionConfig)
+    body: BodyConfig = field(default_factory=BodyConfig)  # dynamic: the block starts at scene.motion's pose (one key)
     colliders: list[ColliderConfig] = field(default_factory=list)
     # builder usd / guides.source usd: the stage and its prims (README "USD scenes")
     usd: str = ""                       # path of a .usda/.usdc/.usd stage

@@ -40,6 +40,16 @@ def step_schedule(fps: float, dt: float, frames: int) -> tuple[int, float]:
     return n, frame_dt / n
 
 
+def body_metrics(b: np.ndarray) -> dict:
+    """Metrics columns of a dynamic body's state (``State.duals['body']``): position (m),
+    velocity (m/s), the hair's force on it and the rail's (N)."""
+    from hairexp.scene.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
+
+    parts = (("body_", POSITION), ("body_v_", VELOCITY), ("body_hair_force_", HAIR_FORCE),
+             ("body_rail_force_", RAIL_FORCE))
+    return {f"{prefix}{c}": float(v) for prefix, sl in parts for c, v in zip("xyz", b[sl])}
+
+
 def config_hash(plain: dict) -> str:
     return hashlib.sha256(json.dumps(plain, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -104,8 +114,12 @@ def run(cfg, out_dir: str | Path) -> dict:
 
         def observe(state):
             if tracker is None:
-                return {"guides": guides.shape_at(state.time)}
-            return tracker.measure(sim.free_dofs(state.x), state.time, state.duals)
+                obs = {"guides": guides.shape_at(state.time)}
+            else:
+                obs = tracker.measure(sim.free_dofs(state.x), state.time, state.duals)
+            if sim.body is not None:  # a dynamic block: its state as metrics columns
+                obs.update(body_metrics(state.duals["body"]))
+            return obs
         if cfg.logging.rerun:
             from hairexp.sinks.rerun_sink import RerunSink  # rerun is imported only here
 
@@ -141,7 +155,16 @@ def run(cfg, out_dir: str | Path) -> dict:
         recorder.write(out / "result.npz", guides.offsets, cov)
         from hairexp.io.usd_write import write_result_usd  # pxr is imported here
 
-        write_result_usd(out / "result.usda", scene, recorder.positions, recorder.guide_positions, guides.offsets,
+        wscene = scene
+        if sim.body is not None:  # the block's recorded poses, linear between frames
+            from dataclasses import replace
+
+            from hairexp.scene.rigid import RigidMotion
+
+            P = np.asarray(recorder.body_positions)
+            rv = np.repeat(sim.body.rotvecs, len(P), axis=0)
+            wscene = replace(scene, motion=RigidMotion(np.asarray(recorder.times), P, rv, "linear"))
+        write_result_usd(out / "result.usda", wscene, recorder.positions, recorder.guide_positions, guides.offsets,
                          cfg.fps)
         ok = True
     except Exception as exc:

@@ -10,15 +10,19 @@ Exit codes: 0 written, 1 bad config (Hydra's message), 2 bad input (``hairexp: e
 
 from __future__ import annotations
 
+import logging
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+log = logging.getLogger(__name__)
 
 
 def export_scene(cfg, path) -> tuple:
     """Build ``cfg``'s scene and guides and write them to ``path``; (scene, guides)."""
     from hairexp.io.usd_write import write_scene_usd
+    from hairexp.scene.dynamic_body import authoring_motion
     from hairexp.scene.builders import build_scene
     from hairexp.tracking.guides import build_guides
 
@@ -28,6 +32,12 @@ def export_scene(cfg, path) -> tuple:
         cfg = stage_timing(cfg)
     scene = build_scene(cfg.scene)
     guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
+    ref = authoring_motion(scene.motion)
+    if ref is not scene.motion:  # a dynamic block (scene.body): its motion is not known before a run
+        log.warning("%s: the dynamic body is written at its initial pose; import the stage with "
+                    "scene.body.dynamic=true (and its scene.body.*) to make it dynamic again", path)
+        scene = replace(scene, motion=ref)
+        guides.attach(ref)
     write_scene_usd(path, scene, guides, cfg.fps, cfg.frames)
     return scene, guides
 

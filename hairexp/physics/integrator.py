@@ -1,8 +1,11 @@
 """The time step, phase by phase:
 
-1. kinematics: root positions of the rigid body at t + dt;
+1. kinematics: root positions of the rigid body at t + dt (a dynamic body, ``scene.body``, first
+   moves under gravity, its rail and the hair's force of the previous step; its state travels in
+   ``State.duals['body']`` so that a retried step restarts from it, hairexp/scene/dynamic_body.py);
 2. solve: minimise the implicit Euler objective (eq. 5) - Newton for the free controller;
-3. velocities: v_{n+1} = (x_{n+1} - x_n) / dt;
+3. velocities: v_{n+1} = (x_{n+1} - x_n) / dt; a dynamic body takes the force the hair exerts on
+   its roots at x_{n+1} (for the next step);
 4. recovery: a step that diverged or did not converge is retried as two half steps
    (``solver.on_failure=substep``, recursively), kept and flagged (``warn``), or stops the
    run (``raise``).  A non-finite state is never returned.
@@ -14,6 +17,7 @@ import logging
 import time
 
 import numpy as np
+import torch
 
 from hairexp import tune_runtime
 from hairexp.errors import SimulationError
@@ -22,6 +26,7 @@ from hairexp.physics.info import CONVERGED, DIVERGED, SolveInfo, StepInfo
 from hairexp.physics.newton import NewtonOptions, newton_solve
 from hairexp.physics.objective import ImplicitEulerObjective
 from hairexp.tracking.sqp import sqp_solve
+from hairexp.scene.dynamic_body import DynamicBody
 from hairexp.scene.scene import Scene, State
 
 TIME_KEYS = ("derivatives", "assembly", "solve", "collision", "other")
@@ -82,6 +87,9 @@ class Simulator:
             from hairexp.tracking.controller import TrackingController
 
             self.tracker = TrackingController(scene, guides, tracking_cfg, self.objective.assembler.bandwidth)
+        self.body = scene.motion if isinstance(scene.motion, DynamicBody) else None
+        #: internal terms (their forces on the roots are the hair's force on a dynamic body)
+        self._internal = [t for t in terms if t.name in ("stretch", "bending", "edge_damping")]
         mode = str(_value(getattr(solver_cfg, "compile", "off")))
         if mode == "on" or (mode == "auto" and s.n_vertices >= COMPILE_MIN_VERTICES):
             self._compile()
@@ -101,12 +109,38 @@ class Simulator:
         x = sc.motion.transform(sc.root_body, 0.0)
         v = sc.motion.point_velocity(sc.root_body, 0.0)
         duals = self.tracker.initial_duals() if self.tracker else {}
+        if self.body is not None:
+            # the hair's force at t = 0: its elastic forces on the roots (0 for hair at rest); the
+            # edge damping is 0 since everything moves rigidly with the body
+            b = self.body.initial(self.root_force(x, damping=False))
+            self.body.set_window(0.0, b, 0.0, b)
+            duals["body"] = b
         return State(0.0, x, v, duals)
+
+    def root_force(self, x: np.ndarray, damping: bool = True) -> np.ndarray:
+        """(3,) N: the force the hair exerts on the body through its kinematic root vertices at
+        positions x (V, 3): minus the gradient of the internal energies (stretch, bending and,
+        within a step, edge damping) summed over the root vertices."""
+        s = self.scene.strands
+        X = torch.from_numpy(np.ascontiguousarray(x, dtype=np.float64))
+        F = np.zeros_like(x, dtype=np.float64)
+        with torch.no_grad():
+            for t in self._internal:
+                if t.name == "edge_damping" and not damping:
+                    continue
+                g, _ = t.grad_hess(X[t.stencil_t], False, self.objective.derivatives)
+                st = np.asarray(t.stencil)
+                np.add.at(F, st, -g.numpy().reshape(st.shape[0], st.shape[1], 3))
+        return F[s.kinematic].sum(axis=0)
 
     # -- one attempt ----------------------------------------------------------------------
     def _solve(self, state: State, dt: float) -> tuple[State, SolveInfo]:
         t_next = state.time + dt
         obj = self.objective
+        body = None
+        if self.body is not None:  # the block moves first, with the hair force of the previous step
+            body = self.body.advance(state.duals["body"], dt)
+            self.body.set_window(state.time, state.duals["body"], t_next, body)
         obj.begin_step(state.x, state.v, self.scene.root_positions(t_next), dt, state.duals)
         if self.tracker is None:
             xf, info = newton_solve(obj, obj.initial_guess(), self.newton)
@@ -119,7 +153,10 @@ class Simulator:
             duals = {**info.duals, "t": tk, "lambda": lam}
         x_new = obj.positions(xf).numpy()
         v_new = (x_new - state.x) / dt
-        if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()):
+        if body is not None:
+            duals = {**duals, "body": self.body.with_hair_force(body, self.root_force(x_new))}
+        if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()
+                and (body is None or np.isfinite(duals["body"]).all())):
             info.status = DIVERGED
         elif self.collide_objects or self.hair_hair is not None:
             from hairexp.physics.collisions import collision_stage

@@ -100,7 +100,7 @@ def build_scene(cfg) -> Scene:
     if builder == "usd":  # a user's USD stage (pxr is imported only then)
         from hairexp.io.usd_read import build_usd_scene
 
-        return build_usd_scene(cfg)
+        return with_dynamic_body(cfg, build_usd_scene(cfg))
     direction = _unit(cfg.direction, "scene.direction")
     center = _vec3(cfg.root_center, "scene.root_center")
     if builder in ("wisp", "ponytail"):
@@ -114,7 +114,20 @@ def build_scene(cfg) -> Scene:
     counts = np.full(cfg.n_strands, cfg.n_vertices)
     strands = Strands.from_polylines(world, counts, material.linear_density, where=f"scene {cfg.name}")
     colliders = [build_collider(c, i) for i, c in enumerate(getattr(cfg, "colliders", []) or [])]
-    return Scene(cfg.name, strands, material, motion, _vec3(cfg.gravity, "scene.gravity"), body_pts, colliders)
+    scene = Scene(cfg.name, strands, material, motion, _vec3(cfg.gravity, "scene.gravity"), body_pts, colliders)
+    return with_dynamic_body(cfg, scene)
+
+
+def with_dynamic_body(cfg, scene: Scene) -> Scene:
+    """``scene.body.dynamic``: the body becomes a dynamic block on a rail starting at the pose of
+    ``scene.motion`` (hairexp/scene/dynamic_body.py); otherwise the scene is returned as built."""
+    body = getattr(cfg, "body", None)
+    if body is None or not body.dynamic:
+        return scene
+    from hairexp.scene.dynamic_body import build_dynamic_body
+
+    scene.motion = build_dynamic_body(body, scene.motion, scene.strands, scene.gravity)
+    return scene
 
 
 def build_collider(c, i: int):

@@ -37,6 +37,7 @@ class ResultRecorder:
         self.scene = scene
         self.positions, self.times = [], []
         self.guide_positions, self.targets, self.com = [], [], []
+        self.body_positions = []   # (3,) per frame: the body's pose translation (any body, keyframed or dynamic)
 
     def log_frame(self, frame: int, state, guides: np.ndarray | None = None, targets: np.ndarray | None = None,
                   com: np.ndarray | None = None) -> None:
@@ -45,6 +46,7 @@ class ResultRecorder:
         self.guide_positions.append(np.zeros((0, 3)) if guides is None else guides)
         self.targets.append(np.zeros((0, 3)) if targets is None else targets)
         self.com.append(np.zeros((0, 3)) if com is None else com)
+        self.body_positions.append(self.scene.motion.pose(state.time)[1])
 
     def write(self, path: Path, guide_offsets: np.ndarray | None = None, cluster_of_vertex: np.ndarray | None = None) -> None:
         s = self.scene.strands
@@ -54,6 +56,7 @@ class ResultRecorder:
             guide_offsets=np.zeros(1, dtype=np.int64) if guide_offsets is None else guide_offsets,
             cluster_of_vertex=np.full(s.n_vertices, -1, dtype=np.int64) if cluster_of_vertex is None else cluster_of_vertex,
             targets=np.asarray(self.targets), com=np.asarray(self.com),
+            body_positions=np.asarray(self.body_positions).reshape(-1, 3),
         )
         for k, a in arrays.items():
             if a.dtype.kind == "f" and not np.isfinite(a).all():

@@ -1,6 +1,7 @@
 """The rerun recording of a run.  Only imported when ``logging.rerun=true``.
 
-Entities: /world/hair (line strips), /world/body (rigid body transform and box),
+Entities: /world/hair (line strips), /world/body (rigid body transform and box), /world/rail
+(a dynamic body's rail),
 /world/roots (root vertices), /metrics/<name> (scalars on the ``frame``, ``sim_time`` and
 ``step`` timelines).  A default blueprint puts the 3D view beside the metric plots.  Each
 recording has an explicit recording id, so parallel workers never share one.
@@ -55,6 +56,11 @@ class RerunSink:
         L = float(np.median(scene.strands.strand_lengths()))
         self.radius = 0.004 * L
         rec.log("/world/body/box", rr.Boxes3D(half_sizes=[[0.5 * L * 0.1] * 3], colors=[[180, 180, 190]]), static=True)
+        body = scene.motion
+        if hasattr(body, "rail_end"):  # a dynamic block (scene.body): its rail, ending at rail_end
+            h, e = body.rail_height, body.rail_end
+            rec.log("/world/rail", rr.LineStrips3D([[[min(body.p0[0], e) - 2 * L, h, 0.0], [e, h, 0.0]]],
+                                                   radii=2 * self.radius, colors=[[90, 90, 90]]), static=True)
 
     def log_static(self, guides, tracker) -> None:
         """Collider shapes (in their body frames) and cluster colours (vertices coloured by

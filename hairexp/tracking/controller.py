@@ -49,8 +49,10 @@ class TrackingController:
         return self.tg
 
     def begin(self, t: float) -> None:
-        """Targets (and variance keys) at the end-of-step time t."""
-        self.targets_at(t)
+        """Targets (and variance keys) at the end-of-step time t.  Always rebuilt: a step retried
+        as substeps reaches the same t again, and on a dynamic body (scene.body) the guides ride
+        with a block whose pose at t depends on the attempt."""
+        self.time, self.tg = t, self.cons.targets(t)
         if self.use_variance:
             self._kv, self._vbar = self.variance.at(t)
 

@@ -9,6 +9,12 @@ Fig. 2 shrinking guide), ``file`` (an npz with ``guide_positions`` (F, Vg, 3),
 guides simulated as free strands with the scene's body motion, material and gravity: the
 paper's "initial simulation on a coarse set of guide hairs using best-guess parameters"),
 ``usd`` (the guide prim of the stage ``scene.usd``, hairexp/io/usd_read.py).
+
+Guides are authored in the body frame.  On a dynamic body (``scene.body.dynamic``, paper 4
+Stylization) the animation's world positions are those of the block held at its initial pose
+(``DynamicBody.reference``: the pose is not known before the simulation), and ``shape_at`` carries
+the body-frame guide with the live block: world = block pose at t x body-frame guide.  A
+``simulated`` guide source on a dynamic body simulates the guides on the block held still.
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ import numpy as np
 
 from hairexp.errors import InputError
 from hairexp.scene.builders import disk_points
+from hairexp.scene.dynamic_body import authoring_motion
 from hairexp.scene.strands import validate_polylines
 from hairexp.tracking.authoring import apply_edits, keyframed_positions
 
@@ -51,10 +58,13 @@ class GuideAnimation:
     def attach(self, motion) -> None:
         """Interpolate between frames in the body frame of ``motion`` and map back with its
         exact pose, so that the guide roots follow the body between frames as the detail
-        hair roots do (a linear blend of world positions would cut corners when it turns)."""
+        hair roots do (a linear blend of world positions would cut corners when it turns).
+        A dynamic body: the positions are in its ``reference`` pose (authoring), ``shape_at``
+        maps them with the live block."""
         self.motion = motion
         if motion is not None:
-            self._body = np.stack([motion.to_body(P, f / self.fps) for f, P in enumerate(self.positions)])
+            ref = authoring_motion(motion)
+            self._body = np.stack([ref.to_body(P, f / self.fps) for f, P in enumerate(self.positions)])
     @property
     def n_guides(self) -> int:
         return len(self.offsets) - 1
@@ -115,6 +125,7 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     ``authoring.keyframed_positions``), before the edits."""
     g = cfg.guides
     source = str(getattr(g.source, "value", g.source))
+    motion = authoring_motion(scene.motion)   # a dynamic body: its initial pose held still
     if source == "file":
         path = Path(g.file)
         try:
@@ -133,7 +144,7 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     if source == "simulated":
         return simulate_guides(cfg, scene, body, offsets, frames, fps)
     if source == "keyframed":
-        pos, offsets = keyframed_positions(g, scene.motion, frames, fps)
+        pos, offsets = keyframed_positions(g, motion, frames, fps)
         return GuideAnimation(pos, offsets, fps, where="guides.keyframes", motion=scene.motion)
     frames_pos = []
     for t in times:
@@ -144,7 +155,7 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
             f = float(np.interp(t, g.scale_times, g.scale_factors))
             roots = np.repeat(body[offsets[:-1]], g.n_vertices, axis=0)
             X = roots + f * (body - roots)
-        frames_pos.append(scene.motion.transform(X, t))
+        frames_pos.append(motion.transform(X, t))
     return GuideAnimation(np.stack(frames_pos), offsets, fps, motion=scene.motion)
 
 
@@ -157,9 +168,10 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
 
     if cfg.guides.n_vertices < 3:
         raise InputError("simulated guides need >= 3 vertices (two are held by the body)", "guides.n_vertices")
-    world = scene.motion.transform(body, 0.0)
+    motion = authoring_motion(scene.motion)
+    world = motion.transform(body, 0.0)
     strands = Strands.from_polylines(world, np.diff(offsets), scene.material.linear_density, where="guides")
-    gscene = Scene(scene.name + "_guides", strands, scene.material, scene.motion, scene.gravity, body)
+    gscene = Scene(scene.name + "_guides", strands, scene.material, motion, scene.gravity, body)
     sim = Simulator(gscene, cfg.solver)
     n_sub, dt = step_schedule(fps, cfg.solver.dt, frames)
     state = sim.initial_state()
@@ -179,5 +191,5 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     anim = source_guides(cfg, scene, frames, fps)
     if not cfg.guides.edits:
         return anim
-    pos = apply_edits(anim.positions, anim.offsets, anim.fps, scene.motion, cfg.guides.edits)
+    pos = apply_edits(anim.positions, anim.offsets, anim.fps, authoring_motion(scene.motion), cfg.guides.edits)
     return GuideAnimation(pos, anim.offsets, anim.fps, where="guides.edits", motion=scene.motion)
