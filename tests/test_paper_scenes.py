@@ -25,7 +25,7 @@ def experiment_cfg(name: str, *overrides: str):
         GlobalHydra.instance().clear()
 
 
-@pytest.mark.parametrize("name", ["goaling_smoke", "spreading_smoke", "celia_smoke"])
+@pytest.mark.parametrize("name", ["goaling_smoke", "spreading_smoke", "celia_smoke", "stylization_smoke"])
 def test_smoke_experiment_runs_every_variant_and_judges(name, tmp_path):
     cfg = experiment_cfg(name)
     summary = run_experiment(cfg, tmp_path)
@@ -62,7 +62,7 @@ def test_unknown_variant_key_is_an_input_error(tmp_path):
 
 # -- full runs (slow) ---------------------------------------------------------------------------
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["goaling", "spreading", "celia"])
+@pytest.mark.parametrize("name", ["goaling", "spreading", "stylization", "celia"])
 def test_full_experiment_meets_the_artistic_intent(name, tmp_path):
     summary = run_experiment(experiment_cfg(name), tmp_path)
     assert summary["status"] == "completed"

@@ -115,9 +115,18 @@ def tip_variance(d: RunData, p) -> dict:
 
 
 def block_rail(d: RunData, p) -> dict:
-    from hairexp.scenes.stylization import block_rail_measure  # noqa: PLC0415 (optional scene module)
+    """The block's travel and whether it left the rail (``hairexp.scenes.stylization``), plus,
+    for tracked runs, the largest tracking residual and the range of the clusters' variance
+    ratio over the run (the hair's own motion: the variance changes while the COMs track)."""
+    from hairexp.scenes.stylization import block_rail_measure
 
-    return block_rail_measure(d.times, d.body_positions, p.rail_height, p.rail_end)
+    out = block_rail_measure(d.times, np.asarray(d.body_positions), p.rail_height, p.rail_end)
+    m = d.metrics
+    if m is not None and "variance_ratio_mean" in m and m["variance_ratio_mean"].notna().any():
+        out.update(residual_rel_max=float(m["residual_rel_max"].max()),
+                   variance_ratio_min=float(m["variance_ratio_mean"].min()),
+                   variance_ratio_max=float(m["variance_ratio_mean"].max()))
+    return out
 
 
 MEASURES = {"collider_contact": collider_contact, "clumps": clumps, "tip_variance": tip_variance,
