@@ -182,6 +182,7 @@ class GuidesConfig:
     scale_factors: list[float] = field(default_factory=lambda: [1.0])
     keyframes: list[GuideKeyframeConfig] = field(default_factory=list)   # source=keyframed
     edits: list[GuideEditConfig] = field(default_factory=list)           # applied in order on top of any source
+    collide: bool = False              # source=simulated: the guide simulation collides with scene.colliders
     file: str = ""                     # source=file
 
 

@@ -28,7 +28,9 @@ VARIANT_FIELDS = ("status", "steps", "iterations_mean", "iterations_max", "conve
 
 def apply_overrides(cfg, overrides: list[str], where: str):
     """A copy of ``cfg`` with ``key=value`` overrides (values parsed as YAML), validated by
-    the schema (unknown keys and wrong types are errors naming the variant)."""
+    the schema (unknown keys and wrong types are errors naming the variant).  A list value
+    replaces the list, and a list of records (``guides.edits``, ``scene.colliders``) is typed
+    by the schema (a plain assignment of dicts to a list of structured records fails)."""
     out = copy.deepcopy(cfg)
     for o in overrides:
         if "=" not in o:
@@ -36,8 +38,11 @@ def apply_overrides(cfg, overrides: list[str], where: str):
         key, val = o.split("=", 1)
         if OmegaConf.select(out, key, default="__missing__") == "__missing__":
             raise InputError(f"unknown key {key!r}", where)
+        value = yaml.safe_load(val)
         try:
-            OmegaConf.update(out, key, yaml.safe_load(val), merge=False)
+            # OmegaConf merges lists by replacement and validates their elements against the
+            # schema; dicts keep ``merge=False`` (replace, not merge into the node).
+            OmegaConf.update(out, key, value, merge=isinstance(value, list))
         except Exception as exc:  # omegaconf validation errors
             raise InputError(f"{o}: {exc}", where) from exc
     return out

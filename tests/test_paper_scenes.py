@@ -62,7 +62,7 @@ def test_unknown_variant_key_is_an_input_error(tmp_path):
 
 # -- full runs (slow) ---------------------------------------------------------------------------
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["goaling", "spreading", "stylization", "celia"])
+@pytest.mark.parametrize("name", ["goaling", "spreading", "stylization", "celia"])  # splitting: tests/test_splitting.py
 def test_full_experiment_meets_the_artistic_intent(name, tmp_path):
     summary = run_experiment(experiment_cfg(name), tmp_path)
     assert summary["status"] == "completed"

@@ -7,8 +7,9 @@ guides scaled about their roots by keyframed factors, then carried by the body: 
 Fig. 2 shrinking guide), ``file`` (an npz with ``guide_positions`` (F, Vg, 3),
 ``guide_offsets`` (G + 1,) and ``fps``, such as a run's guides.npz), ``simulated`` (the rest
 guides simulated as free strands with the scene's body motion, material and gravity: the
-paper's "initial simulation on a coarse set of guide hairs using best-guess parameters"),
-``usd`` (the guide prim of the stage ``scene.usd``, hairexp/io/usd_read.py).
+paper's "initial simulation on a coarse set of guide hairs using best-guess parameters"; with
+``guides.collide`` they collide with the scene's colliders), ``usd`` (the guide prim of the
+stage ``scene.usd``, hairexp/io/usd_read.py).
 
 Guides are authored in the body frame.  On a dynamic body (``scene.body.dynamic``, paper 4
 Stylization) the animation's world positions are those of the block held at its initial pose
@@ -19,6 +20,7 @@ the body-frame guide with the live block: world = block pose at t x body-frame g
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -160,7 +162,10 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
 
 
 def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: int, fps: float) -> GuideAnimation:
-    """Free simulation of the guide strands (eq. 5, same solver settings) at the scene's rate."""
+    """Free simulation of the guide strands (eq. 5, same solver settings) at the scene's rate.
+    With ``guides.collide`` the guides collide with the scene's colliders (the collision stage
+    of ``collision.*``, without hair-hair), so that a coarse guide is dragged over an object as
+    the hair is; otherwise they pass through it."""
     from hairexp.physics.integrator import Simulator
     from hairexp.run import step_schedule
     from hairexp.scene.scene import Scene
@@ -171,8 +176,14 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
     motion = authoring_motion(scene.motion)
     world = motion.transform(body, 0.0)
     strands = Strands.from_polylines(world, np.diff(offsets), scene.material.linear_density, where="guides")
-    gscene = Scene(scene.name + "_guides", strands, scene.material, motion, scene.gravity, body)
-    sim = Simulator(gscene, cfg.solver)
+    collide = bool(getattr(cfg.guides, "collide", False)) and bool(scene.colliders)
+    gscene = Scene(scene.name + "_guides", strands, scene.material, motion, scene.gravity, body,
+                   list(scene.colliders) if collide else [])
+    ccfg = None
+    if collide:
+        ccfg = copy.deepcopy(cfg.collision)
+        ccfg.hair_hair = False
+    sim = Simulator(gscene, cfg.solver, collision_cfg=ccfg)
     n_sub, dt = step_schedule(fps, cfg.solver.dt, frames)
     state = sim.initial_state()
     out = [state.x.copy()]
