@@ -168,3 +168,27 @@ def test_typo_inside_an_experiment_file_fails(tmp_path):
     finally:
         GlobalHydra.instance().clear()
     assert "n_vertice" in full_message(info.value)
+
+
+@pytest.mark.parametrize("launcher,key,value", [(None, "n_jobs", 2), ("submitit_local", "timeout_min", None),
+                                                ("submitit_slurm", "partition", "cpu")])
+def test_sweep_launchers_compose(launcher, key, value):
+    """The default -m launcher is joblib with 2 jobs; submitit_local and submitit_slurm replace
+    it whole (a launcher-specific key in the primary config broke them before)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    over = ["experiment=goaling"]
+    if launcher:
+        over.append(f"hydra/launcher={launcher}")
+    if launcher == "submitit_slurm":
+        over.append("hydra.launcher.partition=cpu")
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose(config_name="config", overrides=over, return_hydra_config=True)
+    finally:
+        GlobalHydra.instance().clear()
+    assert key in cfg.hydra.launcher
+    if value is not None:
+        assert cfg.hydra.launcher[key] == value
