@@ -1,0 +1,106 @@
+"""Ablations as Hydra sweeps (validation issue, part 3): reports/ablations.{md,json}.
+
+For each scene and each comparison, one ``python -m hairexp -m`` sweep (the default joblib
+launcher, 2 processes; ``--launcher submitit_local`` runs the same sweeps with submitit) over
+the tracked controller (``variants=[] controller.name=tracking``):
+
+* targets: ``tracking.targets=static,sliding`` (paper 3.2);
+* variance: ``tracking.variance.stiffness=0,<on>`` (paper 3.3; on = the scene's value, or 5);
+* hessian: ``solver.stretch_hessian=primal_dual,penalty`` (how the stretch Hessian is made PSD);
+* collisions: ``collision.objects=false,true``.
+
+The table gives each run's iterations, converged fraction, step time, stretch, residual and
+the scene's measure.  Scenes default to the small ``*_smoke`` ones (a few minutes in all);
+``--full`` uses the full scenes.
+Usage: .venv/bin/python experiments/ablations.py [--full] [--scenes goaling spreading ...] [--launcher submitit_local]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+COMPARISONS = {
+    "targets": ["tracking.targets=static,sliding"],
+    "variance": ["tracking.variance.stiffness=0.0,5.0"],
+    "hessian": ["solver.stretch_hessian=primal_dual,penalty"],
+    "collisions": ["collision.objects=false,true"],
+}
+SCENES = ["goaling", "splitting", "spreading", "stylization", "celia"]
+
+
+def sweep(scene: str, comparison: str, launcher: str | None, out: Path) -> list[dict]:
+    args = [sys.executable, "-m", "hairexp", "-m", f"experiment={scene}", "variants=[]", "controller.name=tracking",
+            "logging=off", f"hydra.sweep.dir={out}", *COMPARISONS[comparison]]
+    if comparison == "variance" and scene.startswith("spreading"):
+        args.append("tracking.variance.target_scale=[5.0,5.0,5.0,5.0]")
+    if launcher:
+        args.append(f"hydra/launcher={launcher}")
+    proc = subprocess.run(args, capture_output=True, text=True, cwd=ROOT)
+    rows = []
+    for d in sorted(p for p in out.iterdir() if p.is_dir() and p.name.isdigit()):
+        f = d / "summary.json"
+        s = json.loads(f.read_text()) if f.is_file() else {"status": "missing"}
+        over = (d / ".hydra" / "overrides.yaml").read_text() if (d / ".hydra" / "overrides.yaml").is_file() else ""
+        value = [ln.split("=", 1)[1].strip() for ln in over.splitlines()
+                 if COMPARISONS[comparison][0].split("=")[0] in ln]
+        rows.append({"scene": scene, "comparison": comparison, "value": value[0] if value else d.name,
+                     "status": s.get("status"), "error": s.get("error"),
+                     **{k: s.get(k) for k in ("iterations_mean", "iterations_max", "converged_fraction",
+                                              "step_seconds_median", "stretch_max", "residual_rel_max")},
+                     "measures": s.get("measures", {})})
+    if proc.returncode != 0 and not rows:
+        rows.append({"scene": scene, "comparison": comparison, "value": "-", "status": "failed",
+                     "error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else "?"})
+    return rows
+
+
+def fmt(v, spec=".3g"):
+    return "-" if v is None else (format(v, spec) if isinstance(v, (int, float)) else str(v))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--full", action="store_true")
+    ap.add_argument("--scenes", nargs="*", default=SCENES)
+    ap.add_argument("--comparisons", nargs="*", default=list(COMPARISONS))
+    ap.add_argument("--launcher", default=None)
+    args = ap.parse_args()
+    from hairexp.report import header, write_report
+
+    base = ROOT / "multirun" / "ablations" / time.strftime("%Y-%m-%d_%H-%M-%S")
+    rows = []
+    for scene in args.scenes:
+        name = scene if args.full else f"{scene}_smoke"
+        for comp in args.comparisons:
+            t0 = time.perf_counter()
+            r = sweep(name, comp, args.launcher, base / name / comp)
+            rows += r
+            print(f"{name} {comp}: " + "; ".join(f"{x['value']}: {x['status']}, its {fmt(x.get('iterations_mean'))}, "
+                                                    f"stretch {fmt(x.get('stretch_max'))}" for x in r)
+                  + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
+    md = header("Ablations (Hydra sweeps, tracked controller)")
+    md += (f"Scenes: {'full' if args.full else 'smoke'} versions; launcher: {args.launcher or 'joblib (2 jobs)'}; each row is "
+           "one run of the sweep `python -m hairexp -m experiment=<scene> variants=[] controller.name=tracking "
+           "<comparison>`.\n\n")
+    md += "| scene | comparison | value | status | iterations mean/max | converged | median s/step | max stretch | max residual / L | measure |\n"
+    md += "|---|---|---|---|---|---|---|---|---|---|\n"
+    for r in rows:
+        m = r.get("measures") or {}
+        key = next((k for k in ("hit", "clumps", "cluster_variance_ratio", "left_rail") if k in m), None)
+        md += (f"| {r['scene']} | {r['comparison']} | {r['value']} | {r['status']} | {fmt(r.get('iterations_mean'))} / "
+               f"{fmt(r.get('iterations_max'))} | {fmt(r.get('converged_fraction'))} | {fmt(r.get('step_seconds_median'))} | "
+               f"{fmt(r.get('stretch_max'))} | {fmt(r.get('residual_rel_max'))} | {key + '=' + fmt(m[key]) if key else '-'} |\n")
+    path = write_report("ablations", md, {"rows": rows, "full": args.full, "launcher": args.launcher})
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
