@@ -166,6 +166,8 @@ class Simulator:
                                                   state.time, t_next, dt, self.limiter)
             info.seconds["collision"] = info.seconds.get("collision", 0.0) + cinfo.seconds
             info.collision = cinfo
+            if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()):  # never return a non-finite state
+                info.status = DIVERGED
         return State(t_next, x_new, v_new, duals), info
 
     def _advance(self, state: State, dt: float, level: int) -> tuple[State, list[SolveInfo]]:
