@@ -1,0 +1,150 @@
+"""Run time against error (validation issue, part 1): reports/accuracy.{md,json,png}.
+
+For each scene and controller, a converged reference run (dt = --ref-dt, solver and SQP rtol
+1e-9) and a grid of runs over dt and the tolerance (``solver.rtol`` and, tracked,
+``tracking.rtol`` set together).  Error against the reference at every output frame: RMS and
+maximum vertex distance (m), over the hair length; plus each run's largest tracking residual
+and stretch.  Cost: seconds of wall time per simulated second.  The Pareto front (no other run
+is both faster and more accurate in RMS error) is marked, and the recommended setting is the
+cheapest run on the front whose RMS error is below --budget x hair length.
+Usage: .venv/bin/python experiments/accuracy.py [--scenes goaling celia] [--frames N] [--budget 0.01]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from hydra import compose, initialize_config_dir  # noqa: E402
+from hydra.core.global_hydra import GlobalHydra  # noqa: E402
+
+import hairexp.config  # noqa: E402,F401
+from hairexp.run import run  # noqa: E402
+
+DTS = [0.005, 0.01, 0.02, 0.04]
+RTOLS = [1e-3, 1e-5, 1e-7]
+
+
+def cfg_for(scene: str, controller: str, dt: float, rtol: float, frames: int | None):
+    over = [f"experiment={scene}", "variants=[]", f"controller.name={controller}", "logging=off",
+            f"solver.dt={dt}", f"solver.rtol={rtol}", f"tracking.rtol={rtol}", "solver.on_failure=warn"]
+    if frames:
+        over.append(f"frames={frames}")
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+            return compose(config_name="config", overrides=over)
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def one(scene, controller, dt, rtol, frames, out: Path) -> dict:
+    cfg = cfg_for(scene, controller, dt, rtol, frames)
+    t0 = time.perf_counter()
+    s = run(cfg, out)
+    wall = time.perf_counter() - t0
+    with np.load(out / "result.npz") as r:
+        pos = r["positions"]
+    sim_seconds = cfg.frames / cfg.fps
+    return {"scene": scene, "controller": controller, "dt": dt, "rtol": rtol, "positions": pos,
+            "seconds_per_sim_second": wall / sim_seconds, "iterations_mean": s["iterations_mean"],
+            "converged_fraction": s["converged_fraction"], "stretch_max": s["stretch_max"],
+            "residual_rel_max": s.get("residual_rel_max"), "length": float(cfg.scene.length)}
+
+
+def pareto(rows):
+    front = []
+    for r in rows:
+        dominated = any(o is not r and o["seconds_per_sim_second"] <= r["seconds_per_sim_second"]
+                        and o["rms_rel"] <= r["rms_rel"] and (o["seconds_per_sim_second"] < r["seconds_per_sim_second"]
+                                                              or o["rms_rel"] < r["rms_rel"]) for o in rows)
+        r["pareto"] = not dominated
+        if not dominated:
+            front.append(r)
+    return sorted(front, key=lambda r: r["seconds_per_sim_second"])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", nargs="*", default=["goaling", "celia"])
+    ap.add_argument("--frames", type=int, default=None, help="output frames per run (default: the scene's)")
+    ap.add_argument("--ref-dt", type=float, default=0.0025)
+    ap.add_argument("--budget", type=float, default=0.01)
+    ap.add_argument("--dts", type=float, nargs="*", default=DTS)
+    ap.add_argument("--rtols", type=float, nargs="*", default=RTOLS)
+    args = ap.parse_args()
+    from hairexp.report import header, write_report
+
+    base = ROOT / "outputs" / "accuracy"
+    all_rows, recs = [], {}
+    for scene in args.scenes:
+        for controller in ("free", "tracking"):
+            ref = one(scene, controller, args.ref_dt, 1e-9, args.frames, base / scene / controller / "ref")
+            rows = []
+            for dt in args.dts:
+                for rtol in args.rtols:
+                    r = one(scene, controller, dt, rtol, args.frames, base / scene / controller / f"dt{dt}_rtol{rtol}")
+                    d = np.linalg.norm(r.pop("positions") - ref["positions"], axis=-1)
+                    r["rms_rel"] = float(np.sqrt(np.mean(d ** 2)) / r["length"])
+                    r["max_rel"] = float(d.max() / r["length"])
+                    rows.append(r)
+                    print(f"{scene} {controller} dt {dt} rtol {rtol:g}: rms {r['rms_rel']:.2e} L, max {r['max_rel']:.2e} L, "
+                          f"{r['seconds_per_sim_second']:.2f} s/sim-s, its {r['iterations_mean']:.2f}", flush=True)
+            front = pareto(rows)
+            ok = [r for r in front if r["rms_rel"] <= args.budget]
+            recs[(scene, controller)] = min(ok, key=lambda r: r["seconds_per_sim_second"]) if ok else None
+            ref.pop("positions")
+            all_rows += rows
+    md = header("Run time against error")
+    md += (f"Reference: dt = {args.ref_dt} s, rtol = 1e-9 (Newton and SQP); errors are vertex distances to it at every "
+           "output frame, over the hair length L; cost is wall seconds per simulated second; `*` marks the Pareto front "
+           f"(RMS error against cost).  Recommended: the cheapest front run with RMS error <= {args.budget} L.\n\n")
+    for scene in args.scenes:
+        for controller in ("free", "tracking"):
+            rows = [r for r in all_rows if r["scene"] == scene and r["controller"] == controller]
+            md += f"## {scene}, {controller}\n\n| dt | rtol | RMS err / L | max err / L | s per sim-s | iterations | converged | max stretch | max residual / L | front |\n"
+            md += "|---|---|---|---|---|---|---|---|---|---|\n"
+            for r in rows:
+                md += (f"| {r['dt']} | {r['rtol']:g} | {r['rms_rel']:.2e} | {r['max_rel']:.2e} | {r['seconds_per_sim_second']:.2f} | "
+                       f"{r['iterations_mean']:.2f} | {r['converged_fraction']:.3f} | {r['stretch_max']:.2e} | "
+                       f"{'-' if r['residual_rel_max'] is None else format(r['residual_rel_max'], '.1e')} | {'*' if r['pareto'] else ''} |\n")
+            rec = recs[(scene, controller)]
+            md += ("\nRecommended: " + (f"dt = {rec['dt']}, rtol = {rec['rtol']:g} (RMS {rec['rms_rel']:.1e} L, "
+                                        f"{rec['seconds_per_sim_second']:.2f} s per simulated second)" if rec else
+                                        "no run within the budget") + "\n\n")
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, axes = plt.subplots(1, len(args.scenes), figsize=(5.5 * len(args.scenes), 4), squeeze=False)
+        for ax, scene in zip(axes[0], args.scenes):
+            for controller, mk in (("free", "o"), ("tracking", "s")):
+                rows = [r for r in all_rows if r["scene"] == scene and r["controller"] == controller]
+                ax.loglog([r["seconds_per_sim_second"] for r in rows], [r["rms_rel"] for r in rows], mk, alpha=0.5,
+                          label=f"{controller}")
+                fr = sorted((r for r in rows if r["pareto"]), key=lambda r: r["seconds_per_sim_second"])
+                ax.loglog([r["seconds_per_sim_second"] for r in fr], [r["rms_rel"] for r in fr], "-")
+            ax.set(title=scene, xlabel="wall s per simulated s", ylabel="RMS error / hair length")
+            ax.grid(True, which="both", alpha=0.3)
+            ax.legend()
+        fig.tight_layout()
+        fig.savefig(ROOT / "reports" / "accuracy.png", dpi=110)
+        md += "![Pareto](accuracy.png)\n"
+    except ImportError:
+        md += "(matplotlib is not installed: no plot)\n"
+    path = write_report("accuracy", md, {"rows": all_rows, "recommended": {f"{k[0]}/{k[1]}": v for k, v in recs.items()},
+                                         "ref_dt": args.ref_dt, "budget": args.budget})
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
