@@ -47,6 +47,8 @@ class Builder(str, Enum):
 class ControllerName(str, Enum):
     free = "free"
     tracking = "tracking"
+    skinned = "skinned"     # baseline: detail hair skinned to the guides (hairexp/tracking/skinning.py)
+    attract = "attract"     # baseline: free simulation + springs to the skinned positions
 
 
 class Targets(str, Enum):
@@ -212,6 +214,7 @@ class TrackingConfig:
 @dataclass
 class ControllerConfig:
     name: ControllerName = ControllerName.free
+    attract_stiffness: float = 100.0   # 1/s^2, controller attract: E = 1/2 k m_i |x_i - x_g,i(t)|^2
 
 
 @dataclass

@@ -106,8 +106,19 @@ def run(cfg, out_dir: str | Path) -> dict:
         scene = build_scene(cfg.scene)
         guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
         tracked = controller == "tracking"
-        sim = Simulator(scene, cfg.solver, cfg.tracking if tracked else None, guides if tracked else None,
-                        cfg.collision)
+        if controller == "skinned":   # baseline: detail hair skinned to the guides, no simulation
+            from hairexp.tracking.skinning import skinned_simulator
+
+            sim = skinned_simulator(scene, cfg.solver, guides)
+        else:
+            attraction = None
+            if controller == "attract":   # baseline: springs to the guide-skinned positions
+                k = float(cfg.controller.attract_stiffness)
+                if not (k > 0 and math.isfinite(k)):
+                    raise InputError(f"must be > 0, got {k}", "controller.attract_stiffness")
+                attraction = (guides, k)
+            sim = Simulator(scene, cfg.solver, cfg.tracking if tracked else None, guides if tracked else None,
+                            cfg.collision, attraction=attraction)
         tracker = sim.tracker
         guides.save(out / "guides.npz")
         recorder = ResultRecorder(scene)
@@ -117,6 +128,9 @@ def run(cfg, out_dir: str | Path) -> dict:
                 obs = {"guides": guides.shape_at(state.time)}
             else:
                 obs = tracker.measure(sim.free_dofs(state.x), state.time, state.duals)
+            effort = sim.control_effort(state)
+            if effort is not None:   # baselines: spring force (attract) or implied force (skinned) / weight
+                obs["control_force_rel"] = effort
             if sim.body is not None:  # a dynamic block: its state as metrics columns
                 obs.update(body_metrics(state.duals["body"]))
             return obs

@@ -286,3 +286,33 @@ class AirDrag(Term):
         if not need_hessian:
             return g, None
         return g, self.s.view(-1, 1, 1) * torch.eye(3, dtype=DTYPE).expand(len(g), 3, 3)
+
+
+class Attraction(Term):
+    """Attraction of each free vertex to a moving target (the nHair "start curve attract" /
+    Vellum "pin to target" baseline): E = sum_i 1/2 k m_i |x_i - y_i(t)|^2, k in 1/s^2.
+    ``set_target`` sets y at the end-of-step time before each solve."""
+
+    name = "attraction"
+
+    def __init__(self, masses: np.ndarray, k: float, vertices: np.ndarray):
+        self.stencil = np.asarray(vertices).reshape(-1, 1)
+        self.km = float(k) * _t(masses)[torch.tensor(np.asarray(vertices))]
+        self.target = _t(np.zeros((len(self.stencil), 3)))
+
+    def set_target(self, y) -> None:
+        self.target = torch.as_tensor(np.asarray(y), dtype=DTYPE).reshape(-1, 3)
+
+    def energy(self, xs):
+        return 0.5 * self.km * ((xs[:, 0] - self.target) ** 2).sum(-1)
+
+    def closed_form(self, xs, need_hessian):
+        g = self.km.unsqueeze(-1) * (xs[:, 0] - self.target)
+        if not need_hessian:
+            return g, None
+        return g, self.km.view(-1, 1, 1) * torch.eye(3, dtype=DTYPE).expand(len(g), 3, 3)
+
+    def forces(self, x) -> np.ndarray:
+        """(n, 3) spring forces -k m_i (x_i - y_i) at full positions x (V, 3)."""
+        xs = torch.as_tensor(np.asarray(x), dtype=DTYPE)[self.stencil_t]
+        return (-self.km.unsqueeze(-1) * (xs[:, 0] - self.target)).numpy()

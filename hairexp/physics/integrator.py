@@ -21,7 +21,7 @@ import torch
 
 from hairexp import tune_runtime
 from hairexp.errors import SimulationError
-from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
+from hairexp.physics.energies import AirDrag, Attraction, Bending, EdgeDamping, Gravity, Stretch
 from hairexp.physics.info import CONVERGED, DIVERGED, SolveInfo, StepInfo
 from hairexp.physics.newton import NewtonOptions, newton_solve
 from hairexp.physics.objective import ImplicitEulerObjective
@@ -48,9 +48,13 @@ class _NoColliders:
 
 
 class Simulator:
-    def __init__(self, scene: Scene, solver_cfg, tracking_cfg=None, guides=None, collision_cfg=None):
+    def __init__(self, scene: Scene, solver_cfg, tracking_cfg=None, guides=None, collision_cfg=None,
+                 attraction: tuple | None = None):
         """``tracking_cfg`` and ``guides`` given: the tracked controller (SQP with constraints);
-        otherwise the free controller (Newton, no constraints are built)."""
+        otherwise the free controller (Newton, no constraints are built).  ``attraction``:
+        (guides, k) adds the attraction baseline (controller ``attract``): a spring
+        1/2 k m_i |x_i - x_g,i(t)|^2 pulls each free vertex to its guide-skinned position
+        (hairexp/tracking/skinning.py), its target set before each solve."""
         tune_runtime()
         self.scene = scene
         self.cfg = solver_cfg
@@ -62,6 +66,14 @@ class Simulator:
             terms.append(EdgeDamping(s.edges, s.rest_lengths, m.edge_damping))
         if m.air_drag > 0:
             terms.append(AirDrag(s.masses, m.air_drag, free_vertices))
+        self.attraction = self.skinning = None
+        if attraction is not None:
+            from hairexp.tracking.skinning import GuideSkinning
+
+            a_guides, k = attraction
+            self.skinning = GuideSkinning(scene, a_guides)
+            self.attraction = Attraction(s.masses, k, free_vertices)
+            terms.append(self.attraction)
         external = [Gravity(s.masses, scene.gravity, free_vertices)] if np.any(scene.gravity != 0) else []
         self.terms, self.external = terms, external
         self.objective = ImplicitEulerObjective(terms, s.masses, s.kinematic, s.free_index,
@@ -133,6 +145,20 @@ class Simulator:
                 np.add.at(F, st, -g.numpy().reshape(st.shape[0], st.shape[1], 3))
         return F[s.kinematic].sum(axis=0)
 
+    def control_effort(self, state: State) -> float | None:
+        """|F_c| / |m g| over the free vertices: the attraction's spring forces at ``state`` (the
+        target of the last solve); None for the free and tracked controllers (the tracked one
+        reports ``constraint_force_rel``)."""
+        if self.attraction is None:
+            return None
+        return float(np.linalg.norm(self.attraction.forces(state.x))) / self.weight_norm()
+
+    def weight_norm(self) -> float:
+        """|m g| of the free vertices (stacked), the scale of every control-effort measure."""
+        s = self.scene.strands
+        free = ~s.kinematic
+        return float(np.linalg.norm(s.masses[free, None] * self.scene.gravity[None])) or 1.0
+
     # -- one attempt ----------------------------------------------------------------------
     def _solve(self, state: State, dt: float) -> tuple[State, SolveInfo]:
         t_next = state.time + dt
@@ -141,6 +167,8 @@ class Simulator:
         if self.body is not None:  # the block moves first, with the hair force of the previous step
             body = self.body.advance(state.duals["body"], dt)
             self.body.set_window(state.time, state.duals["body"], t_next, body)
+        if self.attraction is not None:
+            self.attraction.set_target(self.skinning.free_positions(t_next))
         obj.begin_step(state.x, state.v, self.scene.root_positions(t_next), dt, state.duals)
         if self.tracker is None:
             xf, info = newton_solve(obj, obj.initial_guess(), self.newton)

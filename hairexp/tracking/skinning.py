@@ -1,0 +1,151 @@
+"""Guide-deform skinning: each detail vertex rides on its guide (the baseline a user would pick
+instead of tracking; reports/baselines.md).
+
+At rest, every free detail vertex i is bound to the guide of its strand (the guide with the
+smallest integrated squared distance, eq. (1), as in the correspondence) at the rest arc length
+a_i of its closest guide point, and its offset is stored in the guide's parallel-transported
+frame there: o_i = F(a_i)^T (x_i - g(a_i)).  At time t the animated guide re-poses it:
+x_g,i(t) = g_t(a_i) + F_t(a_i) o_i.  g(a) interpolates the guide vertices linearly in *rest*
+arc length; F(a) blends the vertex frames (T, N, B) of the two neighbouring vertices linearly
+and re-orthonormalises (Gram-Schmidt on T then N).  The frames are those of the tracking
+targets (hairexp/tracking/constraints.py): parallel transport from the root, whose normal is
+carried by the body.  Everything is equivariant under rigid motions (a rigid motion of guides
+and body moves x_g rigidly) and x_g(0) = the rest positions exactly.
+
+``positions(t)`` gives all vertices: the kinematic roots from the body, free vertices skinned.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hairexp.tracking.correspondence import closest_points_on_polyline
+from hairexp.tracking.frames import parallel_transport_batch, transport, vertex_tangents
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+class GuideSkinning:
+    def __init__(self, scene, guides):
+        s = scene.strands
+        self.scene, self.guides = scene, guides
+        self.free = np.flatnonzero(~s.kinematic)
+        rest = guides.guides(guides.rest)
+        # eq. (1): each strand goes to the guide with the smallest integrated squared distance
+        S = len(s.offsets) - 1
+        strand = np.repeat(np.arange(S), np.diff(s.offsets))
+        dist = np.zeros((S, len(rest)))
+        for g, P in enumerate(rest):
+            Q, _ = closest_points_on_polyline(s.rest, P)
+            dist[:, g] = np.bincount(strand, weights=np.sum((s.rest - Q) ** 2, axis=1), minlength=S)
+        self.guide_of_strand = np.argmin(dist, axis=1)
+        gv = self.guide_of_strand[strand][self.free]
+        R0, _ = scene.motion.pose(0.0)
+        self.n_body, self.t_body = [], []
+        for P in rest:  # the root normal, carried by the body (as the tracking targets' frames)
+            T0 = vertex_tangents(P)[0]
+            e = np.eye(3)[np.argmin(np.abs(T0))]
+            n = e - np.dot(e, T0) * T0
+            self.n_body.append(R0.T @ (n / np.linalg.norm(n)))
+            self.t_body.append(R0.T @ T0)
+        # binding: per guide, the bound free vertices, their segment and fraction in rest arc length
+        self.bind = []
+        for g, P in enumerate(rest):
+            idx = np.flatnonzero(gv == g)                  # positions in the free-vertex list
+            X = s.rest[self.free[idx]]
+            _, arc = closest_points_on_polyline(X, P)
+            knots = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
+            j = np.clip(np.searchsorted(knots, arc, side="right") - 1, 0, len(P) - 2)
+            u = np.clip((arc - knots[j]) / (knots[j + 1] - knots[j]), 0.0, 1.0)
+            self.bind.append((idx, j, u))
+        self.offset_local = np.zeros((len(self.free), 3))
+        base, F = self._frames_at(guides.rest, R0)
+        self.offset_local = np.einsum("nji,nj->ni", F, s.rest[self.free] - base)   # F^T (x - g)
+
+    def _frames_at(self, shape: np.ndarray, R: np.ndarray):
+        """Guide points g(a_i) (n, 3) and blended frames F(a_i) (n, 3, 3) (columns T, N, B) of every
+        free vertex for guide vertices ``shape`` (Vg, 3) and body rotation R."""
+        n = len(self.free)
+        base = np.zeros((n, 3))
+        F = np.zeros((n, 3, 3))
+        for g, P in enumerate(self.guides.guides(shape)):
+            idx, j, u = self.bind[g]
+            if idx.size == 0:
+                continue
+            T0 = vertex_tangents(P)[0]
+            n0 = transport(R @ self.n_body[g], R @ self.t_body[g], T0)
+            T, N, _ = (a[0] for a in parallel_transport_batch(P[None], n0[None]))
+            uu = u[:, None]
+            base[idx] = (1 - uu) * P[j] + uu * P[j + 1]
+            t = _unit((1 - uu) * T[j] + uu * T[j + 1])
+            nb = (1 - uu) * N[j] + uu * N[j + 1]
+            nb = _unit(nb - np.sum(nb * t, -1, keepdims=True) * t)
+            F[idx] = np.stack([t, nb, np.cross(t, nb)], axis=-1)
+        return base, F
+
+    def pose(self, shape: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """(n_free, 3) skinned positions of the free vertices for guide vertices ``shape`` and body
+        rotation R."""
+        base, F = self._frames_at(shape, R)
+        return base + np.einsum("nij,nj->ni", F, self.offset_local)
+
+    def free_positions(self, t: float) -> np.ndarray:
+        """(n_free, 3) x_g(t) of the free vertices, from the guide animation at time t."""
+        R, _ = self.scene.motion.pose(t)
+        return self.pose(self.guides.shape_at(t), R)
+
+    def positions(self, t: float) -> np.ndarray:
+        """(V, 3): kinematic roots on the body at t, free vertices skinned to the guides."""
+        x = self.scene.root_positions(t)
+        x[self.free] = self.free_positions(t)
+        return x
+
+
+def skinned_simulator(scene, solver_cfg, guides):
+    """The ``skinned`` controller: no simulation; positions are x_g(t), velocities by finite
+    difference, no collisions.  Built on the free Simulator so that run.py, the metrics and the
+    control-effort measure (the force the hair's own physics would need to move that way) share
+    its objective."""
+    import time
+
+    from hairexp.errors import InputError
+    from hairexp.physics.info import CONVERGED, SolveInfo
+    from hairexp.physics.integrator import Simulator
+    from hairexp.scene.dynamic_body import DynamicBody
+    from hairexp.scene.scene import State
+
+    if isinstance(scene.motion, DynamicBody):
+        raise InputError("the skinned controller needs a keyframed body (scene.body.dynamic=false)",
+                         "controller.name")
+
+    class SkinnedSimulator(Simulator):
+        def __init__(self):
+            super().__init__(scene, solver_cfg)       # free objective, no collision stage
+            self.skin = GuideSkinning(scene, guides)
+            self._last = None
+
+        def _solve(self, state, dt):
+            t0 = time.perf_counter()
+            t_next = state.time + dt
+            x_new = self.skin.positions(t_next)
+            v_new = (x_new - state.x) / dt
+            self._last = (state, dt)
+            info = SolveInfo(CONVERGED, 0, seconds={"derivatives": 0.0, "assembly": 0.0,
+                                                     "solve": time.perf_counter() - t0})
+            return State(t_next, x_new, v_new, {}), info
+
+        def control_effort(self, state):
+            """|F_c| / |m g|: F_c = -(gradient of eq. 5 at the skinned positions) = the force that,
+            added to gravity and the hair's elastic forces, makes the implicit Euler step land on
+            x_g (the control force a physical hair would need to follow the skinning)."""
+            if self._last is None:
+                return None
+            prev, dt = self._last
+            obj = self.objective
+            obj.begin_step(prev.x, prev.v, self.scene.root_positions(state.time), dt, None)
+            ev = obj.evaluate(self.free_dofs(state.x), need_hessian=False)
+            return float(np.linalg.norm(ev.grad)) / self.weight_norm()
+
+    return SkinnedSimulator()
