@@ -6,7 +6,7 @@ VENV    := .venv
 VPY     := $(VENV)/bin/python
 STAMP   := $(VENV)/.installed
 
-.PHONY: setup goaling test test-slow bench paper-scenes clean
+.PHONY: setup goaling test test-slow bench paper-scenes reports clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -34,6 +34,14 @@ bench: $(STAMP)
 
 paper-scenes: $(STAMP)
 	$(VPY) experiments/paper_scenes.py
+
+# every report under reports/ from fresh runs (about an hour on 2 cores; nothing is cached yet)
+reports: bench paper-scenes
+	$(VPY) experiments/bench_scale.py
+	$(VPY) experiments/ablations.py
+	$(VPY) experiments/stress.py
+	$(VPY) experiments/baselines.py
+	$(VPY) experiments/accuracy.py --scenes goaling celia --frames 30
 
 clean:
 	rm -rf $(VENV) outputs multirun
