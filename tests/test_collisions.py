@@ -108,7 +108,7 @@ def test_hair_hair_impulses_conserve_linear_momentum():
     v[:n, 1] += 0.1      # A moves up toward B, B down toward A: they approach
     v[n:, 1] -= 0.1
     v[s.kinematic] = 0.0
-    pairs, _ = hh.neighbours(hh.frames(x, x)[0])
+    pairs, _ = hh.neighbours(hh.frames(x, x))
     v1, k = hh.impulses(x, v.copy(), pairs, DT, x)
     assert k > 0
     p0 = (s.masses[:, None] * v).sum(0)
@@ -264,14 +264,14 @@ def test_hair_hair_broad_phase_finds_every_pair_that_can_touch(motion):
         ang = 0.2 * step if motion in ("swing", "violent") else 0.0
         Rz = np.array([[np.cos(ang), -np.sin(ang), 0], [np.sin(ang), np.cos(ang), 0], [0, 0, 1]])
         x1 = (s.rest @ Rz.T) + amp * rng.normal(size=x0.shape)
-        Ys, frame = hh.frames(x0, x1)
+        Ys = hh.frames(x0, x1)
         pairs, how = hh.neighbours(Ys)
         hows.add(how)
         near = hh.filter_reachable(x0, x1, pairs)
         got = set(map(tuple, np.sort(near, 1).tolist()))
         want = _brute_force_reachable(hh, x0, x1)
         assert want <= got, f"step {step} ({how}): missed {sorted(want - got)[:5]}"
-        hh.end_step(x1, frame)
+        hh.end_step(x0, x1)
         x0 = x1
     if motion == "still":
         assert "reused" in hows
@@ -286,7 +286,8 @@ def test_list_frame_keeps_distances_between_simultaneous_points():
     hh = HairHair(s, thickness=0.001)
     x0 = s.rest + 1e-3 * rng.normal(size=s.rest.shape)
     x1 = x0 @ np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]).T + np.array([0.3, 0.1, 0]) + 1e-3 * rng.normal(size=x0.shape)
-    Ys, (A, b) = hh.frames(x0, x1)
+    Ys = hh.frames(x0, x1)
+    A, b = hh.frame_at(x0, x1, 1.0)
     for Y, sv in zip(Ys, (0.0, 0.5, 1.0)):
         x = (1 - sv) * x0 + sv * x1
         Dx = np.linalg.norm(x[:, None] - x[None], axis=-1)
@@ -311,14 +312,14 @@ def test_neighbour_list_is_rebuilt_when_hair_drifts_together():
     x0, found_any, hows = s.rest.copy(), False, []
     for step in range(14):
         x1 = x0 + shift
-        Ys, frame = hh.frames(x0, x1)
+        Ys = hh.frames(x0, x1)
         pairs, how = hh.neighbours(Ys)
         hows.append(how)
         got = set(map(tuple, np.sort(hh.filter_reachable(x0, x1, pairs), 1).tolist()))
         want = _brute_force_reachable(hh, x0, x1)
         assert want <= got, f"step {step} ({how}): missed {sorted(want - got)[:5]}"
         found_any |= bool(want)
-        hh.end_step(x1, frame)
+        hh.end_step(x0, x1)
         x0 = x1
     assert found_any and "reused" in hows and hows.count("rebuilt") >= 2
 

@@ -59,6 +59,10 @@ class Collider:
         """Signed distance minus thickness: < 0 means too close or inside."""
         return self.sdf_body(self.to_body(x, t)) - self.thickness
 
+    def on_shell(self, x: np.ndarray, t: float) -> np.ndarray:
+        """(n,) bool: points on (or within) the thickness shell, i.e. in contact."""
+        return self.distance(x, t) < 1e-3 * max(self.thickness, 1e-3) + 1e-9
+
     def normal(self, x: np.ndarray, t: float) -> np.ndarray:
         R, _ = self.motion.pose(t)
         return self.normal_body(self.to_body(x, t)) @ R.T

@@ -135,18 +135,14 @@ def object_positions(colliders, x0, x1, t0, t1, dt, movable):
 class HairHair:
     def __init__(self, strands, thickness: float, skin: float = 0.003):
         self.E = strands.edges
-        self.sov = strands.strand_of_vertex
         self.h = float(thickness)
-        self.m = strands.masses
-        self.inv_m = np.where(strands.kinematic, 0.0, 1.0 / strands.masses)
+        self.inv_m = strands.inverse_masses
         self.skin = float(skin)
         self._list = None      # (pairs, distances, Y_ref): the neighbour list, built at list-frame positions Y_ref
         self._frame, self._frame_x = None, None   # list frame (A, b) at the start of the next step, and x there
-        self.rebuilds = 0
 
     def frames(self, x0, x1):
-        """Positions along the step (s = 0, 1/2, 1 of the linear paths) in the list frame, and
-        the map (A, b) of the list frame at the end of the step.
+        """Positions along the step (s = 0, 1/2, 1 of the linear paths) in the list frame.
 
         The list frame co-moves with the hair: each step, the best-fit (Kabsch) rigid motion
         of x0 -> x1 (rotation R about the centroid c(s), which moves linearly) is removed,
@@ -156,24 +152,37 @@ class HairHair:
         x0 is not where the last step ended (first step, a retried step) the frame restarts."""
         if self._frame_x is None or self._frame_x.shape != x0.shape or not np.array_equal(self._frame_x, x0):
             self._frame, self._frame_x, self._list = (np.eye(3), np.zeros(3)), x0.copy(), None
-        A, b = self._frame
+        kab = self._kabsch(x0, x1)
+        Ys = []
+        for s_ in (0.0, 0.5, 1.0):
+            As, bs = self._map_at(kab, s_)
+            Ys.append(((1 - s_) * x0 + s_ * x1) @ As.T + bs)
+        return tuple(Ys)
+
+    @staticmethod
+    def _kabsch(x0, x1):
+        """(c0, c1, rotation vector of R): the best-fit rigid motion x1 - c1 ~ R (x0 - c0)."""
         c0, c1 = x0.mean(0), x1.mean(0)
         U, _, Vt = np.linalg.svd((x0 - c0).T @ (x1 - c1))
-        R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T   # x1 - c1 ~ R (x0 - c0)
-        rv = Rotation.from_matrix(R).as_rotvec()
-        Ys, maps = [], []
-        for s in (0.0, 0.5, 1.0):
-            Rs = Rotation.from_rotvec(s * rv).as_matrix()
-            cs = (1 - s) * c0 + s * c1
-            As = A @ Rs.T                                  # Y = As x + bs
-            bs = b + A @ (c0 - Rs.T @ cs)
-            Ys.append(((1 - s) * x0 + s * x1) @ As.T + bs)
-            maps.append((As, bs))
-        return tuple(Ys), maps[-1]
+        R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+        return c0, c1, Rotation.from_matrix(R).as_rotvec()
 
-    def end_step(self, x1, frame) -> None:
-        """Keep the list frame at the end of the step for the next one."""
-        self._frame, self._frame_x = frame, x1.copy()
+    def _map_at(self, kab, s: float):
+        """(A, b): the list frame at instant s of the step, Y = A x + b."""
+        A, b = self._frame
+        c0, c1, rv = kab
+        Rs = Rotation.from_rotvec(s * rv).as_matrix()
+        cs = (1 - s) * c0 + s * c1
+        return A @ Rs.T, b + A @ (c0 - Rs.T @ cs)
+
+    def frame_at(self, x0, x1, s: float = 1.0):
+        """(A, b): the list frame at instant s of the step x0 -> x1 (``frames`` first)."""
+        return self._map_at(self._kabsch(x0, x1), s)
+
+    def end_step(self, x0, x1) -> None:
+        """Keep the list frame at the end of the step (x0 -> x1 as the collision stage left
+        it) for the next one."""
+        self._frame, self._frame_x = self.frame_at(x0, x1, 1.0), x1.copy()
 
     def neighbours(self, Ys):
         """Edge pairs that can come within the thickness h during the step, from positions
@@ -204,7 +213,6 @@ class HairHair:
         if float(moved.max()) < 0.5 * self.skin:
             pairs, dist = self.near_pairs(ref, self.h + self.skin)
             self._list = (pairs, dist, ref.copy())
-            self.rebuilds += 1
             m = np.maximum(moved[E[:, 0]], moved[E[:, 1]])
             return pairs[dist - m[pairs[:, 0]] - m[pairs[:, 1]] < self.h], "rebuilt"
         self._list = None
@@ -356,8 +364,7 @@ def contact_velocities(colliders, x1, v1, t1, movable):
     relative to the surface, and Coulomb friction on the tangential one."""
     for col in colliders:
         near = np.flatnonzero(movable)
-        d = col.distance(x1[near], t1)
-        c = near[d < 1e-3 * max(col.thickness, 1e-3) + 1e-9]
+        c = near[col.on_shell(x1[near], t1)]
         if c.size:
             n = col.normal(x1[c], t1)
             vs = col.surface_velocity(x1[c], t1)
@@ -382,7 +389,7 @@ class StrainLimit:
     def __init__(self, strands, limit: float, sweeps: int = 3):
         E = strands.edges
         self.E, self.L, self.Lmin = E, strands.rest_lengths * (1.0 + limit), strands.rest_lengths * (1.0 - limit)
-        self.w = np.where(strands.kinematic, 0.0, 1.0 / strands.masses)
+        self.w = strands.inverse_masses
         local = E[:, 0] - strands.offsets[strands.strand_of_vertex[E[:, 0]]]
         self.order = [np.flatnonzero(local == k) for k in range(int(local.max()) + 1)] if len(E) else []
         self.sweeps = sweeps
@@ -425,7 +432,7 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
     for p in range(max(1, cfg.max_passes)):
         n_obj = n_hh = 0
         if hh is not None:
-            Ys, frame = hh.frames(x0, x1)
+            Ys = hh.frames(x0, x1)
             pairs, how = hh.neighbours(Ys)
             info.broad_phases[how] = info.broad_phases.get(how, 0) + 1
             near = hh.filter_reachable(x0, x1, pairs)
@@ -447,7 +454,7 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
         for _ in range(LIMIT_ROUNDS):
             pinned = np.zeros(len(x1), dtype=bool)
             for col in scene.colliders:
-                pinned |= col.distance(x1, t1) < 1e-3 * max(col.thickness, 1e-3) + 1e-9
+                pinned |= col.on_shell(x1, t1)
             before = x1.copy()
             n = limiter.apply(x1, pinned)
             info.strain_limited += n
@@ -458,7 +465,7 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
                 break
         v1 = contact_velocities(scene.colliders, x1, (x1 - x0) / dt, t1, movable)
     if hh is not None:
-        hh.end_step(x1, hh.frames(x0, x1)[1])
+        hh.end_step(x0, x1)
     if scene.colliders:
         pen = [np.maximum(-c.distance(x1[movable], t1), 0.0).max(initial=0.0) for c in scene.colliders]
         info.penetration_max = float(max(pen))

@@ -97,6 +97,11 @@ class Strands:
     def strand_of_vertex(self) -> np.ndarray:
         return np.repeat(np.arange(self.n_strands), self.counts)
 
+    @property
+    def inverse_masses(self) -> np.ndarray:
+        """(V,) 1 / m, 0 for the kinematic (root) vertices, which impulses cannot move."""
+        return np.where(self.kinematic, 0.0, 1.0 / self.masses)
+
     def strand_lengths(self) -> np.ndarray:
         """(S,) rest length of each strand (m)."""
         per_edge_strand = self.strand_of_vertex[self.edges[:, 0]]
