@@ -53,6 +53,9 @@ CONF = Path(__file__).resolve().parent.parent / "conf"
 EXPERIMENTS = ("goaling", "splitting", "spreading", "stylization", "celia")
 STIFFNESSES = (10.0, 100.0, 1000.0)
 WINDOW = 5   # frames, the moving average removed from the tip trajectories
+#: m^2: a free run's tip HF energy below this (1 um RMS) is a still hair; ratios to it are not
+#: shown (the table gives the absolute energy instead)
+HF_FLOOR = 1e-12
 #: The tracked variant whose overrides (guides, edits, variance targets) every controller of a
 #: scene gets; scenes not listed use their last variant with controller.name=tracking.
 REPRESENTATIVE = {"splitting": "tracked_3", "spreading": "target_5v0"}
@@ -272,7 +275,7 @@ def run_scene(experiment: str, frames: int | None, root: Path) -> dict:
         if r["status"] != "completed":
             continue
         for key in ("tip_hf", "tip_dev_hf", "tip_intra_hf"):
-            ok = f.get("status") == "completed" and f[key] > 0
+            ok = f.get("status") == "completed" and f[key] > HF_FLOOR
             r[f"{key}_rel"] = r[key] / f[key] if ok else float("nan")
     judge = _name(base.judge)
     return {"experiment": experiment, "variant": vname, "variant_overrides": vover,
@@ -290,6 +293,12 @@ COLUMNS = ("| controller | tracking error RMS / L (max) | max stretch | control 
            "|---|---|---|---|---|---|---|---|---|---|\n")
 
 
+def _hf(r: dict, key: str) -> str:
+    """The ratio to the free run, or the absolute energy when the free run's is below HF_FLOOR."""
+    rel = r[f"{key}_rel"]
+    return f"{rel:.3f}" if np.isfinite(rel) else f"{r[key]:.2e} m^2 (free still)"
+
+
 def table(res: dict) -> str:
     md = COLUMNS
     for name, r in res.items():
@@ -297,8 +306,9 @@ def table(res: dict) -> str:
             md += f"| {name} | **{r['status']}**: {r['error']} |  |  |  |  |  |  |  |  |\n"
             continue
         eff = "0 (none)" if name == "free" else f"{r['effort_mean']:.3g}, {r['effort_median']:.3g} ({r['effort_max']:.3g})"
+        hf = [_hf(r, k) for k in ("tip_hf", "tip_dev_hf", "tip_intra_hf")]
         md += (f"| {name} | {r['tracking_error_rms']:.3f} ({r['tracking_error_max']:.3f}) | {r['stretch_max']:.2e} | "
-               f"{eff} | {r['tip_hf_rel']:.3f} | {r['tip_dev_hf_rel']:.3f} | {r['tip_intra_hf_rel']:.3f} | "
+               f"{eff} | {hf[0]} | {hf[1]} | {hf[2]} | "
                f"{r['variance_std']:.2e} | {'**yes**' if r['success'] else 'no'} ({r['success_detail']}) | "
                f"{r['step_seconds_median']:.4f} |\n")
     return md
@@ -345,14 +355,14 @@ def observations(s: dict) -> str:
             f = done["free"]
             out.append(f"Tracking: max stretch {tr['stretch_max']:.2e} (free {f['stretch_max']:.2e}), "
                        f"control effort median {tr['effort_median']:.3g} x weight (peak {tr['effort_max']:.3g}), "
-                       f"within-cluster tip HF {tr['tip_intra_hf_rel']:.2f} x free, its own (sliding-target) residual max "
+                       f"within-cluster tip HF {_hf(tr, 'tip_intra_hf')} (x free), its own (sliding-target) residual max "
                        f"{tr['own_residual_rel_max']:.1e} L, step time "
                        f"{tr['step_seconds_median'] / f['step_seconds_median']:.1f} x the free step.")
         att = {n: r for n, r in done.items() if n.startswith("attract")}
         if att:
             out.append("Attraction: " + "; ".join(
                 f"k = {n.split('=')[1]}: error {r['tracking_error_rms']:.3f} L, effort median {r['effort_median']:.3g}, "
-                f"deviation HF {r['tip_dev_hf_rel']:.3f} x free, {'success' if r['success'] else 'no success'}"
+                f"deviation HF {_hf(r, 'tip_dev_hf')} (x free), {'success' if r['success'] else 'no success'}"
                 for n, r in att.items()) + ".")
     sk = done.get("skinned")
     if sk is not None:
@@ -423,7 +433,9 @@ DEFINITIONS = """
 * **Tip HF energy / free** (physical detail): the strand tip trajectories (per frame, F frames) minus
   their centred moving average over 5 frames (0.2 s); the mean squared remainder over strands and
   frames, divided by the same number for the free run.  1 = as much high-frequency secondary motion
-  as the free run; 0 = none.
+  as the free run; 0 = none.  Where the free run's energy is below 1e-12 m^2 (1 um RMS: the
+  free hair is still, stylization's block resting on the rail for the plain tip HF), the ratio is
+  meaningless and the absolute energy (m^2) is shown instead, marked "free still".
 * **Tip HF of deviation from skinned / free** (physical detail, the hair's own motion): the same
   high-frequency energy computed on the tips' deviation from their guide-skinned positions
   x_g(t) (hairexp/tracking/skinning.py), relative to the free run's.  The plain tip HF energy also
