@@ -241,8 +241,9 @@ def analyse(cfg, scene, tracker, out: Path) -> dict:
             "own_residual_rel_max": summary.get("residual_rel_max")}
 
 
-def run_scene(experiment: str, frames: int | None, root: Path) -> dict:
-    """All controllers on one scene; a failing run is recorded (status, error) and the rest go on."""
+def run_scene(experiment: str, frames: int | None, root: Path, only: list[str] | None = None) -> dict:
+    """All controllers (or those named in ``only``; "free" always runs, the ratios need it) on one
+    scene; a failing run is recorded (status, error) and the rest go on."""
     extra = [] if frames is None else [f"frames={frames}"]
     base = compose_cfg(experiment, extra)
     vname, vover = representative_variant(base)
@@ -250,6 +251,8 @@ def run_scene(experiment: str, frames: int | None, root: Path) -> dict:
     scene, tracker = measurement_tracker(tcfg)
     res = {}
     for name, ov in controllers():
+        if only is not None and name not in only and name != "free":
+            continue
         t0 = time.perf_counter()
         out = root / experiment / name.replace(" ", "_").replace("=", "")
         try:

@@ -181,7 +181,8 @@ def test_variance_success_is_measured_for_every_controller(tmp_path):
     b = baselines_module()
     base = b.compose_cfg("spreading_smoke")
     assert b.representative_variant(base)[0] == "target_5v0"
-    s = b.run_scene("spreading_smoke", None, tmp_path)
+    s = b.run_scene("spreading_smoke", None, tmp_path, only=["attract k=1000", "tracking"])
+    assert list(s["results"]) == ["free", "attract k=1000", "tracking"]
     res = s["results"]
     own = json.loads((tmp_path / "spreading_smoke" / "free" / "summary.json").read_text())["measures"]
     assert "cluster_variance_ratio" not in own
