@@ -151,3 +151,24 @@ def test_default_source_hash_covers_the_package_and_conf():
     h = source_hash(ROOT, refresh=True)
     assert len(h) == 16 and source_hash(ROOT) == h
     assert source_hash(ROOT, ("hairexp/**/*.py",), refresh=True) != h
+
+
+def test_an_interrupted_write_leaves_the_old_entry_and_no_temporary_file(tmp_path, monkeypatch):
+    """Interrupted after the new content is written but before it is in place (os.fsync raises):
+    the entry on disk is still the complete old one."""
+    f = Counter()
+    _, i = cached("k", {"config": CFG}, f, False, cache_dir=tmp_path, source="src")
+    p = tmp_path / "k" / f"{i['hash']}.json"
+    before = p.read_bytes()
+
+    def interrupted(fd):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("os.fsync", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        cached("k", {"config": CFG}, Counter(value=2.5), False, cache_dir=tmp_path, source="src")
+    monkeypatch.undo()
+    assert p.read_bytes() == before
+    assert sorted(x.name for x in (tmp_path / "k").iterdir()) == [p.name]
+    r, i = cached("k", {"config": CFG}, lambda: pytest.fail("recomputed"), True, cache_dir=tmp_path, source="src")
+    assert i["hit"] and r["value"] == 1.5
