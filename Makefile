@@ -32,16 +32,25 @@ bench: $(STAMP)
 	$(VPY) experiments/bench_tracking.py
 	$(VPY) experiments/bench_collisions.py
 
-paper-scenes: $(STAMP)
-	$(VPY) experiments/paper_scenes.py
+# CACHE=1: reuse cached results of the slow runs (paper scenes, stress, accuracy) whose config,
+# solver source (hairexp/**/*.py, conf/**/*.yaml) and torch/numpy/scipy versions match, from
+# reports/cache/ (git-ignored); the reports mark every cached row with its cache date and entry.
+CACHE   ?=
+CACHE_FLAG := $(if $(filter 1 yes true,$(CACHE)),--cache,)
 
-# every report under reports/ from fresh runs (about an hour on 2 cores; nothing is cached yet)
+paper-scenes: $(STAMP)
+	$(VPY) experiments/paper_scenes.py $(CACHE_FLAG)
+
+# every report under reports/ (about an hour on 2 cores).  By default every run is fresh (and
+# refreshes its entry in reports/cache/); `make reports CACHE=1` reuses the paper scenes', stress
+# cases' and accuracy runs' entries whose full key matches (benchmarks, scale, ablations and
+# baselines always run fresh).
 reports: bench paper-scenes
 	$(VPY) experiments/bench_scale.py
 	$(VPY) experiments/ablations.py
-	$(VPY) experiments/stress.py
+	$(VPY) experiments/stress.py $(CACHE_FLAG)
 	$(VPY) experiments/baselines.py
-	$(VPY) experiments/accuracy.py --scenes goaling celia --frames 30
+	$(VPY) experiments/accuracy.py --scenes goaling celia --frames 30 $(CACHE_FLAG)
 
 clean:
 	rm -rf $(VENV) outputs multirun

@@ -7,7 +7,14 @@ maximum vertex distance (m), over the hair length; plus each run's largest track
 and stretch.  Cost: seconds of wall time per simulated second.  The Pareto front (no other run
 is both faster and more accurate in RMS error) is marked, and the recommended setting is the
 cheapest run on the front whose RMS error is below --budget x hair length.
-Usage: .venv/bin/python experiments/accuracy.py [--scenes goaling celia] [--frames N] [--budget 0.01]
+With ``--cache``, runs are reused from reports/cache/accuracy/ when their composed config, the solver
+source (hairexp/**/*.py, conf/**/*.yaml) and the torch/numpy/scipy versions match: a reference run is
+cached with its trajectory (result positions, as ``<hash>.npz`` beside the JSON) since every error
+needs it; a grid run is cached as its final figures only (errors, cost, iterations...), keyed also by
+its reference's config, so its trajectory is never stored.  The reference is only run (or loaded)
+when a grid run of its scene and controller is not cached.  Cached rows keep the timings of their
+original run, and the report marks them with the cache date and entry.
+Usage: .venv/bin/python experiments/accuracy.py [--scenes goaling celia] [--frames N] [--budget 0.01] [--cache]
 """
 
 from __future__ import annotations
@@ -26,7 +33,9 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from hydra.core.global_hydra import GlobalHydra  # noqa: E402
 
 import hairexp.config  # noqa: E402,F401
-from hairexp.run import run  # noqa: E402
+from hairexp.config import to_plain  # noqa: E402
+from hairexp.report_cache import cached, describe  # noqa: E402
+from hairexp.run import config_hash, run  # noqa: E402
 
 DTS = [0.005, 0.01, 0.02, 0.04]
 RTOLS = [1e-3, 1e-5, 1e-7]
@@ -54,6 +63,7 @@ def one(scene, controller, dt, rtol, frames, out: Path) -> dict:
         pos = r["positions"]
     sim_seconds = cfg.frames / cfg.fps
     return {"scene": scene, "controller": controller, "dt": dt, "rtol": rtol, "positions": pos,
+            "config_hash": config_hash(to_plain(cfg)),
             "seconds_per_sim_second": wall / sim_seconds, "iterations_mean": s["iterations_mean"],
             "converged_fraction": s["converged_fraction"], "stretch_max": s["stretch_max"],
             "residual_rel_max": s.get("residual_rel_max"), "length": float(cfg.scene.length)}
@@ -79,42 +89,74 @@ def main():
     ap.add_argument("--budget", type=float, default=0.01)
     ap.add_argument("--dts", type=float, nargs="*", default=DTS)
     ap.add_argument("--rtols", type=float, nargs="*", default=RTOLS)
+    ap.add_argument("--cache", action="store_true",
+                    help="reuse reports/cache/accuracy/ entries (same config, solver source and versions)")
     args = ap.parse_args()
     from hairexp.report import header, write_report
 
     base = ROOT / "outputs" / "accuracy"
-    all_rows, recs = [], {}
+    all_rows, recs, refs = [], {}, {}
     for scene in args.scenes:
         for controller in ("free", "tracking"):
-            ref = one(scene, controller, args.ref_dt, 1e-9, args.frames, base / scene / controller / "ref")
+            ref_plain = to_plain(cfg_for(scene, controller, args.ref_dt, 1e-9, args.frames))
+            ref_box = {}
+
+            def reference(scene=scene, controller=controller, ref_plain=ref_plain, ref_box=ref_box):
+                """The reference run (with its trajectory), run or loaded on first use."""
+                if not ref_box:
+                    ref, info = cached("accuracy", {"config": ref_plain, "role": "reference"},
+                                       lambda: one(scene, controller, args.ref_dt, 1e-9, args.frames,
+                                                   base / scene / controller / "ref"), args.cache)
+                    ref_box.update(ref=ref, info=info)
+                    print(f"{scene} {controller} reference: {describe(info)}", flush=True)
+                return ref_box["ref"]
+
             rows = []
             for dt in args.dts:
                 for rtol in args.rtols:
-                    r = one(scene, controller, dt, rtol, args.frames, base / scene / controller / f"dt{dt}_rtol{rtol}")
-                    d = np.linalg.norm(r.pop("positions") - ref["positions"], axis=-1)
-                    r["rms_rel"] = float(np.sqrt(np.mean(d ** 2)) / r["length"])
-                    r["max_rel"] = float(d.max() / r["length"])
+                    def compute(dt=dt, rtol=rtol, scene=scene, controller=controller, reference=reference):
+                        r = one(scene, controller, dt, rtol, args.frames, base / scene / controller / f"dt{dt}_rtol{rtol}")
+                        d = np.linalg.norm(r.pop("positions") - reference()["positions"], axis=-1)
+                        r["rms_rel"] = float(np.sqrt(np.mean(d ** 2)) / r["length"])
+                        r["max_rel"] = float(d.max() / r["length"])
+                        return r
+
+                    plain = to_plain(cfg_for(scene, controller, dt, rtol, args.frames))
+                    r, info = cached("accuracy", {"config": plain, "reference_config": ref_plain}, compute, args.cache)
+                    r["cache"] = {k: info.get(k) for k in ("hit", "hash", "date", "source_hash")}
                     rows.append(r)
                     print(f"{scene} {controller} dt {dt} rtol {rtol:g}: rms {r['rms_rel']:.2e} L, max {r['max_rel']:.2e} L, "
-                          f"{r['seconds_per_sim_second']:.2f} s/sim-s, its {r['iterations_mean']:.2f}", flush=True)
+                          f"{r['seconds_per_sim_second']:.2f} s/sim-s, its {r['iterations_mean']:.2f}"
+                          f"{' (' + describe(info) + ')' if info['hit'] else ''}", flush=True)
             front = pareto(rows)
             ok = [r for r in front if r["rms_rel"] <= args.budget]
             recs[(scene, controller)] = min(ok, key=lambda r: r["seconds_per_sim_second"]) if ok else None
-            ref.pop("positions")
+            refs[f"{scene}/{controller}"] = {"config_hash": config_hash(ref_plain),
+                                             "cache": ({k: ref_box["info"].get(k) for k in ("hit", "hash", "date")}
+                                                       if ref_box else None)}
             all_rows += rows
     md = header("Run time against error")
     md += (f"Reference: dt = {args.ref_dt} s, rtol = 1e-9 (Newton and SQP); errors are vertex distances to it at every "
            "output frame, over the hair length L; cost is wall seconds per simulated second; `*` marks the Pareto front "
-           f"(RMS error against cost).  Recommended: the cheapest front run with RMS error <= {args.budget} L.\n\n")
+           f"(RMS error against cost).  Recommended: the cheapest front run with RMS error <= {args.budget} L.  "
+           "Every row states its run's config hash; source `fresh` = run by this command, `cached <date>` = "
+           "reused from reports/cache/accuracy/ (`--cache`: same config, reference config, solver source and "
+           "versions), and then its cost is that of the original run on that date.\n\n")
     for scene in args.scenes:
         for controller in ("free", "tracking"):
             rows = [r for r in all_rows if r["scene"] == scene and r["controller"] == controller]
-            md += f"## {scene}, {controller}\n\n| dt | rtol | RMS err / L | max err / L | s per sim-s | iterations | converged | max stretch | max residual / L | front |\n"
-            md += "|---|---|---|---|---|---|---|---|---|---|\n"
+            ref = refs[f"{scene}/{controller}"]
+            rsrc = ("not needed (every grid row cached)" if ref["cache"] is None else
+                    describe(ref["cache"]))
+            md += (f"## {scene}, {controller}\n\nReference config hash `{ref['config_hash']}`: {rsrc}.\n\n"
+                   "| dt | rtol | RMS err / L | max err / L | s per sim-s | iterations | converged | max stretch | "
+                   "max residual / L | front | config hash | source |\n")
+            md += "|---|---|---|---|---|---|---|---|---|---|---|---|\n"
             for r in rows:
                 md += (f"| {r['dt']} | {r['rtol']:g} | {r['rms_rel']:.2e} | {r['max_rel']:.2e} | {r['seconds_per_sim_second']:.2f} | "
                        f"{r['iterations_mean']:.2f} | {r['converged_fraction']:.3f} | {r['stretch_max']:.2e} | "
-                       f"{'-' if r['residual_rel_max'] is None else format(r['residual_rel_max'], '.1e')} | {'*' if r['pareto'] else ''} |\n")
+                       f"{'-' if r['residual_rel_max'] is None else format(r['residual_rel_max'], '.1e')} | {'*' if r['pareto'] else ''} | "
+                       f"`{r['config_hash']}` | {describe(r['cache'])} |\n")
             rec = recs[(scene, controller)]
             md += ("\nRecommended: " + (f"dt = {rec['dt']}, rtol = {rec['rtol']:g} (RMS {rec['rms_rel']:.1e} L, "
                                         f"{rec['seconds_per_sim_second']:.2f} s per simulated second)" if rec else
@@ -142,7 +184,7 @@ def main():
     except ImportError:
         md += "(matplotlib is not installed: no plot)\n"
     path = write_report("accuracy", md, {"rows": all_rows, "recommended": {f"{k[0]}/{k[1]}": v for k, v in recs.items()},
-                                         "ref_dt": args.ref_dt, "budget": args.budget})
+                                         "references": refs, "ref_dt": args.ref_dt, "budget": args.budget})
     print(f"wrote {path}")
 
 

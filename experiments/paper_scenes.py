@@ -4,12 +4,19 @@ Each experiment runs all its variants (free and tracked, or one per guide count 
 target) exactly as ``python -m hairexp experiment=<name>`` does, into outputs/paper_scenes/<name>/,
 and the report tabulates every variant's measure, iterations, step time, stretch and residual,
 and the judge's verdict.
-Usage: .venv/bin/python experiments/paper_scenes.py [names ...]   (default: every paper scene)
+With ``--cache`` a scene whose composed config, solver source (hairexp/**/*.py, conf/**/*.yaml)
+and torch/numpy/scipy versions match an entry of reports/cache/paper_scenes/ is not run again: its
+figures (and timings) are those of the cached run, and the report says so with the entry's date and
+hash; no run folder is written for it.  Without ``--cache`` every scene runs fresh and refreshes
+its entry.
+Usage: .venv/bin/python experiments/paper_scenes.py [names ...] [--cache] [--set KEY=VALUE ...]
+       (default: every paper scene)
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -21,8 +28,10 @@ from hydra import compose, initialize_config_dir  # noqa: E402
 from hydra.core.global_hydra import GlobalHydra  # noqa: E402
 
 import hairexp.config  # noqa: E402,F401  (registers the schema)
+from hairexp.config import to_plain  # noqa: E402
 from hairexp.experiment import run_experiment  # noqa: E402
 from hairexp.report import header, write_report  # noqa: E402
+from hairexp.report_cache import cached, describe  # noqa: E402
 
 SCENES = ["goaling", "splitting", "spreading", "stylization", "celia"]
 #: measure keys shown in the table, per measure
@@ -41,41 +50,70 @@ def fmt(v):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("names", nargs="*", default=None)
+    ap.add_argument("--cache", action="store_true",
+                    help="reuse reports/cache/paper_scenes/ entries with the same config, solver source and versions")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="hydra overrides applied to every scene (e.g. frames=10)")
     args = ap.parse_args()
     available = {p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml")}
     names = args.names or [n for n in SCENES if n in available]
     md = header("The paper's scenes, judged")
     md += ("Each experiment runs its variants as `python -m hairexp experiment=<name>` does; `success` is the "
-           "judge's verdict on the scene's measure (README, \"Paper scenes\").\n\n")
+           "judge's verdict on the scene's measure (README, \"Paper scenes\").  Every scene and variant states the "
+           "config hash its run records.  A scene marked *cached* was not run by this command: its figures, wall "
+           "and step times are those of the original run on the cache date (`--cache`, same config, solver source "
+           "and versions).\n\n")
+    if args.set:
+        md += "Overrides on every scene: " + ", ".join(f"`{o}`" for o in args.set) + "\n\n"
     data = {}
     for name in names:
         GlobalHydra.instance().clear()
         with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-            cfg = compose(config_name="config", overrides=[f"experiment={name}", "logging.progress=false"])
+            cfg = compose(config_name="config", overrides=[f"experiment={name}", "logging.progress=false",
+                                                           *args.set])
         GlobalHydra.instance().clear()
-        t0 = time.perf_counter()
         out = ROOT / "outputs" / "paper_scenes" / name
-        try:
+        t0 = time.perf_counter()
+
+        def compute(cfg=cfg, out=out):
+            t0 = time.perf_counter()
             s = run_experiment(cfg, out)
+            res = {k: s[k] for k in ("status", "success", "judge", "verdict", "variants", "config_hash") if k in s}
+            res["wall_seconds"] = time.perf_counter() - t0
+            res["measure"] = str(s["config"]["measure"]["name"])
+            res.setdefault("variants", {})
+            for vname, v in res["variants"].items():  # each variant's own run config hash
+                v["config_hash"] = json.loads((out / vname / "summary.json").read_text()).get("config_hash")
+            return res
+
+        try:
+            s, info = cached("paper_scenes", {"config": to_plain(cfg)}, compute, args.cache,
+                             store=lambda r: r.get("status") != "failed")
         except Exception as exc:  # report the failure, go on with the other scenes
             print(f"{name}: FAILED: {exc}", flush=True)
             data[name] = {"status": "failed", "error": str(exc)}
             md += f"## {name}\n\n**failed**: {exc}\n\n"
             continue
-        wall = time.perf_counter() - t0
-        measure = str(s["config"]["measure"]["name"])
-        keys = SHOW.get(measure, ())
-        data[name] = {k: s[k] for k in ("status", "success", "judge", "verdict", "variants", "config_hash") if k in s}
-        data[name]["wall_seconds"] = wall
-        print(f"{name}: success={s['success']} ({wall:.0f} s)", flush=True)
-        md += f"## {name}\n\nsuccess: **{s['success']}** (judge `{s['judge']}`), wall {wall:.0f} s, config hash `{s['config_hash']}`\n\n"
-        md += "| variant | " + " | ".join(keys) + " | iterations mean/max | converged | median s/step | max stretch | max residual / L |\n"
-        md += "|---|" + "---|" * len(keys) + "---|---|---|---|---|\n"
+        wall = s["wall_seconds"]
+        here = time.perf_counter() - t0
+        keys = SHOW.get(s["measure"], ())
+        data[name] = {**s, "cache": {k: info.get(k) for k in ("hit", "hash", "date", "source_hash")},
+                      "command_seconds": here}
+        src = describe(info)
+        print(f"{name}: success={s['success']} ({wall:.0f} s{', ' + src if info['hit'] else ''}; "
+              f"this command {here:.1f} s)", flush=True)
+        md += (f"## {name}\n\nsuccess: **{s['success']}** (judge `{s['judge']}`), wall {wall:.0f} s"
+               f"{' (of the original run)' if info['hit'] else ''}, config hash `{s['config_hash']}`; "
+               f"{'**' + src + '**' if info['hit'] else 'run fresh by this command'}\n\n")
+        md += ("| variant | " + " | ".join(keys) + " | iterations mean/max | converged | median s/step | max stretch | "
+               "max residual / L | config hash |\n")
+        md += "|---|" + "---|" * len(keys) + "---|---|---|---|---|---|\n"
         for vname, v in s["variants"].items():
             m = v["measures"]
             md += (f"| {vname} | " + " | ".join(fmt(m.get(k)) for k in keys) +
                    f" | {v['iterations_mean']:.2f} / {v['iterations_max']} | {v['converged_fraction']:.3f} | "
-                   f"{v['step_seconds_median']:.4f} | {v['stretch_max']:.3g} | {fmt(v['residual_rel_max'])} |\n")
+                   f"{v['step_seconds_median']:.4f} | {v['stretch_max']:.3g} | {fmt(v['residual_rel_max'])} | "
+                   f"`{v.get('config_hash')}` |\n")
         md += "\n"
     path = write_report("paper_scenes", md, {"scenes": data})
     print(f"wrote {path}")

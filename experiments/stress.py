@@ -13,7 +13,7 @@ For each case and controller: finite (every recorded state, result.npz ``positio
 summary's figures are finite), stretch max, converged fraction, iterations mean / max, recovered
 (substepped) steps, outcome (completed, recovered = completed with substepped steps, failed with
 the error's message) and wall time.  Writes reports/stress.{md,json}.
-Usage: .venv/bin/python experiments/stress.py [--cases NAME ...] [--frames 30]
+Usage: .venv/bin/python experiments/stress.py [--cases NAME ...] [--frames 30] [--cache]
 """
 
 from __future__ import annotations
@@ -71,12 +71,12 @@ CASES: dict[str, tuple[list[str], tuple[str, ...], str | None, str]] = {
                                ("tracking",), None, "as guide_shrink_50 with static targets (t fixed at rest)"),
     "guide_jitter": (NO_WHEEL + RIGID, ("tracking",), "jitter",
                      "rigid guides + N(0, 5 mm) noise on every guide vertex, new every frame"),
-    "variance_0.1v0": (NO_WHEEL + VARIANCE + ["tracking.variance.target_scale=[0.1]", "frames=8"], ("tracking",), None,
-                       "tip variance target 0.1 v0, k_v = 500 J/m^4 (8 frames: slow)"),
-    "variance_20v0": (NO_WHEEL + VARIANCE + ["tracking.variance.target_scale=[20.0]", "frames=8"], ("tracking",), None,
-                      "tip variance target 20 v0, k_v = 500 J/m^4 (8 frames: slow)"),
-    "collider_10ms": ([BALL, "frames=8"], ("free", "tracking"), None,
-                      "a 5 cm sphere crossing the hair at 10 m/s (8 frames, through t = 0.32 s: slow)"),
+    "variance_0.1v0": (NO_WHEEL + VARIANCE + ["tracking.variance.target_scale=[0.1]"], ("tracking",), None,
+                       "tip variance target 0.1 v0, k_v = 500 J/m^4"),
+    "variance_20v0": (NO_WHEEL + VARIANCE + ["tracking.variance.target_scale=[20.0]"], ("tracking",), None,
+                      "tip variance target 20 v0, k_v = 500 J/m^4"),
+    "collider_10ms": ([BALL], ("free", "tracking"), None,
+                      "a 5 cm sphere crossing the hair at 10 m/s (through the hair at t = 0.25 s)"),
 }
 
 
@@ -124,25 +124,60 @@ def finite_summary(s: dict) -> bool:
     return all(v is not None and math.isfinite(v) for v in vals)
 
 
-def run_case(name: str, controller: str, work: Path, frames: int | None = None, extra: tuple[str, ...] = ()) -> dict:
-    """One case, one controller (``extra``: further overrides): the row of the table (never raises)."""
+def case_overrides(name: str, controller: str, frames: int | None = None, extra: tuple[str, ...] = ()) -> list[str]:
+    """The case's overrides for one controller (``frames``: replaces the case's frames)."""
+    overrides = CASES[name][0]
+    if frames:
+        overrides = [o for o in overrides if not o.startswith("frames=")]
+    return overrides + [f"controller.name={controller}"] + ([f"frames={frames}"] if frames else []) + list(extra)
+
+
+def case_key(name: str, controller: str, frames: int | None = None, extra: tuple[str, ...] = ()) -> dict:
+    """What a row depends on: the composed config (before a generated guide file, whose temporary
+    path would change the hash; the file itself follows from this config, its kind and seed 0)."""
+    from hairexp.config import to_plain
+
+    return {"config": to_plain(compose_cfg(case_overrides(name, controller, frames, extra))),
+            "guide_file": CASES[name][2]}
+
+
+def run_case(name: str, controller: str, work: Path, frames: int | None = None, extra: tuple[str, ...] = (),
+             use_cache: bool | None = None) -> dict:
+    """One case, one controller (``extra``: further overrides): the row of the table (never raises).
+    ``use_cache`` None: no cache; False: run and refresh the cache entry; True: reuse an entry whose
+    key (config, solver source, versions) matches.  Failures other than a clear error are not stored."""
+    if use_cache is None:
+        return _run_case(name, controller, work, frames, extra)
+    from hairexp.report_cache import cached
+
+    try:
+        key = case_key(name, controller, frames, extra)
+    except Exception:  # noqa: BLE001 - a config that does not compose fails the same way in the run
+        return _run_case(name, controller, work, frames, extra)
+    row, info = cached("stress", key, lambda: _run_case(name, controller, work, frames, extra), use_cache,
+                       store=lambda r: r["outcome"] != "failed" or bool(r.get("clear")))
+    row["cache"] = {k: info.get(k) for k in ("hit", "hash", "date", "source_hash")}
+    return row
+
+
+def _run_case(name: str, controller: str, work: Path, frames: int | None = None, extra: tuple[str, ...] = ()) -> dict:
     import pandas as pd
 
+    from hairexp.config import to_plain
     from hairexp.errors import HairexpError
-    from hairexp.run import run
+    from hairexp.run import config_hash, run
 
-    overrides, _, gfile, _ = CASES[name]
+    _, _, gfile, _ = CASES[name]
     out = work / f"{name}_{controller}"
-    row = {"case": name, "controller": controller}
+    row = {"case": name, "controller": controller, "config_hash": None}
     t0 = time.perf_counter()
     try:
-        extra = [f"controller.name={controller}"] + ([f"frames={frames}"] if frames else []) + list(extra)
-        if frames and any(o.startswith("frames=") for o in overrides):
-            overrides = [o for o in overrides if not o.startswith("frames=")]
-        cfg = compose_cfg(overrides + extra)
+        overrides = case_overrides(name, controller, frames, extra)
+        cfg = compose_cfg(overrides)
+        row["config_hash"] = config_hash(to_plain(cfg))
         if gfile:
             path = write_guide_file(cfg, gfile, work / f"{name}_guides.npz")
-            cfg = compose_cfg(overrides + extra + ["guides.source=file", f"guides.file={path}", "guides.edits=[]"])
+            cfg = compose_cfg(overrides + ["guides.source=file", f"guides.file={path}", "guides.edits=[]"])
         s = run(cfg, out)
         pos = np.load(out / "result.npz")["positions"]
         row.update(outcome="recovered" if s["recovered_steps"] else "completed", error=None,
@@ -199,18 +234,27 @@ def markdown(rows: list[dict], wall: float) -> str:
            "are tracked only (a free run ignores the guides and has no variance penalty).  finite: every "
            "recorded state (result.npz positions), the per-step metrics and the summary figures are finite.  "
            "Outcome: completed; recovered = completed with steps retried as substeps; failed = a clear "
-           "`SimulationError`/`InputError` with its message.\n\n")
-    md += "| case | stresses | controller | outcome | finite | stretch max | converged | iter mean | iter max | recovered | unconv. kept | wall s |\n"
-    md += "|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+           "`SimulationError`/`InputError` with its message.  config hash: `hairexp.run.config_hash` of the "
+           "composed config (for the guide-file cases, before the generated file's temporary path is set; the file "
+           "follows from that config, its kind and seed 0).  source: `fresh` = run by this command; `cached <date> "
+           "(entry <hash>)` = reused from reports/cache/stress/ (`--cache`: same config, same solver source, same "
+           "versions), and then its wall time is that of the original run on that date.\n\n")
+    md += ("| case | stresses | controller | outcome | finite | stretch max | converged | iter mean | iter max | "
+           "recovered | unconv. kept | wall s | config hash | source |\n")
+    md += "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+    from hairexp.report_cache import describe as cache_source
+
     for r in rows:
         md += (f"| {r['case']} | {CASES[r['case']][3]} | {r['controller']} | {r['outcome']} | {fmt(r.get('finite'))} | "
                f"{fmt(r.get('stretch_max'))} | {fmt(r.get('converged_fraction'), '{:.3f}')} | "
                f"{fmt(r.get('iterations_mean'), '{:.1f}')} | {fmt(r.get('iterations_max'))} | "
-               f"{fmt(r.get('recovered_steps'))} | {fmt(r.get('unconverged_kept'))} | {r['wall_seconds']:.1f} |\n")
+               f"{fmt(r.get('recovered_steps'))} | {fmt(r.get('unconverged_kept'))} | {r['wall_seconds']:.1f} | "
+               f"`{r.get('config_hash')}` | {cache_source(r.get('cache') or {})} |\n")
     md += "\nWhat the solver did:\n\n"
     for r in rows:
         md += f"- **{r['case']}, {r['controller']}**: {describe(r)}.\n"
-    md += f"\nTotal wall time {wall:.0f} s.\n"
+    n_cached = sum(bool((r.get("cache") or {}).get("hit")) for r in rows)
+    md += f"\nTotal wall time of this command {wall:.0f} s ({n_cached} of {len(rows)} rows from the cache).\n"
     return md
 
 
@@ -219,6 +263,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="*", default=list(CASES))
     ap.add_argument("--frames", type=int, default=None, help="override every case's frames (quick look)")
     ap.add_argument("--no-report", action="store_true")
+    ap.add_argument("--cache", action="store_true",
+                    help="reuse reports/cache/stress/ entries whose config, solver source and versions match "
+                         "(default: run every case fresh, refreshing the cache)")
     a = ap.parse_args(argv)
     import torch
 
@@ -230,12 +277,13 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="stress_") as tmp:
         for name in a.cases:
             for controller in CASES[name][1]:
-                r = run_case(name, controller, Path(tmp), a.frames)
+                r = run_case(name, controller, Path(tmp), a.frames, use_cache=a.cache)
                 rows.append(r)
                 print(f"{name:18s} {controller:8s} {r['outcome']:9s} finite={r.get('finite')} "
                       f"stretch={fmt(r.get('stretch_max'))} conv={fmt(r.get('converged_fraction'))} "
                       f"it={fmt(r.get('iterations_mean'))}/{fmt(r.get('iterations_max'))} "
-                      f"rec={r.get('recovered_steps')} {r['wall_seconds']:.1f}s {r.get('error') or ''}", flush=True)
+                      f"rec={r.get('recovered_steps')} {r['wall_seconds']:.1f}s"
+                      f"{' (cached)' if r['cache']['hit'] else ''} {r.get('error') or ''}", flush=True)
     wall = time.perf_counter() - t0
     if not a.no_report:
         write_report("stress", markdown(rows, wall), {"cases": {k: {"overrides": v[0], "controllers": list(v[1]),

@@ -95,3 +95,19 @@ def test_a_non_finite_collision_result_is_a_diverged_step_not_a_state(monkeypatc
     monkeypatch.setattr(collisions, "collision_stage", poisoned)
     with pytest.raises(SimulationError, match="diverged"):
         sim.step(sim.initial_state(), 0.04)
+
+
+def test_stress_rows_reuse_the_report_cache(tmp_path, monkeypatch):
+    """--cache: a row whose config, solver source and versions match is not run again; it keeps the
+    original figures (and wall time) and says it is cached; another frame count is a new entry."""
+    import hairexp.report_cache as rc
+
+    monkeypatch.setattr(rc, "CACHE", tmp_path / "cache")
+    fresh = stress.run_case("dt_0.1", "free", tmp_path / "a", 2, use_cache=True)
+    assert fresh["cache"]["hit"] is False and fresh["config_hash"]
+    again = stress.run_case("dt_0.1", "free", tmp_path / "b", 2, use_cache=True)
+    assert again["cache"]["hit"] is True and again["cache"]["hash"] == fresh["cache"]["hash"]
+    assert not (tmp_path / "b").exists()   # not run
+    assert {k: again[k] for k in fresh if k != "cache"} == {k: fresh[k] for k in fresh if k != "cache"}
+    other = stress.run_case("dt_0.1", "free", tmp_path / "c", 3, use_cache=True)
+    assert other["cache"]["hit"] is False and other["config_hash"] != fresh["config_hash"]
