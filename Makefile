@@ -48,6 +48,7 @@ paper-scenes: $(STAMP)
 reports: bench paper-scenes
 	$(VPY) experiments/bench_scale.py
 	$(VPY) experiments/ablations.py
+	$(VPY) experiments/ablations.py --full
 	$(VPY) experiments/stress.py $(CACHE_FLAG)
 	$(VPY) experiments/baselines.py
 	$(VPY) experiments/accuracy.py --scenes goaling celia --frames 30 $(CACHE_FLAG)

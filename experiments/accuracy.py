@@ -6,7 +6,8 @@ For each scene and controller, a converged reference run (dt = --ref-dt, solver 
 maximum vertex distance (m), over the hair length; plus each run's largest tracking residual
 and stretch.  Cost: seconds of wall time per simulated second.  The Pareto front (no other run
 is both faster and more accurate in RMS error) is marked, and the recommended setting is the
-cheapest run on the front whose RMS error is below --budget x hair length.
+cheapest run on the front whose RMS error is below each --budget x hair length (default 1 %, 3 %
+and 10 % of L: a shot that must match a reference closely, a typical one, a preview).
 With ``--cache``, runs are reused from reports/cache/accuracy/ when their composed config, the solver
 source (hairexp/**/*.py, conf/**/*.yaml) and the torch/numpy/scipy versions match: a reference run is
 cached with its trajectory (result positions, as ``<hash>.npz`` beside the JSON) since every error
@@ -14,7 +15,7 @@ needs it; a grid run is cached as its final figures only (errors, cost, iteratio
 its reference's config, so its trajectory is never stored.  The reference is only run (or loaded)
 when a grid run of its scene and controller is not cached.  Cached rows keep the timings of their
 original run, and the report marks them with the cache date and entry.
-Usage: .venv/bin/python experiments/accuracy.py [--scenes goaling celia] [--frames N] [--budget 0.01] [--cache]
+Usage: .venv/bin/python experiments/accuracy.py [--scenes goaling celia] [--frames N] [--budget 0.01 0.03 0.1] [--cache]
 """
 
 from __future__ import annotations
@@ -81,12 +82,18 @@ def pareto(rows):
     return sorted(front, key=lambda r: r["seconds_per_sim_second"])
 
 
+def recommendation(rec: dict | None) -> str:
+    return (f"dt = {rec['dt']}, rtol = {rec['rtol']:g} (RMS {rec['rms_rel']:.1e} L, "
+            f"{rec['seconds_per_sim_second']:.2f} s per simulated second)" if rec else "no run within the budget")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="*", default=["goaling", "celia"])
     ap.add_argument("--frames", type=int, default=None, help="output frames per run (default: the scene's)")
     ap.add_argument("--ref-dt", type=float, default=0.0025)
-    ap.add_argument("--budget", type=float, default=0.01)
+    ap.add_argument("--budget", type=float, nargs="+", default=[0.01, 0.03, 0.1],
+                    help="RMS error budgets (fractions of the hair length) to recommend a setting for")
     ap.add_argument("--dts", type=float, nargs="*", default=DTS)
     ap.add_argument("--rtols", type=float, nargs="*", default=RTOLS)
     ap.add_argument("--cache", action="store_true",
@@ -129,8 +136,10 @@ def main():
                           f"{r['seconds_per_sim_second']:.2f} s/sim-s, its {r['iterations_mean']:.2f}"
                           f"{' (' + describe(info) + ')' if info['hit'] else ''}", flush=True)
             front = pareto(rows)
-            ok = [r for r in front if r["rms_rel"] <= args.budget]
-            recs[(scene, controller)] = min(ok, key=lambda r: r["seconds_per_sim_second"]) if ok else None
+            recs[(scene, controller)] = {}
+            for b in args.budget:
+                ok = [r for r in front if r["rms_rel"] <= b]
+                recs[(scene, controller)][b] = min(ok, key=lambda r: r["seconds_per_sim_second"]) if ok else None
             refs[f"{scene}/{controller}"] = {"config_hash": config_hash(ref_plain),
                                              "cache": ({k: ref_box["info"].get(k) for k in ("hit", "hash", "date")}
                                                        if ref_box else None)}
@@ -138,7 +147,8 @@ def main():
     md = header("Run time against error")
     md += (f"Reference: dt = {args.ref_dt} s, rtol = 1e-9 (Newton and SQP); errors are vertex distances to it at every "
            "output frame, over the hair length L; cost is wall seconds per simulated second; `*` marks the Pareto front "
-           f"(RMS error against cost).  Recommended: the cheapest front run with RMS error <= {args.budget} L.  "
+           f"(RMS error against cost).  Recommended, per error budget: the cheapest front run with RMS error <= "
+           f"{', '.join(f'{b:g}' for b in args.budget)} L.  "
            "Every row states its run's config hash; source `fresh` = run by this command, `cached <date>` = "
            "reused from reports/cache/accuracy/ (`--cache`: same config, reference config, solver source and "
            "versions), and then its cost is that of the original run on that date.\n\n")
@@ -157,10 +167,8 @@ def main():
                        f"{r['iterations_mean']:.2f} | {r['converged_fraction']:.3f} | {r['stretch_max']:.2e} | "
                        f"{'-' if r['residual_rel_max'] is None else format(r['residual_rel_max'], '.1e')} | {'*' if r['pareto'] else ''} | "
                        f"`{r['config_hash']}` | {describe(r['cache'])} |\n")
-            rec = recs[(scene, controller)]
-            md += ("\nRecommended: " + (f"dt = {rec['dt']}, rtol = {rec['rtol']:g} (RMS {rec['rms_rel']:.1e} L, "
-                                        f"{rec['seconds_per_sim_second']:.2f} s per simulated second)" if rec else
-                                        "no run within the budget") + "\n\n")
+            md += "\nRecommended:\n\n" + "".join(f"* RMS <= {b:g} L: {recommendation(rec)}\n"
+                                                  for b, rec in recs[(scene, controller)].items()) + "\n"
     try:
         import matplotlib
 
@@ -183,7 +191,8 @@ def main():
         md += "![Pareto](accuracy.png)\n"
     except ImportError:
         md += "(matplotlib is not installed: no plot)\n"
-    path = write_report("accuracy", md, {"rows": all_rows, "recommended": {f"{k[0]}/{k[1]}": v for k, v in recs.items()},
+    path = write_report("accuracy", md, {"rows": all_rows, "recommended": {f"{k[0]}/{k[1]}": {f"{b:g}": r for b, r in v.items()}
+                                                                         for k, v in recs.items()},
                                          "references": refs, "ref_dt": args.ref_dt, "budget": args.budget})
     print(f"wrote {path}")
 
