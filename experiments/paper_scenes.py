@@ -108,7 +108,9 @@ def main():
         md += ("| variant | " + " | ".join(keys) + " | iterations mean/max | converged | median s/step | max stretch | "
                "max residual / L | config hash |\n")
         md += "|---|" + "---|" * len(keys) + "---|---|---|---|---|---|\n"
-        for vname, v in s["variants"].items():
+        order = [str(v.name) for v in cfg.variants]   # the experiment's order (a cache entry's JSON is key-sorted)
+        for vname in sorted(s["variants"], key=lambda n: order.index(n) if n in order else len(order)):
+            v = s["variants"][vname]
             m = v["measures"]
             md += (f"| {vname} | " + " | ".join(fmt(m.get(k)) for k in keys) +
                    f" | {v['iterations_mean']:.2f} / {v['iterations_max']} | {v['converged_fraction']:.3f} | "
