@@ -140,6 +140,10 @@ class SceneConfig:
     motion: MotionConfig = field(default_factory=MotionConfig)
     body: BodyConfig = field(default_factory=BodyConfig)  # dynamic: the block starts at scene.motion's pose (one key)
     colliders: list[ColliderConfig] = field(default_factory=list)
+    # s, >= 0: before the run the hair (and simulated guides) settle under gravity for this long,
+    # body and colliders held at their t = 0 poses; the run starts, and the tracking registers, on
+    # the settled hair at rest (hairexp/physics/settle.py).  0: start from the rest shape as built.
+    settle: float = 0.0
     # builder usd / guides.source usd: the stage and its prims (README "USD scenes")
     usd: str = ""                       # path of a .usda/.usdc/.usd stage
     usd_body: str = "/Root/Body"        # Xform, transform time-sampled

@@ -20,6 +20,7 @@ import numpy as np
 from hairexp.config import to_plain
 from hairexp.errors import InputError
 from hairexp.physics.integrator import Simulator
+from hairexp.physics.settle import settle_scene
 from hairexp.scene.builders import build_scene
 from hairexp.tracking.guides import build_guides
 from hairexp.sinks.files import ResultRecorder, write_json
@@ -104,6 +105,7 @@ def run(cfg, out_dir: str | Path) -> dict:
             plain = to_plain(cfg)
         n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
         scene = build_scene(cfg.scene)
+        scene = settle_scene(scene, cfg, dt)   # scene.settle > 0: start from the hair at rest under gravity
         guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
         tracked = controller == "tracking"
         if controller == "skinned":   # baseline: detail hair skinned to the guides, no simulation

@@ -23,8 +23,14 @@ class Material:
 class Scene:
     """Everything about a run that does not change from step to step.
 
-    ``root_body``: (V, 3) rest positions in the body frame of ``motion`` (used for the
-    kinematic root vertices, which the body carries rigidly)."""
+    ``root_body``: (V, 3) initial positions in the body frame of ``motion``: the kinematic root
+    vertices, which the body carries rigidly, and the state the run starts from
+    (``Simulator.initial_state``).
+    ``initial``: (V, 3) world positions at t = 0 the run starts from and the tracking is registered
+    on (correspondence, constraint offsets, variance rest values, skinning offsets), when they
+    differ from the elastic rest shape ``strands.rest`` (``scene.settle`` > 0: the hair settled
+    under gravity, hairexp/physics/settle.py); None: ``strands.rest``.  The elastic rest shape
+    (rest lengths, rest bending angles) is always ``strands.rest``."""
 
     name: str
     strands: Strands
@@ -33,6 +39,11 @@ class Scene:
     gravity: np.ndarray
     root_body: np.ndarray
     colliders: list = field(default_factory=list)
+    initial: np.ndarray | None = None
+
+    def initial_positions(self) -> np.ndarray:
+        """(V, 3) world positions at t = 0 the run starts from and the tracking registers on."""
+        return self.strands.rest if self.initial is None else self.initial
 
     def root_positions(self, t: float) -> np.ndarray:
         """(V, 3) with the kinematic rows set to the root positions at time t (others: rest)."""

@@ -65,7 +65,7 @@ class TrackingConstraints:
             n = e - np.dot(e, T0) * T0
             self.n_body.append(R0.T @ (n / np.linalg.norm(n)))
             self.t_body.append(R0.T @ T0)
-        com = self.com(s.rest[free].reshape(-1))
+        com = self.com(scene.initial_positions()[free].reshape(-1))
         self.t_rest = np.zeros(K)
         self.by_guide = [np.flatnonzero(corr.cluster_guide == g) for g in range(G)]
         for g in range(G):

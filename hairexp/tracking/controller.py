@@ -23,7 +23,7 @@ class TrackingController:
         s = scene.strands
         self.scene, self.guides = scene, guides
         free = ~s.kinematic
-        self.corr = build_correspondence(s.rest, s.offsets, free, guides.guides(guides.rest), tcfg.points_per_guide,
+        self.corr = build_correspondence(scene.initial_positions(), s.offsets, free, guides.guides(guides.rest), tcfg.points_per_guide,
                                          tcfg.max_guide_distance)
         targets = str(_v(tcfg.targets))
         if targets not in ("static", "sliding"):
@@ -31,7 +31,7 @@ class TrackingController:
         self.cons = TrackingConstraints(scene, self.corr, guides, sliding=targets == "sliding")
         self.kkt = SchurKKT(s, self.cons, bandwidth)
         self.hair_length = float(np.mean(s.strand_lengths()))
-        rest_free = s.rest[free].reshape(-1)
+        rest_free = scene.initial_positions()[free].reshape(-1)
         self.variance = VarianceControl(tcfg.variance, self.cons, rest_free)
         self.use_variance = self.variance.active          # k_v = 0: no penalty term at all
         self.opts = SQPOptions(rtol=tcfg.rtol, atol=tcfg.atol, ctol=tcfg.ctol_rel * self.hair_length,

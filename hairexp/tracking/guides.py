@@ -165,8 +165,12 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
     """Free simulation of the guide strands (eq. 5, same solver settings) at the scene's rate.
     With ``guides.collide`` the guides collide with the scene's colliders (the collision stage
     of ``collision.*``, without hair-hair), so that a coarse guide is dragged over an object as
-    the hair is; otherwise they pass through it."""
+    the hair is; otherwise they pass through it.  With ``scene.settle`` > 0 the guides first
+    settle under gravity for that time, the body (and colliders) held at their t = 0 poses, and
+    the animation starts from the settled guides at rest (frame 0).  The other guide sources
+    (rigid, scaled, keyframed, file, usd) are not settled: they are used as given."""
     from hairexp.physics.integrator import Simulator
+    from hairexp.physics.settle import settle_seconds, settle_state, settled_scene
     from hairexp.run import step_schedule
     from hairexp.scene.scene import Scene
     from hairexp.scene.strands import Strands
@@ -183,8 +187,11 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
     if collide:
         ccfg = copy.deepcopy(cfg.collision)
         ccfg.hair_hair = False
-    sim = Simulator(gscene, cfg.solver, collision_cfg=ccfg)
     n_sub, dt = step_schedule(fps, cfg.solver.dt, frames)
+    seconds = settle_seconds(cfg.scene)
+    if seconds > 0:   # scene.settle: the guides settle as the detail hair does (hairexp/physics/settle.py)
+        gscene = settled_scene(gscene, settle_state(gscene, cfg.solver, ccfg, seconds, dt, what="guides"))
+    sim = Simulator(gscene, cfg.solver, collision_cfg=ccfg)
     state = sim.initial_state()
     out = [state.x.copy()]
     for _ in range(frames):

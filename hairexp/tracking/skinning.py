@@ -33,13 +33,14 @@ class GuideSkinning:
         self.scene, self.guides = scene, guides
         self.free = np.flatnonzero(~s.kinematic)
         rest = guides.guides(guides.rest)
+        X0 = scene.initial_positions()   # registration positions (settled when scene.settle > 0)
         # eq. (1): each strand goes to the guide with the smallest integrated squared distance
         S = len(s.offsets) - 1
         strand = np.repeat(np.arange(S), np.diff(s.offsets))
         dist = np.zeros((S, len(rest)))
         for g, P in enumerate(rest):
-            Q, _ = closest_points_on_polyline(s.rest, P)
-            dist[:, g] = np.bincount(strand, weights=np.sum((s.rest - Q) ** 2, axis=1), minlength=S)
+            Q, _ = closest_points_on_polyline(X0, P)
+            dist[:, g] = np.bincount(strand, weights=np.sum((X0 - Q) ** 2, axis=1), minlength=S)
         self.guide_of_strand = np.argmin(dist, axis=1)
         gv = self.guide_of_strand[strand][self.free]
         R0, _ = scene.motion.pose(0.0)
@@ -54,7 +55,7 @@ class GuideSkinning:
         self.bind = []
         for g, P in enumerate(rest):
             idx = np.flatnonzero(gv == g)                  # positions in the free-vertex list
-            X = s.rest[self.free[idx]]
+            X = X0[self.free[idx]]
             _, arc = closest_points_on_polyline(X, P)
             knots = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
             j = np.clip(np.searchsorted(knots, arc, side="right") - 1, 0, len(P) - 2)
@@ -62,7 +63,7 @@ class GuideSkinning:
             self.bind.append((idx, j, u))
         self.offset_local = np.zeros((len(self.free), 3))
         base, F = self._frames_at(guides.rest, R0)
-        self.offset_local = np.einsum("nji,nj->ni", F, s.rest[self.free] - base)   # F^T (x - g)
+        self.offset_local = np.einsum("nji,nj->ni", F, X0[self.free] - base)   # F^T (x - g)
 
     def _frames_at(self, shape: np.ndarray, R: np.ndarray):
         """Guide points g(a_i) (n, 3) and blended frames F(a_i) (n, 3, 3) (columns T, N, B) of every
