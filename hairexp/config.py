@@ -144,6 +144,7 @@ class SceneConfig:
     # body and colliders held at their t = 0 poses; the run starts, and the tracking registers, on
     # the settled hair at rest (hairexp/physics/settle.py).  0: start from the rest shape as built.
     settle: float = 0.0
+    settle_dt: float = 0.04             # s, the settle phase's step (fixed: the same settled state at every run dt)
     # builder usd / guides.source usd: the stage and its prims (README "USD scenes")
     usd: str = ""                       # path of a .usda/.usdc/.usd stage
     usd_body: str = "/Root/Body"        # Xform, transform time-sampled

@@ -105,7 +105,7 @@ def run(cfg, out_dir: str | Path) -> dict:
             plain = to_plain(cfg)
         n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
         scene = build_scene(cfg.scene)
-        scene = settle_scene(scene, cfg, dt)   # scene.settle > 0: start from the hair at rest under gravity
+        scene = settle_scene(scene, cfg)   # scene.settle > 0: start from the hair at rest under gravity
         guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
         tracked = controller == "tracking"
         if controller == "skinned":   # baseline: detail hair skinned to the guides, no simulation

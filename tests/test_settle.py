@@ -69,7 +69,7 @@ def test_settle_keeps_the_elastic_rest_shape(hydra_conf):
 
     cfg = hydra_conf([*WISP, "scene.settle=1.0"])
     scene = build_scene(cfg.scene)
-    settled = settle_scene(scene, cfg, 0.04)
+    settled = settle_scene(scene, cfg)
     assert settled.strands is scene.strands                       # rest lengths and angles unchanged
     k = scene.strands.kinematic
     assert np.array_equal(settled.root_body[k], scene.root_body[k])  # roots exactly where they were
@@ -81,3 +81,23 @@ def test_settle_keeps_the_elastic_rest_shape(hydra_conf):
 def test_invalid_settle_is_an_input_error_naming_the_key(hydra_conf, tmp_path, value):
     with pytest.raises(InputError, match=r"scene\.settle"):
         run(hydra_conf([*WISP, "frames=1", f"scene.settle={value}"]), tmp_path)
+
+
+def test_settled_state_does_not_depend_on_the_run_dt(hydra_conf):
+    """The settle phase steps with scene.settle_dt, not the run's dt: runs at different dt start
+    from the same settled hair (what the accuracy report compares against a small-dt reference)."""
+    from hairexp.physics.settle import settle_scene
+
+    init = {}
+    for dt in (0.04, 0.01):
+        cfg = hydra_conf([*WISP, "scene.settle=1.0", f"solver.dt={dt}"])
+        init[dt] = settle_scene(build_scene(cfg.scene), cfg).initial
+    assert np.array_equal(init[0.04], init[0.01])
+    cfg = hydra_conf([*WISP, "scene.settle=1.0", "scene.settle_dt=0.01"])
+    assert np.max(np.abs(settle_scene(build_scene(cfg.scene), cfg).initial - init[0.04])) > 0  # the key is used
+
+
+@pytest.mark.parametrize("value", ["0.0", "-0.01", "nan"])
+def test_invalid_settle_dt_is_an_input_error_naming_the_key(hydra_conf, tmp_path, value):
+    with pytest.raises(InputError, match=r"scene\.settle_dt"):
+        run(hydra_conf([*WISP, "frames=1", "scene.settle=0.5", f"scene.settle_dt={value}"]), tmp_path)

@@ -2,8 +2,9 @@
 
 The builders make the hair in its elastic rest shape (straight strands), which is not in
 equilibrium under gravity: left alone it sags before anything moves.  With ``scene.settle`` > 0 the
-hair is simulated free (no controller) from time -settle to 0, the same solver settings and step
-size as the run, the body and the colliders held at their t = 0 poses (keyframed motions hold
+hair is simulated free (no controller) from time -settle to 0, with the run's solver settings
+and steps of ``scene.settle_dt`` (default 0.04 s, whatever the run's dt: runs at different dt
+start from the same state), the body and the colliders held at their t = 0 poses (keyframed motions hold
 their first pose with zero velocity before their first key, hairexp/scene/rigid.py; a dynamic
 body is replaced by its initial pose held still).  The run then starts from the settled
 positions at rest (zero velocity): ``Scene.root_body`` (body frame) and ``Scene.initial`` (world)
@@ -40,6 +41,20 @@ def settle_seconds(scene_cfg) -> float:
     return v
 
 
+def settle_step(scene_cfg) -> float:
+    """``scene.settle_dt`` validated: the settle phase's step (s), finite and > 0.  It is fixed,
+    not the run's dt, so that runs at different dt start from the same settled state (and large
+    implicit Euler steps damp the sag's oscillation quickly)."""
+    value = getattr(scene_cfg, "settle_dt", 0.04)
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"must be a step in seconds, got {value!r}", "scene.settle_dt") from exc
+    if not (math.isfinite(v) and v > 0):
+        raise InputError(f"must be finite and > 0 (seconds), got {v}", "scene.settle_dt")
+    return v
+
+
 def settle_state(scene, solver_cfg, collision_cfg, seconds: float, dt: float, what: str = "hair") -> np.ndarray:
     """(V, 3) world positions of ``scene``'s hair after ``seconds`` of free simulation from its
     rest shape, the body and colliders held at their t = 0 poses (see module doc)."""
@@ -72,9 +87,10 @@ def settled_scene(scene, x: np.ndarray):
     return replace(scene, root_body=root_body, initial=np.asarray(x, dtype=np.float64).copy())
 
 
-def settle_scene(scene, cfg, dt: float):
-    """The scene of a run: ``scene`` itself when ``cfg.scene.settle`` is 0, else settled."""
+def settle_scene(scene, cfg):
+    """The scene of a run: ``scene`` itself when ``cfg.scene.settle`` is 0, else settled (steps of
+    ``scene.settle_dt``, whatever the run's dt)."""
     seconds = settle_seconds(cfg.scene)
     if seconds == 0:
         return scene
-    return settled_scene(scene, settle_state(scene, cfg.solver, cfg.collision, seconds, dt))
+    return settled_scene(scene, settle_state(scene, cfg.solver, cfg.collision, seconds, settle_step(cfg.scene)))

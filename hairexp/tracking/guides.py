@@ -170,7 +170,7 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
     the animation starts from the settled guides at rest (frame 0).  The other guide sources
     (rigid, scaled, keyframed, file, usd) are not settled: they are used as given."""
     from hairexp.physics.integrator import Simulator
-    from hairexp.physics.settle import settle_seconds, settle_state, settled_scene
+    from hairexp.physics.settle import settle_seconds, settle_state, settle_step, settled_scene
     from hairexp.run import step_schedule
     from hairexp.scene.scene import Scene
     from hairexp.scene.strands import Strands
@@ -190,7 +190,8 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
     n_sub, dt = step_schedule(fps, cfg.solver.dt, frames)
     seconds = settle_seconds(cfg.scene)
     if seconds > 0:   # scene.settle: the guides settle as the detail hair does (hairexp/physics/settle.py)
-        gscene = settled_scene(gscene, settle_state(gscene, cfg.solver, ccfg, seconds, dt, what="guides"))
+        gscene = settled_scene(gscene, settle_state(gscene, cfg.solver, ccfg, seconds, settle_step(cfg.scene),
+                                                             what="guides"))
     sim = Simulator(gscene, cfg.solver, collision_cfg=ccfg)
     state = sim.initial_state()
     out = [state.x.copy()]
