@@ -43,6 +43,7 @@ from hairexp.experiment import apply_overrides  # noqa: E402
 from hairexp.physics.integrator import Simulator  # noqa: E402
 from hairexp.report import header, write_report  # noqa: E402
 from hairexp.run import run  # noqa: E402
+from hairexp.physics.settle import settle_scene  # noqa: E402
 from hairexp.scene.builders import build_scene  # noqa: E402
 from hairexp.scene.dynamic_body import POSITION, DynamicBody  # noqa: E402
 from hairexp.scenes.measures import RunData, compute  # noqa: E402
@@ -96,7 +97,7 @@ def controller_cfg(base, variant_overrides: list[str], ctrl_overrides: list[str]
 
 def measurement_tracker(cfg):
     """The tracked configuration's scene, clusters and target curves (built for measurement only)."""
-    scene = build_scene(cfg.scene)
+    scene = settle_scene(build_scene(cfg.scene), cfg)   # as hairexp.run does (scene.settle)
     guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
     return scene, Simulator(scene, cfg.solver, cfg.tracking, guides).tracker
 
@@ -202,10 +203,16 @@ def analyse(cfg, scene, tracker, out: Path) -> dict:
     for i, (x, t) in enumerate(zip(X, times)):
         place_body(scene, float(t), None if body is None else body[i])
         skinned.append(sk.positions(float(t)))
-        if i == 0:
-            continue
         xf = x[free].reshape(-1)
         c = cons.com(xf) - cons.target_points(cons.targets(float(t)), cons.t_rest)   # static (rest arc length) targets
+        if i == 0:
+            # every run starts where the measurement tracker was registered (e.g. after the same
+            # scene.settle): a cluster centre off its target at t = 0 means a mismatched measurement
+            e0 = float(np.max(np.linalg.norm(c, axis=1)) / L)
+            if e0 > 1e-6:
+                raise RuntimeError(f"{out}: cluster centres start {e0:.3g} L off their targets: the run's initial "
+                                   "state is not the measurement tracker's registration state")
+            continue
         err.append(np.linalg.norm(c, axis=1))
         var.append(tracker.variance.values(xf) / tracker.variance.rest)
     skinned = np.stack(skinned)
