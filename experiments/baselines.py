@@ -482,6 +482,8 @@ def main(argv=None):
     ap.add_argument("--out", default=None, help="keep the run folders here (default: a temporary folder)")
     ap.add_argument("--no-report", action="store_true")
     args = ap.parse_args(argv)
+    if args.frames is not None and args.frames <= WINDOW:
+        ap.error(f"--frames must be > {WINDOW} (the tip high-frequency window is {WINDOW} frames)")
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="baselines_"))
     t0 = time.perf_counter()
     scenes = []
