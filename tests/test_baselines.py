@@ -71,7 +71,7 @@ def test_attraction_derivatives_match_finite_differences():
     g, H = term.closed_form(xs, True)
     assert torch.allclose(g, rep.grad, rtol=1e-12, atol=1e-18) and torch.allclose(H, rep.hess, rtol=1e-12, atol=0)
     F = term.forces(x + 0.0)
-    assert np.allclose(F, -term.km.numpy()[:, None] * (x - term.target.numpy()))
+    assert np.allclose(F, -term.w.numpy()[:, None] * (x - term.y.numpy()))
 
 
 @pytest.mark.parametrize("controller", ["skinned", "attract"])

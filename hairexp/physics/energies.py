@@ -264,8 +264,23 @@ class EdgeDamping(Term):
         return g, pair_hessian(K)
 
 
-class AirDrag(Term):
-    """Drag against still air over one step: D = gamma m / (2 dt) |x - x_n|^2 (gamma in 1/s)."""
+class PointWell(Term):
+    """Isotropic quadratic well of each vertex around an anchor: E = sum_i 1/2 w_i |x_i - y_i|^2.
+    Subclasses set the weights ``w`` (n,) and anchors ``y`` (n, 3)."""
+
+    def energy(self, xs):
+        return 0.5 * self.w * ((xs[:, 0] - self.y) ** 2).sum(-1)
+
+    def closed_form(self, xs, need_hessian):
+        g = self.w.unsqueeze(-1) * (xs[:, 0] - self.y)
+        if not need_hessian:
+            return g, None
+        return g, self.w.view(-1, 1, 1) * torch.eye(3, dtype=DTYPE).expand(len(g), 3, 3)
+
+
+class AirDrag(PointWell):
+    """Drag against still air over one step: D = gamma m / (2 dt) |x - x_n|^2 (gamma in 1/s):
+    a well of weight gamma m / dt around the start-of-step positions x_n."""
 
     name = "air_drag"
 
@@ -275,44 +290,26 @@ class AirDrag(Term):
         self.gamma = float(gamma)
 
     def set_reference(self, x_n: torch.Tensor, dt: float) -> None:
-        self.xref = x_n[self.stencil_t][:, 0]
-        self.s = self.gamma * self.m / dt
-
-    def energy(self, xs):
-        return 0.5 * self.s * ((xs[:, 0] - self.xref) ** 2).sum(-1)
-
-    def closed_form(self, xs, need_hessian):
-        g = self.s.unsqueeze(-1) * (xs[:, 0] - self.xref)
-        if not need_hessian:
-            return g, None
-        return g, self.s.view(-1, 1, 1) * torch.eye(3, dtype=DTYPE).expand(len(g), 3, 3)
+        self.y = x_n[self.stencil_t][:, 0]
+        self.w = self.gamma * self.m / dt
 
 
-class Attraction(Term):
+class Attraction(PointWell):
     """Attraction of each free vertex to a moving target (the nHair "start curve attract" /
-    Vellum "pin to target" baseline): E = sum_i 1/2 k m_i |x_i - y_i(t)|^2, k in 1/s^2.
-    ``set_target`` sets y at the end-of-step time before each solve."""
+    Vellum "pin to target" baseline): E = sum_i 1/2 k m_i |x_i - y_i(t)|^2, k in 1/s^2: a well of
+    weight k m_i around the target.  ``set_target`` sets y at the end-of-step time before each solve."""
 
     name = "attraction"
 
     def __init__(self, masses: np.ndarray, k: float, vertices: np.ndarray):
         self.stencil = np.asarray(vertices).reshape(-1, 1)
-        self.km = float(k) * _t(masses)[torch.tensor(np.asarray(vertices))]
-        self.target = _t(np.zeros((len(self.stencil), 3)))
+        self.w = float(k) * _t(masses)[torch.tensor(np.asarray(vertices))]
+        self.y = _t(np.zeros((len(self.stencil), 3)))
 
     def set_target(self, y) -> None:
-        self.target = torch.as_tensor(np.asarray(y), dtype=DTYPE).reshape(-1, 3)
-
-    def energy(self, xs):
-        return 0.5 * self.km * ((xs[:, 0] - self.target) ** 2).sum(-1)
-
-    def closed_form(self, xs, need_hessian):
-        g = self.km.unsqueeze(-1) * (xs[:, 0] - self.target)
-        if not need_hessian:
-            return g, None
-        return g, self.km.view(-1, 1, 1) * torch.eye(3, dtype=DTYPE).expand(len(g), 3, 3)
+        self.y = torch.as_tensor(np.asarray(y), dtype=DTYPE).reshape(-1, 3)
 
     def forces(self, x) -> np.ndarray:
         """(n, 3) spring forces -k m_i (x_i - y_i) at full positions x (V, 3)."""
         xs = torch.as_tensor(np.asarray(x), dtype=DTYPE)[self.stencil_t]
-        return (-self.km.unsqueeze(-1) * (xs[:, 0] - self.target)).numpy()
+        return (-self.w.unsqueeze(-1) * (xs[:, 0] - self.y)).numpy()
