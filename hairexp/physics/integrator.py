@@ -151,13 +151,7 @@ class Simulator:
         reports ``constraint_force_rel``)."""
         if self.attraction is None:
             return None
-        return float(np.linalg.norm(self.attraction.forces(state.x))) / self.weight_norm()
-
-    def weight_norm(self) -> float:
-        """|m g| of the free vertices (stacked), the scale of every control-effort measure."""
-        s = self.scene.strands
-        free = ~s.kinematic
-        return float(np.linalg.norm(s.masses[free, None] * self.scene.gravity[None])) or 1.0
+        return float(np.linalg.norm(self.attraction.forces(state.x))) / self.scene.free_weight_norm()
 
     # -- one attempt ----------------------------------------------------------------------
     def _solve(self, state: State, dt: float) -> tuple[State, SolveInfo]:

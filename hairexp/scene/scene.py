@@ -45,6 +45,12 @@ class Scene:
         """(V, 3) world positions at t = 0 the run starts from and the tracking registers on."""
         return self.strands.rest if self.initial is None else self.initial
 
+    def free_weight_norm(self) -> float:
+        """|m g| of the free vertices (their stacked weights): the scale of every control-effort
+        measure (constraint, attraction or implied skinning forces over weight); 1 without gravity."""
+        free = ~self.strands.kinematic
+        return float(np.linalg.norm(self.strands.masses[free, None] * self.gravity[None])) or 1.0
+
     def root_positions(self, t: float) -> np.ndarray:
         """(V, 3) with the kinematic rows set to the root positions at time t (others: rest)."""
         x = self.strands.rest.copy()

@@ -23,7 +23,7 @@ import torch
 from hairexp.scene.scene import Scene
 from hairexp.tracking import spline
 from hairexp.tracking.correspondence import Correspondence, closest_points_on_polyline
-from hairexp.tracking.frames import parallel_transport_batch, transport, vertex_tangents
+from hairexp.tracking.frames import BodyCarriedFrames
 from hairexp.tracking.guides import GuideAnimation
 
 
@@ -57,14 +57,7 @@ class TrackingConstraints:
         G = guides.n_guides
         rest = guides.guides(guides.rest)
         self.knots = [spline.rest_arclength(P) for P in rest]
-        R0, _ = scene.motion.pose(0.0)
-        self.n_body, self.t_body = [], []
-        for P in rest:
-            T0 = vertex_tangents(P)[0]
-            e = np.eye(3)[np.argmin(np.abs(np.eye(3) @ T0))]
-            n = e - np.dot(e, T0) * T0
-            self.n_body.append(R0.T @ (n / np.linalg.norm(n)))
-            self.t_body.append(R0.T @ T0)
+        self.root_frames = BodyCarriedFrames(rest, scene.motion.pose(0.0)[0])
         com = self.com(scene.initial_positions()[free].reshape(-1))
         self.t_rest = np.zeros(K)
         self.by_guide = [np.flatnonzero(corr.cluster_guide == g) for g in range(G)]
@@ -97,13 +90,7 @@ class TrackingConstraints:
     def _frames(self, shape: np.ndarray, t: float):
         """Parallel-transported frames of every guide at time t: list of (T, N, B)."""
         R, _ = self.scene.motion.pose(t)
-        out = []
-        for g, P in enumerate(self.guides.guides(shape)):
-            T0 = vertex_tangents(P)[0]
-            n0 = transport(R @ self.n_body[g], R @ self.t_body[g], T0)  # body frame, turned onto the root tangent
-            T, N, B = parallel_transport_batch(P[None], n0[None])
-            out.append((T[0], N[0], B[0]))
-        return out
+        return [self.root_frames.frames(g, P, R) for g, P in enumerate(self.guides.guides(shape))]
 
     def targets(self, t: float) -> Targets:
         shape = self.guides.shape_at(t)

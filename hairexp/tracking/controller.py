@@ -39,7 +39,7 @@ class TrackingController:
         self.tg = None
         self.time = None
         self._kv = self._vbar = None
-        self.m_g_norm = float(np.linalg.norm(s.masses[free, None] * scene.gravity[None])) or 1.0
+        self.m_g_norm = scene.free_weight_norm()
 
     def targets_at(self, t: float):
         """Target curves at time t; the step's own (built in ``begin``) when t is its time, so

@@ -63,6 +63,17 @@ def sample_tracking_points(P: np.ndarray, count: int) -> tuple[np.ndarray, np.nd
     return pts, targets
 
 
+def strand_guide_distances(detail_rest: np.ndarray, offsets: np.ndarray, guides_rest: list[np.ndarray]) -> np.ndarray:
+    """(S, G) eq. (1): the integrated squared distance of each strand's vertices to each guide."""
+    S = len(offsets) - 1
+    strand = np.repeat(np.arange(S), np.diff(offsets))
+    dist = np.zeros((S, len(guides_rest)))
+    for g, P in enumerate(guides_rest):
+        Q, _ = closest_points_on_polyline(detail_rest, P)
+        dist[:, g] = np.bincount(strand, weights=np.sum((detail_rest - Q) ** 2, axis=1), minlength=S)
+    return dist
+
+
 def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.ndarray,
                          guides_rest: list[np.ndarray], points_per_guide: int,
                          max_distance: float = 0.0) -> Correspondence:
@@ -72,14 +83,10 @@ def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.
         raise InputError(f"must be >= 1, got {points_per_guide}", "tracking.points_per_guide")
     if not guides_rest:
         raise InputError("a tracked run needs at least one guide", "guides")
-    S = len(offsets) - 1
     G = len(guides_rest)
     # 1. eq. (1): integrated squared distance of each strand to each guide
-    dist = np.zeros((S, G))
-    strand = np.repeat(np.arange(S), np.diff(offsets))
-    for g, P in enumerate(guides_rest):
-        Q, _ = closest_points_on_polyline(detail_rest, P)
-        dist[:, g] = np.bincount(strand, weights=np.sum((detail_rest - Q) ** 2, axis=1), minlength=S)
+    dist = strand_guide_distances(detail_rest, offsets, guides_rest)
+    strand = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
     if not np.isfinite(dist).all():
         raise InputError("non-finite distance between detail hair and guides", "guides")
     guide_of_strand = np.argmin(dist, axis=1)

@@ -56,3 +56,25 @@ def parallel_transport_batch(P: np.ndarray, n0: np.ndarray):
         v -= np.sum(v * T[:, i], -1, keepdims=True) * T[:, i]
         N[:, i] = v / np.linalg.norm(v, axis=-1, keepdims=True)
     return T, N, np.cross(T, N)
+
+
+class BodyCarriedFrames:
+    """Parallel-transported frames of each guide whose root normal is carried by the rigid body
+    (paper 3.2): registered on the rest guides under the body rotation R0 at t = 0, re-posed for
+    any guide shape and body rotation R.  Shared by the tracking targets and the skinning baseline."""
+
+    def __init__(self, rest_guides: list[np.ndarray], R0: np.ndarray):
+        self.n_body, self.t_body = [], []
+        for P in rest_guides:
+            T0 = vertex_tangents(P)[0]
+            e = np.eye(3)[np.argmin(np.abs(T0))]
+            n = e - np.dot(e, T0) * T0
+            self.n_body.append(R0.T @ (n / np.linalg.norm(n)))
+            self.t_body.append(R0.T @ T0)
+
+    def frames(self, g: int, P: np.ndarray, R: np.ndarray):
+        """(T, N, B), each (n, 3), along guide g's vertices P (n, 3) under body rotation R."""
+        T0 = vertex_tangents(P)[0]
+        n0 = transport(R @ self.n_body[g], R @ self.t_body[g], T0)  # body frame, turned onto the root tangent
+        T, N, B = parallel_transport_batch(P[None], n0[None])
+        return T[0], N[0], B[0]

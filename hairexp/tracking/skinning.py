@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from hairexp.tracking.correspondence import closest_points_on_polyline
-from hairexp.tracking.frames import parallel_transport_batch, transport, vertex_tangents
+from hairexp.tracking.correspondence import closest_points_on_polyline, strand_guide_distances
+from hairexp.tracking.frames import BodyCarriedFrames
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -35,22 +35,10 @@ class GuideSkinning:
         rest = guides.guides(guides.rest)
         X0 = scene.initial_positions()   # registration positions (settled when scene.settle > 0)
         # eq. (1): each strand goes to the guide with the smallest integrated squared distance
-        S = len(s.offsets) - 1
-        strand = np.repeat(np.arange(S), np.diff(s.offsets))
-        dist = np.zeros((S, len(rest)))
-        for g, P in enumerate(rest):
-            Q, _ = closest_points_on_polyline(X0, P)
-            dist[:, g] = np.bincount(strand, weights=np.sum((X0 - Q) ** 2, axis=1), minlength=S)
-        self.guide_of_strand = np.argmin(dist, axis=1)
-        gv = self.guide_of_strand[strand][self.free]
+        self.guide_of_strand = np.argmin(strand_guide_distances(X0, s.offsets, rest), axis=1)
+        gv = np.repeat(self.guide_of_strand, np.diff(s.offsets))[self.free]
         R0, _ = scene.motion.pose(0.0)
-        self.n_body, self.t_body = [], []
-        for P in rest:  # the root normal, carried by the body (as the tracking targets' frames)
-            T0 = vertex_tangents(P)[0]
-            e = np.eye(3)[np.argmin(np.abs(T0))]
-            n = e - np.dot(e, T0) * T0
-            self.n_body.append(R0.T @ (n / np.linalg.norm(n)))
-            self.t_body.append(R0.T @ T0)
+        self.root_frames = BodyCarriedFrames(rest, R0)   # as the tracking targets' frames
         # binding: per guide, the bound free vertices, their segment and fraction in rest arc length
         self.bind = []
         for g, P in enumerate(rest):
@@ -61,7 +49,6 @@ class GuideSkinning:
             j = np.clip(np.searchsorted(knots, arc, side="right") - 1, 0, len(P) - 2)
             u = np.clip((arc - knots[j]) / (knots[j + 1] - knots[j]), 0.0, 1.0)
             self.bind.append((idx, j, u))
-        self.offset_local = np.zeros((len(self.free), 3))
         base, F = self._frames_at(guides.rest, R0)
         self.offset_local = np.einsum("nji,nj->ni", F, X0[self.free] - base)   # F^T (x - g)
 
@@ -75,9 +62,7 @@ class GuideSkinning:
             idx, j, u = self.bind[g]
             if idx.size == 0:
                 continue
-            T0 = vertex_tangents(P)[0]
-            n0 = transport(R @ self.n_body[g], R @ self.t_body[g], T0)
-            T, N, _ = (a[0] for a in parallel_transport_batch(P[None], n0[None]))
+            T, N, _ = self.root_frames.frames(g, P, R)
             uu = u[:, None]
             base[idx] = (1 - uu) * P[j] + uu * P[j + 1]
             t = _unit((1 - uu) * T[j] + uu * T[j + 1])
@@ -147,6 +132,6 @@ def skinned_simulator(scene, solver_cfg, guides):
             obj = self.objective
             obj.begin_step(prev.x, prev.v, self.scene.root_positions(state.time), dt, None)
             ev = obj.evaluate(self.free_dofs(state.x), need_hessian=False)
-            return float(np.linalg.norm(ev.grad)) / self.weight_norm()
+            return float(np.linalg.norm(ev.grad)) / self.scene.free_weight_norm()
 
     return SkinnedSimulator()
