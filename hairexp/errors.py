@@ -19,3 +19,16 @@ class InputError(HairexpError, ValueError):
 
 class SimulationError(HairexpError, RuntimeError):
     """The solver could not produce a finite state, even after the configured recovery."""
+
+
+def finite_number(value, key: str) -> float:
+    """``value`` as a finite float, or an InputError naming ``key``."""
+    import math
+
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"must be a number, got {value!r}", key) from exc
+    if not math.isfinite(v):
+        raise InputError(f"must be finite, got {v}", key)
+    return v

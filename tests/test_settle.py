@@ -97,7 +97,8 @@ def test_settled_state_does_not_depend_on_the_run_dt(hydra_conf):
     assert np.max(np.abs(settle_scene(build_scene(cfg.scene), cfg).initial - init[0.04])) > 0  # the key is used
 
 
+@pytest.mark.parametrize("settle", ["0.5", "0.0"])   # checked even when the settle phase is off
 @pytest.mark.parametrize("value", ["0.0", "-0.01", "nan"])
-def test_invalid_settle_dt_is_an_input_error_naming_the_key(hydra_conf, tmp_path, value):
+def test_invalid_settle_dt_is_an_input_error_naming_the_key(hydra_conf, tmp_path, value, settle):
     with pytest.raises(InputError, match=r"scene\.settle_dt"):
-        run(hydra_conf([*WISP, "frames=1", "scene.settle=0.5", f"scene.settle_dt={value}"]), tmp_path)
+        run(hydra_conf([*WISP, "frames=1", f"scene.settle={settle}", f"scene.settle_dt={value}"]), tmp_path)

@@ -362,8 +362,8 @@ class HairHair:
 def contact_velocities(colliders, x1, v1, t1, movable):
     """Inelastic contact: vertices on a collider's shell get no approaching normal velocity
     relative to the surface, and Coulomb friction on the tangential one."""
+    near = np.flatnonzero(movable)
     for col in colliders:
-        near = np.flatnonzero(movable)
         c = near[col.on_shell(x1[near], t1)]
         if c.size:
             n = col.normal(x1[c], t1)

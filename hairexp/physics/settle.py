@@ -23,7 +23,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, finite_number
 from hairexp.scene.dynamic_body import authoring_motion
 
 log = logging.getLogger(__name__)
@@ -31,13 +31,9 @@ log = logging.getLogger(__name__)
 
 def settle_seconds(scene_cfg) -> float:
     """``scene.settle`` validated: a finite number >= 0 (s)."""
-    value = getattr(scene_cfg, "settle", 0.0)
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"must be a number of seconds, got {value!r}", "scene.settle") from exc
-    if not (math.isfinite(v) and v >= 0):
-        raise InputError(f"must be finite and >= 0 (seconds), got {v}", "scene.settle")
+    v = finite_number(getattr(scene_cfg, "settle", 0.0), "scene.settle")
+    if not v >= 0:
+        raise InputError(f"must be >= 0 (seconds), got {v}", "scene.settle")
     return v
 
 
@@ -45,13 +41,9 @@ def settle_step(scene_cfg) -> float:
     """``scene.settle_dt`` validated: the settle phase's step (s), finite and > 0.  It is fixed,
     not the run's dt, so that runs at different dt start from the same settled state (and large
     implicit Euler steps damp the sag's oscillation quickly)."""
-    value = getattr(scene_cfg, "settle_dt", 0.04)
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"must be a step in seconds, got {value!r}", "scene.settle_dt") from exc
-    if not (math.isfinite(v) and v > 0):
-        raise InputError(f"must be finite and > 0 (seconds), got {v}", "scene.settle_dt")
+    v = finite_number(getattr(scene_cfg, "settle_dt", 0.04), "scene.settle_dt")
+    if not v > 0:
+        raise InputError(f"must be > 0 (seconds), got {v}", "scene.settle_dt")
     return v
 
 
@@ -90,7 +82,7 @@ def settled_scene(scene, x: np.ndarray):
 def settle_scene(scene, cfg):
     """The scene of a run: ``scene`` itself when ``cfg.scene.settle`` is 0, else settled (steps of
     ``scene.settle_dt``, whatever the run's dt)."""
-    seconds = settle_seconds(cfg.scene)
+    seconds, step = settle_seconds(cfg.scene), settle_step(cfg.scene)   # both validated, even when off
     if seconds == 0:
         return scene
-    return settled_scene(scene, settle_state(scene, cfg.solver, cfg.collision, seconds, settle_step(cfg.scene)))
+    return settled_scene(scene, settle_state(scene, cfg.solver, cfg.collision, seconds, step))

@@ -51,12 +51,11 @@ then carried by the live block.
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, finite_number
 from hairexp.scene.rigid import RigidMotion
 
 #: Layout of ``State.duals['body']`` (one float64 vector).
@@ -175,24 +174,14 @@ def authoring_motion(motion):
     return getattr(motion, "reference", motion)
 
 
-def _finite(value, key: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"must be a number, got {value!r}", key) from exc
-    if not math.isfinite(v):
-        raise InputError(f"must be finite, got {v}", key)
-    return v
-
-
 def build_dynamic_body(body_cfg, motion: RigidMotion, strands, gravity: np.ndarray) -> DynamicBody:
     """The block of ``scene.body`` (validated), starting at the pose of ``scene.motion`` at t=0."""
-    mass = _finite(body_cfg.mass, "scene.body.mass")
+    mass = finite_number(body_cfg.mass, "scene.body.mass")
     if not mass > 0:
         raise InputError(f"must be > 0 (kg), got {mass}", "scene.body.mass")
-    rail_height = _finite(body_cfg.rail_height, "scene.body.rail_height")
-    rail_end = _finite(body_cfg.rail_end, "scene.body.rail_end")
-    mu = _finite(body_cfg.rail_friction, "scene.body.rail_friction")
+    rail_height = finite_number(body_cfg.rail_height, "scene.body.rail_height")
+    rail_end = finite_number(body_cfg.rail_end, "scene.body.rail_end")
+    mu = finite_number(body_cfg.rail_friction, "scene.body.rail_friction")
     if not mu >= 0:
         raise InputError(f"must be >= 0, got {mu}", "scene.body.rail_friction")
     vel = np.asarray(list(body_cfg.velocity), dtype=np.float64)
