@@ -32,11 +32,8 @@ import pandas as pd
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from hydra import compose, initialize_config_dir  # noqa: E402
-from hydra.core.global_hydra import GlobalHydra  # noqa: E402
 
-import hairexp.config  # noqa: E402,F401
-from hairexp.config import to_plain  # noqa: E402
+from hairexp.config import compose_config, to_plain  # noqa: E402
 from hairexp.report_cache import cached, describe  # noqa: E402
 from hairexp.run import config_hash, run  # noqa: E402
 
@@ -49,12 +46,7 @@ def cfg_for(scene: str, controller: str, dt: float, rtol: float, frames: int | N
             f"solver.dt={dt}", f"solver.rtol={rtol}", f"tracking.rtol={rtol}", "solver.on_failure=warn"]
     if frames:
         over.append(f"frames={frames}")
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-            return compose(config_name="config", overrides=over)
-    finally:
-        GlobalHydra.instance().clear()
+    return compose_config(over)
 
 
 def one(scene, controller, dt, rtol, frames, out: Path) -> dict:

@@ -35,11 +35,10 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from hydra import compose, initialize_config_dir  # noqa: E402
-from hydra.core.global_hydra import GlobalHydra  # noqa: E402
 
 from hairexp.errors import InputError  # noqa: E402
 from hairexp.experiment import apply_overrides  # noqa: E402
+from hairexp.config import compose_config  # noqa: E402
 from hairexp.physics.integrator import Simulator  # noqa: E402
 from hairexp.report import header, write_report  # noqa: E402
 from hairexp.run import run  # noqa: E402
@@ -50,7 +49,6 @@ from hairexp.scenes.measures import RunData, compute  # noqa: E402
 from hairexp.tracking.guides import build_guides  # noqa: E402
 from hairexp.tracking.skinning import GuideSkinning  # noqa: E402
 
-CONF = Path(__file__).resolve().parent.parent / "conf"
 EXPERIMENTS = ("goaling", "splitting", "spreading", "stylization", "celia")
 STIFFNESSES = (10.0, 100.0, 1000.0)
 WINDOW = 5   # frames, the moving average removed from the tip trajectories
@@ -64,12 +62,7 @@ REPRESENTATIVE = {"splitting": "tracked_3", "spreading": "target_5v0"}
 
 def compose_cfg(experiment: str, overrides: list[str] = ()):
     """The experiment's config with its variants (not yet applied), logging off."""
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-            return compose(config_name="config", overrides=[f"experiment={experiment}", "logging=off", *overrides])
-    finally:
-        GlobalHydra.instance().clear()
+    return compose_config([f"experiment={experiment}", "logging=off", *overrides])
 
 
 def representative_variant(cfg) -> tuple[str, list[str]]:

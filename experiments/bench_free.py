@@ -22,21 +22,18 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from hydra import compose, initialize_config_dir  # noqa: E402
 
-import hairexp.config  # noqa: E402,F401
+from hairexp.config import compose_config  # noqa: E402
 from hairexp.physics.integrator import Simulator  # noqa: E402
 from hairexp.report import header, write_report  # noqa: E402
 from hairexp.scene.builders import build_scene  # noqa: E402
 from hairexp.sinks.metrics import stretch  # noqa: E402
 
-CONF = str(Path(__file__).resolve().parent.parent / "conf")
 SETTLE = 3.0   # s of still head before the first jerk (hair reaches its hanging equilibrium)
 
 
 def compose_cfg(overrides):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose(config_name="config", overrides=["experiment=celia", *overrides])
+    return compose_config(["experiment=celia", *overrides])
 
 
 def motion_overrides() -> list[str]:

@@ -33,19 +33,16 @@ MOTION = ["scene.motion.interpolation=linear", "scene.motion.times=[0.0,0.2,0.3,
 
 def one(n: int, controller: str, steps: int) -> dict:
     """Runs in a child process: returns the figures of one size and controller."""
-    from hydra import compose, initialize_config_dir
-
-    import hairexp.config  # noqa: F401
+    from hairexp.config import compose_config
     from hairexp.physics.integrator import Simulator
     from hairexp.scene.builders import build_scene
     from hairexp.tracking.guides import build_guides
 
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     radius = 0.025 * float(np.sqrt(n / 301.0))
-    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[
-            "experiment=celia", "variants=[]", "scene.colliders=[]", f"scene.n_strands={n}", f"scene.root_radius={radius}",
-            "solver.compile=on", f"controller.name={controller}", "frames=8", *MOTION])
+    cfg = compose_config([
+        "experiment=celia", "variants=[]", "scene.colliders=[]", f"scene.n_strands={n}", f"scene.root_radius={radius}",
+        "solver.compile=on", f"controller.name={controller}", "frames=8", *MOTION])
     scene = build_scene(cfg.scene)
     tracked = controller == "tracking"
     guides = build_guides(cfg, scene, 8, cfg.fps) if tracked else None

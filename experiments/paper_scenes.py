@@ -24,11 +24,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from hydra import compose, initialize_config_dir  # noqa: E402
-from hydra.core.global_hydra import GlobalHydra  # noqa: E402
 
-import hairexp.config  # noqa: E402,F401  (registers the schema)
-from hairexp.config import to_plain  # noqa: E402
+from hairexp.config import compose_config, to_plain  # noqa: E402
 from hairexp.experiment import run_experiment  # noqa: E402
 from hairexp.report import header, write_report  # noqa: E402
 from hairexp.report_cache import cached, describe  # noqa: E402
@@ -67,11 +64,7 @@ def main():
         md += "Overrides on every scene: " + ", ".join(f"`{o}`" for o in args.set) + "\n\n"
     data = {}
     for name in names:
-        GlobalHydra.instance().clear()
-        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-            cfg = compose(config_name="config", overrides=[f"experiment={name}", "logging.progress=false",
-                                                           *args.set])
-        GlobalHydra.instance().clear()
+        cfg = compose_config([f"experiment={name}", "logging.progress=false", *args.set])
         out = ROOT / "outputs" / "paper_scenes" / name
         t0 = time.perf_counter()
 

@@ -83,18 +83,10 @@ CASES: dict[str, tuple[list[str], tuple[str, ...], str | None, str]] = {
 def compose_cfg(overrides: list[str]):
     """The base config (hydra) with the case's overrides applied as YAML values (lists of records
     such as ``scene.colliders`` are typed by the schema)."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
+    from hairexp.config import compose_config
     from hairexp.experiment import apply_overrides
 
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
-            cfg = compose(config_name="config", overrides=BASE)
-    finally:
-        GlobalHydra.instance().clear()
-    return apply_overrides(cfg, overrides, "stress case")
+    return apply_overrides(compose_config(BASE), overrides, "stress case")
 
 
 def write_guide_file(cfg, kind: str, path: Path, seed: int = 0) -> Path:

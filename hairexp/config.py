@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import Enum
+from pathlib import Path
 from typing import Any, Optional
 
 from hydra.core.config_store import ConfigStore
@@ -337,3 +338,22 @@ def to_plain(cfg: Any) -> Any:
         return o
 
     return conv(OmegaConf.to_container(cfg, resolve=True, enum_to_str=False) if not isinstance(cfg, dict) else cfg)
+
+
+#: the project's Hydra config directory
+CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+
+
+def compose_config(overrides: list[str] | tuple[str, ...] = ()):
+    """The composed ``config`` with ``overrides`` (``key=value`` strings, as on the command line)
+    outside a Hydra app: for scripts, benchmarks and reports.  Hydra's global state is cleared
+    before and after, so it can be called any number of times."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            return compose(config_name="config", overrides=list(overrides))
+    finally:
+        GlobalHydra.instance().clear()

@@ -13,9 +13,7 @@ from __future__ import annotations
 import logging
 import sys
 from dataclasses import replace
-from pathlib import Path
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 log = logging.getLogger(__name__)
 
 
@@ -47,14 +45,11 @@ def main(argv: list[str] | None = None) -> int:
     if not args or "=" in args[0] or args[0].startswith("-"):
         print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
         return 1
-    from hydra import compose, initialize_config_dir
-
-    import hairexp.config  # noqa: F401  (registers the schema)
+    from hairexp.config import compose_config
     from hairexp.errors import InputError
 
     try:
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = compose(config_name="config", overrides=args[1:])
+        cfg = compose_config(args[1:])
     except Exception as exc:  # unknown key, wrong type: Hydra's message
         print(f"hairexp: error: {exc}", file=sys.stderr)
         return 1
