@@ -95,7 +95,7 @@ def main():
     ap.add_argument("--comparisons", nargs="*", default=list(COMPARISONS))
     ap.add_argument("--launcher", default=None)
     args = ap.parse_args()
-    from hairexp.report import header, write_report
+    from hairexp.app.report import header, write_report
 
     base = ROOT / "multirun" / "ablations" / time.strftime("%Y-%m-%d_%H-%M-%S")
     rows = []

@@ -33,9 +33,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 
-from hairexp.config import compose_config, to_plain  # noqa: E402
-from hairexp.report_cache import cached, describe  # noqa: E402
-from hairexp.run import config_hash, run  # noqa: E402
+from hairexp.app.config import compose_config, to_plain  # noqa: E402
+from hairexp.app.report_cache import cached, describe  # noqa: E402
+from hairexp.app.run import config_hash, run  # noqa: E402
 
 DTS = [0.005, 0.01, 0.02, 0.04]
 RTOLS = [1e-3, 1e-5, 1e-7]
@@ -96,7 +96,7 @@ def main():
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/accuracy/ entries (same config, solver source and versions)")
     args = ap.parse_args()
-    from hairexp.report import header, write_report
+    from hairexp.app.report import header, write_report
 
     base = ROOT / "outputs" / "accuracy"
     all_rows, recs, refs = [], {}, {}

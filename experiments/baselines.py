@@ -3,7 +3,7 @@
 For every scene (goaling, splitting, spreading, stylization, celia; paper section 4) we run
 
 * ``free``: the free simulation;
-* ``skinned``: the detail hair skinned to the guides (guide-deform, hairexp/tracking/skinning.py);
+* ``skinned``: the detail hair skinned to the guides (guide-deform, hairexp/control/skinning.py);
 * ``attract k``: the free simulation plus a spring 1/2 k m_i |x_i - x_g,i(t)|^2 to the skinned
   position on every free vertex, k = 10, 100, 1000 1/s^2 (nHair "start curve attract",
   Vellum "pin to target");
@@ -13,7 +13,7 @@ All controllers of a scene see the same guides: the overrides of one representat
 variant of the scene's YAML (``REPRESENTATIVE``) are applied to every controller.  Every run is
 measured with the same clusters and targets (a TrackingController of the tracked configuration,
 built for measurement only) and with the scene's own success measure
-(hairexp/scenes/measures.py) computed the same way for every controller, judged per run by the
+(hairexp/evaluation/measures.py) computed the same way for every controller, judged per run by the
 per-controller half of the scene's judge (``CRITERIA``).  A run that fails (or a controller
 that cannot drive a scene, e.g. skinning on a dynamic body) is recorded with its error.
 Writes reports/baselines.{md,json}.
@@ -37,17 +37,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
 from hairexp.errors import InputError  # noqa: E402
-from hairexp.experiment import apply_overrides  # noqa: E402
-from hairexp.config import compose_config  # noqa: E402
-from hairexp.physics.integrator import Simulator  # noqa: E402
-from hairexp.report import header, write_report  # noqa: E402
-from hairexp.run import run  # noqa: E402
+from hairexp.app.experiment import apply_overrides  # noqa: E402
+from hairexp.app.config import compose_config  # noqa: E402
+from hairexp.physics.simulator import Simulator  # noqa: E402
+from hairexp.app.report import header, write_report  # noqa: E402
+from hairexp.app.run import run  # noqa: E402
+from hairexp.app.assemble import assemble  # noqa: E402
 from hairexp.physics.settle import settle_scene  # noqa: E402
-from hairexp.scene.builders import build_scene  # noqa: E402
-from hairexp.scene.dynamic_body import POSITION, DynamicBody  # noqa: E402
-from hairexp.scenes.measures import RunData, compute  # noqa: E402
-from hairexp.tracking.guides import build_guides  # noqa: E402
-from hairexp.tracking.skinning import GuideSkinning  # noqa: E402
+from hairexp.app.builders import build_scene  # noqa: E402
+from hairexp.model.dynamic_body import POSITION  # noqa: E402
+from hairexp.evaluation.measures import RunData, compute  # noqa: E402
+from hairexp.app.guides import build_guides  # noqa: E402
+from hairexp.control.skinning import GuideSkinning  # noqa: E402
 
 EXPERIMENTS = ("goaling", "splitting", "spreading", "stylization", "celia")
 STIFFNESSES = (10.0, 100.0, 1000.0)
@@ -90,9 +91,8 @@ def controller_cfg(base, variant_overrides: list[str], ctrl_overrides: list[str]
 
 def measurement_tracker(cfg):
     """The tracked configuration's scene, clusters and target curves (built for measurement only)."""
-    scene = settle_scene(build_scene(cfg.scene), cfg)   # as hairexp.run does (scene.settle)
-    guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
-    return scene, Simulator(scene, cfg.solver, cfg.tracking, guides).tracker
+    run = assemble(apply_overrides(cfg, ["controller.name=tracking"], "measurement"))   # as hairexp.app.run does
+    return run.scene, run.controller
 
 
 def _name(x) -> str:
@@ -100,17 +100,18 @@ def _name(x) -> str:
     return str(getattr(x, "value", x))
 
 
-def place_body(scene, t: float, body_position) -> None:
-    """On a dynamic body (stylization) the pose queries refer to a window: put the block where
-    the run recorded it at time t, so that the guides, the targets and the skinned hair ride
-    with it as in that run."""
-    if isinstance(scene.motion, DynamicBody) and body_position is not None:
-        b = scene.motion.initial(np.zeros(3))
-        b[POSITION] = body_position
-        scene.motion.set_window(t, b, t, b)
+def body_motion(scene, t: float, body_position):
+    """The body's poses at time t as the run recorded them: on a dynamic body (stylization) the
+    block where the run put it at t (``DynamicBody.at``), so that the guides, the targets and the
+    skinned hair ride with it as in that run; otherwise the scene's keyframed motion."""
+    if scene.body is None or body_position is None:
+        return scene.motion
+    b = scene.body.initial(np.zeros(3))
+    b[POSITION] = body_position
+    return scene.body.at(t, b)
 
 
-# -- success: the per-run half of each scene's judge (hairexp/scenes/judges.py) -----------------
+# -- success: the per-run half of each scene's judge (hairexp/evaluation/judges.py) -----------------
 def _hit(m, cfg):
     return bool(m["hit"]), f"min distance {m['min_distance']:+.4f} m, {m['contacts']} contacts"
 
@@ -190,14 +191,13 @@ def analyse(cfg, scene, tracker, out: Path) -> dict:
     df = pd.read_parquet(out / "metrics.parquet")
     free = np.flatnonzero(~scene.strands.kinematic)
     cons, L = tracker.cons, tracker.hair_length
-    place_body(scene, float(times[0]), None if body is None else body[0])
     sk = GuideSkinning(scene, tracker.guides)
     err, var, skinned = [], [], []
     for i, (x, t) in enumerate(zip(X, times)):
-        place_body(scene, float(t), None if body is None else body[i])
-        skinned.append(sk.positions(float(t)))
+        motion = body_motion(scene, float(t), None if body is None else body[i])
+        skinned.append(sk.positions(float(t), motion))
         xf = x[free].reshape(-1)
-        c = cons.com(xf) - cons.target_points(cons.targets(float(t)), cons.t_rest)   # static (rest arc length) targets
+        c = cons.com(xf) - cons.target_points(cons.targets(float(t), motion), cons.t_rest)   # static (rest arc length) targets
         if i == 0:
             # every run starts where the measurement tracker was registered (e.g. after the same
             # scene.settle): a cluster centre off its target at t = 0 means a mismatched measurement
@@ -398,7 +398,7 @@ def report(scenes: list[dict], wall: float) -> str:
            "controller and scene, logging off; all controllers of a scene see the same guides (one representative "
            "tracked variant's overrides, named per scene) and are measured against the tracked configuration's "
            "clusters and targets and with the scene's own success measure (paper section 4; "
-           f"hairexp/scenes/measures.py).  Total wall time {wall:.0f} s (2 shared cores).\n\n")
+           f"hairexp/evaluation/measures.py).  Total wall time {wall:.0f} s (2 shared cores).\n\n")
     md += "Scene success and cluster-centre error (RMS / L) at a glance:\n\n" + summary_table(scenes) + "\n"
     md += "".join(scene_section(s) for s in scenes)
     md += DEFINITIONS
@@ -441,7 +441,7 @@ DEFINITIONS = """
   meaningless and the absolute energy (m^2) is shown instead, marked "free still".
 * **Tip HF of deviation from skinned / free** (physical detail, the hair's own motion): the same
   high-frequency energy computed on the tips' deviation from their guide-skinned positions
-  x_g(t) (hairexp/tracking/skinning.py), relative to the free run's.  The plain tip HF energy also
+  x_g(t) (hairexp/control/skinning.py), relative to the free run's.  The plain tip HF energy also
   counts the directed motion of the guides; this one counts only what the detail hair does beyond
   its guides.  0 for the skinned run by construction.
 * **Same, within clusters / free**: as above after removing, per frame, the mean deviation of the
@@ -450,10 +450,10 @@ DEFINITIONS = """
 * **Cluster variance dynamics** (physical detail): per cluster, the standard deviation over frames
   of the spread ratio V_k(t) / V_k(rest) (eq. 4), averaged over clusters (absolute, not relative to
   the free run).  0 = clusters that keep their rest spread.
-* **Scene success**: the scene's measure (hairexp/scenes/measures.py) computed from each run's
+* **Scene success**: the scene's measure (hairexp/evaluation/measures.py) computed from each run's
   frames the same way for every controller (with the tracked configuration's tracker where the
   measure needs clusters: spreading's cluster variance ratio), judged by the per-run rule of the
-  scene's judge (hairexp/scenes/judges.py), stated under each table:
+  scene's judge (hairexp/evaluation/judges.py), stated under each table:
   goaling and celia: the hair touches the collider (wheel, goblet; `collider_contact`; the skinned hair
   has no collisions, so it can "touch" by passing through, min distance < 0);
   splitting: clumps = guides; spreading: cluster variance ratio within the judge's tolerance of its

@@ -21,9 +21,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench_free import SETTLE, compose_cfg, motion_overrides  # noqa: E402
 
-from hairexp.physics.integrator import Simulator  # noqa: E402
-from hairexp.report import header, write_report  # noqa: E402
-from hairexp.scene.builders import build_scene  # noqa: E402
+from hairexp.physics.simulator import Simulator  # noqa: E402
+from hairexp.app.report import header, write_report  # noqa: E402
+from hairexp.app.builders import build_scene  # noqa: E402
 
 HEAD = ("+scene.colliders=[{name: head, shape: sphere, radius: 0.085, thickness: 0.002, friction: 0.3, "
         "motion: {interpolation: linear, times: %s, translations: %s, rotations_deg: %s}}]")

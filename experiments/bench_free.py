@@ -23,11 +23,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
-from hairexp.config import compose_config  # noqa: E402
-from hairexp.physics.integrator import Simulator  # noqa: E402
-from hairexp.report import header, write_report  # noqa: E402
-from hairexp.scene.builders import build_scene  # noqa: E402
-from hairexp.sinks.metrics import stretch  # noqa: E402
+from hairexp.app.config import compose_config  # noqa: E402
+from hairexp.physics.simulator import Simulator  # noqa: E402
+from hairexp.app.report import header, write_report  # noqa: E402
+from hairexp.app.builders import build_scene  # noqa: E402
+from hairexp.outputs.metrics import stretch  # noqa: E402
 
 SETTLE = 3.0   # s of still head before the first jerk (hair reaches its hanging equilibrium)
 

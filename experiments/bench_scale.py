@@ -33,10 +33,10 @@ MOTION = ["scene.motion.interpolation=linear", "scene.motion.times=[0.0,0.2,0.3,
 
 def one(n: int, controller: str, steps: int) -> dict:
     """Runs in a child process: returns the figures of one size and controller."""
-    from hairexp.config import compose_config
-    from hairexp.physics.integrator import Simulator
-    from hairexp.scene.builders import build_scene
-    from hairexp.tracking.guides import build_guides
+    from hairexp.app.config import compose_config
+    from hairexp.physics.simulator import Simulator
+    from hairexp.app.builders import build_scene
+    from hairexp.app.guides import build_guides
 
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     radius = 0.025 * float(np.sqrt(n / 301.0))
@@ -70,7 +70,7 @@ def main():
     if args.one:
         print(json.dumps(one(int(args.one[0]), args.one[1], args.steps)))
         return
-    from hairexp.report import header, write_report
+    from hairexp.app.report import header, write_report
 
     res = []
     for controller in ("free", "tracking"):

@@ -22,11 +22,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench_free import SETTLE, compose_cfg, motion_overrides  # noqa: E402
 
-from hairexp.physics.integrator import Simulator  # noqa: E402
-from hairexp.report import header, write_report  # noqa: E402
-from hairexp.scene.builders import build_scene  # noqa: E402
-from hairexp.sinks.metrics import stretch  # noqa: E402
-from hairexp.tracking.guides import build_guides  # noqa: E402
+from hairexp.physics.simulator import Simulator  # noqa: E402
+from hairexp.app.report import header, write_report  # noqa: E402
+from hairexp.app.builders import build_scene  # noqa: E402
+from hairexp.outputs.metrics import stretch  # noqa: E402
+from hairexp.app.guides import build_guides  # noqa: E402
 
 TRACK = ["controller=tracking", "guides.source=simulated", "guides.count=3", "guides.n_vertices=10",
          "tracking.points_per_guide=8"]

@@ -25,10 +25,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 
-from hairexp.config import compose_config, to_plain  # noqa: E402
-from hairexp.experiment import run_experiment  # noqa: E402
-from hairexp.report import header, write_report  # noqa: E402
-from hairexp.report_cache import cached, describe  # noqa: E402
+from hairexp.app.config import compose_config, to_plain  # noqa: E402
+from hairexp.app.experiment import run_experiment  # noqa: E402
+from hairexp.app.report import header, write_report  # noqa: E402
+from hairexp.app.report_cache import cached, describe  # noqa: E402
 
 SCENES = ["goaling", "splitting", "spreading", "stylization", "celia"]
 #: measure keys shown in the table, per measure

@@ -83,8 +83,8 @@ CASES: dict[str, tuple[list[str], tuple[str, ...], str | None, str]] = {
 def compose_cfg(overrides: list[str]):
     """The base config (hydra) with the case's overrides applied as YAML values (lists of records
     such as ``scene.colliders`` are typed by the schema)."""
-    from hairexp.config import compose_config
-    from hairexp.experiment import apply_overrides
+    from hairexp.app.config import compose_config
+    from hairexp.app.experiment import apply_overrides
 
     return apply_overrides(compose_config(BASE), overrides, "stress case")
 
@@ -93,8 +93,8 @@ def write_guide_file(cfg, kind: str, path: Path, seed: int = 0) -> Path:
     """An npz guide animation (guides.source=file) from the config's (rigid) guides made
     non-physical: ``teleport`` (a 10 cm jump sideways between two frames and back) or ``jitter``
     (N(0, 5 mm) noise on every vertex, redrawn each frame)."""
-    from hairexp.scene.builders import build_scene
-    from hairexp.tracking.guides import build_guides
+    from hairexp.app.builders import build_scene
+    from hairexp.app.guides import build_guides
 
     scene = build_scene(cfg.scene)
     g = build_guides(cfg, scene, cfg.frames, cfg.fps)
@@ -127,7 +127,7 @@ def case_overrides(name: str, controller: str, frames: int | None = None, extra:
 def case_key(name: str, controller: str, frames: int | None = None, extra: tuple[str, ...] = ()) -> dict:
     """What a row depends on: the composed config (before a generated guide file, whose temporary
     path would change the hash; the file itself follows from this config, its kind and seed 0)."""
-    from hairexp.config import to_plain
+    from hairexp.app.config import to_plain
 
     return {"config": to_plain(compose_cfg(case_overrides(name, controller, frames, extra))),
             "guide_file": CASES[name][2]}
@@ -140,7 +140,7 @@ def run_case(name: str, controller: str, work: Path, frames: int | None = None, 
     key (config, solver source, versions) matches.  Failures other than a clear error are not stored."""
     if use_cache is None:
         return _run_case(name, controller, work, frames, extra)
-    from hairexp.report_cache import cached
+    from hairexp.app.report_cache import cached
 
     try:
         key = case_key(name, controller, frames, extra)
@@ -155,9 +155,9 @@ def run_case(name: str, controller: str, work: Path, frames: int | None = None, 
 def _run_case(name: str, controller: str, work: Path, frames: int | None = None, extra: tuple[str, ...] = ()) -> dict:
     import pandas as pd
 
-    from hairexp.config import to_plain
+    from hairexp.app.config import to_plain
     from hairexp.errors import HairexpError
-    from hairexp.run import config_hash, run
+    from hairexp.app.run import config_hash, run
 
     _, _, gfile, _ = CASES[name]
     out = work / f"{name}_{controller}"
@@ -217,7 +217,7 @@ def fmt(v, f="{:.3g}"):
 
 
 def markdown(rows: list[dict], wall: float) -> str:
-    from hairexp.report import header
+    from hairexp.app.report import header
 
     md = header("Numerical stress (validation issue, part 2)")
     md += ("Scene: the goaling wisp, 12 strands x 12 vertices, 30 frames at 25 fps (1.2 s: accelerate, sudden "
@@ -226,7 +226,7 @@ def markdown(rows: list[dict], wall: float) -> str:
            "are tracked only (a free run ignores the guides and has no variance penalty).  finite: every "
            "recorded state (result.npz positions), the per-step metrics and the summary figures are finite.  "
            "Outcome: completed; recovered = completed with steps retried as substeps; failed = a clear "
-           "`SimulationError`/`InputError` with its message.  config hash: `hairexp.run.config_hash` of the "
+           "`SimulationError`/`InputError` with its message.  config hash: `hairexp.app.run.config_hash` of the "
            "composed config (for the guide-file cases, before the generated file's temporary path is set; the file "
            "follows from that config, its kind and seed 0).  source: `fresh` = run by this command; `cached <date> "
            "(entry <hash>)` = reused from reports/cache/stress/ (`--cache`: same config, same solver source, same "
@@ -234,7 +234,7 @@ def markdown(rows: list[dict], wall: float) -> str:
     md += ("| case | stresses | controller | outcome | finite | stretch max | converged | iter mean | iter max | "
            "recovered | unconv. kept | wall s | config hash | source |\n")
     md += "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
-    from hairexp.report_cache import describe as cache_source
+    from hairexp.app.report_cache import describe as cache_source
 
     for r in rows:
         md += (f"| {r['case']} | {CASES[r['case']][3]} | {r['controller']} | {r['outcome']} | {fmt(r.get('finite'))} | "
@@ -262,7 +262,7 @@ def main(argv=None) -> int:
     import torch
 
     torch.set_num_threads(1)
-    from hairexp.report import write_report
+    from hairexp.app.report import write_report
 
     rows = []
     t0 = time.perf_counter()

@@ -1,6 +1,6 @@
 """Command line: ``python -m hairexp experiment=<name> [key=value ...]`` (``-m`` sweeps).
 
-Configs live in ../conf (Hydra); the schema in hairexp/config.py rejects unknown keys and
+Configs live in ../conf (Hydra); the schema in hairexp/app/config.py rejects unknown keys and
 wrong types at start.  Errors in the input end with one line naming the input and a
 non-zero exit (2 for bad input, 3 for a simulation that could not continue).
 """
@@ -14,7 +14,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-import hairexp.config  # noqa: F401  (registers the schema in the ConfigStore)
+import hairexp.app.config  # noqa: F401  (registers the schema in the ConfigStore)
 from hairexp.errors import InputError, SimulationError
 
 log = logging.getLogger("hairexp")
@@ -22,7 +22,7 @@ log = logging.getLogger("hairexp")
 
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float | None:
-    from hairexp.experiment import run_experiment
+    from hairexp.app.experiment import run_experiment
 
     out = HydraConfig.get().runtime.output_dir
     try:

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from hairexp.config import HairConfig, MotionConfig, SceneConfig, SolverConfig
+from hairexp.app.config import HairConfig, MotionConfig, SceneConfig, SolverConfig
 
 REPO = Path(__file__).resolve().parents[1]
 CONF_DIR = REPO / "conf"

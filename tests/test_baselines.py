@@ -13,9 +13,9 @@ from scipy.spatial.transform import Rotation
 from derivcheck import check_term
 from helpers import bent_polyline
 from hairexp.physics.energies import Attraction
-from hairexp.scene.builders import build_scene
-from hairexp.tracking.guides import build_guides
-from hairexp.tracking.skinning import GuideSkinning
+from hairexp.app.builders import build_scene
+from hairexp.app.guides import build_guides
+from hairexp.control.skinning import GuideSkinning
 from test_paper_scenes import experiment_cfg
 
 
@@ -76,7 +76,7 @@ def test_attraction_derivatives_match_finite_differences():
 
 @pytest.mark.parametrize("controller", ["skinned", "attract"])
 def test_baseline_controllers_complete_with_finite_results(controller, tmp_path):
-    from hairexp.experiment import run_experiment
+    from hairexp.app.experiment import run_experiment
 
     cfg = experiment_cfg("goaling_smoke", "variants=[]", "frames=8", f"controller.name={controller}")
     s = run_experiment(cfg, tmp_path)
@@ -97,7 +97,7 @@ def test_baseline_controllers_complete_with_finite_results(controller, tmp_path)
 
 def test_attraction_pulls_toward_the_skinned_hair(tmp_path):
     """Stiffer springs bring the hair closer to the skinned positions (frame 25: the edited guide swings)."""
-    from hairexp.run import run
+    from hairexp.app.run import run
 
     dist = []
     for k in (10.0, 1000.0):
@@ -114,7 +114,7 @@ def test_attraction_pulls_toward_the_skinned_hair(tmp_path):
 
 def test_attract_stiffness_must_be_positive(tmp_path):
     from hairexp.errors import InputError
-    from hairexp.run import run
+    from hairexp.app.run import run
 
     cfg = experiment_cfg("goaling_smoke", "variants=[]", "frames=1", "controller.name=attract",
                          "controller.attract_stiffness=0")
@@ -147,7 +147,7 @@ def test_baseline_success_criteria_follow_the_judges():
     assert not var({"cluster_variance_ratio": 3.2, "cluster_target_ratio": 5.0}, cfg)[0]    # 36 %
     hit = b.CRITERIA["free_misses_tracked_hits"][0]
     assert not hit({"hit": False, "min_distance": 0.1, "contacts": 0}, cfg)[0]
-    from hairexp.scenes.judges import JUDGES
+    from hairexp.evaluation.judges import JUDGES
 
     assert set(b.CRITERIA) == set(JUDGES)     # every scene's judge has its per-run rule
 

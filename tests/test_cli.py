@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 from helpers import CONF_DIR
-from hairexp.sinks.metrics import CONTRACT_COLUMNS
+from hairexp.outputs.metrics import CONTRACT_COLUMNS
 
 FRAMES, N_STRANDS, N_VERTICES = 3, 4, 8
 SUMMARY_KEYS = ("scene", "controller", "success", "measures", "steps", "iterations_mean", "iterations_max",
@@ -124,8 +124,8 @@ def test_rerun_off_writes_no_recording_and_never_imports_rerun(tmp_path):
     code = textwrap.dedent(f"""
         import sys
         from hydra import compose, initialize_config_dir
-        import hairexp.config
-        from hairexp.run import run
+        import hairexp.app.config
+        from hairexp.app.run import run
         with initialize_config_dir(config_dir={str(CONF_DIR)!r}, version_base="1.3"):
             cfg = compose(config_name="config", overrides=["experiment=goaling", "variants=[]", "frames=2", "scene.n_strands=2",
                                                            "scene.n_vertices=5", "logging.rerun=false"])

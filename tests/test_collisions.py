@@ -8,13 +8,13 @@ from omegaconf import OmegaConf
 
 from helpers import run_steps
 
-from hairexp.config import ColliderConfig, CollisionConfig, SceneConfig, SolverConfig
+from hairexp.app.config import ColliderConfig, CollisionConfig, SceneConfig, SolverConfig
 from hairexp.physics.collisions import HairHair, object_stage
-from hairexp.physics.colliders import Cylinder, Plane, Sphere
-from hairexp.physics.integrator import Simulator
-from hairexp.scene.builders import build_scene
-from hairexp.scene.rigid import RigidMotion
-from hairexp.scene.strands import Strands
+from hairexp.model.colliders import Cylinder, Plane, Sphere
+from hairexp.physics.simulator import Simulator
+from hairexp.app.builders import build_scene
+from hairexp.model.rigid import RigidMotion
+from hairexp.model.strands import Strands
 
 DT = 0.04
 
@@ -125,7 +125,7 @@ def test_swept_strands_do_not_pass_through_each_other():
     A = np.stack([np.zeros(n), np.full(n, -0.02), zs], 1)        # along z
     B = np.stack([zs, np.zeros(n), np.full(n, 0.03)], 1)         # along x, crossing A's line at z = 0.03
     pts = np.concatenate([A, B])
-    from hairexp.scene.scene import Material, Scene
+    from hairexp.model.scene import Material, Scene
 
     s = Strands.from_polylines(pts, [n, n], 2e-4)
     scene = Scene("cross", s, Material(2e-4, 20.0, 2e-6), RigidMotion.static(), np.zeros(3), pts)

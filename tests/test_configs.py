@@ -12,10 +12,10 @@ import pytest
 from hydra.errors import HydraException
 from omegaconf import OmegaConf
 
-import hairexp.config  # noqa: F401  (registers the schema)
+import hairexp.app.config  # noqa: F401  (registers the schema)
 from helpers import CONF_DIR
-from hairexp.config import Config, OnFailure, to_plain
-from hairexp.scene.builders import build_scene
+from hairexp.app.config import Config, OnFailure, to_plain
+from hairexp.app.builders import build_scene
 
 EXPERIMENTS = sorted(p.stem for p in (CONF_DIR / "experiment").glob("*.yaml"))
 GROUP_OPTIONS = sorted((d.name, p.stem) for d in CONF_DIR.iterdir() if d.is_dir() and d.name != "experiment"

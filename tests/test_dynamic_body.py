@@ -1,4 +1,4 @@
-"""The dynamic block on a rail (scene.body, hairexp/scene/dynamic_body.py) and the stylization
+"""The dynamic block on a rail (scene.body, hairexp/model/dynamic_body.py) and the stylization
 scene (paper 4, Fig. 7): the block's own dynamics (rest, rail end, friction, lift-off), the
 staggered coupling with the hair (rest, free fall, momentum bookkeeping, stability for the scene's
 mass ratio, substep retries), bad input, the measure and a smoke run of experiment=stylization_smoke."""
@@ -9,19 +9,22 @@ import os
 import subprocess
 import sys
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
 from helpers import CONF_DIR, REPO, scene_cfg, solver_cfg
-from hairexp.config import BodyConfig, GuideEditConfig
+from hairexp.control.tracking.controller import TrackingController
+from hairexp.app.config import BodyConfig, GuideEditConfig
 from hairexp.errors import InputError
 from hairexp.physics.info import MAX_ITERATIONS
-from hairexp.physics.integrator import Simulator
-from hairexp.scene.builders import build_scene
-from hairexp.scene.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY, DynamicBody
-from hairexp.scene.rigid import RigidMotion
-from hairexp.scenes.stylization import block_rail_measure
+from hairexp.physics.simulator import Simulator
+from hairexp.app.builders import build_scene
+from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY, DynamicBody
+from hairexp.model.rigid import RigidMotion
+from hairexp.evaluation.stylization import block_rail_measure
 
 G = 9.81
 GRAV = np.array([0.0, -G, 0.0])
@@ -53,7 +56,7 @@ def hair_mass(scene):
 
 
 def total_momentum(scene, state):
-    s, b = scene.strands, state.duals["body"]
+    s, b = scene.strands, state.body
     free = ~s.kinematic
     return scene.motion.total_mass * b[VELOCITY] + (s.masses[free, None] * state.v[free]).sum(0)
 
@@ -129,17 +132,17 @@ def test_pose_is_linear_within_the_step_and_unknown_outside_it():
     body = bare_block(u0=(1.0, 0.0, 0.0), mu=0.0)
     b0 = body.initial(np.zeros(3))
     b1 = body.advance(b0, 0.1)
-    body.set_window(1.0, b0, 1.1, b1)
-    R, T = body.pose(1.05)
+    w = body.window(1.0, b0, 1.1, b1)
+    R, T = w.pose(1.05)
     assert np.array_equal(R, np.eye(3)) and np.allclose(T, [0.05, 0.0, 0.0])
-    assert np.allclose(body.velocity(1.1)[1], [1.0, 0.0, 0.0])
+    assert np.allclose(w.velocity(1.1)[1], [1.0, 0.0, 0.0])
     X = np.array([[0.0, -0.1, 0.0]])
-    assert np.allclose(body.to_body(body.transform(X, 1.07), 1.07), X)
-    assert np.allclose(body.point_velocity(X, 1.02), [[1.0, 0.0, 0.0]])
+    assert np.allclose(w.to_body(w.transform(X, 1.07), 1.07), X)
+    assert np.allclose(w.point_velocity(X, 1.02), [[1.0, 0.0, 0.0]])
     with pytest.raises(RuntimeError, match="within the step"):
-        body.pose(0.9)
+        w.pose(0.9)
     with pytest.raises(RuntimeError, match="within the step"):
-        body.pose(1.2)
+        w.pose(1.2)
 
 
 # -- block and hair --------------------------------------------------------------------------------
@@ -154,7 +157,7 @@ def test_block_on_rail_with_hanging_hair_stays_at_rest():
     for _ in range(60):
         state, info = sim.step(state, 0.04)
         assert info.converged
-    b = state.duals["body"]
+    b = state.body
     assert np.array_equal(b[POSITION], np.zeros(3)) and np.array_equal(b[VELOCITY], np.zeros(3))
     assert np.max(np.abs(state.x - x0)) < 1e-4                     # the hair only sags under its weight
     assert np.allclose(b[HAIR_FORCE], hair_mass(scene) * GRAV, rtol=1e-4, atol=1e-12)
@@ -169,7 +172,7 @@ def test_block_and_hair_fall_together_past_the_rail_end():
     x0, dt = state.x.copy(), 0.02
     for n in range(1, 31):
         state, _ = sim.step(state, dt)
-        b = state.duals["body"]
+        b = state.body
         assert np.isclose(b[POSITION][1], -G * dt ** 2 * n * (n + 1) / 2, rtol=0, atol=1e-8)
     assert np.linalg.norm(b[HAIR_FORCE]) < 1e-8                        # free fall: no internal forces
     drop = -G * dt ** 2 * 30 * 31 / 2
@@ -186,7 +189,7 @@ def test_sliding_block_with_light_hair_decelerates_at_about_mu_g():
     v = [0.5]
     for _ in range(12):                                    # 0.12 s: it stops after 0.17 s
         state, _ = sim.step(state, 0.01)
-        v.append(state.duals["body"][VELOCITY][0])
+        v.append(state.body[VELOCITY][0])
     decel = -np.diff(v) / 0.01
     assert np.allclose(decel, mu * G, rtol=0.03)
 
@@ -207,11 +210,11 @@ def _momentum_run(controller: str, n: int = 25, dt: float = 0.02):
     scene = build_scene(cfg.scene)
     tracking = guides = None
     if controller == "tracking":
-        from hairexp.tracking.guides import build_guides
+        from hairexp.app.guides import build_guides
 
         guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
         tracking = cfg.tracking
-    sim = Simulator(scene, cfg.solver, tracking, guides)
+    sim = Simulator(scene, cfg.solver, TrackingController(scene, guides, tracking) if tracking is not None else None)
     states = [sim.initial_state()]
     for _ in range(n):
         s, info = sim.step(states[-1], dt)
@@ -228,10 +231,10 @@ def test_momentum_of_block_and_hair_changes_by_gravity_rail_and_tracking_only(co
     s = scene.strands
     M_all = scene.motion.total_mass + hair_mass(scene)
     P = np.array([total_momentum(scene, st) for st in states])
-    B = np.array([st.duals["body"] for st in states])
+    B = np.array([st.body for st in states])
     control = np.zeros((len(states), 3))
     if controller == "tracking":           # the tracker's force on the hair: -A^T lambda, summed
-        control[1:] = [-st.duals["lambda"].reshape(-1, 3).sum(0) for st in states[1:]]
+        control[1:] = [-st.control.lam.reshape(-1, 3).sum(0) for st in states[1:]]
     ext = dt * (M_all * GRAV + B[1:, RAIL_FORCE] + control[1:])
     lag = dt * (B[:-1, HAIR_FORCE] - B[1:, HAIR_FORCE])
     scale = M_all * 0.3
@@ -261,16 +264,16 @@ def _kicked_free_fall(mass: float, steps: int, build_check: bool = True):
     else:  # below the limit build_dynamic_body refuses: make the block by hand
         scene = build_scene(cfg.scene)
         b = scene.motion
-        scene.motion = DynamicBody(b.R, b.p0, b.u0, mass, b.carried_mass, b.gravity, b.rail_height, b.rail_end,
-                                   b.friction)
+        scene = replace(scene, motion=DynamicBody(b.R, b.p0, b.u0, mass, b.carried_mass, b.gravity, b.rail_height,
+                                                  b.rail_end, b.friction))
     sim = Simulator(scene, cfg.solver)
     state = sim.initial_state()
     kick = -hair_mass(scene) * GRAV
-    state.duals["body"][HAIR_FORCE] = kick
+    state.body[HAIR_FORCE] = kick
     F = []
     for _ in range(steps):
         state, _ = sim.step(state, 0.04)
-        F.append(np.linalg.norm(state.duals["body"][HAIR_FORCE]))
+        F.append(np.linalg.norm(state.body[HAIR_FORCE]))
     return scene, np.array(F) / np.linalg.norm(kick)
 
 
@@ -292,7 +295,7 @@ def test_coupling_is_stable_for_the_stylization_mass_ratio():
 @pytest.mark.parametrize("controller", ["free", "tracking"])
 def test_a_retried_step_restarts_the_block_from_the_state(controller):
     """A step that fails and is retried as two half steps gives what two half steps give: the block's
-    state travels in State.duals, the failed attempt leaves nothing behind."""
+    state travels in State.control, the failed attempt leaves nothing behind."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
@@ -302,17 +305,17 @@ def test_a_retried_step_restarts_the_block_from_the_state(controller):
                                                        "scene.body.velocity=[0.3,0.0,0.0]",
                                                        "scene.body.rail_friction=0.3"])
     GlobalHydra.instance().clear()
-    from hairexp.tracking.guides import build_guides
+    from hairexp.app.guides import build_guides
 
     def make():
         scene = build_scene(cfg.scene)
         guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
         tracked = controller == "tracking"
-        return Simulator(scene, cfg.solver, cfg.tracking if tracked else None, guides if tracked else None)
+        return Simulator(scene, cfg.solver, TrackingController(scene, guides, cfg.tracking) if tracked else None)
 
     dt = 0.04
     split = make()
-    real_solve = split._solve
+    real_solve = split._attempt
 
     def failing_solve(state, h):   # every full step fails; its half steps succeed
         new, info = real_solve(state, h)
@@ -320,7 +323,7 @@ def test_a_retried_step_restarts_the_block_from_the_state(controller):
             info.status = MAX_ITERATIONS
         return new, info
 
-    split._solve = failing_solve
+    split._attempt = failing_solve
     halves = make()
     a, b = split.initial_state(), halves.initial_state()
     for _ in range(6):
@@ -328,14 +331,14 @@ def test_a_retried_step_restarts_the_block_from_the_state(controller):
         assert info.substeps == 2 and info.recovered
         b, _ = halves.step(b, dt / 2)
         b, _ = halves.step(b, dt / 2)
-    assert np.allclose(a.duals["body"], b.duals["body"], rtol=0, atol=1e-12)
+    assert np.allclose(a.body, b.body, rtol=0, atol=1e-12)
     assert np.allclose(a.x, b.x, rtol=0, atol=1e-12)
     if controller == "free":   # and the block's path depends on the step: the comparison is not void
         whole = make()
         c = whole.initial_state()
         for _ in range(6):
             c, _ = whole.step(c, dt)
-        assert np.abs(a.duals["body"][POSITION] - c.duals["body"][POSITION]).max() > 1e-6
+        assert np.abs(a.body[POSITION] - c.body[POSITION]).max() > 1e-6
 
 
 # -- input -------------------------------------------------------------------------------------
@@ -409,7 +412,7 @@ def test_block_rail_measure():
 # -- runs --------------------------------------------------------------------------------------------
 
 def _run(hydra_conf, tmp_path, overrides):
-    from hairexp.run import run
+    from hairexp.app.run import run
 
     cfg = hydra_conf(["logging.rerun=false", *overrides])
     summary = run(cfg, tmp_path)
@@ -461,8 +464,8 @@ def test_stylization_free_stays_tracked_leaves_the_rail(hydra_conf, tmp_path):
 def test_export_writes_the_initial_pose_and_the_stage_runs_dynamic_again(hydra_conf, tmp_path):
     """hairexp.io.export_scene of a dynamic scene writes the block at its initial pose (its motion is
     not known before a run); the stage imported with scene.body.dynamic=true is a dynamic scene."""
-    from hairexp.io.export_scene import export_scene
-    from hairexp.run import run
+    from hairexp.app.export_scene import export_scene
+    from hairexp.app.run import run
 
     export_scene(hydra_conf(["experiment=stylization_smoke", "controller=tracking", "frames=6"]), tmp_path / "s.usda")
     cfg = hydra_conf(["experiment=from_usd", f"scene.usd={tmp_path / 's.usda'}", "scene.body.dynamic=true",

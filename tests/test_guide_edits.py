@@ -17,12 +17,12 @@ from scipy.spatial.transform import Rotation
 
 from helpers import REPO
 from tracking_helpers import tracked_cfg
-from hairexp.config import GuideEditConfig, GuideEditKind, GuideKeyframeConfig
+from hairexp.app.config import GuideEditConfig, GuideEditKind, GuideKeyframeConfig
 from hairexp.errors import InputError
-from hairexp.run import run
-from hairexp.scene.builders import build_scene
-from hairexp.tracking.authoring import MAX_ROOT_TURN_DEG, KeyedWeight, apply_edits
-from hairexp.tracking.guides import build_guides, source_guides
+from hairexp.app.run import run
+from hairexp.app.builders import build_scene
+from hairexp.guides.authoring import MAX_ROOT_TURN_DEG, KeyedWeight, apply_edits
+from hairexp.app.guides import build_guides, source_guides
 
 #: A body that translates and turns about a tilted axis over 1 s (cubic): body frame != world
 #: frame, and the body turns the edits' axes (z) and offsets away from their world directions.
@@ -364,7 +364,7 @@ def test_readme_guide_authoring_examples_build():
     on the wisp scene and builds a valid guide animation that the edits or keys do move."""
     from omegaconf import OmegaConf
 
-    from hairexp.config import Config
+    from hairexp.app.config import Config
 
     examples = readme_examples()
     assert len(examples) == 3

@@ -13,9 +13,9 @@ import pytest
 
 from helpers import scene_cfg
 from hairexp.errors import InputError
-from hairexp.scene.builders import build_scene
-from hairexp.scene.rigid import RigidMotion
-from hairexp.scene.strands import Strands, validate_polylines
+from hairexp.app.builders import build_scene
+from hairexp.model.rigid import RigidMotion
+from hairexp.model.strands import Strands, validate_polylines
 
 DENSITY = 2e-4
 

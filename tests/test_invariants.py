@@ -8,12 +8,12 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from helpers import scene_cfg, solver_cfg, run_steps
-from hairexp.physics.integrator import Simulator
-from hairexp.scene.builders import build_scene
-from hairexp.scene.rigid import RigidMotion
-from hairexp.scene.scene import Scene
-from hairexp.scene.strands import Strands
-from hairexp.sinks.metrics import energies
+from hairexp.physics.simulator import Simulator
+from hairexp.app.builders import build_scene
+from hairexp.model.rigid import RigidMotion
+from hairexp.model.scene import Scene
+from hairexp.model.strands import Strands
+from hairexp.outputs.metrics import energies
 
 NO_GRAVITY = [0.0, 0.0, 0.0]
 

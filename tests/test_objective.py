@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from helpers import scene_cfg, solver_cfg
-from hairexp.config import OnFailure
+from hairexp.app.config import OnFailure
 from hairexp.errors import SimulationError
 from hairexp.physics.assembly import BandedAssembler
-from hairexp.physics.integrator import Simulator
-from hairexp.scene.builders import build_scene
+from hairexp.physics.simulator import Simulator
+from hairexp.app.builders import build_scene
 
 DT = 0.02
 MOTION = dict(interpolation="cubic", times=[0.0, 0.3], translations=[[0, 0, 0], [0.05, 0.03, -0.02]],
@@ -81,7 +81,7 @@ def dense_reference(sim, xf) -> np.ndarray:
             _, H = term.grad_hess(x[term.stencil_t], True, obj.derivatives)
             H = H.numpy()
             for e, verts in enumerate(term.stencil):
-                dofs = [3 * s.free_index[v] + c if s.free_index[v] >= 0 else -1 for v in verts for c in range(3)]
+                dofs = [3 * s.free_slot[v] + c if s.free_slot[v] >= 0 else -1 for v in verts for c in range(3)]
                 for a, da in enumerate(dofs):
                     for b, db in enumerate(dofs):
                         if da >= 0 and db >= 0:

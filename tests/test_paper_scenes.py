@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
 from helpers import CONF_DIR
-from hairexp.experiment import run_experiment
+from hairexp.app.experiment import run_experiment
 
 QUIET = ["logging.rerun=false", "logging.progress=false"]
 
@@ -73,7 +73,7 @@ def test_ci_ablation_sliding_beats_static_on_goaling_smoke(tmp_path):
     """The paper's claim for sliding targets (3.2), on the goaling smoke experiment, tracked:
     no more SQP iterations and lower stretch than static targets (measured: 2.8 vs 8.6
     iterations a step, stretch 4.6e-4 vs 0.76)."""
-    from hairexp.run import run
+    from hairexp.app.run import run
 
     out = {}
     for targets in ("static", "sliding"):
@@ -91,7 +91,7 @@ def test_celia_free_ponytail_misses_the_goblet_at_small_dt(tmp_path):
     tracked one still hits it.  (The goblet used to stand behind the head, where the free swing
     reached it at small dt.  The settle phase steps at scene.settle_dt whatever solver.dt is, so
     both dt start from the same settled ponytail.)"""
-    from hairexp.run import run
+    from hairexp.app.run import run
 
     for controller, want in (("free", False), ("tracking", True)):
         cfg = experiment_cfg("celia", "variants=[]", f"controller.name={controller}", "solver.dt=0.0025", "frames=30")

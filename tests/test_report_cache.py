@@ -1,4 +1,4 @@
-"""The report cache (hairexp/report_cache.py): keyed by the run config, the solver source and the
+"""The report cache (hairexp/app/report_cache.py): keyed by the run config, the solver source and the
 versions; a corrupt entry is recomputed with a warning; writes are atomic."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from hairexp.report_cache import CacheWarning, cached, source_hash
+from hairexp.app.report_cache import CacheWarning, cached, source_hash
 
 CFG = {"experiment": "goaling", "frames": 30, "solver": {"dt": 0.04}}
 
@@ -146,7 +146,7 @@ def test_store_false_keeps_nothing(tmp_path):
 
 
 def test_default_source_hash_covers_the_package_and_conf():
-    from hairexp.report_cache import ROOT
+    from hairexp.app.report_cache import ROOT
 
     h = source_hash(ROOT, refresh=True)
     assert len(h) == 16 and source_hash(ROOT) == h

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from hairexp.scene.rigid import RigidMotion
+from hairexp.model.rigid import RigidMotion
 
 X = np.random.default_rng(0).normal(size=(6, 3)) * 0.1  # body points, m
 

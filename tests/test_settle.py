@@ -8,9 +8,10 @@ import pandas as pd
 import pytest
 
 from hairexp.errors import InputError
-from hairexp.physics.integrator import Simulator
-from hairexp.run import run, step_schedule
-from hairexp.scene.builders import build_scene
+from hairexp.physics.simulator import Simulator
+from hairexp.app.run import run
+from hairexp.physics.schedule import step_schedule
+from hairexp.app.builders import build_scene
 
 QUIET = ["logging.rerun=false", "logging.progress=false"]
 # a small wisp sticking out sideways: far from equilibrium under gravity

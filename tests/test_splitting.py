@@ -17,12 +17,12 @@ import pytest
 from omegaconf import OmegaConf
 
 from helpers import CONF_DIR
-from hairexp.config import GuideEditKind, MeasureConfig
+from hairexp.app.config import GuideEditKind, MeasureConfig
 from hairexp.errors import InputError
-from hairexp.experiment import apply_overrides, run_experiment
-from hairexp.scene.builders import build_scene
-from hairexp.scenes.measures import RunData, clumps
-from hairexp.tracking.guides import build_guides
+from hairexp.app.experiment import apply_overrides, run_experiment
+from hairexp.app.builders import build_scene
+from hairexp.evaluation.measures import RunData, clumps
+from hairexp.app.guides import build_guides
 
 SPLITTING = OmegaConf.load(CONF_DIR / "experiment" / "splitting.yaml")
 THRESHOLD = float(SPLITTING.measure.threshold)   # the stated threshold (m)

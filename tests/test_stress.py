@@ -78,12 +78,12 @@ def test_a_non_finite_collision_result_is_a_diverged_step_not_a_state(monkeypatc
     retried by substepping and then raised as a SimulationError, never returned."""
     import hairexp.physics.collisions as collisions
     from hairexp.errors import SimulationError
-    from hairexp.physics.integrator import Simulator
-    from hairexp.scene.builders import build_scene
+    from hairexp.physics.simulator import Simulator
+    from hairexp.app.builders import build_scene
 
     cfg = stress.compose_cfg(stress.CASES["collider_10ms"][0] + ["solver.max_substep_levels=1"])
     scene = build_scene(cfg.scene)
-    sim = Simulator(scene, cfg.solver, None, None, cfg.collision)
+    sim = Simulator(scene, cfg.solver, collision_cfg=cfg.collision)
     real = collisions.collision_stage
 
     def poisoned(*a, **k):
@@ -100,7 +100,7 @@ def test_a_non_finite_collision_result_is_a_diverged_step_not_a_state(monkeypatc
 def test_stress_rows_reuse_the_report_cache(tmp_path, monkeypatch):
     """--cache: a row whose config, solver source and versions match is not run again; it keeps the
     original figures (and wall time) and says it is cached; another frame count is a new entry."""
-    import hairexp.report_cache as rc
+    import hairexp.app.report_cache as rc
 
     monkeypatch.setattr(rc, "CACHE", tmp_path / "cache")
     fresh = stress.run_case("dt_0.1", "free", tmp_path / "a", 2, use_cache=True)

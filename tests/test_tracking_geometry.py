@@ -15,13 +15,14 @@ from scipy.spatial.transform import Rotation
 from derivcheck import GRAD_RTOL, HESS_RTOL
 from helpers import bent_polyline
 from tracking_helpers import build_tracked, free_vertex_com, straight, tracked_cfg, tracking_cfg
+from hairexp.control.tracking.controller import TrackingController
 from hairexp.errors import InputError
-from hairexp.physics.integrator import Simulator
-from hairexp.scene.builders import build_scene
-from hairexp.tracking import spline
-from hairexp.tracking.correspondence import build_correspondence
-from hairexp.tracking.frames import parallel_transport, parallel_transport_batch, transport, vertex_tangents
-from hairexp.tracking.guides import GuideAnimation
+from hairexp.physics.simulator import Simulator
+from hairexp.app.builders import build_scene
+from hairexp.guides import spline
+from hairexp.control.tracking.correspondence import build_correspondence
+from hairexp.guides.frames import parallel_transport, parallel_transport_batch, transport, vertex_tangents
+from hairexp.guides.animation import GuideAnimation
 
 EPS = np.finfo(np.float64).eps
 
@@ -375,7 +376,7 @@ def test_empty_cluster_is_dropped_with_a_warning_naming_it(caplog):
     long_b = straight([0.1, 0.0, 0.0], [0, -1, 0], 1.0, 8)
     near_b = [straight([0.1 + dx, 0, 0], [0, -1, 0], 0.3, 10) for dx in (0.01, -0.01)]
     strands = near_a + near_b
-    with caplog.at_level(logging.WARNING, logger="hairexp.tracking.correspondence"):
+    with caplog.at_level(logging.WARNING, logger="hairexp.control.tracking.correspondence"):
         corr = build_correspondence(np.concatenate(strands), offsets_of(strands), free_mask(strands),
                                     [GUIDE_A, long_b], 4)
     msgs = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
@@ -421,7 +422,7 @@ def curved_tracked(sliding=True, points=5, motion=None):
         pos = np.stack([scene.motion.transform(g.positions[f], f / g.fps) for f in range(g.n_frames)])
         g = GuideAnimation(pos, g.offsets, g.fps)
     tcfg = tracking_cfg(points_per_guide=points, targets="sliding" if sliding else "static")
-    sim = Simulator(scene, cfg.solver, tcfg, g)
+    sim = Simulator(scene, cfg.solver, TrackingController(scene, g, tcfg))
     return scene, g, sim
 
 
@@ -434,7 +435,7 @@ def straight_tracked(**kw):
 
 def test_com_is_eq2_and_A_is_its_jacobian():
     scene, _, sim = straight_tracked()
-    cons = sim.tracker.cons
+    cons = sim.controller.cons
     rng = np.random.default_rng(0)
     x = scene.strands.rest + rng.normal(scale=0.01, size=scene.strands.rest.shape)
     xf = sim.free_dofs(x)
@@ -461,7 +462,7 @@ def test_dC_dt_is_minus_target_tangent(case):
     else:
         _, _, sim = curved_tracked()
         t_now = 0.05  # between frames 1 and 2
-    cons = sim.tracker.cons
+    cons = sim.controller.cons
     tg = cons.targets(t_now)
     rng = np.random.default_rng(2)
     tk = cons.t_rest * rng.uniform(0.8, 1.3, cons.K) + 1e-3
@@ -497,12 +498,12 @@ def test_rest_state_meets_the_constraints(case):
     else:
         scene, _, sim = curved_tracked(motion={"times": [0.0, 1.0], "translations": [[0.1, -0.2, 0.3], [0.2, 0, 0]],
                                                "rotations_deg": [[20.0, -35.0, 50.0], [0, 0, 0]]})
-    cons = sim.tracker.cons
+    cons = sim.controller.cons
     st = sim.initial_state()
-    C = cons.residual(sim.free_dofs(st.x), cons.targets(0.0), st.duals["t"])
+    C = cons.residual(sim.free_dofs(st.x), cons.targets(0.0), st.control.t)
     assert np.abs(C).max() <= 1e-12
-    np.testing.assert_array_equal(st.duals["t"], cons.t_rest)
-    m = sim.tracker.measure(sim.free_dofs(st.x), 0.0, st.duals)
+    np.testing.assert_array_equal(st.control.t, cons.t_rest)
+    m = sim.controller.measure(sim.free_dofs(st.x), 0.0, st.control)
     assert m["residual_max"] <= 1e-12
 
 
@@ -510,7 +511,7 @@ def test_offsets_encode_angle_and_distance_from_a_straight_guide():
     """(theta, d) of 3.2: d is the distance of the rest centre of mass from the guide's centre
     line and the tangential part is zero (t_rest is the closest guide point)."""
     scene, guides, sim = straight_tracked()
-    cons = sim.tracker.cons
+    cons = sim.controller.cons
     com = cons.com(sim.free_dofs(scene.strands.rest))
     for k in range(cons.K):
         G = guides.guides(guides.rest)[cons.corr.cluster_guide[k]]
@@ -533,7 +534,7 @@ def test_targets_follow_rigid_guide_motion():
               "scene.motion.rotations_deg": [[0, 0, 0], [30.0, 0, 45.0], [-20.0, 60.0, 90.0]]}
     cfg = tracked_cfg({"scene.n_strands": 12, "scene.n_vertices": 10, "guides.count": 3, **motion})
     scene, guides, sim = build_tracked(cfg)
-    cons = sim.tracker.cons
+    cons = sim.controller.cons
     com0 = cons.com(sim.free_dofs(scene.strands.rest))
     for t in (0.2, 0.48, 0.8, 1.0):
         R, T = scene.motion.pose(t)
@@ -545,7 +546,7 @@ def test_sliding_target_on_shrunk_straight_guide_is_at_scaled_parameter():
     """A straight guide scaled by f about its root: c_hat(t_rest / f) is the rest centre of mass
     (the target slides), while c_hat(t_rest) moved by (1 - f) t_rest towards the root."""
     scene, guides, sim = straight_tracked()
-    cons = sim.tracker.cons
+    cons = sim.controller.cons
     com0 = cons.com(sim.free_dofs(scene.strands.rest))
     for t, f in ((0.5, 0.85), (1.0, 0.7)):
         tg = cons.targets(t)

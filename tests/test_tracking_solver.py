@@ -18,11 +18,13 @@ from derivcheck import GRAD_RTOL
 from helpers import bent_polyline
 from tracking_helpers import (DT, GOALING_MOTION, NO_GRAVITY, build_tracked, free_vertex_com, polyline_scene,
                               record_attempts, run_steps, static_guides, straight, tracked_cfg, tracking_cfg)
+from hairexp.control.tracking.controller import TrackingController
+from hairexp.control.tracking.controller import TrackingIterates
 from hairexp.physics.assembly import BandedAssembler
-from hairexp.physics.integrator import Simulator
-from hairexp.sinks.metrics import stretch
-from hairexp.tracking.kkt import reference_solve
-from hairexp.tracking.variance import VarianceControl
+from hairexp.physics.simulator import Simulator
+from hairexp.outputs.metrics import stretch
+from hairexp.control.tracking.kkt import reference_solve
+from hairexp.control.tracking.variance import VarianceControl
 
 # ---------------------------------------------------------------------------------------------
 # Variance control (3.3, eq. 4)
@@ -43,13 +45,13 @@ def perturbed(scene, seed=0, scale=0.005):
 def eq4_by_hand(sim, x):
     """V_k = sum_{i in C_k} |c_k - d_i|^2 with c_k the mass-weighted centre, eq. (2)."""
     com = free_vertex_com(sim, x)
-    cov = sim.tracker.corr.cluster_of_vertex
-    return np.array([np.sum((x[cov == k] - com[k]) ** 2) for k in range(sim.tracker.cons.K)])
+    cov = sim.controller.corr.cluster_of_vertex
+    return np.array([np.sum((x[cov == k] - com[k]) ** 2) for k in range(sim.controller.cons.K)])
 
 
 def test_variance_values_are_eq4():
     scene, _, sim = variance_sim(stiffness=1.0)
-    var = sim.tracker.variance
+    var = sim.controller.variance
     for seed in range(3):
         x = perturbed(scene, seed)
         np.testing.assert_allclose(var.values(sim.free_dofs(x)), eq4_by_hand(sim, x), rtol=1e-12, atol=0)
@@ -59,9 +61,9 @@ def test_variance_values_are_eq4():
 
 def test_variance_penalty_gradient_matches_finite_differences():
     scene, _, sim = variance_sim(stiffness=1.0)
-    var = sim.tracker.variance
+    var = sim.controller.variance
     rng = np.random.default_rng(1)
-    K = sim.tracker.cons.K
+    K = sim.controller.cons.K
     k = rng.uniform(0.5, 2.0, K)
     vbar = var.rest * rng.uniform(0.5, 3.0, K)
     xf = sim.free_dofs(perturbed(scene, 2))
@@ -79,7 +81,7 @@ def test_variance_penalty_gradient_matches_finite_differences():
 
 def test_zero_stiffness_builds_no_penalty(monkeypatch):
     scene, _, sim = variance_sim(stiffness=0.0)
-    tr = sim.tracker
+    tr = sim.controller
     assert tr.use_variance is False
     xf = sim.free_dofs(perturbed(scene))
     tr.begin(DT)
@@ -94,12 +96,12 @@ def test_zero_stiffness_builds_no_penalty(monkeypatch):
     assert info.converged
     # keyframed scale all zero: also inactive
     _, _, sim2 = variance_sim(stiffness=5.0, times=[0.0, 1.0], stiffness_scale=[0.0, 0.0], target_scale=[1.0, 1.0])
-    assert sim2.tracker.use_variance is False
+    assert sim2.controller.use_variance is False
 
 
 def test_variance_points_select_clusters_by_tracking_point():
     scene, _, sim = variance_sim(points_per_guide=8, stiffness=2.0, points=[7])
-    tr = sim.tracker
+    tr = sim.controller
     corr = tr.corr
     assert tr.use_variance
     tips = corr.cluster_point == 7
@@ -121,7 +123,7 @@ def test_variance_points_select_clusters_by_tracking_point():
 
 def test_variance_keyframes_interpolate_linearly():
     _, _, sim = variance_sim(stiffness=3.0, times=[0.0, 1.0], stiffness_scale=[1.0, 3.0], target_scale=[1.0, 2.0])
-    var = sim.tracker.variance
+    var = sim.controller.variance
     k, vbar = var.at(0.5)
     np.testing.assert_allclose(k, 6.0, rtol=1e-15)
     np.testing.assert_allclose(vbar, 1.5 * var.rest, rtol=1e-15)
@@ -135,7 +137,7 @@ def test_variance_target_spreads_or_gathers_the_tips(target_scale):
     """Fig. 4: a target variance above (below) the rest variance at the tips spreads (gathers)
     the tip clusters of a wisp at rest, while the cluster centres stay on their targets."""
     scene, _, sim = variance_sim(points_per_guide=4, stiffness=0.01, points=[3], target_scale=[target_scale])
-    tr = sim.tracker
+    tr = sim.controller
     states, infos = run_steps(sim, 6)
     assert all(i.converged for i in infos)
     tips = tr.corr.cluster_point == 3
@@ -144,7 +146,7 @@ def test_variance_target_spreads_or_gathers_the_tips(target_scale):
         assert (ratio[tips] > 1.0).all(), ratio
     else:
         assert (ratio[tips] < 1.0).all(), ratio
-    m = tr.measure(sim.free_dofs(states[-1].x), states[-1].time, states[-1].duals)
+    m = tr.measure(sim.free_dofs(states[-1].x), states[-1].time, states[-1].control)
     assert m["residual_rel_max"] <= 1e-8
 
 
@@ -173,15 +175,15 @@ def kkt_scene(case):
         polys.append(straight(g[0] + rng.normal(scale=0.006, size=3) * [1, 0, 1], d, length, n))
     scene = polyline_scene(polys, gravity=[0.0, -9.81, 0.0])
     gd = static_guides(guides)
-    sim = Simulator(scene, tracked_cfg().solver, tracking_cfg(points_per_guide=5), gd)
+    sim = Simulator(scene, tracked_cfg().solver, TrackingController(scene, gd, tracking_cfg(points_per_guide=5)))
     return scene, sim
 
 
 def kkt_system(sim, seed):
     """H (lower band) at a perturbed iterate of a time step, and random right-hand sides."""
-    obj, tr = sim.objective, sim.tracker
+    obj, tr = sim.objective, sim.controller
     st = sim.initial_state()
-    obj.begin_step(st.x, st.v, sim.scene.root_positions(DT), DT, st.duals)
+    obj.begin_step(st.x, st.v, sim.scene.root_positions(DT), DT, st.tensions)
     tr.begin(DT)
     rng = np.random.default_rng(seed)
     xf = obj.initial_guess() + rng.normal(scale=0.003, size=obj.n_dofs)
@@ -213,7 +215,7 @@ def full_kkt_residual(ab, A, r_x, C, sol, Bmat=None, D=None, r_t=None):
 @pytest.mark.parametrize("system", ["static", "sliding_random", "sliding_structured"])
 def test_schur_kkt_matches_reference_solve(case, system):
     scene, sim = kkt_scene(case)
-    tr = sim.tracker
+    tr = sim.controller
     if case == "unequal_strands_2_guides":
         assert len(set(np.diff(scene.strands.offsets).tolist())) > 3
         assert tr.guides.n_guides == 2
@@ -242,7 +244,7 @@ def test_schur_kkt_matches_reference_solve(case, system):
 def test_schur_kkt_refactors_for_a_new_hessian():
     """``factor`` twice with different Hessians: the second solve uses the second matrix."""
     _, sim = kkt_scene("unequal_strands_2_guides")
-    tr = sim.tracker
+    tr = sim.controller
     ab1, r_x, C, _, _ = kkt_system(sim, seed=1)
     ab2 = ab1.copy()
     ab2[0] *= 3.0
@@ -275,7 +277,7 @@ def fig2(targets):
 
 def hand_residual(sim, x, t_now, tk):
     """max_k |c_k(x) - c_hat_k(t_k)| with the centres of mass computed by hand."""
-    cons = sim.tracker.cons
+    cons = sim.controller.cons
     return float(np.linalg.norm(free_vertex_com(sim, x) - cons.target_points(cons.targets(t_now), tk), axis=1).max())
 
 
@@ -288,7 +290,7 @@ def test_converged_steps_meet_constraints_and_optimality(targets, guides):
     if guides == "simulated":
         cfg.guides.source = "simulated"
     scene, _, sim = build_tracked(cfg)
-    tr = sim.tracker
+    tr = sim.controller
     L = tr.hair_length
     state = sim.initial_state()
     checked, worked = 0, False
@@ -298,23 +300,23 @@ def test_converged_steps_meet_constraints_and_optimality(targets, guides):
         if not info.converged:
             continue
         xf = sim.free_dofs(state.x)
-        r = hand_residual(sim, state.x, state.time, state.duals["t"])
+        r = hand_residual(sim, state.x, state.time, state.control.t)
         assert r <= 1e-8 * L
-        m = tr.measure(xf, state.time, state.duals)
+        m = tr.measure(xf, state.time, state.control)
         assert m["residual_rel_max"] <= 1e-8
         assert abs(m["residual_rel_max"] - r / L) <= 1e-15
         if info.substeps != 1:
             continue
         obj = sim.objective
-        obj.begin_step(prev.x, prev.v, scene.root_positions(state.time), DT, prev.duals)
+        obj.begin_step(prev.x, prev.v, scene.root_positions(state.time), DT, prev.tensions)
         ev = obj.evaluate(xf, need_hessian=False)
-        lam = state.duals["lambda"]
+        lam = state.control.lam
         ATlam = tr.cons.AT @ lam
         rx = np.linalg.norm(ev.grad + ATlam)
         assert rx <= tr.opts.atol + tr.opts.rtol * (ev.force_scale + np.linalg.norm(ATlam))
         worked = worked or np.linalg.norm(ATlam) > 0
         if targets == "sliding":
-            _, d1, _ = tr.cons.target_points(tr.cons.targets(state.time), state.duals["t"], derivatives=True)
+            _, d1, _ = tr.cons.target_points(tr.cons.targets(state.time), state.control.t, derivatives=True)
             l3 = lam.reshape(-1, 3)
             rt = np.abs((l3 * d1).sum(1))
             assert (rt <= tr.opts.atol + tr.opts.rtol * np.linalg.norm(l3, axis=1) * np.linalg.norm(d1, axis=1)).all()
@@ -327,10 +329,10 @@ def test_metrics_residual_of_an_unconverged_state_is_computed_correctly():
     """measure() on a state that violates the constraints: residual_max / residual_rel_max equal
     the hand-computed max |c_k - c_hat_k(t_k)| (not round-off on both sides)."""
     scene, _, sim = build_tracked(goaling_like())
-    tr = sim.tracker
+    tr = sim.controller
     x = perturbed(scene, 5, scale=0.01)
-    duals = {"t": tr.cons.t_rest * 1.1, "lambda": np.zeros(3 * tr.cons.K)}
-    r = hand_residual(sim, x, 0.2, duals["t"])
+    duals = TrackingIterates(tr.cons.t_rest * 1.1, np.zeros(3 * tr.cons.K))
+    r = hand_residual(sim, x, 0.2, duals.t)
     m = tr.measure(sim.free_dofs(x), 0.2, duals)
     assert r > 1e-3
     np.testing.assert_allclose(m["residual_max"], r, rtol=1e-12)
@@ -344,11 +346,11 @@ def test_schur_and_reference_kkt_give_the_same_trajectory():
         _, _, sim = build_tracked(goaling_like(kkt=kkt))
         states, infos = run_steps(sim, 8)
         assert all(i.converged for i in infos)
-        runs[kkt] = (states, sim.tracker.hair_length)
+        runs[kkt] = (states, sim.controller.hair_length)
     (sa, L), (sb, _) = runs["schur"], runs["reference"]
     for a, b in zip(sa, sb):
         assert np.abs(a.x - b.x).max() <= 1e-8 * L
-        assert np.abs(a.duals["t"] - b.duals["t"]).max() <= 1e-8 * L
+        assert np.abs(a.control.t - b.control.t).max() <= 1e-8 * L
     assert np.abs(sa[-1].x - sa[0].x).max() > 0.01 * L  # the hair did move
 
 
@@ -369,11 +371,11 @@ def test_rigid_guides_carry_a_fully_constrained_strand_rigidly():
     cfg = tracked_cfg({**rigid_motion(True), "scene.n_strands": 1, "scene.n_vertices": 10,
                        "tracking.points_per_guide": 17, "tracking.targets": "static", "frames": 12})
     scene, _, sim = build_tracked(cfg)
-    cov = sim.tracker.corr.cluster_of_vertex
+    cov = sim.controller.corr.cluster_of_vertex
     assert (np.bincount(cov[cov >= 0]) == 1).all() and (cov[~scene.strands.kinematic] >= 0).all()
     states, infos = run_steps(sim, 12)
     assert all(i.converged for i in infos)
-    assert rigid_error(scene, states, sim.tracker.hair_length) <= 1e-8
+    assert rigid_error(scene, states, sim.controller.hair_length) <= 1e-8
 
 
 def test_sliding_targets_carry_the_wisp_rigidly_when_motion_has_no_tangential_inertia():
@@ -383,7 +385,7 @@ def test_sliding_targets_carry_the_wisp_rigidly_when_motion_has_no_tangential_in
     scene, _, sim = build_tracked(cfg)
     states, infos = run_steps(sim, 12)
     assert all(i.converged for i in infos)
-    assert rigid_error(scene, states, sim.tracker.hair_length) <= 1e-8
+    assert rigid_error(scene, states, sim.controller.hair_length) <= 1e-8
 
 
 def test_static_targets_carry_a_translating_wisp_rigidly(monkeypatch):
@@ -396,7 +398,7 @@ def test_static_targets_carry_a_translating_wisp_rigidly(monkeypatch):
         states, infos = run_steps(sim, 6)
     assert all(i.converged for i in infos)
     assert rec.failed == [], rec.failed
-    assert rigid_error(scene, states, sim.tracker.hair_length) <= 1e-8
+    assert rigid_error(scene, states, sim.controller.hair_length) <= 1e-8
 
 
 def test_rigid_guides_translate_and_rotate_cluster_centres_with_the_body():
@@ -406,7 +408,7 @@ def test_rigid_guides_translate_and_rotate_cluster_centres_with_the_body():
     a cluster; the constraints fix only the first moment), but far less than untracked hair."""
     cfg = tracked_cfg({**rigid_motion(True), "tracking.targets": "static", "frames": 10})
     scene, _, sim = build_tracked(cfg)
-    L = sim.tracker.hair_length
+    L = sim.controller.hair_length
     com0 = free_vertex_com(sim, scene.strands.rest)
     states, infos = run_steps(sim, 10)
     for s, i in zip(states[1:], infos):
@@ -426,7 +428,7 @@ def test_rigid_guides_translate_and_rotate_cluster_centres_with_the_body():
 def ablation_run(cfg, steps):
     """Run with every SQP attempt recorded; the measures compared in the ablation."""
     scene, _, sim = build_tracked(cfg)
-    L = sim.tracker.hair_length
+    L = sim.controller.hair_length
     with pytest.MonkeyPatch.context() as mp, record_attempts(mp) as rec:
         states, infos = run_steps(sim, steps)
     eps = [np.abs(stretch(scene, s.x)) for s in states[1:]]
@@ -438,10 +440,10 @@ def ablation_run(cfg, steps):
         "failed_attempts": len(rec.failed),
         "converged_fraction": float(np.mean([i.converged for i in infos])),
         "displacement_max_rel": float(max(np.abs(s.x - states[0].x).max() for s in states) / L),
-        "residual_rel_max": float(max(sim.tracker.measure(sim.free_dofs(s.x), s.time, s.duals)["residual_rel_max"]
+        "residual_rel_max": float(max(sim.controller.measure(sim.free_dofs(s.x), s.time, s.control)["residual_rel_max"]
                                       for s, i in zip(states[1:], infos) if i.converged)),
-        "t_final": states[-1].duals["t"].tolist(),
-        "t_rest": sim.tracker.cons.t_rest.tolist(),
+        "t_final": states[-1].control.t.tolist(),
+        "t_rest": sim.controller.cons.t_rest.tolist(),
         "hair_length": L,
     }
 
@@ -498,9 +500,9 @@ def test_ablation_sliding_beats_static(ablation, tmp_path_factory):
 
 
 def test_warm_start_carries_t_and_lambda_between_steps(monkeypatch):
-    """State.duals carries the sliding parameters and multipliers from one step's SQP to the
+    """State.control carries the sliding parameters and multipliers from one step's SQP to the
     next step's starting point; on the shrinking guide t moves away from t_rest."""
-    import hairexp.physics.integrator as integ
+    import hairexp.control.tracking.controller as integ
 
     seen = []
     orig = integ.sqp_solve
@@ -512,7 +514,7 @@ def test_warm_start_carries_t_and_lambda_between_steps(monkeypatch):
 
     monkeypatch.setattr(integ, "sqp_solve", spy)
     scene, _, sim = build_tracked(fig2("sliding"))
-    t_rest = sim.tracker.cons.t_rest
+    t_rest = sim.controller.cons.t_rest
     states, infos = run_steps(sim, 5)
     assert all(i.substeps == 1 for i in infos) and len(seen) == 5
     np.testing.assert_array_equal(seen[0][0], t_rest)
@@ -520,15 +522,15 @@ def test_warm_start_carries_t_and_lambda_between_steps(monkeypatch):
     for n in range(1, 5):
         np.testing.assert_array_equal(seen[n][0], seen[n - 1][2])   # t from the previous step
         np.testing.assert_array_equal(seen[n][1], seen[n - 1][3])   # lambda from the previous step
-        np.testing.assert_array_equal(states[n].duals["t"], seen[n - 1][2])
-        np.testing.assert_array_equal(states[n].duals["lambda"], seen[n - 1][3])
-    assert (np.abs(states[-1].duals["t"] - t_rest) > 0.01 * t_rest).all()
+        np.testing.assert_array_equal(states[n].control.t, seen[n - 1][2])
+        np.testing.assert_array_equal(states[n].control.lam, seen[n - 1][3])
+    assert (np.abs(states[-1].control.t - t_rest) > 0.01 * t_rest).all()
     # static targets: t never moves
     seen.clear()
     _, _, sim2 = build_tracked(fig2("static"))
     states2, _ = run_steps(sim2, 3)
-    np.testing.assert_array_equal(states2[-1].duals["t"], sim2.tracker.cons.t_rest)
-    assert np.abs(states2[-1].duals["lambda"]).max() > 0
+    np.testing.assert_array_equal(states2[-1].control.t, sim2.controller.cons.t_rest)
+    assert np.abs(states2[-1].control.lam).max() > 0
 
 
 # ---------------------------------------------------------------------------------------------

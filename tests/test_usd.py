@@ -15,13 +15,13 @@ from usd_helpers import (COLLIDERS, FRAMES, GUIDE_VERTICES, MOTION, N_GUIDES, N_
                          scene_overrides, set_colliders, source_cfg, usd_cfg, vec3f, write_stage)
 
 from hairexp.errors import InputError
-from hairexp.io.export_scene import export_scene, main as export_main
+from hairexp.app.export_scene import export_scene, main as export_main
 from hairexp.io.usd_read import stage_timing
 from hairexp.io.usd_write import write_result_usd
-from hairexp.physics.colliders import Box, Capsule, Cylinder, Plane, Sphere
-from hairexp.run import run
-from hairexp.scene.builders import build_scene
-from hairexp.tracking.guides import build_guides
+from hairexp.model.colliders import Box, Capsule, Cylinder, Plane, Sphere
+from hairexp.app.run import run
+from hairexp.app.builders import build_scene
+from hairexp.app.guides import build_guides
 
 FPS = 25.0
 LENGTH = 0.3          # m, hair length of the test scene

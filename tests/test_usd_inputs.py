@@ -16,7 +16,7 @@ from usd_helpers import (COLLIDERS, FRAMES, GUIDE_VERTICES, N_VERTICES, edit_sta
                          write_stage)
 
 from hairexp.errors import InputError
-from hairexp.run import run
+from hairexp.app.run import run
 
 HAIR, GUIDES, BODY = "/Root/Body/Hair", "/Root/Guides", "/Root/Body"
 

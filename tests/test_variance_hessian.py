@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from hairexp.tracking.sqp import woodbury
-from hairexp.tracking.variance import variance
+from hairexp.control.tracking.sqp import woodbury
+from hairexp.control.tracking.variance import variance
 
 
 def test_woodbury_matches_the_dense_kkt_solve_with_the_low_rank_term():
@@ -39,7 +39,7 @@ def test_hessian_model_is_exact_where_the_variance_meets_its_target():
     the exact Hessian of k (V - V_bar)^2, which includes the cross-vertex coupling."""
     from types import SimpleNamespace
 
-    from hairexp.tracking.variance import VarianceControl
+    from hairexp.control.tracking.variance import VarianceControl
 
     rng = np.random.default_rng(1)
     n_free, K = 10, 2

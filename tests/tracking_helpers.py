@@ -11,13 +11,15 @@ import helpers
 import numpy as np
 from omegaconf import OmegaConf
 
-from hairexp.config import Config, TrackingConfig
-from hairexp.physics.integrator import Simulator
-from hairexp.scene.builders import build_scene
-from hairexp.scene.rigid import RigidMotion
-from hairexp.scene.scene import Material, Scene
-from hairexp.scene.strands import Strands
-from hairexp.tracking.guides import GuideAnimation, build_guides
+from hairexp.control.tracking.controller import TrackingController
+from hairexp.app.config import Config, TrackingConfig
+from hairexp.physics.simulator import Simulator
+from hairexp.app.builders import build_scene
+from hairexp.model.rigid import RigidMotion
+from hairexp.model.scene import Material, Scene
+from hairexp.model.strands import Strands
+from hairexp.app.guides import build_guides
+from hairexp.guides.animation import GuideAnimation
 
 NO_GRAVITY = [0.0, 0.0, 0.0]
 DT = 0.04  # s: one step per frame at 25 fps
@@ -59,7 +61,7 @@ def build_tracked(cfg):
     """(scene, guides, simulator) for a tracked config."""
     scene = build_scene(cfg.scene)
     guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
-    sim = Simulator(scene, cfg.solver, cfg.tracking, guides)
+    sim = Simulator(scene, cfg.solver, TrackingController(scene, guides, cfg.tracking))
     return scene, guides, sim
 
 
@@ -102,8 +104,8 @@ def straight(root, direction, length: float, n: int) -> np.ndarray:
 def free_vertex_com(sim: Simulator, x: np.ndarray) -> np.ndarray:
     """(K, 3) cluster centres of mass, eq. (2), computed by hand from masses and clusters."""
     s = sim.scene.strands
-    cov = sim.tracker.corr.cluster_of_vertex
-    K = sim.tracker.cons.K
+    cov = sim.controller.corr.cluster_of_vertex
+    K = sim.controller.cons.K
     com = np.zeros((K, 3))
     for k in range(K):
         v = np.flatnonzero(cov == k)
@@ -129,7 +131,7 @@ class Attempts:
 def record_attempts(monkeypatch):
     """Wrap the integrator's ``sqp_solve`` to record every attempt (StepInfo only sums the
     substeps that were kept, not an attempt that recovery replaced)."""
-    import hairexp.physics.integrator as integ
+    import hairexp.control.tracking.controller as integ
 
     rec = Attempts()
     orig = integ.sqp_solve

@@ -9,10 +9,10 @@ import numpy as np
 from omegaconf import OmegaConf
 from tracking_helpers import tracked_cfg
 
-from hairexp.config import ColliderConfig
+from hairexp.app.config import ColliderConfig
 from hairexp.io.usd_write import write_scene_usd
-from hairexp.scene.builders import build_scene
-from hairexp.tracking.guides import build_guides
+from hairexp.app.builders import build_scene
+from hairexp.app.guides import build_guides
 
 FRAMES = 5
 N_STRANDS, N_VERTICES, N_GUIDES, GUIDE_VERTICES = 6, 8, 2, 6

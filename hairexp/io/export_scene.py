@@ -1,66 +1,12 @@
-"""Export a config's scene as a USD stage in the input layout (README "USD scenes").
-
-    python -m hairexp.io.export_scene scene.usda experiment=goaling controller=tracking guides.count=3
-
-The overrides compose as for ``python -m hairexp`` (conf/); the stage holds the body motion,
-the detail hair at rest, the guide animation of frames 0..frames at fps (``guides.*``) and the
-colliders.  ``python -m hairexp experiment=from_usd scene.usd=scene.usda`` runs it.
-Exit codes: 0 written, 1 bad config (Hydra's message), 2 bad input (``hairexp: error: ...``).
-"""
+"""Command-line entry point ``python -m hairexp.io.export_scene`` (README "USD scenes"); the
+export itself is ``hairexp.app.export_scene``.  This module is an entry point, in the app layer
+like ``hairexp/__main__.py``: nothing imports it (tests/test_layers.py)."""
 
 from __future__ import annotations
 
-import logging
 import sys
-from dataclasses import replace
 
-log = logging.getLogger(__name__)
-
-
-def export_scene(cfg, path) -> tuple:
-    """Build ``cfg``'s scene and guides and write them to ``path``; (scene, guides)."""
-    from hairexp.io.usd_write import write_scene_usd
-    from hairexp.scene.dynamic_body import authoring_motion
-    from hairexp.scene.builders import build_scene
-    from hairexp.tracking.guides import build_guides
-
-    if cfg.frames is None or cfg.fps is None:
-        from hairexp.io.usd_read import stage_timing
-
-        cfg = stage_timing(cfg)
-    scene = build_scene(cfg.scene)
-    guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
-    ref = authoring_motion(scene.motion)
-    if ref is not scene.motion:  # a dynamic block (scene.body): its motion is not known before a run
-        log.warning("%s: the dynamic body is written at its initial pose; import the stage with "
-                    "scene.body.dynamic=true (and its scene.body.*) to make it dynamic again", path)
-        scene = replace(scene, motion=ref)
-        guides.attach(ref)
-    write_scene_usd(path, scene, guides, cfg.fps, cfg.frames)
-    return scene, guides
-
-
-def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else list(argv)
-    if not args or "=" in args[0] or args[0].startswith("-"):
-        print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
-        return 1
-    from hairexp.config import compose_config
-    from hairexp.errors import InputError
-
-    try:
-        cfg = compose_config(args[1:])
-    except Exception as exc:  # unknown key, wrong type: Hydra's message
-        print(f"hairexp: error: {exc}", file=sys.stderr)
-        return 1
-    try:
-        scene, guides = export_scene(cfg, args[0])
-    except (InputError, ValueError) as exc:
-        print(f"hairexp: error: {exc}", file=sys.stderr)
-        return 2
-    print(f"wrote {args[0]}: {scene.strands.n_strands} strands, {guides.n_guides} guides, {cfg.frames} frames")
-    return 0
-
+from hairexp.app.export_scene import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -21,7 +21,7 @@ from pxr import Sdf, Tf, Usd, UsdGeom
 from hairexp.errors import InputError
 from hairexp.io.usd_layout import (COLLIDER_DEFAULTS, COLLIDERS, FRICTION, PLANE_SIZE, SPIN, THICKNESS,
                                    read_motion, set_transform)
-from hairexp.physics.colliders import Box, Capsule, Cylinder, Plane, Sphere
+from hairexp.model.colliders import Box, Capsule, Cylinder, Plane, Sphere
 
 SUPPORTED = ("Sphere", "Cube", "Cylinder", "Capsule", "Plane")
 

@@ -25,7 +25,7 @@ from pxr import Gf, Usd, UsdGeom
 from scipy.spatial.transform import Rotation
 
 from hairexp.errors import InputError
-from hairexp.scene.rigid import RigidMotion
+from hairexp.model.rigid import RigidMotion
 
 ROOT = "/Root"
 BODY = "/Root/Body"

@@ -19,12 +19,16 @@ import re
 from pathlib import Path
 
 import numpy as np
+from omegaconf import OmegaConf
 from pxr import Usd, UsdGeom
 
 from hairexp.errors import InputError
 from hairexp.io.usd_colliders import read_colliders
 from hairexp.io.usd_layout import read_motion, time_label
-from hairexp.scene.strands import N_ROOT_VERTICES, validate_polylines
+from hairexp.guides.animation import GuideAnimation
+from hairexp.model.builders import build_collider, build_material, vec3
+from hairexp.model.scene import Scene
+from hairexp.model.strands import N_ROOT_VERTICES, Strands, validate_polylines
 
 _open: dict = {}   # path -> stage of the last read (reloaded when the file changes)
 
@@ -100,10 +104,6 @@ def apply(points: np.ndarray, M) -> np.ndarray:
 
 def build_usd_scene(cfg):
     """The Scene of ``scene.usd`` (builder ``usd``); see the module doc."""
-    from hairexp.scene.builders import _vec3, build_collider, build_material
-    from hairexp.scene.scene import Scene
-    from hairexp.scene.strands import Strands
-
     stage, file = open_stage(cfg.usd)
     tcps = float(stage.GetTimeCodesPerSecond())
     body = get_prim(stage, cfg.usd_body, file, "the rigid body", "scene.usd_body", UsdGeom.Xformable)
@@ -122,7 +122,7 @@ def build_usd_scene(cfg):
     strands = Strands.from_polylines(motion.transform(body_pts, 0.0), counts, material.linear_density, where=where)
     colliders = read_colliders(stage, cfg.usd_colliders, tcps, file)
     colliders += [build_collider(c, i) for i, c in enumerate(getattr(cfg, "colliders", []) or [])]
-    return Scene(cfg.name, strands, material, motion, _vec3(cfg.gravity, "scene.gravity"), body_pts, colliders)
+    return Scene(cfg.name, strands, material, motion, vec3(cfg.gravity, "scene.gravity"), body_pts, colliders)
 
 
 def guide_frames(attr, where: str) -> int:
@@ -143,8 +143,6 @@ def guide_frames(attr, where: str) -> int:
 
 def read_guides(cfg, scene, frames: int, fps: float):
     """Guide animation of ``scene.usd_guides`` (world space, one time sample per frame)."""
-    from hairexp.tracking.guides import GuideAnimation
-
     stage, file = open_stage(cfg.scene.usd)
     path = cfg.scene.usd_guides
     prim = get_prim(stage, path, file, "the guides", "scene.usd_guides", UsdGeom.BasisCurves)
@@ -176,8 +174,6 @@ def read_guides(cfg, scene, frames: int, fps: float):
 def stage_timing(cfg):
     """A copy of ``cfg`` with ``frames: null`` (the stage's endTimeCode, converted to the run's
     rate) and ``fps: null`` (the stage's timeCodesPerSecond) filled in."""
-    from omegaconf import OmegaConf
-
     if str(getattr(cfg.scene.builder, "value", cfg.scene.builder)) != "usd":
         key = "frames" if cfg.frames is None else "fps"
         raise InputError("null (take it from the USD stage) needs scene.builder=usd; give a number", key)

@@ -25,12 +25,12 @@ class _Scatter:
 
 
 class BandedAssembler:
-    def __init__(self, free_index: np.ndarray, stencils: list[np.ndarray]):
-        self.free_index = np.asarray(free_index)
-        self.n_dofs = 3 * int((self.free_index >= 0).sum())
+    def __init__(self, free_slot: np.ndarray, stencils: list[np.ndarray]):
+        self.free_slot = np.asarray(free_slot)
+        self.n_dofs = 3 * int((self.free_slot >= 0).sum())
         bw = 0
         for st in stencils:
-            f = self.free_index[st]
+            f = self.free_slot[st]
             big = np.iinfo(np.int64).max
             hi = np.where(f >= 0, f, -1).max(axis=1)
             lo = np.where(f >= 0, f, big).min(axis=1)
@@ -45,8 +45,8 @@ class BandedAssembler:
     def _pattern(self, stencil: np.ndarray) -> _Scatter:
         n, k = stencil.shape
         m = 3 * k
-        dof = (3 * self.free_index[stencil][:, :, None] + np.arange(3)).reshape(n, m)  # (n, 3k), negative if kinematic
-        free = (self.free_index[stencil] >= 0).repeat(3, axis=1)
+        dof = (3 * self.free_slot[stencil][:, :, None] + np.arange(3)).reshape(n, m)  # (n, 3k), negative if kinematic
+        free = (self.free_slot[stencil] >= 0).repeat(3, axis=1)
         # Hessian: lower triangle of the global matrix
         a, b = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")  # local row a, column b
         gi, gj = dof[:, a.ravel()], dof[:, b.ravel()]

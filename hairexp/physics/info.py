@@ -3,26 +3,37 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 
-#: Status values of a step.
-CONVERGED = "converged"
-MAX_ITERATIONS = "max_iterations"
-LINE_SEARCH_FAILED = "line_search_failed"
-DIVERGED = "diverged"
+
+class Status(str, Enum):
+    """How a solve (and a step) ended; the metrics table's ``status`` column holds the value."""
+
+    CONVERGED = "converged"
+    MAX_ITERATIONS = "max_iterations"
+    LINE_SEARCH_FAILED = "line_search_failed"
+    DIVERGED = "diverged"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+CONVERGED, MAX_ITERATIONS, LINE_SEARCH_FAILED, DIVERGED = (Status.CONVERGED, Status.MAX_ITERATIONS,
+                                                           Status.LINE_SEARCH_FAILED, Status.DIVERGED)
 
 
 @dataclass
 class SolveInfo:
     """One nonlinear solve (Newton or SQP) over one time step of size ``dt``."""
 
-    status: str = CONVERGED
+    status: Status = CONVERGED
     iterations: int = 0
     backtracks: int = 0
     grad_norm: float = 0.0          # final |grad H| (free) or |grad L| (SQP)
     force_scale: float = 0.0        # what the gradient is compared against
     constraint_norm: float = 0.0    # SQP only: max |C|
     seconds: dict = field(default_factory=lambda: {"derivatives": 0.0, "assembly": 0.0, "solve": 0.0})
-    duals: dict = field(default_factory=dict)   # converged dual iterates (warm start of the next step)
+    tensions: dict = field(default_factory=dict)   # final stretch dual iterates (warm start of the next step)
     collision: object = None        # CollisionInfo of the collision stage that followed, if it ran
 
     @property
@@ -36,7 +47,7 @@ class StepInfo:
 
     time: float                      # end-of-step time (s)
     dt: float
-    status: str
+    status: Status
     iterations: int                  # summed over the substeps that make up the accepted step
     backtracks: int
     substeps: int                    # 1 unless recovery split the step

@@ -76,7 +76,7 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
             return x, info
         if gnorm <= opts.atol + opts.rtol * ev.force_scale:
             info.status = CONVERGED
-            info.duals = obj.settle_duals(x)
+            info.tensions = obj.final_tensions(x)
             return x, info
         if info.iterations >= opts.max_iterations:
             info.status = MAX_ITERATIONS
@@ -94,7 +94,7 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         if alpha == 0.0:
             info.status = LINE_SEARCH_FAILED
             return x, info
-        obj.update_duals(x, alpha * p)
+        obj.update_tensions(x, alpha * p)
         x = x + alpha * p
         f = f_new
         # gradient and Hessian together: a separate gradient-only check would repeat most of

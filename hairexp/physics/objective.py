@@ -36,7 +36,7 @@ class Evaluation:
 class ImplicitEulerObjective:
     """Eq. (5) for one time step.  Built once per run; ``begin_step`` sets x_n, v_n, dt."""
 
-    def __init__(self, terms: list[Term], masses: np.ndarray, kinematic: np.ndarray, free_index: np.ndarray,
+    def __init__(self, terms: list[Term], masses: np.ndarray, kinematic: np.ndarray, free_slot: np.ndarray,
                  derivatives: str = "closed_form", external: list[Term] = (), primal_dual: bool = True):
         """``terms``: energies with Hessians (assembled each iteration); ``external``: linear
         potentials (gravity) whose gradient is constant and is computed once here."""
@@ -45,24 +45,24 @@ class ImplicitEulerObjective:
         self.free_vertices = np.flatnonzero(~np.asarray(kinematic))
         self.m_free = np.asarray(masses)[self.free_vertices]
         self.m_dof = np.repeat(self.m_free, 3)
-        self.assembler = BandedAssembler(free_index, [t.stencil for t in self.terms])
+        self.assembler = BandedAssembler(free_slot, [t.stencil for t in self.terms])
         self.derivatives = derivatives
         self.primal_dual = primal_dual and derivatives == "closed_form"
         self.n_dofs = self.assembler.n_dofs
         self.g_ext = np.zeros(self.n_dofs)
         if self.external:
-            ext_asm = BandedAssembler(free_index, [t.stencil for t in self.external])
-            x0 = torch.zeros(len(free_index), 3, dtype=DTYPE)
+            ext_asm = BandedAssembler(free_slot, [t.stencil for t in self.external])
+            x0 = torch.zeros(len(free_slot), 3, dtype=DTYPE)
             with torch.no_grad():
                 self.g_ext = ext_asm.gradient([t.grad_hess(x0[t.stencil_t], False)[0].numpy() for t in self.external])
         self.ext_norm = float(np.linalg.norm(self.g_ext))
 
     # -- per step -------------------------------------------------------------------------
     def begin_step(self, x_n: np.ndarray, v_n: np.ndarray, x_kinematic_next: np.ndarray, dt: float,
-                   duals: dict | None = None) -> None:
+                   tensions: dict | None = None) -> None:
         """x_n, v_n: (V, 3) start-of-step state; x_kinematic_next: (V, 3) whose kinematic rows
-        hold the prescribed end-of-step root positions; ``duals``: warm start of the dual
-        iterates (spring tensions) from the previous step, or None."""
+        hold the prescribed end-of-step root positions; ``tensions``: warm start of the dual
+        iterates (spring tensions, ``State.tensions``) from the previous step, or None."""
         self.dt = float(dt)
         self.x_n = np.asarray(x_n)
         self.x_full = np.array(x_kinematic_next, dtype=np.float64)
@@ -73,14 +73,14 @@ class ImplicitEulerObjective:
         self.x_pred = (self.x_n + self.dt * np.asarray(v_n))[self.free_vertices].reshape(-1)  # x_n + dt v_n
         self.mass_diag = self.m_dof / self.dt ** 2
         for t in self._dual_terms:
-            t.tension = None if not duals or duals.get(t.name) is None else torch.as_tensor(duals[t.name])
+            t.tension = None if not tensions or tensions.get(t.name) is None else torch.as_tensor(tensions[t.name])
 
     # -- dual iterates (primal-dual stretch Hessian, see energies.Stretch) ----------------
     @property
     def _dual_terms(self):
         return [t for t in self.terms if hasattr(t, "linearized_tension")] if self.primal_dual else []
 
-    def update_duals(self, xf: np.ndarray, step: np.ndarray) -> None:
+    def update_tensions(self, xf: np.ndarray, step: np.ndarray) -> None:
         """Advance the tension iterates by their linearisation along the accepted step."""
         terms = self._dual_terms
         if not terms:
@@ -92,7 +92,7 @@ class ImplicitEulerObjective:
             for t in terms:
                 t.tension = t.linearized_tension(x[t.stencil_t], d[t.stencil_t])
 
-    def settle_duals(self, xf: np.ndarray) -> dict:
+    def final_tensions(self, xf: np.ndarray) -> dict:
         """Tensions of the final state (the warm start of the next step)."""
         x = self.positions(xf)
         out = {}

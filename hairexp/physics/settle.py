@@ -5,13 +5,13 @@ equilibrium under gravity: left alone it sags before anything moves.  With ``sce
 hair is simulated free (no controller) from time -settle to 0, with the run's solver settings
 and steps of ``scene.settle_dt`` (default 0.04 s, whatever the run's dt: runs at different dt
 start from the same state), the body and the colliders held at their t = 0 poses (keyframed motions hold
-their first pose with zero velocity before their first key, hairexp/scene/rigid.py; a dynamic
+their first pose with zero velocity before their first key, hairexp/model/rigid.py; a dynamic
 body is replaced by its initial pose held still).  The run then starts from the settled
 positions at rest (zero velocity): ``Scene.root_body`` (body frame) and ``Scene.initial`` (world)
 hold them, and the tracking is registered on them (paper 3.1-3.2: correspondence and offsets in
 the configuration the run starts from).  The elastic rest shape (rest lengths and bending angles,
 ``Strands.rest``) is unchanged.  Simulated guides (``guides.source: simulated``) settle the same
-way for the same time (hairexp/tracking/guides.py); the other guide sources are not settled.
+way for the same time (hairexp/app/guides.py); the other guide sources are not settled.
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ from dataclasses import replace
 import numpy as np
 
 from hairexp.errors import InputError, finite_number
-from hairexp.scene.dynamic_body import authoring_motion
+from hairexp.model.dynamic_body import authoring_motion
+from hairexp.physics.simulator import Simulator
 
 log = logging.getLogger(__name__)
 
@@ -50,8 +51,6 @@ def settle_step(scene_cfg) -> float:
 def settle_state(scene, solver_cfg, collision_cfg, seconds: float, dt: float, what: str = "hair") -> np.ndarray:
     """(V, 3) world positions of ``scene``'s hair after ``seconds`` of free simulation from its
     rest shape, the body and colliders held at their t = 0 poses (see module doc)."""
-    from hairexp.physics.integrator import Simulator
-
     held = replace(scene, motion=authoring_motion(scene.motion), initial=None)
     sim = Simulator(held, solver_cfg, collision_cfg=collision_cfg)
     n = max(1, int(math.ceil(seconds / dt - 1e-9)))

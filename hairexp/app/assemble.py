@@ -1,0 +1,106 @@
+"""The one assembly path: config -> scene, guides, controller, simulator and the settled
+initial state.  The command line (``hairexp.app.run``), the USD export, every script under
+experiments/ and the tests that build runs go through it, so a benchmark times exactly what
+``python -m hairexp`` runs.
+
+    from hairexp.app import assemble, compose_config
+
+    run = assemble(compose_config(["experiment=goaling_smoke", "controller=tracking"]))
+    state = run.initial_state()
+    for step, frame, state, info in run.steps(state):
+        ...                                  # state: hairexp.physics.state.State, info: StepInfo
+
+Order (the same for every caller): the stage's timing (``frames``/``fps`` null: from
+``scene.usd``), the step schedule, the scene (``app.builders.build_scene``), the settle phase
+(``scene.settle``, hairexp/physics/settle.py), the guide animation (``app.guides.build_guides``),
+the controller (``controller.name`` in the registry, hairexp/control/__init__.py) and the
+Simulator (hairexp/physics/simulator.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterator
+
+from hairexp.app.builders import build_scene
+from hairexp.app.guides import build_guides
+from hairexp.control import build_controller
+from hairexp.guides.animation import GuideAnimation
+from hairexp.model.scene import Scene
+from hairexp.physics.controller import Controller
+from hairexp.physics.info import StepInfo
+from hairexp.physics.schedule import step_schedule
+from hairexp.physics.settle import settle_scene
+from hairexp.physics.simulator import Simulator
+from hairexp.physics.state import State
+
+
+def _value(x):
+    return getattr(x, "value", x)
+
+
+@dataclass(frozen=True)
+class Run:
+    """An assembled run: everything that stays fixed while it is stepped."""
+
+    cfg: object                  # the composed config (frames and fps filled in from a USD stage)
+    scene: Scene                 # settled when scene.settle > 0
+    guides: GuideAnimation
+    controller: Controller
+    simulator: Simulator
+    steps_per_frame: int
+    dt: float                    # s, the step (the frame interval / steps_per_frame)
+
+    @property
+    def frames(self) -> int:
+        return int(self.cfg.frames)
+
+    @property
+    def controller_name(self) -> str:
+        return str(_value(self.cfg.controller.name))
+
+    def initial_state(self) -> State:
+        return self.simulator.initial_state()
+
+    def steps(self, state: State | None = None, frames: int | None = None) -> Iterator[tuple[int, int, State, StepInfo]]:
+        """Step from ``state`` (default: the initial state) through ``frames`` frames (default:
+        the config's): yields (step, frame, state, info) after every step, steps and frames
+        counted from 1."""
+        state = self.initial_state() if state is None else state
+        step = 0
+        for frame in range(1, (self.frames if frames is None else frames) + 1):
+            for _ in range(self.steps_per_frame):
+                state, info = self.simulator.step(state, self.dt)
+                step += 1
+                yield step, frame, state, info
+
+
+def timed_config(cfg):
+    """``cfg`` with ``frames``/``fps`` filled in from the USD stage where they are null."""
+    if cfg.frames is None or cfg.fps is None:   # null: from the USD stage (experiment=from_usd)
+        from hairexp.io.usd_read import stage_timing   # pxr is imported only for USD scenes
+
+        return stage_timing(cfg)
+    return cfg
+
+
+def assemble_scene(cfg, settle: bool = True) -> tuple[object, Scene, GuideAnimation]:
+    """(config with its timing, scene, guides): the first half of ``assemble``.  ``settle=False``
+    keeps the built scene unsettled (the USD export writes the elastic rest shape); the guides are
+    the same either way (simulated guides settle on their own, hairexp/app/guides.py)."""
+    cfg = timed_config(cfg)
+    step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)   # validated before anything is built
+    scene = build_scene(cfg.scene)
+    if settle:
+        scene = settle_scene(scene, cfg)   # scene.settle > 0: start from the hair at rest under gravity
+    guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
+    return cfg, scene, guides
+
+
+def assemble(cfg) -> Run:
+    """The run of a composed config (``compose_config`` or Hydra's), ready to step."""
+    cfg, scene, guides = assemble_scene(cfg)
+    n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
+    controller = build_controller(str(_value(cfg.controller.name)), cfg, scene, guides)
+    sim = Simulator(scene, cfg.solver, controller, cfg.collision)
+    return Run(cfg, scene, guides, controller, sim, n_sub, dt)

@@ -1,0 +1,359 @@
+"""Structured-config schema, registered in Hydra's ConfigStore at import time (so joblib
+and submitit workers have it too).  A typo in a key or a wrong type or choice fails at
+start with Hydra's message naming the key."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+from typing import Any, Optional
+
+from hydra.core.config_store import ConfigStore
+
+from hairexp.control import REGISTRY as CONTROLLERS
+
+
+class Interpolation(str, Enum):
+    cubic = "cubic"
+    linear = "linear"
+
+
+class Derivatives(str, Enum):
+    closed_form = "closed_form"   # closed forms, each tested against autograd
+    autograd = "autograd"         # batched torch autograd + eigenvalue clamping
+
+
+class StretchHessian(str, Enum):
+    primal_dual = "primal_dual"   # geometric stiffness from a tension iterate (Tournier et al. 2015)
+    penalty = "penalty"           # geometric stiffness from the current stretch
+
+
+class Compile(str, Enum):
+    auto = "auto"   # compile the derivative kernels for scenes with >= COMPILE_MIN_VERTICES vertices
+    on = "on"
+    off = "off"
+
+
+class OnFailure(str, Enum):
+    substep = "substep"   # retry a failed step as two half steps, recursively
+    warn = "warn"         # keep a finite non-converged state, flag it in the metrics
+    fail = "fail"         # stop the run with an error (exit code 3)
+
+
+class Builder(str, Enum):
+    wisp = "wisp"
+    ponytail = "ponytail"
+    usd = "usd"              # a USD stage: scene.usd (README "USD scenes")
+
+
+#: controller.name: the controller registry's names (hairexp/control/__init__.py), so that a new
+#: controller needs no edit here.
+ControllerName = Enum("ControllerName", {n: n for n in CONTROLLERS}, type=str)
+
+
+class Targets(str, Enum):
+    static = "static"     # t fixed at the rest arc length (TRACKS-style static map)
+    sliding = "sliding"   # t is an optimisation variable (paper 3.2, dynamic constraint targets)
+
+
+class KKTSolve(str, Enum):
+    schur = "schur"           # Schur complement on the constraint block (fast)
+    reference = "reference"   # plain sparse saddle-point solve (SuperLU)
+
+
+class GuideSource(str, Enum):
+    rigid = "rigid"     # rest guides carried by the rigid body
+    scaled = "scaled"   # rest guides scaled about their roots by keyframed factors, carried by the body
+    keyframed = "keyframed"  # guides.keyframes: body-frame poses, cubic in time (hairexp/guides/authoring.py)
+    file = "file"       # npz with guide_positions (F, Vg, 3), guide_offsets, fps
+    simulated = "simulated"  # the rest guides simulated as free strands (same body, material, gravity)
+    usd = "usd"         # the guide prim of the stage scene.usd (scene.usd_guides), one time sample per frame
+
+
+@dataclass
+class MotionConfig:
+    """Keyframed rigid motion of the body the roots are attached to."""
+    interpolation: Interpolation = Interpolation.cubic
+    times: list[float] = field(default_factory=lambda: [0.0])                  # s
+    translations: list[list[float]] = field(default_factory=lambda: [[0.0, 0.0, 0.0]])  # m
+    rotations_deg: list[list[float]] = field(default_factory=lambda: [[0.0, 0.0, 0.0]])  # rotation vectors, degrees
+
+
+class ColliderShape(str, Enum):
+    sphere = "sphere"
+    capsule = "capsule"       # axis along body y, half_length, radius
+    box = "box"               # half_extents
+    cylinder = "cylinder"     # axis along body y, radius, half_height, spin (rad/s): a wheel
+    plane = "plane"           # the half space below body y = 0
+
+
+@dataclass
+class ColliderConfig:
+    name: str = "collider"
+    shape: ColliderShape = ColliderShape.sphere
+    radius: float = 0.1
+    half_length: float = 0.1
+    half_height: float = 0.05
+    half_extents: list[float] = field(default_factory=lambda: [0.1, 0.1, 0.1])
+    spin: float = 0.0
+    thickness: float = 0.002          # m kept from the surface
+    friction: float = 0.3             # Coulomb coefficient
+    motion: "MotionConfig" = field(default_factory=lambda: MotionConfig())   # pose keyframes of the collider
+
+
+@dataclass
+class HairConfig:
+    """Material of the detail hair (SI)."""
+    linear_density: float = 2e-4      # kg/m (a simulated strand stands for a few real hairs)
+    stretch_stiffness: float = 20.0   # EA, N
+    bending_stiffness: float = 2e-6   # EI, N m^2
+    edge_damping: float = 0.0         # N s, damping of stretch rate
+    air_drag: float = 0.0             # 1/s, drag against still air
+
+
+@dataclass
+class BodyConfig:
+    """The body the roots ride on as a dynamic block on a rail (hairexp/model/dynamic_body.py;
+    paper 4, Stylization).  dynamic=false: the keyframed ``scene.motion`` drives it."""
+    dynamic: bool = False
+    mass: float = 0.01                # kg, the block (the root vertices it carries are added)
+    rail_height: float = 0.0          # m, world y of the block's origin when it rests on the rail
+    rail_end: float = 0.1             # m, world x where the rail ends (it extends to -x without end)
+    rail_friction: float = 0.3        # Coulomb coefficient between block and rail
+    velocity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])   # m/s at t = 0
+
+
+@dataclass
+class SceneConfig:
+    name: str = "wisp"
+    builder: Builder = Builder.wisp
+    n_strands: int = 40
+    n_vertices: int = 20
+    length: float = 0.3               # m
+    root_radius: float = 0.02         # m, radius of the disk the roots are spread over
+    root_center: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # m, body frame
+    direction: list[float] = field(default_factory=lambda: [0.0, -1.0, 0.0])   # strand direction at rest
+    spread: float = 0.0               # rad, random tilt of each strand away from ``direction``
+    seed: int = 0
+    gravity: list[float] = field(default_factory=lambda: [0.0, -9.81, 0.0])    # m/s^2, Y up
+    hair: HairConfig = field(default_factory=HairConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    body: BodyConfig = field(default_factory=BodyConfig)  # dynamic: the block starts at scene.motion's pose (one key)
+    colliders: list[ColliderConfig] = field(default_factory=list)
+    # s, >= 0: before the run the hair (and simulated guides) settle under gravity for this long,
+    # body and colliders held at their t = 0 poses; the run starts, and the tracking registers, on
+    # the settled hair at rest (hairexp/physics/settle.py).  0: start from the rest shape as built.
+    settle: float = 0.0
+    settle_dt: float = 0.04             # s, the settle phase's step (fixed: the same settled state at every run dt)
+    # builder usd / guides.source usd: the stage and its prims (README "USD scenes")
+    usd: str = ""                       # path of a .usda/.usdc/.usd stage
+    usd_body: str = "/Root/Body"        # Xform, transform time-sampled
+    usd_hair: str = "/Root/Body/Hair"   # BasisCurves at rest, body space
+    usd_guides: str = "/Root/Guides"    # BasisCurves, world space, one time sample per frame
+    usd_colliders: str = "/Root/Colliders"  # optional: Sphere, Cube, Cylinder, Capsule, Plane children
+
+
+class GuideEditKind(str, Enum):
+    rotate = "rotate"       # rotate the guide about its root by weight(t) x angle_deg about a body-frame axis
+    displace = "displace"   # move vertex at normalised rest arc length s by weight(t) x s^falloff x offset
+
+
+@dataclass
+class GuideEditConfig:
+    """One authored edit layered on the guide animation (hairexp/guides/authoring.py)."""
+    guide: int = 0                     # index of the edited guide
+    kind: GuideEditKind = GuideEditKind.rotate
+    times: list[float] = field(default_factory=lambda: [0.0])     # s, strictly increasing keyframes of weight
+    weights: list[float] = field(default_factory=lambda: [1.0])   # multiplier of angle_deg / offset (any sign, may exceed 1)
+    axis: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])   # rotate: body frame, any length > 0
+    angle_deg: float = 0.0             # rotate: degrees at weight 1
+    offset: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # displace: m, body frame, at the tip at weight 1
+    falloff: float = 1.0               # displace: exponent p > 0 of s^p (s = 0 at the root, 1 at the tip)
+
+
+@dataclass
+class GuideKeyframeConfig:
+    """A pose of all guides (source=keyframed): count x n_vertices body-frame points, guide by guide."""
+    time: float = 0.0                  # s
+    points: list[list[float]] = field(default_factory=list)      # m, body frame
+
+
+@dataclass
+class GuidesConfig:
+    """The guide animation (see hairexp/guides/animation.py)."""
+    source: GuideSource = GuideSource.rigid
+    count: int = 1
+    n_vertices: int = 8
+    layout_radius: float = 0.5         # guide roots on a circle of this fraction of the root radius
+    scale_times: list[float] = field(default_factory=lambda: [0.0])   # s (source=scaled)
+    scale_factors: list[float] = field(default_factory=lambda: [1.0])
+    keyframes: list[GuideKeyframeConfig] = field(default_factory=list)   # source=keyframed
+    edits: list[GuideEditConfig] = field(default_factory=list)           # applied in order on top of any source
+    collide: bool = False              # source=simulated: the guide simulation collides with scene.colliders
+    file: str = ""                     # source=file
+
+
+@dataclass
+class VarianceConfig:
+    """Spread control, paper 3.3: P = k_v(t) (V - V_bar(t))^2 per cluster."""
+    stiffness: float = 0.0             # k_v in J/m^4; 0 builds no penalty
+    times: list[float] = field(default_factory=lambda: [0.0])        # s, keyframes of the two scales
+    stiffness_scale: list[float] = field(default_factory=lambda: [1.0])
+    target_scale: list[float] = field(default_factory=lambda: [1.0])  # V_bar = rest variance x this
+    points: list[int] = field(default_factory=list)                   # tracking-point indices; [] = all
+
+
+@dataclass
+class TrackingConfig:
+    targets: Targets = Targets.sliding
+    points_per_guide: int = 8
+    kkt: KKTSolve = KKTSolve.schur
+    rtol: float = 1e-5                 # |grad_x L| <= atol + rtol * force scale
+    atol: float = 1e-10
+    ctol_rel: float = 1e-9             # max |C_k| <= ctol_rel * mean hair length
+    max_iterations: int = 50
+    max_guide_distance: float = 0.0    # m; > 0: a strand whose RMS distance (eq. 1) to every guide exceeds it is an error
+    variance: VarianceConfig = field(default_factory=VarianceConfig)
+
+
+@dataclass
+class ControllerConfig:
+    name: ControllerName = ControllerName.free
+    attract_stiffness: float = 100.0   # 1/s^2, controller attract: E = 1/2 k m_i |x_i - x_g,i(t)|^2
+
+
+@dataclass
+class SolverConfig:
+    dt: float = 0.04                  # s; the frame interval is split into ceil(1/(fps dt)) steps
+    rtol: float = 1e-5                # |grad H| <= atol + rtol * force scale
+    atol: float = 1e-10
+    max_iterations: int = 30
+    max_backtracks: int = 30
+    derivatives: Derivatives = Derivatives.closed_form
+    stretch_hessian: StretchHessian = StretchHessian.primal_dual
+    compile: Compile = Compile.auto   # torch.compile of the closed forms (first step pays ~10-20 s)
+    on_failure: OnFailure = OnFailure.substep
+    max_substep_levels: int = 4       # a failing step is split into at most 2^levels substeps
+
+
+@dataclass
+class CollisionConfig:
+    """The collision stage after each step (paper 3.4, Bridson et al. 2002)."""
+    objects: bool = True              # hair against the scene's colliders (no colliders: nothing runs)
+    hair_hair: bool = False           # hair against hair
+    hair_thickness: float = 0.001     # m, edge-edge distance kept by repulsion
+    skin: float = 0.003               # m, hair-hair neighbour-list skin: the list is reused while no vertex moves skin/2
+    max_passes: int = 3
+    strain_limit: float = 0.0         # > 0: after object contacts, edge lengths are clamped to (1 -+ this) x rest
+
+
+@dataclass
+class LoggingConfig:
+    rerun: bool = True                # write recording.rrd (rerun is not imported when false)
+    progress: bool = True             # progress bar (always quiet when CI is set)
+    strict: bool = False              # rerun strict mode: bad shapes become errors
+
+
+class MeasureName(str, Enum):
+    none = "none"
+    collider_contact = "collider_contact"   # goaling (wheel), celia (goblet)
+    clumps = "clumps"                       # splitting
+    tip_variance = "tip_variance"           # spreading
+    block_rail = "block_rail"               # stylization
+
+
+class JudgeName(str, Enum):
+    none = "none"
+    free_misses_tracked_hits = "free_misses_tracked_hits"
+    clumps_match_guides = "clumps_match_guides"
+    variance_follows_targets = "variance_follows_targets"
+    tracked_leaves_rail = "tracked_leaves_rail"
+
+
+@dataclass
+class MeasureConfig:
+    """The scene's success measure (hairexp/evaluation/measures.py), written to summary.json."""
+    name: MeasureName = MeasureName.none
+    collider: str = ""                 # collider_contact: the collider's name
+    tolerance: float = 0.002           # m, collider_contact: a hit is within thickness + tolerance
+    time: float = -1.0                 # s, clumps: when to cluster (< 0: the last frame)
+    threshold: float = 0.02            # m, clumps: single-linkage distance threshold
+    strand_fraction: float = 0.5       # clumps: a strand's feature is the mean of its vertices past this fraction
+    min_share: float = 0.1             # clumps: smallest clump that counts, as a share of the strands
+    axis: list[float] = field(default_factory=lambda: [1.0, 0.0, 0.0])   # tip_variance: "ahead" direction
+    rail_height: float = 0.0           # m, block_rail
+    rail_end: float = 0.0              # m, block_rail
+
+
+@dataclass
+class VariantConfig:
+    """One run of an experiment with a few keys changed (``key=value`` as on the command line)."""
+    name: str = "run"
+    overrides: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Config:
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    logging: LoggingConfig = field(default_factory=LoggingConfig)
+    collision: CollisionConfig = field(default_factory=CollisionConfig)
+    guides: GuidesConfig = field(default_factory=GuidesConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    experiment: Optional[str] = None  # name of the experiment, set by conf/experiment/*.yaml
+    measure: MeasureConfig = field(default_factory=MeasureConfig)
+    variants: list[VariantConfig] = field(default_factory=list)   # [] = one run; else one run per variant
+    judge: JudgeName = JudgeName.none  # how the variants' measures decide the experiment's success
+    judge_tolerance: float = 0.35      # variance_follows_targets: largest relative miss of a target
+    frames: Optional[int] = 50        # output frames after the initial one; null: the USD stage's endTimeCode
+    fps: Optional[float] = 25.0       # null: the USD stage's timeCodesPerSecond
+
+
+def register() -> None:
+    cs = ConfigStore.instance()
+    cs.store(name="base_config", node=Config)
+    cs.store(group="scene", name="base_scene", node=SceneConfig)
+    cs.store(group="controller", name="base_controller", node=ControllerConfig)
+    cs.store(group="solver", name="base_solver", node=SolverConfig)
+    cs.store(group="logging", name="base_logging", node=LoggingConfig)
+    cs.store(group="collision", name="base_collision", node=CollisionConfig)
+
+
+register()
+
+
+def to_plain(cfg: Any) -> Any:
+    """OmegaConf node -> plain Python containers with Enums as their values."""
+    from omegaconf import OmegaConf
+
+    def conv(o):
+        if isinstance(o, Enum):
+            return o.value
+        if isinstance(o, dict):
+            return {k: conv(v) for k, v in o.items()}
+        if isinstance(o, list):
+            return [conv(v) for v in o]
+        return o
+
+    return conv(OmegaConf.to_container(cfg, resolve=True, enum_to_str=False) if not isinstance(cfg, dict) else cfg)
+
+
+#: the project's Hydra config directory
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+
+
+def compose_config(overrides: list[str] | tuple[str, ...] = ()):
+    """The composed ``config`` with ``overrides`` (``key=value`` strings, as on the command line)
+    outside a Hydra app: for scripts, benchmarks and reports.  Hydra's global state is cleared
+    before and after, so it can be called any number of times."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            return compose(config_name="config", overrides=list(overrides))
+    finally:
+        GlobalHydra.instance().clear()

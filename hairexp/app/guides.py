@@ -1,0 +1,89 @@
+"""The guide animation of a run from ``cfg.guides``: the source (hairexp/guides/animation.py for
+``rigid``, ``scaled``, ``keyframed`` and ``file``; here the ``simulated`` coarse guide simulation
+and the ``usd`` stage's guide prim), then the artist's edits (hairexp/guides/authoring.py)."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+
+from hairexp.errors import InputError
+from hairexp.guides.animation import GuideAnimation, carried_guides, file_guides, rest_guides
+from hairexp.guides.authoring import apply_edits, keyframed_positions
+from hairexp.model.dynamic_body import authoring_motion
+from hairexp.model.scene import Scene
+from hairexp.model.strands import Strands
+from hairexp.physics.schedule import step_schedule
+from hairexp.physics.settle import settle_seconds, settle_state, settle_step, settled_scene
+from hairexp.physics.simulator import Simulator
+
+
+def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
+    """Guide animation for frames 0..frames from ``cfg.guides`` (see module doc; ``keyframed``:
+    ``authoring.keyframed_positions``), before the edits."""
+    g = cfg.guides
+    source = str(getattr(g.source, "value", g.source))
+    motion = authoring_motion(scene.motion)   # a dynamic body: its initial pose held still
+    if source == "file":
+        return file_guides(g.file, scene.motion)
+    if source == "usd":  # the guide prim of the stage scene.usd
+        from hairexp.io.usd_read import read_guides   # pxr is imported only for USD scenes
+
+        return read_guides(cfg, scene, frames, fps)
+    body = rest_guides(cfg.scene, g.count, g.n_vertices, g.layout_radius)
+    offsets = np.arange(g.count + 1) * g.n_vertices
+    if source == "simulated":
+        return simulate_guides(cfg, scene, body, offsets, frames, fps)
+    if source == "keyframed":
+        pos, offsets = keyframed_positions(g, motion, frames, fps)
+        return GuideAnimation(pos, offsets, fps, where="guides.keyframes", motion=scene.motion)
+    pos = carried_guides(g, body, offsets, motion, frames, fps, scaled=source == "scaled")
+    return GuideAnimation(pos, offsets, fps, motion=scene.motion)
+
+
+def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: int, fps: float) -> GuideAnimation:
+    """Free simulation of the guide strands (eq. 5, same solver settings) at the scene's rate.
+    With ``guides.collide`` the guides collide with the scene's colliders (the collision stage
+    of ``collision.*``, without hair-hair), so that a coarse guide is dragged over an object as
+    the hair is; otherwise they pass through it.  With ``scene.settle`` > 0 the guides first
+    settle under gravity for that time, the body (and colliders) held at their t = 0 poses, and
+    the animation starts from the settled guides at rest (frame 0).  The other guide sources
+    (rigid, scaled, keyframed, file, usd) are not settled: they are used as given."""
+    if cfg.guides.n_vertices < 3:
+        raise InputError("simulated guides need >= 3 vertices (two are held by the body)", "guides.n_vertices")
+    motion = authoring_motion(scene.motion)
+    world = motion.transform(body, 0.0)
+    strands = Strands.from_polylines(world, np.diff(offsets), scene.material.linear_density, where="guides")
+    collide = bool(getattr(cfg.guides, "collide", False)) and bool(scene.colliders)
+    gscene = Scene(scene.name + "_guides", strands, scene.material, motion, scene.gravity, body,
+                   list(scene.colliders) if collide else [])
+    ccfg = None
+    if collide:
+        ccfg = copy.deepcopy(cfg.collision)
+        ccfg.hair_hair = False
+    n_sub, dt = step_schedule(fps, cfg.solver.dt, frames)
+    seconds = settle_seconds(cfg.scene)
+    if seconds > 0:   # scene.settle: the guides settle as the detail hair does (hairexp/physics/settle.py)
+        gscene = settled_scene(gscene, settle_state(gscene, cfg.solver, ccfg, seconds, settle_step(cfg.scene),
+                                                    what="guides"))
+    sim = Simulator(gscene, cfg.solver, collision_cfg=ccfg)
+    state = sim.initial_state()
+    out = [state.x.copy()]
+    for _ in range(frames):
+        for _ in range(n_sub):
+            state, _ = sim.step(state, dt)
+        out.append(state.x.copy())
+    return GuideAnimation(np.stack(out), offsets, fps, motion=scene.motion)
+
+
+def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
+    """The guide animation a run tracks and saves as guides.npz: the source's
+    (``source_guides``) with the authored edits ``guides.edits`` applied in order
+    (``authoring.apply_edits``; paper 4: the artist edits a coarse best-guess guide simulation by
+    keyframing; ``source=keyframed`` keys the guides directly)."""
+    anim = source_guides(cfg, scene, frames, fps)
+    if not cfg.guides.edits:
+        return anim
+    pos = apply_edits(anim.positions, anim.offsets, anim.fps, authoring_motion(scene.motion), cfg.guides.edits)
+    return GuideAnimation(pos, anim.offsets, anim.fps, where="guides.edits", motion=scene.motion)

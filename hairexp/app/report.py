@@ -1,0 +1,52 @@
+"""Helpers that turn measurements into committed reports under reports/: every report
+states the machine, the package versions and the command that produced it."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shlex
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+REPORTS = Path(__file__).resolve().parents[2] / "reports"
+
+
+def machine() -> dict:
+    cpu = platform.processor() or ""
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import numpy
+    import scipy
+    import torch
+
+    return {"cores": os.cpu_count(), "cpu": cpu, "python": platform.python_version(), "numpy": numpy.__version__,
+            "scipy": scipy.__version__, "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+            "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
+
+
+def command() -> str:
+    return " ".join(shlex.quote(a) for a in [os.path.relpath(sys.executable) if ".venv" in sys.executable else "python", *sys.argv])
+
+
+def header(title: str) -> str:
+    m = machine()
+    return (f"# {title}\n\n"
+            f"Command: `{command()}`  \n"
+            f"Machine: {m['cores']} cores, {m['cpu']}; Python {m['python']}, numpy {m['numpy']}, "
+            f"scipy {m['scipy']}, torch {m['torch']} ({m['torch_threads']} threads); {m['date']}\n\n")
+
+
+def write_report(name: str, markdown: str, data: dict) -> Path:
+    REPORTS.mkdir(exist_ok=True)
+    (REPORTS / f"{name}.md").write_text(markdown)
+    (REPORTS / f"{name}.json").write_text(json.dumps({"machine": machine(), "command": command(), **data}, indent=2,
+                                                     default=float))
+    return REPORTS / f"{name}.md"

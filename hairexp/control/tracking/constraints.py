@@ -1,0 +1,128 @@
+"""Tracking constraints, paper eq. (3): C_k = c_k(x) - c_hat_k(t_k), three per cluster.
+
+* c_k(x) = sum_i m_i x_i / M_k over the cluster's (free) vertices, eq. (2): linear in x, so
+  dC/dx = A is a constant (3K x N) matrix built once.
+* The target curve of cluster k is the Catmull-Rom spline through the guide's vertices offset
+  by the registered offset in the parallel-transported frames (3.2):
+  Q_ki = g_i + a_k N_i + b_k B_i + tau_k T_i, so c_hat_k(t) = g(t) + a_k N(t) + b_k B(t) + tau_k T(t)
+  (Catmull-Rom is linear in its control points).  (a, b) = d (cos theta, sin theta) is the
+  paper's (theta, d) encoding; tau is the tangential part, zero when t_k is the exact closest
+  guide point, and kept so that the rest state meets the constraints to round-off.
+* Static targets fix t_k at its rest value (the arc length of the guide point closest to the
+  rest centre of mass); sliding targets make t_k a variable (dC/dt = -c_hat'(t)).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+from hairexp.model.scene import Scene
+from hairexp.guides import spline
+from hairexp.control.tracking.correspondence import Correspondence, closest_points_on_polyline
+from hairexp.guides.frames import BodyCarriedFrames
+from hairexp.guides.animation import GuideAnimation
+
+
+@dataclass
+class TargetCurves:
+    """Target curves at one time: control points (K, n, 3) per cluster on its guide's knots."""
+    control: list[torch.Tensor]      # per guide: (K_g, n_g, 3)
+    knots: list[torch.Tensor]        # per guide: (n_g,)
+    clusters: list[np.ndarray]       # per guide: cluster indices
+    guide_shape: np.ndarray          # (Vg, 3)
+
+
+class TrackingConstraints:
+    def __init__(self, scene: Scene, corr: Correspondence, guides: GuideAnimation, sliding: bool):
+        s = scene.strands
+        self.scene, self.corr, self.guides, self.sliding = scene, corr, guides, sliding
+        K = corr.n_clusters
+        self.K = K
+        free = np.flatnonzero(~s.kinematic)
+        cv = corr.cluster_of_vertex[free]
+        inc = cv >= 0
+        self.M = np.bincount(cv[inc], weights=s.masses[free][inc], minlength=K)      # (K,) cluster masses
+        w = s.masses[free][inc] / self.M[cv[inc]]
+        fidx = np.flatnonzero(inc)
+        rows = (3 * cv[inc][:, None] + np.arange(3)).ravel()
+        cols = (3 * fidx[:, None] + np.arange(3)).ravel()
+        self.A = sp.csr_matrix((np.repeat(w, 3), (rows, cols)), shape=(3 * K, 3 * len(free)))
+        self.AT = self.A.T.tocsr()
+        self.weights, self.free_in_cluster, self.cluster_of_free = w, fidx, cv
+        # registration at rest (t = 0)
+        G = guides.n_guides
+        rest = guides.guides(guides.rest)
+        self.knots = [spline.rest_arclength(P) for P in rest]
+        self.root_frames = BodyCarriedFrames(rest, scene.motion.pose(0.0)[0])
+        com = self.com(scene.initial_positions()[free].reshape(-1))
+        self.t_rest = np.zeros(K)
+        self.by_guide = [np.flatnonzero(corr.cluster_guide == g) for g in range(G)]
+        for g in range(G):
+            ks = self.by_guide[g]
+            if ks.size:
+                _, arc = closest_points_on_polyline(com[ks], rest[g])
+                self.t_rest[ks] = arc
+        self.offset_local = np.zeros((K, 3))  # (a, b, tau)
+        frames = self._frames(guides.rest, 0.0)
+        for g in range(G):
+            ks = self.by_guide[g]
+            if ks.size == 0:
+                continue
+            P, (T, N, B) = rest[g], frames[g]
+            basis = [torch.as_tensor(np.repeat(V[None], len(ks), 0)) for V in (P, N, B, T)]
+            tk = torch.as_tensor(self.t_rest[ks])
+            gp, Np, Bp, Tp = (spline.evaluate(b, self.knots[g], tk).numpy() for b in basis)
+            r = com[ks] - gp
+            F = np.stack([Np, Bp, Tp], axis=-1)                 # (k, 3, 3) columns N, B, T
+            self.offset_local[ks] = np.linalg.solve(F, r[..., None])[..., 0]
+        self.offset_d = np.linalg.norm(self.offset_local[:, :2], axis=1)
+        self.offset_theta = np.arctan2(self.offset_local[:, 1], self.offset_local[:, 0])
+
+    # -- geometry -------------------------------------------------------------------------
+    def com(self, xf: np.ndarray) -> np.ndarray:
+        """(K, 3) cluster centres of mass, eq. (2), from the free DOF vector."""
+        return (self.A @ xf).reshape(self.K, 3)
+
+    def _frames(self, shape: np.ndarray, t: float, motion=None):
+        """Parallel-transported frames of every guide at time t: list of (T, N, B)."""
+        R, _ = (motion or self.scene.motion).pose(t)
+        return [self.root_frames.frames(g, P, R) for g, P in enumerate(self.guides.guides(shape))]
+
+    def targets(self, t: float, motion=None) -> TargetCurves:
+        """The target curves at time t; ``motion``: the body's poses at t (a dynamic body's step
+        window), default the scene's motion."""
+        shape = self.guides.shape_at(t, motion)
+        frames = self._frames(shape, t, motion)
+        ctrl, clusters = [], []
+        for g, P in enumerate(self.guides.guides(shape)):
+            ks = self.by_guide[g]
+            T, N, B = frames[g]
+            a, b, tau = (self.offset_local[ks, j][:, None, None] for j in range(3))
+            Q = P[None] + a * N[None] + b * B[None] + tau * T[None]     # (k, n, 3)
+            ctrl.append(torch.as_tensor(Q))
+            clusters.append(ks)
+        return TargetCurves(ctrl, self.knots, clusters, shape)
+
+    def target_points(self, tg: TargetCurves, tk: np.ndarray, derivatives: bool = False):
+        """c_hat(t) (K, 3) and, with ``derivatives``, c_hat' and c_hat'' (K, 3) each."""
+        c = np.zeros((self.K, 3))
+        d1 = np.zeros((self.K, 3))
+        d2 = np.zeros((self.K, 3))
+        for Q, s, ks in zip(tg.control, tg.knots, tg.clusters):
+            if ks.size == 0:
+                continue
+            t = torch.as_tensor(tk[ks])
+            if derivatives:
+                v, a, b = spline.eval_with_derivatives(Q, s, t)
+                c[ks], d1[ks], d2[ks] = v.numpy(), a.numpy(), b.numpy()
+            else:
+                c[ks] = spline.evaluate(Q, s, t).numpy()
+        return (c, d1, d2) if derivatives else c
+
+    def residual(self, xf: np.ndarray, tg: TargetCurves, tk: np.ndarray) -> np.ndarray:
+        """(K, 3) C = c(x) - c_hat(t), eq. (3)."""
+        return self.com(xf) - self.target_points(tg, tk)

@@ -1,0 +1,124 @@
+"""The tracking controller (paper 3): correspondence (3.1), constraints with sliding targets
+(3.2), variance control (3.3) and the SQP on the KKT system (3.4, eqs. 6-8) for one run, plus
+the per-step state it needs (targets at the end of the step).  Its iterates, the sliding
+parameters t and the multipliers lambda, travel in ``State.control`` (``TrackingIterates``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hairexp.errors import InputError
+from hairexp.control.tracking.constraints import TrackingConstraints
+from hairexp.control.tracking.correspondence import build_correspondence
+from hairexp.control.tracking.kkt import SchurKKT
+from hairexp.control.tracking.sqp import SQPOptions, sqp_solve
+from hairexp.control.tracking.variance import VarianceControl
+from hairexp.guides.animation import GuideAnimation
+from hairexp.physics.controller import Controller
+
+
+def _v(x):
+    return getattr(x, "value", x)
+
+
+@dataclass
+class TrackingIterates:
+    """The SQP's iterates carried from step to step (warm start): t (K,) the targets' spline
+    parameters (paper 3.2; fixed at rest for static targets) and lam (3K,) the multipliers."""
+
+    t: np.ndarray
+    lam: np.ndarray
+
+
+class TrackingController(Controller):
+    name = "tracking"
+
+    def __init__(self, scene, guides: GuideAnimation, tcfg):
+        s = scene.strands
+        self.scene, self.guides = scene, guides
+        free = ~s.kinematic
+        self.corr = build_correspondence(scene.initial_positions(), s.offsets, free, guides.guides(guides.rest), tcfg.points_per_guide,
+                                         tcfg.max_guide_distance)
+        targets = str(_v(tcfg.targets))
+        if targets not in ("static", "sliding"):
+            raise InputError(f"unknown targets {targets!r} (static|sliding)", "tracking.targets")
+        self.cons = TrackingConstraints(scene, self.corr, guides, sliding=targets == "sliding")
+        self.kkt = None   # bound to the objective's band (``bind``)
+        self.hair_length = float(np.mean(s.strand_lengths()))
+        rest_free = scene.initial_positions()[free].reshape(-1)
+        self.variance = VarianceControl(tcfg.variance, self.cons, rest_free)
+        self.use_variance = self.variance.active          # k_v = 0: no penalty term at all
+        self.opts = SQPOptions(rtol=tcfg.rtol, atol=tcfg.atol, ctol=tcfg.ctol_rel * self.hair_length,
+                               max_iterations=tcfg.max_iterations, kkt=str(_v(tcfg.kkt)))
+        self.tg = None
+        self.time = None
+        self._kv = self._vbar = None
+        self.m_g_norm = scene.free_weight_norm()
+
+    # -- Controller -------------------------------------------------------------------------
+    def bind(self, sim) -> None:
+        self.kkt = SchurKKT(self.scene.strands, self.cons, sim.objective.assembler.bandwidth)
+
+    def initial_control(self) -> TrackingIterates:
+        return TrackingIterates(self.cons.t_rest.copy(), np.zeros(3 * self.cons.K))
+
+    def begin(self, t: float, motion=None) -> None:
+        """Targets (and variance keys) at the end-of-step time t.  Always rebuilt: a step retried
+        as substeps reaches the same t again, and on a dynamic body (scene.body) the guides ride
+        with a block whose pose at t depends on the attempt."""
+        self.time, self.tg = t, self.cons.targets(t, motion)
+        if self.use_variance:
+            self._kv, self._vbar = self.variance.at(t)
+
+    def solve(self, sim, state, dt, t_next, motion):
+        obj = sim.objective
+        it = state.control
+        xf, tk, lam, info = sqp_solve(obj, self, obj.initial_guess(), it.t, it.lam, self.opts)
+        return obj.positions(xf).numpy(), TrackingIterates(tk, lam), info
+
+    def observe(self, sim, state, motion) -> dict:
+        return self.measure(sim.free_dofs(state.x), state.time, state.control, motion)
+
+    def cluster_of_vertex(self) -> np.ndarray:
+        return self.corr.cluster_of_vertex
+
+    # -- used by the SQP ------------------------------------------------------------------
+    def targets_at(self, t: float, motion=None):
+        """Target curves at time t; the step's own (built in ``begin``) when t is its time, so
+        the metrics and the recording of a step do not rebuild the guide frames."""
+        if self.tg is None or t != self.time:
+            self.time, self.tg = t, self.cons.targets(t, motion)
+        return self.tg
+
+    def penalty(self, xf: np.ndarray, need_grad: bool = False):
+        if not self.use_variance:
+            return 0.0, None
+        return self.variance.value_grad(xf, self._kv, self._vbar, need_grad)
+
+    def penalty_hessian(self, xf: np.ndarray):
+        """(diagonal, U): the PSD model diag + U U^T of the variance penalty's Hessian, or None."""
+        if not self.use_variance:
+            return None
+        return self.variance.hessian_parts(xf, self._kv, self._vbar)
+
+    def measure(self, xf: np.ndarray, t: float, it: TrackingIterates | None = None, motion=None) -> dict:
+        """Tracking metrics of a state (free DOF vector xf, iterates ``it``) at time t."""
+        tg = self.targets_at(t, motion)
+        tk = self.cons.t_rest if it is None else it.t
+        C = self.cons.residual(xf, tg, tk)
+        r = np.linalg.norm(C, axis=1)
+        V = self.variance.values(xf)
+        if self.use_variance:
+            _, vbar = self.variance.at(t)
+        else:
+            vbar = self.variance.rest
+        ratio = np.where(vbar > 0, V / np.where(vbar > 0, vbar, 1.0), np.nan)
+        lam = np.zeros(3 * self.cons.K) if it is None else it.lam
+        force = float(np.linalg.norm(self.cons.AT @ lam))
+        return {"residual_max": float(r.max()), "residual_rms": float(np.sqrt(np.mean(r ** 2))),
+                "residual_rel_max": float(r.max() / self.hair_length),
+                "variance_ratio_mean": float(np.nanmean(ratio)), "variance_ratios": ratio,
+                "constraint_force": force, "constraint_force_rel": force / self.m_g_norm,
+                "targets": self.cons.target_points(tg, tk), "com": self.cons.com(xf), "guides": tg.guide_shape}

@@ -1,0 +1,161 @@
+"""SQP on the tracking problem (paper 3.4, eqs. 6-8).
+
+    min_{x, t}  H(x) + P(x)   s.t.  C(x, t) = c(x) - c_hat(t) = 0
+
+H is the implicit Euler objective (eq. 5), P the variance penalty (3.3).  Each iteration
+solves the KKT system (8) for (dx, dt, lam+) with the PSD Hessian of H plus a PSD model of
+the variance penalty's Hessian (Gauss-Newton rank one per cluster by a Woodbury update, and
+the positive diagonal curvature; the paper leaves it out), then backtracks on the l1 merit function
+phi = H + P + mu |C|_1 (Nocedal & Wright 2006, eq. 18.27), whose directional derivative along
+a step that satisfies the linearised constraints is grad(H+P).dx - mu |C|_1 (Theorem 18.2);
+mu is kept above |lam+|_inf (eq. 18.32).  Convergence needs both residuals small:
+|grad_x L| <= atol + rtol (force scale + |A^T lam|), |grad_t L| <= rtol |lam| |c_hat'| and
+max |C_k| <= ctol.  t and lam are warm-started from the previous step.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from hairexp.physics.info import CONVERGED, DIVERGED, LINE_SEARCH_FAILED, MAX_ITERATIONS, SolveInfo
+from hairexp.control.tracking.kkt import reference_solve
+
+#: Sufficient-decrease constant of the merit line search (N&W eq. 18.28, eta).
+MERIT_ETA = 1e-4
+#: mu = MU_FACTOR * |lam|_inf + MU_MARGIN (N&W eq. 18.32 asks mu > |lam|_inf).
+MU_FACTOR, MU_MARGIN = 1.5, 1e-12
+#: Backtracking factor.
+BACKTRACK = 0.5
+
+
+@dataclass
+class SQPOptions:
+    rtol: float = 1e-5
+    atol: float = 1e-10
+    ctol: float = 1e-10          # m, on max_k |C_k|
+    max_iterations: int = 50
+    max_backtracks: int = 30
+    kkt: str = "schur"           # or "reference"
+
+
+def woodbury(solve, U: np.ndarray, step: tuple, zero_c: np.ndarray) -> tuple:
+    """The KKT step with U U^T added to the Hessian block, from solves without it.
+
+    ``solve(r_x, C)`` is linear: (dx, dt, lam) = s(b) = -K^-1 b for the right-hand side
+    b = (r_x, C, 0).  With K + U~ U~^T (U~ = U padded with zeros outside the x block), the
+    Sherman-Morrison-Woodbury identity gives s'(b) = s(b) + S_U (I - U^T S_U)^-1 U^T s(b)_x,
+    S_U the solves of U's columns."""
+    cols = [solve(U[:, j], zero_c) for j in range(U.shape[1])]
+    SU = np.stack([c[0] for c in cols], 1)
+    dx, dt, lam = step
+    coef = np.linalg.solve(np.eye(U.shape[1]) - U.T @ SU, U.T @ dx)
+    dx = dx + SU @ coef
+    lam = lam + np.stack([c[2] for c in cols], 1) @ coef
+    if dt is not None:
+        dt = dt + np.stack([c[1] for c in cols], 1) @ coef
+    return dx, dt, lam
+
+
+def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, opts: SQPOptions):
+    """Returns (x, t, lam, SolveInfo).  ``tracker`` supplies the constraints at this step."""
+    info = SolveInfo()
+    sec = info.seconds
+    x, t, lam = x0.copy(), t0.copy(), lam0.copy()
+    cons, kkt = tracker.cons, tracker.kkt
+    sliding = cons.sliding
+    mu = MU_FACTOR * float(np.abs(lam).max(initial=0.0)) + MU_MARGIN
+
+    def merit_parts(xf, tk):
+        f = obj.value(xf) + tracker.penalty(xf)[0]
+        C = cons.residual(xf, tracker.tg, tk).reshape(-1)
+        return f, C
+
+    f, C = merit_parts(x, t)
+    while True:
+        ev = obj.evaluate(x, need_hessian=True)
+        sec["derivatives"] += ev.seconds["derivatives"]
+        sec["assembly"] += ev.seconds["assembly"]
+        t0_ = time.perf_counter()
+        _, gP = tracker.penalty(x, need_grad=True)
+        g = ev.grad + gP if gP is not None else ev.grad
+        ATlam = cons.AT @ lam
+        r_x = g + ATlam
+        if sliding:
+            _, d1, d2 = cons.target_points(tracker.tg, t, derivatives=True)
+            Bmat = np.zeros((3 * cons.K, cons.K))
+            rows = np.arange(3 * cons.K)
+            Bmat[rows, rows // 3] = -d1.reshape(-1)               # dC/dt = -c_hat'(t)
+            lam3 = lam.reshape(-1, 3)
+            r_t = -(lam3 * d1).sum(1)                              # grad_t L = lam . dC/dt
+            D = np.maximum(-(lam3 * d2).sum(1), 0.0)                 # d2L/dt2 = -lam . c_hat'', clamped PSD
+            t_scale = np.linalg.norm(lam3, axis=1) * np.linalg.norm(d1, axis=1)
+        else:
+            Bmat = D = r_t = None
+        sec["solve"] += time.perf_counter() - t0_
+        gnorm = float(np.linalg.norm(r_x))
+        cmax = float(np.abs(C).max(initial=0.0))
+        info.grad_norm, info.force_scale, info.constraint_norm = gnorm, ev.force_scale + float(np.linalg.norm(ATlam)), cmax
+        if not (np.isfinite(gnorm) and np.isfinite(f) and np.isfinite(cmax)):
+            info.status = DIVERGED
+            break
+        t_ok = True if not sliding else bool(np.all(np.abs(r_t) <= opts.rtol * t_scale + opts.atol))
+        if gnorm <= opts.atol + opts.rtol * info.force_scale and cmax <= opts.ctol and t_ok:
+            info.status = CONVERGED
+            break
+        if info.iterations >= opts.max_iterations:
+            info.status = MAX_ITERATIONS
+            break
+        t1 = time.perf_counter()
+        hp = tracker.penalty_hessian(x)
+        if hp is not None:
+            ev.banded[0] += hp[0]    # the variance penalty's positive curvature (diagonal)
+
+        def solve(r_x, c):
+            r_t = np.zeros(cons.K) if sliding else None
+            if opts.kkt == "reference":
+                return reference_solve(ev.banded, cons.A, r_x, c, Bmat, D, r_t)
+            return kkt.solve(r_x, c, Bmat, D, r_t)
+
+        if opts.kkt != "reference":
+            kkt.factor(ev.banded)
+        dx, dt, lam_new = solve(g, C)
+        if hp is not None and hp[1].shape[1]:
+            dx, dt, lam_new = woodbury(solve, hp[1], (dx, dt, lam_new), np.zeros_like(C))
+        sec["solve"] += time.perf_counter() - t1
+        # l1 merit line search
+        mu = max(mu, MU_FACTOR * float(np.abs(lam_new).max(initial=0.0)) + MU_MARGIN)
+        phi0 = f + mu * float(np.abs(C).sum())
+        dphi = float(np.dot(g, dx)) - mu * float(np.abs(C).sum())
+        # round-off of phi: that of H (value_noise) plus that of mu |C|_1, whose terms are
+        # differences of centre-of-mass coordinates; without the second part a large mu made the
+        # search reject steps at the solution and stall (tests: rigid translation, static targets)
+        com_scale = float(np.abs(cons.com(x)).sum())
+        noise = obj.value_noise + mu * 8.0 * np.finfo(float).eps * com_scale
+        alpha, bt = 1.0, 0
+        while True:
+            xa = x + alpha * dx
+            ta = t + alpha * dt if sliding else t
+            fa, Ca = merit_parts(xa, ta)
+            phia = fa + mu * float(np.abs(Ca).sum())
+            if np.isfinite(phia) and phia <= phi0 + MERIT_ETA * alpha * min(dphi, 0.0) + noise:
+                break
+            bt += 1
+            if bt > opts.max_backtracks:
+                alpha = 0.0
+                break
+            alpha *= BACKTRACK
+        info.backtracks += bt
+        info.iterations += 1
+        if alpha == 0.0:
+            info.status = LINE_SEARCH_FAILED
+            break
+        obj.update_tensions(x, alpha * dx)
+        x, t = xa, ta
+        lam = lam + alpha * (lam_new - lam)
+        f, C = fa, Ca
+    if info.status == CONVERGED:
+        info.tensions = obj.final_tensions(x)
+    return x, t, lam, info

@@ -1,0 +1,140 @@
+"""Success measures of the paper's scenes (section 4), computed from one finished run.
+
+Each measure reads a ``RunData`` (the scene, the per-frame positions and, for tracked runs,
+the tracker) and returns a flat dict of numbers that goes into ``summary.json`` under
+``measures``.  Judging free against tracked runs is in ``hairexp.evaluation.judges``.
+
+* ``collider_contact`` (goaling's wheel, Celia's goblet): the smallest distance from a free
+  hair vertex to the surface of ``measure.collider`` over all frames, and the number of frames
+  in which some vertex is within the collider's thickness + ``measure.tolerance``, and the
+  collision stage's vertex contacts with it over the run; either makes a hit.
+* ``clumps`` (splitting): single-linkage clustering of the strands' lower parts (the mean of
+  the vertices past ``measure.strand_fraction`` of each strand) at ``measure.time``; strands
+  closer than ``measure.threshold`` join a clump; clumps with at least ``measure.min_share`` of
+  the strands count.
+* ``tip_variance`` (spreading): the spread of the strand tips, V = mean |tip - mean tip|^2,
+  at the apex (the frame where the tips' centroid is farthest ahead of the roots' centroid
+  along ``measure.axis``) over its rest value v0; for tracked runs also the variance ratio
+  V / V_rest of the last tracking point's cluster (eq. 4), the quantity the penalty controls.
+* ``block_rail`` (stylization): the block's travel along the rail and whether it left it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.cluster.hierarchy import fcluster, linkage
+
+from hairexp.errors import InputError
+
+
+@dataclass
+class RunData:
+    scene: object
+    times: np.ndarray            # (F,) s
+    positions: np.ndarray        # (F, V, 3) m
+    tracker: object = None       # TrackingController of a tracked run
+    free_vertices: np.ndarray = None  # the free vertices, in the order of the free DOF vector
+    body_positions: np.ndarray = None  # (F, 3) body translation per frame, when recorded
+    metrics: object = None       # the metrics table (pandas DataFrame), one row per step
+
+
+def _collider(scene, name: str):
+    for c in scene.colliders:
+        if c.name == name:
+            return c
+    raise InputError(f"no collider named {name!r} in the scene (have {[c.name for c in scene.colliders]})",
+                     "measure.collider")
+
+
+def collider_contact(d: RunData, p) -> dict:
+    col = _collider(d.scene, p.collider)
+    free = ~d.scene.strands.kinematic
+    dist = np.array([float((col.sdf_body(col.to_body(x[free], t))).min()) for x, t in zip(d.positions, d.times)])
+    hit = dist <= col.thickness + p.tolerance
+    first = float(d.times[np.argmax(hit)]) if hit.any() else None
+    col_name = f"contacts_{p.collider}"
+    contacts = int(d.metrics[col_name].fillna(0).sum()) if d.metrics is not None and col_name in d.metrics else 0
+    return {"min_distance": float(dist.min()), "hit_frames": int(hit.sum()), "hit": bool(hit.any() or contacts > 0),
+            "contacts": contacts,
+            "first_hit_time": first, "thickness": col.thickness, "tolerance": p.tolerance}
+
+
+def _frame_at(d: RunData, t: float) -> int:
+    if t < 0:
+        return len(d.times) - 1
+    return int(np.argmin(np.abs(d.times - t)))
+
+
+def strand_features(d: RunData, frame: int, fraction: float) -> np.ndarray:
+    """(S, 3) mean position of each strand's vertices past ``fraction`` of its vertex count."""
+    s = d.scene.strands
+    x = d.positions[frame]
+    out = []
+    for a, b in zip(s.offsets[:-1], s.offsets[1:]):
+        k = a + min(int(np.floor(fraction * (b - a))), b - a - 1)
+        out.append(x[k:b].mean(0))
+    return np.array(out)
+
+
+def clumps(d: RunData, p) -> dict:
+    f = _frame_at(d, p.time)
+    X = strand_features(d, f, p.strand_fraction)
+    labels = fcluster(linkage(X, method="single"), t=p.threshold, criterion="distance")
+    sizes = np.bincount(labels)[1:]
+    big = sizes[sizes >= max(1, int(np.ceil(p.min_share * len(X))))]
+    return {"clumps": int(len(big)), "clump_sizes": sorted(big.tolist(), reverse=True), "clusters_all": int(len(sizes)),
+            "threshold": p.threshold, "time": float(d.times[f])}
+
+
+def _tips(d: RunData, x: np.ndarray) -> np.ndarray:
+    return x[d.scene.strands.offsets[1:] - 1]
+
+
+def _roots(d: RunData, x: np.ndarray) -> np.ndarray:
+    return x[d.scene.strands.offsets[:-1]]
+
+
+def tip_variance(d: RunData, p) -> dict:
+    axis = np.asarray(p.axis, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    ahead = np.array([float((_tips(d, x).mean(0) - _roots(d, x).mean(0)) @ axis) for x in d.positions])
+    f = int(np.argmax(ahead))
+    V = np.array([float(np.mean(np.sum((_tips(d, x) - _tips(d, x).mean(0)) ** 2, 1))) for x in d.positions])
+    out = {"apex_time": float(d.times[f]), "apex_ahead": float(ahead[f]), "v0": float(V[0]),
+           "tip_variance_ratio": float(V[f] / V[0]) if V[0] > 0 else float("nan")}
+    tr = d.tracker
+    if tr is not None:
+        k = len(tr.variance.rest) - 1           # the last tracking point of the last guide: the tips
+        Vc = tr.variance.values(d.positions[f][d.free_vertices].reshape(-1))
+        out["cluster_variance_ratio"] = float(Vc[k] / tr.variance.rest[k])
+        _, vbar = tr.variance.at(float(d.times[f]))
+        out["cluster_target_ratio"] = float(vbar[k] / tr.variance.rest[k])
+    return out
+
+
+def block_rail(d: RunData, p) -> dict:
+    """The block's travel and whether it left the rail (``hairexp.evaluation.stylization``), plus,
+    for tracked runs, the largest tracking residual and the range of the clusters' variance
+    ratio over the run (the hair's own motion: the variance changes while the COMs track)."""
+    from hairexp.evaluation.stylization import block_rail_measure
+
+    out = block_rail_measure(d.times, np.asarray(d.body_positions), p.rail_height, p.rail_end)
+    m = d.metrics
+    if m is not None and "variance_ratio_mean" in m and m["variance_ratio_mean"].notna().any():
+        out.update(residual_rel_max=float(m["residual_rel_max"].max()),
+                   variance_ratio_min=float(m["variance_ratio_mean"].min()),
+                   variance_ratio_max=float(m["variance_ratio_mean"].max()))
+    return out
+
+
+MEASURES = {"collider_contact": collider_contact, "clumps": clumps, "tip_variance": tip_variance,
+            "block_rail": block_rail}
+
+
+def compute(cfg_measure, data: RunData) -> dict:
+    name = str(getattr(cfg_measure.name, "value", cfg_measure.name))
+    if name == "none":
+        return {}
+    return MEASURES[name](data, cfg_measure)

@@ -1,0 +1,105 @@
+"""The stylization scene's measure (paper 4, Fig. 7): "a wisp of hair attached to a rigid block
+resting on a rail ... a keyframe animation of a single guide hair that pulls itself off the rail by
+building up the necessary momentum".
+
+``block_rail_measure`` reads the block's position per frame (``result.npz`` ``body_positions``:
+the pose translation, i.e. the block's rail contact point, hairexp/model/dynamic_body.py) and
+reports how far it travelled along the rail (x) and whether and when it left the rail: past the
+rail's end in x, or below the rail's height, by more than ``tolerance``.
+
+    python -m hairexp.evaluation.stylization <run folder> [<run folder> ...]
+
+prints, per run, the measure with the rail of the run's config (``scene.body``) and the run's
+figures (steps, SQP/Newton iterations, tracking residual, cluster variance range).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from hairexp.errors import InputError
+
+#: Default tolerance (m): a block counts as off the rail beyond this distance past its end or below it.
+TOLERANCE = 1e-3
+
+
+def block_rail_measure(times, body_positions, rail_height: float, rail_end: float,
+                       tolerance: float = TOLERANCE) -> dict:
+    """``times`` (F,) s and ``body_positions`` (F, 3) m of the block's rail contact point.
+
+    ``travel``: the largest |x - x_0| along the rail (m); ``travel_end``: x at the last frame
+    minus x_0; ``left_rail``: whether in some frame x > rail_end + tolerance or
+    y < rail_height - tolerance; ``left_rail_time``: the first such frame's time (s, None if it
+    stayed); ``lift_max``: the highest the block rose above the rail (m); ``drop``: how far below
+    the rail it ended (m, >= 0)."""
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    P = np.asarray(body_positions, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3 or P.shape[0] != t.size or t.size == 0:
+        raise InputError(f"need body positions (F, 3) for F = {t.size} times, got shape {P.shape}", "body_positions")
+    if not (np.isfinite(P).all() and np.isfinite(t).all()):
+        raise InputError("body positions and times must be finite", "body_positions")
+    for key, v in (("rail_height", rail_height), ("rail_end", rail_end), ("tolerance", tolerance)):
+        if not math.isfinite(float(v)):
+            raise InputError(f"must be finite, got {v}", key)
+    if not tolerance >= 0:
+        raise InputError(f"must be >= 0, got {tolerance}", "tolerance")
+    x, y = P[:, 0], P[:, 1]
+    off = (x > rail_end + tolerance) | (y < rail_height - tolerance)
+    first = int(np.argmax(off)) if off.any() else None
+    return {
+        "travel": float(np.max(np.abs(x - x[0]))),
+        "travel_end": float(x[-1] - x[0]),
+        "left_rail": bool(off.any()),
+        "left_rail_time": None if first is None else float(t[first]),
+        "lift_max": float(max(0.0, np.max(y - rail_height))),
+        "drop": float(max(0.0, rail_height - y[-1])),
+        "rail_height": float(rail_height), "rail_end": float(rail_end), "tolerance": float(tolerance),
+    }
+
+
+def run_report(run_dir) -> dict:
+    """The measure and the run's figures from a run folder (result.npz, metrics.parquet,
+    summary.json)."""
+    import pandas as pd
+
+    d = Path(run_dir)
+    summary = json.loads((d / "summary.json").read_text())
+    body = summary["config"]["scene"]["body"]
+    res = np.load(d / "result.npz")
+    if "body_positions" not in res:
+        raise InputError("result.npz has no body_positions (a run from before they were recorded)", str(d))
+    out = block_rail_measure(res["times"], res["body_positions"], body["rail_height"], body["rail_end"])
+    m = pd.read_parquet(d / "metrics.parquet")
+    out.update({
+        "controller": summary["controller"], "dynamic": bool(body["dynamic"]), "mass": body["mass"],
+        "rail_friction": body["rail_friction"], "steps": int(len(m)),
+        "iterations_mean": float(m["iterations"].mean()), "iterations_max": int(m["iterations"].max()),
+        "converged_fraction": float(m["converged"].mean()), "stretch_max": float(m["stretch_max"].max()),
+        "wall_seconds": summary.get("wall_seconds"),
+    })
+    if m["residual_rel_max"].notna().any():
+        v = m["variance_ratio_mean"]
+        out.update({"residual_rel_max": float(m["residual_rel_max"].max()),
+                    "residual_max": float(m["residual_max"].max()),
+                    "variance_ratio_min": float(v.min()), "variance_ratio_max": float(v.max()),
+                    "variance_ratio_std": float(v.std())})
+    return out
+
+
+def main(argv=None) -> int:
+    args = sys.argv[1:] if argv is None else list(argv)
+    if not args:
+        print(__doc__.strip().splitlines()[-4].strip(), file=sys.stderr)
+        return 1
+    for a in args:
+        print(json.dumps({"run": a, **run_report(a)}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,150 @@
+"""Guide animations: G guide polylines with one shape per frame, rooted on the rigid body.
+
+``GuideAnimation.shape_at(t)`` interpolates linearly between frames when the time step is
+smaller than the frame interval, and holds the first/last frame outside the animation.
+Sources (``guides.source``): ``rigid`` (rest guides carried by the body), ``scaled`` (rest
+guides scaled about their roots by keyframed factors, then carried by the body: the paper's
+Fig. 2 shrinking guide), ``file`` (an npz with ``guide_positions`` (F, Vg, 3),
+``guide_offsets`` (G + 1,) and ``fps``, such as a run's guides.npz), ``simulated`` (the rest
+guides simulated as free strands with the scene's body motion, material and gravity: the
+paper's "initial simulation on a coarse set of guide hairs using best-guess parameters"; with
+``guides.collide`` they collide with the scene's colliders), ``usd`` (the guide prim of the
+stage ``scene.usd``, hairexp/io/usd_read.py).  The sources that need the simulator or a USD
+stage (``simulated``, ``usd``) and the dispatch over all of them are in hairexp/app/guides.py.
+
+Guides are authored in the body frame.  On a dynamic body (``scene.body.dynamic``, paper 4
+Stylization) the animation's world positions are those of the block held at its initial pose
+(``DynamicBody.reference``: the pose is not known before the simulation), and ``shape_at`` carries
+the body-frame guide with the live block: world = block pose at t x body-frame guide.  A
+``simulated`` guide source on a dynamic body simulates the guides on the block held still.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hairexp.errors import InputError
+from hairexp.model.dynamic_body import authoring_motion
+from hairexp.model.strands import validate_polylines
+
+
+@dataclass
+class GuideAnimation:
+    positions: np.ndarray   # (F, Vg, 3) m
+    offsets: np.ndarray     # (G + 1,)
+    fps: float
+    where: str = "guides"
+    motion: object = None   # the body the guides are rooted on: interpolate in its frame
+
+
+    def __post_init__(self):
+        self.positions = np.asarray(self.positions, dtype=np.float64)
+        self.offsets = np.asarray(self.offsets, dtype=np.int64)
+        if self.positions.ndim != 3 or self.positions.shape[-1] != 3 or self.positions.shape[0] < 1:
+            raise InputError(f"guide positions must have shape (frames, vertices, 3), got {self.positions.shape}",
+                             self.where)
+        counts = np.diff(self.offsets)
+        if counts.size == 0 or self.offsets[0] != 0:
+            raise InputError("guide offsets must start at 0 and name at least one guide", self.where)
+        if not (np.isfinite(self.fps) and self.fps > 0):
+            raise InputError(f"fps must be > 0, got {self.fps}", self.where)
+        for f in range(self.positions.shape[0]):
+            validate_polylines(self.positions[f], counts, f"{self.where} frame {f}", min_vertices=2)
+        self.attach(self.motion)
+
+    def attach(self, motion) -> None:
+        """Interpolate between frames in the body frame of ``motion`` and map back with its
+        exact pose, so that the guide roots follow the body between frames as the detail
+        hair roots do (a linear blend of world positions would cut corners when it turns).
+        A dynamic body: the positions are in its ``reference`` pose (authoring), ``shape_at``
+        maps them with the live block."""
+        self.motion = motion
+        if motion is not None:
+            ref = authoring_motion(motion)
+            self._body = np.stack([ref.to_body(P, f / self.fps) for f, P in enumerate(self.positions)])
+    @property
+    def n_guides(self) -> int:
+        return len(self.offsets) - 1
+
+    @property
+    def n_frames(self) -> int:
+        return self.positions.shape[0]
+
+    @property
+    def rest(self) -> np.ndarray:
+        return self.positions[0]
+
+    def guides(self, P: np.ndarray) -> list[np.ndarray]:
+        return [P[a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:])]
+
+    def shape_at(self, t: float, motion=None) -> np.ndarray:
+        """(Vg, 3) guide vertices at time t (linear in time between frames); ``motion``: the
+        body's poses at t when they are not those the animation was attached to (a dynamic
+        body's step window, hairexp/model/dynamic_body.py)."""
+        u = float(np.clip(t * self.fps, 0.0, self.n_frames - 1))
+        f = min(int(np.floor(u)), self.n_frames - 2) if self.n_frames > 1 else 0
+        src = self.positions if self.motion is None else self._body
+        if self.n_frames == 1:
+            B = src[0]
+        else:
+            a = u - f
+            B = (1 - a) * src[f] + a * src[f + 1]
+        return B if self.motion is None else (motion or self.motion).transform(B, t)
+
+    def save(self, path: Path) -> None:
+        np.savez_compressed(path, guide_positions=self.positions, guide_offsets=self.offsets, fps=self.fps)
+
+
+def rest_guides(scene_cfg, count: int, n_vertices: int, layout_radius: float) -> np.ndarray:
+    """(count * n_vertices, 3) straight rest guides in the body frame, rooted on a circle of
+    ``layout_radius`` x the root radius (the disk centre for a single guide)."""
+    if count < 1:
+        raise InputError(f"must be >= 1, got {count}", "guides.count")
+    if n_vertices < 2:
+        raise InputError(f"must be >= 2, got {n_vertices}", "guides.n_vertices")
+    d = np.asarray(scene_cfg.direction, dtype=np.float64)
+    d /= np.linalg.norm(d)
+    center = np.asarray(scene_cfg.root_center, dtype=np.float64)
+    a = np.array([1.0, 0, 0]) if abs(d[0]) < 0.9 else np.array([0, 0, 1.0])
+    u = np.cross(d, a)
+    u /= np.linalg.norm(u)
+    w = np.cross(d, u)
+    if count == 1:
+        roots = center[None]
+    else:
+        phi = 2 * np.pi * np.arange(count) / count
+        r = layout_radius * scene_cfg.root_radius
+        roots = center + r * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * w)
+    s = np.linspace(0.0, scene_cfg.length, n_vertices)
+    return np.concatenate([r0 + s[:, None] * d for r0 in roots])
+
+
+def file_guides(path, motion) -> GuideAnimation:
+    """The ``file`` source: an npz with ``guide_positions``, ``guide_offsets`` and ``fps``."""
+    path = Path(path)
+    try:
+        data = np.load(path)
+        pos, off, gfps = data["guide_positions"], data["guide_offsets"], float(data["fps"])
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(f"cannot read guide animation: {exc}", f"guides.file={path}") from exc
+    return GuideAnimation(pos, off, gfps, where=str(path), motion=motion)
+
+
+def carried_guides(g, body: np.ndarray, offsets: np.ndarray, motion, frames: int, fps: float,
+                   scaled: bool) -> np.ndarray:
+    """(frames + 1, Vg, 3) world positions of the body-frame guides ``body`` carried by ``motion``
+    (``rigid``), scaled about their roots by ``g.scale_times``/``g.scale_factors`` (``scaled``)."""
+    frames_pos = []
+    for t in np.arange(frames + 1) / fps:
+        X = body
+        if scaled:
+            if len(g.scale_times) != len(g.scale_factors) or not g.scale_times:
+                raise InputError("scale_times and scale_factors must be non-empty and of equal length", "guides")
+            f = float(np.interp(t, g.scale_times, g.scale_factors))
+            roots = np.repeat(body[offsets[:-1]], g.n_vertices, axis=0)
+            X = roots + f * (body - roots)
+        frames_pos.append(motion.transform(X, t))
+    return np.stack(frames_pos)

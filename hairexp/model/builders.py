@@ -1,0 +1,150 @@
+"""Scene builders: turn a ``SceneConfig`` into a ``Scene``.
+
+* ``wisp``: strands with roots spread uniformly over a disk on the rigid body, straight at
+  rest along ``direction`` (optionally tilted at random by up to ``spread``).
+* ``ponytail``: the Celia-scale ponytail (301 strands x 26 vertices by default): roots on a
+  tight disk, strands fanning out as a cone whose rim strands tilt outward by ``spread``.
+  A cone never makes two strands cross or touch at rest (the gap between neighbours grows
+  along the strands), so hair-hair collisions start from a contact-free rest state.
+* ``usd``: a user's USD stage ``scene.usd`` (hairexp/io/usd_read.py, README "USD scenes"); the
+  dispatch over all builders is ``hairexp.app.builders.build_scene``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from hairexp.errors import InputError
+from hairexp.model.colliders import SHAPES
+from hairexp.model.dynamic_body import build_dynamic_body
+from hairexp.model.rigid import RigidMotion
+from hairexp.model.scene import Material, Scene
+from hairexp.model.strands import Strands
+
+
+def vec3(v, key: str) -> np.ndarray:
+    a = np.asarray(list(v), dtype=np.float64)
+    if a.shape != (3,) or not np.isfinite(a).all():
+        raise InputError(f"expected 3 finite numbers, got {list(v)}", key)
+    return a
+
+
+def _unit(v, key) -> np.ndarray:
+    a = vec3(v, key)
+    n = np.linalg.norm(a)
+    if n == 0:
+        raise InputError("direction must be non-zero", key)
+    return a / n
+
+
+def disk_points(n: int, radius: float) -> np.ndarray:
+    """n points spread evenly over a disk (sunflower / Vogel spiral), (n, 2)."""
+    k = np.arange(n) + 0.5
+    r = radius * np.sqrt(k / n)
+    phi = k * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi)], 1)
+
+
+def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius: float, center: np.ndarray,
+                     direction: np.ndarray, spread: float, seed: int, fan: bool = False) -> np.ndarray:
+    """(n_strands * n_vertices, 3) straight strands rooted on a disk normal to ``direction``.
+
+    ``fan``: strand i tilts outward in proportion to its root's distance from the centre (a
+    cone, rim tilt ``spread``); otherwise each strand tilts by a random angle up to ``spread``."""
+    if n_strands < 1:
+        raise InputError(f"must be >= 1, got {n_strands}", "scene.n_strands")
+    if n_vertices < 3:
+        raise InputError(f"must be >= 3 (two root vertices and one free), got {n_vertices}", "scene.n_vertices")
+    if not length > 0:
+        raise InputError(f"must be > 0, got {length}", "scene.length")
+    a = np.array([1.0, 0, 0]) if abs(direction[0]) < 0.9 else np.array([0, 0, 1.0])
+    u = np.cross(direction, a)
+    u /= np.linalg.norm(u)
+    w = np.cross(direction, u)
+    d2 = disk_points(n_strands, root_radius)
+    roots = center + d2[:, :1] * u + d2[:, 1:] * w
+    rng = np.random.default_rng(seed)
+    s = np.linspace(0.0, length, n_vertices)
+    pts = []
+    for i in range(n_strands):
+        d = direction
+        if fan and spread > 0:
+            d = direction + np.tan(spread) * (roots[i] - center) / root_radius
+            d = d / np.linalg.norm(d)
+        elif spread > 0:
+            axis = rng.normal(size=3)
+            axis -= axis.dot(direction) * direction
+            axis /= np.linalg.norm(axis)
+            d = Rotation.from_rotvec(axis * spread * rng.uniform()).apply(direction)
+        pts.append(roots[i] + s[:, None] * d)
+    return np.concatenate(pts)
+
+
+def build_motion(cfg) -> RigidMotion:
+    rot = np.deg2rad(np.asarray(cfg.rotations_deg, dtype=np.float64))
+    return RigidMotion(np.asarray(cfg.times, dtype=np.float64), np.asarray(cfg.translations, dtype=np.float64),
+                       rot, str(getattr(cfg.interpolation, "value", cfg.interpolation)))
+
+
+def build_material(h) -> Material:
+    """The hair material of ``scene.hair``, validated."""
+    for key in ("linear_density", "stretch_stiffness", "bending_stiffness"):
+        if not getattr(h, key) > 0:
+            raise InputError(f"must be > 0, got {getattr(h, key)}", f"scene.hair.{key}")
+    for key in ("edge_damping", "air_drag"):
+        if not getattr(h, key) >= 0:
+            raise InputError(f"must be >= 0, got {getattr(h, key)}", f"scene.hair.{key}")
+    return Material(h.linear_density, h.stretch_stiffness, h.bending_stiffness, h.edge_damping, h.air_drag)
+
+
+def build_procedural_scene(cfg) -> Scene:
+    """The ``wisp`` and ``ponytail`` builders (see the module doc), before ``with_dynamic_body``."""
+    builder = str(getattr(cfg.builder, "value", cfg.builder))
+    direction = _unit(cfg.direction, "scene.direction")
+    center = vec3(cfg.root_center, "scene.root_center")
+    if builder in ("wisp", "ponytail"):
+        body_pts = straight_strands(cfg.n_strands, cfg.n_vertices, cfg.length, cfg.root_radius, center,
+                                    direction, cfg.spread, cfg.seed, fan=builder == "ponytail")
+    else:  # pragma: no cover - the schema's Enum rejects other names
+        raise InputError(f"unknown builder {builder!r}", "scene.builder")
+    material = build_material(cfg.hair)
+    motion = build_motion(cfg.motion)
+    world = motion.transform(body_pts, 0.0)
+    counts = np.full(cfg.n_strands, cfg.n_vertices)
+    strands = Strands.from_polylines(world, counts, material.linear_density, where=f"scene {cfg.name}")
+    colliders = [build_collider(c, i) for i, c in enumerate(getattr(cfg, "colliders", []) or [])]
+    return Scene(cfg.name, strands, material, motion, vec3(cfg.gravity, "scene.gravity"), body_pts, colliders)
+
+
+def with_dynamic_body(cfg, scene: Scene) -> Scene:
+    """``scene.body.dynamic``: the body becomes a dynamic block on a rail starting at the pose of
+    ``scene.motion`` (hairexp/model/dynamic_body.py); otherwise the scene is returned as built."""
+    body = getattr(cfg, "body", None)
+    if body is None or not body.dynamic:
+        return scene
+    return replace(scene, motion=build_dynamic_body(body, scene.motion, scene.strands, scene.gravity))
+
+
+def build_collider(c, i: int):
+    shape = str(getattr(c.shape, "value", c.shape))
+    key = f"scene.colliders[{i}]"
+    common = dict(name=c.name or f"collider{i}", motion=build_motion(c.motion), thickness=c.thickness,
+                  friction=c.friction)
+    for k in ("radius", "half_length", "half_height"):
+        if not getattr(c, k) > 0:
+            raise InputError(f"must be > 0, got {getattr(c, k)}", f"{key}.{k}")
+    if shape == "sphere":
+        return SHAPES[shape](radius=c.radius, **common)
+    if shape == "capsule":
+        return SHAPES[shape](radius=c.radius, half_length=c.half_length, **common)
+    if shape == "box":
+        he = vec3(c.half_extents, f"{key}.half_extents")
+        if not np.all(he > 0):
+            raise InputError(f"must be > 0, got {he.tolist()}", f"{key}.half_extents")
+        return SHAPES[shape](half_extents=tuple(he), **common)
+    if shape == "cylinder":
+        return SHAPES[shape](radius=c.radius, half_height=c.half_height, spin=c.spin, **common)
+    return SHAPES[shape](**common)

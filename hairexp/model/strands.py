@@ -1,0 +1,139 @@
+"""Packed piecewise-linear strands: rest shape, lumped masses and element stencils.
+
+Vertices of all strands are stored in one ``(V, 3)`` array, strand ``s`` owning rows
+``offsets[s]:offsets[s+1]``.  The first two vertices of every strand are kinematic (carried
+by the rigid body, paper 3.4 "attachment point"); the rest are degrees of freedom, ordered
+strand by strand and vertex by vertex so that the Hessian is banded per strand.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hairexp.errors import InputError
+
+#: Vertices per strand held kinematically by the root rigid body.
+N_ROOT_VERTICES = 2
+#: An edge shorter than this (m) is treated as zero-length input.
+MIN_EDGE_LENGTH = 1e-9
+
+
+def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_vertices: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Check packed polylines and return them as float64 ``(V,3)`` and int64 counts.
+
+    Raises InputError naming ``where`` and the offending curve index for NaN/inf,
+    wrong shapes, counts that do not add up, too few vertices, or zero-length edges.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    counts = np.asarray(counts, dtype=np.int64).reshape(-1)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"points must have shape (V, 3), got {points.shape}", where)
+    if counts.size == 0:
+        raise InputError("no curves given", where)
+    if counts.sum() != points.shape[0]:
+        raise InputError(f"vertex counts add up to {int(counts.sum())} but there are {points.shape[0]} points", where)
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    for s in np.flatnonzero(counts < min_vertices):
+        raise InputError(f"curve {s} has {counts[s]} vertices, needs at least {min_vertices}", where)
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        v = int(np.flatnonzero(bad)[0])
+        s = int(np.searchsorted(offsets, v, side="right") - 1)
+        raise InputError(f"curve {s} vertex {v - offsets[s]} is not finite: {points[v].tolist()}", where)
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    within = np.ones(len(seg), dtype=bool)
+    within[offsets[1:-1] - 1] = False  # the step from the last vertex of one curve to the next curve
+    short = within & (seg < MIN_EDGE_LENGTH)
+    if short.any():
+        e = int(np.flatnonzero(short)[0])
+        s = int(np.searchsorted(offsets, e, side="right") - 1)
+        raise InputError(f"curve {s} has a zero-length edge between vertices {e - offsets[s]} and {e - offsets[s] + 1}", where)
+    return points, counts
+
+
+@dataclass(frozen=True)
+class Strands:
+    """Static description of the detail hair (never changes during a run).
+
+    Attributes (V vertices, E edges, B bending elements, S strands, N free DOFs = 3 * free vertices):
+        rest:        (V, 3) rest positions in world space at t = 0 (m)
+        offsets:     (S + 1,) vertex offsets of each strand
+        masses:      (V,) lumped masses (kg) from the linear density
+        edges:       (E, 2) vertex indices of each edge
+        rest_lengths:(E,) rest edge lengths (m)
+        bends:       (B, 3) vertex indices (i-1, i, i+1) of each interior vertex
+        kinematic:   (V,) True for root vertices carried by the rigid body
+        free_slot:  (V,) index of each vertex among the free vertices, -1 for kinematic ones
+    """
+
+    rest: np.ndarray
+    offsets: np.ndarray
+    masses: np.ndarray
+    edges: np.ndarray
+    rest_lengths: np.ndarray
+    bends: np.ndarray
+    kinematic: np.ndarray
+    free_slot: np.ndarray
+
+    @property
+    def n_vertices(self) -> int:
+        return self.rest.shape[0]
+
+    @property
+    def n_strands(self) -> int:
+        return len(self.offsets) - 1
+
+    @property
+    def n_free(self) -> int:
+        return int((~self.kinematic).sum())
+
+    @property
+    def counts(self) -> np.ndarray:
+        return np.diff(self.offsets)
+
+    @property
+    def strand_of_vertex(self) -> np.ndarray:
+        return np.repeat(np.arange(self.n_strands), self.counts)
+
+    @property
+    def inverse_masses(self) -> np.ndarray:
+        """(V,) 1 / m, 0 for the kinematic (root) vertices, which impulses cannot move."""
+        return np.where(self.kinematic, 0.0, 1.0 / self.masses)
+
+    def strand_lengths(self) -> np.ndarray:
+        """(S,) rest length of each strand (m)."""
+        per_edge_strand = self.strand_of_vertex[self.edges[:, 0]]
+        return np.bincount(per_edge_strand, weights=self.rest_lengths, minlength=self.n_strands)
+
+    @staticmethod
+    def from_polylines(points: np.ndarray, counts: np.ndarray, linear_density: float, where: str = "strands") -> "Strands":
+        """Build strands from packed rest polylines.  ``linear_density`` in kg/m."""
+        points, counts = validate_polylines(points, counts, where, min_vertices=N_ROOT_VERTICES + 1)
+        if not (np.isfinite(linear_density) and linear_density > 0):
+            raise InputError(f"linear density must be positive, got {linear_density}", where)
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        V = points.shape[0]
+        first = offsets[:-1]
+        last = offsets[1:] - 1
+        is_last = np.zeros(V, dtype=bool)
+        is_last[last] = True
+        is_first = np.zeros(V, dtype=bool)
+        is_first[first] = True
+        starts = np.flatnonzero(~is_last)
+        edges = np.stack([starts, starts + 1], axis=1)
+        rest_lengths = np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)
+        mids = np.flatnonzero(~is_first & ~is_last)
+        bends = np.stack([mids - 1, mids, mids + 1], axis=1)
+        masses = np.zeros(V)
+        half = 0.5 * linear_density * rest_lengths
+        np.add.at(masses, edges[:, 0], half)
+        np.add.at(masses, edges[:, 1], half)
+        local = np.arange(V) - np.repeat(first, counts)
+        kinematic = local < N_ROOT_VERTICES
+        free_slot = np.full(V, -1, dtype=np.int64)
+        free_slot[~kinematic] = np.arange(int((~kinematic).sum()))
+        for a in (points, offsets, masses, edges, rest_lengths, bends, kinematic, free_slot):
+            a.setflags(write=False)
+        return Strands(points, offsets, masses, edges, rest_lengths, bends, kinematic, free_slot)

@@ -1,0 +1,61 @@
+"""What the time step asks of a controller (hairexp/control/ implements them).
+
+The step (``Simulator.step``, hairexp/physics/simulator.py) calls these hooks without knowing
+which controller it has:
+
+* ``energy_terms(scene)``: energies the controller adds to the objective (eq. 5), once, when
+  the Simulator is built (the attraction baseline's springs);
+* ``bind(sim)``: once, after the objective is built (the tracking KKT solver needs its band);
+* ``initial_control()``: the controller's part of the first ``State`` (``State.control``);
+* ``begin(t, motion)``: at the start of every attempt, with the end-of-step time t and the
+  body's poses over the step (targets, attraction anchors);
+* ``solve(sim, state, dt, t_next, motion)``: the end-of-step positions (V, 3), the next
+  ``State.control`` and a ``SolveInfo``;
+* ``observe(sim, state, motion)`` and ``control_effort(sim, state)``: what a state says about
+  the controller (metrics, recording), after the step.
+
+``simulates``: False for a controller that prescribes the positions (skinning): the step then
+builds no objective step, runs no collision stage and refuses a dynamic body.
+
+This base class is the free controller: no terms, no constraints, Newton on eq. 5.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hairexp.physics.newton import newton_solve
+
+
+class Controller:
+    name = "free"
+    simulates = True
+
+    def energy_terms(self, scene) -> list:
+        return []
+
+    def bind(self, sim) -> None:
+        pass
+
+    def initial_control(self):
+        return None
+
+    def begin(self, t: float, motion) -> None:
+        pass
+
+    def solve(self, sim, state, dt: float, t_next: float, motion):
+        """Newton on the objective begun for this step (paper eq. 5, no constraints)."""
+        xf, info = newton_solve(sim.objective, sim.objective.initial_guess(), sim.newton)
+        return sim.objective.positions(xf).numpy(), None, info
+
+    def observe(self, sim, state, motion) -> dict:
+        """Per-state quantities for the metrics and the recording (scalars become columns)."""
+        return {}
+
+    def control_effort(self, sim, state) -> float | None:
+        """|F_c| / |m g| of the control force at ``state``, or None where it has none."""
+        return None
+
+    def cluster_of_vertex(self) -> np.ndarray | None:
+        """(V,) cluster index of each vertex (-1: none), or None for a controller without clusters."""
+        return None

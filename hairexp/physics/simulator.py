@@ -1,0 +1,234 @@
+"""The time step, phase by phase (``Simulator._attempt``, top to bottom):
+
+1. kinematics: the body's poses over the step (``motion_of``): a keyframed body's motion, or a
+   dynamic body (``scene.body``) that first moves under gravity, its rail and the hair's force of
+   the previous step (hairexp/model/dynamic_body.py; its state travels in ``State.body``, its
+   poses in an explicit ``BodyWindow``); the root positions at t + dt; the controller's
+   ``begin`` (targets, anchors at t + dt);
+2. solve: minimise the implicit Euler objective (eq. 5) plus the controller's terms, under its
+   constraints: the controller's ``solve`` (Newton for the free controller, SQP for tracking,
+   hairexp/physics/controller.py);
+3. velocities: v_{n+1} = (x_{n+1} - x_n) / dt; a dynamic body takes the force the hair exerts on
+   its roots at x_{n+1} (for the next step);
+4. collision stage: hair against the colliders and itself, after the solve (paper 3.4;
+   hairexp/physics/collisions.py), only when the scene has something to collide;
+5. recovery (``_advance``): a step that diverged or did not converge is retried as two half
+   steps from the same State (``solver.on_failure=substep``, recursively), kept and flagged
+   (``warn``), or stops the run (``fail``).  A non-finite state is never returned.
+
+The Simulator never names a controller: it is given one (``Controller``; None: the free step).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import torch
+
+from hairexp import tune_runtime
+from hairexp.errors import SimulationError
+from hairexp.model.scene import Scene
+from hairexp.physics.controller import Controller
+from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
+from hairexp.physics.info import CONVERGED, DIVERGED, SolveInfo, StepInfo
+from hairexp.physics.newton import NewtonOptions
+from hairexp.physics.objective import ImplicitEulerObjective
+from hairexp.physics.state import State
+
+TIME_KEYS = ("derivatives", "assembly", "solve", "collision", "other")
+#: ``solver.compile=auto`` compiles the derivative kernels from this many vertices on.
+COMPILE_MIN_VERTICES = 4000
+
+log = logging.getLogger(__name__)
+
+
+def _value(x):
+    return getattr(x, "value", x)
+
+
+class _NoColliders:
+    """The scene seen by the collision stage when object collisions are switched off."""
+
+    def __init__(self, scene):
+        self.strands, self.colliders, self.motion = scene.strands, [], scene.motion
+
+
+class Simulator:
+    def __init__(self, scene: Scene, solver_cfg, controller: Controller | None = None, collision_cfg=None):
+        """``controller``: what drives the hair beyond its physics (hairexp/control/); None is the
+        free step.  ``collision_cfg``: the collision stage's settings, None for no stage."""
+        tune_runtime()
+        self.scene = scene
+        self.cfg = solver_cfg
+        self.controller = controller = Controller() if controller is None else controller
+        s, m = scene.strands, scene.material
+        terms = [Stretch(s.edges, s.rest_lengths, m.stretch_stiffness),
+                 Bending(s.bends, s.rest, m.bending_stiffness)]
+        free_vertices = np.flatnonzero(~s.kinematic)
+        if m.edge_damping > 0:
+            terms.append(EdgeDamping(s.edges, s.rest_lengths, m.edge_damping))
+        if m.air_drag > 0:
+            terms.append(AirDrag(s.masses, m.air_drag, free_vertices))
+        terms += controller.energy_terms(scene)
+        external = [Gravity(s.masses, scene.gravity, free_vertices)] if np.any(scene.gravity != 0) else []
+        self.terms, self.external = terms, external
+        self.objective = ImplicitEulerObjective(terms, s.masses, s.kinematic, s.free_slot,
+                                                str(_value(solver_cfg.derivatives)), external,
+                                                primal_dual=str(_value(solver_cfg.stretch_hessian)) == "primal_dual")
+        self.newton = NewtonOptions(solver_cfg.rtol, solver_cfg.atol, solver_cfg.max_iterations, solver_cfg.max_backtracks)
+        self.on_failure = str(_value(solver_cfg.on_failure))
+        self.body = scene.body
+        # collision stage: built only when the scene has something to collide (else no code runs)
+        self.collision_cfg = collision_cfg
+        cc = collision_cfg
+        self.collide_objects = bool(cc is not None and cc.objects and scene.colliders)
+        self.hair_hair = self.limiter = None
+        if (self.collide_objects or (cc is not None and cc.hair_hair)) and cc.strain_limit > 0:
+            from hairexp.physics.collisions import StrainLimit   # only scenes with contact load it
+
+            self.limiter = StrainLimit(s, cc.strain_limit)
+        if cc is not None and cc.hair_hair:
+            from hairexp.physics.collisions import HairHair
+
+            self.hair_hair = HairHair(s, cc.hair_thickness, cc.skin)
+        controller.bind(self)
+        #: internal terms (their forces on the roots are the hair's force on a dynamic body)
+        self._internal = [t for t in terms if t.name in ("stretch", "bending", "edge_damping")]
+        mode = str(_value(getattr(solver_cfg, "compile", "off")))
+        if mode == "on" or (mode == "auto" and s.n_vertices >= COMPILE_MIN_VERTICES):
+            self._compile()
+
+    def _compile(self) -> None:
+        if str(_value(self.cfg.derivatives)) != "closed_form":
+            return
+        for t in self.terms:
+            t.compile()  # compiles lazily at the first call; falls back to eager if that fails
+
+    def free_dofs(self, x: np.ndarray) -> np.ndarray:
+        return x[self.objective.free_vertices].reshape(-1)
+
+    def initial_state(self) -> State:
+        """Hair at rest in the body frame, moving rigidly with the body at t = 0."""
+        sc = self.scene
+        x = sc.motion.transform(sc.root_body, 0.0)
+        v = sc.motion.point_velocity(sc.root_body, 0.0)
+        body = None
+        if self.body is not None:
+            # the hair's force at t = 0: its elastic forces on the roots (0 for hair at rest); the
+            # edge damping is 0 since everything moves rigidly with the body
+            body = self.body.initial(self.root_force(x, damping=False))
+        return State(0.0, x, v, control=self.controller.initial_control(), body=body)
+
+    def motion_of(self, state: State):
+        """The body's poses at ``state.time``: the keyframed motion, or the dynamic block there."""
+        return self.scene.motion if self.body is None else self.body.at(state.time, state.body)
+
+    def root_force(self, x: np.ndarray, damping: bool = True) -> np.ndarray:
+        """(3,) N: the force the hair exerts on the body through its kinematic root vertices at
+        positions x (V, 3): minus the gradient of the internal energies (stretch, bending and,
+        within a step, edge damping) summed over the root vertices."""
+        s = self.scene.strands
+        X = torch.from_numpy(np.ascontiguousarray(x, dtype=np.float64))
+        F = np.zeros_like(x, dtype=np.float64)
+        with torch.no_grad():
+            for t in self._internal:
+                if t.name == "edge_damping" and not damping:
+                    continue
+                g, _ = t.grad_hess(X[t.stencil_t], False, self.objective.derivatives)
+                st = np.asarray(t.stencil)
+                np.add.at(F, st, -g.numpy().reshape(st.shape[0], st.shape[1], 3))
+        return F[s.kinematic].sum(axis=0)
+
+    def control_effort(self, state: State) -> float | None:
+        """The controller's control effort at ``state`` (|F_c| / |m g|), None where it has none."""
+        return self.controller.control_effort(self, state)
+
+    def observe(self, state: State) -> dict:
+        """The controller's per-state quantities (metrics, recording) at ``state``."""
+        return self.controller.observe(self, state, self.motion_of(state))
+
+    # -- one attempt ----------------------------------------------------------------------
+    def _attempt(self, state: State, dt: float) -> tuple[State, SolveInfo]:
+        ctl = self.controller
+        t_next = state.time + dt
+        # 1. kinematics: the body's poses over the step (a dynamic block moves first, with the
+        #    hair force of the previous step), the controller's targets at t_next
+        body, motion = None, self.scene.motion
+        if self.body is not None:
+            if not ctl.simulates:
+                raise SimulationError(f"the {ctl.name} controller cannot drive a dynamic body")
+            body = self.body.advance(state.body, dt)
+            motion = self.body.window(state.time, state.body, t_next, body)
+        ctl.begin(t_next, motion)
+        # 2. solve
+        if ctl.simulates:
+            self.objective.begin_step(state.x, state.v, self.scene.root_positions(t_next, motion), dt, state.tensions)
+        x_new, control, info = ctl.solve(self, state, dt, t_next, motion)
+        # 3. velocities and the hair's force on a dynamic body
+        v_new = (x_new - state.x) / dt
+        if body is not None:
+            body = self.body.with_hair_force(body, self.root_force(x_new))
+        if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()
+                and (body is None or np.isfinite(body).all())):
+            info.status = DIVERGED
+        # 4. collision stage
+        elif ctl.simulates and (self.collide_objects or self.hair_hair is not None):
+            from hairexp.physics.collisions import collision_stage
+
+            sc = self.scene if self.collide_objects else _NoColliders(self.scene)
+            x_new, v_new, cinfo = collision_stage(self.collision_cfg, sc, self.hair_hair, state.x, x_new,
+                                                  state.time, t_next, dt, self.limiter)
+            info.seconds["collision"] = info.seconds.get("collision", 0.0) + cinfo.seconds
+            info.collision = cinfo
+            if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()):  # never return a non-finite state
+                info.status = DIVERGED
+        return State(t_next, x_new, v_new, info.tensions, control, body), info
+
+    def _advance(self, state: State, dt: float, level: int) -> tuple[State, list[SolveInfo]]:
+        new, info = self._attempt(state, dt)
+        self._attempted += info.iterations
+        if info.converged:
+            return new, [info]
+        if self.on_failure == "substep" and level < self.cfg.max_substep_levels:
+            mid, a = self._advance(state, 0.5 * dt, level + 1)
+            end, b = self._advance(mid, 0.5 * dt, level + 1)
+            return end, a + b
+        if info.status == DIVERGED:
+            raise SimulationError(
+                f"step from t={state.time:.6g} s with dt={dt:.3g} s diverged (non-finite state) "
+                f"after {info.iterations} iterations; try a smaller solver.dt or solver.on_failure=substep")
+        if self.on_failure == "fail":
+            raise SimulationError(
+                f"step from t={state.time:.6g} s with dt={dt:.3g} s did not converge ({info.status}, "
+                f"|grad|={info.grad_norm:.3g} vs force scale {info.force_scale:.3g}, {info.iterations} iterations)")
+        return new, [info]
+
+    # -- public ---------------------------------------------------------------------------
+    def step(self, state: State, dt: float) -> tuple[State, StepInfo]:
+        t0 = time.perf_counter()
+        self._attempted = 0
+        new, infos = self._advance(state, dt, 0)
+        total = time.perf_counter() - t0
+        last = infos[-1]
+        worst = next((i for i in infos if not i.converged), last)
+        sec = {k: sum(i.seconds.get(k, 0.0) for i in infos) for k in TIME_KEYS}
+        sec["other"] = max(total - sum(sec[k] for k in TIME_KEYS if k != "other"), 0.0)
+        sec["total"] = total
+        info = StepInfo(time=new.time, dt=dt, status=worst.status, iterations=sum(i.iterations for i in infos),
+                        backtracks=sum(i.backtracks for i in infos), substeps=len(infos),
+                        grad_norm=last.grad_norm, force_scale=last.force_scale, constraint_norm=last.constraint_norm,
+                        recovered=len(infos) > 1 and all(i.converged for i in infos), seconds=sec,
+                        iterations_attempted=self._attempted)
+        cis = [i.collision for i in infos if i.collision is not None]
+        if cis:
+            info.object_contacts = sum(c.object_contacts for c in cis)
+            info.hair_contacts = sum(c.hair_contacts for c in cis)
+            info.penetration_max = max(c.penetration_max for c in cis)
+            for c in cis:
+                for k, n in c.per_collider.items():
+                    info.collider_contacts[k] = info.collider_contacts.get(k, 0) + n
+        if len(infos) > 1 and info.recovered:
+            info.status = CONVERGED
+        return new, info
