@@ -1,5 +1,6 @@
 """hairexp: the HairControl tracking solver (Milliez, Sumner, Gross, Thomaszewski) as an
-experiment framework.  See README.md for the command line and ../paper for the method."""
+experiment framework.  See README.md for the command line, the Python API and the
+layout; the method is the paper's (Milliez et al., "HairControl", sections 3.1-3.4)."""
 
 __version__ = "0.1.0"
 

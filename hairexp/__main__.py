@@ -15,6 +15,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 import hairexp.app.config  # noqa: F401  (registers the schema in the ConfigStore)
+from hairexp.app.experiment import run_experiment
 from hairexp.errors import InputError, SimulationError
 
 log = logging.getLogger("hairexp")
@@ -22,8 +23,6 @@ log = logging.getLogger("hairexp")
 
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float | None:
-    from hairexp.app.experiment import run_experiment
-
     out = HydraConfig.get().runtime.output_dir
     try:
         summary = run_experiment(cfg, out)

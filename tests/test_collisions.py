@@ -11,6 +11,7 @@ from helpers import run_steps
 from hairexp.app.config import ColliderConfig, CollisionConfig, SceneConfig, SolverConfig
 from hairexp.physics.collisions import HairHair, object_stage
 from hairexp.model.colliders import Cylinder, Plane, Sphere
+import hairexp.physics.simulator as simulator_module
 from hairexp.physics.simulator import Simulator
 from hairexp.app.builders import build_scene
 from hairexp.model.rigid import RigidMotion
@@ -74,7 +75,7 @@ def test_fast_sweep_does_not_tunnel_through_a_thin_box(monkeypatch):
         calls.append((x0.copy(), out[0].copy()))
         return out
 
-    monkeypatch.setattr(coll, "collision_stage", recording)
+    monkeypatch.setattr(simulator_module, "collision_stage", recording)
     wall = collider("box", at=(0.2, -0.2, 0.0), half_extents=[0.005, 0.1, 0.2], thickness=0.001, friction=0.0)
     motion = dict(interpolation="linear", times=[0.0, 0.2], translations=[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]],
                   rotations_deg=[[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
@@ -204,7 +205,7 @@ def test_no_collision_code_runs_without_colliders_or_hair_hair(monkeypatch):
     def boom(*a, **k):
         raise AssertionError("collision code ran")
 
-    monkeypatch.setattr(coll, "collision_stage", boom)
+    monkeypatch.setattr(simulator_module, "collision_stage", boom)
     scene = make_scene([], n_strands=2, n_vertices=8)
     sim, states, infos = simulate(scene, 3)
     assert sim.hair_hair is None and not sim.collide_objects

@@ -108,7 +108,7 @@ def test_gravity_autograd_hessian_is_zero():
 
 @pytest.mark.parametrize("direction", [(1.0, 0.0, 0.0), (0.3, -0.8, 0.2)], ids=["axis", "oblique"])
 def test_bending_exactly_straight_strand_has_nonzero_exact_hessian(direction):
-    """FACTS.md trap: at three collinear nodes an atan2-based energy gets a zero autograd
+    """The atan2 trap: at three collinear nodes an atan2-based energy gets a zero autograd
     Hessian.  The curvature-binormal form must give the true, non-zero one."""
     rest = straight_polyline(3, direction)
     if direction == (1.0, 0.0, 0.0):  # exactly collinear in floating point
@@ -124,7 +124,7 @@ def test_bending_exactly_straight_strand_has_nonzero_exact_hessian(direction):
 
 
 class Atan2Bending(Term):
-    """The trap of FACTS.md: theta = atan2(|e0 x e1|, e0 . e1), E = B theta^2."""
+    """The atan2 trap: theta = atan2(|e0 x e1|, e0 . e1), E = B theta^2."""
 
     name = "atan2_bending"
 

@@ -14,6 +14,8 @@ import pytest
 
 from helpers import REPO
 
+import hairexp.physics.simulator as simulator_module
+
 
 def stress_module():
     spec = importlib.util.spec_from_file_location("stress", REPO / "experiments" / "stress.py")
@@ -92,7 +94,7 @@ def test_a_non_finite_collision_result_is_a_diverged_step_not_a_state(monkeypatc
         x[-1, 0] = np.nan
         return x, v, info
 
-    monkeypatch.setattr(collisions, "collision_stage", poisoned)
+    monkeypatch.setattr(simulator_module, "collision_stage", poisoned)
     with pytest.raises(SimulationError, match="diverged"):
         sim.step(sim.initial_state(), 0.04)
 

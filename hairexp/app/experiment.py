@@ -18,6 +18,7 @@ from omegaconf import OmegaConf
 
 from hairexp.app.config import to_plain
 from hairexp.errors import InputError
+from hairexp.evaluation.judges import JUDGES
 from hairexp.app.run import config_hash, run
 from hairexp.outputs.files import write_json
 
@@ -58,8 +59,6 @@ def run_experiment(cfg, out_dir) -> dict:
     out = Path(out_dir)
     if not cfg.variants:
         return run(cfg, out)
-    from hairexp.evaluation.judges import JUDGES
-
     plain = to_plain(cfg)
     t0 = time.perf_counter()
     summary = {"experiment": plain.get("experiment"), "status": "running", "success": None, "judge": plain["judge"],

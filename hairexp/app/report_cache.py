@@ -33,6 +33,8 @@ from typing import Callable
 
 import numpy as np
 
+from hairexp.app.run import config_hash
+
 ROOT = Path(__file__).resolve().parents[2]
 CACHE = ROOT / "reports" / "cache"
 SOURCE_GLOBS = ("hairexp/**/*.py", "conf/**/*.yaml")
@@ -83,8 +85,6 @@ def _dumps(o) -> str:
 
 def full_key(key: dict, source: str | None = None) -> dict:
     """The key parts hashed: the caller's key (and its config hash), the source hash, versions."""
-    from hairexp.app.run import config_hash
-
     parts = {"key": json.loads(_dumps(key)), "source_hash": source or source_hash(), "versions": versions()}
     if "config" in key:
         parts["config_hash"] = config_hash(key["config"])

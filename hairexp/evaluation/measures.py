@@ -27,6 +27,7 @@ import numpy as np
 from scipy.cluster.hierarchy import fcluster, linkage
 
 from hairexp.errors import InputError
+from hairexp.evaluation.stylization import block_rail_measure
 
 
 @dataclass
@@ -118,8 +119,6 @@ def block_rail(d: RunData, p) -> dict:
     """The block's travel and whether it left the rail (``hairexp.evaluation.stylization``), plus,
     for tracked runs, the largest tracking residual and the range of the clusters' variance
     ratio over the run (the hair's own motion: the variance changes while the COMs track)."""
-    from hairexp.evaluation.stylization import block_rail_measure
-
     out = block_rail_measure(d.times, np.asarray(d.body_positions), p.rail_height, p.rail_end)
     m = d.metrics
     if m is not None and "variance_ratio_mean" in m and m["variance_ratio_mean"].notna().any():

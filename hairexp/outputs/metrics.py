@@ -10,7 +10,7 @@ from hairexp.physics.info import StepInfo
 from hairexp.model.scene import Scene
 from hairexp.physics.state import State
 
-#: Columns every metrics table has (the run-folder contract in ARCHITECTURE.md).
+#: Columns every metrics table has (the run-folder contract, README "Run folder").
 CONTRACT_COLUMNS = ("frame", "time", "controller", "iterations", "converged", "residual_max", "residual_rel_max",
                     "stretch_max", "stretch_mean", "variance_ratio_mean", "contacts", "step_seconds")
 

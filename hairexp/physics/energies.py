@@ -102,7 +102,8 @@ class Stretch(Term):
 def curvature_binormal(e0: torch.Tensor, e1: torch.Tensor) -> torch.Tensor:
     """kb = 2 e0 x e1 / (|e0||e1| + e0.e1)  (Bergou et al. 2008).  |kb| = 2 tan(theta/2).
 
-    Smooth at straight configurations, unlike atan2 forms (see FACTS.md)."""
+    Smooth at straight configurations, unlike atan2 forms: at three collinear nodes
+    theta = atan2(|e0 x e1|, e0 . e1) has a zero autograd Hessian (tests/test_energies.py)."""
     l0 = torch.linalg.vector_norm(e0, dim=-1, keepdim=True)
     l1 = torch.linalg.vector_norm(e1, dim=-1, keepdim=True)
     return 2.0 * torch.linalg.cross(e0, e1) / (l0 * l1 + (e0 * e1).sum(-1, keepdim=True))

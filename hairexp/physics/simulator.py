@@ -30,6 +30,7 @@ import torch
 from hairexp import tune_runtime
 from hairexp.errors import SimulationError
 from hairexp.model.scene import Scene
+from hairexp.physics.collisions import HairHair, StrainLimit, collision_stage
 from hairexp.physics.controller import Controller
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
 from hairexp.physics.info import CONVERGED, DIVERGED, SolveInfo, StepInfo
@@ -86,12 +87,8 @@ class Simulator:
         self.collide_objects = bool(cc is not None and cc.objects and scene.colliders)
         self.hair_hair = self.limiter = None
         if (self.collide_objects or (cc is not None and cc.hair_hair)) and cc.strain_limit > 0:
-            from hairexp.physics.collisions import StrainLimit   # only scenes with contact load it
-
             self.limiter = StrainLimit(s, cc.strain_limit)
         if cc is not None and cc.hair_hair:
-            from hairexp.physics.collisions import HairHair
-
             self.hair_hair = HairHair(s, cc.hair_thickness, cc.skin)
         controller.bind(self)
         #: internal terms (their forces on the roots are the hair's force on a dynamic body)
@@ -175,8 +172,6 @@ class Simulator:
             info.status = DIVERGED
         # 4. collision stage
         elif ctl.simulates and (self.collide_objects or self.hair_hair is not None):
-            from hairexp.physics.collisions import collision_stage
-
             sc = self.scene if self.collide_objects else _NoColliders(self.scene)
             x_new, v_new, cinfo = collision_stage(self.collision_cfg, sc, self.hair_hair, state.x, x_new,
                                                   state.time, t_next, dt, self.limiter)

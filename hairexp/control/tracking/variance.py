@@ -4,8 +4,10 @@ variance V_k = sum_{i in C_k} |c_k - d_i|^2, eq. (4).
 V_bar defaults to the rest variance.  k_v(t) = stiffness x stiffness_scale(t) and
 V_bar(t) = rest variance x target_scale(t) are keyframed (linear between keys), and apply to
 the clusters of the listed tracking-point indices (all when the list is empty), e.g. only the
-tips.  As in the paper the penalty's Hessian is left out of the KKT matrix (it couples a whole
-cluster); only its gradient (autograd) enters.  A run with k_v = 0 builds no penalty.
+tips.  Its gradient comes from autograd; unlike the paper, a PSD model of its Hessian enters
+the SQP (``hessian_parts``: the Gauss-Newton rank one per cluster by a Woodbury update,
+hairexp/control/tracking/sqp.py, plus the positive diagonal curvature).  A run with k_v = 0
+builds no penalty.
 """
 
 from __future__ import annotations
