@@ -305,13 +305,10 @@ def test_a_retried_step_restarts_the_block_from_the_state(controller):
                                                        "scene.body.velocity=[0.3,0.0,0.0]",
                                                        "scene.body.rail_friction=0.3"])
     GlobalHydra.instance().clear()
-    from hairexp.app.guides import build_guides
+    from hairexp.app.assemble import assemble
 
     def make():
-        scene = build_scene(cfg.scene)
-        guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
-        tracked = controller == "tracking"
-        return Simulator(scene, cfg.solver, TrackingController(scene, guides, cfg.tracking) if tracked else None)
+        return assemble(cfg).simulator
 
     dt = 0.04
     split = make()

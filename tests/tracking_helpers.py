@@ -11,14 +11,12 @@ import helpers
 import numpy as np
 from omegaconf import OmegaConf
 
-from hairexp.control.tracking.controller import TrackingController
 from hairexp.app.config import Config, TrackingConfig
 from hairexp.physics.simulator import Simulator
-from hairexp.app.builders import build_scene
 from hairexp.model.rigid import RigidMotion
 from hairexp.model.scene import Material, Scene
 from hairexp.model.strands import Strands
-from hairexp.app.guides import build_guides
+from hairexp.app.assemble import assemble
 from hairexp.guides.animation import GuideAnimation
 
 NO_GRAVITY = [0.0, 0.0, 0.0]
@@ -58,11 +56,11 @@ def tracked_cfg(overrides: dict | None = None):
 
 
 def build_tracked(cfg):
-    """(scene, guides, simulator) for a tracked config."""
-    scene = build_scene(cfg.scene)
-    guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
-    sim = Simulator(scene, cfg.solver, TrackingController(scene, guides, cfg.tracking))
-    return scene, guides, sim
+    """(scene, guides, simulator) for a tracked config, assembled as a run is
+    (``hairexp.app.assemble``)."""
+    run = assemble(cfg)
+    assert run.controller.name == "tracking"
+    return run.scene, run.guides, run.simulator
 
 
 def tracking_cfg(**kw):
