@@ -5,24 +5,13 @@ SimulationError / InputError (never NaN)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 
 import numpy as np
 import pytest
 
-from helpers import REPO
-
-
-def stress_module():
-    spec = importlib.util.spec_from_file_location("stress", REPO / "experiments" / "stress.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-stress = stress_module()
+import experiments.stress as stress
 
 
 def assert_no_silent_nan(row: dict, out) -> None:
