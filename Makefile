@@ -27,10 +27,11 @@ test: $(STAMP)
 test-slow: $(STAMP)
 	$(VPY) -m pytest -m slow
 
+# the scripts under experiments/ are modules of the experiments package, run from the repo root
 bench: $(STAMP)
-	$(VPY) experiments/bench_free.py
-	$(VPY) experiments/bench_tracking.py
-	$(VPY) experiments/bench_collisions.py
+	$(VPY) -m experiments.bench_free
+	$(VPY) -m experiments.bench_tracking
+	$(VPY) -m experiments.bench_collisions
 
 # CACHE=1: reuse cached results of the slow runs (paper scenes, stress, accuracy) whose config,
 # solver source (hairexp/**/*.py, conf/**/*.yaml) and torch/numpy/scipy versions match, from
@@ -39,19 +40,19 @@ CACHE   ?=
 CACHE_FLAG := $(if $(filter 1 yes true,$(CACHE)),--cache,)
 
 paper-scenes: $(STAMP)
-	$(VPY) experiments/paper_scenes.py $(CACHE_FLAG)
+	$(VPY) -m experiments.paper_scenes $(CACHE_FLAG)
 
 # every report under reports/ (about an hour on 2 cores).  By default every run is fresh (and
 # refreshes its entry in reports/cache/); `make reports CACHE=1` reuses the paper scenes', stress
 # cases' and accuracy runs' entries whose full key matches (benchmarks, scale, ablations and
 # baselines always run fresh).
 reports: bench paper-scenes
-	$(VPY) experiments/bench_scale.py
-	$(VPY) experiments/ablations.py
-	$(VPY) experiments/ablations.py --full
-	$(VPY) experiments/stress.py $(CACHE_FLAG)
-	$(VPY) experiments/baselines.py
-	$(VPY) experiments/accuracy.py --scenes goaling celia --frames 30 $(CACHE_FLAG)
+	$(VPY) -m experiments.bench_scale
+	$(VPY) -m experiments.ablations
+	$(VPY) -m experiments.ablations --full
+	$(VPY) -m experiments.stress $(CACHE_FLAG)
+	$(VPY) -m experiments.baselines
+	$(VPY) -m experiments.accuracy --scenes goaling celia --frames 30 $(CACHE_FLAG)
 
 clean:
 	rm -rf $(VENV) outputs multirun

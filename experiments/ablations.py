@@ -12,7 +12,7 @@ the tracked controller (``variants=[] controller.name=tracking``):
 The table gives each run's iterations, converged fraction, step time, stretch, residual and
 the scene's measure.  Scenes default to the small ``*_smoke`` ones (a few minutes in all);
 ``--full`` uses the full scenes and writes reports/ablations_full.{md,json} instead.
-Usage: .venv/bin/python experiments/ablations.py [--full] [--scenes goaling spreading ...] [--launcher submitit_local]
+Usage: python -m experiments.ablations [--full] [--scenes goaling spreading ...] [--launcher submitit_local]
 """
 
 from __future__ import annotations
@@ -24,8 +24,7 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from experiments.common import ROOT, fmt, md_row, md_table
 
 COMPARISONS = {
     "targets": ["tracking.targets=static,sliding"],
@@ -62,39 +61,36 @@ def sweep(scene: str, comparison: str, launcher: str | None, out: Path) -> list[
     return rows
 
 
-def fmt(v, spec=".3g"):
-    return "-" if v is None else (format(v, spec) if isinstance(v, (int, float)) else str(v))
-
-
 def findings(rows: list[dict]) -> str:
     """Per scene and comparison, the second value against the first (the table's two rows):
     iteration ratio, stretch and residual, computed from the rows (no typed-in numbers)."""
     out = "\n## Findings (second value against first, per scene)\n\n"
-    out += "| comparison | scene | iterations mean | max stretch | max residual / L | measure |\n|---|---|---|---|---|---|\n"
+    out += md_table(["comparison", "scene", "iterations mean", "max stretch", "max residual / L", "measure"])
     for comp in COMPARISONS:
         for scene in dict.fromkeys(r["scene"] for r in rows):
             pair = [r for r in rows if r["scene"] == scene and r["comparison"] == comp and r.get("status") == "completed"]
             if len(pair) != 2:
-                out += f"| {comp} | {scene} | not comparable ({len(pair)} completed runs) | | | |\n"
+                out += md_row([comp, scene, f"not comparable ({len(pair)} completed runs)", "", "", ""])
                 continue
             a, b = pair
             ma, mb = a.get("measures") or {}, b.get("measures") or {}
             key = next((k for k in ("hit", "clumps", "cluster_variance_ratio", "left_rail") if k in ma), None)
             ita, itb = a.get("iterations_mean"), b.get("iterations_mean")
             ratio = f"{fmt(itb)} vs {fmt(ita)} ({itb / ita:.2f}x)" if ita and itb else "-"
-            out += (f"| {comp}: {b['value']} vs {a['value']} | {scene} | {ratio} | {fmt(b.get('stretch_max'))} vs "
-                    f"{fmt(a.get('stretch_max'))} | {fmt(b.get('residual_rel_max'))} vs {fmt(a.get('residual_rel_max'))} | "
-                    f"{(key + ': ' + fmt(mb.get(key)) + ' vs ' + fmt(ma.get(key))) if key else '-'} |\n")
+            out += md_row([f"{comp}: {b['value']} vs {a['value']}", scene, ratio,
+                           f"{fmt(b.get('stretch_max'))} vs {fmt(a.get('stretch_max'))}",
+                           f"{fmt(b.get('residual_rel_max'))} vs {fmt(a.get('residual_rel_max'))}",
+                           f"{key}: {fmt(mb.get(key))} vs {fmt(ma.get(key))}" if key else "-"])
     return out
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--full", action="store_true")
     ap.add_argument("--scenes", nargs="*", default=SCENES)
     ap.add_argument("--comparisons", nargs="*", default=list(COMPARISONS))
     ap.add_argument("--launcher", default=None)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     from hairexp.app.report import header, write_report
 
     base = ROOT / "multirun" / "ablations" / time.strftime("%Y-%m-%d_%H-%M-%S")
@@ -112,14 +108,15 @@ def main():
     md += (f"Scenes: {'full' if args.full else 'smoke'} versions; launcher: {args.launcher or 'joblib (2 jobs)'}; each row is "
            "one run of the sweep `python -m hairexp -m experiment=<scene> variants=[] controller.name=tracking "
            "<comparison>`.\n\n")
-    md += "| scene | comparison | value | status | iterations mean/max | converged | median s/step | max stretch | max residual / L | measure |\n"
-    md += "|---|---|---|---|---|---|---|---|---|---|\n"
+    md += md_table(["scene", "comparison", "value", "status", "iterations mean/max", "converged", "median s/step",
+                    "max stretch", "max residual / L", "measure"])
     for r in rows:
         m = r.get("measures") or {}
         key = next((k for k in ("hit", "clumps", "cluster_variance_ratio", "left_rail") if k in m), None)
-        md += (f"| {r['scene']} | {r['comparison']} | {r['value']} | {r['status']} | {fmt(r.get('iterations_mean'))} / "
-               f"{fmt(r.get('iterations_max'))} | {fmt(r.get('converged_fraction'))} | {fmt(r.get('step_seconds_median'))} | "
-               f"{fmt(r.get('stretch_max'))} | {fmt(r.get('residual_rel_max'))} | {key + '=' + fmt(m[key]) if key else '-'} |\n")
+        md += md_row([r["scene"], r["comparison"], r["value"], r["status"],
+                      f"{fmt(r.get('iterations_mean'))} / {fmt(r.get('iterations_max'))}", fmt(r.get("converged_fraction")),
+                      fmt(r.get("step_seconds_median")), fmt(r.get("stretch_max")), fmt(r.get("residual_rel_max")),
+                      f"{key}={fmt(m[key])}" if key else "-"])
     md += findings(rows)
     path = write_report("ablations_full" if args.full else "ablations", md, {"rows": rows, "full": args.full, "launcher": args.launcher})
     print(f"wrote {path}")

@@ -16,26 +16,23 @@ needs it; a grid run is cached as its final figures only (errors, cost, iteratio
 its reference's config, so its trajectory is never stored.  The reference is only run (or loaded)
 when a grid run of its scene and controller is not cached.  Cached rows keep the timings of their
 original run, and the report marks them with the cache date and entry.
-Usage: .venv/bin/python experiments/accuracy.py [--scenes goaling celia] [--frames N] [--budget 0.01 0.03 0.1] [--cache]
+Usage: python -m experiments.accuracy [--scenes goaling celia] [--frames N] [--budget 0.01 0.03 0.1] [--cache]
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from hairexp.app.config import to_plain
+from hairexp.app.report_cache import cached, describe
+from hairexp.app.run import config_hash, run
 
-
-from hairexp.app.config import compose_config, to_plain  # noqa: E402
-from hairexp.app.report_cache import cached, describe  # noqa: E402
-from hairexp.app.run import config_hash, run  # noqa: E402
+from experiments.common import ROOT, compose, fmt, md_row, md_table
 
 DTS = [0.005, 0.01, 0.02, 0.04]
 RTOLS = [1e-3, 1e-5, 1e-7]
@@ -46,7 +43,7 @@ def cfg_for(scene: str, controller: str, dt: float, rtol: float, frames: int | N
             f"solver.dt={dt}", f"solver.rtol={rtol}", f"tracking.rtol={rtol}", "solver.on_failure=warn"]
     if frames:
         over.append(f"frames={frames}")
-    return compose_config(over)
+    return compose(over)
 
 
 def one(scene, controller, dt, rtol, frames, out: Path) -> dict:
@@ -84,7 +81,7 @@ def recommendation(rec: dict | None) -> str:
             f"{rec['seconds_per_sim_second']:.2f} s per simulated second)" if rec else "no run within the budget")
 
 
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="*", default=["goaling", "celia"])
     ap.add_argument("--frames", type=int, default=None, help="output frames per run (default: the scene's)")
@@ -95,7 +92,7 @@ def main():
     ap.add_argument("--rtols", type=float, nargs="*", default=RTOLS)
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/accuracy/ entries (same config, solver source and versions)")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     from hairexp.app.report import header, write_report
 
     base = ROOT / "outputs" / "accuracy"
@@ -155,15 +152,14 @@ def main():
             ref = refs[f"{scene}/{controller}"]
             rsrc = ("not needed (every grid row cached)" if ref["cache"] is None else
                     describe(ref["cache"]))
-            md += (f"## {scene}, {controller}\n\nReference config hash `{ref['config_hash']}`: {rsrc}.\n\n"
-                   "| dt | rtol | RMS err / L | max err / L | s per sim-s | iterations | converged | max stretch | "
-                   "max residual / L | front | config hash | source |\n")
-            md += "|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+            md += f"## {scene}, {controller}\n\nReference config hash `{ref['config_hash']}`: {rsrc}.\n\n"
+            md += md_table(["dt", "rtol", "RMS err / L", "max err / L", "s per sim-s", "iterations", "converged",
+                            "max stretch", "max residual / L", "front", "config hash", "source"])
             for r in rows:
-                md += (f"| {r['dt']} | {r['rtol']:g} | {r['rms_rel']:.2e} | {r['max_rel']:.2e} | {r['seconds_per_sim_second']:.2f} | "
-                       f"{r['iterations_mean']:.2f} | {r['converged_fraction']:.3f} | {r['stretch_max']:.2e} | "
-                       f"{'-' if r['residual_rel_max'] is None else format(r['residual_rel_max'], '.1e')} | {'*' if r['pareto'] else ''} | "
-                       f"`{r['config_hash']}` | {describe(r['cache'])} |\n")
+                md += md_row([r["dt"], f"{r['rtol']:g}", f"{r['rms_rel']:.2e}", f"{r['max_rel']:.2e}",
+                              f"{r['seconds_per_sim_second']:.2f}", f"{r['iterations_mean']:.2f}",
+                              f"{r['converged_fraction']:.3f}", f"{r['stretch_max']:.2e}", fmt(r["residual_rel_max"], ".1e"),
+                              "*" if r["pareto"] else "", f"`{r['config_hash']}`", describe(r["cache"])])
             md += "\nRecommended:\n\n" + "".join(f"* RMS <= {b:g} L: {recommendation(rec)}\n"
                                                   for b, rec in recs[(scene, controller)].items()) + "\n"
     try:

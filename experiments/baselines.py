@@ -14,17 +14,16 @@ variant of the scene's YAML (``REPRESENTATIVE``) are applied to every controller
 measured with the same clusters and targets (a TrackingController of the tracked configuration,
 built for measurement only) and with the scene's own success measure
 (hairexp/evaluation/measures.py) computed the same way for every controller, judged per run by the
-per-controller half of the scene's judge (``CRITERIA``).  A run that fails (or a controller
+per-run rule of the scene's judge (``hairexp.evaluation.judges.RUN_RULES``).  A run that fails (or a controller
 that cannot drive a scene, e.g. skinning on a dynamic body) is recorded with its error.
 Writes reports/baselines.{md,json}.
-Usage: .venv/bin/python experiments/baselines.py [--experiments goaling splitting ...] [--frames N]
+Usage: python -m experiments.baselines [--experiments goaling splitting ...] [--frames N]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 import time
 import traceback
@@ -33,22 +32,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from hairexp.app.assemble import assemble
+from hairexp.app.experiment import _variant_facts, apply_overrides
+from hairexp.app.report import header, write_report
+from hairexp.app.run import run
+from hairexp.control.skinning import GuideSkinning
+from hairexp.errors import InputError
+from hairexp.evaluation.judges import RUN_RULES
+from hairexp.evaluation.measures import RunData, compute
+from hairexp.model.dynamic_body import POSITION
 
-
-from hairexp.errors import InputError  # noqa: E402
-from hairexp.app.experiment import apply_overrides  # noqa: E402
-from hairexp.app.config import compose_config  # noqa: E402
-from hairexp.physics.simulator import Simulator  # noqa: E402
-from hairexp.app.report import header, write_report  # noqa: E402
-from hairexp.app.run import run  # noqa: E402
-from hairexp.app.assemble import assemble  # noqa: E402
-from hairexp.physics.settle import settle_scene  # noqa: E402
-from hairexp.app.builders import build_scene  # noqa: E402
-from hairexp.model.dynamic_body import POSITION  # noqa: E402
-from hairexp.evaluation.measures import RunData, compute  # noqa: E402
-from hairexp.app.guides import build_guides  # noqa: E402
-from hairexp.control.skinning import GuideSkinning  # noqa: E402
+from experiments.common import compose, md_row, md_table
 
 EXPERIMENTS = ("goaling", "splitting", "spreading", "stylization", "celia")
 STIFFNESSES = (10.0, 100.0, 1000.0)
@@ -59,11 +53,6 @@ HF_FLOOR = 1e-12
 #: The tracked variant whose overrides (guides, edits, variance targets) every controller of a
 #: scene gets; scenes not listed use their last variant with controller.name=tracking.
 REPRESENTATIVE = {"splitting": "tracked_3", "spreading": "target_5v0"}
-
-
-def compose_cfg(experiment: str, overrides: list[str] = ()):
-    """The experiment's config with its variants (not yet applied), logging off."""
-    return compose_config([f"experiment={experiment}", "logging=off", *overrides])
 
 
 def representative_variant(cfg) -> tuple[str, list[str]]:
@@ -111,40 +100,26 @@ def body_motion(scene, t: float, body_position):
     return scene.body.at(t, b)
 
 
-# -- success: the per-run half of each scene's judge (hairexp/evaluation/judges.py) -----------------
-def _hit(m, cfg):
-    return bool(m["hit"]), f"min distance {m['min_distance']:+.4f} m, {m['contacts']} contacts"
+# -- success: the per-run rule of each scene's judge (hairexp/evaluation/judges.py RUN_RULES) ------
+def success(m: dict, cfg) -> tuple[bool, str]:
+    """The scene's judge's per-run rule on one run's measures ``m`` (``cfg``: the run's config,
+    whose variant facts and ``judge_tolerance`` the rule reads as the judge does)."""
+    return RUN_RULES[_name(cfg.judge)](m, _variant_facts(cfg), float(cfg.judge_tolerance))
 
 
-def _clumps(m, cfg):
-    want = int(cfg.guides.count)
-    return m["clumps"] == want, f"{m['clumps']} clumps {m['clump_sizes']} (want {want})"
-
-
-def _variance(m, cfg):
-    r, t = m["cluster_variance_ratio"], m["cluster_target_ratio"]
-    err = abs(r / t - 1.0)
-    return bool(err <= float(cfg.judge_tolerance)), f"V/V_rest {r:.2f} vs target {t:.2f} (error {100 * err:.0f} %)"
-
-
-def _rail(m, cfg):
-    return bool(m["left_rail"]), f"travel {m['travel']:.3f} m"
-
-
-CRITERIA = {  # judge -> (per-run rule, statement for the report)
-    "free_misses_tracked_hits": (_hit, "the hair touches the collider: measure `collider_contact` `hit` (some free "
-                                       "vertex within the collider's thickness + `measure.tolerance` in some frame, or a "
-                                       "collision-stage contact; the judge's rule for a tracked run)"),
-    "clumps_match_guides": (_clumps, "the number of clumps (measure `clumps`) equals the number of guides "
-                                     "(`guides.count`; the judge's rule for a tracked run)"),
-    "variance_follows_targets": (_variance, "the tip cluster's variance ratio V/V_rest at the apex (measure "
-                                            "`tip_variance` `cluster_variance_ratio`, the last tracking point's "
-                                            "cluster of the tracked configuration, eq. 4) within `judge_tolerance` "
-                                            "(relative) of the target ratio (the judge's per-target rule; its "
-                                            "monotonicity over targets needs several targets and is not applicable "
-                                            "to one run)"),
-    "tracked_leaves_rail": (_rail, "the block leaves the rail (measure `block_rail` `left_rail`; the judge's rule "
-                                   "for a tracked run)"),
+STATEMENTS = {  # judge -> its per-run rule as the report states it
+    "free_misses_tracked_hits": "the hair touches the collider: measure `collider_contact` `hit` (some free vertex "
+                                "within the collider's thickness + `measure.tolerance` in some frame, or a "
+                                "collision-stage contact; the judge's rule for a tracked run)",
+    "clumps_match_guides": "the number of clumps (measure `clumps`) equals the number of guides (`guides.count`; the "
+                           "judge's rule for a tracked run)",
+    "variance_follows_targets": "the tip cluster's variance ratio V/V_rest at the apex (measure `tip_variance` "
+                                "`cluster_variance_ratio`, the last tracking point's cluster of the tracked "
+                                "configuration, eq. 4) within `judge_tolerance` (relative) of the target ratio (the "
+                                "judge's per-target rule; its monotonicity over targets needs several targets and is "
+                                "not applicable to one run)",
+    "tracked_leaves_rail": "the block leaves the rail (measure `block_rail` `left_rail`; the judge's rule for a "
+                           "tracked run)",
 }
 
 
@@ -224,7 +199,7 @@ def analyse(cfg, scene, tracker, out: Path) -> dict:
         for k, v in own.items():
             if isinstance(v, float) and not np.isclose(v, m[k], rtol=1e-9, atol=1e-12):
                 raise RuntimeError(f"re-measured {k} = {m[k]} differs from the run's own {v}")
-    ok, detail = CRITERIA[_name(cfg.judge)][0](m, cfg)
+    ok, detail = success(m, cfg)
     return {"status": "completed",
             "tracking_error_rms": float(np.sqrt(np.mean(err ** 2)) / L), "tracking_error_max": float(err.max() / L),
             "stretch_max": summary["stretch_max"], "effort_mean": float(eff.mean()),
@@ -245,7 +220,7 @@ def run_scene(experiment: str, frames: int | None, root: Path, only: list[str] |
     """All controllers (or those named in ``only``; "free" always runs, the ratios need it) on one
     scene; a failing run is recorded (status, error) and the rest go on."""
     extra = [] if frames is None else [f"frames={frames}"]
-    base = compose_cfg(experiment, extra)
+    base = compose([f"experiment={experiment}", "logging=off", *extra])   # variants not yet applied
     vname, vover = representative_variant(base)
     tcfg = controller_cfg(base, vover, ["controller.name=tracking"], f"{experiment} tracked")
     scene, tracker = measurement_tracker(tcfg)
@@ -286,14 +261,13 @@ def run_scene(experiment: str, frames: int | None, root: Path, only: list[str] |
             "frames": int(tcfg.frames), "fps": float(tcfg.fps), "dt": float(tcfg.solver.dt),
             "guides": int(tcfg.guides.count), "clusters": int(tracker.cons.K), "judge": judge,
             "judge_tolerance": float(base.judge_tolerance), "measure": _name(base.measure.name),
-            "criterion": CRITERIA[judge][1], "results": res}
+            "criterion": STATEMENTS[judge], "results": res}
 
 
 # -- report ----------------------------------------------------------------------------------
-COLUMNS = ("| controller | tracking error RMS / L (max) | max stretch | control effort / weight: mean, median (max) | "
-           "tip HF energy / free | tip HF of deviation from skinned / free | same, within clusters / free | "
-           "cluster variance dynamics | scene success (measure) | median s/step |\n"
-           "|---|---|---|---|---|---|---|---|---|---|\n")
+COLUMNS = ("controller", "tracking error RMS / L (max)", "max stretch", "control effort / weight: mean, median (max)",
+           "tip HF energy / free", "tip HF of deviation from skinned / free", "same, within clusters / free",
+           "cluster variance dynamics", "scene success (measure)", "median s/step")
 
 
 def _hf(r: dict, key: str) -> str:
@@ -303,17 +277,16 @@ def _hf(r: dict, key: str) -> str:
 
 
 def table(res: dict) -> str:
-    md = COLUMNS
+    md = md_table(COLUMNS)
     for name, r in res.items():
         if r["status"] != "completed":
-            md += f"| {name} | **{r['status']}**: {r['error']} |  |  |  |  |  |  |  |  |\n"
+            md += md_row([name, f"**{r['status']}**: {r['error']}"] + [""] * (len(COLUMNS) - 2))
             continue
         eff = "0 (none)" if name == "free" else f"{r['effort_mean']:.3g}, {r['effort_median']:.3g} ({r['effort_max']:.3g})"
         hf = [_hf(r, k) for k in ("tip_hf", "tip_dev_hf", "tip_intra_hf")]
-        md += (f"| {name} | {r['tracking_error_rms']:.3f} ({r['tracking_error_max']:.3f}) | {r['stretch_max']:.2e} | "
-               f"{eff} | {hf[0]} | {hf[1]} | {hf[2]} | "
-               f"{r['variance_std']:.2e} | {'**yes**' if r['success'] else 'no'} ({r['success_detail']}) | "
-               f"{r['step_seconds_median']:.4f} |\n")
+        md += md_row([name, f"{r['tracking_error_rms']:.3f} ({r['tracking_error_max']:.3f})", f"{r['stretch_max']:.2e}",
+                      eff, *hf, f"{r['variance_std']:.2e}",
+                      f"{'**yes**' if r['success'] else 'no'} ({r['success_detail']})", f"{r['step_seconds_median']:.4f}"])
     return md
 
 
@@ -379,15 +352,15 @@ def observations(s: dict) -> str:
 
 def summary_table(scenes: list[dict]) -> str:
     names = [n for n, _ in controllers()]
-    md = "| scene | " + " | ".join(names) + " |\n|---|" + "---|" * len(names) + "\n"
+    rows = []
     for s in scenes:
         cells = []
         for n in names:
             r = s["results"][n]
             cells.append(("**yes**" if r["success"] else "no") + f", {r['tracking_error_rms']:.3f} L"
                          if r["status"] == "completed" else r["status"])
-        md += f"| {s['experiment']} | " + " | ".join(cells) + " |\n"
-    return md
+        rows.append([s["experiment"], *cells])
+    return md_table(["scene", *names], rows)
 
 
 def report(scenes: list[dict], wall: float) -> str:

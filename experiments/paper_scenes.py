@@ -9,7 +9,7 @@ and torch/numpy/scipy versions match an entry of reports/cache/paper_scenes/ is 
 figures (and timings) are those of the cached run, and the report says so with the entry's date and
 hash; no run folder is written for it.  Without ``--cache`` every scene runs fresh and refreshes
 its entry.
-Usage: .venv/bin/python experiments/paper_scenes.py [names ...] [--cache] [--set KEY=VALUE ...]
+Usage: python -m experiments.paper_scenes [names ...] [--cache] [--set KEY=VALUE ...]
        (default: every paper scene)
 """
 
@@ -17,18 +17,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from hairexp.app.config import to_plain
+from hairexp.app.experiment import run_experiment
+from hairexp.app.report import header, write_report
+from hairexp.app.report_cache import cached, describe
 
-
-from hairexp.app.config import compose_config, to_plain  # noqa: E402
-from hairexp.app.experiment import run_experiment  # noqa: E402
-from hairexp.app.report import header, write_report  # noqa: E402
-from hairexp.app.report_cache import cached, describe  # noqa: E402
+from experiments.common import ROOT, compose, fmt, md_row, md_table
 
 SCENES = ["goaling", "splitting", "spreading", "stylization", "celia"]
 #: measure keys shown in the table, per measure
@@ -38,20 +34,14 @@ SHOW = {"collider_contact": ("hit", "contacts", "min_distance", "first_hit_time"
         "block_rail": ("travel", "left_rail", "left_rail_time")}
 
 
-def fmt(v):
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    return str(v)
-
-
-def main():
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("names", nargs="*", default=None)
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/paper_scenes/ entries with the same config, solver source and versions")
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="hydra overrides applied to every scene (e.g. frames=10)")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     available = {p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml")}
     names = args.names or [n for n in SCENES if n in available]
     md = header("The paper's scenes, judged")
@@ -64,7 +54,7 @@ def main():
         md += "Overrides on every scene: " + ", ".join(f"`{o}`" for o in args.set) + "\n\n"
     data = {}
     for name in names:
-        cfg = compose_config([f"experiment={name}", "logging.progress=false", *args.set])
+        cfg = compose([f"experiment={name}", "logging.progress=false", *args.set])
         out = ROOT / "outputs" / "paper_scenes" / name
         t0 = time.perf_counter()
 
@@ -98,17 +88,16 @@ def main():
         md += (f"## {name}\n\nsuccess: **{s['success']}** (judge `{s['judge']}`), wall {wall:.0f} s"
                f"{' (of the original run)' if info['hit'] else ''}, config hash `{s['config_hash']}`; "
                f"{'**' + src + '**' if info['hit'] else 'run fresh by this command'}\n\n")
-        md += ("| variant | " + " | ".join(keys) + " | iterations mean/max | converged | median s/step | max stretch | "
-               "max residual / L | config hash |\n")
-        md += "|---|" + "---|" * len(keys) + "---|---|---|---|---|---|\n"
+        md += md_table(["variant", *keys, "iterations mean/max", "converged", "median s/step", "max stretch",
+                        "max residual / L", "config hash"])
         order = [str(v.name) for v in cfg.variants]   # the experiment's order (a cache entry's JSON is key-sorted)
         for vname in sorted(s["variants"], key=lambda n: order.index(n) if n in order else len(order)):
             v = s["variants"][vname]
             m = v["measures"]
-            md += (f"| {vname} | " + " | ".join(fmt(m.get(k)) for k in keys) +
-                   f" | {v['iterations_mean']:.2f} / {v['iterations_max']} | {v['converged_fraction']:.3f} | "
-                   f"{v['step_seconds_median']:.4f} | {v['stretch_max']:.3g} | {fmt(v['residual_rel_max'])} | "
-                   f"`{v.get('config_hash')}` |\n")
+            md += md_row([vname, *(fmt(m.get(k), ".4g") for k in keys),
+                          f"{v['iterations_mean']:.2f} / {v['iterations_max']}", f"{v['converged_fraction']:.3f}",
+                          f"{v['step_seconds_median']:.4f}", f"{v['stretch_max']:.3g}", fmt(v["residual_rel_max"], ".4g"),
+                          f"`{v.get('config_hash')}`"])
         md += "\n"
     path = write_report("paper_scenes", md, {"scenes": data})
     print(f"wrote {path}")

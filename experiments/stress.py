@@ -13,7 +13,7 @@ For each case and controller: finite (every recorded state, result.npz ``positio
 summary's figures are finite), stretch max, converged fraction, iterations mean / max, recovered
 (substepped) steps, outcome (completed, recovered = completed with substepped steps, failed with
 the error's message) and wall time.  Writes reports/stress.{md,json}.
-Usage: .venv/bin/python experiments/stress.py [--cases NAME ...] [--frames 30] [--cache]
+Usage: python -m experiments.stress [--cases NAME ...] [--frames 30] [--cache]
 """
 
 from __future__ import annotations
@@ -28,8 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
+from experiments.common import compose, fmt, md_table
 
 BASE = ["experiment=goaling", "variants=[]", "scene.n_strands=12", "scene.n_vertices=12", "frames=30",
         "logging.rerun=false", "logging.progress=false", "solver.compile=off", "measure.name=none"]
@@ -81,23 +80,18 @@ CASES: dict[str, tuple[list[str], tuple[str, ...], str | None, str]] = {
 
 
 def compose_cfg(overrides: list[str]):
-    """The base config (hydra) with the case's overrides applied as YAML values (lists of records
-    such as ``scene.colliders`` are typed by the schema)."""
-    from hairexp.app.config import compose_config
-    from hairexp.app.experiment import apply_overrides
-
-    return apply_overrides(compose_config(BASE), overrides, "stress case")
+    """The base config with the case's overrides applied as YAML values (lists of records such
+    as ``scene.colliders`` are typed by the schema)."""
+    return compose(BASE, overrides, "stress case")
 
 
 def write_guide_file(cfg, kind: str, path: Path, seed: int = 0) -> Path:
     """An npz guide animation (guides.source=file) from the config's (rigid) guides made
     non-physical: ``teleport`` (a 10 cm jump sideways between two frames and back) or ``jitter``
     (N(0, 5 mm) noise on every vertex, redrawn each frame)."""
-    from hairexp.app.builders import build_scene
-    from hairexp.app.guides import build_guides
+    from hairexp.app.assemble import assemble_scene
 
-    scene = build_scene(cfg.scene)
-    g = build_guides(cfg, scene, cfg.frames, cfg.fps)
+    _, _, g = assemble_scene(cfg)   # the guides the run of ``cfg`` would track
     P = g.positions.copy()
     F = P.shape[0]
     if kind == "teleport":
@@ -212,10 +206,6 @@ def describe(r: dict) -> str:
     return "; ".join(parts)
 
 
-def fmt(v, f="{:.3g}"):
-    return "-" if v is None else (f.format(v) if isinstance(v, float) else str(v))
-
-
 def markdown(rows: list[dict], wall: float) -> str:
     from hairexp.app.report import header
 
@@ -231,17 +221,15 @@ def markdown(rows: list[dict], wall: float) -> str:
            "follows from that config, its kind and seed 0).  source: `fresh` = run by this command; `cached <date> "
            "(entry <hash>)` = reused from reports/cache/stress/ (`--cache`: same config, same solver source, same "
            "versions), and then its wall time is that of the original run on that date.\n\n")
-    md += ("| case | stresses | controller | outcome | finite | stretch max | converged | iter mean | iter max | "
-           "recovered | unconv. kept | wall s | config hash | source |\n")
-    md += "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     from hairexp.app.report_cache import describe as cache_source
 
-    for r in rows:
-        md += (f"| {r['case']} | {CASES[r['case']][3]} | {r['controller']} | {r['outcome']} | {fmt(r.get('finite'))} | "
-               f"{fmt(r.get('stretch_max'))} | {fmt(r.get('converged_fraction'), '{:.3f}')} | "
-               f"{fmt(r.get('iterations_mean'), '{:.1f}')} | {fmt(r.get('iterations_max'))} | "
-               f"{fmt(r.get('recovered_steps'))} | {fmt(r.get('unconverged_kept'))} | {r['wall_seconds']:.1f} | "
-               f"`{r.get('config_hash')}` | {cache_source(r.get('cache') or {})} |\n")
+    md += md_table(["case", "stresses", "controller", "outcome", "finite", "stretch max", "converged", "iter mean",
+                    "iter max", "recovered", "unconv. kept", "wall s", "config hash", "source"],
+                   [[r["case"], CASES[r["case"]][3], r["controller"], r["outcome"], fmt(r.get("finite")),
+                     fmt(r.get("stretch_max")), fmt(r.get("converged_fraction"), ".3f"),
+                     fmt(r.get("iterations_mean"), ".1f"), fmt(r.get("iterations_max")), fmt(r.get("recovered_steps")),
+                     fmt(r.get("unconverged_kept")), f"{r['wall_seconds']:.1f}", f"`{r.get('config_hash')}`",
+                     cache_source(r.get("cache") or {})] for r in rows])
     md += "\nWhat the solver did:\n\n"
     for r in rows:
         md += f"- **{r['case']}, {r['controller']}**: {describe(r)}.\n"

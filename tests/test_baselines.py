@@ -124,32 +124,39 @@ def test_attract_stiffness_must_be_positive(tmp_path):
 
 # -- experiments/baselines.py: every controller on a scene, measured and judged the same way ----
 def baselines_module():
-    import importlib.util
+    import experiments.baselines
 
-    from helpers import REPO
-
-    spec = importlib.util.spec_from_file_location("baselines_script", REPO / "experiments" / "baselines.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return experiments.baselines
 
 
-def test_baseline_success_criteria_follow_the_judges():
-    from omegaconf import OmegaConf
+def test_baseline_success_rules_are_the_judges():
+    """baselines judges each run by its scene judge's per-run rule (judges.RUN_RULES), with the
+    run's variant facts and judge_tolerance, as the judges apply it to their tracked variants."""
+    from hairexp.evaluation.judges import JUDGES, RUN_RULES
+
+    from experiments.common import compose
 
     b = baselines_module()
-    cfg = OmegaConf.create({"guides": {"count": 3}, "judge_tolerance": 0.35})
-    clumps = b.CRITERIA["clumps_match_guides"][0]
-    assert clumps({"clumps": 3, "clump_sizes": [4, 4, 4]}, cfg)[0]
-    assert not clumps({"clumps": 1, "clump_sizes": [12]}, cfg)[0]
-    var = b.CRITERIA["variance_follows_targets"][0]
-    assert var({"cluster_variance_ratio": 6.7, "cluster_target_ratio": 5.0}, cfg)[0]        # 34 %
-    assert not var({"cluster_variance_ratio": 3.2, "cluster_target_ratio": 5.0}, cfg)[0]    # 36 %
-    hit = b.CRITERIA["free_misses_tracked_hits"][0]
-    assert not hit({"hit": False, "min_distance": 0.1, "contacts": 0}, cfg)[0]
-    from hairexp.evaluation.judges import JUDGES
-
-    assert set(b.CRITERIA) == set(JUDGES)     # every scene's judge has its per-run rule
+    facts = {"controller": "tracking", "guides": 3, "target_scale": 5.0}
+    clumps = RUN_RULES["clumps_match_guides"]
+    assert clumps({"clumps": 3, "clump_sizes": [4, 4, 4]}, facts, 0.35)[0]
+    assert not clumps({"clumps": 1, "clump_sizes": [12]}, facts, 0.35)[0]
+    var = RUN_RULES["variance_follows_targets"]
+    assert var({"cluster_variance_ratio": 6.7, "cluster_target_ratio": 5.0}, facts, 0.35)[0]        # 34 %
+    assert not var({"cluster_variance_ratio": 3.2, "cluster_target_ratio": 5.0}, facts, 0.35)[0]    # 36 %
+    hit = RUN_RULES["free_misses_tracked_hits"]
+    assert not hit({"hit": False, "min_distance": 0.1, "contacts": 0}, facts, 0.35)[0]
+    assert set(RUN_RULES) == set(JUDGES) == set(b.STATEMENTS)     # every scene's judge has its per-run rule
+    cfg = compose(["experiment=splitting_smoke", "variants=[]", "guides.count=3"])
+    assert b.success({"clumps": 3, "clump_sizes": [4, 4, 4]}, cfg)[0]
+    assert not b.success({"clumps": 1, "clump_sizes": [12]}, cfg)[0]
+    # the judge applies the same rule to its tracked variants (the free run must make one clump)
+    variants = {"free": {"controller": "free", "guides": 3, "target_scale": 1.0},
+                "tracked": {"controller": "tracking", "guides": 3, "target_scale": 1.0}}
+    judge = JUDGES["clumps_match_guides"]
+    assert judge({"free": {"clumps": 1}, "tracked": {"clumps": 3}}, variants, 0.35)[0]
+    assert not judge({"free": {"clumps": 1}, "tracked": {"clumps": 1}}, variants, 0.35)[0]
+    assert not judge({"free": {"clumps": 3}, "tracked": {"clumps": 3}}, variants, 0.35)[0]
 
 
 def test_baselines_on_the_dynamic_block_smoke_scene(tmp_path):
@@ -179,7 +186,9 @@ def test_variance_success_is_measured_for_every_controller(tmp_path):
     configuration's clusters for every controller (the free run's own summary has none); only
     tracking asks for the target."""
     b = baselines_module()
-    base = b.compose_cfg("spreading_smoke")
+    from experiments.common import compose
+
+    base = compose(["experiment=spreading_smoke"])
     assert b.representative_variant(base)[0] == "target_5v0"
     s = b.run_scene("spreading_smoke", None, tmp_path, only=["attract k=1000", "tracking"])
     assert list(s["results"]) == ["free", "attract k=1000", "tracking"]

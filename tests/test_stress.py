@@ -5,26 +5,14 @@ SimulationError / InputError (never NaN)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 
 import numpy as np
 import pytest
 
-from helpers import REPO
-
+import experiments.stress as stress
 import hairexp.physics.simulator as simulator_module
-
-
-def stress_module():
-    spec = importlib.util.spec_from_file_location("stress", REPO / "experiments" / "stress.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-stress = stress_module()
 
 
 def assert_no_silent_nan(row: dict, out) -> None:
@@ -78,15 +66,13 @@ def test_warn_keeps_unconverged_steps_finite_and_flagged(tmp_path):
 def test_a_non_finite_collision_result_is_a_diverged_step_not_a_state(monkeypatch):
     """The finiteness check also covers the collision stage's output: a NaN it produced is
     retried by substepping and then raised as a SimulationError, never returned."""
-    import hairexp.physics.collisions as collisions
+    from experiments.common import compose
+    from hairexp.app.assemble import assemble
     from hairexp.errors import SimulationError
-    from hairexp.physics.simulator import Simulator
-    from hairexp.app.builders import build_scene
 
-    cfg = stress.compose_cfg(stress.CASES["collider_10ms"][0] + ["solver.max_substep_levels=1"])
-    scene = build_scene(cfg.scene)
-    sim = Simulator(scene, cfg.solver, collision_cfg=cfg.collision)
-    real = collisions.collision_stage
+    cfg = compose(stress.CASES["collider_10ms"][0] + ["solver.max_substep_levels=1"])
+    sim = assemble(cfg).simulator
+    real = simulator_module.collision_stage
 
     def poisoned(*a, **k):
         x, v, info = real(*a, **k)

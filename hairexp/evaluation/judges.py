@@ -12,24 +12,66 @@ Each judge takes ``{variant name: measures dict}`` plus the variants' configs an
   (relative) of its target (the cluster variance ratio against the target ratio).
 * ``tracked_leaves_rail`` (stylization): the free run leaves the block on the rail, the tracked
   run pulls it off.
+
+``RUN_RULES`` holds each judge's per-run rule (the test one run meets or not), which the judges
+apply to their variants and experiments/baselines.py to every controller's run.
 """
 
 from __future__ import annotations
 
 
+# -- the per-run rules: what one run must show, the half of each judge that a tracked run meets --
+# Each takes the run's measures m, its facts (``controller``, ``guides``, ``target_scale``: the
+# variant facts of hairexp/app/experiment.py) and the judge's tolerance, and returns (met, a
+# sentence of the figures).  The judges below apply them to their tracked variants;
+# experiments/baselines.py applies them to every controller's run.
+def hits_collider(m: dict, facts: dict, tol: float) -> tuple[bool, str]:
+    """The hair touches the collider (measure ``collider_contact`` ``hit``)."""
+    return bool(m["hit"]), f"min distance {m['min_distance']:+.4f} m, {m['contacts']} contacts"
+
+
+def clumps_equal_guides(m: dict, facts: dict, tol: float) -> tuple[bool, str]:
+    """As many clumps (measure ``clumps``) as guides (``guides.count``)."""
+    want = int(facts["guides"])
+    return m["clumps"] == want, f"{m['clumps']} clumps {m.get('clump_sizes')} (want {want})"
+
+
+def variance_on_target(m: dict, facts: dict, tol: float) -> tuple[bool, str]:
+    """The cluster variance ratio at the apex within ``tol`` (relative) of its target ratio."""
+    r, t = m["cluster_variance_ratio"], m["cluster_target_ratio"]
+    err = abs(r / t - 1.0)
+    return bool(err <= tol), f"V/V_rest {r:.2f} vs target {t:.2f} (error {100 * err:.0f} %)"
+
+
+def leaves_rail(m: dict, facts: dict, tol: float) -> tuple[bool, str]:
+    """The block leaves the rail (measure ``block_rail`` ``left_rail``)."""
+    return bool(m["left_rail"]), f"travel {m['travel']:.3f} m"
+
+
+#: judge name -> its per-run rule (what a tracked run of the scene must show)
+RUN_RULES = {"free_misses_tracked_hits": hits_collider, "clumps_match_guides": clumps_equal_guides,
+             "variance_follows_targets": variance_on_target, "tracked_leaves_rail": leaves_rail}
+
+
+def _met(rule, m: dict, facts: dict, tol: float = 0.0) -> bool:
+    return rule(m, facts, tol)[0]
+
+
+# -- the judges: the variants together ------------------------------------------------------
 def free_misses_tracked_hits(m: dict, variants: dict, tol: float):
     free = [k for k in m if variants[k]["controller"] == "free"]
     tracked = [k for k in m if variants[k]["controller"] == "tracking"]
-    ok = bool(free and tracked and all(not m[k]["hit"] for k in free) and all(m[k]["hit"] for k in tracked))
+    ok = bool(free and tracked and all(not _met(hits_collider, m[k], variants[k]) for k in free)
+              and all(_met(hits_collider, m[k], variants[k]) for k in tracked))
     return ok, {k: {"hit": m[k]["hit"], "min_distance": m[k]["min_distance"]} for k in m}
 
 
 def clumps_match_guides(m: dict, variants: dict, tol: float):
     details, ok = {}, True
     for k, v in m.items():
-        want = 1 if variants[k]["controller"] == "free" else variants[k]["guides"]
-        details[k] = {"clumps": v["clumps"], "expected": want}
-        ok &= v["clumps"] == want
+        facts = {**variants[k], "guides": 1} if variants[k]["controller"] == "free" else variants[k]  # free: one clump
+        details[k] = {"clumps": v["clumps"], "expected": facts["guides"]}
+        ok &= _met(clumps_equal_guides, v, facts)
     return bool(ok), details
 
 
@@ -39,7 +81,7 @@ def variance_follows_targets(m: dict, variants: dict, tol: float):
     targets = [m[k]["cluster_target_ratio"] for _, k in tracked]
     monotone = all(b > a for a, b in zip(ratios, ratios[1:]))
     errors = [abs(r / t - 1.0) for r, t in zip(ratios, targets)]
-    ok = bool(tracked) and monotone and max(errors) <= tol
+    ok = bool(tracked) and monotone and all(_met(variance_on_target, m[k], variants[k], tol) for _, k in tracked)
     return ok, {"monotone": monotone, "targets": targets, "ratios": ratios, "relative_errors": errors,
                 "tip_variance_ratios": {k: m[k]["tip_variance_ratio"] for k in m}, "tolerance": tol}
 
@@ -47,7 +89,8 @@ def variance_follows_targets(m: dict, variants: dict, tol: float):
 def tracked_leaves_rail(m: dict, variants: dict, tol: float):
     free = [k for k in m if variants[k]["controller"] == "free"]
     tracked = [k for k in m if variants[k]["controller"] == "tracking"]
-    ok = bool(free and tracked and all(not m[k]["left_rail"] for k in free) and all(m[k]["left_rail"] for k in tracked))
+    ok = bool(free and tracked and all(not _met(leaves_rail, m[k], variants[k]) for k in free)
+              and all(_met(leaves_rail, m[k], variants[k]) for k in tracked))
     return ok, {k: {"left_rail": m[k]["left_rail"], "travel": m[k]["travel"]} for k in m}
 
 

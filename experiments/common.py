@@ -1,0 +1,199 @@
+"""What the scripts under experiments/ share: composing a config, the one timing loop of the
+benchmarks, number formatting and markdown tables.
+
+The scripts are modules of this package, run from the repository root as
+``python -m experiments.<name>``; every run they make is assembled by
+``hairexp.app.assemble.assemble`` (or run whole by ``hairexp.app.run.run`` /
+``hairexp.app.experiment.run_experiment``), as ``python -m hairexp`` assembles it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from itertools import islice
+from pathlib import Path
+
+import numpy as np
+
+#: the repository root (conf/, reports/, outputs/)
+ROOT = Path(__file__).resolve().parent.parent
+
+#: the parts of a step's time (``StepInfo.seconds``, hairexp/physics/simulator.py) besides the total
+TIME_KEYS = ("derivatives", "assembly", "solve", "collision", "other")
+
+
+# -- configs -----------------------------------------------------------------------------------
+def compose(overrides=(), typed=(), where: str = "script"):
+    """The composed config (``hairexp.app.config.compose_config``) with the Hydra ``overrides``,
+    then the ``typed`` ``key=value`` overrides applied as YAML values
+    (``hairexp.app.experiment.apply_overrides``: lists of records such as ``scene.colliders``
+    are typed by the schema; ``where`` names them in an error)."""
+    from hairexp.app.config import compose_config
+
+    cfg = compose_config(list(overrides))
+    if typed:
+        from hairexp.app.experiment import apply_overrides
+
+        cfg = apply_overrides(cfg, list(typed), where)
+    return cfg
+
+
+def _rows(rows) -> str:
+    return "[" + ",".join("[" + ",".join(f"{float(v)}" for v in r) + "]" for r in rows) + "]"
+
+
+def motion_overrides(times, translations, key: str = "scene.motion", interpolation: str = "linear") -> list[str]:
+    """Overrides of a keyframed translation (no rotation) at ``key`` (``scene.motion``)."""
+    return [f"{key}.interpolation={interpolation}", f"{key}.times=[{','.join(str(float(t)) for t in times)}]",
+            f"{key}.translations={_rows(translations)}", f"{key}.rotations_deg={_rows([[0, 0, 0]] * len(times))}"]
+
+
+def motion_record(times, translations, interpolation: str = "linear") -> str:
+    """The same motion as a YAML flow record (a collider's ``motion``)."""
+    return (f"{{interpolation: {interpolation}, times: [{', '.join(str(float(t)) for t in times)}], "
+            f"translations: {_rows(translations)}, rotations_deg: {_rows([[0, 0, 0]] * len(times))}}}")
+
+
+# -- the timing loop ---------------------------------------------------------------------------
+@dataclass
+class Timing:
+    """Per-step figures of the timed steps of a run (``time_steps``)."""
+
+    rows: list[dict]                     # one per timed step: seconds by part, iterations, contacts, extras
+    state: object = None                 # the state after the last timed step
+    warmup: int = 0
+    start_time: float = 0.0              # s, run time at the first timed step's start
+
+    def column(self, key: str) -> np.ndarray:
+        return np.array([r[key] for r in self.rows], dtype=float)
+
+    @property
+    def seconds(self) -> np.ndarray:
+        """(steps,) s, each step's own time (``StepInfo.seconds['total']``)."""
+        return self.column("total")
+
+    def split(self) -> dict:
+        """Share of the timed steps' total time spent in each part (TIME_KEYS)."""
+        tot = self.seconds.sum()
+        return {k: float(self.column(k).sum() / tot) if tot > 0 else 0.0 for k in TIME_KEYS}
+
+    def summary(self) -> dict:
+        """median/mean/p90 s per step, iterations mean/max, converged fraction, the time split."""
+        s, its = self.seconds, self.column("iterations")
+        return {"steps": len(self.rows), "warmup_steps": self.warmup, "start_time": self.start_time,
+                "median_s": float(np.median(s)), "mean_s": float(s.mean()), "p90_s": float(np.percentile(s, 90)),
+                "iterations_mean": float(its.mean()), "iterations_max": int(its.max()),
+                "converged_fraction": float(self.column("converged").mean()), "split": self.split()}
+
+
+def time_steps(run, steps: int, warmup: int = 0, state=None, observe=None) -> Timing:
+    """Step ``run`` (``hairexp.app.assemble.Run``) as ``Run.steps`` steps a run: from ``state``
+    (default: ``run.initial_state()``, the settled hair of ``scene.settle``), ``warmup`` untimed
+    steps (torch.compile builds its kernels on the first one), then ``steps`` timed ones.  Per
+    timed step: the step's seconds by part (``StepInfo.seconds``), iterations, convergence, the
+    collision stage's contacts and penetration, and ``observe(run, state, info)`` (a dict of
+    numbers, computed after the step, not timed)."""
+    if steps < 1:
+        raise ValueError(f"steps must be >= 1, got {steps}")
+    state = run.initial_state() if state is None else state
+    n = warmup + steps
+    frames = math.ceil(n / run.steps_per_frame)
+    rows, start = [], state.time
+    for i, (_, _, state, info) in enumerate(islice(run.steps(state, frames), n)):
+        if i < warmup:
+            start = state.time
+            continue
+        row = {**{k: info.seconds.get(k, 0.0) for k in (*TIME_KEYS, "total")}, "iterations": info.iterations,
+               "converged": info.converged, "substeps": info.substeps, "object_contacts": info.object_contacts,
+               "hair_contacts": info.hair_contacts, "penetration_max": info.penetration_max}
+        if observe is not None:
+            row.update(observe(run, state, info))
+        rows.append(row)
+    if len(rows) != steps:
+        raise RuntimeError(f"the run has {frames} frames of {run.steps_per_frame} steps: fewer than {n} steps")
+    return Timing(rows, state, warmup, float(start))
+
+
+def stretch_max(run, state, info=None) -> dict:
+    """``observe`` for ``time_steps``: the largest edge strain |l / l0 - 1| of the state."""
+    from hairexp.outputs.metrics import stretch
+
+    return {"stretch": float(np.abs(stretch(run.scene, state.x)).max())}
+
+
+def frames_for(steps: int, dt: float, fps: float, margin: int = 1) -> int:
+    """Output frames covering ``steps`` steps of ``dt`` at ``fps`` (the guides must cover the
+    timed steps): for a ``frames=`` override."""
+    return int(math.ceil(steps * dt * fps - 1e-9)) + margin
+
+
+# -- formatting --------------------------------------------------------------------------------
+def fmt(v, spec: str = ".3g", none: str = "-") -> str:
+    """A table cell: ``none`` for None, floats with ``spec``, anything else (bools, ints, lists)
+    as ``str``."""
+    if v is None:
+        return none
+    if isinstance(v, (float, np.floating)):
+        return format(float(v), spec)
+    return str(v)
+
+
+def pct(v: float) -> str:
+    """A share (0..1) as a whole percentage."""
+    return f"{100 * v:.0f}%"
+
+
+def md_table(columns, rows=()) -> str:
+    """A markdown table: the header of ``columns`` and one line per row of cells (already
+    formatted strings, or anything ``str`` turns into one)."""
+    out = md_row(columns) + "|" + "---|" * len(columns) + "\n"
+    return out + "".join(md_row(r) for r in rows)
+
+
+def md_row(cells) -> str:
+    return "| " + " | ".join(str(c) for c in cells) + " |\n"
+
+
+# -- the benchmark scene at Celia scale (bench_free, bench_tracking, bench_collisions) ---------
+#: untimed steps before the timed ones: torch.compile builds its kernels (the head is still)
+WARMUP = 2
+
+
+def jerk(t0: float) -> tuple[list[float], list[list[float]]]:
+    """(times, translations) of the benchmarks' head: still until t0, then up 12 cm in 0.1 s, and
+    sideways (+x) 10 cm in 0.1 s one second later."""
+    times = [0.0, t0, t0 + 0.1, t0 + 1.0, t0 + 1.1, t0 + 10.0]
+    tr = [[0, 0, 0], [0, 0, 0], [0, 0.12, 0], [0, 0.12, 0], [0.1, 0.12, 0], [0.1, 0.12, 0]]
+    return times, tr
+
+
+def celia_bench(controller: str = "free", steps: int = 50, overrides=(), typed=(), collision: str = "off"):
+    """The benchmarks' run config: ``experiment=celia variants=[] controller=<controller>
+    collision=<collision>`` (the Celia ponytail, its simulated guides and edit, its
+    ``scene.settle``), the head's motion replaced by ``jerk`` starting after the WARMUP steps,
+    and ``frames`` covering the warm-up and the timed steps (the guides are built for them)."""
+    base = compose(["experiment=celia", "variants=[]"])
+    frames = frames_for(WARMUP + steps, float(base.solver.dt), float(base.fps))
+    return compose(["experiment=celia", "variants=[]", f"controller={controller}", f"collision={collision}",
+                    f"frames={frames}", *motion_overrides(*jerk(jerk_start(base))), *overrides], typed, "benchmark")
+
+
+def jerk_start(cfg=None) -> float:
+    """s, when the benchmarks' jerk starts: after the WARMUP steps of Celia's dt."""
+    cfg = compose(["experiment=celia"]) if cfg is None else cfg
+    return WARMUP * float(cfg.solver.dt)
+
+
+def describe_run(run) -> str:
+    """What a benchmark times, from the assembled run: scene size, dt, settle, controller,
+    constraints and collision stage."""
+    s, cfg, sim = run.scene.strands, run.cfg, run.simulator
+    cons = getattr(run.controller, "cons", None)
+    settle = float(cfg.scene.settle)
+    stage = [n for n, on in (("objects", sim.collide_objects), ("hair-hair", sim.hair_hair is not None)) if on]
+    return (f"`{cfg.experiment}` scene: {s.n_strands} strands, {s.n_vertices} vertices, {sim.objective.n_dofs} DOFs, "
+            f"dt = {run.dt:g} s; settled for scene.settle = {settle:g} s (steps of {float(cfg.scene.settle_dt):g} s) "
+            f"before t = 0" + ("" if settle > 0 else " (off)") + f"; controller `{run.controller_name}`"
+            + (f" ({cons.K} clusters, {3 * cons.K} constraints)" if cons is not None else "")
+            + f"; collision stage: {' and '.join(stage) if stage else 'off'}")
