@@ -17,12 +17,12 @@ from importlib import import_module
 
 from hairexp.errors import InputError
 
-#: controller.name -> module (relative to this package) whose ``build(cfg, scene, guides)`` makes it
+#: controller.name -> the module whose ``build(cfg, scene, guides)`` makes it
 REGISTRY = {
-    "free": "free",
-    "tracking": "tracking",
-    "skinned": "skinned",
-    "attract": "attract",
+    "free": "hairexp.control.free",
+    "tracking": "hairexp.control.tracking",
+    "skinned": "hairexp.control.skinned",
+    "attract": "hairexp.control.attract",
 }
 
 
@@ -30,4 +30,4 @@ def build_controller(name: str, cfg, scene, guides):
     """The controller ``name`` of a run (``cfg``: the run's config, ``scene``, ``guides``)."""
     if name not in REGISTRY:
         raise InputError(f"unknown controller {name!r} (one of {', '.join(REGISTRY)})", "controller.name")
-    return import_module(f"{__name__}.{REGISTRY[name]}").build(cfg, scene, guides)
+    return import_module(REGISTRY[name]).build(cfg, scene, guides)
