@@ -33,7 +33,15 @@ def machine() -> dict:
 
 
 def command() -> str:
-    return " ".join(shlex.quote(a) for a in [os.path.relpath(sys.executable) if ".venv" in sys.executable else "python", *sys.argv])
+    """The command line that made a report, as a user types it: ``python -m experiments.<name>``
+    for a script run as a module of the experiments package."""
+    py = os.path.relpath(sys.executable) if ".venv" in sys.executable else "python"
+    args = list(sys.argv)
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    if spec is not None and spec.name and args:
+        args = ["-m", spec.name, *args[1:]]
+    return " ".join(shlex.quote(a) for a in [py, *args])
 
 
 def header(title: str) -> str:
