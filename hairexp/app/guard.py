@@ -105,7 +105,7 @@ def check(est: Estimate, keys: str, allow_large: bool, available: float | None) 
     the config keys that size the run), unless ``allow_large``; warn about a long run."""
     if available is not None and est.memory > available:
         msg = (f"the run would need about {_size(est.memory)} of memory ({est.steps:.3g} steps, "
-               f"{est.total_steps:.3g} with settling) but {_size(available)} is available; make it smaller "
+               f"{est.total_steps:.3g} with settle and guide-simulation steps) but {_size(available)} is available; make it smaller "
                "or set guard.allow_large=true to run anyway")
         if not allow_large:
             raise InputError(msg, keys)
