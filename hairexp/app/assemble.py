@@ -10,11 +10,13 @@ experiments/ and the tests that build runs go through it, so a benchmark times e
     for step, frame, state, info in run.steps(state):
         ...                                  # state: hairexp.physics.state.State, info: StepInfo
 
-Order (the same for every caller): the stage's timing (``frames``/``fps`` null: from
-``scene.usd``), the step schedule, the scene (``app.builders.build_scene``), the settle phase
-(``scene.settle``, hairexp/physics/settle.py), the guide animation (``app.guides.build_guides``),
-the controller (``controller.name`` in the registry, hairexp/control/__init__.py) and the
-Simulator (hairexp/physics/simulator.py).
+Order (the same for every caller): the config's ranges (``validate.validate_config``), the
+stage's timing (``frames``/``fps`` null: from ``scene.usd``), the step schedule, the resource
+guard (``guard.guard_run``), the scene (``app.builders.build_scene``), the measure's references
+into it (``validate.validate_measure``), the settle phase (``scene.settle``,
+hairexp/physics/settle.py), the guide animation (``app.guides.build_guides``), the controller
+(``controller.name`` in the registry, hairexp/control/__init__.py) and the Simulator
+(hairexp/physics/simulator.py).  Every key is checked before the first step.
 """
 
 from __future__ import annotations
@@ -23,7 +25,9 @@ from dataclasses import dataclass
 from typing import Iterator
 
 from hairexp.app.builders import build_scene
+from hairexp.app.guard import guard_run
 from hairexp.app.guides import build_guides
+from hairexp.app.validate import validate_config, validate_measure
 from hairexp.control import build_controller
 from hairexp.guides.animation import GuideAnimation
 from hairexp.model.scene import Scene
@@ -88,9 +92,16 @@ def assemble_scene(cfg, settle: bool = True) -> tuple[object, Scene, GuideAnimat
     """(config with its timing, scene, guides): the first half of ``assemble``.  ``settle=False``
     keeps the built scene unsettled (the USD export writes the elastic rest shape); the guides are
     the same either way (simulated guides settle on their own, hairexp/app/guides.py)."""
+    validate_config(cfg)                                # the config's ranges (hairexp/app/validate.py)
     cfg = timed_config(cfg)
-    step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)   # validated before anything is built
+    n_sub, _ = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)   # validated before anything is built
+    usd = str(_value(cfg.scene.builder)) == "usd"
+    if not usd:   # the resource guard (hairexp/app/guard.py) before the hair is built
+        guard_run(cfg, int(cfg.scene.n_strands) * int(cfg.scene.n_vertices), n_sub, run=settle)
     scene = build_scene(cfg.scene)
+    if usd:       # a stage's size is known once it is read
+        guard_run(cfg, scene.strands.n_vertices, n_sub, run=settle)
+    validate_measure(cfg, scene)
     if settle:
         scene = settle_scene(scene, cfg)   # scene.settle > 0: start from the hair at rest under gravity
     guides = build_guides(cfg, scene, cfg.frames, cfg.fps)

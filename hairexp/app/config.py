@@ -287,6 +287,14 @@ class MeasureConfig:
 
 
 @dataclass
+class GuardConfig:
+    """The resource guard before a run is built (hairexp/app/guard.py)."""
+    # false: a run whose estimated memory exceeds the machine's available memory is refused at start
+    # (exit 2, naming the keys that size it); true: it runs anyway, with a warning
+    allow_large: bool = False
+
+
+@dataclass
 class VariantConfig:
     """One run of an experiment with a few keys changed (``key=value`` as on the command line)."""
     name: str = "run"
@@ -304,6 +312,7 @@ class Config:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     experiment: Optional[str] = None  # name of the experiment, set by conf/experiment/*.yaml
     measure: MeasureConfig = field(default_factory=MeasureConfig)
+    guard: GuardConfig = field(default_factory=GuardConfig)
     variants: list[VariantConfig] = field(default_factory=list)   # [] = one run; else one run per variant
     judge: JudgeName = JudgeName.none  # how the variants' measures decide the experiment's success
     judge_tolerance: float = 0.35      # variance_follows_targets: largest relative miss of a target

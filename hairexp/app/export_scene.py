@@ -11,8 +11,10 @@ Exit codes: 0 written, 1 bad config (Hydra's message), 2 bad input (``hairexp: e
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 from hairexp.app.assemble import assemble_scene
 from hairexp.app.config import compose_config
@@ -25,7 +27,9 @@ log = logging.getLogger(__name__)
 
 def export_scene(cfg, path) -> tuple:
     """Build ``cfg``'s scene and guides (``assemble_scene``, the run's assembly path, without the
-    settle phase: the stage holds the elastic rest shape) and write them to ``path``; (scene, guides)."""
+    settle phase: the stage holds the elastic rest shape) and write them to ``path``; (scene, guides).
+    An unwritable ``path`` is an InputError naming it, before anything is built."""
+    check_writable(path)
     cfg, scene, guides = assemble_scene(cfg, settle=False)
     ref = authoring_motion(scene.motion)
     if ref is not scene.motion:  # a dynamic block (scene.body): its motion is not known before a run
@@ -33,8 +37,23 @@ def export_scene(cfg, path) -> tuple:
                     "scene.body.dynamic=true (and its scene.body.*) to make it dynamic again", path)
         scene = replace(scene, motion=ref)
         guides.attach(ref)
-    write_scene_usd(path, scene, guides, cfg.fps, cfg.frames)
+    try:
+        write_scene_usd(path, scene, guides, cfg.fps, cfg.frames)
+    except (OSError, RuntimeError) as exc:   # pxr's Tf errors are RuntimeErrors
+        raise InputError(f"cannot write the USD stage: {' '.join(str(exc).split())}", str(path)) from exc
     return scene, guides
+
+
+def check_writable(path) -> None:
+    """``path`` can be written: its directory exists and is writable, and it is not a directory."""
+    p = Path(path)
+    parent = p.parent if str(p.parent) else Path(".")
+    if p.is_dir():
+        raise InputError("is a directory: give the path of a .usda/.usdc/.usd file", str(path))
+    if not parent.is_dir():
+        raise InputError(f"cannot write the USD stage: no such directory {parent}", str(path))
+    if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise InputError("cannot write the USD stage: permission denied", str(path))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -26,7 +26,7 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     source = str(getattr(g.source, "value", g.source))
     motion = authoring_motion(scene.motion)   # a dynamic body: its initial pose held still
     if source == "file":
-        return file_guides(g.file, scene.motion)
+        return file_guides(g.file, scene.motion, frames, fps)
     if source == "usd":  # the guide prim of the stage scene.usd
         from hairexp.io.usd_read import read_guides   # pxr is imported only for USD scenes
 

@@ -41,7 +41,8 @@ class RunData:
     metrics: object = None       # the metrics table (pandas DataFrame), one row per step
 
 
-def _collider(scene, name: str):
+def collider_named(scene, name: str):
+    """The scene's collider called ``name`` (``measure.collider``), or an InputError naming the key."""
     for c in scene.colliders:
         if c.name == name:
             return c
@@ -50,7 +51,7 @@ def _collider(scene, name: str):
 
 
 def collider_contact(d: RunData, p) -> dict:
-    col = _collider(d.scene, p.collider)
+    col = collider_named(d.scene, p.collider)
     free = ~d.scene.strands.kinematic
     dist = np.array([float((col.sdf_body(col.to_body(x[free], t))).min()) for x, t in zip(d.positions, d.times)])
     hit = dist <= col.thickness + p.tolerance

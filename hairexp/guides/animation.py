@@ -42,7 +42,12 @@ class GuideAnimation:
 
     def __post_init__(self):
         self.positions = np.asarray(self.positions, dtype=np.float64)
-        self.offsets = np.asarray(self.offsets, dtype=np.int64)
+        raw = np.asarray(self.offsets)
+        if raw.ndim != 1 or raw.dtype.kind not in "iuf" or (raw.dtype.kind == "f" and not (
+                np.isfinite(raw).all() and np.array_equal(raw, np.round(raw)))):
+            raise InputError(f"guide offsets must be integers (G + 1,), got {raw.dtype} {raw.shape}: "
+                             f"{raw.ravel()[:8].tolist()}", self.where)
+        self.offsets = raw.astype(np.int64)
         if self.positions.ndim != 3 or self.positions.shape[-1] != 3 or self.positions.shape[0] < 1:
             raise InputError(f"guide positions must have shape (frames, vertices, 3), got {self.positions.shape}",
                              self.where)
@@ -122,15 +127,31 @@ def rest_guides(scene_cfg, count: int, n_vertices: int, layout_radius: float) ->
     return np.concatenate([r0 + s[:, None] * d for r0 in roots])
 
 
-def file_guides(path, motion) -> GuideAnimation:
-    """The ``file`` source: an npz with ``guide_positions``, ``guide_offsets`` and ``fps``."""
+def file_guides(path, motion, frames: int | None = None, fps: float | None = None) -> GuideAnimation:
+    """The ``file`` source: an npz with ``guide_positions``, ``guide_offsets`` and ``fps``.  With
+    ``frames``/``fps`` (the run's), a file that ends before the run does is an error: the guides
+    would be held still at its last frame."""
     path = Path(path)
+    where = f"guides.file={path}"
+    if path.is_dir() or not path.exists():
+        raise InputError("no such file" if not path.exists() else "is a directory, not a guide npz", where)
     try:
-        data = np.load(path)
-        pos, off, gfps = data["guide_positions"], data["guide_offsets"], float(data["fps"])
-    except (OSError, KeyError, ValueError) as exc:
-        raise InputError(f"cannot read guide animation: {exc}", f"guides.file={path}") from exc
-    return GuideAnimation(pos, off, gfps, where=str(path), motion=motion)
+        data = np.load(path, allow_pickle=False)
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise InputError(f"is a single {type(data).__name__} (.npy), not an npz with guide_positions, "
+                             "guide_offsets and fps", where)
+        with data:
+            pos, off, gfps = data["guide_positions"], data["guide_offsets"], data["fps"]
+            gfps = float(gfps)
+    except InputError:
+        raise
+    except Exception as exc:   # a truncated, corrupt or empty file: zipfile, pickle, EOF and shape errors
+        raise InputError(f"cannot read guide animation: {type(exc).__name__}: {exc}", where) from exc
+    anim = GuideAnimation(pos, off, gfps, where=str(path), motion=motion)
+    if frames is not None and fps is not None and frames / fps > (anim.n_frames - 1) / anim.fps + 1e-9:
+        raise InputError(f"has frames 0..{anim.n_frames - 1} ({(anim.n_frames - 1) / anim.fps:g} s at {anim.fps:g} fps) "
+                         f"but the run needs {frames} frames at {fps:g} fps ({frames / fps:g} s)", where)
+    return anim
 
 
 def carried_guides(g, body: np.ndarray, offsets: np.ndarray, motion, frames: int, fps: float,
@@ -140,9 +161,7 @@ def carried_guides(g, body: np.ndarray, offsets: np.ndarray, motion, frames: int
     frames_pos = []
     for t in np.arange(frames + 1) / fps:
         X = body
-        if scaled:
-            if len(g.scale_times) != len(g.scale_factors) or not g.scale_times:
-                raise InputError("scale_times and scale_factors must be non-empty and of equal length", "guides")
+        if scaled:   # guides.scale_times/scale_factors: checked in hairexp/app/validate.py
             f = float(np.interp(t, g.scale_times, g.scale_factors))
             roots = np.repeat(body[offsets[:-1]], g.n_vertices, axis=0)
             X = roots + f * (body - roots)

@@ -97,6 +97,14 @@ def rest_time(attr) -> Usd.TimeCode:
     return Usd.TimeCode.Default() if attr.Get(Usd.TimeCode.Default()) is not None else Usd.TimeCode(0)
 
 
+def stage_rate(stage, where: str) -> float:
+    """The stage's timeCodesPerSecond, finite and > 0 (time codes are converted to seconds by it)."""
+    tcps = float(stage.GetTimeCodesPerSecond())
+    if not (math.isfinite(tcps) and tcps > 0):
+        raise InputError(f"timeCodesPerSecond is {tcps:g}; it must be > 0 (time codes per second)", where)
+    return tcps
+
+
 def apply(points: np.ndarray, M) -> np.ndarray:
     m = np.array(M, dtype=np.float64).reshape(4, 4)
     return points @ m[:3, :3] + m[3, :3]
@@ -105,7 +113,7 @@ def apply(points: np.ndarray, M) -> np.ndarray:
 def build_usd_scene(cfg):
     """The Scene of ``scene.usd`` (builder ``usd``); see the module doc."""
     stage, file = open_stage(cfg.usd)
-    tcps = float(stage.GetTimeCodesPerSecond())
+    tcps = stage_rate(stage, file)
     body = get_prim(stage, cfg.usd_body, file, "the rigid body", "scene.usd_body", UsdGeom.Xformable)
     motion, _ = read_motion(body, tcps, f"{file}:{cfg.usd_body}")
     hair = get_prim(stage, cfg.usd_hair, file, "the detail hair", "scene.usd_hair", UsdGeom.BasisCurves)
@@ -149,7 +157,7 @@ def read_guides(cfg, scene, frames: int, fps: float):
     where = f"{file}:{path}"
     curves = UsdGeom.BasisCurves(prim)
     n = guide_frames(curves.GetPointsAttr(), where)
-    tcps = float(stage.GetTimeCodesPerSecond())
+    tcps = stage_rate(stage, file)
     if frames / fps > (n - 1) / tcps + 1e-9:
         raise InputError(f"guides have time samples for frames 0..{n - 1} ({(n - 1) / tcps:g} s at {tcps:g} fps) "
                          f"but the run needs {frames} frames at {fps:g} fps ({frames / fps:g} s)", where)
@@ -178,7 +186,7 @@ def stage_timing(cfg):
         key = "frames" if cfg.frames is None else "fps"
         raise InputError("null (take it from the USD stage) needs scene.builder=usd; give a number", key)
     stage, file = open_stage(cfg.scene.usd)
-    tcps = float(stage.GetTimeCodesPerSecond())
+    tcps = stage_rate(stage, file)
     fps = tcps if cfg.fps is None else float(cfg.fps)
     frames = cfg.frames
     if frames is None:

@@ -58,8 +58,18 @@ def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius
         raise InputError(f"must be >= 1, got {n_strands}", "scene.n_strands")
     if n_vertices < 3:
         raise InputError(f"must be >= 3 (two root vertices and one free), got {n_vertices}", "scene.n_vertices")
-    if not length > 0:
+    if not (length > 0 and np.isfinite(length)):
         raise InputError(f"must be > 0, got {length}", "scene.length")
+    if not (root_radius >= 0 and np.isfinite(root_radius)):
+        raise InputError(f"must be >= 0 (m), got {root_radius}", "scene.root_radius")
+    if fan and spread > 0 and root_radius == 0:
+        raise InputError("must be > 0 for a ponytail with scene.spread > 0 (the rim strands tilt by spread)",
+                         "scene.root_radius")
+    max_spread = np.pi / 2 if fan else np.pi   # a cone's rim tilts by tan(spread)
+    if not (0 <= spread < max_spread if fan else 0 <= spread <= max_spread):
+        raise InputError(f"must be in [0, {max_spread:.4g}{')' if fan else ']'} rad, got {spread}", "scene.spread")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(f"must be an integer >= 0, got {seed!r}", "scene.seed")
     a = np.array([1.0, 0, 0]) if abs(direction[0]) < 0.9 else np.array([0, 0, 1.0])
     u = np.cross(direction, a)
     u /= np.linalg.norm(u)
@@ -83,19 +93,29 @@ def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius
     return np.concatenate(pts)
 
 
-def build_motion(cfg) -> RigidMotion:
-    rot = np.deg2rad(np.asarray(cfg.rotations_deg, dtype=np.float64))
+def build_motion(cfg, where: str = "scene.motion") -> RigidMotion:
+    """The keyframed motion of a ``MotionConfig`` (``where``: its key): one translation and one
+    rotation (3 numbers each) per time."""
+    times = list(cfg.times)
+    for key in ("translations", "rotations_deg"):
+        keys = list(getattr(cfg, key))
+        if len(keys) != len(times):
+            raise InputError(f"has {len(keys)} keyframes but {where}.times has {len(times)}: one per time",
+                             f"{where}.{key}")
+        for i, k in enumerate(keys):
+            vec3(k, f"{where}.{key}[{i}]")
+    rot = np.deg2rad(np.asarray(cfg.rotations_deg, dtype=np.float64).reshape(-1, 3))
     return RigidMotion(np.asarray(cfg.times, dtype=np.float64), np.asarray(cfg.translations, dtype=np.float64),
-                       rot, str(getattr(cfg.interpolation, "value", cfg.interpolation)))
+                       rot, str(getattr(cfg.interpolation, "value", cfg.interpolation)), where=where)
 
 
 def build_material(h) -> Material:
     """The hair material of ``scene.hair``, validated."""
     for key in ("linear_density", "stretch_stiffness", "bending_stiffness"):
-        if not getattr(h, key) > 0:
+        if not (getattr(h, key) > 0 and np.isfinite(getattr(h, key))):
             raise InputError(f"must be > 0, got {getattr(h, key)}", f"scene.hair.{key}")
     for key in ("edge_damping", "air_drag"):
-        if not getattr(h, key) >= 0:
+        if not (getattr(h, key) >= 0 and np.isfinite(getattr(h, key))):
             raise InputError(f"must be >= 0, got {getattr(h, key)}", f"scene.hair.{key}")
     return Material(h.linear_density, h.stretch_stiffness, h.bending_stiffness, h.edge_damping, h.air_drag)
 
@@ -131,11 +151,13 @@ def with_dynamic_body(cfg, scene: Scene) -> Scene:
 def build_collider(c, i: int):
     shape = str(getattr(c.shape, "value", c.shape))
     key = f"scene.colliders[{i}]"
-    common = dict(name=c.name or f"collider{i}", motion=build_motion(c.motion), thickness=c.thickness,
-                  friction=c.friction)
+    common = dict(name=c.name or f"collider{i}", motion=build_motion(c.motion, f"{key}.motion"),
+                  thickness=c.thickness, friction=c.friction, where=key)
     for k in ("radius", "half_length", "half_height"):
-        if not getattr(c, k) > 0:
-            raise InputError(f"must be > 0, got {getattr(c, k)}", f"{key}.{k}")
+        if not (getattr(c, k) > 0 and np.isfinite(getattr(c, k))):
+            raise InputError(f"must be > 0 (m), got {getattr(c, k)}", f"{key}.{k}")
+    if shape != "cylinder" and c.spin != 0:
+        raise InputError(f"is {c.spin} but only a cylinder spins (shape {shape})", f"{key}.spin")
     if shape == "sphere":
         return SHAPES[shape](radius=c.radius, **common)
     if shape == "capsule":

@@ -30,12 +30,16 @@ class Collider:
     motion: RigidMotion
     thickness: float = 0.0
     friction: float = 0.0
+    where: str = ""           # the input it came from (a config key): errors name ``where.thickness`` etc.
+
+    def _key(self, field: str) -> str:
+        return f"{self.where}.{field}" if self.where else f"colliders.{self.name}"
 
     def __post_init__(self):
         if not (self.thickness >= 0 and np.isfinite(self.thickness)):
-            raise InputError(f"thickness must be >= 0, got {self.thickness}", f"colliders.{self.name}")
+            raise InputError(f"thickness must be >= 0, got {self.thickness}", self._key("thickness"))
         if not (self.friction >= 0 and np.isfinite(self.friction)):
-            raise InputError(f"friction must be >= 0, got {self.friction}", f"colliders.{self.name}")
+            raise InputError(f"friction must be >= 0, got {self.friction}", self._key("friction"))
 
     # shape interface (body frame) ------------------------------------------------------
     def sdf_body(self, X: np.ndarray) -> np.ndarray:
@@ -131,6 +135,11 @@ class Cylinder(Collider):
     radius: float = 0.1
     half_height: float = 0.05
     spin: float = 0.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not np.isfinite(self.spin):
+            raise InputError(f"spin must be a finite number (rad/s), got {self.spin}", self._key("spin"))
 
     def sdf_body(self, X):
         r = np.linalg.norm(X[..., [0, 2]], axis=-1)

@@ -39,20 +39,26 @@ class RigidMotion:
     translations: np.ndarray   # (K, 3) m
     rotvecs: np.ndarray        # (K, 3) rad
     interpolation: str = "cubic"
+    where: str = "motion"      # the input the keyframes came from (errors name it)
 
     def __post_init__(self) -> None:
         self.times = np.asarray(self.times, dtype=np.float64).reshape(-1)
         K = self.times.size
+        for name in ("translations", "rotvecs"):
+            a = np.asarray(getattr(self, name), dtype=np.float64)
+            if a.size != 3 * K:
+                raise InputError(f"{name} must be {K} x 3 numbers (one per keyframe time), got shape {a.shape}",
+                                 self.where)
         self.translations = np.asarray(self.translations, dtype=np.float64).reshape(K, 3) if K else np.zeros((0, 3))
         self.rotvecs = np.asarray(self.rotvecs, dtype=np.float64).reshape(K, 3) if K else np.zeros((0, 3))
         if K == 0:
-            raise InputError("a rigid motion needs at least one keyframe", "motion.times")
+            raise InputError("a rigid motion needs at least one keyframe", f"{self.where}.times")
         if not (np.isfinite(self.times).all() and np.isfinite(self.translations).all() and np.isfinite(self.rotvecs).all()):
-            raise InputError("keyframes contain NaN or inf", "motion")
+            raise InputError("keyframes contain NaN or inf", self.where)
         if K > 1 and np.any(np.diff(self.times) <= 0):
-            raise InputError(f"keyframe times must increase strictly, got {self.times.tolist()}", "motion.times")
+            raise InputError(f"keyframe times must increase strictly, got {self.times.tolist()}", f"{self.where}.times")
         if self.interpolation not in ("cubic", "linear"):
-            raise InputError(f"unknown interpolation {self.interpolation!r} (cubic|linear)", "motion.interpolation")
+            raise InputError(f"unknown interpolation {self.interpolation!r} (cubic|linear)", f"{self.where}.interpolation")
         rots = Rotation.from_rotvec(self.rotvecs)
         if K == 1:
             self._pos = self._rot = None

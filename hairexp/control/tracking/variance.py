@@ -42,11 +42,14 @@ class VarianceControl:
         self.K = cons.K
         self.t_k, self.k_scale = _keys(cfg.times, cfg.stiffness_scale, "tracking.variance.stiffness_scale")
         self.t_v, self.v_scale = _keys(cfg.times, cfg.target_scale, "tracking.variance.target_scale")
-        if not cfg.stiffness >= 0:
+        if not (cfg.stiffness >= 0 and np.isfinite(cfg.stiffness)):
             raise InputError(f"must be >= 0, got {cfg.stiffness}", "tracking.variance.stiffness")
         self.stiffness = float(cfg.stiffness)
         pts = list(cfg.points)
         self.mask = np.isin(cons.corr.cluster_point, pts) if pts else np.ones(self.K, dtype=bool)
+        if pts and self.stiffness > 0 and not self.mask.any():
+            raise InputError(f"none of the tracking points {pts} has a cluster (no free detail vertex is closest "
+                             "to them): the variance penalty would be off", "tracking.variance.points")
         self.idx = torch.as_tensor(cons.free_in_cluster)
         self.cluster = torch.as_tensor(cons.cluster_of_free[cons.free_in_cluster])
         self.w = torch.as_tensor(cons.weights)

@@ -1,0 +1,138 @@
+"""The resource guard: before a run builds anything big, estimate its memory and its step count
+from the config alone, refuse what cannot fit in the machine's available memory (an InputError
+naming the keys that size the run, unless ``guard.allow_large=true``) and log a warning with the
+estimated steps and time of a long run.
+
+The estimate (``estimate``, a pure function) is
+
+    memory = V x BYTES_PER_VERTEX                         (state, banded Hessian, energies' stencils,
+                                                           torch buffers of the closed forms, ...)
+           + (frames + 1) x V x 3 x 8 x FRAME_COPIES      (the per-frame positions kept for
+                                                           result.npz, its array copy and result.usda)
+           + steps x BYTES_PER_STEP                       (one metrics row per step, kept to the end)
+    time   = (steps + settle steps) x (SECONDS_PER_STEP + V x SECONDS_PER_VERTEX_STEP)
+
+Constants measured on this project's goaling_smoke scene (controller free, ``logging.rerun=false``,
+peak RSS from ``/usr/bin/time -v``, 2 cores): 20 000 vertices peaked at 683 MB and 50 000 at
+819 MB (2 frames; 4.5 kB per vertex, rounded up to 6 kB for hair-hair lists and the tracking's KKT
+blocks: 20 000 tracked vertices peaked at 694 MB); 20 frames instead of 2 at 20 000 vertices
+added 20 MB (2.3 copies of the positions: 3); 3000 steps of a 10-vertex scene added 31 MB over 2
+steps (10 kB per step).  A step took 4 ms at 10 vertices and 0.18 s at 20 000 (9 us per vertex).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from dataclasses import dataclass
+
+from hairexp.errors import InputError
+from hairexp.physics.settle import settle_seconds, settle_step
+
+log = logging.getLogger(__name__)
+
+BYTES_PER_VERTEX = 6_000
+FRAME_COPIES = 3
+BYTES_PER_STEP = 10_000
+SECONDS_PER_STEP = 4e-3
+SECONDS_PER_VERTEX_STEP = 1e-5
+#: runs with more steps (settle phases included) are announced with a warning
+LONG_RUN_STEPS = 100_000
+
+
+@dataclass(frozen=True)
+class Estimate:
+    memory: float        # bytes beyond the interpreter's own
+    steps: int           # recorded steps of the run (frames x steps per frame)
+    settle_steps: int    # steps of the settle phases and of a guide simulation
+    seconds: float       # rough wall time of all steps
+
+    @property
+    def total_steps(self) -> int:
+        return self.steps + self.settle_steps
+
+
+def estimate(n_vertices: int, frames: int, steps_per_frame: int, settle_steps: int = 0,
+             guide_vertices: int = 0, guide_steps: int = 0) -> Estimate:
+    """The memory and time of a run of ``n_vertices`` hair vertices over ``frames`` frames of
+    ``steps_per_frame`` steps, after ``settle_steps`` settle steps; ``guide_steps`` steps of a
+    guide simulation of ``guide_vertices`` vertices (``guides.source=simulated``)."""
+    steps = int(frames) * int(steps_per_frame)
+    memory = (float(n_vertices) * BYTES_PER_VERTEX + (frames + 1.0) * n_vertices * 24.0 * FRAME_COPIES
+              + float(steps) * BYTES_PER_STEP
+              + float(guide_vertices) * BYTES_PER_VERTEX + (frames + 1.0) * guide_vertices * 24.0)
+    seconds = ((steps + settle_steps) * (SECONDS_PER_STEP + n_vertices * SECONDS_PER_VERTEX_STEP)
+               + guide_steps * (SECONDS_PER_STEP + guide_vertices * SECONDS_PER_VERTEX_STEP))
+    return Estimate(memory, steps, int(settle_steps) + int(guide_steps), seconds)
+
+
+def available_memory() -> float | None:
+    """Bytes the machine can still give a process: MemAvailable of /proc/meminfo, else the free
+    physical pages (os.sysconf); None when neither is known."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024.0
+    except OSError:
+        pass
+    try:
+        return float(os.sysconf("SC_AVPHYS_PAGES")) * float(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _size(n: float) -> str:
+    for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
+        if n >= scale:
+            return f"{n / scale:.3g} {unit}"
+    return f"{n / 1e3:.3g} kB"
+
+
+def _duration(s: float) -> str:
+    if s >= 86400:
+        return f"{s / 86400:.3g} days"
+    if s >= 3600:
+        return f"{s / 3600:.3g} h"
+    if s >= 60:
+        return f"{s / 60:.3g} min"
+    return f"{s:.3g} s"
+
+
+def check(est: Estimate, keys: str, allow_large: bool, available: float | None) -> None:
+    """Refuse ``est`` when it needs more than ``available`` bytes (an InputError naming ``keys``,
+    the config keys that size the run), unless ``allow_large``; warn about a long run."""
+    if available is not None and est.memory > available:
+        msg = (f"the run would need about {_size(est.memory)} of memory ({est.steps:.3g} steps, "
+               f"{est.total_steps:.3g} with settle and guide-simulation steps) but {_size(available)} is available; make it smaller "
+               "or set guard.allow_large=true to run anyway")
+        if not allow_large:
+            raise InputError(msg, keys)
+        log.warning("%s: %s (guard.allow_large=true: running anyway)", keys, msg)
+    if est.total_steps > LONG_RUN_STEPS:
+        log.warning("long run: about %.3g steps (%.3g recorded, %.3g settle and guide steps), roughly %s "
+                    "(%s: %s of memory)", est.total_steps, est.steps, est.settle_steps, _duration(est.seconds),
+                    keys, _size(est.memory))
+
+
+def _value(x):
+    return getattr(x, "value", x)
+
+
+def guard_run(cfg, n_vertices: int, steps_per_frame: int, run: bool = True) -> Estimate:
+    """Estimate and check the run of ``cfg`` (frames and fps known, keys validated) with
+    ``n_vertices`` hair vertices; ``run=False`` (the USD export): the scene and guides are built
+    but neither settled nor stepped."""
+    seconds, dt = settle_seconds(cfg.scene), settle_step(cfg.scene)
+    hair_settle = max(1, int(math.ceil(seconds / dt - 1e-9))) if seconds > 0 else 0   # as settle_state counts
+    g = cfg.guides
+    simulated = str(_value(g.source)) == "simulated"
+    gv = int(g.count) * int(g.n_vertices) if simulated else 0
+    gsteps = int(cfg.frames) * steps_per_frame + hair_settle if simulated else 0   # the guides settle too
+    frames = int(cfg.frames) if run else 0
+    est = estimate(n_vertices, frames, steps_per_frame, hair_settle if run else 0, gv, gsteps)
+    keys = "scene.usd" if str(_value(cfg.scene.builder)) == "usd" else "scene.n_strands x scene.n_vertices"
+    keys += ", frames, solver.dt" + (", scene.settle" if hair_settle else "")
+    check(est, keys, bool(getattr(getattr(cfg, "guard", None), "allow_large", False)), available_memory())
+    return est

@@ -1,0 +1,152 @@
+"""Range checks of the config keys before anything is built (``assemble_scene`` calls
+``validate_config`` first, ``validate_measure`` once the scene is built, both before the first
+step).  Every error is an ``InputError`` naming the key, its value and the allowed range.
+
+One place per key: the keys the model, guides, physics and control layers read and check
+themselves are not checked again here (scene.n_strands/n_vertices/length/spread/root_radius/
+seed/direction/root_center/gravity and the collider shapes in hairexp/model/builders.py,
+scene.hair.* ``build_material``, keyframed motions in hairexp/model/rigid.py, scene.body.*
+hairexp/model/dynamic_body.py, scene.settle/settle_dt hairexp/physics/settle.py, solver.dt,
+fps and frames hairexp/physics/schedule.py, guides.count/n_vertices/keyframes/edits/file in
+hairexp/guides/, tracking.points_per_guide and tracking.variance.* in hairexp/control/tracking/,
+controller.attract_stiffness hairexp/control/attract.py).  The rest are checked here.
+"""
+
+from __future__ import annotations
+
+from hairexp.errors import InputError, finite_number
+from hairexp.evaluation.measures import collider_named
+
+
+def _value(x):
+    return getattr(x, "value", x)
+
+
+def number(value, key: str, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
+           hi_open: bool = False) -> float:
+    """``value`` as a finite float within [lo, hi] (``lo_open``/``hi_open``: the bound excluded)."""
+    v = finite_number(value, key)
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise InputError(f"must be {'>' if lo_open else '>='} {lo:g}, got {v:g}", key)
+    if hi is not None and (v > hi or (hi_open and v == hi)):
+        raise InputError(f"must be {'<' if hi_open else '<='} {hi:g}, got {v:g}", key)
+    return v
+
+
+def integer(value, key: str, lo: int) -> int:
+    """``value`` as an int >= lo."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InputError(f"must be an integer >= {lo}, got {value!r}", key)
+    if value < lo:
+        raise InputError(f"must be >= {lo}, got {value}", key)
+    return int(value)
+
+
+def keyframes(times, key_times: str, values: dict) -> None:
+    """``times`` finite and strictly increasing, each list of ``values`` (key -> list) as long."""
+    t = [number(x, f"{key_times}[{i}]") for i, x in enumerate(times)]
+    if not t:
+        raise InputError("needs at least one keyframe", key_times)
+    if any(b <= a for a, b in zip(t, t[1:])):
+        raise InputError(f"keyframe times must increase strictly, got {t}", key_times)
+    for key, vals in values.items():
+        if len(vals) != len(t):
+            raise InputError(f"has {len(vals)} values but {key_times} has {len(t)}: one per time", key)
+        for i, x in enumerate(vals):
+            number(x, f"{key}[{i}]")
+
+
+def _solver(s) -> None:
+    rtol = number(s.rtol, "solver.rtol", lo=0)
+    atol = number(s.atol, "solver.atol", lo=0)
+    if rtol == 0 and atol == 0:
+        raise InputError("solver.rtol and solver.atol are both 0: no step can converge; give one > 0", "solver.rtol")
+    integer(s.max_iterations, "solver.max_iterations", 1)
+    integer(s.max_backtracks, "solver.max_backtracks", 0)
+    if integer(s.max_substep_levels, "solver.max_substep_levels", 0) > 30:
+        raise InputError(f"must be <= 30 (2^levels substeps of a step), got {s.max_substep_levels}",
+                         "solver.max_substep_levels")
+
+
+def _tracking(t) -> None:
+    rtol = number(t.rtol, "tracking.rtol", lo=0)
+    atol = number(t.atol, "tracking.atol", lo=0)
+    if rtol == 0 and atol == 0:
+        raise InputError("tracking.rtol and tracking.atol are both 0: no step can converge; give one > 0",
+                         "tracking.rtol")
+    number(t.ctol_rel, "tracking.ctol_rel", lo=0, lo_open=True)
+    integer(t.max_iterations, "tracking.max_iterations", 1)
+    number(t.max_guide_distance, "tracking.max_guide_distance", lo=0)
+    n = t.points_per_guide   # >= 1: hairexp/control/tracking/correspondence.py
+    for i, p in enumerate(t.variance.points):
+        if integer(p, f"tracking.variance.points[{i}]", 0) >= max(int(n), 1):
+            raise InputError(f"is {p}, but tracking points are numbered 0..{int(n) - 1} along each guide "
+                             f"(tracking.points_per_guide={n})", f"tracking.variance.points[{i}]")
+
+
+def _collision(c) -> None:
+    number(c.hair_thickness, "collision.hair_thickness", lo=0, lo_open=True)
+    number(c.skin, "collision.skin", lo=0)
+    integer(c.max_passes, "collision.max_passes", 1)
+    number(c.strain_limit, "collision.strain_limit", lo=0, hi=1, hi_open=True)
+
+
+def _guides(cfg) -> None:
+    g = cfg.guides
+    source = str(_value(g.source))
+    number(g.layout_radius, "guides.layout_radius", lo=0)
+    keyframes(g.scale_times, "guides.scale_times", {"guides.scale_factors": g.scale_factors})
+    for i, f in enumerate(g.scale_factors):
+        number(f, f"guides.scale_factors[{i}]", lo=0, lo_open=True)
+    if source == "file" and not str(g.file):
+        raise InputError("guides.source=file needs the path of a guide npz", "guides.file")
+    if source != "file" and str(g.file):
+        raise InputError(f"is set ({g.file}) but guides.source={source} does not read it: set guides.source=file "
+                         "or leave guides.file empty", "guides.file")
+
+
+def _scene(cfg) -> None:
+    s = cfg.scene
+    builder = str(_value(s.builder))
+    if str(s.usd) and builder != "usd" and str(_value(cfg.guides.source)) != "usd":
+        # an error, not a warning: the run would simulate another scene than the stage named, with exit 0
+        raise InputError(f"is set ({s.usd}) but scene.builder={builder} and guides.source="
+                         f"{_value(cfg.guides.source)} do not read it: set scene.builder=usd (or guides.source=usd) "
+                         "or leave scene.usd empty", "scene.usd")
+
+
+def _measure(cfg) -> None:
+    m = cfg.measure
+    number(m.tolerance, "measure.tolerance", lo=0)
+    number(m.time, "measure.time")
+    number(m.threshold, "measure.threshold", lo=0, lo_open=True)
+    number(m.strand_fraction, "measure.strand_fraction", lo=0, hi=1, hi_open=True)
+    number(m.min_share, "measure.min_share", lo=0, hi=1)
+    axis = [number(x, f"measure.axis[{i}]") for i, x in enumerate(m.axis)]
+    if len(axis) != 3 or not any(axis):
+        raise InputError(f"must be 3 numbers, not all 0, got {axis}", "measure.axis")
+    number(m.rail_height, "measure.rail_height")
+    number(m.rail_end, "measure.rail_end")
+    number(cfg.judge_tolerance, "judge_tolerance", lo=0, lo_open=True)
+    if str(_value(m.name)) == "collider_contact" and not str(m.collider):
+        raise InputError("measure.name=collider_contact needs the name of a collider", "measure.collider")
+
+
+def validate_config(cfg) -> None:
+    """Every config key the layers below do not check where they read it (see module doc)."""
+    _scene(cfg)
+    _guides(cfg)
+    _solver(cfg.solver)
+    _tracking(cfg.tracking)
+    _collision(cfg.collision)
+    _measure(cfg)
+
+
+def validate_measure(cfg, scene) -> None:
+    """The measure's references into the built scene (``measure.collider``), before the first step
+    rather than after the whole simulation."""
+    if str(_value(cfg.measure.name)) == "collider_contact":
+        collider_named(scene, str(cfg.measure.collider))
+
+
+__all__ = ["validate_config", "validate_measure", "number", "integer", "keyframes"]

@@ -1,0 +1,77 @@
+"""The resource guard (hairexp/app/guard.py): the estimate is a pure function of the run's size;
+a run that cannot fit in the available memory is refused at start naming the keys (unless
+guard.allow_large), a long one is announced with its steps and a rough time."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+
+from hairexp.app import assemble, compose_config
+from hairexp.app import guard
+from hairexp.app.guard import BYTES_PER_STEP, BYTES_PER_VERTEX, FRAME_COPIES, Estimate, check, estimate, guard_run
+from hairexp.errors import InputError
+
+
+def test_estimate_is_the_documented_sum():
+    e = estimate(1000, 10, 4, settle_steps=5)
+    assert e.steps == 40 and e.settle_steps == 5 and e.total_steps == 45
+    assert e.memory == 1000 * BYTES_PER_VERTEX + 11 * 1000 * 24 * FRAME_COPIES + 40 * BYTES_PER_STEP
+    assert e.seconds == pytest.approx(45 * (guard.SECONDS_PER_STEP + 1000 * guard.SECONDS_PER_VERTEX_STEP))
+    g = estimate(1000, 10, 4, guide_vertices=30, guide_steps=40)
+    assert g.memory > e.memory - 40 * BYTES_PER_STEP and g.total_steps == 80
+    # linear in the vertices and in the frames
+    assert estimate(2000, 10, 4).memory - estimate(1000, 10, 4).memory == pytest.approx(
+        1000 * (BYTES_PER_VERTEX + 11 * 24 * FRAME_COPIES))
+
+
+def test_small_runs_pass_and_big_ones_are_refused():
+    check(estimate(60, 30, 1), "k", allow_large=False, available=1e9)
+    with pytest.raises(InputError, match=r"about [\d.]+ TB of memory .* guard\.allow_large=true") as err:
+        check(estimate(2 * 10 ** 8, 30, 1), "scene.n_strands x scene.n_vertices", allow_large=False, available=1e9)
+    assert err.value.where == "scene.n_strands x scene.n_vertices"
+    check(estimate(60, 30, 1), "k", allow_large=False, available=None)   # unknown memory: no refusal
+
+
+def test_allow_large_runs_with_a_warning(caplog):
+    with caplog.at_level(logging.WARNING, logger="hairexp.app.guard"):
+        check(estimate(10 ** 7, 30, 1), "k", allow_large=True, available=1e6)
+    assert "running anyway" in caplog.text
+
+
+def test_long_runs_are_announced(caplog):
+    with caplog.at_level(logging.WARNING, logger="hairexp.app.guard"):
+        check(Estimate(1e6, 10, 0, 1.0), "k", allow_large=False, available=1e9)
+        assert "long run" not in caplog.text
+        check(estimate(60, 30, 1, settle_steps=25_000_000), "k", allow_large=False, available=1e9)
+    assert "long run: about 2.5e+07 steps" in caplog.text and "days" in caplog.text
+
+
+def test_available_memory_is_known_here():
+    assert guard.available_memory() > 0
+
+
+@pytest.fixture(scope="module")
+def base():
+    return compose_config(["experiment=goaling_smoke", "variants=[]", "frames=2", "logging.rerun=false"])
+
+
+@pytest.mark.parametrize("override,keys", [
+    ("scene.n_strands=100000000", "scene.n_strands x scene.n_vertices"),   # 1e9 vertices
+    ("solver.dt=1e-9", "solver.dt"),                                       # 8e7 steps, each with a metrics row
+])
+def test_assemble_refuses_before_building(override, keys):
+    cfg = compose_config(["experiment=goaling_smoke", "variants=[]", "logging.rerun=false", override])
+    with pytest.raises(InputError) as err:
+        assemble(cfg)
+    assert keys in err.value.where and "available" in str(err.value)
+
+
+def test_settle_steps_are_counted(base, caplog):
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.merge(base, {"scene": {"settle": 1e6}})   # 2.5e7 settle steps of 0.04 s
+    with caplog.at_level(logging.WARNING, logger="hairexp.app.guard"):
+        est = guard_run(cfg, 60, 1)
+    assert est.settle_steps >= 25_000_000 and "long run" in caplog.text and "scene.settle" in caplog.text

@@ -1,0 +1,261 @@
+"""Every setting is checked before the first step: bad values end in an InputError naming the key
+(``where``), never in a traceback, a silently changed setting or a run that "completes" without
+ever converging.  One parametrized test per category of bad input; a few through the CLI."""
+
+from __future__ import annotations
+
+import copy
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from hairexp.app import assemble
+from hairexp.app.assemble import assemble_scene
+from hairexp.app.config import ColliderConfig, GuideKeyframeConfig, compose_config
+from hairexp.app.validate import validate_config
+from hairexp.errors import InputError
+from hairexp.guides.animation import GuideAnimation, file_guides
+from hairexp.model.rigid import RigidMotion
+
+INF, NAN = math.inf, math.nan
+
+
+@pytest.fixture(scope="module")
+def base():
+    """goaling_smoke, one run, 2 frames (one wheel collider ``wheel``, simulated guides)."""
+    return compose_config(["experiment=goaling_smoke", "variants=[]", "frames=2", "logging.rerun=false"])
+
+
+def with_(cfg, **kv):
+    out = copy.deepcopy(cfg)
+    for k, v in kv.items():
+        OmegaConf.update(out, k.replace("__", "."), v, merge=False)
+    return out
+
+
+def raises_at(cfg, where: str, call=assemble):
+    with pytest.raises(InputError) as err:
+        call(cfg)
+    assert err.value.where is not None and err.value.where.startswith(where), (err.value.where, str(err.value))
+    assert "\n" not in str(err.value)
+    return err.value
+
+
+# 3. settings under which no step can converge, a silently disabled penalty, a late measure error
+@pytest.mark.parametrize("key,value", [
+    ("solver.max_iterations", 0), ("solver.rtol", -1.0), ("solver.atol", -1.0), ("solver.atol", NAN),
+    ("solver.max_backtracks", -1), ("solver.max_substep_levels", -1),
+    ("tracking.ctol_rel", -1.0), ("tracking.ctol_rel", 0.0), ("tracking.max_iterations", 0),
+    ("tracking.rtol", -1.0), ("tracking.max_guide_distance", -0.1),
+])
+def test_no_convergence_settings_are_refused(base, key, value):
+    err = raises_at(with_(base, **{key.replace(".", "__"): value}), key, validate_config)
+    assert f"got {value:g}" in str(err)
+
+
+def test_solver_tolerances_both_zero(base):
+    raises_at(with_(base, solver__rtol=0.0, solver__atol=0.0), "solver.rtol", validate_config)
+
+
+def test_variance_point_out_of_range(base):
+    cfg = with_(base, controller__name="tracking", tracking__variance__stiffness=10.0, tracking__variance__points=[99])
+    err = raises_at(cfg, "tracking.variance.points[0]", validate_config)
+    assert "0..5" in str(err)   # points_per_guide 6
+
+
+def test_unknown_measure_collider_before_any_step(base, monkeypatch):
+    from hairexp.physics import simulator
+
+    def no_step(*a, **k):   # the check must come before the first step
+        raise AssertionError("stepped before the measure was checked")
+
+    monkeypatch.setattr(simulator.Simulator, "step", no_step)
+    err = raises_at(with_(base, measure__collider="goal"), "measure.collider")
+    assert "wheel" in str(err)
+
+
+# 6. tracebacks before: keyframe lists of mismatched lengths, a negative seed
+@pytest.mark.parametrize("kv,where", [
+    ({"scene.seed": -1}, "scene.seed"),
+    ({"scene.motion.times": [0.0, 1.0, 2.0]}, "scene.motion.translations"),
+    ({"scene.motion.rotations_deg": [[0.0, 0.0, 0.0]]}, "scene.motion.rotations_deg"),
+    ({"scene.motion.translations": [[0.0, 0.0]] * 6}, "scene.motion.translations[0]"),
+    ({"scene.colliders[0].motion.times": [0.0, 1.0]}, "scene.colliders[0].motion.translations"),
+    ({"guides.scale_times": [0.0, 1.0]}, "guides.scale_factors"),
+    ({"guides.scale_times": [1.0, 0.0], "guides.scale_factors": [1.0, 1.0]}, "guides.scale_times"),
+    ({"guides.edits[0].weights": [0.0, 1.0]}, "guides.edits[0].weights"),
+    ({"controller.name": "tracking", "tracking.variance.stiffness": 1.0, "tracking.variance.times": [0.0, 1.0]},
+     "tracking.variance.stiffness_scale"),
+])
+def test_mismatched_keyframes_are_named(base, kv, where):
+    cfg = copy.deepcopy(base)
+    for k, v in kv.items():
+        OmegaConf.update(cfg, k, v, merge=False)
+    raises_at(cfg, where)
+
+
+def test_guide_keyframes_of_wrong_size(base):
+    cfg = with_(base, guides__source="keyframed", guides__count=1, guides__n_vertices=3, guides__edits=[])
+    key = OmegaConf.merge(OmegaConf.structured(GuideKeyframeConfig),
+                          {"time": 0.0, "points": [[0.0, 0.0, 0.0], [0.0, -0.1, 0.0]]})   # 2 points, not 1 x 3
+    OmegaConf.update(cfg, "guides.keyframes", [key], merge=False)
+    raises_at(cfg, "guides.keyframes[0]")
+
+
+# 7. accepted silently before
+@pytest.mark.parametrize("kv,where", [
+    ({"scene.spread": -0.1}, "scene.spread"), ({"scene.spread": NAN}, "scene.spread"),
+    ({"scene.spread": 4.0}, "scene.spread"),
+    ({"scene.root_radius": -0.01}, "scene.root_radius"), ({"scene.root_radius": NAN}, "scene.root_radius"),
+    ({"collision.hair_thickness": -0.001}, "collision.hair_thickness"),
+    ({"collision.strain_limit": -0.1}, "collision.strain_limit"), ({"collision.strain_limit": 1.0}, "collision.strain_limit"),
+    ({"collision.max_passes": 0}, "collision.max_passes"), ({"collision.skin": -1.0}, "collision.skin"),
+    ({"scene.colliders[0].spin": INF}, "scene.colliders[0].spin"),
+    ({"scene.colliders[0].spin": NAN}, "scene.colliders[0].spin"),
+    ({"scene.colliders[0].radius": INF}, "scene.colliders[0].radius"),
+    ({"scene.colliders[0].thickness": -1.0}, "scene.colliders[0].thickness"),
+    ({"scene.colliders[0].friction": NAN}, "scene.colliders[0].friction"),
+    ({"scene.colliders[0].shape": "sphere"}, "scene.colliders[0].spin"),   # spin 5: only a cylinder spins
+    ({"scene.hair.stretch_stiffness": INF}, "scene.hair.stretch_stiffness"),
+    ({"scene.usd": "scene.usda"}, "scene.usd"),
+    ({"guides.file": "guides.npz"}, "guides.file"),
+    ({"guides.layout_radius": -1.0}, "guides.layout_radius"),
+    ({"guides.scale_factors": [0.0]}, "guides.scale_factors[0]"),
+    ({"measure.tolerance": -1.0}, "measure.tolerance"), ({"measure.threshold": 0.0}, "measure.threshold"),
+    ({"measure.strand_fraction": 1.5}, "measure.strand_fraction"), ({"measure.axis": [0.0, 0.0, 0.0]}, "measure.axis"),
+    ({"measure.axis": [1.0, 0.0]}, "measure.axis"), ({"judge_tolerance": -1.0}, "judge_tolerance"),
+    ({"controller.name": "tracking", "tracking.variance.stiffness": INF}, "tracking.variance.stiffness"),
+    ({"controller.name": "attract", "controller.attract_stiffness": INF}, "controller.attract_stiffness"),
+])
+def test_out_of_range_values_are_named(base, kv, where):
+    cfg = copy.deepcopy(base)
+    for k, v in kv.items():
+        OmegaConf.update(cfg, k, v, merge=False)
+    raises_at(cfg, where)
+
+
+def test_collider_spin_on_a_new_collider(base):
+    cfg = copy.deepcopy(base)
+    node = OmegaConf.merge(OmegaConf.structured(ColliderConfig), {"name": "ball", "spin": NAN, "shape": "cylinder"})
+    OmegaConf.update(cfg, "scene.colliders", [cfg.scene.colliders[0], node], merge=False)
+    raises_at(cfg, "scene.colliders[1].spin")
+
+
+def test_rigid_motion_shapes_name_their_input():
+    with pytest.raises(InputError, match="translations must be 2 x 3"):
+        RigidMotion(np.zeros(2), np.zeros((3, 3)), np.zeros((2, 3)), where="scene.motion")
+
+
+# guide files (guides.source=file): unreadable, wrong kind, float offsets, too short
+def guide_arrays(frames=3):
+    P = np.stack([np.c_[np.zeros(4), -0.05 * np.arange(4), np.zeros(4)]] * (frames + 1))
+    return P, np.array([0, 4])
+
+
+@pytest.fixture
+def guide_file(tmp_path):
+    P, off = guide_arrays()
+    path = tmp_path / "guides.npz"
+    GuideAnimation(P, off, 25.0).save(path)
+    return path
+
+
+def _corrupt(path):
+    path.write_bytes(b"not a zip file at all" * 10)
+
+
+def _empty(path):
+    path.write_bytes(b"")
+
+
+def _truncated(path):
+    path.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2])
+
+
+def _npy(path):
+    np.save(path.with_suffix(".npy"), guide_arrays()[0])
+    return path.with_suffix(".npy")
+
+
+def _float_offsets(path):
+    P, _ = guide_arrays()
+    np.savez(path, guide_positions=P, guide_offsets=np.array([0.0, 3.7]), fps=25.0)
+
+
+def _missing_key(path):
+    P, off = guide_arrays()
+    np.savez(path, guide_positions=P, fps=25.0)
+
+
+def _missing(path):
+    return path.with_name("nosuch.npz")
+
+
+@pytest.mark.parametrize("spoil", [_corrupt, _empty, _truncated, _npy, _float_offsets, _missing_key, _missing])
+def test_bad_guide_files_are_named(guide_file, spoil):
+    path = spoil(guide_file) or guide_file
+    with pytest.raises(InputError) as err:
+        file_guides(path, RigidMotion.static(), 3, 25.0)
+    assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_guide_file_shorter_than_the_run(guide_file):
+    file_guides(guide_file, RigidMotion.static(), 3, 25.0)    # frames 0..3 at 25 fps: exactly long enough
+    with pytest.raises(InputError, match=r"frames 0\.\.3 .* needs 4 frames") as err:
+        file_guides(guide_file, RigidMotion.static(), 4, 25.0)
+    assert str(guide_file) in err.value.where
+
+
+def test_a_short_guide_file_through_the_config(base, tmp_path):
+    cfg, scene, guides = assemble_scene(with_(base, guides__edits=[]), settle=False)
+    path = tmp_path / "g.npz"
+    guides.save(path)   # frames 0..2
+    raises_at(with_(base, guides__source="file", guides__file=str(path), guides__edits=[], frames=5),
+              f"guides.file={path}", lambda c: assemble_scene(c, settle=False))
+
+
+def test_usd_stage_with_zero_time_codes_per_second(tmp_path):
+    from hairexp.io.usd_read import stage_rate
+    from pxr import Usd
+
+    stage = Usd.Stage.CreateInMemory()
+    stage.SetTimeCodesPerSecond(0.0)
+    with pytest.raises(InputError, match="timeCodesPerSecond is 0"):
+        stage_rate(stage, "scene.usd=x.usda")
+
+
+# through the command line: exit 2, one line naming the key
+def run_cli(module, args, cwd):
+    return subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=120, env={**__import__("os").environ, "CI": "1"})
+
+
+@pytest.mark.parametrize("override,key", [
+    ("measure.collider=goal", "measure.collider"),          # found only after the whole simulation before
+])
+def test_cli_refuses_at_start(tmp_path, override, key):
+    proc = run_cli("hairexp", ["experiment=goaling_smoke", override, "logging.rerun=false",
+                               f"hydra.run.dir={tmp_path}"], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    err = [line for line in proc.stderr.splitlines() if line.startswith("hairexp: error:")]
+    assert len(err) == 1 and key in err[0], proc.stderr
+    assert not list(tmp_path.rglob("result.npz"))
+
+
+def test_export_to_an_unwritable_path(tmp_path):
+    proc = run_cli("hairexp.io.export_scene", ["/nonexistent/dir/x.usda", "experiment=goaling_smoke"], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.startswith("hairexp: error: /nonexistent/dir/x.usda:") and "Traceback" not in proc.stderr
+
+
+def test_export_refuses_a_directory(tmp_path):
+    from hairexp.app.export_scene import check_writable
+
+    with pytest.raises(InputError, match="is a directory"):
+        check_writable(tmp_path)
+    check_writable(tmp_path / "x.usda")
+
