@@ -2,7 +2,9 @@
 
 Configs live in ../conf (Hydra); the schema in hairexp/app/config.py rejects unknown keys and
 wrong types at start.  Errors in the input end with one line naming the input and a
-non-zero exit (2 for bad input, 3 for a simulation that could not continue).
+non-zero exit; the codes are decided after Hydra returns (hairexp/app/cli.py): 2 bad input,
+3 a simulation that could not continue, 130/143 interrupted; a sweep runs every job and exits
+with its first failing job's code.
 """
 
 from __future__ import annotations
@@ -15,34 +17,29 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 import hairexp.app.config  # noqa: F401  (registers the schema in the ConfigStore)
-from hairexp.app.experiment import run_experiment
-from hairexp.errors import InputError, SimulationError
-
-log = logging.getLogger("hairexp")
+from hairexp.app import cli
+from hairexp.app.signals import InterruptSignals, exit_code
+from hairexp.errors import Interrupted
 
 
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float | None:
-    out = HydraConfig.get().runtime.output_dir
+    hc = HydraConfig.get()
+    res = cli.job(cfg, hc.runtime.output_dir, sweep=str(getattr(hc.mode, "name", hc.mode)) == "MULTIRUN")
+    return res["code"]
+
+
+def entry() -> int:
+    logging.raiseExceptions = False   # a log file on a full disk is not worth a traceback per line
     try:
-        summary = run_experiment(cfg, out)
-    except InputError as exc:
-        print(f"hairexp: error: {exc}", file=sys.stderr)
-        sys.exit(2)
-    except SimulationError as exc:
-        print(f"hairexp: simulation failed: {exc} (partial metrics in {out})", file=sys.stderr)
-        sys.exit(3)
-    if "variants" in summary:
-        for name, v in summary["variants"].items():
-            log.info("%s: %s, %.2f iterations/step, median %.1f ms/step, measures %s", name, v["status"],
-                     v["iterations_mean"], 1e3 * v["step_seconds_median"], v["measures"])
-        log.info("%s: success=%s -> %s", summary["experiment"], summary["success"], out)
-        return None
-    log.info("%s/%s: %d steps, %.2f iterations/step, median %.1f ms/step, max stretch %.2e -> %s",
-             summary["scene"], summary["controller"], summary["steps"], summary["iterations_mean"],
-             1e3 * summary["step_seconds_median"], summary["stretch_max"], out)
-    return summary["step_seconds_median"]
+        with InterruptSignals():   # outside a run (composing, between sweep jobs) too
+            main()
+    except KeyboardInterrupt as exc:
+        code = exit_code(exc.signum) if isinstance(exc, Interrupted) else 130
+        cli.exit_code()   # a sweep's jobs so far
+        return code
+    return cli.exit_code()
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(entry())

@@ -32,3 +32,14 @@ def finite_number(value, key: str) -> float:
     if not math.isfinite(v):
         raise InputError(f"must be finite, got {v}", key)
     return v
+
+
+class Interrupted(KeyboardInterrupt):
+    """The run was stopped by a signal (SIGINT or SIGTERM); ``signum`` is the signal's number.
+    A KeyboardInterrupt, so code that lets Ctrl-C through lets this through too."""
+
+    def __init__(self, signum: int):
+        import signal
+
+        self.signum = int(signum)
+        super().__init__(f"interrupted by {signal.Signals(self.signum).name}")

@@ -48,9 +48,9 @@ def goaling_run(tmp_path_factory):
 def test_cli_exit_code_and_files(goaling_run):
     proc, out = goaling_run
     assert proc.returncode == 0, proc.stderr
-    for name in ("metrics.parquet", "summary.json", "recording.rrd", "result.npz", "result.usda"):
+    for name in ("metrics.parquet", "summary.json", "recording.rrd", "result.npz", "result.usdc"):
         assert (out / name).is_file(), name
-    leftovers = [p.name for p in out.rglob("*") if p.suffix in (".partial", ".tmp")]
+    leftovers = [p.name for p in out.rglob("*") if ".partial" in p.name or ".tmp" in p.name or p.name == "stream"]
     assert leftovers == []
 
 

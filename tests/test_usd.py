@@ -1,6 +1,7 @@
 """USD exchange: a scene written in the input layout reads back exactly (up to USD's float32
-points), a run from that stage reproduces the run of the config, and every run's result.usda
-holds the result frames under the documented prims."""
+points), a run from that stage reproduces the run of the config, and every run's result stage
+(result.usdc by default, result.usda with output.usd_format=usda) holds the result frames under
+the documented prims."""
 
 from __future__ import annotations
 
@@ -149,6 +150,7 @@ def runs(tmp_path_factory):
     finally:
         GlobalHydra.instance().clear()
     out = {}
+    OmegaConf.update(via_usd, "output.usd_format", "usda")   # the ASCII stage for this one
     for name, cfg in (("config", src), ("usd", via_usd), ("again", again)):
         summary = run(cfg, tmp / name)
         assert summary["status"] == "completed"
@@ -180,10 +182,20 @@ def test_run_round_trip(runs):
     assert summary["config"]["frames"] == FRAMES and summary["config"]["fps"] == FPS  # null resolved
 
 
-def test_result_usda_holds_the_frames(runs):
+def test_result_usd_formats(runs):
+    """result.usdc (binary crate) by default; output.usd_format=usda writes result.usda (ASCII)."""
+    assert (runs["config"] / "result.usdc").is_file() and not (runs["config"] / "result.usda").exists()
+    assert (runs["config"] / "result.usdc").read_bytes()[:8] == b"PXR-USDC"
+    assert (runs["usd"] / "result.usda").read_bytes()[:5] == b"#usda" and not (runs["usd"] / "result.usdc").exists()
+    a, b = (Usd.Stage.Open(str(runs[k] / n)) for k, n in (("config", "result.usdc"), ("usd", "result.usda")))
+    pa, pb = (UsdGeom.BasisCurves.Get(s, "/Root/Result/Hair").GetPointsAttr() for s in (a, b))
+    assert pa.GetTimeSamples() == pb.GetTimeSamples() == list(range(FRAMES + 1))
+
+
+def test_result_usd_holds_the_frames(runs):
     folder = runs["config"]
     r = result(folder)
-    stage = Usd.Stage.Open(str(folder / "result.usda"))
+    stage = Usd.Stage.Open(str(folder / "result.usdc"))
     assert stage.GetTimeCodesPerSecond() == FPS and stage.GetFramesPerSecond() == FPS
     assert (stage.GetStartTimeCode(), stage.GetEndTimeCode()) == (0, FRAMES)
     assert UsdGeom.GetStageUpAxis(stage) == "Y" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
@@ -213,10 +225,10 @@ def test_result_usda_holds_the_frames(runs):
     np.testing.assert_array_equal(np.asarray(rest.Get()), scene.root_body.astype(np.float32))
 
 
-def test_result_usda_reimports(runs):
-    """result.usda is itself a scene in the input layout."""
+def test_result_usd_reimports(runs):
+    """result.usdc is itself a scene in the input layout."""
     r = result(runs["config"])
-    cfg, scene, guides = read(runs["config"] / "result.usda")
+    cfg, scene, guides = read(runs["config"] / "result.usdc")
     assert cfg.frames == FRAMES and scene.strands.n_strands == N_STRANDS and len(scene.colliders) == len(COLLIDERS)
     np.testing.assert_allclose(scene.strands.rest, r["positions"][0], rtol=0, atol=3e-8)
     np.testing.assert_array_equal(guides.positions, f32(r["guide_positions"]))

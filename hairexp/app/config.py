@@ -301,6 +301,22 @@ class VariantConfig:
     overrides: list[str] = field(default_factory=list)
 
 
+class UsdFormat(str, Enum):
+    usdc = "usdc"   # result.usdc, binary crate (compact, fast)
+    usda = "usda"   # result.usda, ASCII (readable, diffable)
+
+
+class OnUnconverged(str, Enum):
+    warn = "warn"   # a run with unconverged steps completes (summary converged: false), a warning, exit 0
+    fail = "fail"   # such a run fails (status failed, no result files), exit 3
+
+
+@dataclass
+class OutputConfig:
+    """The run folder's result files (README "Run folder")."""
+    usd_format: UsdFormat = UsdFormat.usdc
+
+
 @dataclass
 class Config:
     scene: SceneConfig = field(default_factory=SceneConfig)
@@ -318,6 +334,9 @@ class Config:
     judge_tolerance: float = 0.35      # variance_follows_targets: largest relative miss of a target
     frames: Optional[int] = 50        # output frames after the initial one; null: the USD stage's endTimeCode
     fps: Optional[float] = 25.0       # null: the USD stage's timeCodesPerSecond
+    output: OutputConfig = field(default_factory=OutputConfig)
+    overwrite: bool = False            # true: replace the run in a used run folder (README "Run folder")
+    on_unconverged: OnUnconverged = OnUnconverged.warn   # steps that did not converge; none converged: always failed
 
 
 def register() -> None:

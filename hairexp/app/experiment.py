@@ -4,12 +4,16 @@ With ``variants`` empty, the run folder is that of ``hairexp.app.run.run``.  Oth
 variant runs in ``<out>/<variant name>/`` (a complete run folder) with its overrides applied
 to the experiment's config, and ``<out>/summary.json`` gathers the variants' measures, their
 per-step times and iteration counts, and the judge's verdict (``success``).  A failing variant
-stops the experiment: the top-level summary says ``failed`` and the error propagates.
+stops the experiment: the top-level summary says ``failed`` (``interrupted`` on SIGINT/SIGTERM)
+and the error propagates.  Variant names are folder names: safe identifiers (letters, digits,
+``_ . -``, not ``.`` or ``..``), unique within the experiment.
 """
 
 from __future__ import annotations
 
 import copy
+import logging
+import re
 import time
 from pathlib import Path
 
@@ -17,14 +21,34 @@ import yaml
 from omegaconf import OmegaConf
 
 from hairexp.app.config import to_plain
+from hairexp.app.signals import InterruptSignals
 from hairexp.errors import InputError
 from hairexp.evaluation.judges import JUDGES
 from hairexp.app.run import config_hash, run
 from hairexp.outputs.files import write_json
+from hairexp.outputs.folder import SUMMARY, claim
+
+log = logging.getLogger("hairexp")
 
 #: Figures of each variant copied into the experiment's summary.
-VARIANT_FIELDS = ("status", "steps", "iterations_mean", "iterations_max", "converged_fraction", "step_seconds_median",
-                  "stretch_max", "residual_rel_max", "wall_seconds")
+VARIANT_FIELDS = ("status", "steps", "iterations_mean", "iterations_max", "converged_fraction", "converged",
+                  "unconverged_steps", "step_seconds_median", "stretch_max", "residual_rel_max", "wall_seconds")
+SAFE_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
+
+
+def check_variant_names(variants) -> list[str]:
+    """The variants' names, each a safe folder name and unique (InputError naming ``variants[i].name``)."""
+    names: list[str] = []
+    for i, v in enumerate(variants):
+        name = "" if v.name is None else str(v.name)
+        where = f"variants[{i}].name"
+        if not SAFE_NAME.match(name) or name in (".", ".."):
+            raise InputError(f"{name!r} is not a safe folder name (letters, digits, '_', '.', '-'; not '.' or '..')",
+                             where)
+        if name in names:
+            raise InputError(f"{name!r} is also the name of variants[{names.index(name)}]", where)
+        names.append(name)
+    return names
 
 
 def apply_overrides(cfg, overrides: list[str], where: str):
@@ -59,29 +83,50 @@ def run_experiment(cfg, out_dir) -> dict:
     out = Path(out_dir)
     if not cfg.variants:
         return run(cfg, out)
+    names = check_variant_names(cfg.variants)
     plain = to_plain(cfg)
+    claim(out, overwrite=bool(cfg.overwrite))
     t0 = time.perf_counter()
     summary = {"experiment": plain.get("experiment"), "status": "running", "success": None, "judge": plain["judge"],
                "variants": {}, "config_hash": config_hash(plain), "config": plain}
+    write_json(out / SUMMARY, summary)
     measures, facts = {}, {}
-    for i, v in enumerate(cfg.variants):
-        name = str(v.name)
-        vcfg = apply_overrides(cfg, list(v.overrides), f"variants[{i}] ({name})")
-        vcfg.variants = []
-        facts[name] = _variant_facts(vcfg)
+    try:
+        with InterruptSignals():
+            _run_variants(cfg, out, names, summary, measures, facts, t0)
+        judge = plain["judge"]
+        if judge != "none":
+            ok, details = JUDGES[judge](measures, facts, float(cfg.judge_tolerance))
+            summary.update(success=ok, verdict=details)
+        converged = [v.get("converged") for v in summary["variants"].values()]
+        summary.update(status="completed", converged=all(c is not False for c in converged),
+                       wall_seconds=time.perf_counter() - t0)
+        write_json(out / SUMMARY, summary)
+    except BaseException as exc:
+        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        if summary["status"] in ("running", "completed"):   # not yet told by a variant
+            summary.update(status=status, error=str(exc) or type(exc).__name__, wall_seconds=time.perf_counter() - t0)
         try:
+            write_json(out / SUMMARY, summary)
+        except Exception as e2:   # noqa: BLE001  (never hide the first error)
+            note = f"while writing the experiment's {status} summary: {type(e2).__name__}: {e2}"
+            log.error("%s: %s", out, note)
+            exc.add_note(note)
+        raise
+    return summary
+
+
+def _run_variants(cfg, out: Path, names: list[str], summary: dict, measures: dict, facts: dict, t0: float) -> None:
+    for i, (name, v) in enumerate(zip(names, cfg.variants)):
+        try:
+            vcfg = apply_overrides(cfg, list(v.overrides), f"variants[{i}] ({name})")
+            vcfg.variants = []
+            facts[name] = _variant_facts(vcfg)
             s = run(vcfg, out / name)
-        except Exception as exc:
-            summary["variants"][name] = {"status": "failed", "error": str(exc)}
-            summary.update(status="failed", error=f"variant {name}: {exc}", wall_seconds=time.perf_counter() - t0)
-            write_json(out / "summary.json", summary)
+        except BaseException as exc:
+            status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+            summary["variants"][name] = {"status": status, "error": str(exc) or type(exc).__name__}
+            summary.update(status=status, error=f"variant {name}: {exc}", wall_seconds=time.perf_counter() - t0)
             raise
         measures[name] = s["measures"]
         summary["variants"][name] = {**{k: s.get(k) for k in VARIANT_FIELDS}, **facts[name], "measures": s["measures"]}
-    judge = plain["judge"]
-    if judge != "none":
-        ok, details = JUDGES[judge](measures, facts, float(cfg.judge_tolerance))
-        summary.update(success=ok, verdict=details)
-    summary.update(status="completed", wall_seconds=time.perf_counter() - t0)
-    write_json(out / "summary.json", summary)
-    return summary

@@ -2,30 +2,54 @@
 the run folder.
 
 Files (see README "Run folder"): metrics.parquet, summary.json, recording.rrd, result.npz,
-result.usda.
-On an error, summary.json records ``"status": "failed"`` with the message, no result.npz (nor result.usda) is
-written and the recording keeps its ``.partial`` name; the error propagates (non-zero exit).
+guides.npz, result.usdc (or .usda, ``output.usd_format``).
+
+The folder must be empty (``hairexp.outputs.folder.claim``; ``overwrite=true`` replaces a
+previous run).  ``summary.json`` says ``running`` from the start.  While the run goes, metrics
+and per-frame results are streamed into ``stream/`` (flushed every FLUSH_FRAMES frames or
+FLUSH_SECONDS s), so memory does not grow with the number of frames and a crash keeps what was
+flushed.  At the end the result files are made from the stream and it is removed.
+
+Endings: ``completed`` (with ``converged``: whether every step converged; under
+``on_unconverged=fail`` unconverged steps fail the run; a run in which no step converged always
+fails); ``failed`` with the error (metrics.parquet of the steps done, ``stream/`` with the frames
+done, no result.npz / result.usd* / recording.rrd: the recording keeps its
+``recording.partial.rrd`` name); ``interrupted`` on SIGINT or SIGTERM (the same partial files).
+A failure while writing an ending is logged and noted on the original error, which propagates.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import platform
+import shutil
 import time
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from hairexp.app.assemble import assemble
 from hairexp.app.config import to_plain
+from hairexp.app.signals import InterruptSignals
+from hairexp.errors import Interrupted, SimulationError
 from hairexp.evaluation.measures import RunData, compute
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
-from hairexp.outputs.files import ResultRecorder, write_json
+from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, write_json, write_npz
+from hairexp.outputs.folder import STREAM, SUMMARY, claim, remove_tmp
 from hairexp.outputs.metrics import MetricsTable, measure
 from hairexp.outputs.progress import Progress, progress_enabled
+
+log = logging.getLogger("hairexp")
+
+FLUSH_FRAMES = 25          # the stream is flushed at least every this many frames,
+FLUSH_SECONDS = 2.0        # every this many seconds,
+FLUSH_BYTES = 64 << 20     # or when this many bytes of frames are buffered
+#: final result files: present only when the run completed
+RESULT_FILES = ("result.npz", "result.usda", "result.usdc", "recording.rrd")
 
 
 def body_metrics(b: np.ndarray) -> dict:
@@ -48,17 +72,20 @@ def versions() -> dict:
             "torch": torch.__version__}
 
 
-def summarize(table, plain: dict, scene_name: str, controller: str, wall: float, status: str,
+def summarize(df, plain: dict, scene_name: str, controller: str, wall: float, status: str,
               error: str | None = None) -> dict:
-    df = table.frame()
-    n = len(df)
+    """summary.json of a run; ``df``: its metrics table (None or empty: no step yet)."""
+    n = 0 if df is None else len(df)
     agg = {}
     if n:
+        unconverged = int((~df["converged"].astype(bool)).sum())
         agg = {
             "steps": n,
             "iterations_mean": float(df["iterations"].mean()),
             "iterations_max": int(df["iterations"].max()),
             "converged_fraction": float(df["converged"].mean()),
+            "converged": unconverged == 0,
+            "unconverged_steps": unconverged,
             "recovered_steps": int(df["recovered"].sum()),
             "step_seconds_median": float(df["step_seconds"].median()),
             "stretch_max": float(df["stretch_max"].max()),
@@ -70,6 +97,24 @@ def summarize(table, plain: dict, scene_name: str, controller: str, wall: float,
         "status": status, "error": error, "success": None, "measures": {},
         **agg, "wall_seconds": wall, "config_hash": config_hash(plain), "versions": versions(), "config": plain,
     }
+
+
+def convergence_error(df, policy: str) -> str | None:
+    """Why a run with these metrics fails for non-convergence, or None."""
+    n = len(df)
+    if not n:
+        return None
+    bad = ~df["converged"].astype(bool)
+    k = int(bad.sum())
+    if not k:
+        return None
+    statuses = ", ".join(f"{s}: {c}" for s, c in df.loc[bad, "status"].value_counts().items())
+    if k == n:
+        return f"no step converged ({n} steps; {statuses})"
+    if policy == "fail":
+        return (f"{k} of {n} steps did not converge (first at t={float(df.loc[bad, 'time'].iloc[0]):.4g} s; "
+                f"{statuses}); on_unconverged=fail")
+    return None
 
 
 def observe(run, state) -> dict:
@@ -88,76 +133,169 @@ def observe(run, state) -> dict:
     return obs
 
 
+@dataclass
+class _Sinks:
+    """What a run has opened, for its ending."""
+    cfg: object
+    plain: dict
+    table: MetricsTable
+    recorder: ResultRecorder | None = None
+    rerun: object = None
+    progress: Progress | None = None
+    written: list = field(default_factory=list)   # final result files this run wrote
+
+    def flush(self) -> None:
+        self.table.flush()
+        if self.recorder is not None:
+            self.recorder.flush()
+        if self.rerun is not None:
+            self.rerun.flush()
+
+
 def run(cfg, out_dir: str | Path) -> dict:
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     plain = to_plain(cfg)
+    claim(out, overwrite=bool(cfg.overwrite))   # InputError (exit 2) for a used folder; nothing written
     controller = plain["controller"]["name"]
-    t_start = time.perf_counter()
-    table = MetricsTable()
     scene_name = plain["scene"]["name"]
-    rerun_sink = progress = None
-    ok = False
-    try:
-        r = assemble(cfg)
-        if r.cfg is not cfg:   # frames / fps taken from the USD stage
-            cfg, plain = r.cfg, to_plain(r.cfg)
-        scene, guides, sim = r.scene, r.guides, r.simulator
-        guides.save(out / "guides.npz")
-        recorder = ResultRecorder(scene)
-        if cfg.logging.rerun:
-            from hairexp.outputs.rerun_sink import RerunSink  # rerun is imported only here
+    t_start = time.perf_counter()
+    write_json(out / SUMMARY, summarize(None, plain, scene_name, controller, 0.0, "running"))
+    sinks = _Sinks(cfg, plain, MetricsTable(out / STREAM / "metrics"))
+    with InterruptSignals() as signals:
+        try:
+            return _run(sinks, out, t_start)
+        except BaseException as exc:
+            with signals.deferred():
+                _end_unfinished(exc, sinks, out, scene_name, controller, t_start)
+            if signals.pending is not None and not isinstance(exc, KeyboardInterrupt):
+                raise Interrupted(signals.pending) from exc
+            raise
 
-            rerun_sink = RerunSink(str(out / "recording.rrd"), scene, strict=cfg.logging.strict)
-        progress = Progress(cfg.frames * r.steps_per_frame, progress_enabled(cfg.logging.progress), desc=scene_name)
+
+def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
+    cfg, table = sinks.cfg, sinks.table
+    r = assemble(cfg)
+    if r.cfg is not cfg:   # frames / fps taken from the USD stage
+        cfg, sinks.cfg, sinks.plain = r.cfg, r.cfg, to_plain(r.cfg)
+    plain = sinks.plain
+    scene, guides, sim = r.scene, r.guides, r.simulator
+    scene_name, controller = plain["scene"]["name"], plain["controller"]["name"]
+    atomic_write_bytes(out / "guides.npz", guides.save)
+    recorder = sinks.recorder = ResultRecorder(scene, out / STREAM, guides.offsets, r.controller.cluster_of_vertex())
+    if cfg.logging.rerun:
+        from hairexp.outputs.rerun_sink import RerunSink  # rerun is imported only here
+
+        sinks.rerun = RerunSink(str(out / "recording.rrd"), scene, strict=cfg.logging.strict)
+    rerun_sink = sinks.rerun
+    progress = sinks.progress = Progress(cfg.frames * r.steps_per_frame, progress_enabled(cfg.logging.progress),
+                                         desc=scene_name)
+    if rerun_sink:
+        rerun_sink.log_static(guides, r.controller)
+
+    def log_frame(frame, state, obs):
+        motion = sim.motion_of(state)
+        recorder.log_frame(frame, state, motion, obs.get("guides"), obs.get("targets"), obs.get("com"))
         if rerun_sink:
-            rerun_sink.log_static(guides, r.controller)
+            rerun_sink.log_frame(frame, state, obs, motion)
 
-        def log_frame(frame, state, obs):
-            motion = sim.motion_of(state)
-            recorder.log_frame(frame, state, motion, obs.get("guides"), obs.get("targets"), obs.get("com"))
-            if rerun_sink:
-                rerun_sink.log_frame(frame, state, obs, motion)
+    state = r.initial_state()
+    log_frame(0, state, observe(r, state))
+    last_flush, frames_since = time.monotonic(), 0
+    for step, frame, state, info in r.steps(state):
+        obs = observe(r, state)
+        extra = {k: v for k, v in obs.items() if np.isscalar(v)}
+        row = measure(scene, state, info, sim, step, frame, controller, extra)
+        for sink in (table, rerun_sink, progress):
+            if sink is not None:
+                sink.on_step(row, state)
+        if step % r.steps_per_frame == 0:
+            log_frame(frame, state, obs)
+            frames_since += 1
+            if (frames_since >= FLUSH_FRAMES or time.monotonic() - last_flush >= FLUSH_SECONDS
+                    or recorder.pending_bytes() >= FLUSH_BYTES):
+                sinks.flush()
+                last_flush, frames_since = time.monotonic(), 0
+    sinks.flush()
+    progress.close()
+    df = table.frame()
+    why = convergence_error(df, str(getattr(cfg.on_unconverged, "value", cfg.on_unconverged)))
+    if why:
+        raise SimulationError(why)
+    tracker = r.controller if r.controller.cluster_of_vertex() is not None else None
+    times, positions = recorder.array("times"), recorder.array("positions")
+    measures = compute(cfg.measure, RunData(scene, times, positions, tracker, sim.objective.free_vertices,
+                                            recorder.array("body_positions"), df))
+    # the result files; a failure from here on removes those already written (no results beside a failed run)
+    atomic_write_bytes(out / "metrics.parquet", lambda f: df.to_parquet(f))
+    sinks.written.append(out / "result.npz")
+    write_npz(out / "result.npz", out / STREAM)
+    from hairexp.io.usd_write import write_result_usd  # pxr is imported here
 
-        state = r.initial_state()
-        log_frame(0, state, observe(r, state))
-        for step, frame, state, info in r.steps(state):
-            obs = observe(r, state)
-            extra = {k: v for k, v in obs.items() if np.isscalar(v)}
-            row = measure(scene, state, info, sim, step, frame, controller, extra)
-            for sink in (table, rerun_sink, progress):
-                if sink is not None:
-                    sink.on_step(row, state)
-            if step % r.steps_per_frame == 0:
-                log_frame(frame, state, obs)
-        tracker = r.controller if r.controller.cluster_of_vertex() is not None else None
-        measures = compute(cfg.measure, RunData(scene, np.asarray(recorder.times), np.asarray(recorder.positions),
-                                                tracker, sim.objective.free_vertices,
-                                                getattr(recorder, "body_positions", None), table.frame()))
-        recorder.write(out / "result.npz", guides.offsets, r.controller.cluster_of_vertex())
-        from hairexp.io.usd_write import write_result_usd  # pxr is imported here
-
-        wscene = scene
-        if sim.body is not None:  # the block's recorded poses, linear between frames
-            P = np.asarray(recorder.body_positions)
-            rv = np.repeat(sim.body.rotvecs, len(P), axis=0)
-            wscene = replace(scene, motion=RigidMotion(np.asarray(recorder.times), P, rv, "linear"))
-        write_result_usd(out / "result.usda", wscene, recorder.positions, recorder.guide_positions, guides.offsets,
-                         cfg.fps)
-        ok = True
-    except Exception as exc:
-        summary = summarize(table, plain, scene_name, controller, time.perf_counter() - t_start, "failed", str(exc))
-        write_json(out / "summary.json", summary)
-        if len(table.rows):
-            table.frame().to_parquet(out / "metrics.parquet")
-        raise
-    finally:
-        if progress is not None:
-            progress.close()
-        if rerun_sink is not None:
-            rerun_sink.close(success=ok)
-    table.frame().to_parquet(out / "metrics.parquet")
-    summary = summarize(table, plain, scene_name, controller, time.perf_counter() - t_start, "completed")
+    wscene = scene
+    if sim.body is not None:  # the block's recorded poses, linear between frames
+        P = np.array(recorder.array("body_positions"))
+        rv = np.repeat(sim.body.rotvecs, len(P), axis=0)
+        wscene = replace(scene, motion=RigidMotion(np.array(times), P, rv, "linear"))
+    usd = out / f"result.{getattr(cfg.output.usd_format, 'value', cfg.output.usd_format)}"
+    sinks.written.append(usd)
+    write_result_usd(usd, wscene, positions, recorder.array("guide_positions"), guides.offsets, cfg.fps)
+    recorder.close()
+    if rerun_sink is not None:
+        sinks.written.append(out / "recording.rrd")
+        sinks.rerun = None
+        rerun_sink.close(success=True)
+    summary = summarize(df, plain, scene_name, controller, time.perf_counter() - t_start, "completed")
     summary["measures"] = measures
-    write_json(out / "summary.json", summary)
+    write_json(out / SUMMARY, summary)
+    try:
+        shutil.rmtree(out / STREAM)
+    except OSError as exc:
+        log.warning("%s: could not remove %s: %s", out, STREAM, exc)
+    if not summary["converged"]:
+        log.warning("%s: %d of %d steps did not converge; the results are kept and summary.json says converged: "
+                    "false (on_unconverged=fail makes this an error)", out, summary["unconverged_steps"],
+                    summary["steps"])
     return summary
+
+
+def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: str, controller: str,
+                    t_start: float) -> None:
+    """Write the ending of a run that did not complete; every step is tried, and a failure in
+    one is logged and noted on ``exc`` (which the caller re-raises) instead of replacing it."""
+    interrupted = isinstance(exc, KeyboardInterrupt)
+    status = "interrupted" if interrupted else "failed"
+    error = (str(exc) if isinstance(exc, Interrupted) else "interrupted by SIGINT") if interrupted else str(exc)
+
+    def attempt(what: str, fn):
+        try:
+            return fn()
+        except BaseException as e2:   # noqa: BLE001  (the ending must go on)
+            note = f"while writing the {status} ending ({what}): {type(e2).__name__}: {e2}"
+            log.error("%s: %s", out, note)
+            exc.add_note(note)
+            return None
+
+    if sinks.progress is not None:
+        attempt("progress", sinks.progress.close)
+    if sinks.recorder is not None:
+        attempt("frames", sinks.recorder.flush)
+        attempt("frames", sinks.recorder.close)
+    attempt("metrics", sinks.table.flush)
+    df = attempt("metrics", sinks.table.frame)
+    if df is not None and len(df):
+        def write_metrics():
+            atomic_write_bytes(out / "metrics.parquet", lambda f: df.to_parquet(f))
+            return True
+
+        if attempt("metrics.parquet", write_metrics):
+            attempt("metrics", lambda: shutil.rmtree(out / STREAM / "metrics"))   # the parquet holds them now
+    if sinks.rerun is not None:
+        attempt("recording", lambda: sinks.rerun.close(success=False))
+    for p in sinks.written:
+        attempt(p.name, lambda p=p: p.unlink(missing_ok=True))
+    summary = summarize(df, sinks.plain, scene_name, controller, time.perf_counter() - t_start, status, error)
+    attempt("summary.json", lambda: write_json(out / SUMMARY, summary))
+    stream = out / STREAM
+    if stream.is_dir() and not any(p.is_file() for p in stream.rglob("*")):
+        attempt(STREAM, lambda: shutil.rmtree(stream))
+    attempt("temporary files", lambda: remove_tmp(out))

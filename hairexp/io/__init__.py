@@ -4,7 +4,7 @@
   the reader and the writer (README "USD scenes");
 * ``usd_read``: a scene and its guide animation from a USD stage (``experiment=from_usd``);
 * ``usd_write``: a scene in that input layout (``write_scene_usd``) and a run's
-  ``result.usda`` (``write_result_usd``);
+  ``result.usdc`` or ``result.usda`` (``write_result_usd``);
 * ``export_scene``: the entry point ``python -m hairexp.io.export_scene <out.usda> [overrides]``,
   which writes a config's scene and guides as a USD stage (the export is hairexp/app/export_scene.py).
 

@@ -11,7 +11,7 @@ Input layout, read by ``experiment=from_usd`` and written by ``write_scene_usd``
     /Root/Colliders/<n>   Sphere, Cube, Cylinder, Capsule or Plane (axis Y), optionally
                           time-sampled, with hairexp:thickness, hairexp:friction, hairexp:spin
 
-A run's ``result.usda`` has the same prims (so it re-imports) plus
+A run's ``result.usdc`` (or ``.usda``) has the same prims (so it re-imports) plus
 ``/Root/Result/Hair``: the simulated hair in world space, one time sample per frame.
 
 USD composes row vectors: ``p_world = p_local * M`` with the translation in the last row;

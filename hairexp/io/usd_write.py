@@ -3,10 +3,11 @@
 * ``write_scene_usd(path, scene, guides, fps, frames)``: a scene in the input layout that
   ``experiment=from_usd`` reads (a template for users, and the round trip);
 * ``write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps)``: a run's
-  ``result.usda``: the input layout sampled at every frame plus ``/Root/Result/Hair``.
+  ``result.usdc`` (binary crate, the default) or ``result.usda`` (``output.usd_format``): the
+  input layout sampled at every frame plus ``/Root/Result/Hair``.
 
 Body and collider transforms: a ``linear`` motion is written at its keyframes (it re-imports
-exactly); a ``cubic`` one, and every motion in result.usda, once per frame (it re-imports
+exactly); a ``cubic`` one, and every motion in a result stage, once per frame (it re-imports
 linear between frames); a still one as an untimed value.  Points are float32 (USD's
 ``point3f``), transforms and sizes float64.  Files are written to a temporary name in the same
 folder, then renamed: a failed write leaves nothing under the final name.
@@ -117,12 +118,12 @@ def write_scene_usd(path, scene, guides, fps: float, frames: int) -> None:
 
 
 def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps: float) -> None:
-    """A run's result.usda: positions (frames+1, V, 3) and guide_positions (frames+1, Vg, 3)
+    """A run's result.usdc (or .usda: the format follows the suffix): positions (frames+1, V, 3) and guide_positions (frames+1, Vg, 3)
     in world space, body and colliders sampled at every frame."""
     positions, guide_positions = np.asarray(positions), np.asarray(guide_positions)
     frames = len(positions) - 1
     for name, a in (("positions", positions), ("guide_positions", guide_positions)):
-        if not np.isfinite(a).all():
+        if not all(np.isfinite(P).all() for P in a):   # frame by frame: the arrays may be memory-mapped
             raise AssertionError(f"refusing to write non-finite {name} to {path}")
     stage = new_stage(fps, frames, "hairexp result: the input layout plus /Root/Result/Hair (README 'USD scenes')")
     samples = lambda motion: pose_samples(motion, fps, frames, keyframes=False)  # noqa: E731

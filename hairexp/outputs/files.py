@@ -1,20 +1,52 @@
-"""Result files of the run folder, written atomically (temp file, then rename) so a crash
-never leaves a half-written file under its final name."""
+"""Result files of the run folder.
+
+Final files are written atomically (a temporary name in the same folder, then a rename; the
+temporary file is removed if the write fails), so a crash or a full disk never leaves a
+half-written file under its final name and no ``*.tmp`` behind.
+
+Per-frame results are streamed while the run goes (``ResultRecorder``): each per-frame array is
+a ``.npy`` file in ``<run>/stream/`` that grows frame by frame.  Frames are buffered in memory
+and appended at every ``flush`` (the run flushes every few frames and at its end); after each
+append the file's header is rewritten with the number of frames written, so at any moment the
+file is a valid ``.npy`` of the frames flushed so far (``np.load(path, mmap_mode="r")``).  The
+per-run constant arrays are written there at the start.  ``write_npz`` turns the folder into
+``result.npz`` (the same arrays and names) chunk by chunk, without loading whole arrays.
+"""
 
 from __future__ import annotations
 
+import io
 import json
 import os
+import struct
+import zipfile
 from pathlib import Path
 
 import numpy as np
 
+#: result.npz's arrays, in order; the per-frame ones (first axis: frames + 1) are streamed.
+RESULT_ARRAYS = ("positions", "strand_offsets", "times", "guide_positions", "masses", "guide_offsets",
+                 "cluster_of_vertex", "targets", "com", "body_positions")
+PER_FRAME = ("positions", "times", "guide_positions", "targets", "com", "body_positions")
+HEADER_BYTES = 256        # fixed .npy header size of a growing file (rewritten in place)
+COPY_BYTES = 1 << 24      # block size when streaming an array into result.npz
+
+
+def tmp_name(path: Path) -> Path:
+    return path.with_name(path.name + ".tmp")
+
 
 def atomic_write_bytes(path: Path, write) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        write(f)
-    os.replace(tmp, path)
+    """``write(f)`` into a temporary file, then rename it to ``path``; on any error the
+    temporary file is removed and the error propagates."""
+    path = Path(path)
+    tmp = tmp_name(path)
+    try:
+        with open(tmp, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def write_json(path: Path, obj) -> None:
@@ -30,37 +62,142 @@ def write_json(path: Path, obj) -> None:
     atomic_write_bytes(Path(path), lambda f: f.write(json.dumps(obj, indent=2, default=default, allow_nan=True).encode()))
 
 
-class ResultRecorder:
-    """Keeps per-frame arrays for ``result.npz`` (frame 0 is the initial state)."""
+def save_npy(path: Path, a: np.ndarray) -> None:
+    atomic_write_bytes(Path(path), lambda f: np.save(f, np.asarray(a), allow_pickle=False))
 
-    def __init__(self, scene):
+
+def _npy_header(shape: tuple, dtype: np.dtype) -> bytes:
+    """A version 1.0 ``.npy`` header of exactly HEADER_BYTES bytes."""
+    d = "{'descr': %r, 'fortran_order': False, 'shape': %r, }" % (np.lib.format.dtype_to_descr(dtype), tuple(shape))
+    size = HEADER_BYTES - 10
+    if len(d) + 1 > size:
+        raise ValueError(f"array shape {shape} too long for a streamed .npy header")
+    return np.lib.format.magic(1, 0) + struct.pack("<H", size) + (d + " " * (size - len(d) - 1) + "\n").encode("latin1")
+
+
+class GrowingNpy:
+    """A ``.npy`` file appended frame by frame; its header always counts the frames written."""
+
+    def __init__(self, path: Path, frame_shape: tuple, dtype):
+        self.path, self.frame_shape, self.dtype = Path(path), tuple(frame_shape), np.dtype(dtype)
+        self.n = 0
+        self.pending: list[bytes] = []
+        self.f = open(self.path, "wb")
+        self.f.write(_npy_header((0, *self.frame_shape), self.dtype))
+        self.f.flush()
+
+    def append(self, a) -> None:
+        a = np.asarray(a)
+        if a.shape != self.frame_shape:
+            raise ValueError(f"{self.path.stem}: frame of shape {a.shape}, expected {self.frame_shape}")
+        self.pending.append(np.ascontiguousarray(a, dtype=self.dtype).tobytes())
+
+    def flush(self) -> None:
+        if not self.pending:
+            return
+        k = len(self.pending)
+        self.f.seek(HEADER_BYTES + self.n * self.frame_bytes)
+        for b in self.pending:
+            self.f.write(b)
+        self.f.flush()
+        self.pending.clear()
+        self.n += k
+        self.f.seek(0)
+        self.f.write(_npy_header((self.n, *self.frame_shape), self.dtype))
+        self.f.flush()
+
+    @property
+    def frame_bytes(self) -> int:
+        return int(np.prod(self.frame_shape, dtype=np.int64)) * self.dtype.itemsize
+
+    def close(self) -> None:
+        self.f.close()
+
+
+class ResultRecorder:
+    """Streams the per-frame arrays of ``result.npz`` into ``folder`` (frame 0 is the initial
+    state); memory holds only the frames since the last ``flush``."""
+
+    def __init__(self, scene, folder: Path, guide_offsets: np.ndarray | None = None,
+                 cluster_of_vertex: np.ndarray | None = None):
         self.scene = scene
-        self.positions, self.times = [], []
-        self.guide_positions, self.targets, self.com = [], [], []
-        self.body_positions = []   # (3,) per frame: the body's pose translation (any body, keyframed or dynamic)
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        s = scene.strands
+        constants = dict(strand_offsets=s.offsets, masses=s.masses,
+                         guide_offsets=np.zeros(1, dtype=np.int64) if guide_offsets is None else guide_offsets,
+                         cluster_of_vertex=(np.full(s.n_vertices, -1, dtype=np.int64) if cluster_of_vertex is None
+                                            else cluster_of_vertex))
+        for k, a in constants.items():
+            save_npy(self.folder / f"{k}.npy", a)
+        self.files: dict[str, GrowingNpy] = {}
+        self.frames = 0
 
     def log_frame(self, frame: int, state, motion=None, guides: np.ndarray | None = None,
                   targets: np.ndarray | None = None, com: np.ndarray | None = None) -> None:
         """Frame ``frame`` of ``state``; ``motion``: the body's poses at ``state.time``
         (``Simulator.motion_of``), default the scene's motion."""
-        self.positions.append(state.x.copy())
-        self.times.append(state.time)
-        self.guide_positions.append(np.zeros((0, 3)) if guides is None else guides)
-        self.targets.append(np.zeros((0, 3)) if targets is None else targets)
-        self.com.append(np.zeros((0, 3)) if com is None else com)
-        self.body_positions.append((motion or self.scene.motion).pose(state.time)[1])
+        values = dict(positions=state.x, times=np.float64(state.time),
+                      guide_positions=np.zeros((0, 3)) if guides is None else guides,
+                      targets=np.zeros((0, 3)) if targets is None else targets,
+                      com=np.zeros((0, 3)) if com is None else com,
+                      body_positions=np.asarray((motion or self.scene.motion).pose(state.time)[1]).reshape(3))
+        for k, v in values.items():
+            if k not in self.files:
+                v = np.asarray(v)
+                self.files[k] = GrowingNpy(self.folder / f"{k}.npy", v.shape, v.dtype)
+            self.files[k].append(v)
+        self.frames += 1
 
-    def write(self, path: Path, guide_offsets: np.ndarray | None = None, cluster_of_vertex: np.ndarray | None = None) -> None:
-        s = self.scene.strands
-        arrays = dict(
-            positions=np.asarray(self.positions), strand_offsets=s.offsets, times=np.asarray(self.times),
-            guide_positions=np.asarray(self.guide_positions), masses=s.masses,
-            guide_offsets=np.zeros(1, dtype=np.int64) if guide_offsets is None else guide_offsets,
-            cluster_of_vertex=np.full(s.n_vertices, -1, dtype=np.int64) if cluster_of_vertex is None else cluster_of_vertex,
-            targets=np.asarray(self.targets), com=np.asarray(self.com),
-            body_positions=np.asarray(self.body_positions).reshape(-1, 3),
-        )
-        for k, a in arrays.items():
-            if a.dtype.kind == "f" and not np.isfinite(a).all():
-                raise AssertionError(f"refusing to write non-finite {k} to {path}")
-        atomic_write_bytes(Path(path), lambda f: np.savez_compressed(f, **arrays))
+    def pending_bytes(self) -> int:
+        return sum(len(b) for f in self.files.values() for b in f.pending)
+
+    def flush(self) -> None:
+        for f in self.files.values():
+            f.flush()
+
+    def close(self) -> None:
+        for f in self.files.values():
+            f.close()
+
+    def array(self, name: str) -> np.ndarray:
+        """A flushed array, memory-mapped read-only."""
+        return np.load(self.folder / f"{name}.npy", mmap_mode="r")
+
+
+def _read_npy_header(f) -> tuple[dict, int]:
+    fmt = np.lib.format
+    version = fmt.read_magic(f)
+    read = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
+    shape, fortran, dtype = read(f)
+    return {"shape": shape, "fortran_order": fortran, "descr": np.lib.format.dtype_to_descr(dtype)}, f.tell()
+
+
+def write_npz(path: Path, folder: Path, names=RESULT_ARRAYS) -> None:
+    """``result.npz`` (compressed, as ``np.savez_compressed``) from the ``.npy`` files in
+    ``folder``, copied in blocks; a non-finite float array is refused (AssertionError)."""
+    folder = Path(folder)
+
+    def write(f):
+        with zipfile.ZipFile(f, mode="w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
+            for name in names:
+                with open(folder / f"{name}.npy", "rb") as src:
+                    d, _ = _read_npy_header(src)
+                    dtype = np.lib.format.descr_to_dtype(d["descr"])
+                    count = int(np.prod(d["shape"], dtype=np.int64))
+                    with zf.open(f"{name}.npy", "w", force_zip64=True) as dst:
+                        header = io.BytesIO()
+                        np.lib.format.write_array_header_1_0(header, d)
+                        dst.write(header.getvalue())
+                        left = count * dtype.itemsize
+                        block = max(dtype.itemsize, COPY_BYTES // dtype.itemsize * dtype.itemsize)
+                        while left > 0:
+                            b = src.read(min(block, left))
+                            if len(b) == 0:
+                                raise OSError(f"{folder / name}.npy: ends before its {d['shape']} frames")
+                            if dtype.kind == "f" and not np.isfinite(np.frombuffer(b, dtype)).all():
+                                raise AssertionError(f"refusing to write non-finite {name} to {path}")
+                            dst.write(b)
+                            left -= len(b)
+
+    atomic_write_bytes(Path(path), write)

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
+from hairexp.outputs.files import atomic_write_bytes
 from hairexp.physics.info import StepInfo
 from hairexp.model.scene import Scene
 from hairexp.physics.state import State
@@ -64,15 +66,44 @@ def measure(scene: Scene, state: State, info: StepInfo, sim, step: int, frame: i
 
 
 class MetricsTable:
-    """Collects rows; ``frame()`` gives the pandas table (one row per step)."""
+    """Collects rows; ``frame()`` gives the pandas table (one row per step).
 
-    def __init__(self):
-        self.rows: list[dict] = []
+    With a ``folder`` the table is streamed: ``flush()`` writes the rows since the last flush as
+    one parquet part ``part-<k>.parquet`` (atomically) and drops them from memory, so a crash
+    keeps every flushed step (``pd.read_parquet(folder)`` reads the parts as one table)."""
+
+    def __init__(self, folder: Path | None = None):
+        self.folder = None if folder is None else Path(folder)
+        self.rows: list[dict] = []     # the rows not yet in a part
+        self.parts: list[Path] = []
+        self.steps = 0
+        if self.folder is not None:
+            self.folder.mkdir(parents=True, exist_ok=True)
 
     def on_step(self, row: dict, state: State) -> None:
         self.rows.append(row)
+        self.steps += 1
 
-    def frame(self):
+    def flush(self) -> None:
+        if self.folder is None or not self.rows:
+            return
         import pandas as pd
 
-        return pd.DataFrame(self.rows)
+        path = self.folder / f"part-{len(self.parts):05d}.parquet"
+        df = pd.DataFrame(self.rows)
+        atomic_write_bytes(path, lambda f: df.to_parquet(f))
+        self.parts.append(path)
+        self.rows = []
+
+    def frame(self):
+        """The whole table: the parts and the rows not yet flushed, with the columns and dtypes
+        of one ``DataFrame`` of all rows."""
+        import pandas as pd
+
+        if not self.parts:
+            return pd.DataFrame(self.rows)
+        dfs = [pd.read_parquet(p) for p in self.parts] + ([pd.DataFrame(self.rows)] if self.rows else [])
+        df = pd.concat(dfs, ignore_index=True)
+        if len({tuple(d.dtypes.items()) for d in dfs}) > 1:   # parts inferred differently: infer over all rows
+            df = pd.DataFrame(df.to_dict("records"))
+        return df

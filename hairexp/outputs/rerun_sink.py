@@ -5,6 +5,12 @@ Entities: /world/hair (line strips), /world/body (rigid body transform and box),
 /world/roots (root vertices), /metrics/<name> (scalars on the ``frame``, ``sim_time`` and
 ``step`` timelines).  A default blueprint puts the 3D view beside the metric plots.  Each
 recording has an explicit recording id, so parallel workers never share one.
+
+The recording is written while the run goes to ``recording.partial.rrd`` (rerun's file sink);
+``flush()`` sends the metric scalars gathered since the last flush and waits for the writer,
+so a write failure (a full disk) raises there instead of passing silently.  ``close(True)``
+renames the file to ``recording.rrd`` once it is complete (its footer read back); a failed or
+interrupted run keeps the ``.partial.rrd`` name (a valid recording of the steps done).
 """
 
 from __future__ import annotations
@@ -37,19 +43,26 @@ def blueprint() -> rrb.Blueprint:
     )
 
 
+def partial_name(path: str) -> str:
+    """``recording.rrd`` -> ``recording.partial.rrd`` (the name while it is written)."""
+    root, ext = os.path.splitext(path)
+    return f"{root}.partial{ext}"
+
+
 class RerunSink:
     def __init__(self, path: str, scene, application_id: str = "hairexp", recording_id: str | None = None,
                  strict: bool = False):
         if strict:
             rr.set_strict_mode(True)
         self.path = path
-        self.partial = path + ".partial"
+        self.partial = partial_name(path)
         self.recording_id = recording_id or str(uuid.uuid4())
         self.rec = rr.RecordingStream(application_id, recording_id=self.recording_id)
         self.rec.save(self.partial, default_blueprint=blueprint())
         self.scene = scene
         self.offsets = scene.strands.offsets
-        self.scalars: dict[str, list] = {}
+        self.scalars: dict[str, list] = {}   # since the last flush
+        self.named: set[str] = set()           # metric series given their name
         self.steps, self.frames, self.times = [], [], []
         rec = self.rec
         rec.log("/world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
@@ -146,15 +159,51 @@ class RerunSink:
             if isinstance(v, (int, float, np.integer, np.floating)) and k not in ("step", "frame", "time"):
                 self.scalars.setdefault(k, []).append(float(v))
 
-    def close(self, success: bool) -> None:
+    def _send_metrics(self) -> None:
+        """The scalars since the last call as columns on the step, frame and sim_time timelines."""
         rec = self.rec
         if self.steps:
             idx = [rr.TimeColumn("step", sequence=self.steps), rr.TimeColumn("frame", sequence=self.frames),
                    rr.TimeColumn("sim_time", duration=self.times)]
             for k, vals in self.scalars.items():
                 rec.send_columns(f"/metrics/{k}", indexes=idx, columns=rr.Scalars.columns(scalars=np.asarray(vals)))
-                rec.log(f"/metrics/{k}", rr.SeriesLines(names=k), static=True)
-        rec.flush()
-        rec.disconnect()
+                if k not in self.named:
+                    rec.log(f"/metrics/{k}", rr.SeriesLines(names=k), static=True)
+                    self.named.add(k)
+        self.steps, self.frames, self.times, self.scalars = [], [], [], {}
+
+    def flush(self) -> None:
+        """Send the pending metrics and wait until the file holds everything logged; a write
+        failure raises OSError."""
+        self._send_metrics()
+        try:
+            self.rec.flush()
+        except RuntimeError as exc:   # rerun's file writer stopped (e.g. no space left on the device)
+            raise OSError(f"{self.partial}: the recording could not be written ({exc})") from exc
+
+    def close(self, success: bool) -> None:
+        """Flush, finish the file and, when ``success``, give it its final name (after reading
+        its footer back: a recording that did not finish stays ``.partial.rrd``)."""
+        try:
+            if success:
+                self.flush()
+            else:
+                self._send_metrics()
+        finally:
+            self.rec.disconnect()
         if success:
+            _check_complete(self.partial)
             os.replace(self.partial, self.path)
+
+
+def _check_complete(path: str) -> None:
+    import warnings
+
+    from rerun.chunk import RrdReader
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")   # rerun warns (and does not raise) on a file without footer
+        try:
+            RrdReader(path)
+        except Exception as exc:
+            raise OSError(f"{path}: the recording is incomplete ({exc})") from exc

@@ -1,0 +1,92 @@
+"""A run folder belongs to one run.
+
+``claim(folder, overwrite)`` refuses a folder that already holds anything but Hydra's own
+entries (``.hydra/`` and the job's ``*.log``, which Hydra writes before the run starts), and
+then takes the folder by creating ``summary.json`` exclusively, so two launches into the same
+folder cannot both start.  With ``overwrite`` the files a previous run wrote there (the run
+folder's files, ``stream/``, and variant sub-folders made only of those) are removed first;
+anything else in the folder is never deleted and is refused.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+from hairexp.errors import InputError
+
+SUMMARY = "summary.json"
+STREAM = "stream"
+#: what a run writes into its folder (README "Run folder")
+RUN_FILES = frozenset({SUMMARY, "metrics.parquet", "result.npz", "result.usda", "result.usdc", "guides.npz",
+                       "recording.rrd", "recording.partial.rrd"})
+RUN_DIRS = frozenset({STREAM})
+
+
+def _hydras(p: Path) -> bool:
+    return p.name == ".hydra" or (p.is_file() and p.suffix == ".log")
+
+
+def _is_tmp(p: Path) -> bool:
+    return ".tmp" in p.name
+
+
+def _removable(folder: Path, top: bool) -> tuple[list[Path], list[Path]]:
+    """(entries a previous run wrote, entries that are not a run's) of ``folder``."""
+    ours, foreign = [], []
+    for p in sorted(folder.iterdir()):
+        if top and _hydras(p):
+            continue
+        if (p.name in RUN_FILES or _is_tmp(p)) and not p.is_dir():
+            ours.append(p)
+        elif p.name in RUN_DIRS and p.is_dir():
+            ours.append(p)
+        elif p.is_dir() and (p / SUMMARY).is_file():   # a variant's run folder
+            sub_ours, sub_foreign = _removable(p, top=False)
+            (foreign.extend(sub_foreign) if sub_foreign else ours.append(p))
+        else:
+            foreign.append(p)
+    return ours, foreign
+
+
+def used_entries(folder: Path) -> list[Path]:
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    return [p for p in sorted(folder.iterdir()) if not _hydras(p)]
+
+
+def claim(folder: Path, overwrite: bool = False) -> None:
+    """Make ``folder`` this run's: create it, refuse it (InputError) when it holds another
+    run's files unless ``overwrite``, and create ``summary.json`` exclusively."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise InputError("is not a folder", str(folder))
+    used = used_entries(folder)
+    if used:
+        names = ", ".join(p.name for p in used[:6]) + (", ..." if len(used) > 6 else "")
+        if not overwrite:
+            raise InputError(f"the run folder is not empty ({names}); a run folder belongs to one run: choose "
+                             "another folder (hydra.run.dir) or set overwrite=true to replace the run in it",
+                             str(folder))
+        ours, foreign = _removable(folder, top=True)
+        if foreign:
+            raise InputError("overwrite=true removes only what a run wrote; the folder also holds "
+                             + ", ".join(str(p.relative_to(folder)) for p in foreign[:6]), str(folder))
+        for p in ours:
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        os.close(os.open(folder / SUMMARY, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
+    except FileExistsError:
+        raise InputError("another run has just started in this folder", str(folder)) from None
+
+
+def remove_tmp(folder: Path) -> None:
+    """Remove temporary files (``*.tmp*``) left in ``folder`` and its sub-folders."""
+    folder = Path(folder)
+    if folder.is_dir():
+        for p in folder.rglob("*.tmp*"):
+            if p.is_file():
+                p.unlink(missing_ok=True)

@@ -1,0 +1,315 @@
+"""Run folders that survive anything (README "Run folder"): signals end a run as interrupted with
+its partial data, a write failure never leaves a truncated file under a final name nor hides
+the first error, a folder belongs to one run, variant names are safe folder names, non-convergence
+is reported, a sweep's bad job does not stop the others, and the USD result is a binary crate."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+import hairexp.app.cli as cli_mod
+import hairexp.app.run as run_mod
+import hairexp.outputs.files as files
+from hairexp.app.experiment import run_experiment
+from hairexp.app.run import run
+from hairexp.errors import InputError, SimulationError
+from hairexp.outputs.files import GrowingNpy, ResultRecorder, write_npz
+from hairexp.outputs.metrics import MetricsTable
+from hairexp.physics.info import MAX_ITERATIONS
+from hairexp.physics.simulator import Simulator
+
+TINY = ["experiment=goaling_smoke", "variants=[]", "scene.n_strands=3", "scene.n_vertices=6", "guides.source=rigid",
+        "logging.rerun=false", "logging.progress=false"]
+FINAL = ("result.npz", "result.usdc", "result.usda", "recording.rrd")
+
+
+def cli(args, cwd, **kw):
+    return subprocess.Popen([sys.executable, "-m", "hairexp", *args], cwd=cwd, env=dict(os.environ, CI="1"),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+def leftovers(out: Path) -> list[str]:
+    return [str(p.relative_to(out)) for p in out.rglob("*") if ".tmp" in p.name]
+
+
+# ---------------------------------------------------------------------------------------------
+# Signals: SIGINT -> 130, SIGTERM -> 143, summary interrupted, partial data readable
+# ---------------------------------------------------------------------------------------------
+
+def test_signals_end_the_run_as_interrupted(tmp_path):
+    procs = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        out = tmp_path / sig.name
+        procs[sig] = (out, cli(["experiment=goaling_smoke", "variants=[]", "controller=tracking", "guides.source=rigid",
+                                "frames=2000", f"hydra.run.dir={out}"], tmp_path))
+    try:
+        for sig, (out, p) in procs.items():
+            deadline = time.monotonic() + 60
+            while not list((out / "stream" / "metrics").glob("part-*.parquet")):   # a few steps are on disk
+                assert p.poll() is None, p.communicate()
+                assert time.monotonic() < deadline, "no metrics part after 60 s"
+                time.sleep(0.1)
+            p.send_signal(sig)
+        for sig, (out, p) in procs.items():
+            _, err = p.communicate(timeout=60)
+            assert p.returncode == 128 + sig, err
+            assert f"interrupted by {sig.name}" in err
+            summary = json.loads((out / "summary.json").read_text())
+            assert summary["status"] == "interrupted" and summary["error"] == f"interrupted by {sig.name}"
+            df = pd.read_parquet(out / "metrics.parquet")
+            assert 0 < len(df) == summary["steps"] < 2000
+            positions = np.load(out / "stream" / "positions.npy")     # the frames done, a valid .npy
+            assert 1 <= len(positions) <= len(df) + 1 and np.isfinite(positions).all()
+            assert not [n for n in FINAL if (out / n).exists()]
+            assert (out / "recording.partial.rrd").is_file()
+            assert leftovers(out) == []
+    finally:
+        for _, p in procs.values():
+            if p.poll() is None:
+                p.kill()
+
+
+# ---------------------------------------------------------------------------------------------
+# Write failures: a full disk mid-run, a late failure of a result file
+# ---------------------------------------------------------------------------------------------
+
+def full_disk_after(monkeypatch, calls: int, everything: bool):
+    """Frames flush ``calls`` times, then raise ENOSPC; with ``everything`` every atomic write
+    fails from then on too (the failure summary included)."""
+    state = {"n": 0, "full": False}
+    flush, atomic = GrowingNpy.flush, files.atomic_write_bytes
+
+    def full_flush(self):
+        if state["full"] or (self.pending and state["n"] >= calls * 6):   # 6 per-frame arrays per flush
+            state["full"] = True
+            raise OSError(errno.ENOSPC, "No space left on device (injected)")
+        state["n"] += bool(self.pending)
+        flush(self)
+
+    def full_atomic(path, write):
+        if everything and state["full"]:
+            raise OSError(errno.ENOSPC, f"No space left on device (injected, {Path(path).name})")
+        atomic(path, write)
+
+    monkeypatch.setattr(GrowingNpy, "flush", full_flush)
+    monkeypatch.setattr(files, "atomic_write_bytes", full_atomic)
+    monkeypatch.setattr(run_mod, "atomic_write_bytes", full_atomic)
+    monkeypatch.setattr(run_mod, "FLUSH_FRAMES", 2)
+
+
+def test_disk_full_mid_run(hydra_conf, tmp_path, monkeypatch):
+    full_disk_after(monkeypatch, 2, everything=False)
+    with pytest.raises(OSError, match="injected") as e:
+        run(hydra_conf([*TINY, "frames=12"]), tmp_path)
+    assert e.value.errno == errno.ENOSPC
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["status"] == "failed" and "injected" in summary["error"]
+    assert not [n for n in FINAL if (tmp_path / n).exists()] and leftovers(tmp_path) == []
+    df = pd.read_parquet(tmp_path / "metrics.parquet")              # the steps done
+    assert len(df) == summary["steps"] >= 4
+    P = np.load(tmp_path / "stream" / "positions.npy")              # the frames flushed before the disk filled
+    assert len(P) == 5 and np.isfinite(P).all()                     # frame 0 + 2 flushes of 2 frames
+
+
+def test_disk_full_hides_nothing(hydra_conf, tmp_path, monkeypatch):
+    """When the failure summary cannot be written either, the first error is still the one
+    raised; the later ones are notes on it."""
+    full_disk_after(monkeypatch, 1, everything=True)
+    with pytest.raises(OSError) as e:
+        run(hydra_conf([*TINY, "frames=12"]), tmp_path)
+    assert str(e.value).endswith("(injected)")                      # the frames' write, not a later one
+    notes = "\n".join(e.value.__notes__)
+    assert "summary.json" in notes and "metrics.parquet" in notes
+    assert not [n for n in FINAL if (tmp_path / n).exists()] and leftovers(tmp_path) == []
+    for p in tmp_path.rglob("*.parquet"):                           # the parts on disk are complete files
+        pd.read_parquet(p)
+
+
+def test_late_write_failure_leaves_no_result(hydra_conf, tmp_path, monkeypatch):
+    """result.npz is written, then the USD stage fails: result.npz is removed, the summary says
+    failed with the USD error."""
+    import hairexp.io.usd_write as usd_write
+
+    def blocked(path, *a, **k):
+        raise PermissionError(errno.EACCES, "Permission denied (injected)", str(path))
+
+    monkeypatch.setattr(usd_write, "write_result_usd", blocked)
+    with pytest.raises(PermissionError):
+        run(hydra_conf([*TINY, "frames=3"]), tmp_path)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["status"] == "failed" and "Permission denied" in summary["error"]
+    assert not [n for n in FINAL if (tmp_path / n).exists()] and leftovers(tmp_path) == []
+    assert len(pd.read_parquet(tmp_path / "metrics.parquet")) == 3
+
+
+# ---------------------------------------------------------------------------------------------
+# The streamed format
+# ---------------------------------------------------------------------------------------------
+
+def test_streamed_arrays_and_npz(tmp_path):
+    g = GrowingNpy(tmp_path / "a.npy", (2, 3), np.float64)
+    assert np.load(tmp_path / "a.npy").shape == (0, 2, 3)
+    frames = np.random.default_rng(0).normal(size=(7, 2, 3))
+    for k, f in enumerate(frames):
+        g.append(f)
+        if k in (2, 4):
+            g.flush()
+            np.testing.assert_array_equal(np.load(tmp_path / "a.npy", mmap_mode="r"), frames[:k + 1])
+    g.flush()
+    g.close()
+    write_npz(tmp_path / "r.npz", tmp_path, names=("a",))
+    with np.load(tmp_path / "r.npz") as r:
+        assert r.files == ["a"]
+        np.testing.assert_array_equal(r["a"], frames)
+    with pytest.raises(ValueError, match="shape"):
+        GrowingNpy(tmp_path / "b.npy", (3,), np.float64).append(np.zeros(4))
+
+
+def test_streamed_metrics_equal_one_table(tmp_path):
+    rows = [{"step": i, "x": (i if i < 3 else 0.5), "flag": i % 2 == 0, "s": "a", **({"late": 1.0} if i > 4 else {})}
+            for i in range(8)]
+    t = MetricsTable(tmp_path / "m")
+    for i, r in enumerate(rows):
+        t.on_step(r, None)
+        if i in (2, 5):
+            t.flush()
+    pd.testing.assert_frame_equal(t.frame(), pd.DataFrame(rows))   # parts inferred differently: one inference
+    assert sum(len(pd.read_parquet(p)) for p in sorted((tmp_path / "m").glob("part-*.parquet"))) == 6
+
+
+# ---------------------------------------------------------------------------------------------
+# A folder belongs to one run
+# ---------------------------------------------------------------------------------------------
+
+def test_used_folder_is_refused_unless_overwrite(hydra_conf, tmp_path):
+    out = tmp_path / "run"
+    run(hydra_conf([*TINY, "frames=2", "output.usd_format=usda"]), out)
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    with pytest.raises(InputError, match="not empty") as e:
+        run(hydra_conf([*TINY, "frames=3"]), out)
+    assert "overwrite=true" in str(e.value)
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == before      # untouched
+    s = run(hydra_conf([*TINY, "frames=3", "overwrite=true"]), out)
+    assert s["status"] == "completed" and s["steps"] == 3
+    assert sorted(p.name for p in out.iterdir()) == ["guides.npz", "metrics.parquet", "result.npz", "result.usdc",
+                                                     "summary.json"]            # no result.usda of the old run
+    from pxr import Usd, UsdGeom                                                 # the default: a binary crate
+
+    assert (out / "result.usdc").read_bytes()[:8] == b"PXR-USDC"
+    stage = Usd.Stage.Open(str(out / "result.usdc"))
+    hair = UsdGeom.BasisCurves.Get(stage, "/Root/Result/Hair")
+    assert hair.GetPointsAttr().GetTimeSamples() == [0.0, 1.0, 2.0, 3.0]
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="notes.txt"):                          # never deleted
+        run(hydra_conf([*TINY, "frames=1", "overwrite=true"]), out)
+    assert (out / "notes.txt").read_text() == "mine" and (out / "result.npz").is_file()
+
+
+def test_default_folders_are_unique(tmp_path):
+    procs = [cli([*TINY, "frames=1"], tmp_path) for _ in range(2)]               # launched in the same second
+    for p in procs:
+        _, err = p.communicate(timeout=120)
+        assert p.returncode == 0, err
+    folders = sorted((tmp_path / "outputs" / "goaling_smoke").iterdir())
+    assert len(folders) == 2 and all((f / "result.npz").is_file() for f in folders)
+
+
+def test_used_folder_exits_2_with_one_line(hydra_conf, tmp_path, capsys):
+    """The command line's job (hairexp/app/cli.py) on a used folder: exit code 2, one line."""
+    used = tmp_path / "used"
+    used.mkdir()
+    (used / "summary.json").write_text('{"status": "completed"}')
+    res = cli_mod.job(hydra_conf([*TINY, "frames=1"]), str(used))
+    assert res["code"] == 2 and res["status"] == "failed" and cli_mod.exit_code() == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("hairexp: error: ") and "not empty" in lines[0]
+    assert (used / "summary.json").read_text() == '{"status": "completed"}'   # the old run's summary is kept
+
+
+@pytest.mark.parametrize("names, bad, match", [
+    (["../x", "tracked"], 0, "safe folder name"),
+    (["free", ""], 1, "safe folder name"),
+    (["/abs", "tracked"], 0, "safe folder name"),
+    (["free", "a/b"], 1, "safe folder name"),
+    ([".", "tracked"], 0, "safe folder name"),
+    (["free", "free"], 1, "also the name of variants\\[0\\]"),
+])
+def test_variant_names(hydra_conf, tmp_path, names, bad, match):
+    cfg = hydra_conf(["experiment=goaling_smoke", "logging.rerun=false"])
+    for v, n in zip(cfg.variants, names):
+        v.name = n
+    with pytest.raises(InputError, match=match) as e:
+        run_experiment(cfg, tmp_path / "exp")
+    assert str(e.value).startswith(f"variants[{bad}].name:")
+    assert not (tmp_path / "exp").exists() and not (tmp_path / "x").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# Non-convergence
+# ---------------------------------------------------------------------------------------------
+
+def unconverged_steps(monkeypatch, which):
+    step = Simulator.step
+    count = {"n": 0}
+
+    def flagged(self, state, dt):
+        new, info = step(self, state, dt)
+        count["n"] += 1
+        if which(count["n"]):
+            info.status = MAX_ITERATIONS
+        return new, info
+
+    monkeypatch.setattr(Simulator, "step", flagged)
+
+
+def test_unconverged_steps_warn(hydra_conf, tmp_path, monkeypatch, caplog):
+    unconverged_steps(monkeypatch, lambda n: n in (2, 3))
+    with caplog.at_level("WARNING", logger="hairexp"):
+        s = run(hydra_conf([*TINY, "frames=4"]), tmp_path)
+    assert s["status"] == "completed" and s["converged"] is False and s["unconverged_steps"] == 2
+    assert json.loads((tmp_path / "summary.json").read_text())["converged"] is False
+    assert "2 of 4 steps did not converge" in caplog.text
+    assert (tmp_path / "result.npz").is_file()
+
+
+def test_unconverged_steps_fail(hydra_conf, tmp_path, monkeypatch):
+    unconverged_steps(monkeypatch, lambda n: n == 2)
+    with pytest.raises(SimulationError, match="1 of 4 steps did not converge"):
+        run(hydra_conf([*TINY, "frames=4", "on_unconverged=fail"]), tmp_path)
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["status"] == "failed" and s["converged"] is False and not (tmp_path / "result.npz").exists()
+
+
+def test_no_step_converged_fails(hydra_conf, tmp_path, monkeypatch):
+    unconverged_steps(monkeypatch, lambda n: True)
+    with pytest.raises(SimulationError, match="no step converged"):
+        run(hydra_conf([*TINY, "frames=3"]), tmp_path)
+    assert json.loads((tmp_path / "summary.json").read_text())["status"] == "failed"
+
+
+# ---------------------------------------------------------------------------------------------
+# Sweeps: a bad job is recorded, the others complete, the sweep exits non-zero at the end
+# ---------------------------------------------------------------------------------------------
+
+def test_sweep_with_a_bad_job(tmp_path):
+    sweep = tmp_path / "sweep"
+    p = cli(["-m", *TINY, "frames=5", "scene.n_vertices=6,1", f"hydra.sweep.dir={sweep}"], tmp_path)
+    _, err = p.communicate(timeout=180)
+    assert p.returncode == 2, err
+    assert json.loads((sweep / "0" / "summary.json").read_text())["status"] == "completed"
+    assert (sweep / "0" / "result.npz").is_file()
+    assert json.loads((sweep / "1" / "summary.json").read_text())["status"] == "failed"
+    jobs = [line for line in err.splitlines() if line.startswith("hairexp: job ")]
+    assert len(jobs) == 2 and "completed (exit 0)" in jobs[0] and "failed (exit 2)" in jobs[1], err
+    assert "hairexp: sweep: 1 of 2 jobs completed" in err
