@@ -31,7 +31,9 @@ def compose(overrides=(), typed=(), where: str = "script"):
     are typed by the schema; ``where`` names them in an error)."""
     from hairexp.app.config import compose_config
 
-    cfg = compose_config(list(overrides))
+    # the report scripts write their runs into fixed folders of their own (outputs/paper_scenes/<name>,
+    # ...) and re-run them: they replace the previous run there (``overwrite``, README "Run folder")
+    cfg = compose_config(["overwrite=true", *overrides])
     if typed:
         from hairexp.app.experiment import apply_overrides
 
