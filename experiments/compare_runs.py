@@ -1,0 +1,66 @@
+"""Compare two trees of run folders bit for bit: every ``result.npz`` array (``np.array_equal``)
+and every ``metrics.parquet`` column (``Series.equals``), timing columns (``step_seconds``,
+``t_*``) aside.  For refactors that must not change behaviour: run the same cases with the old
+and the new code into two folders (``python -m hairexp <case> hydra.run.dir=<tree>/<name>``),
+then
+
+    python -m experiments.compare_runs <before tree> <after tree>
+
+Prints one line per file and ``N files compared, K differ``; exits 1 if any differ or none
+were found."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+
+def timing(column: str) -> bool:
+    return column == "step_seconds" or column.startswith("t_")
+
+
+def compare(a: Path, b: Path) -> tuple[int, int]:
+    bad = n = 0
+    for fa in sorted(a.rglob("result.npz")) + sorted(a.rglob("metrics.parquet")):
+        rel = fa.relative_to(a)
+        fb = b / rel
+        n += 1
+        if not fb.exists():
+            print("MISSING", rel)
+            bad += 1
+            continue
+        if fa.suffix == ".npz":
+            A, B = np.load(fa), np.load(fb)
+            diff = [k for k in A.files if k not in B.files or A[k].shape != B[k].shape or not np.array_equal(A[k], B[k])]
+            diff += [k for k in B.files if k not in A.files]
+        else:
+            A, B = pd.read_parquet(fa), pd.read_parquet(fb)
+            A = A[[c for c in A.columns if not timing(c)]]
+            B = B[[c for c in B.columns if not timing(c)]]
+            diff = sorted(set(A.columns) ^ set(B.columns))
+            diff += [c for c in A.columns if c in B.columns and not A[c].equals(B[c])]
+        print(("DIFF " if diff else "same ") + str(rel) + (f" {diff}" if diff else ""))
+        bad += bool(diff)
+    return n, bad
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("before", type=Path)
+    ap.add_argument("after", type=Path)
+    args = ap.parse_args()
+    for p in (args.before, args.after):
+        if not p.is_dir():
+            print(f"compare_runs: error: {p}: not a folder", file=sys.stderr)
+            return 2
+    n, bad = compare(args.before, args.after)
+    print(f"{n} files compared, {bad} differ")
+    return 1 if bad or n == 0 else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
