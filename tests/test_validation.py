@@ -31,10 +31,16 @@ def base():
 
 
 def with_(cfg, **kv):
-    out = copy.deepcopy(cfg)
+    """``updated`` with the keys as keyword arguments, ``__`` for ``.``."""
+    return updated(cfg, {k.replace("__", "."): v for k, v in kv.items()})
+
+
+def updated(base, kv: dict):
+    """A copy of ``base`` with the dotted keys of ``kv`` set."""
+    cfg = copy.deepcopy(base)
     for k, v in kv.items():
-        OmegaConf.update(out, k.replace("__", "."), v, merge=False)
-    return out
+        OmegaConf.update(cfg, k, v, merge=False)
+    return cfg
 
 
 def raises_at(cfg, where: str, call=assemble):
@@ -92,10 +98,7 @@ def test_unknown_measure_collider_before_any_step(base, monkeypatch):
      "tracking.variance.stiffness_scale"),
 ])
 def test_mismatched_keyframes_are_named(base, kv, where):
-    cfg = copy.deepcopy(base)
-    for k, v in kv.items():
-        OmegaConf.update(cfg, k, v, merge=False)
-    raises_at(cfg, where)
+    raises_at(updated(base, kv), where)
 
 
 def test_guide_keyframes_of_wrong_size(base):
@@ -132,10 +135,7 @@ def test_guide_keyframes_of_wrong_size(base):
     ({"controller.name": "attract", "controller.attract_stiffness": INF}, "controller.attract_stiffness"),
 ])
 def test_out_of_range_values_are_named(base, kv, where):
-    cfg = copy.deepcopy(base)
-    for k, v in kv.items():
-        OmegaConf.update(cfg, k, v, merge=False)
-    raises_at(cfg, where)
+    raises_at(updated(base, kv), where)
 
 
 def test_collider_spin_on_a_new_collider(base):

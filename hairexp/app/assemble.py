@@ -92,9 +92,14 @@ def assemble_scene(cfg, settle: bool = True) -> tuple[object, Scene, GuideAnimat
     """(config with its timing, scene, guides): the first half of ``assemble``.  ``settle=False``
     keeps the built scene unsettled (the USD export writes the elastic rest shape); the guides are
     the same either way (simulated guides settle on their own, hairexp/app/guides.py)."""
+    return _assemble_scene(cfg, settle)[:3]
+
+
+def _assemble_scene(cfg, settle: bool):
+    """``assemble_scene``'s (config, scene, guides) and the step schedule (steps per frame, dt)."""
     validate_config(cfg)                                # the config's ranges (hairexp/app/validate.py)
     cfg = timed_config(cfg)
-    n_sub, _ = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)   # validated before anything is built
+    n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)   # validated before anything is built
     usd = str(_value(cfg.scene.builder)) == "usd"
     if not usd:   # the resource guard (hairexp/app/guard.py) before the hair is built
         guard_run(cfg, int(cfg.scene.n_strands) * int(cfg.scene.n_vertices), n_sub, run=settle)
@@ -105,13 +110,12 @@ def assemble_scene(cfg, settle: bool = True) -> tuple[object, Scene, GuideAnimat
     if settle:
         scene = settle_scene(scene, cfg)   # scene.settle > 0: start from the hair at rest under gravity
     guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
-    return cfg, scene, guides
+    return cfg, scene, guides, n_sub, dt
 
 
 def assemble(cfg) -> Run:
     """The run of a composed config (``compose_config`` or Hydra's), ready to step."""
-    cfg, scene, guides = assemble_scene(cfg)
-    n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
+    cfg, scene, guides, n_sub, dt = _assemble_scene(cfg, settle=True)
     controller = build_controller(str(_value(cfg.controller.name)), cfg, scene, guides)
     sim = Simulator(scene, cfg.solver, controller, cfg.collision)
     return Run(cfg, scene, guides, controller, sim, n_sub, dt)

@@ -58,11 +58,16 @@ def _met(rule, m: dict, facts: dict, tol: float = 0.0) -> bool:
 
 
 # -- the judges: the variants together ------------------------------------------------------
-def free_misses_tracked_hits(m: dict, variants: dict, tol: float):
+def _free_fails_tracked_meets(rule, m: dict, variants: dict) -> bool:
+    """There are free and tracked variants; no free one meets ``rule`` and every tracked one does."""
     free = [k for k in m if variants[k]["controller"] == "free"]
     tracked = [k for k in m if variants[k]["controller"] == "tracking"]
-    ok = bool(free and tracked and all(not _met(hits_collider, m[k], variants[k]) for k in free)
-              and all(_met(hits_collider, m[k], variants[k]) for k in tracked))
+    return bool(free and tracked and all(not _met(rule, m[k], variants[k]) for k in free)
+                and all(_met(rule, m[k], variants[k]) for k in tracked))
+
+
+def free_misses_tracked_hits(m: dict, variants: dict, tol: float):
+    ok = _free_fails_tracked_meets(hits_collider, m, variants)
     return ok, {k: {"hit": m[k]["hit"], "min_distance": m[k]["min_distance"]} for k in m}
 
 
@@ -87,10 +92,7 @@ def variance_follows_targets(m: dict, variants: dict, tol: float):
 
 
 def tracked_leaves_rail(m: dict, variants: dict, tol: float):
-    free = [k for k in m if variants[k]["controller"] == "free"]
-    tracked = [k for k in m if variants[k]["controller"] == "tracking"]
-    ok = bool(free and tracked and all(not _met(leaves_rail, m[k], variants[k]) for k in free)
-              and all(_met(leaves_rail, m[k], variants[k]) for k in tracked))
+    ok = _free_fails_tracked_meets(leaves_rail, m, variants)
     return ok, {k: {"left_rail": m[k]["left_rail"], "travel": m[k]["travel"]} for k in m}
 
 
