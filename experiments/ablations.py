@@ -24,7 +24,7 @@ import sys
 import time
 from pathlib import Path
 
-from experiments.common import ROOT, fmt, md_row, md_table
+from experiments.common import ROOT, fmt, md_row, md_table, ROOT
 
 COMPARISONS = {
     "targets": ["tracking.targets=static,sliding"],
@@ -33,6 +33,11 @@ COMPARISONS = {
     "collisions": ["collision.objects=false,true"],
 }
 SCENES = ["goaling", "splitting", "spreading", "stylization", "celia"]
+
+
+#: Hydra's launchers installed with the project, and the project's own (conf/hydra/launcher/)
+LAUNCHERS = ["basic", "joblib", "submitit_local", "submitit_slurm",
+             *sorted(p.stem for p in (ROOT / "conf" / "hydra" / "launcher").glob("*.yaml"))]
 
 
 def sweep(scene: str, comparison: str, launcher: str | None, out: Path) -> list[dict]:
@@ -44,7 +49,7 @@ def sweep(scene: str, comparison: str, launcher: str | None, out: Path) -> list[
         args.append(f"hydra/launcher={launcher}")
     proc = subprocess.run(args, capture_output=True, text=True, cwd=ROOT)
     rows = []
-    for d in sorted(p for p in out.iterdir() if p.is_dir() and p.name.isdigit()):
+    for d in sorted(p for p in (out.iterdir() if out.is_dir() else ()) if p.is_dir() and p.name.isdigit()):
         f = d / "summary.json"
         s = json.loads(f.read_text()) if f.is_file() else {"status": "missing"}
         over = (d / ".hydra" / "overrides.yaml").read_text() if (d / ".hydra" / "overrides.yaml").is_file() else ""
@@ -87,9 +92,10 @@ def findings(rows: list[dict]) -> str:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--full", action="store_true")
-    ap.add_argument("--scenes", nargs="*", default=SCENES)
-    ap.add_argument("--comparisons", nargs="*", default=list(COMPARISONS))
-    ap.add_argument("--launcher", default=None)
+    ap.add_argument("--scenes", nargs="*", default=SCENES, choices=SCENES)
+    ap.add_argument("--comparisons", nargs="*", default=list(COMPARISONS), choices=list(COMPARISONS))
+    ap.add_argument("--launcher", default=None, choices=LAUNCHERS,
+                    help="a Hydra launcher (default: conf/hydra/launcher/parallel.yaml, joblib with 2 jobs)")
     args = ap.parse_args(argv)
     from hairexp.app.report import header, write_report
 

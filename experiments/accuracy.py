@@ -32,7 +32,7 @@ from hairexp.app.config import to_plain
 from hairexp.app.report_cache import cached, describe
 from hairexp.app.run import config_hash, run
 
-from experiments.common import ROOT, compose, fmt, md_row, md_table
+from experiments.common import ROOT, compose, fmt, md_row, md_table, positive_float, positive_int
 
 DTS = [0.005, 0.01, 0.02, 0.04]
 RTOLS = [1e-3, 1e-5, 1e-7]
@@ -83,13 +83,13 @@ def recommendation(rec: dict | None) -> str:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenes", nargs="*", default=["goaling", "celia"])
-    ap.add_argument("--frames", type=int, default=None, help="output frames per run (default: the scene's)")
-    ap.add_argument("--ref-dt", type=float, default=0.0025)
-    ap.add_argument("--budget", type=float, nargs="+", default=[0.01, 0.03, 0.1],
+    ap.add_argument("--scenes", nargs="*", default=["goaling", "celia"], choices=sorted(p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml")))
+    ap.add_argument("--frames", type=positive_int, default=None, help="output frames per run (default: the scene's)")
+    ap.add_argument("--ref-dt", type=positive_float, default=0.0025)
+    ap.add_argument("--budget", type=positive_float, nargs="+", default=[0.01, 0.03, 0.1],
                     help="RMS error budgets (fractions of the hair length) to recommend a setting for")
-    ap.add_argument("--dts", type=float, nargs="*", default=DTS)
-    ap.add_argument("--rtols", type=float, nargs="*", default=RTOLS)
+    ap.add_argument("--dts", type=positive_float, nargs="*", default=DTS)
+    ap.add_argument("--rtols", type=positive_float, nargs="*", default=RTOLS)
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/accuracy/ entries (same config, solver source and versions)")
     args = ap.parse_args(argv)

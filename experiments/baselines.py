@@ -42,7 +42,7 @@ from hairexp.evaluation.judges import RUN_RULES
 from hairexp.evaluation.measures import RunData, compute
 from hairexp.model.dynamic_body import POSITION
 
-from experiments.common import compose, md_row, md_table
+from experiments.common import compose, md_row, md_table, positive_int
 
 EXPERIMENTS = ("goaling", "splitting", "spreading", "stylization", "celia")
 STIFFNESSES = (10.0, 100.0, 1000.0)
@@ -443,8 +443,8 @@ DEFINITIONS = """
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--experiments", nargs="+", default=list(EXPERIMENTS))
-    ap.add_argument("--frames", type=int, default=None, help="override every scene's frame count (quick checks)")
+    ap.add_argument("--experiments", nargs="+", default=list(EXPERIMENTS), choices=list(EXPERIMENTS))
+    ap.add_argument("--frames", type=positive_int, default=None, help="override every scene's frame count (quick checks)")
     ap.add_argument("--out", default=None, help="keep the run folders here (default: a temporary folder)")
     ap.add_argument("--no-report", action="store_true")
     args = ap.parse_args(argv)

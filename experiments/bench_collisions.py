@@ -21,7 +21,7 @@ import numpy as np
 from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 
-from experiments.common import (WARMUP, celia_bench, describe_run, jerk, jerk_start, md_table, motion_record,
+from experiments.common import (positive_int, WARMUP, celia_bench, describe_run, jerk, jerk_start, md_table, motion_record,
                                 time_steps)
 
 CASES = {"head + hair-hair": "hair_hair", "head only": "default", "collisions off": "off"}
@@ -47,7 +47,7 @@ def run(collision: str, steps: int) -> dict:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--steps", type=int, default=50)
+    ap.add_argument("--steps", type=positive_int, default=50)
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     res = {}

@@ -23,7 +23,7 @@ import time
 from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 
-from experiments.common import WARMUP, celia_bench, describe_run, md_table, pct, stretch_max, time_steps
+from experiments.common import WARMUP, celia_bench, describe_run, md_table, pct, stretch_max, time_steps, positive_int
 
 AUTOGRAD_STEPS = 15   # the autograd row: the first (violent) steps only
 
@@ -47,7 +47,7 @@ def run_case(name: str, overrides: list[str], steps: int):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--steps", type=int, default=50)
+    ap.add_argument("--steps", type=positive_int, default=50)
     ap.add_argument("--quick", action="store_true", help="skip the slow autograd ablation")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()

@@ -26,7 +26,7 @@ import sys
 
 import numpy as np
 
-from experiments.common import ROOT, compose, frames_for, md_table, motion_overrides, time_steps
+from experiments.common import ROOT, compose, frames_for, md_table, motion_overrides, time_steps, positive_int
 
 WARMUP = 2
 MOTION = motion_overrides([0.0, 0.2, 0.3, 10.0], [[0, 0, 0], [0, 0, 0], [0, 0.12, 0], [0, 0.12, 0]])
@@ -55,8 +55,8 @@ def one(n: int, controller: str, steps: int) -> dict:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", type=int, nargs="*", default=[30, 100, 301, 1000, 3000])
-    ap.add_argument("--steps", type=int, default=10)
+    ap.add_argument("--sizes", type=positive_int, nargs="*", default=[30, 100, 301, 1000, 3000])
+    ap.add_argument("--steps", type=positive_int, default=10)
     ap.add_argument("--one", nargs=2, metavar=("STRANDS", "CONTROLLER"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.one:

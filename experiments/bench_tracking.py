@@ -21,7 +21,7 @@ import numpy as np
 from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 
-from experiments.common import WARMUP, celia_bench, describe_run, fmt, md_table, pct, stretch_max, time_steps
+from experiments.common import WARMUP, celia_bench, describe_run, fmt, md_table, pct, stretch_max, time_steps, positive_int
 
 
 def observe(run, state, info) -> dict:
@@ -42,7 +42,7 @@ def timed(run, steps: int) -> dict:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--steps", type=int, default=50)
+    ap.add_argument("--steps", type=positive_int, default=50)
     args = ap.parse_args(argv)
     runs, assemble_s = {}, {}
     for name, controller in (("free", "free"), ("tracked", "tracking")):

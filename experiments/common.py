@@ -23,6 +23,30 @@ ROOT = Path(__file__).resolve().parent.parent
 TIME_KEYS = ("derivatives", "assembly", "solve", "collision", "other")
 
 
+# -- command-line arguments --------------------------------------------------------------------
+def _number(kind, low: float, inclusive: bool, what: str):
+    """An argparse ``type``: ``kind`` (int or float), finite, above ``low`` (or at it when
+    ``inclusive``); anything else is a usage error naming the value (exit 2)."""
+    import argparse
+
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+        if not math.isfinite(v) or v < low or (v == low and not inclusive):
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}")
+        return v
+
+    parse.__name__ = what   # argparse names the type in its messages
+    return parse
+
+
+positive_int = _number(int, 1, True, "a positive integer")
+nonnegative_int = _number(int, 0, True, "an integer >= 0")
+positive_float = _number(float, 0.0, False, "a positive number")
+
+
 # -- configs -----------------------------------------------------------------------------------
 def compose(overrides=(), typed=(), where: str = "script"):
     """The composed config (``hairexp.app.config.compose_config``) with the Hydra ``overrides``,

@@ -19,6 +19,7 @@ import argparse
 import json
 import time
 
+from hairexp.app.assemble import check_config
 from hairexp.app.config import to_plain
 from hairexp.app.experiment import run_experiment
 from hairexp.app.report import header, write_report
@@ -43,6 +44,9 @@ def main(argv=None):
                     help="hydra overrides applied to every scene (e.g. frames=10)")
     args = ap.parse_args(argv)
     available = {p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml")}
+    unknown = sorted(set(args.names or ()) - available)
+    if unknown:
+        ap.error(f"unknown experiment(s) {', '.join(unknown)} (conf/experiment/ has {', '.join(sorted(available))})")
     names = args.names or [n for n in SCENES if n in available]
     md = header("The paper's scenes, judged")
     md += ("Each experiment runs its variants as `python -m hairexp experiment=<name>` does; `success` is the "
@@ -52,9 +56,16 @@ def main(argv=None):
            "and versions).\n\n")
     if args.set:
         md += "Overrides on every scene: " + ", ".join(f"`{o}`" for o in args.set) + "\n\n"
-    data = {}
+    data, cfgs = {}, {}
+    for name in names:   # every scene's config (and the --set overrides) checked before the first runs
+        try:
+            cfgs[name] = compose([f"experiment={name}", "logging.progress=false", *args.set])
+            check_config(cfgs[name])
+        except Exception as exc:   # hydra's composition errors, the schema's, InputError
+            ap.error(f"experiment {name} with --set {' '.join(args.set)}: {exc}")
+    failed = []
     for name in names:
-        cfg = compose([f"experiment={name}", "logging.progress=false", *args.set])
+        cfg = cfgs[name]
         out = ROOT / "outputs" / "paper_scenes" / name
         t0 = time.perf_counter()
 
@@ -74,6 +85,7 @@ def main(argv=None):
                              store=lambda r: r.get("status") != "failed")
         except Exception as exc:  # report the failure, go on with the other scenes
             print(f"{name}: FAILED: {exc}", flush=True)
+            failed.append(name)
             data[name] = {"status": "failed", "error": str(exc)}
             md += f"## {name}\n\n**failed**: {exc}\n\n"
             continue
@@ -101,6 +113,8 @@ def main(argv=None):
         md += "\n"
     path = write_report("paper_scenes", md, {"scenes": data})
     print(f"wrote {path}")
+    if failed:
+        raise SystemExit(f"paper_scenes: {len(failed)} of {len(names)} scenes failed: {', '.join(failed)}")
 
 
 if __name__ == "__main__":

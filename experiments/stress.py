@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import compose, fmt, md_table
+from experiments.common import compose, fmt, md_table, positive_int
 
 BASE = ["experiment=goaling", "variants=[]", "scene.n_strands=12", "scene.n_vertices=12", "frames=30",
         "logging.rerun=false", "logging.progress=false", "solver.compile=off", "measure.name=none"]
@@ -240,8 +240,8 @@ def markdown(rows: list[dict], wall: float) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--cases", nargs="*", default=list(CASES))
-    ap.add_argument("--frames", type=int, default=None, help="override every case's frames (quick look)")
+    ap.add_argument("--cases", nargs="*", default=list(CASES), choices=list(CASES))
+    ap.add_argument("--frames", type=positive_int, default=None, help="override every case's frames (quick look)")
     ap.add_argument("--no-report", action="store_true")
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/stress/ entries whose config, solver source and versions match "

@@ -21,6 +21,7 @@ import pytest
 import hairexp.app.cli as cli_mod
 import hairexp.app.run as run_mod
 import hairexp.outputs.files as files
+import hairexp.outputs.metrics as metrics_mod
 from hairexp.app.experiment import run_experiment
 from hairexp.app.run import run
 from hairexp.errors import InputError, SimulationError
@@ -105,6 +106,7 @@ def full_disk_after(monkeypatch, calls: int, everything: bool):
     monkeypatch.setattr(GrowingNpy, "flush", full_flush)
     monkeypatch.setattr(files, "atomic_write_bytes", full_atomic)
     monkeypatch.setattr(run_mod, "atomic_write_bytes", full_atomic)
+    monkeypatch.setattr(metrics_mod, "atomic_write_bytes", full_atomic)
     monkeypatch.setattr(run_mod, "FLUSH_FRAMES", 2)
 
 
@@ -186,6 +188,62 @@ def test_streamed_metrics_equal_one_table(tmp_path):
             t.flush()
     pd.testing.assert_frame_equal(t.frame(), pd.DataFrame(rows))   # parts inferred differently: one inference
     assert sum(len(pd.read_parquet(p)) for p in sorted((tmp_path / "m").glob("part-*.parquet"))) == 6
+
+
+def test_written_metrics_equal_one_table(tmp_path):
+    """The parquet ``write`` streams part by part has the columns and values of one table of all
+    rows: a column missing from a part is null there, ints meeting floats become floats, and a
+    column of clashing types is written as text."""
+    rows = [{"step": i, "x": (i if i < 3 else 0.5), "flag": i % 2 == 0, "s": "a", **({"late": 1.0} if i > 4 else {}),
+             "mixed": ("text" if i >= 6 else float(i))}
+            for i in range(8)]
+    t = MetricsTable(tmp_path / "m")
+    for i, r in enumerate(rows):
+        t.on_step(r, None)
+        if i in (2, 5):
+            t.flush()
+    cols = t.write(tmp_path / "metrics.parquet")
+    got = pd.read_parquet(tmp_path / "metrics.parquet")
+    want = pd.DataFrame(rows)
+    assert list(got.columns) == list(want.columns) and len(cols) == 8 and "late" in cols and "nope" not in cols
+    for c in ("step", "x", "flag", "s", "late"):
+        pd.testing.assert_series_equal(got[c], want[c], check_dtype=False)
+        pd.testing.assert_series_equal(cols[c], got[c])
+    assert got["x"].dtype == np.float64 and got["late"].isna().sum() == 5
+    assert [float(v) for v in got["mixed"][:6]] == list(range(6)) and list(got["mixed"][6:]) == ["text", "text"]
+    assert t.write(tmp_path / "metrics.parquet") is cols                 # nothing new: not written again
+    with pytest.raises(KeyError):
+        cols["nope"]
+
+
+def test_frames_read_one_at_a_time(tmp_path):
+    a = np.random.default_rng(1).normal(size=(9, 4, 3))
+    np.save(tmp_path / "a.npy", a)
+    f = files.NpyFrames(tmp_path / "a.npy")
+    f.BLOCK_BYTES = 2 * 4 * 3 * 8                                      # blocks of 2 frames: 5 reads
+    assert len(f) == 9 and f.ndim == 3 and f.shape == a.shape
+    np.testing.assert_array_equal(np.stack(list(f)), a)
+    np.testing.assert_array_equal(f[-1], a[-1])
+    np.testing.assert_array_equal(f[2:7:2], a[2:7:2])
+    with pytest.raises(IndexError):
+        f[9]
+    with open(tmp_path / "a.npy", "r+b") as fh:                       # a file cut short
+        fh.truncate(fh.seek(0, 2) - 8)
+    with pytest.raises(OSError, match="ends before"):
+        list(files.NpyFrames(tmp_path / "a.npy"))
+
+
+def test_recording_footer_check(hydra_conf, tmp_path):
+    """A recording is given its final name only when it ends with rerun's footer."""
+    from hairexp.outputs.rerun_sink import _check_complete
+
+    out = tmp_path / "run"
+    run(hydra_conf([*TINY, "frames=3", "logging.rerun=true"]), out)
+    rrd = (out / "recording.rrd").read_bytes()
+    _check_complete(str(out / "recording.rrd"))
+    (tmp_path / "cut.rrd").write_bytes(rrd[:len(rrd) // 2])
+    with pytest.raises(OSError, match="incomplete"):
+        _check_complete(str(tmp_path / "cut.rrd"))
 
 
 # ---------------------------------------------------------------------------------------------

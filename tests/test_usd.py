@@ -243,6 +243,25 @@ def test_failed_result_write_leaves_no_file(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("suffix", ["usdc", "usda"])
+def test_result_usd_saved_in_blocks(tmp_path, monkeypatch, suffix):
+    """The result stage is saved every SAVE_BYTES of samples (here: every frame); the file holds
+    every frame all the same, and no temporary file is left."""
+    import hairexp.io.usd_write as usd_write
+
+    monkeypatch.setattr(usd_write, "SAVE_BYTES", 1)
+    scene = build_scene(source_cfg(colliders=[]).scene)
+    rng = np.random.default_rng(3)
+    pos = scene.strands.rest + 0.01 * rng.normal(size=(7, *scene.strands.rest.shape))
+    write_result_usd(tmp_path / f"result.{suffix}", scene, pos, np.zeros((7, 0, 3)), np.zeros(1, int), FPS)
+    assert [p.name for p in tmp_path.iterdir()] == [f"result.{suffix}"]
+    stage = Usd.Stage.Open(str(tmp_path / f"result.{suffix}"))
+    hair = UsdGeom.BasisCurves.Get(stage, "/Root/Result/Hair")
+    assert hair.GetPointsAttr().GetTimeSamples() == list(range(7))
+    for k in range(7):
+        np.testing.assert_array_equal(np.asarray(hair.GetPointsAttr().Get(k)), pos[k].astype(np.float32))
+
+
 def test_export_scene_command(tmp_path, capsys):
     path = tmp_path / "goaling.usda"
     assert export_main([str(path), "experiment=goaling", "variants=[]", "frames=3", "scene.n_strands=3", "scene.n_vertices=5"]) == 0

@@ -259,3 +259,42 @@ def test_export_refuses_a_directory(tmp_path):
         check_writable(tmp_path)
     check_writable(tmp_path / "x.usda")
 
+
+
+def test_duplicate_collider_names(base):
+    """Metrics columns, the recording's entities, the USD prims and measure.collider name colliders."""
+    cfg = copy.deepcopy(base)
+    node = OmegaConf.merge(OmegaConf.structured(ColliderConfig), {"name": "wheel", "shape": "sphere", "radius": 0.02})
+    OmegaConf.update(cfg, "scene.colliders", [cfg.scene.colliders[0], node], merge=False)
+    with pytest.raises(InputError, match="'wheel' is used more than once") as e:
+        assemble_scene(cfg, settle=False)
+    assert e.value.where == "scene.colliders"
+
+
+def test_every_variant_is_checked_before_the_first_runs(tmp_path):
+    """A bad override in the last variant stops the experiment before the first variant's first step."""
+    from hairexp.app.experiment import run_experiment
+
+    cfg = compose_config(["experiment=goaling_smoke", "frames=2", "logging.rerun=false",
+                          "variants=[{name: ok, overrides: []}, {name: bad, overrides: ['tracking.max_iterations=0']}]"])
+    with pytest.raises(InputError, match=r"tracking.max_iterations.*variants\[1\] bad") as e:
+        run_experiment(cfg, tmp_path / "exp")
+    assert "tracking.max_iterations" in str(e.value)
+    assert not (tmp_path / "exp").exists()          # nothing run, nothing claimed
+
+
+@pytest.mark.parametrize("module,args,says", [
+    ("experiments.bench_free", ["--steps", "-1"], "--steps: '-1' is not a positive integer"),
+    ("experiments.accuracy", ["--dts", "nan"], "--dts: 'nan' is not a positive number"),
+    ("experiments.accuracy", ["--scenes", "nope"], "invalid choice: 'nope'"),
+    ("experiments.paper_scenes", ["nope"], "unknown experiment(s) nope"),
+    ("experiments.stress", ["--frames", "0"], "--frames: '0' is not a positive integer"),
+    ("experiments.bench_memory", ["--repo", "/"], "not a hairexp checkout"),
+])
+def test_experiment_scripts_refuse_bad_arguments(module, args, says):
+    """The report scripts stop at their arguments with a usage error (exit 2), before any run."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    proc = run_cli(module, args, root)
+    assert proc.returncode == 2 and says in proc.stderr and "Traceback" not in proc.stderr, proc.stderr

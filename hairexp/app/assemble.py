@@ -95,6 +95,17 @@ def assemble_scene(cfg, settle: bool = True) -> tuple[object, Scene, GuideAnimat
     return _assemble_scene(cfg, settle)[:3]
 
 
+def check_config(cfg) -> None:
+    """What ``assemble`` checks before it builds anything (the config's ranges, the step schedule
+    and, for a procedural scene, the resource guard), without building: an experiment checks
+    every variant's config this way before its first variant runs."""
+    validate_config(cfg)
+    cfg = timed_config(cfg)
+    n_sub, _ = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
+    if str(_value(cfg.scene.builder)) != "usd":
+        guard_run(cfg, int(cfg.scene.n_strands) * int(cfg.scene.n_vertices), n_sub)
+
+
 def _assemble_scene(cfg, settle: bool):
     """``assemble_scene``'s (config, scene, guides) and the step schedule (steps per frame, dt)."""
     validate_config(cfg)                                # the config's ranges (hairexp/app/validate.py)

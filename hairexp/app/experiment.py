@@ -20,6 +20,7 @@ from pathlib import Path
 import yaml
 from omegaconf import OmegaConf
 
+from hairexp.app.assemble import check_config
 from hairexp.app.config import to_plain
 from hairexp.app.signals import InterruptSignals
 from hairexp.errors import InputError
@@ -84,6 +85,13 @@ def run_experiment(cfg, out_dir) -> dict:
     if not cfg.variants:
         return run(cfg, out)
     names = check_variant_names(cfg.variants)
+    for i, (name, v) in enumerate(zip(names, cfg.variants)):   # every variant's config, before the first runs
+        vcfg = apply_overrides(cfg, list(v.overrides), f"variants[{i}] ({name})")
+        vcfg.variants = []
+        try:
+            check_config(vcfg)
+        except InputError as exc:   # the key's own message, said to be the variant's
+            raise InputError(f"{exc} (variants[{i}] {name}, checked before any variant runs)") from exc
     plain = to_plain(cfg)
     claim(out, overwrite=bool(cfg.overwrite))
     t0 = time.perf_counter()

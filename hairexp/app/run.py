@@ -108,11 +108,11 @@ def convergence_error(df, policy: str) -> str | None:
     k = int(bad.sum())
     if not k:
         return None
-    statuses = ", ".join(f"{s}: {c}" for s, c in df.loc[bad, "status"].value_counts().items())
+    statuses = ", ".join(f"{s}: {c}" for s, c in df["status"][bad].value_counts().items())
     if k == n:
         return f"no step converged ({n} steps; {statuses})"
     if policy == "fail":
-        return (f"{k} of {n} steps did not converge (first at t={float(df.loc[bad, 'time'].iloc[0]):.4g} s; "
+        return (f"{k} of {n} steps did not converge (first at t={float(df['time'][bad].iloc[0]):.4g} s; "
                 f"{statuses}); on_unconverged=fail")
     return None
 
@@ -217,16 +217,18 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
                 last_flush, frames_since = time.monotonic(), 0
     sinks.flush()
     progress.close()
-    df = table.frame()
+    # metrics.parquet first (a failed run keeps it too), then read back column by column: the
+    # end of a run holds one column or one block of frames at a time, whatever its length
+    df = table.write(out / "metrics.parquet")
+    shutil.rmtree(out / STREAM / "metrics", ignore_errors=True)
     why = convergence_error(df, str(getattr(cfg.on_unconverged, "value", cfg.on_unconverged)))
     if why:
         raise SimulationError(why)
     tracker = r.controller if r.controller.cluster_of_vertex() is not None else None
-    times, positions = recorder.array("times"), recorder.array("positions")
+    times, positions = recorder.array("times"), recorder.frames_of("positions")
     measures = compute(cfg.measure, RunData(scene, times, positions, tracker, sim.objective.free_vertices,
                                             recorder.array("body_positions"), df))
     # the result files; a failure from here on removes those already written (no results beside a failed run)
-    atomic_write_bytes(out / "metrics.parquet", lambda f: df.to_parquet(f))
     sinks.written.append(out / "result.npz")
     write_npz(out / "result.npz", out / STREAM)
     from hairexp.io.usd_write import write_result_usd  # pxr is imported here
@@ -238,7 +240,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
         wscene = replace(scene, motion=RigidMotion(np.array(times), P, rv, "linear"))
     usd = out / f"result.{getattr(cfg.output.usd_format, 'value', cfg.output.usd_format)}"
     sinks.written.append(usd)
-    write_result_usd(usd, wscene, positions, recorder.array("guide_positions"), guides.offsets, cfg.fps)
+    write_result_usd(usd, wscene, positions, recorder.frames_of("guide_positions"), guides.offsets, cfg.fps)
     recorder.close()
     if rerun_sink is not None:
         sinks.written.append(out / "recording.rrd")
@@ -281,14 +283,13 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
         attempt("frames", sinks.recorder.flush)
         attempt("frames", sinks.recorder.close)
     attempt("metrics", sinks.table.flush)
-    df = attempt("metrics", sinks.table.frame)
-    if df is not None and len(df):
-        def write_metrics():
-            atomic_write_bytes(out / "metrics.parquet", lambda f: df.to_parquet(f))
-            return True
-
-        if attempt("metrics.parquet", write_metrics):
-            attempt("metrics", lambda: shutil.rmtree(out / STREAM / "metrics"))   # the parquet holds them now
+    df = None
+    if sinks.table.steps:
+        df = attempt("metrics.parquet", lambda: sinks.table.write(out / "metrics.parquet"))
+        if df is not None:
+            attempt("metrics", lambda: shutil.rmtree(out / STREAM / "metrics", ignore_errors=True))   # in the parquet now
+        else:   # the parquet could not be written: the summary from the parts kept in stream/
+            df = attempt("metrics", sinks.table.frame)
     if sinks.rerun is not None:
         attempt("recording", lambda: sinks.rerun.close(success=False))
     for p in sinks.written:

@@ -30,8 +30,15 @@ log = logging.getLogger(__name__)
 FORMATS = (".usda", ".usdc", ".usd")
 
 
-def new_stage(fps: float, frames: int, doc: str) -> Usd.Stage:
-    stage = Usd.Stage.CreateInMemory()
+#: a streamed stage (``write_result_usd``) is saved whenever this many bytes of samples were added
+SAVE_BYTES = 32 << 20
+
+
+def new_stage(fps: float, frames: int, doc: str, path=None) -> Usd.Stage:
+    """A stage in memory, or (``path``) one backed by a new file that ``Save`` writes."""
+    stage = Usd.Stage.CreateInMemory() if path is None else Usd.Stage.CreateNew(str(path))
+    if stage is None:
+        raise OSError(f"cannot create the USD stage {path}")
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     stage.SetTimeCodesPerSecond(float(fps))
@@ -83,11 +90,23 @@ def write_body(stage, scene, samples: list) -> None:
     set_points(define_curves(stage, HAIR, scene.strands.counts, HAIR_WIDTH), scene.root_body)
 
 
-def write_animation(stage, path: str, frames: np.ndarray, offsets: np.ndarray, width: float) -> None:
-    """BasisCurves with one time sample per frame (time code f = frame f)."""
+def write_animation(stage, path: str, frames, offsets: np.ndarray, width: float, streamed: bool = False,
+                    what: str = "points") -> None:
+    """BasisCurves with one time sample per frame (time code f = frame f); ``frames``: a
+    sequence of (V, 3) arrays.  ``streamed``: the stage is file-backed and is saved every
+    ``SAVE_BYTES`` of samples, so that its samples leave memory (a saved crate layer reads
+    them back from the file on demand) and a long run's result is written with the memory of
+    one block of frames; a non-finite frame is refused (AssertionError naming ``what``)."""
     curves = define_curves(stage, path, np.diff(offsets), width)
+    added = 0
     for f, P in enumerate(frames):
+        if not np.isfinite(P).all():
+            raise AssertionError(f"refusing to write non-finite {what} (frame {f}) to {stage.GetRootLayer().realPath}")
         set_points(curves, P, Usd.TimeCode(f))
+        added += 12 * len(P)
+        if streamed and added >= SAVE_BYTES:
+            stage.GetRootLayer().Save()
+            added = 0
 
 
 def save(stage, path) -> None:
@@ -118,19 +137,37 @@ def write_scene_usd(path, scene, guides, fps: float, frames: int) -> None:
 
 
 def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps: float) -> None:
-    """A run's result.usdc (or .usda: the format follows the suffix): positions (frames+1, V, 3) and guide_positions (frames+1, Vg, 3)
-    in world space, body and colliders sampled at every frame."""
-    positions, guide_positions = np.asarray(positions), np.asarray(guide_positions)
+    """A run's result.usdc (or .usda: the format follows the suffix): positions (frames+1, V, 3)
+    and guide_positions (frames+1, Vg, 3) in world space (arrays, or sequences of frames such
+    as ``NpyFrames``), body and colliders sampled at every frame.
+
+    The stage is written as a crate file under a temporary name, saved every ``SAVE_BYTES``
+    of samples (memory stays flat in the number of frames), then renamed; an ASCII result is
+    exported from it at the end."""
+    path = Path(path)
+    if path.suffix not in FORMATS:
+        raise ValueError(f"{path}: a USD file name ends with one of {', '.join(FORMATS)}")
     frames = len(positions) - 1
-    for name, a in (("positions", positions), ("guide_positions", guide_positions)):
-        if not all(np.isfinite(P).all() for P in a):   # frame by frame: the arrays may be memory-mapped
-            raise AssertionError(f"refusing to write non-finite {name} to {path}")
-    stage = new_stage(fps, frames, "hairexp result: the input layout plus /Root/Result/Hair (README 'USD scenes')")
-    samples = lambda motion: pose_samples(motion, fps, frames, keyframes=False)  # noqa: E731
-    write_body(stage, scene, samples(scene.motion))
-    if guide_positions.ndim == 3 and guide_positions.shape[1] > 0:
-        write_animation(stage, GUIDES, guide_positions, guide_offsets, GUIDE_WIDTH)
-    write_colliders(stage, scene.colliders, samples)
-    UsdGeom.Scope.Define(stage, RESULT)
-    write_animation(stage, RESULT_HAIR, positions, scene.strands.offsets, HAIR_WIDTH)
-    save(stage, path)
+    crate = path.with_name(path.stem + ".tmp.usdc")
+    stage = None
+    try:
+        stage = new_stage(fps, frames, "hairexp result: the input layout plus /Root/Result/Hair (README 'USD scenes')",
+                          path=crate)
+        samples = lambda motion: pose_samples(motion, fps, frames, keyframes=False)  # noqa: E731
+        write_body(stage, scene, samples(scene.motion))
+        if len(guide_positions) and getattr(guide_positions, "ndim", np.ndim(guide_positions)) == 3 \
+                and len(guide_positions[0]) > 0:
+            write_animation(stage, GUIDES, guide_positions, guide_offsets, GUIDE_WIDTH, True, "guide_positions")
+        write_colliders(stage, scene.colliders, samples)
+        UsdGeom.Scope.Define(stage, RESULT)
+        write_animation(stage, RESULT_HAIR, positions, scene.strands.offsets, HAIR_WIDTH, True, "positions")
+        if path.suffix == ".usda":
+            save(stage, path)
+        else:
+            if not stage.GetRootLayer().Save():
+                raise OSError(f"cannot write {crate}")
+            stage = None
+            os.replace(crate, path)
+    finally:
+        stage = None   # releases the layer (a traceback keeps this frame alive) before its file goes
+        crate.unlink(missing_ok=True)

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from hairexp.errors import InputError
 from hairexp.model.dynamic_body import DynamicBody
 from hairexp.model.rigid import RigidMotion
 from hairexp.model.strands import Strands
@@ -42,6 +43,13 @@ class Scene:
     root_body: np.ndarray
     colliders: list = field(default_factory=list)
     initial: np.ndarray | None = None
+
+    def __post_init__(self):
+        names = [getattr(c, "name", None) for c in self.colliders]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:   # metrics columns, the recording, the USD prims and measure.collider are by name
+            raise InputError(f"collider names must be unique; {', '.join(map(repr, twice))} is used more than once "
+                             f"(colliders: {names})", "scene.colliders")
 
     def initial_positions(self) -> np.ndarray:
         """(V, 3) world positions at t = 0 the run starts from and the tracking registers on."""

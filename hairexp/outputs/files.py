@@ -164,6 +164,63 @@ class ResultRecorder:
         """A flushed array, memory-mapped read-only."""
         return np.load(self.folder / f"{name}.npy", mmap_mode="r")
 
+    def frames_of(self, name: str) -> "NpyFrames":
+        """A flushed per-frame array as a sequence of frames read from the file one at a time."""
+        return NpyFrames(self.folder / f"{name}.npy")
+
+
+class NpyFrames:
+    """The frames (first axis) of a ``.npy`` file, read on demand: ``len``, ``[i]``, iteration.
+
+    Unlike a memory map, reading every frame does not keep the file's pages in the process's
+    resident memory, so the end of a run (its measures, result.usdc) reads a long run's frames
+    with the memory of one block of frames."""
+
+    BLOCK_BYTES = 1 << 22     # frames read per block while iterating
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        with open(self.path, "rb") as f:
+            d, self.offset = _read_npy_header(f)
+        if d["fortran_order"]:
+            raise ValueError(f"{self.path}: a Fortran-ordered array is not a frame sequence")
+        self.dtype = np.lib.format.descr_to_dtype(d["descr"])
+        self.shape = tuple(d["shape"])
+        if not self.shape:
+            raise ValueError(f"{self.path}: a 0-d array has no frames")
+        self.frame_shape = self.shape[1:]
+        self.frame_count = int(np.prod(self.frame_shape, dtype=np.int64))
+        self.frame_bytes = self.frame_count * self.dtype.itemsize
+
+    ndim = property(lambda self: len(self.shape))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def _read(self, start: int, n: int) -> np.ndarray:
+        with open(self.path, "rb") as f:
+            f.seek(self.offset + start * self.frame_bytes)
+            a = np.fromfile(f, dtype=self.dtype, count=n * self.frame_count)
+        if a.size != n * self.frame_count:
+            raise OSError(f"{self.path}: ends before frame {start + n} of {len(self)}")
+        return a.reshape(n, *self.frame_shape)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            idx = range(*i.indices(len(self)))
+            return np.stack([self[j] for j in idx]) if len(idx) else np.zeros((0, *self.frame_shape), self.dtype)
+        i = int(i)
+        if i < 0:
+            i += len(self)
+        if not 0 <= i < len(self):
+            raise IndexError(f"frame {i} of {len(self)} ({self.path.name})")
+        return self._read(i, 1)[0]
+
+    def __iter__(self):
+        per = max(1, self.BLOCK_BYTES // max(1, self.frame_bytes))
+        for start in range(0, len(self), per):
+            yield from self._read(start, min(per, len(self) - start))
+
 
 def _read_npy_header(f) -> tuple[dict, int]:
     fmt = np.lib.format

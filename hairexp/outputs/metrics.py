@@ -77,6 +77,8 @@ class MetricsTable:
         self.rows: list[dict] = []     # the rows not yet in a part
         self.parts: list[Path] = []
         self.steps = 0
+        self.written: MetricColumns | None = None   # the parquet file ``write`` wrote last
+        self.written_parts = 0
         if self.folder is not None:
             self.folder.mkdir(parents=True, exist_ok=True)
 
@@ -95,6 +97,47 @@ class MetricsTable:
         self.parts.append(path)
         self.rows = []
 
+    def write(self, path: Path) -> "MetricColumns":
+        """Write the whole table to the parquet file ``path`` (atomically), one part at a time
+        (memory: one part, whatever the run's length), and return its lazy ``MetricColumns``.
+
+        The parts' column types are unified as one table of all rows would have them: a
+        column missing from a part is null there, integers meeting floats become floats, and
+        columns whose types cannot be unified are written as text."""
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        self.flush()
+        if self.written is not None and self.written.path == Path(path) and self.written_parts == len(self.parts) \
+                and not self.rows:
+            return self.written    # already written, nothing new since
+        self.written, self.written_parts = self._write(Path(path), pa, pq), len(self.parts)
+        return self.written
+
+    def _write(self, path: Path, pa, pq) -> "MetricColumns":
+        if self.folder is None:   # an in-memory table: one part
+            atomic_write_bytes(path, lambda f: self.frame().to_parquet(f))
+            return MetricColumns(path)
+        schemas = [pq.read_schema(p).remove_metadata() for p in self.parts]
+        if not schemas:
+            atomic_write_bytes(path, lambda f: self.frame().to_parquet(f))
+            return MetricColumns(path)
+        try:
+            schema = pa.unify_schemas(schemas, promote_options="permissive")
+        except (pa.ArrowInvalid, pa.ArrowTypeError):
+            schema = _text_unified(schemas)
+
+        def write(f):
+            with pq.ParquetWriter(f, schema) as w:
+                for p in self.parts:
+                    t = pq.read_table(p).replace_schema_metadata(None)
+                    cols = [t.column(n).cast(fld.type) if n in t.column_names else pa.nulls(len(t), fld.type)
+                            for n, fld in zip(schema.names, schema)]
+                    w.write_table(pa.Table.from_arrays(cols, schema=schema))
+
+        atomic_write_bytes(path, write)
+        return MetricColumns(path)
+
     def frame(self):
         """The whole table: the parts and the rows not yet flushed, with the columns and dtypes
         of one ``DataFrame`` of all rows."""
@@ -107,3 +150,58 @@ class MetricsTable:
         if len({tuple(d.dtypes.items()) for d in dfs}) > 1:   # parts inferred differently: infer over all rows
             df = pd.DataFrame(df.to_dict("records"))
         return df
+
+
+def _text_unified(schemas):
+    """The union of ``schemas``' fields; a field whose types differ (beyond null) becomes text."""
+    import pyarrow as pa
+
+    types: dict[str, set] = {}
+    for sch in schemas:
+        for fld in sch:
+            types.setdefault(fld.name, set()).add(fld.type)
+    fields = []
+    for name, ts in types.items():
+        ts = {t for t in ts if t != pa.null()} or {pa.null()}
+        if len(ts) == 1:
+            fields.append(pa.field(name, ts.pop()))
+        elif all(pa.types.is_integer(t) or pa.types.is_floating(t) for t in ts):
+            fields.append(pa.field(name, pa.float64()))
+        else:
+            fields.append(pa.field(name, pa.string()))
+    return pa.schema(fields)
+
+
+class MetricColumns:
+    """A metrics parquet file read column by column (``table["converged"]`` is a pandas
+    Series), so the end of a run summarises and measures a long run without loading the
+    whole table: ``len``, ``in``, ``[name]``, ``columns``."""
+
+    def __init__(self, path: Path):
+        import pyarrow.parquet as pq
+
+        self.path = Path(path)
+        meta = pq.read_metadata(self.path)
+        self.columns = list(pq.read_schema(self.path).names)
+        self._len = meta.num_rows
+
+    def __len__(self) -> int:
+        return self._len
+
+    def __contains__(self, name) -> bool:
+        return name in self.columns
+
+    def __getitem__(self, name: str):
+        import pandas as pd
+        import pyarrow.parquet as pq
+
+        if name not in self.columns:
+            raise KeyError(name)
+        s = pq.read_table(self.path, columns=[name]).column(0).to_pandas()
+        return pd.Series(s, name=name)
+
+    def frame(self):
+        """The whole table (pandas DataFrame)."""
+        import pandas as pd
+
+        return pd.read_parquet(self.path)

@@ -196,14 +196,20 @@ class RerunSink:
             os.replace(self.partial, self.path)
 
 
+#: how a complete .rrd file ends (rerun 0.41's stream footer: the magic, then a version word)
+FOOTER_MAGIC = b"RRF2FOOT"
+
+
 def _check_complete(path: str) -> None:
-    import warnings
-
-    from rerun.chunk import RrdReader
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")   # rerun warns (and does not raise) on a file without footer
-        try:
-            RrdReader(path)
-        except Exception as exc:
-            raise OSError(f"{path}: the recording is incomplete ({exc})") from exc
+    """OSError unless ``path`` ends with rerun's stream footer (the writer finished the file).
+    Only the file's last bytes are read: a long recording is checked without loading its index."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            size = f.tell()
+            f.seek(max(0, size - 64))
+            tail = f.read()
+    except OSError as exc:
+        raise OSError(f"{path}: the recording cannot be read back ({exc})") from exc
+    if FOOTER_MAGIC not in tail[-16:]:
+        raise OSError(f"{path}: the recording is incomplete (no rerun stream footer at its end)")
