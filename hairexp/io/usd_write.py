@@ -31,7 +31,7 @@ FORMATS = (".usda", ".usdc", ".usd")
 
 
 #: a streamed stage (``write_result_usd``) is saved whenever this many bytes of samples were added
-SAVE_BYTES = 32 << 20
+SAVE_BYTES = 4 << 20
 
 
 def new_stage(fps: float, frames: int, doc: str, path=None) -> Usd.Stage:
