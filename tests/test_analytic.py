@@ -53,6 +53,14 @@ def test_default_strand_cantilever_within_one_percent(cantilevers):
     assert abs(cantilevers[20].ratio - 1.0) < 0.01
 
 
+def test_plain_voronoi_clamp_reproduces_the_first_order_error():
+    """The bending of before issue 13 (the clamp element over half the rigid root edge too):
+    the measured 1.114 x Euler-Bernoulli at 20 vertices, converging at first order."""
+    c = [fs.cantilever(n, clamp="voronoi") for n in (20, 40)]
+    assert c[0].ratio == pytest.approx(1.114, abs=1e-3)
+    assert 0.9 < fs.observed_order((20, 40), [x.ratio_elastica - 1.0 for x in c])[0] < 1.1
+
+
 def test_cantilever_converges_at_second_order(cantilevers):
     err = {n: cantilevers[n].ratio_elastica - 1.0 for n in VERTEX_COUNTS}
     for a, b in zip(VERTEX_COUNTS[:-1], VERTEX_COUNTS[1:]):

@@ -53,11 +53,21 @@ def clamped_strand(n_vertices: int, free_length: float, direction, linear_densit
     return Strands.from_polylines(s[:, None] * d, np.array([n_vertices]), linear_density, where="fidelity_static")
 
 
-def static_terms(strands: Strands, stretch_stiffness: float, bending_stiffness: float, gravity) -> list:
-    """The elastic and gravity terms of the static energy, as ``Simulator`` builds them."""
+#: ``clamp`` choices: the simulator's bending (the clamp element weighs its free half-edge), or
+#: the plain Voronoi length there (the discretisation before issue 13, for comparison)
+CLAMPS = ("free_half", "voronoi")
+
+
+def static_terms(strands: Strands, stretch_stiffness: float, bending_stiffness: float, gravity,
+                 clamp: str = "free_half") -> list:
+    """The elastic and gravity terms of the static energy, as ``Simulator`` builds them
+    (``clamp="voronoi"``: the bending of before issue 13 instead, see ``CLAMPS``)."""
+    if clamp not in CLAMPS:
+        raise ValueError(f"clamp must be one of {CLAMPS}, got {clamp!r}")
     free = np.flatnonzero(~strands.kinematic)
+    clamped = None if clamp == "free_half" else np.zeros(len(strands.bends), dtype=bool)
     return [Stretch(strands.edges, strands.rest_lengths, stretch_stiffness),
-            Bending(strands.bends, strands.rest, bending_stiffness),
+            Bending(strands.bends, strands.rest, bending_stiffness, clamped=clamped),
             Gravity(strands.masses, np.asarray(gravity, dtype=np.float64), free)]
 
 
@@ -178,12 +188,12 @@ class Cantilever:
 
 def cantilever(n_vertices: int, EI: float = EI, free_length: float = FREE_LENGTH,
                linear_density: float = LINEAR_DENSITY, EA: float = EA, g: float = G,
-               direction=(1.0, 0.0, 0.0), up=(0.0, 1.0, 0.0)) -> Cantilever:
+               direction=(1.0, 0.0, 0.0), up=(0.0, 1.0, 0.0), clamp: str = "free_half") -> Cantilever:
     """Static sag of a clamped strand along ``direction`` under gravity -g ``up`` (see the
-    module doc for the clamp and the free length)."""
+    module doc for the clamp and the free length; ``clamp``: see ``CLAMPS``)."""
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     s = clamped_strand(n_vertices, free_length, direction, linear_density)
-    eq = static_equilibrium(s, static_terms(s, EA, EI, -g * up))
+    eq = static_equilibrium(s, static_terms(s, EA, EI, -g * up, clamp))
     tip, clamp = eq.x[-1], eq.x[N_ROOT_VERTICES - 1]
     w = linear_density * g
     return Cantilever(n_vertices, free_length, float((clamp - tip) @ up), euler_bernoulli_tip(w, EI, free_length),
@@ -222,11 +232,19 @@ def hanging(n_vertices: int, EI: float = EI, free_length: float = FREE_LENGTH,
                    linear_density * g * free_length ** 2 / (2.0 * EA))
 
 
-def table(vertex_counts=(10, 20, 40), **kw) -> list[dict]:
+def observed_order(n_vertices, errors) -> list[float]:
+    """Convergence order between successive vertex counts: log(e_a / e_b) / log(h_a / h_b),
+    h = L / (n - N_ROOT_VERTICES) the edge length."""
+    h = [1.0 / (n - N_ROOT_VERTICES) for n in n_vertices]
+    return [float(np.log(abs(errors[i] / errors[i + 1])) / np.log(h[i] / h[i + 1]))
+            for i in range(len(h) - 1)]
+
+
+def table(vertex_counts=(10, 20, 40), clamp: str = "free_half", **kw) -> list[dict]:
     """One row per vertex count: the cantilever's sag ratios and the hanging strand's errors."""
     rows = []
     for n in vertex_counts:
-        c, h = cantilever(n, **kw), hanging(n, **kw)
+        c, h = cantilever(n, clamp=clamp, **kw), hanging(n, **kw)
         rows.append(dict(n_vertices=n, tip_deflection=c.tip_deflection, euler_bernoulli=c.euler_bernoulli,
                          elastica=c.elastica, sag_ratio=c.ratio, sag_ratio_elastica=c.ratio_elastica,
                          hanging_strain_error=h.max_strain_error,
