@@ -53,6 +53,7 @@ reports: bench paper-scenes
 	$(VPY) -m experiments.stress $(CACHE_FLAG)
 	$(VPY) -m experiments.baselines
 	$(VPY) -m experiments.accuracy --scenes goaling celia --frames 30 $(CACHE_FLAG)
+	$(VPY) -m experiments.fidelity_static
 
 clean:
 	rm -rf $(VENV) outputs multirun

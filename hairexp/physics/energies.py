@@ -171,21 +171,62 @@ def bending_kernel(xs, w, s_rest, curved: bool, need_hessian: bool):
     return g, H
 
 
-class Bending(Term):
-    """Rotation-invariant bending on vertex triples with rest curvature.
+def clamp_elements(bends: np.ndarray) -> np.ndarray:
+    """(B,) True for the first element of each chain of the stencil: the element whose vertex i-1
+    is no element's centre.  On every ``Strands`` that is the element centred on the last
+    kinematic root vertex (``N_ROOT_VERTICES`` = 2: the root edge is carried by the body), i.e.
+    the element of the clamp (tests/test_analytic.py checks it for every builder's layout)."""
+    bends = np.asarray(bends)
+    return ~np.isin(bends[:, 0], bends[:, 1])
 
-    E = B / (l0_a + l0_b) * (|kb| - |kb_rest|)^2, B the bending stiffness EI (N m^2).
+
+def voronoi_lengths(bends: np.ndarray, rest_positions: np.ndarray, clamped: np.ndarray) -> np.ndarray:
+    """(B,) rest length of hair each bending element stands for: the Voronoi length
+    (|e_a| + |e_b|) / 2 of its centre vertex, and |e_b| / 2 at a clamp (``clamped``), whose
+    first edge is the rigid root edge inside the body."""
+    x = np.asarray(rest_positions, dtype=np.float64)[np.asarray(bends)]
+    la = np.linalg.norm(x[:, 1] - x[:, 0], axis=1)
+    lb = np.linalg.norm(x[:, 2] - x[:, 1], axis=1)
+    return 0.5 * (np.where(clamped, 0.0, la) + lb)
+
+
+class Bending(Term):
+    """Rotation-invariant bending on vertex triples with rest curvature (discrete elastic rods,
+    Bergou et al. 2008, without twist):
+
+        E_i = B / (2 l_i) (|kb_i| - |kb_rest_i|)^2,   B the bending stiffness EI (N m^2),
+
+    l_i the Voronoi length of the element's centre vertex (``voronoi_lengths``).  Derivation:
+    |kb| = 2 tan(theta/2) ~ theta, the turning angle between the edges, which samples the
+    tangent at the two edge midpoints, so theta ~ kappa l_i and the element stands for
+    1/2 B kappa^2 l_i = B theta^2 / (2 l_i) of E = 1/2 int B kappa^2 ds.  At an interior vertex
+    l_i = (|e_a| + |e_b|) / 2, i.e. the weight B / (|e_a| + |e_b|).
+
+    The clamp (the first element of a chain, ``clamp_elements``: centred on the last kinematic
+    root vertex, the clamp point s = 0): the rigid root edge e_a is not a chord of the free hair
+    but the body's tangent at s = 0 exactly (Euler-Bernoulli's clamp, zero slope at the root), so
+    theta there ~ kappa(0) |e_b| / 2 and the element stands for the free half-edge [0, |e_b|/2]
+    only: l_i = |e_b| / 2, weight B / |e_b|, independent of the root edge's length.  For uniform
+    edges this is the symmetric ghost point of finite differences (w_{-1} = w_1) with the
+    trapezoidal rule's half cell at the clamp: second order.  The plain Voronoi length there,
+    (|e_a| + |e_b|) / 2, counts half of the rigid root edge as bendable hair and halves the
+    clamp's stiffness: a first-order error (issue 13: a horizontal 20-vertex cantilever sagged
+    1.114 x Euler-Bernoulli; now 1.0027, error ~ (h / L)^2 against the elastica;
+    hairexp/evaluation/fidelity_static.py, tests/test_analytic.py).
 
     It depends on the configuration only through |kb| = 2 tan(theta/2), so it is invariant
     under every rotation.  With a straight rest shape (|kb_rest| = 0) it is exactly
-    B/(l0_a+l0_b) |kb|^2, smooth with a non-zero Hessian at straight strands.  With rest
+    B/(2 l_i) |kb|^2, smooth with a non-zero Hessian at straight strands.  With rest
     curvature it keeps the rest bending *angle* (a model without twist has no material
     frame to keep the bending plane), and it has a kink at the straight configuration.
+
+    ``clamped``: (B,) which elements sit on a clamp; None: the first element of each chain.
     """
 
     name = "bending"
 
-    def __init__(self, bends: np.ndarray, rest_positions: np.ndarray, B: float | np.ndarray):
+    def __init__(self, bends: np.ndarray, rest_positions: np.ndarray, B: float | np.ndarray,
+                 clamped: np.ndarray | None = None):
         self.stencil = np.asarray(bends)
         xr = _t(rest_positions)[torch.tensor(self.stencil)]
         e0r, e1r = xr[:, 1] - xr[:, 0], xr[:, 2] - xr[:, 1]
@@ -193,8 +234,9 @@ class Bending(Term):
         s = torch.linalg.vector_norm(kb_rest, dim=-1)
         self.s_rest = torch.where(s < 1e-12, torch.zeros_like(s), s)  # exactly straight -> exactly quadratic
         self.curved = bool((self.s_rest > 0).any())  # static: no data-dependent branch in the kernel
-        lsum = torch.linalg.vector_norm(e0r, dim=-1) + torch.linalg.vector_norm(e1r, dim=-1)
-        self.w = _t(np.broadcast_to(B, (len(self.stencil),))) / lsum
+        self.clamped = clamp_elements(self.stencil) if clamped is None else np.asarray(clamped, dtype=bool)
+        self.lengths = _t(voronoi_lengths(self.stencil, rest_positions, self.clamped))
+        self.w = _t(np.broadcast_to(B, (len(self.stencil),))) / (2.0 * self.lengths)
 
     energy_fn = staticmethod(bending_energy)
 
