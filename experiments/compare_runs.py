@@ -23,6 +23,20 @@ def timing(column: str) -> bool:
     return column == "step_seconds" or column.startswith("t_")
 
 
+def _differences(fa: Path, fb: Path) -> list[str]:
+    """The arrays or columns in which the two files differ."""
+    if fa.suffix == ".npz":
+        with np.load(fa) as A, np.load(fb) as B:
+            diff = [k for k in A.files if k not in B.files or A[k].shape != B[k].shape
+                    or not np.array_equal(A[k], B[k])]
+            return diff + [k for k in B.files if k not in A.files]
+    A, B = pd.read_parquet(fa), pd.read_parquet(fb)
+    A = A[[c for c in A.columns if not timing(c)]]
+    B = B[[c for c in B.columns if not timing(c)]]
+    diff = sorted(set(A.columns) ^ set(B.columns))
+    return diff + [c for c in A.columns if c in B.columns and not A[c].equals(B[c])]
+
+
 def compare(a: Path, b: Path) -> tuple[int, int]:
     bad = n = 0
     for fa in sorted(a.rglob("result.npz")) + sorted(a.rglob("metrics.parquet")):
@@ -33,16 +47,12 @@ def compare(a: Path, b: Path) -> tuple[int, int]:
             print("MISSING", rel)
             bad += 1
             continue
-        if fa.suffix == ".npz":
-            A, B = np.load(fa), np.load(fb)
-            diff = [k for k in A.files if k not in B.files or A[k].shape != B[k].shape or not np.array_equal(A[k], B[k])]
-            diff += [k for k in B.files if k not in A.files]
-        else:
-            A, B = pd.read_parquet(fa), pd.read_parquet(fb)
-            A = A[[c for c in A.columns if not timing(c)]]
-            B = B[[c for c in B.columns if not timing(c)]]
-            diff = sorted(set(A.columns) ^ set(B.columns))
-            diff += [c for c in A.columns if c in B.columns and not A[c].equals(B[c])]
+        try:
+            diff = _differences(fa, fb)
+        except Exception as exc:   # a corrupt or truncated file: a difference, named
+            print(f"UNREADABLE {rel}: {type(exc).__name__}: {exc}")
+            bad += 1
+            continue
         print(("DIFF " if diff else "same ") + str(rel) + (f" {diff}" if diff else ""))
         bad += bool(diff)
     return n, bad

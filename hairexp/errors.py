@@ -43,3 +43,27 @@ class Interrupted(KeyboardInterrupt):
 
         self.signum = int(signum)
         super().__init__(f"interrupted by {signal.Signals(self.signum).name}")
+
+
+def regular_file(path, where: str, what: str = "file"):
+    """``path`` (a Path) when it is a readable regular file, else an InputError naming ``where``:
+    no such file, a directory, a FIFO or device (reading one would block or never end), or a
+    file this process may not read."""
+    import os
+    import stat
+    from pathlib import Path
+
+    path = Path(path)
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise InputError("no such file", where) from None
+    except OSError as exc:
+        raise InputError(f"cannot be read: {exc.strerror or exc}", where) from None
+    if stat.S_ISDIR(st.st_mode):
+        raise InputError(f"is a directory, not a {what}", where)
+    if not stat.S_ISREG(st.st_mode):
+        raise InputError(f"is not a regular file (a FIFO, socket or device), not a {what}", where)
+    if not os.access(path, os.R_OK):
+        raise InputError("cannot be read: permission denied", where)
+    return path

@@ -30,3 +30,12 @@ def test_a_changed_bit_is_a_difference(tmp_path):
     tree(tmp_path / "a", x, [1e-10, 2e-10], [0.1, 0.2])
     tree(tmp_path / "b", y, [1e-10, np.nextafter(2e-10, 1.0)], [0.1, 0.2])
     assert compare(tmp_path / "a", tmp_path / "b") == (2, 2)
+
+
+def test_a_corrupt_file_is_a_named_difference(tmp_path, capsys):
+    x = np.arange(6.0).reshape(1, 2, 3)
+    tree(tmp_path / "a", x, [1e-10, 2e-10], [0.1, 0.2])
+    tree(tmp_path / "b", x, [1e-10, 2e-10], [0.1, 0.2])
+    (tmp_path / "b" / "run" / "result.npz").write_bytes(b"PK\x03\x04 not a zip")
+    assert compare(tmp_path / "a", tmp_path / "b") == (2, 1)
+    assert "UNREADABLE run/result.npz" in capsys.readouterr().out

@@ -75,3 +75,15 @@ def test_settle_steps_are_counted(base, caplog):
     with caplog.at_level(logging.WARNING, logger="hairexp.app.guard"):
         est = guard_run(cfg, 60, 1)
     assert est.settle_steps >= 25_000_000 and "long run" in caplog.text and "scene.settle" in caplog.text
+
+
+def test_runs_longer_than_a_week_are_refused(caplog):
+    """scene.settle=1e9 (about 5e10 steps, thousands of days) stops at start; allow_large runs it."""
+    huge = estimate(60, 30, 1, settle_steps=5 * 10 ** 10)
+    assert huge.seconds > guard.MAX_RUN_SECONDS
+    with pytest.raises(InputError, match=r"roughly [\d.e+]+ days .*, more than 7 days; .*guard\.allow_large=true"):
+        check(huge, "scene.settle", allow_large=False, available=1e12)
+    with caplog.at_level(logging.WARNING, logger="hairexp.app.guard"):
+        check(huge, "scene.settle", allow_large=True, available=1e12)
+    assert "running anyway" in caplog.text
+    check(estimate(60, 30, 1, settle_steps=25_000_000), "k", allow_large=False, available=1e12)   # days: warned only

@@ -302,6 +302,9 @@ def test_used_folder_exits_2_with_one_line(hydra_conf, tmp_path, capsys):
     (["free", "a/b"], 1, "safe folder name"),
     ([".", "tracked"], 0, "safe folder name"),
     (["free", "free"], 1, "also the name of variants\\[0\\]"),
+    ([".hydra", "tracked"], 0, "safe folder name"),
+    (["free", "stream"], 1, "reserved"),
+    (["summary.json", "tracked"], 0, "reserved"),
 ])
 def test_variant_names(hydra_conf, tmp_path, names, bad, match):
     cfg = hydra_conf(["experiment=goaling_smoke", "logging.rerun=false"])

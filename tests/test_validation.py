@@ -133,6 +133,13 @@ def test_guide_keyframes_of_wrong_size(base):
     ({"measure.axis": [1.0, 0.0]}, "measure.axis"), ({"judge_tolerance": -1.0}, "judge_tolerance"),
     ({"controller.name": "tracking", "tracking.variance.stiffness": INF}, "tracking.variance.stiffness"),
     ({"controller.name": "attract", "controller.attract_stiffness": INF}, "controller.attract_stiffness"),
+    # found by an independent probe set
+    ({"scene.hair.stretch_stiffness": 1e300}, "scene.hair.stretch_stiffness"),
+    ({"scene.hair.bending_stiffness": 1e12}, "scene.hair.bending_stiffness"),
+    ({"solver.max_substep_levels": 11}, "solver.max_substep_levels"),
+    ({"controller.name": "tracking", "tracking.variance.stiffness": 1.0, "tracking.variance.target_scale": [-2.0]},
+     "tracking.variance.target_scale"),
+    ({"judge": "clumps_match_guides"}, "judge"),                       # goaling measures collider contact
 ])
 def test_out_of_range_values_are_named(base, kv, where):
     raises_at(updated(base, kv), where)
@@ -298,3 +305,34 @@ def test_experiment_scripts_refuse_bad_arguments(module, args, says):
     root = Path(__file__).resolve().parent.parent
     proc = run_cli(module, args, root)
     assert proc.returncode == 2 and says in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+
+
+def test_clumps_time_after_the_run(base):
+    cfg = compose_config(["experiment=splitting_smoke", "variants=[]", "measure.time=100.0", "logging.rerun=false"])
+    raises_at(cfg, "measure.time")
+    assemble_scene(updated(cfg, {"measure.time": -1.0}), settle=False)      # < 0: the last frame
+
+
+@pytest.mark.parametrize("key", ["guides.file", "scene.usd"])
+@pytest.mark.parametrize("kind", ["fifo", "dir"])
+def test_input_files_that_are_not_regular_files(base, tmp_path, key, kind):
+    """A FIFO would block the reader forever; a directory is not a file: both are named at start."""
+    import os
+
+    path = tmp_path / ("in.npz" if key == "guides.file" else "in.usda")
+    os.mkfifo(path) if kind == "fifo" else path.mkdir()
+    kv = ({"guides.source": "file", "guides.file": str(path)} if key == "guides.file"
+          else {"scene.builder": "usd", "scene.usd": str(path)})
+    err = raises_at(updated(base, kv), key)
+    assert ("not a regular file" if kind == "fifo" else "is a directory") in str(err)
+
+
+def test_benchmark_configs_assemble():
+    """The benchmarks replace Celia's colliders: their configs must not keep a measure naming the goblet."""
+    from experiments.bench_collisions import head_collider
+    from experiments.bench_scale import config as scale_config
+    from experiments.common import celia_bench
+
+    for cfg in (celia_bench("free", 1, typed=[head_collider()], collision="default"), scale_config(30, "free", 1)):
+        cfg, scene, _ = assemble_scene(cfg, settle=False)
+        assert str(cfg.measure.name) in ("none", "MeasureName.none")

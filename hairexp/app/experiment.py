@@ -34,7 +34,9 @@ log = logging.getLogger("hairexp")
 #: Figures of each variant copied into the experiment's summary.
 VARIANT_FIELDS = ("status", "steps", "iterations_mean", "iterations_max", "converged_fraction", "converged",
                   "unconverged_steps", "step_seconds_median", "stretch_max", "residual_rel_max", "wall_seconds")
-SAFE_NAME = re.compile(r"^[A-Za-z0-9_.-]+$")
+SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+#: names a variant's folder may not have: the experiment folder's own entries
+RESERVED_NAMES = {"stream", "summary", "metrics", "result", "recording", "guides"}
 
 
 def check_variant_names(variants) -> list[str]:
@@ -43,9 +45,12 @@ def check_variant_names(variants) -> list[str]:
     for i, v in enumerate(variants):
         name = "" if v.name is None else str(v.name)
         where = f"variants[{i}].name"
-        if not SAFE_NAME.match(name) or name in (".", ".."):
-            raise InputError(f"{name!r} is not a safe folder name (letters, digits, '_', '.', '-'; not '.' or '..')",
-                             where)
+        if not SAFE_NAME.match(name):
+            raise InputError(f"{name!r} is not a safe folder name (letters, digits, '_', '.' and '-', starting with "
+                             "a letter or digit)", where)
+        if name.split(".")[0].lower() in RESERVED_NAMES:
+            raise InputError(f"{name!r} is reserved (the experiment folder's own entries: "
+                             f"{', '.join(sorted(RESERVED_NAMES))})", where)
         if name in names:
             raise InputError(f"{name!r} is also the name of variants[{names.index(name)}]", where)
         names.append(name)

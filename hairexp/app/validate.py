@@ -15,6 +15,7 @@ controller.attract_stiffness hairexp/control/attract.py).  The rest are checked 
 from __future__ import annotations
 
 from hairexp.errors import InputError, finite_number
+from hairexp.evaluation.judges import JUDGE_MEASURES
 from hairexp.evaluation.measures import collider_named
 
 
@@ -56,6 +57,11 @@ def keyframes(times, key_times: str, values: dict) -> None:
             number(x, f"{key}[{i}]")
 
 
+#: solver.max_substep_levels at most: 2^10 substeps of a failing step (beyond, a run whose steps
+#: all fail retries each of them for hours before it reports)
+MAX_SUBSTEP_LEVELS = 10
+
+
 def _solver(s) -> None:
     rtol = number(s.rtol, "solver.rtol", lo=0)
     atol = number(s.atol, "solver.atol", lo=0)
@@ -63,8 +69,9 @@ def _solver(s) -> None:
         raise InputError("solver.rtol and solver.atol are both 0: no step can converge; give one > 0", "solver.rtol")
     integer(s.max_iterations, "solver.max_iterations", 1)
     integer(s.max_backtracks, "solver.max_backtracks", 0)
-    if integer(s.max_substep_levels, "solver.max_substep_levels", 0) > 30:
-        raise InputError(f"must be <= 30 (2^levels substeps of a step), got {s.max_substep_levels}",
+    if integer(s.max_substep_levels, "solver.max_substep_levels", 0) > MAX_SUBSTEP_LEVELS:
+        raise InputError(f"must be <= {MAX_SUBSTEP_LEVELS} (a failing step is retried as up to 2^levels substeps, "
+                         f"{2 ** MAX_SUBSTEP_LEVELS} at {MAX_SUBSTEP_LEVELS}), got {s.max_substep_levels}",
                          "solver.max_substep_levels")
 
 
@@ -130,6 +137,10 @@ def _measure(cfg) -> None:
     number(cfg.judge_tolerance, "judge_tolerance", lo=0, lo_open=True)
     if str(_value(m.name)) == "collider_contact" and not str(m.collider):
         raise InputError("measure.name=collider_contact needs the name of a collider", "measure.collider")
+    judge, name = str(_value(cfg.judge)), str(_value(m.name))
+    if judge != "none" and JUDGE_MEASURES[judge] != name:
+        raise InputError(f"judge {judge} reads the measure {JUDGE_MEASURES[judge]}, but measure.name is {name}; "
+                         f"set measure.name={JUDGE_MEASURES[judge]} (and its keys) or judge=none", "judge")
 
 
 def validate_config(cfg) -> None:
@@ -147,6 +158,11 @@ def validate_measure(cfg, scene) -> None:
     rather than after the whole simulation."""
     if str(_value(cfg.measure.name)) == "collider_contact":
         collider_named(scene, str(cfg.measure.collider))
+    if str(_value(cfg.measure.name)) == "clumps":   # measured at measure.time; < 0: the last frame
+        end = int(cfg.frames) / float(cfg.fps)
+        if float(cfg.measure.time) > end + 1e-9:
+            raise InputError(f"is {float(cfg.measure.time)} s, after the run's end at {end:.6g} s (frames / fps); "
+                             "give a time within the run, or < 0 for its last frame", "measure.time")
 
 
 __all__ = ["validate_config", "validate_measure", "number", "integer", "keyframes"]

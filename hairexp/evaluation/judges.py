@@ -53,6 +53,11 @@ RUN_RULES = {"free_misses_tracked_hits": hits_collider, "clumps_match_guides": c
              "variance_follows_targets": variance_on_target, "tracked_leaves_rail": leaves_rail}
 
 
+#: judge name -> the measure (``measure.name``) its rule reads
+JUDGE_MEASURES = {"free_misses_tracked_hits": "collider_contact", "clumps_match_guides": "clumps",
+                  "variance_follows_targets": "tip_variance", "tracked_leaves_rail": "block_rail"}
+
+
 def _met(rule, m: dict, facts: dict, tol: float = 0.0) -> bool:
     return rule(m, facts, tol)[0]
 

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, regular_file
 from hairexp.model.dynamic_body import authoring_motion
 from hairexp.model.strands import validate_polylines
 
@@ -133,8 +133,7 @@ def file_guides(path, motion, frames: int | None = None, fps: float | None = Non
     would be held still at its last frame."""
     path = Path(path)
     where = f"guides.file={path}"
-    if path.is_dir() or not path.exists():
-        raise InputError("no such file" if not path.exists() else "is a directory, not a guide npz", where)
+    regular_file(path, where, "guide npz")
     try:
         data = np.load(path, allow_pickle=False)
         if not isinstance(data, np.lib.npyio.NpzFile):

@@ -22,7 +22,7 @@ import numpy as np
 from omegaconf import OmegaConf
 from pxr import Usd, UsdGeom
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, regular_file
 from hairexp.io.usd_colliders import read_colliders
 from hairexp.io.usd_layout import read_motion, time_label
 from hairexp.guides.animation import GuideAnimation
@@ -45,8 +45,7 @@ def open_stage(path: str) -> tuple[Usd.Stage, str]:
         raise InputError("the path of a USD stage is required (scene.builder=usd or guides.source=usd)",
                          "scene.usd")
     where = f"scene.usd={path}"
-    if not Path(path).is_file():
-        raise InputError("no such file", where)
+    regular_file(path, where, "USD stage")
     try:
         stage = _open.get(path)
         if stage is None:

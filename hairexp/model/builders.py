@@ -109,11 +109,18 @@ def build_motion(cfg, where: str = "scene.motion") -> RigidMotion:
                        rot, str(getattr(cfg.interpolation, "value", cfg.interpolation)), where=where)
 
 
+#: the largest material constant accepted (SI units)
+MATERIAL_MAX = 1e9
+
+
 def build_material(h) -> Material:
     """The hair material of ``scene.hair``, validated."""
     for key in ("linear_density", "stretch_stiffness", "bending_stiffness"):
         if not (getattr(h, key) > 0 and np.isfinite(getattr(h, key))):
             raise InputError(f"must be > 0, got {getattr(h, key)}", f"scene.hair.{key}")
+        if getattr(h, key) > MATERIAL_MAX:   # hair: EA ~ 1-100 N, EI ~ 1e-9-1e-5 N m^2, 1e-5-1e-3 kg/m
+            raise InputError(f"is {getattr(h, key):g}, beyond {MATERIAL_MAX:g}: the step's Newton system (stiffness "
+                             "against mass / dt^2) is then beyond double precision", f"scene.hair.{key}")
     for key in ("edge_damping", "air_drag"):
         if not (getattr(h, key) >= 0 and np.isfinite(getattr(h, key))):
             raise InputError(f"must be >= 0, got {getattr(h, key)}", f"scene.hair.{key}")

@@ -42,6 +42,10 @@ class VarianceControl:
         self.K = cons.K
         self.t_k, self.k_scale = _keys(cfg.times, cfg.stiffness_scale, "tracking.variance.stiffness_scale")
         self.t_v, self.v_scale = _keys(cfg.times, cfg.target_scale, "tracking.variance.target_scale")
+        for key, v in (("stiffness_scale", self.k_scale), ("target_scale", self.v_scale)):
+            if (v < 0).any():
+                raise InputError(f"must be >= 0 at every keyframe (a scale of the rest variance or of "
+                                 f"tracking.variance.stiffness), got {v.tolist()}", f"tracking.variance.{key}")
         if not (cfg.stiffness >= 0 and np.isfinite(cfg.stiffness)):
             raise InputError(f"must be >= 0, got {cfg.stiffness}", "tracking.variance.stiffness")
         self.stiffness = float(cfg.stiffness)
