@@ -139,7 +139,6 @@ def test_guide_keyframes_of_wrong_size(base):
     ({"solver.max_substep_levels": 11}, "solver.max_substep_levels"),
     ({"controller.name": "tracking", "tracking.variance.stiffness": 1.0, "tracking.variance.target_scale": [-2.0]},
      "tracking.variance.target_scale"),
-    ({"judge": "clumps_match_guides"}, "judge"),                       # goaling measures collider contact
 ])
 def test_out_of_range_values_are_named(base, kv, where):
     raises_at(updated(base, kv), where)
@@ -336,3 +335,15 @@ def test_benchmark_configs_assemble():
     for cfg in (celia_bench("free", 1, typed=[head_collider()], collision="default"), scale_config(30, "free", 1)):
         cfg, scene, _ = assemble_scene(cfg, settle=False)
         assert str(cfg.measure.name) in ("none", "MeasureName.none")
+
+
+def test_a_judge_must_read_the_measure(tmp_path):
+    """goaling's variants measure collider contact: a clumps judge is refused before any variant runs."""
+    from hairexp.app.experiment import run_experiment
+
+    cfg = compose_config(["experiment=goaling_smoke", "frames=2", "logging.rerun=false", "judge=clumps_match_guides"])
+    with pytest.raises(InputError, match="reads the measure clumps, but measure.name is collider_contact") as e:
+        run_experiment(cfg, tmp_path / "exp")
+    assert e.value.where is None or "judge" in str(e.value)
+    assert not (tmp_path / "exp").exists()
+    assemble_scene(updated(cfg, {"variants": []}), settle=False)    # a single run has no judge to check

@@ -22,6 +22,7 @@ from omegaconf import OmegaConf
 
 from hairexp.app.assemble import check_config
 from hairexp.app.config import to_plain
+from hairexp.app.validate import validate_judge
 from hairexp.app.signals import InterruptSignals
 from hairexp.errors import InputError
 from hairexp.evaluation.judges import JUDGES
@@ -95,6 +96,7 @@ def run_experiment(cfg, out_dir) -> dict:
         vcfg.variants = []
         try:
             check_config(vcfg)
+            validate_judge(cfg, vcfg.measure)
         except InputError as exc:   # the key's own message, said to be the variant's
             raise InputError(f"{exc} (variants[{i}] {name}, checked before any variant runs)") from exc
     plain = to_plain(cfg)

@@ -137,10 +137,7 @@ def _measure(cfg) -> None:
     number(cfg.judge_tolerance, "judge_tolerance", lo=0, lo_open=True)
     if str(_value(m.name)) == "collider_contact" and not str(m.collider):
         raise InputError("measure.name=collider_contact needs the name of a collider", "measure.collider")
-    judge, name = str(_value(cfg.judge)), str(_value(m.name))
-    if judge != "none" and JUDGE_MEASURES[judge] != name:
-        raise InputError(f"judge {judge} reads the measure {JUDGE_MEASURES[judge]}, but measure.name is {name}; "
-                         f"set measure.name={JUDGE_MEASURES[judge]} (and its keys) or judge=none", "judge")
+
 
 
 def validate_config(cfg) -> None:
@@ -151,6 +148,15 @@ def validate_config(cfg) -> None:
     _tracking(cfg.tracking)
     _collision(cfg.collision)
     _measure(cfg)
+
+
+def validate_judge(cfg, measure_cfg) -> None:
+    """An experiment's ``judge`` reads the measure its variants record (``measure_cfg``: a
+    variant's ``measure``); a single run (``variants=[]``) has no judge to check."""
+    judge, name = str(_value(cfg.judge)), str(_value(measure_cfg.name))
+    if judge != "none" and JUDGE_MEASURES[judge] != name:
+        raise InputError(f"judge {judge} reads the measure {JUDGE_MEASURES[judge]}, but measure.name is {name}; "
+                         f"set measure.name={JUDGE_MEASURES[judge]} (and its keys) or judge=none", "judge")
 
 
 def validate_measure(cfg, scene) -> None:
@@ -165,4 +171,4 @@ def validate_measure(cfg, scene) -> None:
                              "give a time within the run, or < 0 for its last frame", "measure.time")
 
 
-__all__ = ["validate_config", "validate_measure", "number", "integer", "keyframes"]
+__all__ = ["validate_config", "validate_judge", "validate_measure", "number", "integer", "keyframes"]
