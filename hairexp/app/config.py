@@ -41,6 +41,12 @@ class OnFailure(str, Enum):
     fail = "fail"         # stop the run with an error (exit code 3)
 
 
+class Integrator(str, Enum):
+    implicit_euler = "implicit_euler"         # paper eq. 5 (first order, damps every motion)
+    bdf2 = "bdf2"                             # second-order BDF (Choi and Ko 2002)
+    generalized_alpha = "generalized_alpha"   # Chung and Hulbert 1993, rho_inf = 0.8
+
+
 class Builder(str, Enum):
     wisp = "wisp"
     ponytail = "ponytail"
@@ -235,6 +241,7 @@ class SolverConfig:
     compile: Compile = Compile.auto   # torch.compile of the closed forms (first step pays ~10-20 s)
     on_failure: OnFailure = OnFailure.substep
     max_substep_levels: int = 4       # a failing step is split into at most 2^levels substeps
+    integrator: Integrator = Integrator.implicit_euler   # hairexp/physics/integrators.py
 
 
 @dataclass
