@@ -44,7 +44,7 @@ class OnFailure(str, Enum):
 class Integrator(str, Enum):
     implicit_euler = "implicit_euler"         # paper eq. 5 (first order, damps every motion)
     bdf2 = "bdf2"                             # second-order BDF (Choi and Ko 2002)
-    generalized_alpha = "generalized_alpha"   # Chung and Hulbert 1993, rho_inf = 0.8
+    generalized_alpha = "generalized_alpha"   # Chung and Hulbert 1993, rho_inf 0.8; EXPERIMENTAL: unstable on stiff nonlinear motion
 
 
 class Builder(str, Enum):

@@ -47,6 +47,16 @@ low-frequency dissipation.  ``ALPHA_RHO_INF`` = 0.8: at omega dt = 0.28 (the cha
 the linear analysis gives 99.99 % amplitude per period and +0.69 % period.  It is a one-step
 scheme in (x, v, a): a changed dt (substeps) needs no special formula; ``a`` is the history.
 The first step starts from a_0 = M^-1 F(x_0, v_0) (the equation of motion at t = 0).
+EXPERIMENTAL: on the chain at small amplitude it matches the linear analysis (99.99 %, +0.71 %,
+hairexp/evaluation/fidelity_chain.py), but it is not stable on stiff nonlinear motion: with the
+stiff stretch springs (omega dt ~ 800 at dt 0.04 s) rotating fast, the energy at the interpolated
+point (an edge interpolated between two rotated ends is shorter) and the ringing acceleration
+history (stiff modes decay only by rho_inf per step) pump energy in: a chain whose root is swung
+0.3 m in 0.25 s gains energy without bound at dt 0.04 and 0.01 s (it agrees with BDF2 at 1 ms),
+and goaling needs substeps and fails to converge.  Also tried and dropped (same test): the
+alpha_f = 0 member (Wood-Bossak-Zienkiewicz; rho_inf 0.8 blows up, 0.5 is stable there but its
+period error is +1.37 % at omega dt 0.28) and generalized-alpha with interpolated forces instead
+of positions (blows up at rho_inf 0.6 and 0.8).  BDF2 (rho_inf = 0: L-stable) is the robust one.
 
 Dissipation (``EdgeDamping``, ``AirDrag``, hairexp/physics/energies.py) are Rayleigh potentials
 R(v) whose force is -dR/dv at the scheme's velocity: each is the potential h_v R((y - y_ref)/h_v)
@@ -125,7 +135,7 @@ class ImplicitEuler:
         return StepPlan(state.x + dt * state.v, dt, state.x, dt)
 
     def velocity(self, x_new, state, plan: StepPlan) -> np.ndarray:
-        return (x_new - state.x) / plan.h_v
+        return (x_new - plan.x_ref) / plan.h_v
 
     def history(self, state, x_new, v_new, plan: StepPlan, dt: float):
         return None
@@ -168,8 +178,10 @@ class GeneralizedAlpha(ImplicitEuler):
     def __init__(self, rho_inf: float = ALPHA_RHO_INF):
         r = float(rho_inf)
         self.rho_inf = r
-        self.alpha_m = (2 * r - 1) / (r + 1)
-        self.alpha_f = r / (r + 1)
+        self._set((2 * r - 1) / (r + 1), r / (r + 1))
+
+    def _set(self, alpha_m: float, alpha_f: float) -> None:
+        self.alpha_m, self.alpha_f = alpha_m, alpha_f
         self.gamma = 0.5 - self.alpha_m + self.alpha_f
         self.beta = 0.25 * (1 - self.alpha_m + self.alpha_f) ** 2
 
