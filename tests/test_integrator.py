@@ -10,15 +10,15 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-import torch
 
 from integrator_reference import SOLVER, reference_runs
 from hairexp.errors import InputError
-from hairexp.evaluation.fidelity_chain import chain_scene, linear_prediction, measure_chain
+from hairexp.evaluation.fidelity_chain import chain_scene, first_mode, linear_prediction, measure_chain
 from hairexp.model.rigid import RigidMotion
 from hairexp.model.scene import Material, Scene
 from hairexp.model.strands import Strands
 from hairexp.physics import simulator as simulator_module
+from hairexp.physics.collisions import CollisionInfo
 from hairexp.physics.info import CONVERGED, MAX_ITERATIONS
 from hairexp.physics.integrators import INTEGRATORS, GeneralizedAlpha, bdf2_coefficients, make_integrator
 from hairexp.physics.simulator import Simulator
@@ -56,11 +56,11 @@ def spring_scene(stretch: float = 0.002) -> Scene:
     k = W * W * m * L0                              # EA with (EA / l0) = m W^2
     x0 = pts.copy()
     x0[2, 1] -= stretch
-    return Scene("spring", s, Material(RHO, k, 0.0), RigidMotion.static(), np.zeros(3), pts.copy(), initial=x0)
+    return Scene("spring", s, Material(RHO, k, 0.0), RigidMotion.static(), np.zeros(3), x0, initial=x0)
 
 
 def spring_run(integrator: str, n: int, dt: float = DT):
-    sim = Simulator(spring_scene(), solver(integrator, rtol=1e-13, atol=1e-22))
+    sim = Simulator(spring_scene(), solver(integrator, rtol=1e-10, atol=1e-17))
     st = sim.initial_state()
     xs, vs = [-(st.x[2, 1] + 2 * L0)], [0.0]
     for _ in range(n):
@@ -198,40 +198,41 @@ def test_linear_prediction_of_implicit_euler_is_its_closed_form():
     assert per == pytest.approx(steps * Wdt / (2 * np.pi) - 1, rel=1e-12)
 
 
-def chain_energies(sim, st):
-    X = torch.from_numpy(st.x)
-    pe = sum(float(t.total(X)) for t in sim.terms + sim.external)
-    return 0.5 * float(np.sum(sim.scene.strands.masses[:, None] * st.v ** 2)) + pe
-
-
 @pytest.mark.parametrize("integrator", sorted(INTEGRATORS))
-def test_chain_energy_never_increases_after_release(integrator):
-    """No input after the root stops (0.4 s): implicit Euler's energy, BDF2's G-norm energy (the
-    nonlinear E at the extrapolated 2 y_n - y_{n-1}), generalized-alpha's energy at the end of
-    each period, never increase."""
+def test_chain_first_mode_energy_never_increases_after_release(integrator):
+    """No input after the root stops (0.4 s).  The energy of the chain's first mode,
+    E(q, q') = 1/2 (q'^2 + omega^2 q^2) with q the mass-weighted projection on the mode shape (the
+    full energy of the nonlinear chain also swaps with the stiff stretch at twice the swing
+    frequency).  Implicit Euler: E itself.  BDF2 (two-step): its G-norm energy
+    1/4 (E(y_n) + E(2 y_n - y_{n-1})) (Dahlquist's G-stability).  Generalized-alpha (state x, v, a):
+    E's maximum over each half period (E oscillates within a period; it keeps 99.99 % of the
+    amplitude per period, and the peaks move by ~1e-4 of E through the coupling to the other
+    modes, so the bound is 5e-4 of E)."""
     sc = chain_scene()
+    omega, phi = first_mode(sc)
+    free = np.flatnonzero(~sc.strands.kinematic)
+    mphi = sc.strands.masses[free] * phi
     sim = Simulator(sc, solver(integrator, rtol=1e-9, atol=1e-14))
     st = sim.initial_state()
-    states = []
-    for _ in range(40):
+    q, dq = [], []
+    for _ in range(60):
         st, info = sim.step(st, DT)
         assert info.converged
         if st.time >= 0.4 - 1e-9:
-            states.append(st)
-    E = np.array([chain_energies(sim, s) for s in states])
-    scale = np.ptp(E) + 1e-30
+            q.append(float(mphi @ (st.x[free, 0] - st.x[0, 0])))
+            dq.append(float(mphi @ st.v[free, 0]))
+    q, dq = np.array(q), np.array(dq)
+    E = 0.5 * (dq ** 2 + omega ** 2 * q ** 2)
+    tol = 1e-6 * E.max()
     if integrator == "implicit_euler":
-        assert np.all(np.diff(E) <= 1e-9 * scale)
+        assert np.all(np.diff(E) <= tol) and E[-1] < 0.5 * E[0]
     elif integrator == "bdf2":
-        G = []
-        for a, b in zip(states[:-1], states[1:]):
-            ext = SimpleNamespace(x=2 * b.x - a.x, v=2 * b.v - a.v)
-            G.append(0.25 * (chain_energies(sim, b) + chain_energies(sim, ext)))
-        assert np.all(np.diff(G) <= 1e-6 * scale)
+        G = 0.25 * (E[1:] + 0.5 * ((2 * dq[1:] - dq[:-1]) ** 2 + omega ** 2 * (2 * q[1:] - q[:-1]) ** 2))
+        assert np.all(np.diff(G) <= tol) and G[-1] < G[0]
     else:
-        per = 22                                        # steps per period at dt 0.04 s
-        peaks = [E[k:k + per].max() for k in range(0, len(E) - per + 1, per // 2)]
-        assert np.all(np.diff(peaks) <= 1e-6 * scale)
+        half = 11                                       # steps per half period at dt 0.04 s
+        peaks = [E[k:k + half].max() for k in range(0, len(E) - half + 1, half)]
+        assert np.all(np.diff(peaks) <= 5e-4 * E.max()) and peaks[-1] <= peaks[0] * (1 + 2e-4)
 
 
 # -- first step, substep recovery, collision history ---------------------------------------------
@@ -307,7 +308,7 @@ def test_bdf2_history_follows_a_collision_impulse(monkeypatch):
             x1 = x1.copy()
             x1[2] = x0[2]
             v1[2] = 0.0
-        return x1, v1, simulator_module.CollisionInfo()
+        return x1, v1, CollisionInfo()
 
     monkeypatch.setattr(simulator_module, "collision_stage", stage)
     sim.collide_objects = True
@@ -353,8 +354,10 @@ def test_every_controller_runs_with_bdf2(controller):
 
 
 def test_simulated_guides_use_the_run_integrator():
-    run_b, _, _ = goaling_run("skinned", "bdf2", frames=3)
-    run_e, _, _ = goaling_run("skinned", "implicit_euler", frames=3)
+    """goaling_smoke's guides are simulated (hairexp/app/guides.py) with the run's integrator;
+    the body starts moving at 0.2 s (frame 5)."""
+    run_b, _, _ = goaling_run("skinned", "bdf2", frames=10)
+    run_e, _, _ = goaling_run("skinned", "implicit_euler", frames=10)
     gb, ge = run_b.guides.positions, run_e.guides.positions
     assert np.isfinite(gb).all() and np.array_equal(gb[0], ge[0]) and not np.allclose(gb, ge, atol=1e-6)
 
@@ -399,7 +402,7 @@ def test_settle_phase_uses_implicit_euler_whatever_the_integrator():
 def test_unknown_integrator_is_an_input_error_naming_the_key():
     with pytest.raises(InputError) as info:
         make_integrator("rk4")
-    assert info.value.key == "solver.integrator" and "bdf2" in str(info.value)
+    assert info.value.where == "solver.integrator" and "bdf2" in str(info.value)
     with pytest.raises(InputError):
         Simulator(chain_scene(), solver("bogus"))
 

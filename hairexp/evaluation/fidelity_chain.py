@@ -99,8 +99,9 @@ def chain_scene(length: float = 0.3, n_vertices: int = 20, linear_density: float
     return Scene("hanging_chain", strands, mat, motion, np.array([0.0, -GRAVITY, 0.0]), x0.copy(), initial=x0)
 
 
-def first_mode(scene: Scene) -> tuple[float, np.ndarray]:
-    """(omega, mass-normalised sideways (x) shape over the free vertices) of the linearised chain."""
+def linearised(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(K, M_diag, free vertices): the exact Hessian of stretch + bending at the chain's
+    equilibrium over the free DOFs (gravity is linear: no Hessian) and the lumped masses."""
     s, m = scene.strands, scene.material
     x0 = torch.as_tensor(scene.initial_positions(), dtype=torch.float64)
     free = np.flatnonzero(~s.kinematic)
@@ -109,10 +110,15 @@ def first_mode(scene: Scene) -> tuple[float, np.ndarray]:
     def energy(xf):
         x = x0.clone()
         x[free] = xf.reshape(-1, 3)
-        return sum(t.total(x) for t in terms)   # gravity is linear: no Hessian
+        return sum(t.total(x) for t in terms)
 
     K = torch.autograd.functional.hessian(energy, x0[free].reshape(-1)).numpy()
-    Md = np.repeat(s.masses[free], 3)
+    return K, np.repeat(s.masses[free], 3), free
+
+
+def first_mode(scene: Scene) -> tuple[float, np.ndarray]:
+    """(omega, mass-normalised sideways (x) shape over the free vertices) of the linearised chain."""
+    K, Md, _ = linearised(scene)
     w2, vecs = scipy.linalg.eigh(K, np.diag(Md))
     # the two lowest modes are the degenerate sideways (x, z) pendulum modes: take the x one
     for k in range(len(w2)):
@@ -194,4 +200,4 @@ def measure_chain(integrator: str = "implicit_euler", dt: float = 0.04, periods:
                          float(T_lin), float(4 * math.pi / (J01 * math.sqrt(GRAVITY / L))), float(omega * dt), n, iters)
 
 
-__all__ = ["ChainFidelity", "chain_scene", "first_mode", "linear_prediction", "measure_chain"]
+__all__ = ["ChainFidelity", "chain_scene", "first_mode", "linear_prediction", "linearised", "measure_chain"]
