@@ -321,6 +321,33 @@ def test_bdf2_history_follows_a_collision_impulse(monkeypatch):
     assert np.allclose(vs[3:], 0.0, atol=1e-9), vs
 
 
+def test_bdf2_strand_lands_on_a_plane_and_rests_on_it():
+    """A real collision stage (tests/test_collisions.py's dropped strand, 50 steps): never inside
+    the thickness shell, and the vertices that end on the plane stayed on it for the last 10
+    steps with zero normal velocity (no bounce from the history)."""
+    from omegaconf import OmegaConf
+    from test_collisions import collider, deepest, make_scene
+
+    from hairexp.app.config import CollisionConfig
+
+    col = collider("plane", at=(0.0, -0.1, 0.0), thickness=0.002, friction=0.5)
+    scene = make_scene([col], n_strands=2, n_vertices=12, length=0.3, direction=[1.0, 0.0, 0.0], spread=0.2)
+    sim = Simulator(scene, solver("bdf2"), collision_cfg=OmegaConf.structured(CollisionConfig()))
+    st = sim.initial_state()
+    states, contacts = [], 0
+    for _ in range(50):
+        st, info = sim.step(st, DT)
+        assert info.converged
+        contacts += info.object_contacts
+        states.append(st)
+    assert contacts > 0 and deepest(scene, [None] + states) <= 1e-9
+    shell = -0.1 + 0.002
+    on = (~scene.strands.kinematic) & (np.abs(states[-1].x[:, 1] - shell) < 1e-6)
+    assert on.sum() >= 4
+    for s_ in states[-10:]:
+        assert np.all(np.abs(s_.x[on, 1] - shell) < 1e-6) and np.all(s_.v[on, 1] == 0.0)
+
+
 # -- controllers, dynamic body, guides with bdf2 ----------------------------------------------
 def goaling_run(controller: str, integrator: str, frames: int = 4):
     from hairexp.app.assemble import assemble
