@@ -67,7 +67,8 @@ y_ref = alpha_f x_n + (1 - alpha_f) x_ref - alpha_f h_v v_n that velocity is
 ``set_reference(y_ref, h_v)`` sets it each step (the edge direction of the damping is that of y_ref).
 
 The kinematic roots follow the same velocity and history formulas from their prescribed
-positions (for BDF2 the second-order backward difference).
+positions (for BDF2 the second-order backward difference; for generalized-alpha the Newmark
+recursion, whose start-up error in the roots' a decays by rho_inf per step, a_0 = 0 there).
 
 Collision stage (after the solve, hairexp/physics/collisions.py): it filters positions and
 velocities of the vertices in contact; those vertices take the stage's values.  For BDF2 the
@@ -75,7 +76,11 @@ history of those vertices is shifted by the same corrections (x_n += dx, v_n += 
 recursion v_{n+1} = a0 v_n - a1 v_{n-1} + ... would otherwise re-inject the removed motion (an
 inelastic impulse dv with unchanged history comes out as 1.5 dv after a few steps, a bounce);
 shifted, the correction is kept exactly and the differences (the acceleration memory) are kept.
-Generalized-alpha keeps a_{n+1} of the solve (x, v, a are independent state there).
+Generalized-alpha keeps a_{n+1} of the solve (x, v, a are independent state there).  The stage
+itself works, as under implicit Euler, on the path x_n -> x_{n+1} and its velocity
+(x_{n+1} - x_n)/dt: a touched vertex takes that filtered velocity (first order at contacts);
+an untouched one keeps the scheme's (touched: moved by > 1e-12 m or its velocity changed by
+> 1e-9 m/s, ``TOUCH_TOL_*`` in hairexp/physics/simulator.py).
 
 The settle phase (hairexp/physics/settle.py) always uses implicit Euler: it exists to reach
 the equilibrium under gravity, which implicit Euler's damping reaches fastest, and runs with
