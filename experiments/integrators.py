@@ -14,6 +14,7 @@ Usage: python -m experiments.integrators [--dts 0.001 0.01 0.04] [--reps 3] [--c
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import time
 
@@ -50,33 +51,39 @@ def cost_table(integrators, reps: int) -> str:
             runs[(name, ctl)] = assemble(compose(["experiment=goaling", "variants=[]", f"controller.name={ctl}", "logging.rerun=false",
                                           "logging.progress=false", f"solver.integrator={name}"]))
     secs = {k: [] for k in runs}
+    med = {k: [] for k in runs}        # each round's median s/step
     its = {k: [] for k in runs}
     sub = {k: 0 for k in runs}
-    for _ in range(reps):
-        for k, run in runs.items():
-            t = time_steps(run, run.frames * run.steps_per_frame)
+    keys = list(runs)
+    for rep in range(reps):
+        # alternate the order each round, so that a change of the machine's load hits every
+        # integrator alike; the ratios are taken within a round (runs a few seconds apart)
+        for k in (keys if rep % 2 == 0 else keys[::-1]):
+            t = time_steps(runs[k], runs[k].frames * runs[k].steps_per_frame)
             secs[k] += list(t.seconds)
+            med[k].append(float(np.median(t.seconds)))
             its[k] += list(t.column("iterations"))
             sub[k] += int(t.column("substeps").sum() - len(t.rows))
     rows = []
     for (name, ctl), s in secs.items():
-        base = np.median(secs[(integrators[0], ctl)])
+        ratios = np.array(med[(name, ctl)]) / np.array(med[(integrators[0], ctl)])
         rows.append([name, ctl, f"{np.median(s) * 1e3:.1f}", f"{np.mean(s) * 1e3:.1f}", f"{np.mean(its[(name, ctl)]):.2f}",
-                     str(sub[(name, ctl)]), f"{np.median(s) / base:.2f}"])
+                     str(sub[(name, ctl)]), f"{np.median(ratios):.2f}", f"{ratios.min():.2f}-{ratios.max():.2f}"])
         print("cost", *rows[-1], flush=True)
     head = ["integrator", "controller", "median ms/step", "mean ms/step", "iterations/step", "extra substeps",
-            f"median / {integrators[0]}"]
+            f"step time / {integrators[0]} (median of rounds)", "range over rounds"]
     return md_table(head, rows)
 
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dts", type=float, nargs="+", default=[0.001, 0.01, 0.04])
-    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--reps", type=int, default=7)
     ap.add_argument("--cost-integrators", nargs="+", default=["implicit_euler", "bdf2"])
+    ap.add_argument("--no-chain", action="store_true", help="only the cost table (reuses nothing: the chain section is left out)")
     a = ap.parse_args(argv)
     t0 = time.time()
-    chain = chain_table(a.dts)
+    chain = "(not run: --no-chain)\n" if a.no_chain else chain_table(a.dts)
     cost = cost_table(a.cost_integrators, a.reps)
     text = f"""# Time integrators (issue 13)
 
@@ -90,7 +97,7 @@ over 0.4 s (smooth step), then the first mode is fitted over 3 periods.  Targets
 dt 0.04 s: >= 90 % amplitude per period and the period within 1 %.
 
 {chain}
-## Goaling step cost (experiment=goaling, one process, {a.reps} interleaved rounds of 56 steps)
+## Goaling step cost (experiment=goaling, one process, {a.reps} interleaved rounds of 56 steps, load: {' '.join(f'{x:.2f}' for x in os.getloadavg())})
 
 {cost}"""
     out = ROOT / "reports" / "integrators.md"
