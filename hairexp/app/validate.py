@@ -10,6 +10,8 @@ hairexp/model/dynamic_body.py, scene.settle/settle_dt hairexp/physics/settle.py,
 fps and frames hairexp/physics/schedule.py, guides.count/n_vertices/keyframes/edits/file in
 hairexp/guides/, tracking.points_per_guide and tracking.variance.* in hairexp/control/tracking/,
 controller.attract_stiffness hairexp/control/attract.py).  The rest are checked here.
+``solver.integrator`` is checked by hairexp/physics/integrators.py ``make_integrator``, called
+here too so that a bad name fails before the settle phase and the guides are simulated.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from __future__ import annotations
 from hairexp.errors import InputError, finite_number
 from hairexp.evaluation.judges import JUDGE_MEASURES
 from hairexp.evaluation.measures import collider_named
+from hairexp.physics.integrators import make_integrator
 
 
 def _value(x):
@@ -63,6 +66,7 @@ MAX_SUBSTEP_LEVELS = 10
 
 
 def _solver(s) -> None:
+    make_integrator(getattr(s, "integrator", "implicit_euler"))   # InputError naming solver.integrator
     rtol = number(s.rtol, "solver.rtol", lo=0)
     atol = number(s.atol, "solver.atol", lo=0)
     if rtol == 0 and atol == 0:

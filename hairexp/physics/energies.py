@@ -275,7 +275,12 @@ class EdgeDamping(Term):
 
     D = c / (2 dt l0) * ((dx_b - dx_a) . u_n)^2,  dx = x - x_n,  u_n the edge direction at
     the start of the step.  Its gradient is the damping force c/l0 (relative velocity along
-    the edge), c in N s.  Reset each step with ``set_reference``."""
+    the edge), c in N s.  Reset each step with ``set_reference``.
+
+    Other integrators (hairexp/physics/integrators.py) pass ``set_reference(y_ref, h)`` with
+    their velocity v = (x - y_ref)/h (BDF2: y_ref = 4/3 x_n - 1/3 x_{n-1}, h = 2 dt/3): D is then
+    h R(v), R = c/(2 l0) (v_rel . u)^2 the Rayleigh dissipation, whose gradient in x is dR/dv at
+    the scheme's velocity; u is the edge direction of y_ref."""
 
     name = "edge_damping"
 
@@ -323,7 +328,9 @@ class PointWell(Term):
 
 class AirDrag(PointWell):
     """Drag against still air over one step: D = gamma m / (2 dt) |x - x_n|^2 (gamma in 1/s):
-    a well of weight gamma m / dt around the start-of-step positions x_n."""
+    a well of weight gamma m / dt around the start-of-step positions x_n.  With another
+    integrator, ``set_reference(y_ref, h)``: h R((x - y_ref)/h), R = gamma m/2 |v|^2 at the
+    scheme's velocity (see ``EdgeDamping``)."""
 
     name = "air_drag"
 

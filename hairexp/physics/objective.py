@@ -6,6 +6,11 @@ minimised over the free vertex positions (kinematic root vertices are prescribed
 gradient is M dv / dt + grad E (the backward Euler residual) and its Hessian
 M / dt^2 + hess E.  The same objective serves the free step (Newton) and the tracked step
 (SQP, 3.4); it is the single source of truth for both.
+
+Other integrators (``solver.integrator``, hairexp/physics/integrators.py) give ``begin_step`` a
+``StepPlan``: the objective is then |x - x_pred|^2_M / (2 h^2) + E(y)/(1 - alpha_f) with
+y = (1 - alpha_f) x + alpha_f x_n the point where the energies are evaluated (alpha_f = 0 but for
+generalized-alpha), and the dissipation terms get the plan's velocity reference.
 """
 
 from __future__ import annotations
@@ -59,19 +64,27 @@ class ImplicitEulerObjective:
 
     # -- per step -------------------------------------------------------------------------
     def begin_step(self, x_n: np.ndarray, v_n: np.ndarray, x_kinematic_next: np.ndarray, dt: float,
-                   tensions: dict | None = None) -> None:
+                   tensions: dict | None = None, plan=None) -> None:
         """x_n, v_n: (V, 3) start-of-step state; x_kinematic_next: (V, 3) whose kinematic rows
         hold the prescribed end-of-step root positions; ``tensions``: warm start of the dual
-        iterates (spring tensions, ``State.tensions``) from the previous step, or None."""
+        iterates (spring tensions, ``State.tensions``) from the previous step, or None;
+        ``plan``: the integrator's ``StepPlan`` (None: implicit Euler, eq. 5)."""
         self.dt = float(dt)
         self.x_n = np.asarray(x_n)
         self.x_full = np.array(x_kinematic_next, dtype=np.float64)
-        x_n_t = torch.as_tensor(self.x_n, dtype=DTYPE)
+        self.alpha_f = 0.0
+        if plan is None:
+            ref, h_v, h = self.x_n, self.dt, self.dt
+            x_pred = self.x_n + self.dt * np.asarray(v_n)   # x_n + dt v_n
+        else:
+            ref = plan.x_ref if plan.y_ref is None else plan.y_ref
+            h_v, h, x_pred, self.alpha_f = float(plan.h_v), float(plan.h), plan.x_pred, float(plan.alpha_f)
+        ref_t = torch.as_tensor(np.asarray(ref), dtype=DTYPE)
         for t in self.terms:
             if hasattr(t, "set_reference"):
-                t.set_reference(x_n_t, self.dt)
-        self.x_pred = (self.x_n + self.dt * np.asarray(v_n))[self.free_vertices].reshape(-1)  # x_n + dt v_n
-        self.mass_diag = self.m_dof / self.dt ** 2
+                t.set_reference(ref_t, h_v)
+        self.x_pred = np.asarray(x_pred)[self.free_vertices].reshape(-1)
+        self.mass_diag = self.m_dof / h ** 2
         for t in self._dual_terms:
             t.tension = None if not tensions or tensions.get(t.name) is None else torch.as_tensor(tensions[t.name])
 
@@ -85,16 +98,18 @@ class ImplicitEulerObjective:
         terms = self._dual_terms
         if not terms:
             return
-        x = self.positions(xf)
+        x = self.eval_positions(xf)
         d = torch.zeros_like(x)
         d[self.free_vertices] = torch.from_numpy(step.reshape(-1, 3))
+        if self.alpha_f != 0.0:
+            d = (1.0 - self.alpha_f) * d
         with torch.no_grad():
             for t in terms:
                 t.tension = t.linearized_tension(x[t.stencil_t], d[t.stencil_t])
 
     def final_tensions(self, xf: np.ndarray) -> dict:
         """Tensions of the final state (the warm start of the next step)."""
-        x = self.positions(xf)
+        x = self.eval_positions(xf)
         out = {}
         with torch.no_grad():
             for t in self._dual_terms:
@@ -111,21 +126,31 @@ class ImplicitEulerObjective:
         x[self.free_vertices] = xf.reshape(-1, 3)
         return torch.from_numpy(x)
 
+    def eval_positions(self, xf: np.ndarray) -> torch.Tensor:
+        """(V, 3) tensor: where the energies are evaluated, y = (1 - alpha_f) x + alpha_f x_n
+        (x itself unless the integrator is generalized-alpha)."""
+        x = self.positions(xf)
+        if self.alpha_f == 0.0:
+            return x
+        return (1.0 - self.alpha_f) * x + self.alpha_f * torch.from_numpy(np.ascontiguousarray(self.x_n, dtype=np.float64))
+
     # -- evaluation -----------------------------------------------------------------------
     def value(self, xf: np.ndarray) -> float:
         """H(xf).  Also sets ``value_noise``: the round-off of that sum (a few ulps of the sum of
         the terms' magnitudes), below which two values cannot be told apart."""
         d = xf - self.x_pred
         inertia = 0.5 * float(np.dot(self.mass_diag * d, d))  # 1/2 dv^T M dv
-        x = self.positions(xf)
+        x = self.eval_positions(xf)
         with torch.no_grad():
             parts = [float(t.total(x)) for t in self.terms + self.external]
+        if self.alpha_f != 0.0:
+            parts = [p / (1.0 - self.alpha_f) for p in parts]
         self.value_noise = ROUNDOFF_ULPS * np.finfo(float).eps * (abs(inertia) + sum(abs(p) for p in parts))
         return inertia + sum(parts)
 
     def evaluate(self, xf: np.ndarray, need_hessian: bool = True) -> Evaluation:
         t0 = time.perf_counter()
-        x = self.positions(xf)
+        x = self.eval_positions(xf)
         grads, hessians = [], []
         with torch.no_grad():
             for term in self.terms:
@@ -138,6 +163,8 @@ class ImplicitEulerObjective:
         f_inertia = self.mass_diag * (xf - self.x_pred)
         grad = f_inertia + g_int + self.g_ext
         scale = float(np.linalg.norm(f_inertia) + np.linalg.norm(g_int) + self.ext_norm)
+        if need_hessian and self.alpha_f != 0.0:
+            hessians = [(1.0 - self.alpha_f) * H for H in hessians]   # d^2/dx^2 E(y)/(1 - alpha_f)
         ab = self.assembler.banded(hessians, self.mass_diag) if need_hessian else None
         t2 = time.perf_counter()
         return Evaluation(grad, ab, scale, {"derivatives": t1 - t0, "assembly": t2 - t1})

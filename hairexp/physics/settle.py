@@ -4,7 +4,8 @@ The builders make the hair in its elastic rest shape (straight strands), which i
 equilibrium under gravity: left alone it sags before anything moves.  With ``scene.settle`` > 0 the
 hair is simulated free (no controller) from time -settle to 0, with the run's solver settings
 and steps of ``scene.settle_dt`` (default 0.04 s, whatever the run's dt: runs at different dt
-start from the same state), the body and the colliders held at their t = 0 poses (keyframed motions hold
+start from the same state), always with implicit Euler whatever ``solver.integrator`` (its damping
+reaches the equilibrium fastest, and runs with different integrators start from the same state), the body and the colliders held at their t = 0 poses (keyframed motions hold
 their first pose with zero velocity before their first key, hairexp/model/rigid.py; a dynamic
 body is replaced by its initial pose held still).  The run then starts from the settled
 positions at rest (zero velocity): ``Scene.root_body`` (body frame) and ``Scene.initial`` (world)
@@ -52,7 +53,9 @@ def settle_state(scene, solver_cfg, collision_cfg, seconds: float, dt: float, wh
     """(V, 3) world positions of ``scene``'s hair after ``seconds`` of free simulation from its
     rest shape, the body and colliders held at their t = 0 poses (see module doc)."""
     held = replace(scene, motion=authoring_motion(scene.motion), initial=None)
-    sim = Simulator(held, solver_cfg, collision_cfg=collision_cfg)
+    # always implicit Euler (hairexp/physics/integrators.py): the settle phase exists to reach the
+    # equilibrium, which its damping reaches fastest, and every integrator then starts from the same state
+    sim = Simulator(held, solver_cfg, collision_cfg=collision_cfg, integrator="implicit_euler")
     n = max(1, int(math.ceil(seconds / dt - 1e-9)))
     t0 = time.perf_counter()
     state = sim.initial_state()

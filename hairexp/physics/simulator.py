@@ -5,13 +5,17 @@
    the previous step (hairexp/model/dynamic_body.py; its state travels in ``State.body``, its
    poses in an explicit ``BodyWindow``); the root positions at t + dt; the controller's
    ``begin`` (targets, anchors at t + dt);
-2. solve: minimise the implicit Euler objective (eq. 5) plus the controller's terms, under its
-   constraints: the controller's ``solve`` (Newton for the free controller, SQP for tracking,
-   hairexp/physics/controller.py);
-3. velocities: v_{n+1} = (x_{n+1} - x_n) / dt; a dynamic body takes the force the hair exerts on
-   its roots at x_{n+1} (for the next step);
+2. solve: minimise the time-step objective of ``solver.integrator`` (implicit Euler, eq. 5, or
+   BDF2 or generalized-alpha: hairexp/physics/integrators.py, the step's ``StepPlan``) plus the
+   controller's terms, under its constraints: the controller's ``solve`` (Newton for the free
+   controller, SQP for tracking, hairexp/physics/controller.py);
+3. velocities: the integrator's, v_{n+1} = (x_{n+1} - x_n) / dt for implicit Euler, and its
+   history (``State.history``); a dynamic body takes the force the hair exerts on its roots at
+   x_{n+1} (for the next step);
 4. collision stage: hair against the colliders and itself, after the solve (paper 3.4;
-   hairexp/physics/collisions.py), only when the scene has something to collide;
+   hairexp/physics/collisions.py), only when the scene has something to collide; the vertices
+   it moved or whose velocity it changed take its positions and velocities, and the
+   integrator adjusts its history to them (``after_collision``);
 5. recovery (``_advance``): a step that diverged or did not converge is retried as two half
    steps from the same State (``solver.on_failure=substep``, recursively), kept and flagged
    (``warn``), or stops the run (``fail``).  A non-finite state is never returned.
@@ -34,6 +38,7 @@ from hairexp.physics.collisions import HairHair, StrainLimit, collision_stage
 from hairexp.physics.controller import Controller
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
 from hairexp.physics.info import CONVERGED, DIVERGED, SolveInfo, StepInfo
+from hairexp.physics.integrators import ImplicitEuler, make_integrator
 from hairexp.physics.newton import NewtonOptions
 from hairexp.physics.objective import ImplicitEulerObjective
 from hairexp.physics.state import State
@@ -41,6 +46,9 @@ from hairexp.physics.state import State
 TIME_KEYS = ("derivatives", "assembly", "solve", "collision", "other")
 #: ``solver.compile=auto`` compiles the derivative kernels from this many vertices on.
 COMPILE_MIN_VERTICES = 4000
+#: A vertex the collision stage moved by more than this (m) or whose velocity it changed by more
+#: than this (m/s) is "touched" (round-off of the stage's x0 + dt v is far below both).
+TOUCH_TOL_X, TOUCH_TOL_V = 1e-12, 1e-9
 
 log = logging.getLogger(__name__)
 
@@ -57,12 +65,17 @@ class _NoColliders:
 
 
 class Simulator:
-    def __init__(self, scene: Scene, solver_cfg, controller: Controller | None = None, collision_cfg=None):
+    def __init__(self, scene: Scene, solver_cfg, controller: Controller | None = None, collision_cfg=None,
+                 integrator: str | None = None):
         """``controller``: what drives the hair beyond its physics (hairexp/control/); None is the
-        free step.  ``collision_cfg``: the collision stage's settings, None for no stage."""
+        free step.  ``collision_cfg``: the collision stage's settings, None for no stage.
+        ``integrator``: overrides ``solver.integrator`` (the settle phase uses implicit Euler)."""
         tune_runtime()
         self.scene = scene
         self.cfg = solver_cfg
+        if integrator is None:
+            integrator = getattr(solver_cfg, "integrator", "implicit_euler")
+        self.integrator = make_integrator(integrator)
         self.controller = controller = Controller() if controller is None else controller
         s, m = scene.strands, scene.material
         terms = [Stretch(s.edges, s.rest_lengths, m.stretch_stiffness),
@@ -138,6 +151,26 @@ class Simulator:
                 np.add.at(F, st, -g.numpy().reshape(st.shape[0], st.shape[1], 3))
         return F[s.kinematic].sum(axis=0)
 
+    def accelerations(self, state: State) -> np.ndarray:
+        """(V, 3) m/s^2: M^-1 F(x, v) of the free vertices at ``state`` (elastic, gravity, the
+        controller's springs as begun for the step, dissipation at v); 0 on the kinematic roots.
+        Generalized-alpha's start (hairexp/physics/integrators.py)."""
+        obj = self.objective
+        X = torch.from_numpy(np.ascontiguousarray(state.x, dtype=np.float64))
+        for t in self.terms:
+            if hasattr(t, "set_reference"):
+                t.set_reference(torch.from_numpy(state.x - state.v), 1.0)   # (x - ref)/1 = v
+        G = np.zeros_like(state.x, dtype=np.float64)
+        with torch.no_grad():
+            for t in self.terms + self.external:
+                g, _ = t.grad_hess(X[t.stencil_t], False, obj.derivatives)
+                st = np.asarray(t.stencil)
+                np.add.at(G, st, g.numpy().reshape(st.shape[0], st.shape[1], 3))
+        a = np.zeros_like(G)
+        fv = obj.free_vertices
+        a[fv] = -G[fv] / obj.m_free[:, None]
+        return a
+
     def control_effort(self, state: State) -> float | None:
         """The controller's control effort at ``state`` (|F_c| / |m g|), None where it has none."""
         return self.controller.control_effort(self, state)
@@ -160,11 +193,15 @@ class Simulator:
             motion = self.body.window(state.time, state.body, t_next, body)
         ctl.begin(t_next, motion)
         # 2. solve
+        integ = self.integrator
+        plan = integ.plan(self, state, dt)
         if ctl.simulates:
-            self.objective.begin_step(state.x, state.v, self.scene.root_positions(t_next, motion), dt, state.tensions)
+            self.objective.begin_step(state.x, state.v, self.scene.root_positions(t_next, motion), dt, state.tensions,
+                                      plan)
         x_new, control, info = ctl.solve(self, state, dt, t_next, motion)
-        # 3. velocities and the hair's force on a dynamic body
-        v_new = (x_new - state.x) / dt
+        # 3. velocities (the integrator's), its history, and the hair's force on a dynamic body
+        v_new = integ.velocity(x_new, state, plan)
+        history = integ.history(state, x_new, v_new, plan, dt)
         if body is not None:
             body = self.body.with_hair_force(body, self.root_force(x_new))
         if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()
@@ -173,13 +210,26 @@ class Simulator:
         # 4. collision stage
         elif ctl.simulates and (self.collide_objects or self.hair_hair is not None):
             sc = self.scene if self.collide_objects else _NoColliders(self.scene)
-            x_new, v_new, cinfo = collision_stage(self.collision_cfg, sc, self.hair_hair, state.x, x_new,
-                                                  state.time, t_next, dt, self.limiter)
+            x_solve = x_new
+            x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, self.hair_hair, state.x, x_new,
+                                                    state.time, t_next, dt, self.limiter)
+            if type(integ) is ImplicitEuler:
+                v_new = v_stage
+            else:
+                # the stage filters the path velocity (x_solve - x_n)/dt; the vertices it touched
+                # take its velocity, the others keep the integrator's
+                dx = x_new - x_solve
+                touched = (np.any(np.abs(dx) > TOUCH_TOL_X, axis=1)
+                           | np.any(np.abs(v_stage - (x_solve - state.x) / dt) > TOUCH_TOL_V, axis=1))
+                dx = np.where(touched[:, None], dx, 0.0)
+                dv = np.where(touched[:, None], v_stage - v_new, 0.0)
+                v_new = v_new + dv
+                history = integ.after_collision(state, history, dx, dv, touched)
             info.seconds["collision"] = info.seconds.get("collision", 0.0) + cinfo.seconds
             info.collision = cinfo
             if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()):  # never return a non-finite state
                 info.status = DIVERGED
-        return State(t_next, x_new, v_new, info.tensions, control, body), info
+        return State(t_next, x_new, v_new, info.tensions, control, body, history), info
 
     def _advance(self, state: State, dt: float, level: int) -> tuple[State, list[SolveInfo]]:
         new, info = self._attempt(state, dt)

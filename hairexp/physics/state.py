@@ -18,7 +18,10 @@ class State:
     sliding parameters t and the multipliers lambda of paper 3.4; skinned: the step it
     prescribed), None for the free controller.
     ``body``: a dynamic body's state vector (hairexp/model/dynamic_body.py layout: position,
-    velocity, the hair's force on it, the rail's force), None for a keyframed body."""
+    velocity, the hair's force on it, the rail's force), None for a keyframed body.
+    ``history``: what the integrator carries (hairexp/physics/integrators.py ``History``: BDF2's
+    previous x, v and dt, generalized-alpha's accelerations), None for implicit Euler and at the
+    start of a run."""
 
     time: float
     x: np.ndarray   # (V, 3) positions, m
@@ -26,7 +29,9 @@ class State:
     tensions: dict = field(default_factory=dict)
     control: object = None
     body: np.ndarray | None = None
+    history: object = None
 
     def copy(self) -> "State":
         return replace(self, x=self.x.copy(), v=self.v.copy(), tensions={k: v.copy() for k, v in self.tensions.items()},
-                       body=None if self.body is None else self.body.copy())
+                       body=None if self.body is None else self.body.copy(),
+                       history=None if self.history is None else self.history.copy())

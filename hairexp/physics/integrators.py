@@ -1,0 +1,218 @@
+"""Time integrators of the step (``solver.integrator``), each written as a minimisation.
+
+Every scheme here advances (x_n, v_n, history) to x_{n+1} by minimising
+
+    G(x) = 1/(2 h^2) |x - x_pred|^2_M + E(y(x)) / (1 - alpha_f),   y(x) = (1 - alpha_f) x + alpha_f x_n,
+
+(E: stretch, bending, gravity, the controller's springs; dissipation potentials see below), and
+then sets v_{n+1} = (x_{n+1} - x_ref) / h_v.  A scheme is the tuple (x_pred, h, x_ref, h_v,
+alpha_f) it computes from the state: its ``StepPlan``.  dG/dx = M (x - x_pred)/h^2 + grad E(y) = 0
+is the scheme's discrete equation of motion; the Hessian is M/h^2 + (1 - alpha_f) hess E(y), PSD
+wherever hess E is, so Newton and the SQP (paper 3.4) work unchanged: only the inertia term and
+the point where E is evaluated change.  The tracking constraints and the variance penalty act on
+the end-of-step positions x in every scheme.
+
+``implicit_euler`` (paper eq. 5, Martin et al. 2011): x_pred = x_n + dt v_n, h = h_v = dt,
+x_ref = x_n, alpha_f = 0.  First order; damps every motion (at dt = 0.04 s the hanging chain's
+first mode keeps 42 % of its amplitude per period).
+
+``bdf2`` (second-order backward differentiation, used for cloth by Choi and Ko 2002, "Stable but
+responsive cloth").  Applied to the first-order system x' = v, M v' = F(x):
+
+    x_{n+1} - a0 x_n + a1 x_{n-1} = beta v_{n+1},    v_{n+1} - a0 v_n + a1 v_{n-1} = beta M^-1 F(x_{n+1}).
+
+Eliminating v_{n+1}: x_{n+1} = x~ + beta^2 M^-1 F(x_{n+1}) with the predictor
+x~ = a0 x_n - a1 x_{n-1} + beta (a0 v_n - a1 v_{n-1}), the stationarity condition of
+1/(2 beta^2) |x - x~|^2_M + E(x): h = h_v = beta, x_ref = a0 x_n - a1 x_{n-1}.  Constant step:
+a0 = 4/3, a1 = 1/3, beta = 2 dt/3.  Variable step (substep recovery halves dt): with
+w = dt_n / dt_{n-1}, the quadratic through (t_{n-1}, x_{n-1}), (t_n, x_n), (t_{n+1}, x_{n+1})
+differentiated at t_{n+1} gives a0 = (1 + w)^2 / (1 + 2w), a1 = w^2 / (1 + 2w),
+beta = dt_n (1 + w) / (1 + 2w) (w = 1: the constant-step values; exact for quadratics,
+tests/test_integrator.py).  Zero-stable for w < 1 + sqrt(2); the halving recovery only makes
+w = 2^-k (shorter) and w = 2 (back up).  The first step of a run has no history: it is one
+implicit Euler step (the standard start; its local error O(dt^2) keeps BDF2 second order).
+
+``generalized_alpha`` (Chung and Hulbert 1993, with high-frequency dissipation rho_inf):
+Newmark's x_{n+1} = x_n + dt v_n + dt^2 ((1/2 - beta) a_n + beta a_{n+1}),
+v_{n+1} = v_n + dt ((1 - gamma) a_n + gamma a_{n+1}) with the balance at intermediate points
+M ((1 - alpha_m) a_{n+1} + alpha_m a_n) = F(y),  y = (1 - alpha_f) x_{n+1} + alpha_f x_n.
+a_{n+1} = (x - x*)/(beta dt^2), x* = x_n + dt v_n + dt^2 (1/2 - beta) a_n, so the balance is the
+stationarity of G with h^2 = beta dt^2 / (1 - alpha_m) and
+x_pred = x* - alpha_m beta dt^2 a_n / (1 - alpha_m); v_{n+1} = (x - x_ref)/h_v with
+h_v = beta dt / gamma, x_ref = x* - h_v (v_n + dt (1 - gamma) a_n).  Parameters:
+alpha_m = (2 rho - 1)/(rho + 1), alpha_f = rho/(rho + 1), gamma = 1/2 - alpha_m + alpha_f,
+beta = (1 - alpha_m + alpha_f)^2 / 4: second order, unconditionally stable for linear systems,
+spectral radius rho at infinite frequency (stiff stretch modes decay by rho per step), minimal
+low-frequency dissipation.  ``ALPHA_RHO_INF`` = 0.8: at omega dt = 0.28 (the chain at dt 0.04 s)
+the linear analysis gives 99.99 % amplitude per period and +0.69 % period.  It is a one-step
+scheme in (x, v, a): a changed dt (substeps) needs no special formula; ``a`` is the history.
+The first step starts from a_0 = M^-1 F(x_0, v_0) (the equation of motion at t = 0).
+EXPERIMENTAL: on the chain at small amplitude it matches the linear analysis (99.99 %, +0.71 %,
+hairexp/evaluation/fidelity_chain.py), but it is not stable on stiff nonlinear motion: with the
+stiff stretch springs (omega dt ~ 800 at dt 0.04 s) rotating fast, the energy at the interpolated
+point (an edge interpolated between two rotated ends is shorter) and the ringing acceleration
+history (stiff modes decay only by rho_inf per step) pump energy in: a chain whose root is swung
+0.3 m in 0.25 s gains energy without bound at dt 0.04 and 0.01 s (it agrees with BDF2 at 1 ms),
+and goaling needs substeps and fails to converge.  Also tried and dropped (same test): the
+alpha_f = 0 member (Wood-Bossak-Zienkiewicz; rho_inf 0.8 blows up, 0.5 is stable there but its
+period error is +1.37 % at omega dt 0.28) and generalized-alpha with interpolated forces instead
+of positions (blows up at rho_inf 0.6 and 0.8).  BDF2 (rho_inf = 0: L-stable) is the robust one.
+
+Dissipation (``EdgeDamping``, ``AirDrag``, hairexp/physics/energies.py) are Rayleigh potentials
+R(v) whose force is -dR/dv at the scheme's velocity: each is the potential h_v R((y - y_ref)/h_v)
+of the evaluation point y, whose gradient is dR/dv at v = (y - y_ref)/h_v.  With
+y_ref = alpha_f x_n + (1 - alpha_f) x_ref - alpha_f h_v v_n that velocity is
+(1 - alpha_f) v_{n+1} + alpha_f v_n: the end-of-step velocity of implicit Euler and BDF2
+(alpha_f = 0: y_ref = x_ref) and the intermediate velocity of generalized-alpha.
+``set_reference(y_ref, h_v)`` sets it each step (the edge direction of the damping is that of y_ref).
+
+The kinematic roots follow the same velocity and history formulas from their prescribed
+positions (for BDF2 the second-order backward difference; for generalized-alpha the Newmark
+recursion, whose start-up error in the roots' a decays by rho_inf per step, a_0 = 0 there).
+
+Collision stage (after the solve, hairexp/physics/collisions.py): it filters positions and
+velocities of the vertices in contact; those vertices take the stage's values.  For BDF2 the
+history of those vertices is shifted by the same corrections (x_n += dx, v_n += dv): the
+recursion v_{n+1} = a0 v_n - a1 v_{n-1} + ... would otherwise re-inject the removed motion (an
+inelastic impulse dv with unchanged history comes out as 1.5 dv after a few steps, a bounce);
+shifted, the correction is kept exactly and the differences (the acceleration memory) are kept.
+Generalized-alpha keeps a_{n+1} of the solve (x, v, a are independent state there).  The stage
+itself works, as under implicit Euler, on the path x_n -> x_{n+1} and its velocity
+(x_{n+1} - x_n)/dt: a touched vertex takes that filtered velocity (first order at contacts);
+an untouched one keeps the scheme's (touched: moved by > 1e-12 m or its velocity changed by
+> 1e-9 m/s, ``TOUCH_TOL_*`` in hairexp/physics/simulator.py).
+
+The settle phase (hairexp/physics/settle.py) always uses implicit Euler: it exists to reach
+the equilibrium under gravity, which implicit Euler's damping reaches fastest, and runs with
+different integrators then start from the same state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from hairexp.errors import InputError
+
+#: rho_inf of ``generalized_alpha`` (high-frequency spectral radius).
+ALPHA_RHO_INF = 0.8
+
+
+@dataclass(frozen=True)
+class History:
+    """What a multistep or augmented scheme carries from step to step (``State.history``):
+    x, v: (V, 3) the previous step's start positions and velocities and dt its step (BDF2);
+    a: (V, 3) accelerations at the state (generalized-alpha)."""
+
+    x: np.ndarray | None = None
+    v: np.ndarray | None = None
+    dt: float | None = None
+    a: np.ndarray | None = None
+
+    def copy(self) -> "History":
+        c = lambda z: None if z is None else z.copy()   # noqa: E731
+        return replace(self, x=c(self.x), v=c(self.v), a=c(self.a))
+
+
+@dataclass
+class StepPlan:
+    """One step of a scheme: G(x) = |x - x_pred|^2_M / (2 h^2) + E(y)/(1 - alpha_f),
+    v_{n+1} = (x - x_ref)/h_v, dissipation reference (y_ref, h_v) (see module doc).
+    All arrays (V, 3)."""
+
+    x_pred: np.ndarray
+    h: float
+    x_ref: np.ndarray
+    h_v: float
+    alpha_f: float = 0.0
+    y_ref: np.ndarray | None = None   # None: x_ref
+    x_star: np.ndarray | None = None  # generalized-alpha: Newmark's x*
+    note: str = ""                    # "start": a first step without history
+
+
+class ImplicitEuler:
+    """Paper eq. (5)."""
+
+    name = "implicit_euler"
+
+    def plan(self, sim, state, dt: float) -> StepPlan:
+        return StepPlan(state.x + dt * state.v, dt, state.x, dt)
+
+    def velocity(self, x_new, state, plan: StepPlan) -> np.ndarray:
+        return (x_new - plan.x_ref) / plan.h_v
+
+    def history(self, state, x_new, v_new, plan: StepPlan, dt: float):
+        return None
+
+    def after_collision(self, state, history, dx, dv, touched):
+        return history
+
+
+def bdf2_coefficients(w: float) -> tuple[float, float, float]:
+    """(a0, a1, beta/dt) of variable-step BDF2 for the step ratio w = dt_n / dt_{n-1}."""
+    return (1 + w) ** 2 / (1 + 2 * w), w * w / (1 + 2 * w), (1 + w) / (1 + 2 * w)
+
+
+class BDF2(ImplicitEuler):
+    name = "bdf2"
+
+    def plan(self, sim, state, dt: float) -> StepPlan:
+        h = state.history
+        if h is None or h.x is None:   # the first step: implicit Euler
+            p = super().plan(sim, state, dt)
+            p.note = "start"
+            return p
+        a0, a1, b = bdf2_coefficients(dt / h.dt)
+        beta = b * dt
+        x_ref = a0 * state.x - a1 * h.x
+        return StepPlan(x_ref + beta * (a0 * state.v - a1 * h.v), beta, x_ref, beta)
+
+    def history(self, state, x_new, v_new, plan, dt):
+        return History(x=state.x, v=state.v, dt=dt)
+
+    def after_collision(self, state, history, dx, dv, touched):
+        if history is None or not touched.any():
+            return history
+        return replace(history, x=history.x + dx, v=history.v + dv)
+
+
+class GeneralizedAlpha(ImplicitEuler):
+    name = "generalized_alpha"
+
+    def __init__(self, rho_inf: float = ALPHA_RHO_INF):
+        r = float(rho_inf)
+        self.rho_inf = r
+        self._set((2 * r - 1) / (r + 1), r / (r + 1))
+
+    def _set(self, alpha_m: float, alpha_f: float) -> None:
+        self.alpha_m, self.alpha_f = alpha_m, alpha_f
+        self.gamma = 0.5 - self.alpha_m + self.alpha_f
+        self.beta = 0.25 * (1 - self.alpha_m + self.alpha_f) ** 2
+
+    def plan(self, sim, state, dt: float) -> StepPlan:
+        h = state.history
+        a = sim.accelerations(state) if h is None or h.a is None else h.a
+        b, g, am, af = self.beta, self.gamma, self.alpha_m, self.alpha_f
+        x_star = state.x + dt * state.v + dt * dt * (0.5 - b) * a
+        x_pred = x_star - (am * b * dt * dt / (1 - am)) * a
+        h_v = b * dt / g
+        x_ref = x_star - h_v * (state.v + dt * (1 - g) * a)
+        y_ref = af * state.x + (1 - af) * x_ref - af * h_v * state.v
+        return StepPlan(x_pred, float(np.sqrt(b / (1 - am))) * dt, x_ref, h_v, af, y_ref, x_star,
+                        "start" if h is None or h.a is None else "")
+
+    def history(self, state, x_new, v_new, plan, dt):
+        return History(a=(x_new - plan.x_star) / (self.beta * dt * dt))
+
+
+#: solver.integrator -> scheme
+INTEGRATORS = {"implicit_euler": ImplicitEuler, "bdf2": BDF2, "generalized_alpha": GeneralizedAlpha}
+
+
+def make_integrator(name: str):
+    """The scheme named by ``solver.integrator`` (InputError naming the key if unknown)."""
+    name = str(getattr(name, "value", name))
+    if name not in INTEGRATORS:
+        raise InputError(f"unknown integrator {name!r} (one of {', '.join(INTEGRATORS)})", "solver.integrator")
+    return INTEGRATORS[name]()
