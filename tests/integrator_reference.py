@@ -1,5 +1,6 @@
 """The small runs whose implicit Euler results are frozen in tests/data/implicit_euler_reference.npz
-(made with the code before ``solver.integrator`` existed, commit 25327a3:
+(made with the code before ``solver.integrator`` existed, commit 0fa8655 (main just before the merge; the
+bending change at the clamp came in before it):
 ``PYTHONPATH=<that checkout>:tests python tests/integrator_reference.py tests/data/implicit_euler_reference.npz``).
 Only APIs that existed then are used here, so the same function runs on both versions."""
 
