@@ -16,7 +16,10 @@ needs it; a grid run is cached as its final figures only (errors, cost, iteratio
 its reference's config, so its trajectory is never stored.  The reference is only run (or loaded)
 when a grid run of its scene and controller is not cached.  Cached rows keep the timings of their
 original run, and the report marks them with the cache date and entry.
-Usage: python -m experiments.accuracy [--scenes goaling celia] [--frames N] [--budget 0.01 0.03 0.1] [--cache]
+Each grid row is run with every ``--integrators`` value (``solver.integrator``, default implicit_euler and
+bdf2); the reference uses ``--ref-integrator`` (default bdf2, second order).
+Usage: python -m experiments.accuracy [--scenes goaling celia] [--frames N] [--budget 0.01 0.03 0.1]
+       [--integrators implicit_euler bdf2] [--ref-integrator bdf2] [--cache]
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import pandas as pd
 from hairexp.app.config import to_plain
 from hairexp.app.report_cache import cached, describe
 from hairexp.app.run import config_hash, run
+from hairexp.physics.integrators import INTEGRATORS
 
 from experiments.common import ROOT, compose, fmt, md_row, md_table, positive_float, positive_int
 
@@ -38,16 +42,18 @@ DTS = [0.005, 0.01, 0.02, 0.04]
 RTOLS = [1e-3, 1e-5, 1e-7]
 
 
-def cfg_for(scene: str, controller: str, dt: float, rtol: float, frames: int | None):
+def cfg_for(scene: str, controller: str, dt: float, rtol: float, frames: int | None,
+            integrator: str = "implicit_euler"):
     over = [f"experiment={scene}", "variants=[]", f"controller.name={controller}", "logging=off",
-            f"solver.dt={dt}", f"solver.rtol={rtol}", f"tracking.rtol={rtol}", "solver.on_failure=warn"]
+            f"solver.dt={dt}", f"solver.rtol={rtol}", f"tracking.rtol={rtol}", "solver.on_failure=warn",
+            f"solver.integrator={integrator}"]
     if frames:
         over.append(f"frames={frames}")
     return compose(over)
 
 
-def one(scene, controller, dt, rtol, frames, out: Path) -> dict:
-    cfg = cfg_for(scene, controller, dt, rtol, frames)
+def one(scene, controller, dt, rtol, frames, out: Path, integrator: str = "implicit_euler") -> dict:
+    cfg = cfg_for(scene, controller, dt, rtol, frames, integrator)
     t0 = time.perf_counter()
     s = run(cfg, out)
     wall = time.perf_counter() - t0
@@ -57,7 +63,8 @@ def one(scene, controller, dt, rtol, frames, out: Path) -> dict:
     # cost: the steps' own time (metrics step_seconds), without set-up, compilation and the settle
     # phase (scene.settle), which are paid once per run whatever its length
     step_total = float(pd.read_parquet(out / "metrics.parquet")["step_seconds"].sum())
-    return {"scene": scene, "controller": controller, "dt": dt, "rtol": rtol, "positions": pos,
+    return {"scene": scene, "controller": controller, "integrator": integrator, "dt": dt, "rtol": rtol,
+            "positions": pos,
             "config_hash": config_hash(to_plain(cfg)), "wall_seconds": wall,
             "seconds_per_sim_second": step_total / sim_seconds, "iterations_mean": s["iterations_mean"],
             "converged_fraction": s["converged_fraction"], "stretch_max": s["stretch_max"],
@@ -77,7 +84,7 @@ def pareto(rows):
 
 
 def recommendation(rec: dict | None) -> str:
-    return (f"dt = {rec['dt']}, rtol = {rec['rtol']:g} (RMS {rec['rms_rel']:.1e} L, "
+    return (f"{rec.get('integrator', 'implicit_euler')}, dt = {rec['dt']}, rtol = {rec['rtol']:g} (RMS {rec['rms_rel']:.1e} L, "
             f"{rec['seconds_per_sim_second']:.2f} s per simulated second)" if rec else "no run within the budget")
 
 
@@ -90,6 +97,10 @@ def main(argv=None):
                     help="RMS error budgets (fractions of the hair length) to recommend a setting for")
     ap.add_argument("--dts", type=positive_float, nargs="*", default=DTS)
     ap.add_argument("--rtols", type=positive_float, nargs="*", default=RTOLS)
+    ap.add_argument("--integrators", nargs="+", default=["implicit_euler", "bdf2"], choices=list(INTEGRATORS),
+                    help="solver.integrator values of the grid runs")
+    ap.add_argument("--ref-integrator", default="bdf2", choices=list(INTEGRATORS),
+                    help="solver.integrator of the reference run (second order: bdf2)")
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/accuracy/ entries (same config, solver source and versions)")
     args = ap.parse_args(argv)
@@ -99,7 +110,7 @@ def main(argv=None):
     all_rows, recs, refs = [], {}, {}
     for scene in args.scenes:
         for controller in ("free", "tracking"):
-            ref_plain = to_plain(cfg_for(scene, controller, args.ref_dt, 1e-9, args.frames))
+            ref_plain = to_plain(cfg_for(scene, controller, args.ref_dt, 1e-9, args.frames, args.ref_integrator))
             ref_box = {}
 
             def reference(scene=scene, controller=controller, ref_plain=ref_plain, ref_box=ref_box):
@@ -107,26 +118,28 @@ def main(argv=None):
                 if not ref_box:
                     ref, info = cached("accuracy", {"config": ref_plain, "role": "reference"},
                                        lambda: one(scene, controller, args.ref_dt, 1e-9, args.frames,
-                                                   base / scene / controller / "ref"), args.cache)
+                                                   base / scene / controller / "ref", args.ref_integrator), args.cache)
                     ref_box.update(ref=ref, info=info)
                     print(f"{scene} {controller} reference: {describe(info)}", flush=True)
                 return ref_box["ref"]
 
             rows = []
-            for dt in args.dts:
-                for rtol in args.rtols:
-                    def compute(dt=dt, rtol=rtol, scene=scene, controller=controller, reference=reference):
-                        r = one(scene, controller, dt, rtol, args.frames, base / scene / controller / f"dt{dt}_rtol{rtol}")
+            for integrator, dt, rtol in ((i, d, r) for i in args.integrators for d in args.dts for r in args.rtols):
+                if True:
+                    def compute(dt=dt, rtol=rtol, scene=scene, controller=controller, reference=reference,
+                                integrator=integrator):
+                        r = one(scene, controller, dt, rtol, args.frames,
+                                base / scene / controller / f"{integrator}_dt{dt}_rtol{rtol}", integrator)
                         d = np.linalg.norm(r.pop("positions") - reference()["positions"], axis=-1)
                         r["rms_rel"] = float(np.sqrt(np.mean(d ** 2)) / r["length"])
                         r["max_rel"] = float(d.max() / r["length"])
                         return r
 
-                    plain = to_plain(cfg_for(scene, controller, dt, rtol, args.frames))
+                    plain = to_plain(cfg_for(scene, controller, dt, rtol, args.frames, integrator))
                     r, info = cached("accuracy", {"config": plain, "reference_config": ref_plain}, compute, args.cache)
                     r["cache"] = {k: info.get(k) for k in ("hit", "hash", "date", "source_hash")}
                     rows.append(r)
-                    print(f"{scene} {controller} dt {dt} rtol {rtol:g}: rms {r['rms_rel']:.2e} L, max {r['max_rel']:.2e} L, "
+                    print(f"{scene} {controller} {integrator} dt {dt} rtol {rtol:g}: rms {r['rms_rel']:.2e} L, max {r['max_rel']:.2e} L, "
                           f"{r['seconds_per_sim_second']:.2f} s/sim-s, its {r['iterations_mean']:.2f}"
                           f"{' (' + describe(info) + ')' if info['hit'] else ''}", flush=True)
             front = pareto(rows)
@@ -139,7 +152,8 @@ def main(argv=None):
                                                        if ref_box else None)}
             all_rows += rows
     md = header("Run time against error")
-    md += (f"Reference: dt = {args.ref_dt} s, rtol = 1e-9 (Newton and SQP); errors are vertex distances to it at every "
+    md += (f"Reference: `{args.ref_integrator}`, dt = {args.ref_dt} s, rtol = 1e-9 (Newton and SQP); integrators "
+           f"of the grid: {', '.join(f'`{i}`' for i in args.integrators)}; errors are vertex distances to it at every "
            "output frame, over the hair length L; cost is the steps' seconds per simulated second (set-up and the settle phase excluded); `*` marks the Pareto front "
            f"(RMS error against cost).  Recommended, per error budget: the cheapest front run with RMS error <= "
            f"{', '.join(f'{b:g}' for b in args.budget)} L.  "
@@ -153,10 +167,10 @@ def main(argv=None):
             rsrc = ("not needed (every grid row cached)" if ref["cache"] is None else
                     describe(ref["cache"]))
             md += f"## {scene}, {controller}\n\nReference config hash `{ref['config_hash']}`: {rsrc}.\n\n"
-            md += md_table(["dt", "rtol", "RMS err / L", "max err / L", "s per sim-s", "iterations", "converged",
+            md += md_table(["integrator", "dt", "rtol", "RMS err / L", "max err / L", "s per sim-s", "iterations", "converged",
                             "max stretch", "max residual / L", "front", "config hash", "source"])
             for r in rows:
-                md += md_row([r["dt"], f"{r['rtol']:g}", f"{r['rms_rel']:.2e}", f"{r['max_rel']:.2e}",
+                md += md_row([f"`{r.get('integrator', 'implicit_euler')}`", r["dt"], f"{r['rtol']:g}", f"{r['rms_rel']:.2e}", f"{r['max_rel']:.2e}",
                               f"{r['seconds_per_sim_second']:.2f}", f"{r['iterations_mean']:.2f}",
                               f"{r['converged_fraction']:.3f}", f"{r['stretch_max']:.2e}", fmt(r["residual_rel_max"], ".1e"),
                               "*" if r["pareto"] else "", f"`{r['config_hash']}`", describe(r["cache"])])
@@ -171,9 +185,12 @@ def main(argv=None):
         fig, axes = plt.subplots(1, len(args.scenes), figsize=(5.5 * len(args.scenes), 4), squeeze=False)
         for ax, scene in zip(axes[0], args.scenes):
             for controller, mk in (("free", "o"), ("tracking", "s")):
+                for integrator, fill in zip(args.integrators, ("full", "none", "left", "right")):
+                    rows = [r for r in all_rows if r["scene"] == scene and r["controller"] == controller
+                            and r.get("integrator") == integrator]
+                    ax.loglog([r["seconds_per_sim_second"] for r in rows], [r["rms_rel"] for r in rows], mk,
+                              fillstyle=fill, alpha=0.7, label=f"{controller}, {integrator}")
                 rows = [r for r in all_rows if r["scene"] == scene and r["controller"] == controller]
-                ax.loglog([r["seconds_per_sim_second"] for r in rows], [r["rms_rel"] for r in rows], mk, alpha=0.5,
-                          label=f"{controller}")
                 fr = sorted((r for r in rows if r["pareto"]), key=lambda r: r["seconds_per_sim_second"])
                 ax.loglog([r["seconds_per_sim_second"] for r in fr], [r["rms_rel"] for r in fr], "-")
             ax.set(title=scene, xlabel="wall s per simulated s", ylabel="RMS error / hair length")
