@@ -54,6 +54,9 @@ reports: bench paper-scenes
 	$(VPY) -m experiments.baselines
 	$(VPY) -m experiments.accuracy --scenes goaling celia --frames 30 $(CACHE_FLAG)
 	$(VPY) -m experiments.fidelity_static
+	$(VPY) -m experiments.fidelity
+	$(VPY) -m experiments.integrators
+	$(VPY) -m experiments.bench_memory
 
 clean:
 	rm -rf $(VENV) outputs multirun
