@@ -26,7 +26,8 @@ from hairexp.errors import Interrupted
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float | None:
     hc = HydraConfig.get()
-    res = cli.job(cfg, hc.runtime.output_dir, sweep=str(getattr(hc.mode, "name", hc.mode)) == "MULTIRUN")
+    sweep = str(getattr(hc.mode, "name", hc.mode)) == "MULTIRUN"
+    res = cli.job(cfg, hc.runtime.output_dir, sweep=sweep, sweep_dir=str(hc.sweep.dir) if sweep else None)
     return res["code"]
 
 
@@ -42,6 +43,7 @@ def entry() -> int:
             main()
     except KeyboardInterrupt as exc:
         code = exit_code(exc.signum) if isinstance(exc, Interrupted) else 130
+        cli.clear_stop_mark()   # the launcher has torn its workers down
         cli.exit_code()   # a sweep's jobs so far
         return code
     return cli.exit_code()

@@ -236,3 +236,13 @@ def test_variant_override_compile_off(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert json.loads((out / "a" / "summary.json").read_text())["config"]["solver"]["compile"] == "off"
     assert json.loads((out / "b" / "summary.json").read_text())["config"]["solver"]["compile"] == "auto"
+
+
+def test_sweep_job_started_after_stop_is_interrupted(tmp_path):
+    """A job a worker picks up while the main process stops the sweep does not run."""
+    (tmp_path / cli.STOP_MARK).write_text("SIGTERM\n")
+    out = tmp_path / "2"
+    res = cli.job(None, str(out), sweep=True, sweep_dir=str(tmp_path))   # cfg is never read
+    assert (res["status"], res["code"]) == ("interrupted", 143)
+    assert json.loads((out / ".hydra" / "outcome.json").read_text())["status"] == "interrupted"
+    assert not (out / "summary.json").exists()

@@ -39,6 +39,8 @@ from hairexp.outputs.files import write_json
 
 log = logging.getLogger("hairexp")
 OUTCOME = Path(".hydra") / "outcome.json"
+#: in a sweep folder while its main process stops the sweep: the signal's name (SIGTERM, SIGINT)
+STOP_MARK = ".hairexp-stopping"
 
 #: the outcome of the last job run in this process (single runs: read by the main process)
 LAST: dict | None = None
@@ -51,11 +53,19 @@ def outcome(out, status: str, code: int, message: str | None = None, summary: di
             "converged": None if summary is None else summary.get("converged")}
 
 
-def job(cfg, out: str, sweep: bool = False) -> dict:
+def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None) -> dict:
     """Run the experiment of ``cfg`` into ``out``; returns its outcome (never raises for a
-    failing run, never exits)."""
+    failing run, never exits).  A sweep job that starts after the sweep was stopped
+    (``<sweep_dir>/STOP_MARK``, ``stop_sweep_jobs``) ends as interrupted without running."""
     global LAST
     if sweep:
+        stopped = _stopped_by(sweep_dir)
+        if stopped is not None:
+            msg = f"interrupted by {stopped} before the job started"
+            print(f"hairexp: {msg} ({out})", file=sys.stderr)
+            LAST = outcome(out, "interrupted", signal_exit_code(_signum(stopped)), msg)
+            _write_outcome(out, LAST)
+            return LAST
         _write_outcome(out, outcome(out, "running", 1, "the job did not finish"))
     try:
         check_keys(cfg)   # a ``+key`` Hydra added without asking the schema
@@ -86,6 +96,32 @@ def job(cfg, out: str, sweep: bool = False) -> dict:
     if sweep:
         _write_outcome(out, res)
     return res
+
+
+def _stopped_by(sweep_dir) -> str | None:
+    """The signal's name in ``<sweep_dir>/STOP_MARK``, or None."""
+    if sweep_dir is None:
+        return None
+    try:
+        name = (Path(sweep_dir) / STOP_MARK).read_text().strip()
+    except OSError:
+        return None
+    return name if name in ("SIGTERM", "SIGINT") else "SIGTERM"
+
+
+def _signum(name: str) -> int:
+    import signal
+
+    return int(signal.Signals[name])
+
+
+def clear_stop_mark() -> None:
+    """Remove the stop mark of this process's sweep (its workers are gone)."""
+    if SWEEP_DIR is not None:
+        try:
+            (SWEEP_DIR / STOP_MARK).unlink(missing_ok=True)
+        except OSError:
+            pass
 
 
 def _print_notes(exc: BaseException) -> None:
@@ -260,6 +296,7 @@ def stop_sweep_jobs(signum: int) -> None:
     (SIGTERM is forwarded to the worker processes; SIGINT only if the jobs did not react to a
     Ctrl-C of their own within SIGINT_GRACE_SECONDS) and waited for up to STOP_WAIT_SECONDS, so
     that each writes its own ``interrupted`` ending before the launcher tears the workers down.
+    A job a worker starts meanwhile sees ``STOP_MARK`` and ends as interrupted without running.
     Nothing happens outside a sweep, or when no job is running."""
     import signal
 
@@ -269,6 +306,10 @@ def stop_sweep_jobs(signum: int) -> None:
     if sweep_dir is None or not _running_jobs(sweep_dir):
         return
     name = signal.Signals(signum).name
+    try:   # jobs the launcher starts from now on end at once (cli.job); removed on exit (clear_stop_mark)
+        (sweep_dir / STOP_MARK).write_text(name + "\n")
+    except OSError:
+        pass
     if signum == signal.SIGINT:
         if not _wait_jobs(sweep_dir, SIGINT_GRACE_SECONDS):
             return
