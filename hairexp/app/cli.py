@@ -6,7 +6,9 @@ outcome (status, exit code, run folder).  The exit code is decided in the main p
 Hydra returns (``exit_code``): for a run, the job's; for a sweep, every job has run, one line
 per job is printed and the sweep exits with the first failing job's code (in job order).
 A sweep job's outcome is written to ``<job folder>/.hydra/outcome.json`` (the main process
-reads them back; a job that left no outcome is reported as not finished).
+reads them back; a job that left no outcome is reported as not finished).  SIGTERM / SIGINT
+in a sweep's main process first stops its running jobs (``stop_sweep_jobs``: the signal is
+forwarded to the workers and the jobs are waited for, so each ends ``interrupted``).
 
 Exit codes: 0 completed; 1 an unexpected error (or Hydra's config errors); 2 bad input
 (``InputError``: a bad value, a key not in the schema added with ``+``, a used run folder, a bad
