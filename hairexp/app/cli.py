@@ -26,8 +26,10 @@ import errno
 import json
 import logging
 import os
+import signal
 import sys
 import tempfile
+import time
 import traceback
 from pathlib import Path
 
@@ -35,6 +37,7 @@ from hydra.experimental.callback import Callback
 
 from hairexp.app.config import check_keys
 from hairexp.app.experiment import run_experiment
+from hairexp.app.signals import child_pids, forward
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, SimulationError
 from hairexp.outputs.files import write_json
@@ -112,8 +115,6 @@ def _stopped_by(sweep_dir) -> str | None:
 
 
 def _signum(name: str) -> int:
-    import signal
-
     return int(signal.Signals[name])
 
 
@@ -283,8 +284,6 @@ def _running_jobs(sweep_dir: Path) -> list[Path]:
 
 def _wait_jobs(sweep_dir: Path, seconds: float) -> list[Path]:
     """Wait up to ``seconds`` until no job of the sweep is running; the jobs still running."""
-    import time
-
     deadline = time.monotonic() + seconds
     while True:
         running = _running_jobs(sweep_dir)
@@ -300,10 +299,6 @@ def stop_sweep_jobs(signum: int) -> None:
     that each writes its own ``interrupted`` ending before the launcher tears the workers down.
     A job a worker starts meanwhile sees ``STOP_MARK`` and ends as interrupted without running.
     Nothing happens outside a sweep, or when no job is running."""
-    import signal
-
-    from hairexp.app.signals import child_pids, forward
-
     sweep_dir = SWEEP_DIR
     if sweep_dir is None or not _running_jobs(sweep_dir):
         return

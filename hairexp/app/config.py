@@ -17,6 +17,7 @@ from typing import Any, Optional
 from hydra.core.config_store import ConfigStore
 
 from hairexp.control import REGISTRY as CONTROLLERS
+from hairexp.errors import InputError
 
 
 class Interpolation(str, Enum):
@@ -434,8 +435,6 @@ def check_keys(cfg) -> None:
     else:
         hint = f"the keys of {parent or 'the top level'} are: {', '.join(names)}"
     more = f" (and {len(bad) - 1} more unknown key{'s' if len(bad) > 2 else ''})" if len(bad) > 1 else ""
-    from hairexp.errors import InputError
-
     raise InputError(f"unknown key, not in the schema (hairexp/app/config.py); {hint}{more}", key)
 
 
