@@ -3,8 +3,9 @@
 Configs live in ../conf (Hydra); the schema in hairexp/app/config.py rejects unknown keys and
 wrong types at start.  Errors in the input end with one line naming the input and a
 non-zero exit; the codes are decided after Hydra returns (hairexp/app/cli.py): 2 bad input,
-3 a simulation that could not continue, 130/143 interrupted; a sweep runs every job and exits
-with its first failing job's code.
+3 a simulation that could not continue, 4 a run folder that cannot be written (a
+``hydra.run.dir`` / ``hydra.sweep.dir`` of the command line is checked before Hydra starts),
+130/143 interrupted; a sweep runs every job and exits with its first failing job's code.
 """
 
 from __future__ import annotations
@@ -25,17 +26,24 @@ from hairexp.errors import Interrupted
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float | None:
     hc = HydraConfig.get()
-    res = cli.job(cfg, hc.runtime.output_dir, sweep=str(getattr(hc.mode, "name", hc.mode)) == "MULTIRUN")
+    sweep = str(getattr(hc.mode, "name", hc.mode)) == "MULTIRUN"
+    res = cli.job(cfg, hc.runtime.output_dir, sweep=sweep, sweep_dir=str(hc.sweep.dir) if sweep else None)
     return res["code"]
 
 
 def entry() -> int:
     logging.raiseExceptions = False   # a log file on a full disk is not worth a traceback per line
+    bad_dir = cli.run_dir_error(sys.argv[1:])   # before Hydra creates it (its traceback, exit 1)
+    if bad_dir is not None:
+        print(bad_dir, file=sys.stderr)
+        return 4
     try:
-        with InterruptSignals():   # outside a run (composing, between sweep jobs) too
+        # outside a run (composing, between sweep jobs) too; a sweep's running jobs are stopped first
+        with InterruptSignals(on_signal=cli.stop_sweep_jobs):
             main()
     except KeyboardInterrupt as exc:
         code = exit_code(exc.signum) if isinstance(exc, Interrupted) else 130
+        cli.clear_stop_mark()   # the launcher has torn its workers down
         cli.exit_code()   # a sweep's jobs so far
         return code
     return cli.exit_code()

@@ -6,32 +6,46 @@ outcome (status, exit code, run folder).  The exit code is decided in the main p
 Hydra returns (``exit_code``): for a run, the job's; for a sweep, every job has run, one line
 per job is printed and the sweep exits with the first failing job's code (in job order).
 A sweep job's outcome is written to ``<job folder>/.hydra/outcome.json`` (the main process
-reads them back; a job that left no outcome is reported as not finished).
+reads them back; a job that left no outcome is reported as not finished).  SIGTERM / SIGINT
+in a sweep's main process first stops its running jobs (``stop_sweep_jobs``: the signal is
+forwarded to the workers and the jobs are waited for, so each ends ``interrupted``).
 
 Exit codes: 0 completed; 1 an unexpected error (or Hydra's config errors); 2 bad input
-(``InputError``: a bad value, a used run folder, a bad variant name); 3 the simulation failed
+(``InputError``: a bad value, a key not in the schema added with ``+``, a used run folder, a bad
+variant name); 3 the simulation failed
 (``SimulationError``, including non-convergence: none of the steps converged, or some under
 ``on_unconverged=fail``); 4 the run folder could not be written (``OSError``: a full disk, a
-blocked path); 130 / 143 interrupted by SIGINT / SIGTERM.
+blocked path; a ``hydra.run.dir`` / ``hydra.sweep.dir`` given on the command line that cannot be
+a folder is refused before Hydra starts, ``run_dir_error``); 130 / 143 interrupted by SIGINT /
+SIGTERM.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
+import os
+import signal
 import sys
+import tempfile
+import time
 import traceback
 from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
+from hairexp.app.config import check_keys
 from hairexp.app.experiment import run_experiment
+from hairexp.app.signals import child_pids, forward
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, SimulationError
 from hairexp.outputs.files import write_json
 
 log = logging.getLogger("hairexp")
 OUTCOME = Path(".hydra") / "outcome.json"
+#: in a sweep folder while its main process stops the sweep: the signal's name (SIGTERM, SIGINT)
+STOP_MARK = ".hairexp-stopping"
 
 #: the outcome of the last job run in this process (single runs: read by the main process)
 LAST: dict | None = None
@@ -44,13 +58,22 @@ def outcome(out, status: str, code: int, message: str | None = None, summary: di
             "converged": None if summary is None else summary.get("converged")}
 
 
-def job(cfg, out: str, sweep: bool = False) -> dict:
+def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None) -> dict:
     """Run the experiment of ``cfg`` into ``out``; returns its outcome (never raises for a
-    failing run, never exits)."""
+    failing run, never exits).  A sweep job that starts after the sweep was stopped
+    (``<sweep_dir>/STOP_MARK``, ``stop_sweep_jobs``) ends as interrupted without running."""
     global LAST
     if sweep:
+        stopped = _stopped_by(sweep_dir)
+        if stopped is not None:
+            msg = f"interrupted by {stopped} before the job started"
+            print(f"hairexp: {msg} ({out})", file=sys.stderr)
+            LAST = outcome(out, "interrupted", signal_exit_code(_signum(stopped)), msg)
+            _write_outcome(out, LAST)
+            return LAST
         _write_outcome(out, outcome(out, "running", 1, "the job did not finish"))
     try:
+        check_keys(cfg)   # a ``+key`` Hydra added without asking the schema
         summary = run_experiment(cfg, out)
         res = outcome(out, "completed", 0, None, summary)
         _log_completed(summary, out)
@@ -78,6 +101,30 @@ def job(cfg, out: str, sweep: bool = False) -> dict:
     if sweep:
         _write_outcome(out, res)
     return res
+
+
+def _stopped_by(sweep_dir) -> str | None:
+    """The signal's name in ``<sweep_dir>/STOP_MARK``, or None."""
+    if sweep_dir is None:
+        return None
+    try:
+        name = (Path(sweep_dir) / STOP_MARK).read_text().strip()
+    except OSError:
+        return None
+    return name if name in ("SIGTERM", "SIGINT") else "SIGTERM"
+
+
+def _signum(name: str) -> int:
+    return int(signal.Signals[name])
+
+
+def clear_stop_mark() -> None:
+    """Remove the stop mark of this process's sweep (its workers are gone)."""
+    if SWEEP_DIR is not None:
+        try:
+            (SWEEP_DIR / STOP_MARK).unlink(missing_ok=True)
+        except OSError:
+            pass
 
 
 def _print_notes(exc: BaseException) -> None:
@@ -151,3 +198,122 @@ def exit_code() -> int:
         print(f"hairexp: sweep: {len(rows) - len(bad)} of {len(rows)} jobs completed -> {SWEEP_DIR}", file=stream)
         return bad[0][2]["code"] if bad else (0 if rows else 1)
     return 0 if LAST is None else int(LAST["code"])
+
+
+def _unusable_folder(path: str) -> str | None:
+    """Why ``path`` cannot be (or be made) a writable folder, or None.  Nothing is left behind:
+    writability is tried with a temporary folder, removed at once."""
+    p = Path(os.path.abspath(path))
+    probe = p
+    try:
+        while True:   # the deepest part of the path that exists
+            try:
+                os.stat(probe)
+                break
+            except FileNotFoundError:
+                if probe.parent == probe:
+                    return f"{probe} does not exist"
+                probe = probe.parent
+            except NotADirectoryError:   # a file on the way: its parent exists
+                probe = probe.parent
+            except PermissionError:
+                return f"{probe} cannot be reached: permission denied"
+        if not probe.is_dir():
+            return f"{probe} is a file" if probe == p else f"{probe} is a file, not a folder to create it in"
+        tempfile.TemporaryDirectory(dir=probe, prefix=".hairexp-probe-").cleanup()
+    except OSError as exc:
+        why = exc.strerror or errno.errorcode.get(exc.errno or 0, type(exc).__name__)
+        return f"cannot create a folder in {probe}: {why}" if probe != p else f"cannot write in {p}: {why}"
+    return None
+
+
+def run_dir_error(argv: list[str]) -> str | None:
+    """The error line for a run folder given on the command line (``hydra.run.dir``, with ``-m``
+    ``hydra.sweep.dir``) that cannot be written, or None.  Checked before Hydra starts, since
+    Hydra creates the folder before the job runs (and would fail with its traceback, exit 1).
+    A value with an interpolation (``${now:...}``) is checked up to its last ``/`` before the
+    interpolation; a sweep over several folders is left to Hydra."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    multirun = any(a in ("-m", "--multirun") for a in argv) or any(
+        a.lstrip("+") in ("hydra.mode=MULTIRUN", "hydra.mode=multirun") for a in argv)
+    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    parser = OverridesParser.create()
+    for arg in argv:
+        if not arg.lstrip("+~").startswith(key + "="):
+            continue
+        try:
+            o = parser.parse_override(arg)
+        except Exception:  # noqa: BLE001  (a syntax error: Hydra's own message)
+            return None
+        if o.is_sweep_override() or o.key_or_group != key or o.value() is None:
+            continue
+        path = str(o.value())
+        if "${" in path:
+            static = path[:path.index("${")]
+            if not static:
+                continue
+            path = static[:static.rindex("/") + 1] if "/" in static else "."
+        why = _unusable_folder(path)
+        if why is not None:
+            return f"hairexp: error: {key}={o.value()}: cannot be the run folder: {why}"
+    return None
+
+
+#: s, how long the main process of a sweep waits for its jobs to end after SIGTERM / SIGINT
+STOP_WAIT_SECONDS = 30.0
+#: s, after SIGINT: how long the jobs get to react to a Ctrl-C of their own before it is forwarded
+SIGINT_GRACE_SECONDS = 2.0
+
+
+def _running_jobs(sweep_dir: Path) -> list[Path]:
+    """Job folders of a sweep whose outcome still says ``running``."""
+    running = []
+    try:
+        dirs = [d for d in sweep_dir.iterdir() if d.is_dir()]
+    except OSError:
+        return []
+    for d in dirs:
+        try:
+            if json.loads((d / OUTCOME).read_text()).get("status") == "running":
+                running.append(d)
+        except (OSError, ValueError, AttributeError):
+            continue
+    return running
+
+
+def _wait_jobs(sweep_dir: Path, seconds: float) -> list[Path]:
+    """Wait up to ``seconds`` until no job of the sweep is running; the jobs still running."""
+    deadline = time.monotonic() + seconds
+    while True:
+        running = _running_jobs(sweep_dir)
+        if not running or time.monotonic() >= deadline:
+            return running
+        time.sleep(0.1)
+
+
+def stop_sweep_jobs(signum: int) -> None:
+    """On SIGTERM / SIGINT in the main process of a sweep: the jobs that are running are told
+    (SIGTERM is forwarded to the worker processes; SIGINT only if the jobs did not react to a
+    Ctrl-C of their own within SIGINT_GRACE_SECONDS) and waited for up to STOP_WAIT_SECONDS, so
+    that each writes its own ``interrupted`` ending before the launcher tears the workers down.
+    A job a worker starts meanwhile sees ``STOP_MARK`` and ends as interrupted without running.
+    Nothing happens outside a sweep, or when no job is running."""
+    sweep_dir = SWEEP_DIR
+    if sweep_dir is None or not _running_jobs(sweep_dir):
+        return
+    name = signal.Signals(signum).name
+    try:   # jobs the launcher starts from now on end at once (cli.job); removed on exit (clear_stop_mark)
+        (sweep_dir / STOP_MARK).write_text(name + "\n")
+    except OSError:
+        pass
+    if signum == signal.SIGINT:
+        if not _wait_jobs(sweep_dir, SIGINT_GRACE_SECONDS):
+            return
+    sent = forward(signum, child_pids())
+    print(f"hairexp: {name}: waiting up to {STOP_WAIT_SECONDS:g} s for the sweep's running jobs to end "
+          f"({len(sent)} child processes signalled)", file=sys.stderr)
+    left = _wait_jobs(sweep_dir, STOP_WAIT_SECONDS)
+    if left:
+        print(f"hairexp: {name}: {len(left)} jobs did not end in {STOP_WAIT_SECONDS:g} s: "
+              f"{', '.join(d.name for d in sorted(left))}", file=sys.stderr)

@@ -1,9 +1,14 @@
 """Structured-config schema, registered in Hydra's ConfigStore at import time (so joblib
 and submitit workers have it too).  A typo in a key or a wrong type or choice fails at
-start with Hydra's message naming the key."""
+start with Hydra's message naming the key.  A key Hydra lets in anyway (``+key=value`` adds a
+key to a structured node without asking the schema) is refused by ``check_keys`` (InputError
+naming the key and the nearest valid one), which the command line and ``compose_config`` run on
+every composed config."""
 
 from __future__ import annotations
 
+import dataclasses
+import difflib
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -12,6 +17,7 @@ from typing import Any, Optional
 from hydra.core.config_store import ConfigStore
 
 from hairexp.control import REGISTRY as CONTROLLERS
+from hairexp.errors import InputError
 
 
 class Interpolation(str, Enum):
@@ -372,6 +378,70 @@ def to_plain(cfg: Any) -> Any:
     return conv(OmegaConf.to_container(cfg, resolve=True, enum_to_str=False) if not isinstance(cfg, dict) else cfg)
 
 
+def _schema_type(node) -> type | None:
+    """The dataclass of a structured config node, or None (a plain dict, or not typed)."""
+    from omegaconf import OmegaConf
+
+    t = OmegaConf.get_type(node)
+    return t if isinstance(t, type) and dataclasses.is_dataclass(t) else None
+
+
+def _nearest(key: str, valid: list[str]) -> list[str]:
+    """The valid names closest to ``key``: close spellings, else names containing it (or it them)."""
+    near = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
+    return near or [v for v in valid if key and (key in v or v in key)][:3]
+
+
+def unknown_keys(cfg) -> list[tuple[str, list[str], str, list[str]]]:
+    """Keys of ``cfg`` that its schema does not have: (dotted key, the nearest valid keys, the
+    path of the node that holds it, that node's valid keys), outermost first (a key under an unknown key is not
+    listed again).  Records in typed lists (``scene.colliders[i]``, ``guides.edits[i]``,
+    ``variants[i]``) are checked against their record type; Hydra's own ``hydra`` node is not
+    a schema key.  Interpolations are not resolved."""
+    from omegaconf import DictConfig, ListConfig
+
+    found: list[tuple[str, list[str], str, list[str]]] = []
+
+    def walk(node, path: str) -> None:
+        if node is None or node._is_none() or node._is_missing() or node._is_interpolation():
+            return
+        if isinstance(node, ListConfig):
+            for i in range(len(node)):
+                walk(node._get_node(i), f"{path}[{i}]")
+            return
+        if not isinstance(node, DictConfig):
+            return
+        t = _schema_type(node)
+        fields = [f.name for f in dataclasses.fields(t)] if t is not None else None
+        for key in node.keys():
+            key = str(key)
+            child_path = f"{path}.{key}" if path else key
+            if fields is not None and key not in fields:
+                if not (path == "" and key == "hydra"):
+                    near = [f"{path}.{f}" if path else f for f in _nearest(key, fields)]
+                    found.append((child_path, near, path, fields))
+                continue
+            walk(node._get_node(key), child_path)
+
+    walk(cfg, "")
+    return found
+
+
+def check_keys(cfg) -> None:
+    """InputError naming the first key of ``cfg`` that is not in the schema (a ``+key=value``
+    that Hydra added without asking the schema), with the nearest valid key."""
+    bad = unknown_keys(cfg)
+    if not bad:
+        return
+    key, near, parent, names = bad[0]
+    if near:
+        hint = "did you mean " + " or ".join(repr(n) for n in near) + "?"
+    else:
+        hint = f"the keys of {parent or 'the top level'} are: {', '.join(names)}"
+    more = f" (and {len(bad) - 1} more unknown key{'s' if len(bad) > 2 else ''})" if len(bad) > 1 else ""
+    raise InputError(f"unknown key, not in the schema (hairexp/app/config.py); {hint}{more}", key)
+
+
 #: the project's Hydra config directory
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
@@ -379,13 +449,16 @@ CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 def compose_config(overrides: list[str] | tuple[str, ...] = ()):
     """The composed ``config`` with ``overrides`` (``key=value`` strings, as on the command line)
     outside a Hydra app: for scripts, benchmarks and reports.  Hydra's global state is cleared
-    before and after, so it can be called any number of times."""
+    before and after, so it can be called any number of times.  A key not in the schema (added
+    with ``+``) is an InputError naming it (``check_keys``)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            return compose(config_name="config", overrides=list(overrides))
+            cfg = compose(config_name="config", overrides=list(overrides))
     finally:
         GlobalHydra.instance().clear()
+    check_keys(cfg)
+    return cfg

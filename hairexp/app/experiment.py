@@ -58,8 +58,27 @@ def check_variant_names(variants) -> list[str]:
     return names
 
 
+class OverrideLoader(yaml.SafeLoader):
+    """YAML for override values, with Hydra's booleans: only ``true`` / ``false`` (any case)
+    are booleans; YAML 1.1's ``on``, ``off``, ``yes``, ``no``, ``y``, ``n`` stay strings (so
+    ``solver.compile=off`` is the choice ``off``).  Numbers, null, lists and records as in
+    ``yaml.safe_load``."""
+
+
+OverrideLoader.yaml_implicit_resolvers = {
+    ch: [(tag, rx) for tag, rx in resolvers if tag != "tag:yaml.org,2002:bool"]
+    for ch, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+OverrideLoader.add_implicit_resolver("tag:yaml.org,2002:bool", re.compile(r"^(?i:true|false)$"), list("tTfF"))
+
+
+def parse_value(text: str):
+    """An override's value as Hydra would read it (``OverrideLoader``)."""
+    return yaml.load(text, Loader=OverrideLoader)  # noqa: S506  (a SafeLoader)
+
+
 def apply_overrides(cfg, overrides: list[str], where: str):
-    """A copy of ``cfg`` with ``key=value`` overrides (values parsed as YAML), validated by
+    """A copy of ``cfg`` with ``key=value`` overrides (values parsed as YAML with only
+    true/false as booleans, ``parse_value``), validated by
     the schema (unknown keys and wrong types are errors naming the variant).  A list value
     replaces the list, and a list of records (``guides.edits``, ``scene.colliders``) is typed
     by the schema (a plain assignment of dicts to a list of structured records fails)."""
@@ -70,13 +89,14 @@ def apply_overrides(cfg, overrides: list[str], where: str):
         key, val = o.split("=", 1)
         if OmegaConf.select(out, key, default="__missing__") == "__missing__":
             raise InputError(f"unknown key {key!r}", where)
-        value = yaml.safe_load(val)
+        value = parse_value(val)
         try:
             # OmegaConf merges lists by replacement and validates their elements against the
             # schema; dicts keep ``merge=False`` (replace, not merge into the node).
             OmegaConf.update(out, key, value, merge=isinstance(value, list))
-        except Exception as exc:  # omegaconf validation errors
-            raise InputError(f"{o}: {exc}", where) from exc
+        except Exception as exc:  # omegaconf validation errors: their first line (then full_key, types)
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise InputError(f"{o}: {first}", where) from exc
     return out
 
 
