@@ -63,9 +63,9 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     try:
         cfg = compose_config(args[1:])
-    except Exception as exc:  # unknown key, wrong type: Hydra's message
-        print(f"hairexp: error: {exc}", file=sys.stderr)
-        return 1
+    except Exception as exc:  # unknown key, wrong type (Hydra's message, or the schema check's): bad input
+        print(f"hairexp: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
     try:
         scene, guides = export_scene(cfg, args[0])
     except (InputError, ValueError) as exc:
