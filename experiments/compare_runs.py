@@ -51,6 +51,7 @@ def compare(a: Path, b: Path) -> tuple[int, int]:
             diff = _differences(fa, fb)
         except Exception as exc:   # a corrupt or truncated file: a difference, named
             print(f"UNREADABLE {rel}: {type(exc).__name__}: {exc}")
+            print(f"compare_runs: {rel}: cannot be read ({type(exc).__name__}: {exc})", file=sys.stderr)
             bad += 1
             continue
         print(("DIFF " if diff else "same ") + str(rel) + (f" {diff}" if diff else ""))
