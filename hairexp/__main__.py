@@ -37,6 +37,10 @@ def entry() -> int:
     if bad_dir is not None:
         print(bad_dir, file=sys.stderr)
         return 4
+    bad_config = cli.config_error(sys.argv[1:])   # a typo, a wrong type, an unknown choice: bad input
+    if bad_config is not None:
+        print(bad_config, file=sys.stderr)
+        return 2
     try:
         # outside a run (composing, between sweep jobs) too; a sweep's running jobs are stopped first
         with InterruptSignals(on_signal=cli.stop_sweep_jobs):

@@ -424,7 +424,7 @@ def run_cli(args, out):
 def test_cli_unknown_edit_kind_fails_at_compose(tmp_path):
     out = tmp_path / "run"
     proc = run_cli(["guides.edits=[{guide: 0, kind: twist, times: [0.0], weights: [1.0]}]"], out)
-    assert proc.returncode == 1, (proc.stdout, proc.stderr)
+    assert proc.returncode == 2, (proc.stdout, proc.stderr)   # bad input, before Hydra starts
     assert "twist" in proc.stderr and "kind" in proc.stderr
     assert not (out / "summary.json").exists()   # stopped before the run started
 

@@ -35,7 +35,7 @@ from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
-from hairexp.app.config import check_keys
+from hairexp.app.config import check_keys, compose_config
 from hairexp.app.experiment import run_experiment
 from hairexp.app.signals import child_pids, forward
 from hairexp.app.signals import exit_code as signal_exit_code
@@ -317,3 +317,25 @@ def stop_sweep_jobs(signum: int) -> None:
     if left:
         print(f"hairexp: {name}: {len(left)} jobs did not end in {STOP_WAIT_SECONDS:g} s: "
               f"{', '.join(d.name for d in sorted(left))}", file=sys.stderr)
+
+
+def config_error(argv: list[str]) -> str | None:
+    """The one-line error of a single run's command line whose config cannot be composed (a key
+    not in the schema, a wrong type, an unknown choice), or None.  The config is composed here
+    first, as ``compose_config`` does, so that such input exits 2 like any bad value instead of
+    Hydra's exit 1; sweeps (``-m``, comma lists) and Hydra's own flags and keys are left to Hydra."""
+    if any(a.startswith("-") for a in argv):
+        return None
+    overrides = [a for a in argv if not (a.startswith("hydra.") or a.startswith("hydra/") or a.startswith("+hydra")
+                                         or a.startswith("~hydra"))]
+    try:
+        compose_config(overrides)
+    except InputError as exc:
+        return f"hairexp: error: {exc}"
+    except Exception as exc:   # Hydra's composition and override-parsing errors, OmegaConf's validation
+        msg = str(exc).strip()
+        cause = exc.__cause__ or exc.__context__
+        if cause is not None and str(cause).strip():   # "Error merging override x=y" says why only here
+            msg += ": " + str(cause).strip().splitlines()[0]
+        return f"hairexp: error: {' '.join(msg.split())}"
+    return None
