@@ -144,12 +144,12 @@ class _Sinks:
     progress: Progress | None = None
     written: list = field(default_factory=list)   # final result files this run wrote
 
-    def flush(self) -> None:
+    def flush(self, final: bool = False) -> None:
         self.table.flush()
         if self.recorder is not None:
             self.recorder.flush()
         if self.rerun is not None:
-            self.rerun.flush()
+            self.rerun.flush(final=final)
 
 
 def run(cfg, out_dir: str | Path) -> dict:
@@ -215,7 +215,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
                     or recorder.pending_bytes() >= FLUSH_BYTES):
                 sinks.flush()
                 last_flush, frames_since = time.monotonic(), 0
-    sinks.flush()
+    sinks.flush(final=True)
     progress.close()
     # metrics.parquet first (a failed run keeps it too), then read back column by column: the
     # end of a run holds one column or one block of frames at a time, whatever its length

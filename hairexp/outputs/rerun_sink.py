@@ -16,6 +16,7 @@ interrupted run keeps the ``.partial.rrd`` name (a valid recording of the steps 
 from __future__ import annotations
 
 import os
+import time
 import uuid
 
 import numpy as np
@@ -24,6 +25,10 @@ import rerun.blueprint as rrb
 import torch
 
 from hairexp.guides import spline
+
+#: the metric scalars go to the recording at most this often (s), or every this many steps
+METRICS_SECONDS = 10.0
+METRICS_STEPS = 1000
 
 #: Metrics plotted (a subset of the row; all numeric row entries are logged).
 PLOTTED = ("iterations", "stretch_max", "residual_rel_max", "variance_ratio_mean", "constraint_force_rel",
@@ -59,6 +64,7 @@ class RerunSink:
         self.recording_id = recording_id or str(uuid.uuid4())
         self.rec = rr.RecordingStream(application_id, recording_id=self.recording_id)
         self.rec.save(self.partial, default_blueprint=blueprint())
+        self.metrics_sent = time.monotonic()
         self.scene = scene
         self.offsets = scene.strands.offsets
         self.scalars: dict[str, list] = {}   # since the last flush
@@ -172,10 +178,14 @@ class RerunSink:
                     self.named.add(k)
         self.steps, self.frames, self.times, self.scalars = [], [], [], {}
 
-    def flush(self) -> None:
-        """Send the pending metrics and wait until the file holds everything logged; a write
-        failure raises OSError."""
-        self._send_metrics()
+    def flush(self, final: bool = False) -> None:
+        """Wait until the file holds everything logged (a write failure raises OSError); the
+        pending metrics are sent at most every METRICS_SECONDS or METRICS_STEPS steps, and when
+        ``final``: each send is one chunk per metric, and the SDK keeps an index entry per chunk
+        until it writes the file's footer (memory that grew with the run's length)."""
+        if final or len(self.steps) >= METRICS_STEPS or time.monotonic() - self.metrics_sent >= METRICS_SECONDS:
+            self._send_metrics()
+            self.metrics_sent = time.monotonic()
         try:
             self.rec.flush()
         except RuntimeError as exc:   # rerun's file writer stopped (e.g. no space left on the device)
@@ -186,7 +196,7 @@ class RerunSink:
         its footer back: a recording that did not finish stays ``.partial.rrd``)."""
         try:
             if success:
-                self.flush()
+                self.flush(final=True)
             else:
                 self._send_metrics()
         finally:
