@@ -178,14 +178,20 @@ def test_streamed_arrays_and_npz(tmp_path):
         GrowingNpy(tmp_path / "b.npy", (3,), np.float64).append(np.zeros(4))
 
 
-def test_streamed_metrics_equal_one_table(tmp_path):
-    rows = [{"step": i, "x": (i if i < 3 else 0.5), "flag": i % 2 == 0, "s": "a", **({"late": 1.0} if i > 4 else {})}
-            for i in range(8)]
-    t = MetricsTable(tmp_path / "m")
+def streamed_table(folder, rows) -> MetricsTable:
+    """A streamed MetricsTable of ``rows``, flushed after rows 2 and 5 (three parts)."""
+    t = MetricsTable(folder)
     for i, r in enumerate(rows):
         t.on_step(r, None)
         if i in (2, 5):
             t.flush()
+    return t
+
+
+def test_streamed_metrics_equal_one_table(tmp_path):
+    rows = [{"step": i, "x": (i if i < 3 else 0.5), "flag": i % 2 == 0, "s": "a", **({"late": 1.0} if i > 4 else {})}
+            for i in range(8)]
+    t = streamed_table(tmp_path / "m", rows)
     pd.testing.assert_frame_equal(t.frame(), pd.DataFrame(rows))   # parts inferred differently: one inference
     assert sum(len(pd.read_parquet(p)) for p in sorted((tmp_path / "m").glob("part-*.parquet"))) == 6
 
@@ -197,11 +203,7 @@ def test_written_metrics_equal_one_table(tmp_path):
     rows = [{"step": i, "x": (i if i < 3 else 0.5), "flag": i % 2 == 0, "s": "a", **({"late": 1.0} if i > 4 else {}),
              "mixed": ("text" if i >= 6 else float(i))}
             for i in range(8)]
-    t = MetricsTable(tmp_path / "m")
-    for i, r in enumerate(rows):
-        t.on_step(r, None)
-        if i in (2, 5):
-            t.flush()
+    t = streamed_table(tmp_path / "m", rows)
     cols = t.write(tmp_path / "metrics.parquet")
     got = pd.read_parquet(tmp_path / "metrics.parquet")
     want = pd.DataFrame(rows)

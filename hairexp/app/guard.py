@@ -107,20 +107,19 @@ MAX_RUN_SECONDS = 7 * 86400.0
 def check(est: Estimate, keys: str, allow_large: bool, available: float | None) -> None:
     """Refuse ``est`` when it needs more than ``available`` bytes (an InputError naming ``keys``,
     the config keys that size the run), unless ``allow_large``; warn about a long run."""
+    def refuse(msg: str) -> None:   # an InputError, or with allow_large a warning
+        if not allow_large:
+            raise InputError(msg, keys)
+        log.warning("%s: %s (guard.allow_large=true: running anyway)", keys, msg)
+
     if available is not None and est.memory > available:
-        msg = (f"the run would need about {_size(est.memory)} of memory ({est.steps:.3g} steps, "
+        refuse(f"the run would need about {_size(est.memory)} of memory ({est.steps:.3g} steps, "
                f"{est.total_steps:.3g} with settle and guide-simulation steps) but {_size(available)} is available; make it smaller "
                "or set guard.allow_large=true to run anyway")
-        if not allow_large:
-            raise InputError(msg, keys)
-        log.warning("%s: %s (guard.allow_large=true: running anyway)", keys, msg)
     if est.seconds > MAX_RUN_SECONDS:
-        msg = (f"the run would take roughly {_duration(est.seconds)} (about {est.total_steps:.3g} steps, "
+        refuse(f"the run would take roughly {_duration(est.seconds)} (about {est.total_steps:.3g} steps, "
                f"{est.settle_steps:.3g} of them settle and guide steps), more than {_duration(MAX_RUN_SECONDS)}; "
                "make it shorter or set guard.allow_large=true to run anyway")
-        if not allow_large:
-            raise InputError(msg, keys)
-        log.warning("%s: %s (guard.allow_large=true: running anyway)", keys, msg)
     if est.total_steps > LONG_RUN_STEPS:
         log.warning("long run: about %.3g steps (%.3g recorded, %.3g settle and guide steps), roughly %s "
                     "(%s: %s of memory)", est.total_steps, est.steps, est.settle_steps, _duration(est.seconds),

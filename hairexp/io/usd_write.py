@@ -155,8 +155,7 @@ def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps
                           path=crate)
         samples = lambda motion: pose_samples(motion, fps, frames, keyframes=False)  # noqa: E731
         write_body(stage, scene, samples(scene.motion))
-        if len(guide_positions) and getattr(guide_positions, "ndim", np.ndim(guide_positions)) == 3 \
-                and len(guide_positions[0]) > 0:
+        if np.ndim(guide_positions) == 3 and len(guide_positions) and len(guide_positions[0]) > 0:
             write_animation(stage, GUIDES, guide_positions, guide_offsets, GUIDE_WIDTH, True, "guide_positions")
         write_colliders(stage, scene.colliders, samples)
         UsdGeom.Scope.Define(stage, RESULT)

@@ -108,24 +108,21 @@ class MetricsTable:
         The parts' column types are unified as one table of all rows would have them: a
         column missing from a part is null there, integers meeting floats become floats, and
         columns whose types cannot be unified are written as text."""
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-
         self.flush()
         if self.written is not None and self.written.path == Path(path) and self.written_parts == len(self.parts) \
                 and not self.rows:
             return self.written    # already written, nothing new since
-        self.written, self.written_parts = self._write(Path(path), pa, pq), len(self.parts)
+        self.written, self.written_parts = self._write(Path(path)), len(self.parts)
         return self.written
 
-    def _write(self, path: Path, pa, pq) -> "MetricColumns":
-        if self.folder is None:   # an in-memory table: one part
+    def _write(self, path: Path) -> "MetricColumns":
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        if self.folder is None or not self.parts:   # an in-memory table, or nothing flushed: one frame
             atomic_write_bytes(path, lambda f: self.frame().to_parquet(f))
             return MetricColumns(path)
         schemas = [pq.read_schema(p).remove_metadata() for p in self.parts]
-        if not schemas:
-            atomic_write_bytes(path, lambda f: self.frame().to_parquet(f))
-            return MetricColumns(path)
         try:
             schema = pa.unify_schemas(schemas, promote_options="permissive")
         except (pa.ArrowInvalid, pa.ArrowTypeError):
