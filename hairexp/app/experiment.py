@@ -111,9 +111,11 @@ def run_experiment(cfg, out_dir) -> dict:
     if not cfg.variants:
         return run(cfg, out)
     names = check_variant_names(cfg.variants)
+    vcfgs = []
     for i, (name, v) in enumerate(zip(names, cfg.variants)):   # every variant's config, before the first runs
         vcfg = apply_overrides(cfg, list(v.overrides), f"variants[{i}] ({name})")
         vcfg.variants = []
+        vcfgs.append(vcfg)
         try:
             check_config(vcfg)
             validate_judge(cfg, vcfg.measure)
@@ -128,7 +130,7 @@ def run_experiment(cfg, out_dir) -> dict:
     measures, facts = {}, {}
     try:
         with InterruptSignals():
-            _run_variants(cfg, out, names, summary, measures, facts, t0)
+            _run_variants(out, names, vcfgs, summary, measures, facts, t0)
         judge = plain["judge"]
         if judge != "none":
             ok, details = JUDGES[judge](measures, facts, float(cfg.judge_tolerance))
@@ -151,11 +153,11 @@ def run_experiment(cfg, out_dir) -> dict:
     return summary
 
 
-def _run_variants(cfg, out: Path, names: list[str], summary: dict, measures: dict, facts: dict, t0: float) -> None:
-    for i, (name, v) in enumerate(zip(names, cfg.variants)):
+def _run_variants(out: Path, names: list[str], vcfgs: list, summary: dict, measures: dict, facts: dict,
+                  t0: float) -> None:
+    """Run each variant's config (``vcfgs``, built and checked by ``run_experiment``) in order."""
+    for name, vcfg in zip(names, vcfgs):
         try:
-            vcfg = apply_overrides(cfg, list(v.overrides), f"variants[{i}] ({name})")
-            vcfg.variants = []
             facts[name] = _variant_facts(vcfg)
             s = run(vcfg, out / name)
         except BaseException as exc:
