@@ -11,6 +11,7 @@ import numpy as np
 from hairexp.errors import InputError
 from hairexp.guides.animation import GuideAnimation, carried_guides, file_guides, rest_guides
 from hairexp.guides.authoring import apply_edits, keyframed_positions
+from hairexp.guides.store import FrameStore
 from hairexp.model.dynamic_body import authoring_motion
 from hairexp.model.scene import Scene
 from hairexp.model.strands import Strands
@@ -69,12 +70,13 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
                                                     what="guides"))
     sim = Simulator(gscene, cfg.solver, collision_cfg=ccfg)
     state = sim.initial_state()
-    out = [state.x.copy()]
+    out = FrameStore(state.x.shape)   # frame by frame to a temporary file: memory flat in the frames
+    out.append(state.x)
     for _ in range(frames):
         for _ in range(n_sub):
             state, _ = sim.step(state, dt)
-        out.append(state.x.copy())
-    return GuideAnimation(np.stack(out), offsets, fps, motion=scene.motion)
+        out.append(state.x)
+    return GuideAnimation(out, offsets, fps, motion=scene.motion)
 
 
 def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
@@ -85,5 +87,5 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     anim = source_guides(cfg, scene, frames, fps)
     if not cfg.guides.edits:
         return anim
-    pos = apply_edits(anim.positions, anim.offsets, anim.fps, authoring_motion(scene.motion), cfg.guides.edits)
+    pos = apply_edits(anim.frames, anim.offsets, anim.fps, authoring_motion(scene.motion), cfg.guides.edits)
     return GuideAnimation(pos, anim.offsets, anim.fps, where="guides.edits", motion=scene.motion)

@@ -21,66 +21,90 @@ the body-frame guide with the live block: world = block pose at t x body-frame g
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from hairexp.errors import InputError, regular_file
+from hairexp.guides.store import FrameStore
 from hairexp.model.dynamic_body import authoring_motion
 from hairexp.model.strands import validate_polylines
 
 
-@dataclass
 class GuideAnimation:
-    positions: np.ndarray   # (F, Vg, 3) m
-    offsets: np.ndarray     # (G + 1,)
-    fps: float
-    where: str = "guides"
-    motion: object = None   # the body the guides are rooted on: interpolate in its frame
+    """``positions``: (F, Vg, 3) m, an array or a ``FrameStore`` (hairexp/guides/store.py: the
+    frames kept in a temporary file, read a block at a time; the run's sources build one, so a
+    long run's guides take the memory of one block); ``offsets`` (G + 1,); ``fps``.
 
+    ``frames`` is what was given (read frame by frame: ``frames[f]``, iteration);
+    ``positions`` is every frame as one array (loaded from a store on each access: for small
+    animations and tests)."""
 
-    def __post_init__(self):
-        self.positions = np.asarray(self.positions, dtype=np.float64)
-        raw = np.asarray(self.offsets)
+    def __init__(self, positions, offsets, fps: float, where: str = "guides", motion=None):
+        self.where, self.fps = where, fps
+        if isinstance(positions, FrameStore):
+            if positions.dtype != np.float64:
+                raise InputError(f"guide positions must be float64, got {positions.dtype}", where)
+            self.frames = positions
+        else:
+            self.frames = np.asarray(positions, dtype=np.float64)
+        raw = np.asarray(offsets)
         if raw.ndim != 1 or raw.dtype.kind not in "iuf" or (raw.dtype.kind == "f" and not (
                 np.isfinite(raw).all() and np.array_equal(raw, np.round(raw)))):
             raise InputError(f"guide offsets must be integers (G + 1,), got {raw.dtype} {raw.shape}: "
                              f"{raw.ravel()[:8].tolist()}", self.where)
         self.offsets = raw.astype(np.int64)
-        if self.positions.ndim != 3 or self.positions.shape[-1] != 3 or self.positions.shape[0] < 1:
-            raise InputError(f"guide positions must have shape (frames, vertices, 3), got {self.positions.shape}",
+        shape = self.frames.shape
+        if len(shape) != 3 or shape[-1] != 3 or shape[0] < 1:
+            raise InputError(f"guide positions must have shape (frames, vertices, 3), got {tuple(shape)}",
                              self.where)
         counts = np.diff(self.offsets)
         if counts.size == 0 or self.offsets[0] != 0:
             raise InputError("guide offsets must start at 0 and name at least one guide", self.where)
         if not (np.isfinite(self.fps) and self.fps > 0):
             raise InputError(f"fps must be > 0, got {self.fps}", self.where)
-        for f in range(self.positions.shape[0]):
-            validate_polylines(self.positions[f], counts, f"{self.where} frame {f}", min_vertices=2)
-        self.attach(self.motion)
+        for f, P in enumerate(self.frames):
+            validate_polylines(P, counts, f"{self.where} frame {f}", min_vertices=2)
+        self._rest = np.array(self.frames[0])
+        self._body_cache: dict[int, np.ndarray] = {}
+        self.attach(motion)
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.frames if isinstance(self.frames, np.ndarray) else np.asarray(self.frames)
 
     def attach(self, motion) -> None:
         """Interpolate between frames in the body frame of ``motion`` and map back with its
         exact pose, so that the guide roots follow the body between frames as the detail
         hair roots do (a linear blend of world positions would cut corners when it turns).
         A dynamic body: the positions are in its ``reference`` pose (authoring), ``shape_at``
-        maps them with the live block."""
+        maps them with the live block.  A frame's body-frame shape is computed when it is
+        first needed (two frames are kept)."""
         self.motion = motion
-        if motion is not None:
-            ref = authoring_motion(motion)
-            self._body = np.stack([ref.to_body(P, f / self.fps) for f, P in enumerate(self.positions)])
+        self._ref = None if motion is None else authoring_motion(motion)
+        self._body_cache = {}
+
+    def _body(self, f: int) -> np.ndarray:
+        """Frame f in the body frame of the attached motion."""
+        B = self._body_cache.get(f)
+        if B is None:
+            B = self._ref.to_body(self.frames[f], f / self.fps)
+            if len(self._body_cache) >= 2:
+                self._body_cache.pop(next(iter(self._body_cache)))
+            self._body_cache[f] = B
+        return B
+
     @property
     def n_guides(self) -> int:
         return len(self.offsets) - 1
 
     @property
     def n_frames(self) -> int:
-        return self.positions.shape[0]
+        return len(self.frames)
 
     @property
     def rest(self) -> np.ndarray:
-        return self.positions[0]
+        return self._rest
 
     def guides(self, P: np.ndarray) -> list[np.ndarray]:
         return [P[a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:])]
@@ -91,16 +115,30 @@ class GuideAnimation:
         body's step window, hairexp/model/dynamic_body.py)."""
         u = float(np.clip(t * self.fps, 0.0, self.n_frames - 1))
         f = min(int(np.floor(u)), self.n_frames - 2) if self.n_frames > 1 else 0
-        src = self.positions if self.motion is None else self._body
+        src = (lambda k: self.frames[k]) if self.motion is None else self._body
         if self.n_frames == 1:
-            B = src[0]
+            B = src(0)
         else:
             a = u - f
-            B = (1 - a) * src[f] + a * src[f + 1]
+            B = (1 - a) * src(f) + a * src(f + 1)
         return B if self.motion is None else (motion or self.motion).transform(B, t)
 
-    def save(self, path: Path) -> None:
-        np.savez_compressed(path, guide_positions=self.positions, guide_offsets=self.offsets, fps=self.fps)
+    def save(self, f) -> None:
+        """guides.npz (``guide_positions``, ``guide_offsets``, ``fps``, compressed as
+        ``np.savez_compressed``) to the path or binary file ``f``, written a block of frames at
+        a time."""
+        import zipfile
+
+        with zipfile.ZipFile(f, mode="w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
+            with zf.open("guide_positions.npy", "w", force_zip64=True) as dst:
+                np.lib.format.write_array_header_1_0(dst, {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float64)),
+                                                           "fortran_order": False, "shape": tuple(self.frames.shape)})
+                step = max(1, (1 << 20) // max(1, 24 * self.frames.shape[1]))
+                for start in range(0, self.n_frames, step):
+                    dst.write(np.ascontiguousarray(self.frames[start:start + step]).tobytes())
+            for name, a in (("guide_offsets", self.offsets), ("fps", np.asarray(self.fps))):
+                with zf.open(f"{name}.npy", "w", force_zip64=True) as dst:
+                    np.lib.format.write_array(dst, np.asanyarray(a), allow_pickle=False)
 
 
 def rest_guides(scene_cfg, count: int, n_vertices: int, layout_radius: float) -> np.ndarray:
@@ -154,15 +192,17 @@ def file_guides(path, motion, frames: int | None = None, fps: float | None = Non
 
 
 def carried_guides(g, body: np.ndarray, offsets: np.ndarray, motion, frames: int, fps: float,
-                   scaled: bool) -> np.ndarray:
-    """(frames + 1, Vg, 3) world positions of the body-frame guides ``body`` carried by ``motion``
-    (``rigid``), scaled about their roots by ``g.scale_times``/``g.scale_factors`` (``scaled``)."""
-    frames_pos = []
-    for t in np.arange(frames + 1) / fps:
+                   scaled: bool) -> FrameStore:
+    """(frames + 1, Vg, 3) world positions (a ``FrameStore``) of the body-frame guides ``body``
+    carried by ``motion`` (``rigid``), scaled about their roots by ``g.scale_times``/``g.scale_factors``
+    (``scaled``)."""
+    store = FrameStore(body.shape)
+    for f in range(frames + 1):
+        t = f / fps
         X = body
         if scaled:   # guides.scale_times/scale_factors: checked in hairexp/app/validate.py
-            f = float(np.interp(t, g.scale_times, g.scale_factors))
+            s = float(np.interp(t, g.scale_times, g.scale_factors))
             roots = np.repeat(body[offsets[:-1]], g.n_vertices, axis=0)
-            X = roots + f * (body - roots)
-        frames_pos.append(motion.transform(X, t))
-    return np.stack(frames_pos)
+            X = roots + s * (body - roots)
+        store.append(motion.transform(X, t))
+    return store

@@ -51,6 +51,7 @@ from scipy.interpolate import CubicHermiteSpline, CubicSpline
 from scipy.spatial.transform import Rotation
 
 from hairexp.errors import InputError
+from hairexp.guides.store import FrameStore
 from hairexp.model.strands import validate_polylines
 
 #: Largest turn (degrees) of a guide's first edge away from its rest direction, in the body frame.
@@ -140,67 +141,114 @@ def rest_arclength_fraction(P: np.ndarray) -> np.ndarray:
     return s / s[-1]
 
 
-def apply_edits(positions: np.ndarray, offsets: np.ndarray, fps: float, motion, edits) -> np.ndarray:
-    """Apply ``guides.edits`` (a list of GuideEditConfig) in order to world guide positions
-    (F, Vg, 3) whose frame f is at time f / fps; returns new positions (the input is kept).
-    ``motion`` (RigidMotion) gives the body frame the axes and offsets are expressed in."""
-    P = np.array(positions, dtype=np.float64, copy=True)
-    offsets = np.asarray(offsets, dtype=np.int64)
-    G = len(offsets) - 1
-    times = np.arange(P.shape[0]) / fps
-    R = np.stack([motion.pose(t)[0] for t in times])          # (F, 3, 3) body -> world
-    rest = P[0].copy()
-    for i, e in enumerate(edits):
-        where = f"guides.edits[{i}]"
-        g = int(e.guide)
-        if not 0 <= g < G:
-            raise InputError(f"guide index {g} out of range: the animation has {G} guide(s) (0..{G - 1})",
-                             f"{where}.guide")
-        w = KeyedWeight(e.times, e.weights, where)(times)
-        a, b = int(offsets[g]), int(offsets[g + 1])
-        kind = _kind(e.kind)
-        if kind == "rotate":
-            axis = _vector(e.axis, f"{where}.axis", nonzero=True)
-            axis /= np.linalg.norm(axis)
-            angle = float(e.angle_deg)
-            if not np.isfinite(angle):
-                raise InputError(f"must be finite, got {angle}", f"{where}.angle_deg")
+#: frames edited (or keyframed) together: the memory of a block, whatever the animation's length
+BLOCK_FRAMES = 256
+
+
+def _edit(i: int, e, G: int, offsets: np.ndarray, rest: np.ndarray):
+    """Edit ``i`` checked, as a function ``op(P, times, R)`` that edits the frames P (n, Vg, 3) at
+    ``times`` (n,) under body rotations R (n, 3, 3) in place."""
+    where = f"guides.edits[{i}]"
+    g = int(e.guide)
+    if not 0 <= g < G:
+        raise InputError(f"guide index {g} out of range: the animation has {G} guide(s) (0..{G - 1})",
+                         f"{where}.guide")
+    weight = KeyedWeight(e.times, e.weights, where)
+    a, b = int(offsets[g]), int(offsets[g + 1])
+    kind = _kind(e.kind)
+    if kind == "rotate":
+        axis = _vector(e.axis, f"{where}.axis", nonzero=True)
+        axis /= np.linalg.norm(axis)
+        angle = float(e.angle_deg)
+        if not np.isfinite(angle):
+            raise InputError(f"must be finite, got {angle}", f"{where}.angle_deg")
+
+        def rotate(P, times, R):
+            w = weight(times)
             for f in np.flatnonzero(w != 0):
                 Q = Rotation.from_rotvec(np.radians(w[f] * angle) * (R[f] @ axis)).as_matrix()
                 x0 = P[f, a]
                 P[f, a + 1:b] = x0 + (P[f, a + 1:b] - x0) @ Q.T
-        elif kind == "displace":
-            offset = _vector(e.offset, f"{where}.offset")
-            p = float(e.falloff)
-            if not (np.isfinite(p) and p > 0):
-                raise InputError(f"must be > 0 (0 would move the root), got {p}", f"{where}.falloff")
-            profile = rest_arclength_fraction(rest[a:b]) ** p       # 0 at the root exactly
+        return rotate
+    if kind == "displace":
+        offset = _vector(e.offset, f"{where}.offset")
+        p = float(e.falloff)
+        if not (np.isfinite(p) and p > 0):
+            raise InputError(f"must be > 0 (0 would move the root), got {p}", f"{where}.falloff")
+        profile = rest_arclength_fraction(rest[a:b]) ** p       # 0 at the root exactly
+
+        def displace(P, times, R):
+            w = weight(times)
             for f in np.flatnonzero(w != 0):
                 P[f, a:b] += w[f] * profile[:, None] * (R[f] @ offset)
+        return displace
+    raise InputError(f"unknown edit kind {kind!r} (rotate|displace)", f"{where}.kind")
+
+
+def apply_edits(positions, offsets: np.ndarray, fps: float, motion, edits):
+    """Apply ``guides.edits`` (a list of GuideEditConfig) in order to world guide positions
+    (F, Vg, 3) whose frame f is at time f / fps; returns new positions (the input is kept):
+    an array for an array, a ``FrameStore`` for a ``FrameStore`` (edited BLOCK_FRAMES frames at
+    a time: the memory of a block).  ``motion`` (RigidMotion) gives the body frame the axes and
+    offsets are expressed in."""
+    offsets = np.asarray(offsets, dtype=np.int64)
+    G = len(offsets) - 1
+    rest = np.array(positions[0], dtype=np.float64)
+    ops = [_edit(i, e, G, offsets, rest) for i, e in enumerate(edits)]
+    n = len(positions)
+    stored = isinstance(positions, FrameStore)
+    out = FrameStore(rest.shape) if stored else np.empty((n, *rest.shape))
+    turn = RootTurn(offsets, "guides.edits")
+    for start in range(0, n, BLOCK_FRAMES):
+        P = np.array(positions[start:start + BLOCK_FRAMES], dtype=np.float64)
+        times = np.arange(start, start + len(P)) / fps
+        R = np.stack([motion.pose(t)[0] for t in times])          # (n, 3, 3) body -> world
+        for op in ops:
+            op(P, times, R)
+        turn.add(P, R, start)
+        if stored:
+            for X in P:
+                out.append(X)
         else:
-            raise InputError(f"unknown edit kind {kind!r} (rotate|displace)", f"{where}.kind")
-    check_root_turn(P, offsets, R, "guides.edits")
-    return P
+            out[start:start + len(P)] = P
+    turn.check()
+    return out
 
 
-def check_root_turn(P: np.ndarray, offsets: np.ndarray, R: np.ndarray, where: str) -> None:
+class RootTurn:
     """Every guide's first edge stays within MAX_ROOT_TURN_DEG of its frame-0 direction, both
-    seen in the body frame (R (F, 3, 3) the body rotations of the frames)."""
-    roots = np.asarray(offsets[:-1], dtype=np.int64)
-    e = np.einsum("fji,fgj->fgi", R, P[:, roots + 1] - P[:, roots])   # R^T (x1 - x0): body frame
-    n = np.linalg.norm(e, axis=-1, keepdims=True)
-    e = np.divide(e, n, out=np.zeros_like(e), where=n > 0)   # zero-length edges: left to validate_polylines
-    turn = np.degrees(np.arccos(np.clip(np.sum(e * e[:1], axis=-1), -1.0, 1.0)))   # (F, G)
-    turn[(n[..., 0] == 0) | (n[:1, :, 0] == 0)] = 0.0
-    if turn.max() >= MAX_ROOT_TURN_DEG:
+    seen in the body frame; frames are added in blocks (``add``), ``check`` raises."""
+
+    def __init__(self, offsets: np.ndarray, where: str):
+        self.roots = np.asarray(offsets[:-1], dtype=np.int64)
+        self.where = where
+        self.e0 = self.n0 = None
+        self.worst = (-1.0, 0, 0)   # (turn, frame, guide)
+
+    def add(self, P: np.ndarray, R: np.ndarray, start: int) -> None:
+        """Frames start.. of P (n, Vg, 3) with body rotations R (n, 3, 3)."""
+        roots = self.roots
+        e = np.einsum("fji,fgj->fgi", R, P[:, roots + 1] - P[:, roots])   # R^T (x1 - x0): body frame
+        n = np.linalg.norm(e, axis=-1, keepdims=True)
+        e = np.divide(e, n, out=np.zeros_like(e), where=n > 0)   # zero-length edges: left to validate_polylines
+        if self.e0 is None:
+            self.e0, self.n0 = e[:1].copy(), n[:1].copy()
+        turn = np.degrees(np.arccos(np.clip(np.sum(e * self.e0, axis=-1), -1.0, 1.0)))   # (n, G)
+        turn[(n[..., 0] == 0) | (self.n0[:, :, 0] == 0)] = 0.0
         f, g = np.unravel_index(int(np.argmax(turn)), turn.shape)
-        raise InputError(f"guide {g}'s first edge turns {turn[f, g]:.1f} deg from its rest direction (frame {f}); "
-                         f"the tracker's root frame is undefined at 180 deg: keep it below {MAX_ROOT_TURN_DEG:g} deg",
-                         where)
+        if turn[f, g] > self.worst[0]:
+            self.worst = (float(turn[f, g]), start + int(f), int(g))
+
+    def check(self) -> None:
+        turn, f, g = self.worst
+        if turn >= MAX_ROOT_TURN_DEG:
+            raise InputError(f"guide {g}'s first edge turns {turn:.1f} deg from its rest direction (frame {f}); "
+                             f"the tracker's root frame is undefined at 180 deg: keep it below {MAX_ROOT_TURN_DEG:g} "
+                             "deg", self.where)
 
 
-def keyframed_positions(gcfg, motion, frames: int, fps: float) -> tuple[np.ndarray, np.ndarray]:
-    """World guide positions (frames + 1, count * n_vertices, 3) and offsets from
+def keyframed_positions(gcfg, motion, frames: int, fps: float) -> tuple[FrameStore, np.ndarray]:
+    """World guide positions (frames + 1, count * n_vertices, 3; a ``FrameStore``) and offsets from
     ``guides.keyframes`` (source=keyframed; see the module doc)."""
     keys = list(gcfg.keyframes)
     if not keys:
@@ -241,12 +289,19 @@ def keyframed_positions(gcfg, motion, frames: int, fps: float) -> tuple[np.ndarr
     root = np.repeat(K[0, roots], nv, axis=0)                  # (Vg, 3), exactly the same in every frame
     rel = K - root
     rel[:, roots] = 0.0                                        # the spline keeps the roots exactly
-    t_out = np.arange(frames + 1) / fps
-    if len(keys) == 1:
-        B = np.repeat(rel, len(t_out), axis=0)
-    else:
-        B = CubicSpline(key_times, rel, axis=0, bc_type="clamped")(np.clip(t_out, key_times[0], key_times[-1]))
-    B = B + root
-    world = np.stack([motion.transform(B[f], t) for f, t in enumerate(t_out)])
-    check_root_turn(world, offsets, np.stack([motion.pose(t)[0] for t in t_out]), "guides.keyframes")
+    spline = None if len(keys) == 1 else CubicSpline(key_times, rel, axis=0, bc_type="clamped")
+    world = FrameStore(root.shape)
+    turn = RootTurn(offsets, "guides.keyframes")
+    for start in range(0, frames + 1, BLOCK_FRAMES):          # a block of frames at a time
+        t_out = np.arange(start, min(start + BLOCK_FRAMES, frames + 1)) / fps
+        if spline is None:
+            B = np.repeat(rel, len(t_out), axis=0)
+        else:
+            B = spline(np.clip(t_out, key_times[0], key_times[-1]))
+        B = B + root
+        W = np.stack([motion.transform(B[f], t) for f, t in enumerate(t_out)])
+        turn.add(W, np.stack([motion.pose(t)[0] for t in t_out]), start)
+        for X in W:
+            world.append(X)
+    turn.check()
     return world, offsets

@@ -26,6 +26,7 @@ from hairexp.errors import InputError, regular_file
 from hairexp.io.usd_colliders import read_colliders
 from hairexp.io.usd_layout import read_motion, time_label
 from hairexp.guides.animation import GuideAnimation
+from hairexp.guides.store import FrameStore
 from hairexp.model.builders import build_collider, build_material, vec3
 from hairexp.model.scene import Scene
 from hairexp.model.strands import N_ROOT_VERTICES, Strands, validate_polylines
@@ -161,7 +162,7 @@ def read_guides(cfg, scene, frames: int, fps: float):
         raise InputError(f"guides have time samples for frames 0..{n - 1} ({(n - 1) / tcps:g} s at {tcps:g} fps) "
                          f"but the run needs {frames} frames at {fps:g} fps ({frames / fps:g} s)", where)
     xf = UsdGeom.Xformable(prim)
-    frames_pos = []
+    frames_pos = None   # a FrameStore: frame by frame to a temporary file
     for f in range(n):
         pts, counts = read_curves(prim, Usd.TimeCode(f), where)
         if f == 0:
@@ -173,9 +174,12 @@ def read_guides(cfg, scene, frames: int, fps: float):
             raise InputError(f"time code {f} has {len(pts)} points, time code 0 has {n0}: the guide topology "
                              "must stay the same in every frame", where)
         validate_polylines(pts, counts, f"{where} frame {f}", min_vertices=2)
-        frames_pos.append(apply(pts, xf.ComputeLocalToWorldTransform(Usd.TimeCode(f))))
+        X = apply(pts, xf.ComputeLocalToWorldTransform(Usd.TimeCode(f)))
+        if frames_pos is None:
+            frames_pos = FrameStore(X.shape)
+        frames_pos.append(X)
     offsets = np.concatenate([[0], np.cumsum(counts0)])
-    return GuideAnimation(np.stack(frames_pos), offsets, tcps, where=where, motion=scene.motion)
+    return GuideAnimation(frames_pos, offsets, tcps, where=where, motion=scene.motion)
 
 
 def stage_timing(cfg):

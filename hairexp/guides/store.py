@@ -1,0 +1,122 @@
+"""Per-frame arrays kept out of memory: a guide animation of a long run (frames x guide vertices
+x 3 float64) is written frame by frame to an anonymous temporary file and read back a block of
+frames at a time, so holding it costs the memory of one block whatever the number of frames.
+
+``FrameStore(frame_shape)``: ``append(frame)`` in order, then ``len``, ``store[i]`` (a copy of
+frame i), ``store[a:b]`` / ``store.block(a, b)`` (an array of those frames), iteration, ``shape``,
+``ndim``, ``dtype`` and ``np.asarray(store)`` (all frames: for small animations and tests).  The
+file (``tempfile.TemporaryFile``: unlinked at once, in the system's temporary folder) goes with
+the store.  Values are stored bit for bit.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+
+import numpy as np
+
+#: bytes of frames per block, written and read back together
+BLOCK_BYTES = 1 << 18
+
+
+class FrameStore:
+    def __init__(self, frame_shape: tuple, dtype=np.float64, block_bytes: int = BLOCK_BYTES):
+        self.frame_shape = tuple(int(n) for n in frame_shape)
+        self.dtype = np.dtype(dtype)
+        self.frame_bytes = int(np.prod(self.frame_shape, dtype=np.int64)) * self.dtype.itemsize
+        self.per_block = max(1, block_bytes // max(1, self.frame_bytes))
+        self._file = tempfile.TemporaryFile(prefix="hairexp-frames-")
+        self._written = 0              # frames in the file
+        self._pending: list[np.ndarray] = []
+        self._cache: tuple[int, np.ndarray] | None = None   # (first frame, block)
+
+    @classmethod
+    def of(cls, frames) -> "FrameStore":
+        """A store holding ``frames`` (an array or any iterable of equally shaped frames)."""
+        it = iter(frames)
+        first = np.asarray(next(it))
+        store = cls(first.shape, first.dtype)
+        store.append(first)
+        for f in it:
+            store.append(f)
+        return store
+
+    # -- writing ---------------------------------------------------------------------------------
+    def append(self, frame) -> None:
+        a = np.asarray(frame)
+        if a.shape != self.frame_shape:
+            raise ValueError(f"frame of shape {a.shape}, expected {self.frame_shape}")
+        self._pending.append(np.array(a, dtype=self.dtype, order="C"))
+        if len(self._pending) >= self.per_block:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._pending:
+            return
+        data = b"".join(p.tobytes() for p in self._pending)
+        os.pwrite(self._file.fileno(), data, self._written * self.frame_bytes)
+        self._written += len(self._pending)
+        self._pending = []
+
+    # -- reading ---------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return self._written + len(self._pending)
+
+    @property
+    def shape(self) -> tuple:
+        return (len(self), *self.frame_shape)
+
+    ndim = property(lambda self: 1 + len(self.frame_shape))
+
+    def block(self, start: int, stop: int) -> np.ndarray:
+        """Frames start..stop-1 as one new array."""
+        self._flush()
+        start, stop = max(0, start), min(stop, len(self))
+        n = max(0, stop - start)
+        if n == 0:
+            return np.zeros((0, *self.frame_shape), self.dtype)
+        data = os.pread(self._file.fileno(), n * self.frame_bytes, start * self.frame_bytes)
+        if len(data) != n * self.frame_bytes:
+            raise OSError(f"frame store: read {len(data)} of {n * self.frame_bytes} bytes")
+        return np.frombuffer(data, dtype=self.dtype).reshape(n, *self.frame_shape).copy()
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            start, stop, step = i.indices(len(self))
+            if step == 1:
+                return self.block(start, stop)
+            return np.asarray(self)[i]
+        if isinstance(i, (int, np.integer)):
+            i = int(i)
+            if i < 0:
+                i += len(self)
+            if not 0 <= i < len(self):
+                raise IndexError(f"frame {i} of {len(self)}")
+            c = self._cache
+            if c is None or not c[0] <= i < c[0] + len(c[1]):
+                b0 = i // self.per_block * self.per_block
+                c = self._cache = (b0, self.block(b0, b0 + self.per_block))
+            return c[1][i - c[0]].copy()
+        return np.asarray(self)[i]
+
+    def __iter__(self):
+        for start in range(0, len(self), self.per_block):
+            yield from self.block(start, start + self.per_block)
+
+    def __array__(self, dtype=None, copy=None):
+        a = self.block(0, len(self))
+        return a if dtype is None else a.astype(dtype)
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __getstate__(self):   # pickled (a copy of a run): its frames as an array
+        return {"frames": np.asarray(self), "frame_shape": self.frame_shape, "dtype": self.dtype,
+                "per_block": self.per_block}
+
+    def __setstate__(self, d):
+        self.__init__(d["frame_shape"], d["dtype"], d["per_block"] * max(1, int(np.prod(d["frame_shape"])) *
+                                                                           np.dtype(d["dtype"]).itemsize))
+        for f in d["frames"]:
+            self.append(f)
