@@ -86,7 +86,7 @@ def pose_from_matrix(M, where: str, tc, allow_scale: bool = False) -> tuple[np.n
     return R, m[3, :3].copy(), scale
 
 
-def set_transform(xformable, samples: list):
+def set_transform(xformable, samples):
     """Add an ``xformOp:transform`` holding (time code or None for the untimed value, matrix)
     samples; returns the op."""
     op = xformable.AddTransformOp()

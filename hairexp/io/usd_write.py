@@ -30,8 +30,25 @@ log = logging.getLogger(__name__)
 FORMATS = (".usda", ".usdc", ".usd")
 
 
-#: a streamed stage (``write_result_usd``) is saved whenever this many bytes of samples were added
-SAVE_BYTES = 4 << 20
+#: a streamed stage (``write_result_usd``) is saved whenever this many bytes of samples (points,
+#: extents and transforms, all prims together) were added
+SAVE_BYTES = 1 << 20
+MATRIX_BYTES = 128
+
+
+class Saves:
+    """Saves a file-backed stage every SAVE_BYTES of samples added (``add``), so that its samples
+    leave memory (a saved crate layer reads them back from the file on demand)."""
+
+    def __init__(self, stage):
+        self.stage, self.added = stage, 0
+
+    def add(self, nbytes: int) -> None:
+        self.added += nbytes
+        if self.added >= SAVE_BYTES:
+            if not self.stage.GetRootLayer().Save():
+                raise OSError(f"cannot write {self.stage.GetRootLayer().realPath}")
+            self.added = 0
 
 
 def new_stage(fps: float, frames: int, doc: str, path=None) -> Usd.Stage:
@@ -55,13 +72,21 @@ def _code(tc: float) -> float:
     return float(round(tc)) if abs(tc - round(tc)) < 1e-9 else tc
 
 
-def pose_samples(motion, fps: float, frames: int, keyframes: bool) -> list:
-    """(time code, or None for the untimed value, USD matrix) of a RigidMotion."""
+def pose_samples(motion, fps: float, frames: int, keyframes: bool, saves: Saves | None = None):
+    """(time code, or None for the untimed value, USD matrix) of a RigidMotion; the per-frame
+    samples are made as they are read (a generator), each one counted in ``saves``."""
     if len(motion.times) == 1:
         return [(None, matrix_from_pose(*motion.pose(float(motion.times[0]))))]
     if keyframes and motion.interpolation == "linear":
         return [(_code(float(t) * fps), matrix_from_pose(*motion.pose(float(t)))) for t in motion.times]
-    return [(float(f), matrix_from_pose(*motion.pose(f / fps))) for f in range(frames + 1)]
+    return _frame_poses(motion, fps, frames, saves)
+
+
+def _frame_poses(motion, fps: float, frames: int, saves: Saves | None):
+    for f in range(frames + 1):
+        yield float(f), matrix_from_pose(*motion.pose(f / fps))
+        if saves is not None:   # the sample yielded has been set
+            saves.add(MATRIX_BYTES)
 
 
 def define_curves(stage, path: str, counts, width: float) -> UsdGeom.BasisCurves:
@@ -84,29 +109,25 @@ def set_points(curves: UsdGeom.BasisCurves, points: np.ndarray, tc=Usd.TimeCode.
     curves.GetExtentAttr().Set(Vt.Vec3fArray.FromNumpy(extent), tc)
 
 
-def write_body(stage, scene, samples: list) -> None:
+def write_body(stage, scene, samples) -> None:
     """``/Root/Body`` with its transform samples and ``/Root/Body/Hair`` at rest (body space)."""
     set_transform(UsdGeom.Xform.Define(stage, BODY), samples)
     set_points(define_curves(stage, HAIR, scene.strands.counts, HAIR_WIDTH), scene.root_body)
 
 
-def write_animation(stage, path: str, frames, offsets: np.ndarray, width: float, streamed: bool = False,
+def write_animation(stage, path: str, frames, offsets: np.ndarray, width: float, saves: Saves | None = None,
                     what: str = "points") -> None:
     """BasisCurves with one time sample per frame (time code f = frame f); ``frames``: a
-    sequence of (V, 3) arrays.  ``streamed``: the stage is file-backed and is saved every
-    ``SAVE_BYTES`` of samples, so that its samples leave memory (a saved crate layer reads
-    them back from the file on demand) and a long run's result is written with the memory of
+    sequence of (V, 3) arrays.  ``saves``: the stage is file-backed and saved every
+    ``SAVE_BYTES`` of samples (``Saves``), so a long run's result is written with the memory of
     one block of frames; a non-finite frame is refused (AssertionError naming ``what``)."""
     curves = define_curves(stage, path, np.diff(offsets), width)
-    added = 0
     for f, P in enumerate(frames):
         if not np.isfinite(P).all():
             raise AssertionError(f"refusing to write non-finite {what} (frame {f}) to {stage.GetRootLayer().realPath}")
         set_points(curves, P, Usd.TimeCode(f))
-        added += 12 * len(P)
-        if streamed and added >= SAVE_BYTES:
-            stage.GetRootLayer().Save()
-            added = 0
+        if saves is not None:
+            saves.add(12 * len(P) + 24)
 
 
 def save(stage, path) -> None:
@@ -142,7 +163,7 @@ def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps
     as ``NpyFrames``), body and colliders sampled at every frame.
 
     The stage is written as a crate file under a temporary name, saved every ``SAVE_BYTES``
-    of samples (memory stays flat in the number of frames), then renamed; an ASCII result is
+    of samples, transforms included (memory stays flat in the number of frames), then renamed; an ASCII result is
     exported from it at the end."""
     path = Path(path)
     if path.suffix not in FORMATS:
@@ -153,13 +174,14 @@ def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps
     try:
         stage = new_stage(fps, frames, "hairexp result: the input layout plus /Root/Result/Hair (README 'USD scenes')",
                           path=crate)
-        samples = lambda motion: pose_samples(motion, fps, frames, keyframes=False)  # noqa: E731
+        saves = Saves(stage)
+        samples = lambda motion: pose_samples(motion, fps, frames, keyframes=False, saves=saves)  # noqa: E731
         write_body(stage, scene, samples(scene.motion))
         if np.ndim(guide_positions) == 3 and len(guide_positions) and len(guide_positions[0]) > 0:
-            write_animation(stage, GUIDES, guide_positions, guide_offsets, GUIDE_WIDTH, True, "guide_positions")
+            write_animation(stage, GUIDES, guide_positions, guide_offsets, GUIDE_WIDTH, saves, "guide_positions")
         write_colliders(stage, scene.colliders, samples)
         UsdGeom.Scope.Define(stage, RESULT)
-        write_animation(stage, RESULT_HAIR, positions, scene.strands.offsets, HAIR_WIDTH, True, "positions")
+        write_animation(stage, RESULT_HAIR, positions, scene.strands.offsets, HAIR_WIDTH, saves, "positions")
         if path.suffix == ".usda":
             save(stage, path)
         else:
