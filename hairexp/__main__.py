@@ -27,7 +27,8 @@ from hairexp.errors import Interrupted
 def main(cfg: DictConfig) -> float | None:
     hc = HydraConfig.get()
     sweep = str(getattr(hc.mode, "name", hc.mode)) == "MULTIRUN"
-    res = cli.job(cfg, hc.runtime.output_dir, sweep=sweep, sweep_dir=str(hc.sweep.dir) if sweep else None)
+    res = cli.job(cfg, hc.runtime.output_dir, sweep=sweep, sweep_dir=str(hc.sweep.dir) if sweep else None,
+                  overrides=list(hc.overrides.task))
     return res["code"]
 
 

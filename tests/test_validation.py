@@ -347,3 +347,33 @@ def test_a_judge_must_read_the_measure(tmp_path):
     assert e.value.where is None or "judge" in str(e.value)
     assert not (tmp_path / "exp").exists()
     assemble_scene(updated(cfg, {"variants": []}), settle=False)    # a single run has no judge to check
+
+
+# booleans: OmegaConf reads 2, "yes" or "on" as true without a word; hairexp refuses anything but true/false
+@pytest.mark.parametrize("override,key", [
+    ("logging.progress=2", "logging.progress"),
+    ("overwrite=yes", "overwrite"),
+    ("guides.collide=0", "guides.collide"),
+    ("scene.body.dynamic=on", "scene.body.dynamic"),
+])
+def test_boolean_keys_take_only_true_or_false(override, key):
+    with pytest.raises(InputError, match="must be true or false") as e:
+        compose_config(["experiment=goaling_smoke", "variants=[]", override])
+    assert e.value.where == key
+    compose_config(["experiment=goaling_smoke", "variants=[]", f"{key}=false", "logging.progress=TRUE"])   # fine
+
+
+def test_boolean_key_through_the_cli_and_a_variant(tmp_path):
+    proc = run_cli("hairexp", ["experiment=goaling_smoke", "variants=[]", "logging.progress=2",
+                               f"hydra.run.dir={tmp_path / 'run'}"], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip() == "hairexp: error: logging.progress: must be true or false, got 2"
+    assert not (tmp_path / "run").exists()
+    from hairexp.app.experiment import run_experiment
+
+    cfg = compose_config(["experiment=goaling_smoke", "frames=2", "logging.rerun=false",
+                          "variants=[{name: ok, overrides: ['logging.progress=2']}]"])
+    with pytest.raises(InputError, match=r"logging.progress: must be true or false, got 2") as e:
+        run_experiment(cfg, tmp_path / "exp")
+    assert "variants[0]" in str(e.value)
+

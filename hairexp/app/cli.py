@@ -35,7 +35,7 @@ from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
-from hairexp.app.config import check_keys, compose_config
+from hairexp.app.config import check_bool_overrides, check_keys, compose_config
 from hairexp.app.experiment import run_experiment
 from hairexp.app.signals import child_pids, forward
 from hairexp.app.signals import exit_code as signal_exit_code
@@ -58,10 +58,12 @@ def outcome(out, status: str, code: int, message: str | None = None, summary: di
             "converged": None if summary is None else summary.get("converged")}
 
 
-def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None) -> dict:
+def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overrides=()) -> dict:
     """Run the experiment of ``cfg`` into ``out``; returns its outcome (never raises for a
     failing run, never exits).  A sweep job that starts after the sweep was stopped
-    (``<sweep_dir>/STOP_MARK``, ``stop_sweep_jobs``) ends as interrupted without running."""
+    (``<sweep_dir>/STOP_MARK``, ``stop_sweep_jobs``) ends as interrupted without running.
+    ``overrides``: the job's command-line overrides (a boolean key given anything but true or
+    false is bad input: a sweep's jobs are composed by Hydra, which would read ``2`` as true)."""
     global LAST
     if sweep:
         stopped = _stopped_by(sweep_dir)
@@ -74,6 +76,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None) -> dic
         _write_outcome(out, outcome(out, "running", 1, "the job did not finish"))
     try:
         check_keys(cfg)   # a ``+key`` Hydra added without asking the schema
+        check_bool_overrides(list(overrides))
         summary = run_experiment(cfg, out)
         res = outcome(out, "completed", 0, None, summary)
         _log_completed(summary, out)

@@ -442,6 +442,53 @@ def check_keys(cfg) -> None:
     raise InputError(f"unknown key, not in the schema (hairexp/app/config.py); {hint}{more}", key)
 
 
+def is_bool_key(key: str) -> bool:
+    """Whether the dotted ``key`` (list indices allowed: ``variants[0].x``) is a ``bool`` field of
+    the schema."""
+    import re
+    import typing
+
+    t: Any = Config
+    for part in re.sub(r"\[\d*\]", "", key.lstrip("+~")).split("."):
+        if not (isinstance(t, type) and dataclasses.is_dataclass(t)):
+            return False
+        hints = typing.get_type_hints(t)
+        if part not in hints:
+            return False
+        t = hints[part]
+        origin = typing.get_origin(t)
+        if origin is list:                      # a list of records: its record type
+            t = typing.get_args(t)[0]
+        elif origin is typing.Union:           # Optional[X]
+            t = next((a for a in typing.get_args(t) if a is not type(None)), t)
+    return t is bool
+
+
+def check_bool(key: str, value, text: str | None = None) -> None:
+    """InputError naming ``key`` when it is a boolean key of the schema and ``value`` is not a
+    boolean (OmegaConf would turn ``2`` or ``"yes"`` into true without a word)."""
+    if value is not None and not isinstance(value, bool) and is_bool_key(key):
+        raise InputError(f"must be true or false, got {text if text is not None else value}", key.lstrip("+~"))
+
+
+def check_bool_overrides(overrides) -> None:
+    """``check_bool`` for every ``key=value`` of a command line (Hydra's own keys, group
+    choices, deletions and sweeps are left to Hydra)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    for arg in overrides:
+        if arg.startswith("-") or "=" not in arg or arg.lstrip("+~").startswith("hydra"):
+            continue
+        try:
+            o = parser.parse_override(arg)
+        except Exception:  # noqa: BLE001  (a syntax error: Hydra's own message)
+            continue
+        if o.is_delete() or o.is_sweep_override():
+            continue
+        check_bool(o.key_or_group, o.value(), arg.split("=", 1)[1])
+
+
 #: the project's Hydra config directory
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
@@ -450,10 +497,12 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
     """The composed ``config`` with ``overrides`` (``key=value`` strings, as on the command line)
     outside a Hydra app: for scripts, benchmarks and reports.  Hydra's global state is cleared
     before and after, so it can be called any number of times.  A key not in the schema (added
-    with ``+``) is an InputError naming it (``check_keys``)."""
+    with ``+``) is an InputError naming it (``check_keys``), as is a boolean key given anything
+    but true or false (``check_bool_overrides``: OmegaConf would read ``2`` as true)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
+    check_bool_overrides(overrides)
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):

@@ -21,7 +21,7 @@ import yaml
 from omegaconf import OmegaConf
 
 from hairexp.app.assemble import check_config
-from hairexp.app.config import to_plain
+from hairexp.app.config import check_bool, to_plain
 from hairexp.app.validate import validate_judge
 from hairexp.app.signals import InterruptSignals
 from hairexp.errors import InputError
@@ -90,6 +90,10 @@ def apply_overrides(cfg, overrides: list[str], where: str):
         if OmegaConf.select(out, key, default="__missing__") == "__missing__":
             raise InputError(f"unknown key {key!r}", where)
         value = parse_value(val)
+        try:
+            check_bool(key, value, val)
+        except InputError as exc:
+            raise InputError(f"{o}: {exc}", where) from exc
         try:
             # OmegaConf merges lists by replacement and validates their elements against the
             # schema; dicts keep ``merge=False`` (replace, not merge into the node).
