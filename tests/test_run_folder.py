@@ -376,3 +376,29 @@ def test_sweep_with_a_bad_job(tmp_path):
     jobs = [line for line in err.splitlines() if line.startswith("hairexp: job ")]
     assert len(jobs) == 2 and "completed (exit 0)" in jobs[0] and "failed (exit 2)" in jobs[1], err
     assert "hairexp: sweep: 1 of 2 jobs completed" in err
+
+
+def test_a_killed_run_is_named_when_its_folder_is_reused(hydra_conf, tmp_path):
+    """SIGKILL leaves summary.json saying running: it records the process, and a later run into
+    the folder says the run there was killed (its process is gone)."""
+    out = tmp_path / "killed"
+    p = cli([*TINY, "frames=5000", f"hydra.run.dir={out}"], tmp_path)
+    try:
+        deadline = time.monotonic() + 60
+        while not list((out / "stream").glob("positions.npy")):
+            assert p.poll() is None, p.communicate()
+            assert time.monotonic() < deadline, "the run did not start in 60 s"
+            time.sleep(0.1)
+        s = json.loads((out / "summary.json").read_text())
+        assert s["status"] == "running" and s["pid"] == p.pid and s["host"]
+        from hairexp.outputs.folder import running_state
+
+        assert running_state(out) == f"a run still running (pid {p.pid})"
+    finally:
+        p.kill()
+        p.communicate(timeout=60)
+    assert json.loads((out / "summary.json").read_text())["status"] == "running"   # no ending was written
+    with pytest.raises(InputError, match=rf"not empty .*a run killed while running \(pid {p.pid}\)"):
+        run(hydra_conf([*TINY, "frames=1"]), out)
+    s = run(hydra_conf([*TINY, "frames=1", "overwrite=true"]), out)
+    assert s["status"] == "completed" and s["pid"] == os.getpid()

@@ -28,7 +28,7 @@ from hairexp.errors import InputError
 from hairexp.evaluation.judges import JUDGES
 from hairexp.app.run import config_hash, run
 from hairexp.outputs.files import write_json
-from hairexp.outputs.folder import SUMMARY, claim
+from hairexp.outputs.folder import SUMMARY, claim, owner
 
 log = logging.getLogger("hairexp")
 
@@ -128,7 +128,8 @@ def run_experiment(cfg, out_dir) -> dict:
     plain = to_plain(cfg)
     claim(out, overwrite=bool(cfg.overwrite))
     t0 = time.perf_counter()
-    summary = {"experiment": plain.get("experiment"), "status": "running", "success": None, "judge": plain["judge"],
+    summary = {"experiment": plain.get("experiment"), "status": "running", **owner(), "success": None,
+               "judge": plain["judge"],
                "variants": {}, "config_hash": config_hash(plain), "config": plain}
     write_json(out / SUMMARY, summary)
     measures, facts = {}, {}

@@ -39,7 +39,7 @@ from hairexp.evaluation.measures import RunData, compute
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
 from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, write_json, write_npz
-from hairexp.outputs.folder import STREAM, SUMMARY, claim, remove_tmp
+from hairexp.outputs.folder import STREAM, SUMMARY, claim, owner, remove_tmp
 from hairexp.outputs.metrics import MetricsTable, measure
 from hairexp.outputs.progress import Progress, progress_enabled
 
@@ -94,7 +94,7 @@ def summarize(df, plain: dict, scene_name: str, controller: str, wall: float, st
         }
     return {
         "scene": scene_name, "controller": controller, "experiment": plain.get("experiment"),
-        "status": status, "error": error, "success": None, "measures": {},
+        "status": status, "error": error, **owner(), "success": None, "measures": {},
         **agg, "wall_seconds": wall, "config_hash": config_hash(plain), "versions": versions(), "config": plain,
     }
 

@@ -6,12 +6,18 @@ then takes the folder by creating ``summary.json`` exclusively, so two launches 
 folder cannot both start.  With ``overwrite`` the files a previous run wrote there (the run
 folder's files, ``stream/``, and variant sub-folders made only of those) are removed first;
 anything else in the folder is never deleted and is refused.
+
+A running ``summary.json`` records the process (``owner``: pid and host); a run killed with
+SIGKILL never writes its ending, and the refusal of its folder says so (``running_state``:
+"a run killed while running (pid N)").
 """
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
+import socket
 from pathlib import Path
 
 from hairexp.errors import InputError
@@ -50,6 +56,42 @@ def _removable(folder: Path, top: bool) -> tuple[list[Path], list[Path]]:
     return ours, foreign
 
 
+def owner() -> dict:
+    """The process that runs: ``pid`` and ``host``, written into a running ``summary.json``."""
+    return {"pid": os.getpid(), "host": socket.gethostname()}
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:   # another user's process
+        return True
+    return True
+
+
+def running_state(folder: Path) -> str | None:
+    """What the ``summary.json`` of ``folder`` says of a run that never wrote its ending (status
+    ``running``): ``"a run killed while running (pid N)"`` when its process no longer exists on
+    this host (SIGKILL, a power cut), ``"a run still running (pid N on HOST)"`` otherwise; None
+    when the summary says anything else or cannot be read.  A pid reused since by another
+    process reads as still running."""
+    try:
+        s = json.loads((Path(folder) / SUMMARY).read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(s, dict) or s.get("status") != "running":
+        return None
+    pid, host = s.get("pid"), s.get("host")
+    if not isinstance(pid, int):
+        return "a run that never wrote its ending (status running, no process id recorded)"
+    if host == socket.gethostname() and not _alive(pid):
+        return f"a run killed while running (pid {pid})"
+    return f"a run still running or killed (pid {pid} on {host})" if host != socket.gethostname() \
+        else f"a run still running (pid {pid})"
+
+
 def used_entries(folder: Path) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
@@ -67,7 +109,9 @@ def claim(folder: Path, overwrite: bool = False) -> None:
     if used:
         names = ", ".join(p.name for p in used[:6]) + (", ..." if len(used) > 6 else "")
         if not overwrite:
-            raise InputError(f"the run folder is not empty ({names}); a run folder belongs to one run: choose "
+            state = running_state(folder)
+            held = f"; it holds {state}" if state else ""
+            raise InputError(f"the run folder is not empty ({names}){held}; a run folder belongs to one run: choose "
                              "another folder (hydra.run.dir) or set overwrite=true to replace the run in it",
                              str(folder))
         ours, foreign = _removable(folder, top=True)
