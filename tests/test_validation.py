@@ -377,3 +377,12 @@ def test_boolean_key_through_the_cli_and_a_variant(tmp_path):
         run_experiment(cfg, tmp_path / "exp")
     assert "variants[0]" in str(e.value)
 
+
+def test_default_run_folder_in_an_unwritable_working_folder():
+    """No hydra.run.dir: the default outputs/... under the working folder is checked before Hydra
+    starts (here /proc, where no folder can be made, even by root): exit 4, one line."""
+    proc = run_cli("hairexp", ["experiment=goaling_smoke", "variants=[]", "frames=1"], "/proc")
+    assert proc.returncode == 4, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("hairexp: error: the default run folder outputs/"), proc.stderr
+    assert "hydra.run.dir" in lines[0] and "Traceback" not in proc.stderr

@@ -230,36 +230,68 @@ def _unusable_folder(path: str) -> str | None:
     return None
 
 
+def _default_dir(key: str) -> str | None:
+    """The run folder conf/config.yaml gives ``key`` (``hydra.run.dir`` / ``hydra.sweep.dir``)."""
+    import yaml
+
+    from hairexp.app.config import CONF_DIR
+
+    try:
+        node = yaml.safe_load((CONF_DIR / "config.yaml").read_text())
+        for part in key.split("."):
+            node = node[part]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return str(node) if isinstance(node, str) else None
+
+
+def _static_part(path: str) -> str | None:
+    """The part of ``path`` before its first interpolation (``${...}``), up to its last ``/``;
+    None when the path starts with one."""
+    if "${" not in path:
+        return path
+    static = path[:path.index("${")]
+    if not static:
+        return None
+    return static[:static.rindex("/") + 1] if "/" in static else "."
+
+
 def run_dir_error(argv: list[str]) -> str | None:
-    """The error line for a run folder given on the command line (``hydra.run.dir``, with ``-m``
-    ``hydra.sweep.dir``) that cannot be written, or None.  Checked before Hydra starts, since
-    Hydra creates the folder before the job runs (and would fail with its traceback, exit 1).
-    A value with an interpolation (``${now:...}``) is checked up to its last ``/`` before the
-    interpolation; a sweep over several folders is left to Hydra."""
+    """The error line for a run folder that cannot be written, or None: the command line's
+    ``hydra.run.dir`` (with ``-m``: ``hydra.sweep.dir``), or when none is given the default of
+    conf/config.yaml (``outputs/...``, ``multirun/...`` under the working folder).  Checked
+    before Hydra starts, since Hydra creates the folder before the job runs (and would fail with
+    its traceback, exit 1).  A value with an interpolation (``${now:...}``) is checked up to its
+    last ``/`` before the interpolation; a sweep over several folders is left to Hydra."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     multirun = any(a in ("-m", "--multirun") for a in argv) or any(
         a.lstrip("+") in ("hydra.mode=MULTIRUN", "hydra.mode=multirun") for a in argv)
     key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
     parser = OverridesParser.create()
+    given = False
     for arg in argv:
         if not arg.lstrip("+~").startswith(key + "="):
             continue
+        given = True
         try:
             o = parser.parse_override(arg)
         except Exception:  # noqa: BLE001  (a syntax error: Hydra's own message)
             return None
         if o.is_sweep_override() or o.key_or_group != key or o.value() is None:
             continue
-        path = str(o.value())
-        if "${" in path:
-            static = path[:path.index("${")]
-            if not static:
-                continue
-            path = static[:static.rindex("/") + 1] if "/" in static else "."
-        why = _unusable_folder(path)
+        path = _static_part(str(o.value()))
+        why = None if path is None else _unusable_folder(path)
         if why is not None:
             return f"hairexp: error: {key}={o.value()}: cannot be the run folder: {why}"
+    if not given and not any(a.startswith(("--help", "-h", "--cfg", "-c", "--info", "--hydra-help", "--version"))
+                             for a in argv):
+        default = _default_dir(key)
+        path = None if default is None else _static_part(default)
+        why = None if path is None else _unusable_folder(path)
+        if why is not None:
+            return (f"hairexp: error: the default run folder {path.rstrip('/')}/... ({key}, under the working folder "
+                    f"{os.getcwd()}) cannot be the run folder: {why}; run from a writable folder or set {key}")
     return None
 
 
