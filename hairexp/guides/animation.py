@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from hairexp.errors import InputError, regular_file
-from hairexp.guides.store import FrameStore
+from hairexp.guides.store import BLOCK_BYTES, FrameStore
 from hairexp.model.dynamic_body import authoring_motion
 from hairexp.model.strands import validate_polylines
 
@@ -133,9 +133,9 @@ class GuideAnimation:
             with zf.open("guide_positions.npy", "w", force_zip64=True) as dst:
                 np.lib.format.write_array_header_1_0(dst, {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float64)),
                                                            "fortran_order": False, "shape": tuple(self.frames.shape)})
-                step = max(1, (1 << 20) // max(1, 24 * self.frames.shape[1]))
+                step = max(1, BLOCK_BYTES // max(1, 24 * self.frames.shape[1]))
                 for start in range(0, self.n_frames, step):
-                    dst.write(np.ascontiguousarray(self.frames[start:start + step]).tobytes())
+                    dst.write(np.ascontiguousarray(self.frames[start:start + step]))
             for name, a in (("guide_offsets", self.offsets), ("fps", np.asarray(self.fps))):
                 with zf.open(f"{name}.npy", "w", force_zip64=True) as dst:
                     np.lib.format.write_array(dst, np.asanyarray(a), allow_pickle=False)
