@@ -184,6 +184,8 @@ def file_guides(path, motion, frames: int | None = None, fps: float | None = Non
         raise
     except Exception as exc:   # a truncated, corrupt or empty file: zipfile, pickle, EOF and shape errors
         raise InputError(f"cannot read guide animation: {type(exc).__name__}: {exc}", where) from exc
+    if np.ndim(pos) == 3 and len(pos) and np.asarray(pos).dtype.kind in "iuf":   # kept out of memory for the run
+        pos = FrameStore.of(np.asarray(pos, dtype=np.float64))
     anim = GuideAnimation(pos, off, gfps, where=str(path), motion=motion)
     if frames is not None and fps is not None and frames / fps > (anim.n_frames - 1) / anim.fps + 1e-9:
         raise InputError(f"has frames 0..{anim.n_frames - 1} ({(anim.n_frames - 1) / anim.fps:g} s at {anim.fps:g} fps) "
