@@ -34,6 +34,10 @@ FORMATS = (".usda", ".usdc", ".usd")
 #: extents and transforms, all prims together) were added
 SAVE_BYTES = 1 << 20
 MATRIX_BYTES = 128
+#: what an unsaved time sample costs in memory beyond its data (the layer's sample map entry and
+#: the value's holder), counted with each sample so that small samples are saved as often as their
+#: memory asks
+SAMPLE_BYTES = 256
 
 
 class Saves:
@@ -86,7 +90,7 @@ def _frame_poses(motion, fps: float, frames: int, saves: Saves | None):
     for f in range(frames + 1):
         yield float(f), matrix_from_pose(*motion.pose(f / fps))
         if saves is not None:   # the sample yielded has been set
-            saves.add(MATRIX_BYTES)
+            saves.add(MATRIX_BYTES + SAMPLE_BYTES)
 
 
 def define_curves(stage, path: str, counts, width: float) -> UsdGeom.BasisCurves:
@@ -127,7 +131,7 @@ def write_animation(stage, path: str, frames, offsets: np.ndarray, width: float,
             raise AssertionError(f"refusing to write non-finite {what} (frame {f}) to {stage.GetRootLayer().realPath}")
         set_points(curves, P, Usd.TimeCode(f))
         if saves is not None:
-            saves.add(12 * len(P) + 24)
+            saves.add(12 * len(P) + 24 + 2 * SAMPLE_BYTES)   # points and extent
 
 
 def save(stage, path) -> None:

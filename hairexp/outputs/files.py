@@ -29,7 +29,7 @@ RESULT_ARRAYS = ("positions", "strand_offsets", "times", "guide_positions", "mas
                  "cluster_of_vertex", "targets", "com", "body_positions")
 PER_FRAME = ("positions", "times", "guide_positions", "targets", "com", "body_positions")
 HEADER_BYTES = 256        # fixed .npy header size of a growing file (rewritten in place)
-COPY_BYTES = 1 << 20      # block size when streaming an array into result.npz
+COPY_BYTES = 1 << 18      # block size when streaming an array into result.npz (256 kB)
 
 
 def tmp_name(path: Path) -> Path:
@@ -176,7 +176,7 @@ class NpyFrames:
     resident memory, so the end of a run (its measures, result.usdc) reads a long run's frames
     with the memory of one block of frames."""
 
-    BLOCK_BYTES = 1 << 20     # frames read per block while iterating
+    BLOCK_BYTES = 1 << 18     # frames read per block while iterating (256 kB)
 
     def __init__(self, path: Path):
         self.path = Path(path)
