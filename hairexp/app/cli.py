@@ -35,7 +35,7 @@ from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
-from hairexp.app.config import check_bool_overrides, check_keys, compose_config
+from hairexp.app.config import CONF_DIR, check_bool_overrides, check_keys, compose_config
 from hairexp.app.experiment import run_experiment
 from hairexp.app.signals import child_pids, forward
 from hairexp.app.signals import exit_code as signal_exit_code
@@ -233,8 +233,6 @@ def _unusable_folder(path: str) -> str | None:
 def _default_dir(key: str) -> str | None:
     """The run folder conf/config.yaml gives ``key`` (``hydra.run.dir`` / ``hydra.sweep.dir``)."""
     import yaml
-
-    from hairexp.app.config import CONF_DIR
 
     try:
         node = yaml.safe_load((CONF_DIR / "config.yaml").read_text())
