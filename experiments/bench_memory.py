@@ -8,10 +8,7 @@ small (``experiment=goaling_smoke variants=[]``, tracked, simulated guides), at 
 process itself.
 
 The difference between the 3,000- and the 200-frame run of the same hair is what grows with the
-length of a run.  It has two parts that are not results: the guide animation of simulated guides
-(an input, computed for every frame before the first step: two float64 copies of the guides'
-positions, 48 bytes a guide vertex a frame) and the rerun SDK's index of the recording's chunks
-(kept until it writes the file's footer).
+length of a run (README "Run folder" and "Benchmarks" say what is left of it and why).
 
 Prints and writes reports/bench_memory.{md,json}.
 Usage:  python -m experiments.bench_memory [--frames 200 3000] [--repo PATH]
