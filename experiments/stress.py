@@ -206,10 +206,12 @@ def describe(r: dict) -> str:
     return "; ".join(parts)
 
 
-def markdown(rows: list[dict], wall: float) -> str:
+def markdown(rows: list[dict], wall: float, extra=()) -> str:
     from hairexp.app.report import header
 
     md = header("Numerical stress (validation issue, part 2)")
+    if extra:
+        md += f"Every case and controller also with: `{' '.join(extra)}`.\n\n"
     md += ("Scene: the goaling wisp, 12 strands x 12 vertices, 30 frames at 25 fps (1.2 s: accelerate, sudden "
            "stop at 0.8 s), simulated guides (3 x 10 vertices, 6 tracking points) unless the case sets them, "
            "no wheel, `solver.on_failure=substep` (max 4 levels), `solver.compile=off`.  Guide and variance cases "
@@ -243,6 +245,11 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="*", default=list(CASES), choices=list(CASES))
     ap.add_argument("--frames", type=positive_int, default=None, help="override every case's frames (quick look)")
     ap.add_argument("--no-report", action="store_true")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="overrides applied to every case and controller after the case's own "
+                         "(e.g. solver.integrator=bdf2)")
+    ap.add_argument("--report", default="stress", choices=["stress", "stress_bdf2"],
+                    help="the report's name under reports/ (default: stress)")
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/stress/ entries whose config, solver source and versions match "
                          "(default: run every case fresh, refreshing the cache)")
@@ -257,7 +264,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="stress_") as tmp:
         for name in a.cases:
             for controller in CASES[name][1]:
-                r = run_case(name, controller, Path(tmp), a.frames, use_cache=a.cache)
+                r = run_case(name, controller, Path(tmp), a.frames, tuple(a.set), use_cache=a.cache)
                 rows.append(r)
                 print(f"{name:18s} {controller:8s} {r['outcome']:9s} finite={r.get('finite')} "
                       f"stretch={fmt(r.get('stretch_max'))} conv={fmt(r.get('converged_fraction'))} "
@@ -266,7 +273,7 @@ def main(argv=None) -> int:
                       f"{' (cached)' if r['cache']['hit'] else ''} {r.get('error') or ''}", flush=True)
     wall = time.perf_counter() - t0
     if not a.no_report:
-        write_report("stress", markdown(rows, wall), {"cases": {k: {"overrides": v[0], "controllers": list(v[1]),
+        write_report(a.report, markdown(rows, wall, a.set), {"set": list(a.set), "cases": {k: {"overrides": v[0], "controllers": list(v[1]),
                                                                      "guide_file": v[2], "stresses": v[3]}
                                                                  for k, v in CASES.items()},
                                                        "rows": rows, "wall_seconds": wall})

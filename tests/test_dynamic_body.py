@@ -194,12 +194,12 @@ def test_sliding_block_with_light_hair_decelerates_at_about_mu_g():
     assert np.allclose(decel, mu * G, rtol=0.03)
 
 
-def _momentum_run(controller: str, n: int = 25, dt: float = 0.02):
+def _momentum_run(controller: str, n: int = 25, dt: float = 0.02, integrator: str = "implicit_euler"):
     """Tilted strands with edge damping on a block sliding on a rail with friction; tracked: one
     guide that turns 30 degrees about its root (the tracker pushes the hair)."""
     from tracking_helpers import tracked_cfg
 
-    cfg = tracked_cfg({
+    cfg = tracked_cfg({"solver.integrator": integrator,
         "controller.name": controller, "scene.n_strands": 4, "scene.n_vertices": 8, "scene.length": 0.2,
         "scene.spread": 0.6, "scene.hair.edge_damping": 1e-4, "scene.body.dynamic": True, "scene.body.mass": 0.01,
         "scene.body.rail_end": 10.0, "scene.body.rail_friction": 0.3, "scene.body.velocity": [0.3, 0.0, 0.1],
@@ -246,6 +246,37 @@ def test_momentum_of_block_and_hair_changes_by_gravity_rail_and_tracking_only(co
     if controller == "tracking":
         assert np.abs(control).max() > 1e-4                    # and the tracker too
     assert np.abs(B[-1, VELOCITY] - B[0, VELOCITY]).max() > 1e-2   # the block moved and slowed
+
+
+@pytest.mark.parametrize("controller", ["free", "tracking"])
+def test_bdf2_momentum_of_block_and_hair_balances_in_the_schemes_own_momentum(controller):
+    """BDF2 (hairexp/physics/integrators.py) balances M (v_{n+1} - 4/3 v_n + 1/3 v_{n-1}) = beta F with
+    beta = 2 dt / 3, i.e. P~_{n+1} - P~_n = dt F with the scheme's momentum P~_n = M (3/2 v_n - 1/2 v_{n-1})
+    (the first step is implicit Euler: M (v_1 - v_0) = dt F).  The block is advanced as before, so per
+    step: dP~_hair + dP_block = dt (M_all g + F_rail + F_tracking) + the coupling lag, as for implicit Euler."""
+    scene, states, dt = _momentum_run(controller, integrator="bdf2")
+    s = scene.strands
+    free = ~s.kinematic
+    m = s.masses[free, None]
+    M_all = scene.motion.total_mass + hair_mass(scene)
+    V = np.array([st.v[free] for st in states])
+    B = np.array([st.body for st in states])
+    dP_hair = np.empty((len(states) - 1, 3))
+    dP_hair[0] = (m * (V[1] - V[0])).sum(0)
+    dP_hair[1:] = (m * (1.5 * V[2:] - 2.0 * V[1:-1] + 0.5 * V[:-2])).sum(1)
+    dP = dP_hair + scene.motion.total_mass * np.diff(B[:, VELOCITY], axis=0)
+    control = np.zeros((len(states), 3))
+    if controller == "tracking":
+        control[1:] = [-st.control.lam.reshape(-1, 3).sum(0) for st in states[1:]]
+    ext = dt * (M_all * GRAV + B[1:, RAIL_FORCE] + control[1:])
+    lag = dt * (B[:-1, HAIR_FORCE] - B[1:, HAIR_FORCE])
+    scale = M_all * 0.3
+    assert np.abs(dP - ext - lag).max() < 1e-8 * scale
+    # the implicit-Euler momentum does not balance under BDF2 (the check can tell the two apart)
+    dP_ie = (m * np.diff(V, axis=0)).sum(1) + scene.motion.total_mass * np.diff(B[:, VELOCITY], axis=0)
+    assert np.abs(dP_ie - ext - lag).max() > 1e3 * 1e-8 * scale
+    if controller == "tracking":
+        assert np.abs(control).max() > 1e-4
 
 
 def _kicked_free_fall(mass: float, steps: int, build_check: bool = True):
