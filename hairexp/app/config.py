@@ -63,6 +63,11 @@ class Targets(str, Enum):
     sliding = "sliding"   # t is an optimisation variable (paper 3.2, dynamic constraint targets)
 
 
+class Assignment(str, Enum):
+    hard = "hard"   # each strand follows the one guide nearest by eq. (1) (paper 3.1)
+    soft = "soft"   # each strand shares itself among the guides near it, weights over tracking.blend_width (paper 5, Fig. 8)
+
+
 class KKTSolve(str, Enum):
     schur = "schur"           # Schur complement on the constraint block (fast)
     reference = "reference"   # plain sparse saddle-point solve (SuperLU)
@@ -213,6 +218,11 @@ class VarianceConfig:
 @dataclass
 class TrackingConfig:
     targets: Targets = Targets.sliding
+    # hard | soft hair-to-guide assignment (hairexp/control/tracking/correspondence.py)
+    assignment: Assignment = Assignment.hard
+    # m, > 0, soft only: a guide whose RMS distance (eq. 1) to a strand exceeds the nearest
+    # guide's by this gets e^-1 of its weight (2x: e^-4)
+    blend_width: float = 0.01
     points_per_guide: int = 8
     kkt: KKTSolve = KKTSolve.schur
     rtol: float = 1e-5                 # |grad_x L| <= atol + rtol * force scale

@@ -181,7 +181,8 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     scene, guides, sim = r.scene, r.guides, r.simulator
     scene_name, controller = plain["scene"]["name"], plain["controller"]["name"]
     atomic_write_bytes(out / "guides.npz", guides.save)
-    recorder = sinks.recorder = ResultRecorder(scene, out / STREAM, guides.offsets, r.controller.cluster_of_vertex())
+    recorder = sinks.recorder = ResultRecorder(scene, out / STREAM, guides.offsets, r.controller.cluster_of_vertex(),
+                                               r.controller.cluster_weights())
     if cfg.logging.rerun:
         from hairexp.outputs.rerun_sink import RerunSink  # rerun is imported only here
 

@@ -1,7 +1,10 @@
 """Tracking constraints, paper eq. (3): C_k = c_k(x) - c_hat_k(t_k), three per cluster.
 
 * c_k(x) = sum_i m_i x_i / M_k over the cluster's (free) vertices, eq. (2): linear in x, so
-  dC/dx = A is a constant (3K x N) matrix built once.
+  dC/dx = A is a constant (3K x N) matrix built once.  With soft assignment (correspondence
+  module) vertex i belongs to cluster k with a weight s_ik (its weights sum to one) and c_k is
+  the weighted centre of mass c_k = sum_i s_ik m_i x_i / M_k, M_k = sum_i s_ik m_i: still
+  linear in x with a constant A (hard: s_ik = 1 for the vertex's one cluster, eq. 2 itself).
 * The target curve of cluster k is the Catmull-Rom spline through the guide's vertices offset
   by the registered offset in the parallel-transported frames (3.2):
   Q_ki = g_i + a_k N_i + b_k B_i + tau_k T_i, so c_hat_k(t) = g(t) + a_k N(t) + b_k B(t) + tau_k T(t)
@@ -44,15 +47,21 @@ class TrackingConstraints:
         self.K = K
         free = np.flatnonzero(~s.kinematic)
         cv = corr.cluster_of_vertex[free]
-        inc = cv >= 0
-        self.M = np.bincount(cv[inc], weights=s.masses[free][inc], minlength=K)      # (K,) cluster masses
-        w = s.masses[free][inc] / self.M[cv[inc]]
-        fidx = np.flatnonzero(inc)
-        rows = (3 * cv[inc][:, None] + np.arange(3)).ravel()
+        # memberships (vertex, cluster, share s_ik), vertex order: hard has one per clustered free vertex
+        free_index = np.full(s.n_vertices, -1)
+        free_index[free] = np.arange(len(free))
+        fidx = free_index[corr.member_vertex]
+        mc, share = corr.member_cluster, corr.member_weight
+        ms = share * s.masses[corr.member_vertex]                                   # s_ik m_i
+        self.M = np.bincount(mc, weights=ms, minlength=K)      # (K,) cluster masses, eq. (2)'s M_k
+        w = ms / self.M[mc]
+        rows = (3 * mc[:, None] + np.arange(3)).ravel()
         cols = (3 * fidx[:, None] + np.arange(3)).ravel()
         self.A = sp.csr_matrix((np.repeat(w, 3), (rows, cols)), shape=(3 * K, 3 * len(free)))
         self.AT = self.A.T.tocsr()
-        self.weights, self.free_in_cluster, self.cluster_of_free = w, fidx, cv
+        # per membership: the free-vertex index, its cluster, the COM weight s m / M and the share s
+        self.weights, self.free_in_cluster, self.member_cluster, self.member_share = w, fidx, mc, share
+        self.cluster_of_free = cv          # (n_free,) each free vertex's (dominant) cluster, -1: none
         # registration at rest (t = 0)
         G = guides.n_guides
         rest = guides.guides(guides.rest)
