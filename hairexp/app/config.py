@@ -68,6 +68,11 @@ class Assignment(str, Enum):
     soft = "soft"   # each strand shares itself among the guides near it, weights over tracking.blend_width (paper 5, Fig. 8)
 
 
+class PointPlacement(str, Enum):
+    hair_mass = "hair_mass"     # tracking points at equal shares of the hair mass projected onto the guide
+    arc_length = "arc_length"   # equidistant in the guide's arc length (paper 3.1)
+
+
 class KKTSolve(str, Enum):
     schur = "schur"           # Schur complement on the constraint block (fast)
     reference = "reference"   # plain sparse saddle-point solve (SuperLU)
@@ -224,6 +229,7 @@ class TrackingConfig:
     # guide's by this gets e^-1 of its weight (2x: e^-4)
     blend_width: float = 0.01
     points_per_guide: int = 8
+    point_placement: PointPlacement = PointPlacement.hair_mass   # where the points sit on each guide
     kkt: KKTSolve = KKTSolve.schur
     rtol: float = 1e-5                 # |grad_x L| <= atol + rtol * force scale
     atol: float = 1e-10

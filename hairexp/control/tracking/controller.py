@@ -42,7 +42,7 @@ class TrackingController(Controller):
         self.assignment = str(_v(tcfg.assignment))
         self.corr = build_correspondence(scene.initial_positions(), s.offsets, free, guides.guides(guides.rest), tcfg.points_per_guide,
                                          tcfg.max_guide_distance, self.assignment,
-                                         float(tcfg.blend_width))
+                                         float(tcfg.blend_width), str(_v(tcfg.point_placement)), s.masses)
         targets = str(_v(tcfg.targets))
         if targets not in ("static", "sliding"):
             raise InputError(f"unknown targets {targets!r} (static|sliding)", "tracking.targets")

@@ -2,7 +2,14 @@
 
 1. Each detail strand goes to the guide with the smallest integrated squared distance, eq. (1):
    d(d_j, g_i) = sum_k |d_jk - prox(d_jk, g_i)|^2, prox the closest point on the guide polyline.
-2. Each guide is sampled equidistantly (in arc length) with tracking points p_jk.
+2. Each guide is sampled with tracking points p_jk: equidistantly in arc length (the paper;
+   ``tracking.point_placement: arc_length``), or (``hair_mass``, the default) at the arc
+   lengths that split the free hair mass of the guide's strands, projected onto the guide
+   (closest points), into equal parts: point k at the (k + 1/2) / P quantile (midpoint rule).
+   Equidistant points can sit where there is no hair (near the root, where the first free
+   vertex is an edge away, or past the tips of hair shorter than its guide) and leave their
+   clusters empty; at the mass quantiles each point has hair around it, so a cluster is empty
+   only when the hair has fewer distinct heights than tracking points.
 3. Each detail strand is split into segments s_ik: its vertices closest to p_jk among the
    tracking points of its guide.  A cluster C_jk is the union of segments s_ik over the strands
    of guide j.  Only free (non-root) vertices join clusters: root vertices are prescribed by the
@@ -40,6 +47,7 @@ log = logging.getLogger(__name__)
 #: soft assignment: a strand's raw guide weight below this (its excess RMS distance > 2.63 b) is 0
 WEIGHT_CUTOFF = 1e-3
 ASSIGNMENTS = ("hard", "soft")
+PLACEMENTS = ("hair_mass", "arc_length")
 
 
 def closest_points_on_polyline(X: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -91,6 +99,25 @@ def sample_tracking_points(P: np.ndarray, count: int) -> tuple[np.ndarray, np.nd
     return pts, targets
 
 
+def mass_tracking_points(P: np.ndarray, count: int, X: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points on the polyline P at the (k + 1/2) / count quantiles of the arc lengths
+    of the closest guide points of the hair vertices X (m, 3), weighted by w (m,) (their mass
+    times their share of this guide); equidistant (``sample_tracking_points``) when w is empty."""
+    keep = w > 0
+    if not keep.any():
+        return sample_tracking_points(P, count)
+    _, arc = closest_points_on_polyline(X[keep], P)
+    o = np.argsort(arc, kind="stable")
+    arc, ww = arc[o], w[keep][o]
+    c = np.cumsum(ww)
+    mid = (c - 0.5 * ww) / c[-1]                       # midpoint rule: each vertex's mass centred on it
+    targets = np.interp((np.arange(count) + 0.5) / count, mid, arc)
+    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    pts = np.stack([np.interp(targets, s, P[:, k]) for k in range(3)], axis=1)
+    return pts, targets
+
+
 def strand_guide_distances(detail_rest: np.ndarray, offsets: np.ndarray, guides_rest: list[np.ndarray]) -> np.ndarray:
     """(S, G) eq. (1): the integrated squared distance of each strand's vertices to each guide."""
     S = len(offsets) - 1
@@ -117,11 +144,15 @@ def soft_guide_weights(dist: np.ndarray, counts: np.ndarray, blend_width: float)
 def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.ndarray,
                          guides_rest: list[np.ndarray], points_per_guide: int,
                          max_distance: float = 0.0, assignment: str = "hard",
-                         blend_width: float = 0.01) -> Correspondence:
+                         blend_width: float = 0.01, placement: str = "hair_mass",
+                         masses: np.ndarray | None = None) -> Correspondence:
     """``max_distance`` > 0: a strand whose RMS distance to every guide (eq. 1 over its vertex
     count) exceeds it cannot be claimed by any guide, and is an error naming the strand.
     ``assignment``: ``hard`` (paper 3.1) or ``soft`` with ``blend_width`` b in metres (module
-    docstring)."""
+    docstring).  ``placement``: ``hair_mass`` or ``arc_length`` (step 2); ``masses`` (V,)
+    the vertex masses it weighs (None: all equal)."""
+    if placement not in PLACEMENTS:
+        raise InputError(f"unknown placement {placement!r} (hair_mass|arc_length)", "tracking.point_placement")
     if assignment not in ASSIGNMENTS:
         raise InputError(f"unknown assignment {assignment!r} (hard|soft)", "tracking.assignment")
     if points_per_guide < 1:
@@ -143,13 +174,24 @@ def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.
             raise InputError(f"strand {s0} is {rms[s0]:.4g} m (RMS) from the nearest guide, more than "
                              f"tracking.max_guide_distance={max_distance}; no guide can claim it "
                              f"({far.size} such strands)", "tracking.max_guide_distance")
-    # 2. tracking points
-    tp, tp_s = zip(*(sample_tracking_points(P, points_per_guide) for P in guides_rest))
-    tracking = np.stack(tp)
-    # 3. segments: nearest tracking point of the strand's own guide (soft: of each guide it has weight on)
+    # the strands' guide weights (soft: module docstring; hard: one-hot)
     if assignment == "hard":
         gw = np.zeros_like(dist)
         gw[np.arange(len(gw)), guide_of_strand] = 1.0
+    else:
+        gw = soft_guide_weights(dist, np.diff(offsets), float(blend_width))
+        guide_of_strand = np.argmax(gw, axis=1)
+    # 2. tracking points
+    if placement == "arc_length":
+        tp, tp_s = zip(*(sample_tracking_points(P, points_per_guide) for P in guides_rest))
+    else:
+        m = np.ones(len(detail_rest)) if masses is None else np.asarray(masses, dtype=np.float64)
+        mf = np.where(free, m, 0.0)
+        tp, tp_s = zip(*(mass_tracking_points(P, points_per_guide, detail_rest, mf * gw[strand, g])
+                         for g, P in enumerate(guides_rest)))
+    tracking = np.stack(tp)
+    # 3. segments: nearest tracking point of the strand's own guide (soft: of each guide it has weight on)
+    if assignment == "hard":
         gv = guide_of_strand[strand]
         d2 = np.sum((detail_rest[:, None, :] - tracking[gv]) ** 2, axis=-1)   # (V, P)
         point_of_vertex = np.argmin(d2, axis=1)
@@ -158,8 +200,6 @@ def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.
         mv = np.flatnonzero(raw >= 0)
         mraw, mw = raw[mv], np.ones(mv.size)
     else:
-        gw = soft_guide_weights(dist, np.diff(offsets), float(blend_width))
-        guide_of_strand = np.argmax(gw, axis=1)
         vs, mvs, mws = [], [], []
         fv = np.flatnonzero(free)
         for g in range(G):
