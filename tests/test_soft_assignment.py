@@ -239,6 +239,11 @@ def test_soft_cli_run_writes_shares_and_a_recording(tmp_path):
         assert (W[~on] == 0).all() and (np.argmax(W[on], 1) == cov[on]).all()
         assert ((W > 0).sum(1) > 1).any()
         np.testing.assert_allclose(r["com"], r["targets"], rtol=0, atol=1e-8 * 0.3)
+    import json
+
+    coh = json.loads((tmp_path / "summary.json").read_text())["cohesion"]    # every run: cohesion
+    assert coh["frames"] == frames + 1 == len(coh["clumps"]) == len(coh["widest_gap"])
+    assert coh["clumps_max"] >= 1 and coh["widest_gap_max"] > 0 and coh["threshold"] == 0.03
     from rerun.chunk import RrdReader
 
     paths = {str(c.entity_path) for c in RrdReader(str(tmp_path / "recording.rrd")).stream()}

@@ -134,6 +134,8 @@ def test_guide_keyframes_of_wrong_size(base):
     ({"controller.name": "tracking", "tracking.variance.stiffness": INF}, "tracking.variance.stiffness"),
     ({"tracking.blend_width": 0.0}, "tracking.blend_width"), ({"tracking.blend_width": -0.01}, "tracking.blend_width"),
     ({"tracking.blend_width": NAN}, "tracking.blend_width"),
+    ({"measure.cohesion_threshold": 0.0}, "measure.cohesion_threshold"),
+    ({"measure.cohesion_fraction": 1.0}, "measure.cohesion_fraction"),
     ({"controller.name": "attract", "controller.attract_stiffness": INF}, "controller.attract_stiffness"),
     # found by an independent probe set
     ({"scene.hair.stretch_stiffness": 1e300}, "scene.hair.stretch_stiffness"),

@@ -307,6 +307,9 @@ class MeasureConfig:
     threshold: float = 0.02            # m, clumps: single-linkage distance threshold
     strand_fraction: float = 0.5       # clumps: a strand's feature is the mean of its vertices past this fraction
     min_share: float = 0.1             # clumps: smallest clump that counts, as a share of the strands
+    # every run: the cohesion summary (summary.json "cohesion", hairexp/evaluation/measures.py)
+    cohesion_threshold: float = 0.03   # m: single-linkage distance at which strands' lower parts form one clump
+    cohesion_fraction: float = 0.5     # a strand's lower part: its vertices past this fraction
     axis: list[float] = field(default_factory=lambda: [1.0, 0.0, 0.0])   # tip_variance: "ahead" direction
     rail_height: float = 0.0           # m, block_rail
     rail_end: float = 0.0              # m, block_rail
