@@ -249,3 +249,26 @@ def test_soft_cli_run_writes_shares_and_a_recording(tmp_path):
     paths = {str(c.entity_path) for c in RrdReader(str(tmp_path / "recording.rrd")).stream()}
     for e in ("/world/clusters", "/world/com", "/world/targets", "/world/target_curves"):
         assert e in paths, e
+
+
+def test_a_skinned_fan_meets_the_blended_targets(monkeypatch):
+    """Each guide translated by its own vector d_g (transported frames unchanged), the hair moved
+    as its shares' blend, x_i + sum_g s_ig d_g: the weighted centres meet the blended targets
+    (sum_g beta_kg d_g) to round-off.  One target per cluster on its own guide would miss them."""
+    scene, guides, sim = build_tracked(soft_cfg(**{"tracking.blend_width": 0.02}))
+    tr = sim.controller
+    cons = tr.cons
+    assert cons.soft and (cons.beta > 0).sum(1).max() > 1
+    G = guides.n_guides
+    d = np.array([[0.05, 0.0, 0.02], [-0.04, 0.01, 0.0], [0.0, -0.02, -0.05]])[:G]
+    rest = guides.rest.copy()
+    moved = np.concatenate([P + d[g] for g, P in enumerate(guides.guides(rest))])
+    monkeypatch.setattr(cons.guides, "shape_at", lambda t, motion=None: moved)
+    free = ~scene.strands.kinematic
+    gw = tr.corr.guide_weights[scene.strands.strand_of_vertex[free]]      # (n_free, G)
+    x = scene.initial_positions()[free] + gw @ d
+    C = cons.residual(x.reshape(-1), cons.targets(0.0), cons.t_rest)
+    assert np.abs(C).max() <= 1e-13
+    own = cons.beta.argmax(1)
+    miss = cons.com(x.reshape(-1)) - (cons.com(sim.free_dofs(sim.initial_state().x)) + d[own])
+    assert np.abs(miss).max() > 1e-3                                     # the own-guide target would not do

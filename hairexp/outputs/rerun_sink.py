@@ -153,6 +153,12 @@ class RerunSink:
                 if np.isfinite(v):
                     rec.log(f"/clusters/variance_ratio/{k}", rr.Scalars(float(v)))
             tg = tr.targets_at(state.time, motion)
+            if tr.cons.soft:   # soft assignment: each cluster's curve is a blend over the guides
+                L = max(float(s[-1]) for s in tg.knots)
+                pts = np.stack([tr.cons.target_points(tg, np.full(tr.cons.K, u)) for u in np.linspace(0.0, L, 24)], 1)
+                rec.log("/world/target_curves", rr.LineStrips3D(list(pts.astype(np.float32)), radii=0.5 * self.radius,
+                                                                colors=self.cluster_colors))
+                return
             curves = []
             for Q, s, ks in zip(tg.control, tg.knots, tg.clusters):
                 tt = torch.linspace(float(s[0]), float(s[-1]), 24, dtype=torch.float64)

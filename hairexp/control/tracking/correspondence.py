@@ -17,15 +17,18 @@
 
 Soft assignment (``tracking.assignment: soft``; the paper's section 5 / Fig. 8 names it as
 future work, it is not in the paper): step 1 gives each strand a weight per guide instead of
-one guide.  With D_sg = sqrt(d(d_s, g_g) / n_s) the RMS form of eq. (1) (metres) and
-D_s = min_g D_sg,
+one guide.  With D_sg^2 = d(d_s, g_g) / n_s the mean squared distance of eq. (1) (m^2) and
+D_s^2 = min_g D_sg^2, a softmax of -eq. (1):
 
-    w_sg = exp(-((D_sg - D_s) / b)^2) / sum_h exp(-((D_sh - D_s) / b)^2),
+    w_sg = exp(-(D_sg^2 - D_s^2) / b^2) / sum_h exp(-(D_sh^2 - D_s^2) / b^2),
 
-b = ``tracking.blend_width`` (m): a guide whose RMS distance exceeds the nearest one's by b
-gets e^-1 of its weight, one 2b farther e^-4; raw weights below ``WEIGHT_CUTOFF`` are set to 0
-before the normalisation, so a strand joins only the clusters of guides within ~2.6 b of its
-nearest.  Step 3 is done for every guide the strand has weight on: each free vertex joins, per
+b = ``tracking.blend_width`` (m): a guide whose mean squared distance exceeds the nearest
+one's by b^2 gets e^-1 of its weight; raw weights below ``WEIGHT_CUTOFF`` are set to 0 before
+the normalisation (an excess above 6.9 b^2).  For a strand at z between two guides at -a and +a
+the share of the guide at +a is the logistic 1 / (1 + exp(-4 a z / b^2)): it changes over
+|z| ~ b^2 / (4 a) and keeps changing past the guides, so the shares vary across the whole wisp
+when b is about the guides' spacing.  (A Gaussian of the excess RMS distance, tried first, is
+flat past the guides: every strand outside them got the same shares.)  Step 3 is done for every guide the strand has weight on: each free vertex joins, per
 such guide g, the cluster of g's tracking point nearest to it, with the strand's weight w_sg;
 a vertex's weights sum to one.  Hard assignment is the limit b -> 0 (one-hot weights).  The
 memberships are kept as triples (vertex, cluster, weight): ``member_vertex``,
@@ -44,7 +47,7 @@ from hairexp.errors import InputError
 
 log = logging.getLogger(__name__)
 
-#: soft assignment: a strand's raw guide weight below this (its excess RMS distance > 2.63 b) is 0
+#: soft assignment: a strand's raw guide weight below this (its excess mean squared distance > 6.9 b^2) is 0
 WEIGHT_CUTOFF = 1e-3
 ASSIGNMENTS = ("hard", "soft")
 PLACEMENTS = ("hair_mass", "arc_length")
@@ -134,9 +137,8 @@ def soft_guide_weights(dist: np.ndarray, counts: np.ndarray, blend_width: float)
     (S, G) and the strands' vertex counts (S,); rows sum to one."""
     if not (np.isfinite(blend_width) and blend_width > 0):
         raise InputError(f"must be > 0 (m), got {blend_width}", "tracking.blend_width")
-    D = np.sqrt(np.maximum(dist, 0.0) / counts[:, None])
-    e = (D - D.min(axis=1, keepdims=True)) / blend_width
-    w = np.exp(-e * e)
+    D2 = np.maximum(dist, 0.0) / counts[:, None]
+    w = np.exp(-(D2 - D2.min(axis=1, keepdims=True)) / blend_width ** 2)
     w[w < WEIGHT_CUTOFF] = 0.0
     return w / w.sum(axis=1, keepdims=True)
 
