@@ -53,3 +53,38 @@ def test_clumps_and_gap_agree_with_fcluster_and_the_spanning_tree(seed):
     assert c["clumps"][0] == len(set(fcluster(linkage(X, "single"), t=0.02, criterion="distance")))
     mst = minimum_spanning_tree(squareform(pdist(X))).toarray()
     assert c["widest_gap"][0] == pytest.approx(mst.max(), abs=1e-6)
+
+
+# -- the fan measure and judge (fanning, paper Fig. 8) ---------------------------------------------
+def test_fan_gaps():
+    from hairexp.evaluation.measures import fan_gaps
+
+    r, sp = fan_gaps(np.array([0.0, 1.0, 2.0, 3.0]))
+    assert r == pytest.approx(1.0) and sp == 3.0
+    r, _ = fan_gaps(np.array([0.0, 0.1, 0.2, 2.9, 3.0]))      # two clumps: one gap of 2.7 over 0.75
+    assert r == pytest.approx(2.7 / 0.75)
+
+
+def test_fan_judge_wants_hard_clumps_and_soft_fans():
+    from hairexp.evaluation.judges import hard_clumps_soft_fans
+
+    variants = {"free": {"controller": "free", "assignment": "hard"}, "hard": {"controller": "tracking", "assignment": "hard"},
+                "soft": {"controller": "tracking", "assignment": "soft"}}
+    good = {"free": {"clumps": 1, "gap_ratio_max": 1.0, "residual_rel_max": None},
+            "hard": {"clumps": 2, "gap_ratio_max": 9.0, "residual_rel_max": 1e-12},
+            "soft": {"clumps": 1, "gap_ratio_max": 1.5, "residual_rel_max": 1e-12}}
+    assert hard_clumps_soft_fans(good, variants, 0.0)[0] is True
+    for k, key, v in (("soft", "gap_ratio_max", 2.5), ("soft", "residual_rel_max", 1e-5), ("hard", "clumps", 1)):
+        bad = {n: dict(m) for n, m in good.items()}
+        bad[k][key] = v
+        assert hard_clumps_soft_fans(bad, variants, 0.0)[0] is False, (k, key)
+
+
+def test_line_root_layout_is_a_flat_even_strip():
+    from hairexp.model.builders import straight_strands
+
+    X = straight_strands(6, 4, 0.3, 0.02, np.zeros(3), np.array([0.0, -1.0, 0.0]), 0.0, 0, layout="line")
+    roots = X[::4]
+    np.testing.assert_allclose(roots[:, [0, 1]], 0.0, atol=1e-15)             # along body z only
+    np.testing.assert_allclose(np.diff(roots[:, 2]), 0.04 / 6, rtol=1e-12)
+    np.testing.assert_allclose(roots[:, 2].mean(), 0.0, atol=1e-15)

@@ -140,6 +140,11 @@ class BodyConfig:
     velocity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])   # m/s at t = 0
 
 
+class RootLayout(str, Enum):
+    disk = "disk"   # roots evenly over the root disk (sunflower spiral)
+    line = "line"   # roots evenly along the disk's diameter on the first layout axis (body z for hair along -y)
+
+
 @dataclass
 class SceneConfig:
     name: str = "wisp"
@@ -148,6 +153,7 @@ class SceneConfig:
     n_vertices: int = 20
     length: float = 0.3               # m
     root_radius: float = 0.02         # m, radius of the disk the roots are spread over
+    root_layout: RootLayout = RootLayout.disk   # disk: evenly over it; line: evenly along one diameter (a flat strip)
     root_center: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # m, body frame
     direction: list[float] = field(default_factory=lambda: [0.0, -1.0, 0.0])   # strand direction at rest
     spread: float = 0.0               # rad, random tilt of each strand away from ``direction``
@@ -287,6 +293,7 @@ class MeasureName(str, Enum):
     clumps = "clumps"                       # splitting
     tip_variance = "tip_variance"           # spreading
     block_rail = "block_rail"               # stylization
+    fan = "fan"                             # fanning
 
 
 class JudgeName(str, Enum):
@@ -295,6 +302,7 @@ class JudgeName(str, Enum):
     clumps_match_guides = "clumps_match_guides"
     variance_follows_targets = "variance_follows_targets"
     tracked_leaves_rail = "tracked_leaves_rail"
+    hard_clumps_soft_fans = "hard_clumps_soft_fans"
 
 
 @dataclass

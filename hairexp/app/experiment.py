@@ -103,7 +103,8 @@ def apply_overrides(cfg, overrides: list[str], where: str):
 def _variant_facts(cfg) -> dict:
     p = to_plain(cfg)
     return {"controller": p["controller"]["name"], "guides": p["guides"]["count"],
-            "target_scale": max(p["tracking"]["variance"]["target_scale"] or [1.0])}
+            "target_scale": max(p["tracking"]["variance"]["target_scale"] or [1.0]),
+            "assignment": p["tracking"]["assignment"]}
 
 
 def run_experiment(cfg, out_dir) -> dict:

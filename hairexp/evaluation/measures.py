@@ -17,6 +17,12 @@ the tracker) and returns a flat dict of numbers that goes into ``summary.json`` 
   along ``measure.axis``) over its rest value v0; for tracked runs also the variance ratio
   V / V_rest of the last tracking point's cluster (eq. 4), the quantity the penalty controls.
 * ``block_rail`` (stylization): the block's travel along the rail and whether it left it.
+* ``fan`` (fanning, paper Fig. 8): the strands' lower parts (as for ``clumps``) projected on
+  ``measure.axis`` (across the spread), sorted: the largest gap between neighbours over the mean
+  spacing (spread / (S - 1)), at ``measure.time`` (``gap_ratio``) and the largest over all
+  frames (``gap_ratio_max``); the spread (m); the clumps at ``measure.threshold`` as ``clumps``
+  counts them; for tracked runs the largest tracking residual of the (weighted) centres of mass
+  over the hair length (``residual_rel_max``, from the metrics).
 
 Every run also gets a cohesion summary (``cohesion``, summary.json ``cohesion``), whatever
 its measure: per frame, single-linkage clustering of the strands' lower parts (the mean of
@@ -173,8 +179,38 @@ def block_rail(d: RunData, p) -> dict:
     return out
 
 
+def fan_gaps(z: np.ndarray) -> tuple[float, float]:
+    """(largest gap between neighbours / mean spacing, spread) of the positions z (S,) on a line."""
+    z = np.sort(z)
+    spread = float(z[-1] - z[0])
+    if len(z) < 2 or spread <= 0:
+        return float("nan"), spread
+    return float(np.diff(z).max() / (spread / (len(z) - 1))), spread
+
+
+def fan(d: RunData, p) -> dict:
+    axis = np.asarray(p.axis, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    f = _frame_at(d, p.time)
+    offsets = d.scene.strands.offsets
+    ratios, spreads = [], []
+    for x in d.positions:
+        r, sp = fan_gaps(lower_part_features(offsets, np.asarray(x), p.strand_fraction) @ axis)
+        ratios.append(r)
+        spreads.append(sp)
+    out = {"gap_ratio": ratios[f], "gap_ratio_max": float(np.nanmax(ratios)),
+           "gap_ratio_max_time": float(d.times[int(np.nanargmax(ratios))]), "spread": spreads[f],
+           "spread_rest": spreads[0], "time": float(d.times[f])}
+    c = clumps(d, p)
+    out.update(clumps=c["clumps"], clump_sizes=c["clump_sizes"], threshold=p.threshold)
+    m = d.metrics
+    out["residual_rel_max"] = (float(m["residual_rel_max"].max()) if m is not None and "residual_rel_max" in m
+                               and m["residual_rel_max"].notna().any() else None)
+    return out
+
+
 MEASURES = {"collider_contact": collider_contact, "clumps": clumps, "tip_variance": tip_variance,
-            "block_rail": block_rail}
+            "block_rail": block_rail, "fan": fan}
 
 
 def compute(cfg_measure, data: RunData) -> dict:
