@@ -229,11 +229,13 @@ class VarianceConfig:
 @dataclass
 class TrackingConfig:
     targets: Targets = Targets.sliding
-    # hard | soft hair-to-guide assignment (hairexp/control/tracking/correspondence.py)
-    assignment: Assignment = Assignment.hard
-    # m, > 0, soft only: a guide whose RMS distance (eq. 1) to a strand exceeds the nearest
-    # guide's by this gets e^-1 of its weight (2x: e^-4)
-    blend_width: float = 0.01
+    # hard | soft hair-to-guide assignment (hairexp/control/tracking/correspondence.py); soft by
+    # default (reports/assignment.md: goaling and celia stop tearing and still hit); splitting,
+    # whose guides do mean separate locks, sets hard
+    assignment: Assignment = Assignment.soft
+    # m, > 0, soft only: a guide whose mean squared distance (eq. 1 / n) to a strand exceeds the
+    # nearest guide's by this squared gets e^-1 of its weight
+    blend_width: float = 0.0125
     points_per_guide: int = 8
     point_placement: PointPlacement = PointPlacement.hair_mass   # where the points sit on each guide
     kkt: KKTSolve = KKTSolve.schur
