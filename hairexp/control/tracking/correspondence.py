@@ -28,9 +28,10 @@ the normalisation (an excess above 6.9 b^2).  For a strand at z between two guid
 the share of the guide at +a is the logistic 1 / (1 + exp(-4 a z / b^2)): it changes over
 |z| ~ b^2 / (4 a) and keeps changing past the guides, so the shares vary across the whole wisp
 when b is about the guides' spacing.  (A Gaussian of the excess RMS distance, tried first, is
-flat past the guides: every strand outside them got the same shares.)  Step 3 is done for every guide the strand has weight on: each free vertex joins, per
-such guide g, the cluster of g's tracking point nearest to it, with the strand's weight w_sg;
-a vertex's weights sum to one.  Hard assignment is the limit b -> 0 (one-hot weights).  The
+flat past the guides: every strand outside them got the same shares.)  Step 2 weighs each
+vertex's mass by its strand's weight for the guide.  Step 3 is done for every guide the strand
+has weight on: each free vertex joins, per such guide g, the cluster of g's tracking point
+nearest to it, with the strand's weight w_sg; a vertex's weights sum to one.  Hard assignment is the limit b -> 0 (one-hot weights).  The
 memberships are kept as triples (vertex, cluster, weight): ``member_vertex``,
 ``member_cluster``, ``member_weight``; ``cluster_of_vertex`` is then each vertex's cluster of
 largest weight (its dominant cluster).
