@@ -27,12 +27,13 @@ from hairexp.app.report_cache import cached, describe
 
 from experiments.common import ROOT, compose, fmt, md_row, md_table
 
-SCENES = ["goaling", "splitting", "spreading", "stylization", "celia"]
+SCENES = ["goaling", "splitting", "spreading", "stylization", "celia", "fanning"]
 #: measure keys shown in the table, per measure
 SHOW = {"collider_contact": ("hit", "contacts", "min_distance", "first_hit_time"),
         "clumps": ("clumps", "clump_sizes"),
         "tip_variance": ("cluster_variance_ratio", "cluster_target_ratio", "tip_variance_ratio", "apex_time"),
-        "block_rail": ("travel", "left_rail", "left_rail_time")}
+        "block_rail": ("travel", "left_rail", "left_rail_time"),
+        "fan": ("clumps", "gap_ratio_max", "spread")}
 
 
 def main(argv=None):

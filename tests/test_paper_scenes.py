@@ -25,7 +25,8 @@ def experiment_cfg(name: str, *overrides: str):
         GlobalHydra.instance().clear()
 
 
-@pytest.mark.parametrize("name", ["goaling_smoke", "spreading_smoke", "celia_smoke", "stylization_smoke"])
+@pytest.mark.parametrize("name", ["goaling_smoke", "spreading_smoke", "celia_smoke", "stylization_smoke",
+                                  "fanning_smoke"])
 def test_smoke_experiment_runs_every_variant_and_judges(name, tmp_path):
     cfg = experiment_cfg(name)
     summary = run_experiment(cfg, tmp_path)
@@ -40,6 +41,12 @@ def test_smoke_experiment_runs_every_variant_and_judges(name, tmp_path):
     if name == "spreading_smoke":   # the penalty lands on its target even on the small scene
         errs = on_disk["verdict"]["relative_errors"]
         assert max(errs) < 0.05, errs
+    if name == "fanning_smoke":     # Fig. 8: hard splits, soft fans out and tracks, even on the small scene
+        assert on_disk["success"] is True, on_disk["verdict"]
+        m = {k: v["measures"] for k, v in on_disk["variants"].items()}
+        assert m["free"]["clumps"] == 1 and m["hard"]["clumps"] == 2
+        assert m["soft"]["gap_ratio_max"] <= 2.0 < m["hard"]["gap_ratio_max"]
+        assert m["soft"]["residual_rel_max"] <= 1e-6
 
 
 def test_failing_variant_marks_the_experiment_failed(tmp_path):
@@ -62,7 +69,7 @@ def test_unknown_variant_key_is_an_input_error(tmp_path):
 
 # -- full runs (slow) ---------------------------------------------------------------------------
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["goaling", "spreading", "stylization", "celia"])  # splitting: tests/test_splitting.py
+@pytest.mark.parametrize("name", ["goaling", "spreading", "stylization", "celia", "fanning"])  # splitting: tests/test_splitting.py
 def test_full_experiment_meets_the_artistic_intent(name, tmp_path):
     summary = run_experiment(experiment_cfg(name), tmp_path)
     assert summary["status"] == "completed"

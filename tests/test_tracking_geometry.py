@@ -335,7 +335,8 @@ def test_tracking_points_are_equidistant_in_arc_length():
     guide = bent_polyline(11, 3, edge=0.04, max_turn=0.8)
     strands = [guide[:9] + [0.005, 0, 0], guide[:9] + [0, 0.006, 0]]
     P = 6
-    corr = build_correspondence(np.concatenate(strands), offsets_of(strands), free_mask(strands), [guide], P)
+    corr = build_correspondence(np.concatenate(strands), offsets_of(strands), free_mask(strands), [guide], P,
+                                placement="arc_length")
     seg = np.linalg.norm(np.diff(guide, axis=0), axis=1)
     L = seg.sum()
     s = corr.tracking_arclength[0]
@@ -370,15 +371,16 @@ def test_free_vertices_join_the_cluster_of_their_nearest_tracking_point():
 
 
 def test_empty_cluster_is_dropped_with_a_warning_naming_it(caplog):
-    """Guide 1 is 1 m long but its strands only 0.3 m: its tracking points 2 and 3 (at 0.625 and
-    0.875 m) have no vertex and are dropped; guide 0's clusters all stay."""
+    """Guide 1 is 1 m long but its strands only 0.3 m: with the paper's equidistant points its
+    tracking points 2 and 3 (at 0.625 and 0.875 m) have no vertex and are dropped; guide 0's
+    clusters all stay."""
     near_a, _ = two_guide_strands()
     long_b = straight([0.1, 0.0, 0.0], [0, -1, 0], 1.0, 8)
     near_b = [straight([0.1 + dx, 0, 0], [0, -1, 0], 0.3, 10) for dx in (0.01, -0.01)]
     strands = near_a + near_b
     with caplog.at_level(logging.WARNING, logger="hairexp.control.tracking.correspondence"):
         corr = build_correspondence(np.concatenate(strands), offsets_of(strands), free_mask(strands),
-                                    [GUIDE_A, long_b], 4)
+                                    [GUIDE_A, long_b], 4, placement="arc_length")
     msgs = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(msgs) == 2, msgs
     for p, m in zip((2, 3), msgs):
@@ -387,6 +389,56 @@ def test_empty_cluster_is_dropped_with_a_warning_naming_it(caplog):
     pairs = list(zip(corr.cluster_guide.tolist(), corr.cluster_point.tolist()))
     assert pairs == [(0, 0), (0, 1), (0, 2), (0, 3), (1, 0), (1, 1)]
     assert set(corr.cluster_of_vertex[free_mask(strands)].tolist()) == set(range(6))
+
+
+def test_hair_mass_points_leave_no_cluster_empty(caplog):
+    """The same 1 m guide over 0.3 m strands with the default placement (hair_mass): its points
+    sit at the quantiles of the hair mass projected onto it, every cluster keeps hair, no
+    warning; the points of guide 0 (hair as long as the guide, 9 free vertices a strand) split
+    its hair mass into near-equal parts."""
+    near_a, _ = two_guide_strands()
+    long_b = straight([0.1, 0.0, 0.0], [0, -1, 0], 1.0, 8)
+    near_b = [straight([0.1 + dx, 0, 0], [0, -1, 0], 0.3, 10) for dx in (0.01, -0.01)]
+    strands = near_a + near_b
+    with caplog.at_level(logging.WARNING, logger="hairexp.control.tracking.correspondence"):
+        corr = build_correspondence(np.concatenate(strands), offsets_of(strands), free_mask(strands),
+                                    [GUIDE_A, long_b], 4)
+    assert not [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert corr.n_clusters == 8
+    assert corr.tracking_arclength[1].max() < 0.3        # all on the hair's 0.3 m of the 1 m guide
+    counts = np.bincount(corr.cluster_of_vertex[corr.cluster_of_vertex >= 0], minlength=8)
+    assert counts.min() > 0
+
+
+@pytest.mark.parametrize("n_vertices,points", [(10, 8), (10, 6), (8, 6), (20, 8), (12, 8)])
+def test_hair_mass_points_against_equidistant_on_a_hanging_wisp(n_vertices, points):
+    """Strands as long as their guide with n - 2 free vertices each: the hair-mass points give
+    every point a cluster whenever there are at least as many free heights as points, and
+    cluster masses within one vertex level of equal; the paper's equidistant points leave point 0
+    empty when the first free vertex is farther from the root than the first point's interval."""
+    rng = np.random.default_rng(n_vertices + points)
+    guide = straight([0.0, 0, 0], [0, -1, 0], 0.3, 8)
+    strands = [straight([rng.uniform(-0.01, 0.01), 0, rng.uniform(-0.01, 0.01)], [0, -1, 0], 0.3, n_vertices)
+               for _ in range(10)]
+    X, off, free = np.concatenate(strands), offsets_of(strands), free_mask(strands)
+    mass = build_correspondence(X, off, free, [guide], points)
+    counts = np.bincount(mass.cluster_of_vertex[free], minlength=points)
+    assert mass.n_clusters == points and counts.min() > 0
+    assert counts.max() - counts.min() <= 10 * 1 + 0      # at most one height level (10 strands) apart
+    equi = build_correspondence(X, off, free, [guide], points, placement="arc_length")
+    first_free, first_point = 2 * 0.3 / (n_vertices - 1), 0.3 / points
+    if first_free > first_point:
+        assert equi.n_clusters < points                  # the paper's placement drops point 0
+
+
+def test_too_many_points_for_the_hair_still_warn(caplog):
+    """Strands of 4 vertices (3 free heights) and 6 points: some cluster is really empty."""
+    strands = [straight([dx, 0, 0], [0, -1, 0], 0.3, 4) for dx in (0.0, 0.01, -0.01)]
+    with caplog.at_level(logging.WARNING, logger="hairexp.control.tracking.correspondence"):
+        corr = build_correspondence(np.concatenate(strands), offsets_of(strands), free_mask(strands),
+                                    [straight([0.0, 0, 0], [0, -1, 0], 0.3, 8)], 6)
+    assert corr.n_clusters <= 3
+    assert len([r for r in caplog.records if "empty" in r.getMessage()]) == 6 - corr.n_clusters
 
 
 def test_no_guides_is_an_input_error():

@@ -175,7 +175,10 @@ def kkt_scene(case):
         polys.append(straight(g[0] + rng.normal(scale=0.006, size=3) * [1, 0, 1], d, length, n))
     scene = polyline_scene(polys, gravity=[0.0, -9.81, 0.0])
     gd = static_guides(guides)
-    sim = Simulator(scene, tracked_cfg().solver, TrackingController(scene, gd, tracking_cfg(points_per_guide=5)))
+    # dropped_clusters: the paper's equidistant points (the default, hair_mass, finds hair for every point)
+    place = "arc_length" if case == "dropped_clusters" else "hair_mass"
+    sim = Simulator(scene, tracked_cfg().solver, TrackingController(scene, gd, tracking_cfg(points_per_guide=5,
+                                                                                         point_placement=place)))
     return scene, sim
 
 

@@ -132,6 +132,10 @@ def test_guide_keyframes_of_wrong_size(base):
     ({"measure.strand_fraction": 1.5}, "measure.strand_fraction"), ({"measure.axis": [0.0, 0.0, 0.0]}, "measure.axis"),
     ({"measure.axis": [1.0, 0.0]}, "measure.axis"), ({"judge_tolerance": -1.0}, "judge_tolerance"),
     ({"controller.name": "tracking", "tracking.variance.stiffness": INF}, "tracking.variance.stiffness"),
+    ({"tracking.blend_width": 0.0}, "tracking.blend_width"), ({"tracking.blend_width": -0.01}, "tracking.blend_width"),
+    ({"tracking.blend_width": NAN}, "tracking.blend_width"),
+    ({"measure.cohesion_threshold": 0.0}, "measure.cohesion_threshold"),
+    ({"measure.cohesion_fraction": 1.0}, "measure.cohesion_fraction"),
     ({"controller.name": "attract", "controller.attract_stiffness": INF}, "controller.attract_stiffness"),
     # found by an independent probe set
     ({"scene.hair.stretch_stiffness": 1e300}, "scene.hair.stretch_stiffness"),
@@ -242,6 +246,9 @@ def run_cli(module, args, cwd):
 
 @pytest.mark.parametrize("override,key", [
     ("measure.collider=goal", "measure.collider"),          # found only after the whole simulation before
+    ("tracking.blend_width=0", "tracking.blend_width"),
+    ("tracking.blend_width=nan", "tracking.blend_width"),
+    ("tracking.assignment=fuzzy", "tracking.assignment"),
 ])
 def test_cli_refuses_at_start(tmp_path, override, key):
     proc = run_cli("hairexp", ["experiment=goaling_smoke", override, "logging.rerun=false",

@@ -63,3 +63,45 @@ def test_hessian_model_is_exact_where_the_variance_meets_its_target():
     exact = torch.autograd.functional.hessian(P, torch.as_tensor(xf)).numpy()
     np.testing.assert_allclose(model, exact, rtol=1e-9, atol=1e-12)
     assert np.abs(exact).max() > 0.1                       # not a vacuous comparison
+
+
+def test_soft_hessian_model_is_exact_at_the_target_and_psd_above_it():
+    """Overlapping clusters (soft assignment: a vertex in both, with shares): at V = V_bar the
+    model diag + U U^T equals the exact Hessian of k (V - V_bar)^2 with the weighted variance
+    sum_i s_ik |c_k - x_i|^2; above the target the model stays PSD and its diagonal is
+    4 k (V - V_bar) s_ik where the exact curvature part is 2 k (V - V_bar) hess V."""
+    from types import SimpleNamespace
+
+    from hairexp.control.tracking.variance import VarianceControl
+
+    rng = np.random.default_rng(3)
+    n_free, K = 8, 2
+    idx = np.array([0, 1, 2, 3, 4, 3, 4, 5, 6, 7])              # vertices 3, 4 in both clusters
+    mc = np.array([0, 0, 0, 0, 0, 1, 1, 1, 1, 1])
+    share = np.array([1, 1, 1, 0.6, 0.3, 0.4, 0.7, 1, 1, 1.0])
+    masses = rng.uniform(0.5, 1.5, n_free)
+    ms = share * masses[idx]
+    w = ms / np.bincount(mc, weights=ms)[mc]
+    cons = SimpleNamespace(K=K, corr=SimpleNamespace(cluster_point=np.array([0, 1])), free_in_cluster=idx,
+                           cluster_of_free=np.zeros(n_free, dtype=int), weights=w, member_cluster=mc,
+                           member_share=share)
+    cfg = SimpleNamespace(times=[0.0], stiffness_scale=[1.0], target_scale=[1.0], stiffness=3.0, points=[])
+    xf = rng.normal(size=3 * n_free) * 0.1
+    vc = VarianceControl(cfg, cons, xf)
+    k = np.array([3.0, 3.0])
+
+    def P(x, vbar):
+        V = variance(x.reshape(-1, 3), torch.as_tensor(mc), torch.as_tensor(w), torch.as_tensor(idx), K,
+                     torch.as_tensor(share))
+        return (torch.as_tensor(k) * (V - torch.as_tensor(vbar)) ** 2).sum()
+
+    vbar = vc.values(xf)
+    diag, U = vc.hessian_parts(xf, k, vbar)
+    exact = torch.autograd.functional.hessian(lambda x: P(x, vbar), torch.as_tensor(xf)).numpy()
+    np.testing.assert_allclose(np.diag(diag) + U @ U.T, exact, rtol=1e-9, atol=1e-12)
+    vlow = 0.5 * vbar                                        # above the target: curvature term on
+    diag2, U2 = vc.hessian_parts(xf, k, vlow)
+    assert np.linalg.eigvalsh(np.diag(diag2) + U2 @ U2.T).min() >= -1e-12
+    want = np.zeros((n_free, 3))
+    np.add.at(want, idx, (4 * k * (vbar - vlow))[mc][:, None] * share[:, None])
+    np.testing.assert_allclose(diag2, want.reshape(-1), rtol=1e-12)

@@ -34,8 +34,9 @@ GOALING_MOTION = {
 
 def tracked_cfg(overrides: dict | None = None):
     """A structured ``Config`` for a small tracked run: 16 strands x 12 vertices, one straight
-    guide of 8 vertices, 4 tracking points, sliding targets, no recording.  ``overrides`` are
-    dotted keys (``{"scene.n_strands": 12, "tracking.targets": "static"}``)."""
+    guide of 8 vertices, 4 tracking points, sliding targets, the paper's hard assignment (these
+    tests check the paper's formulation; tests/test_soft_assignment.py asks for soft), no
+    recording.  ``overrides`` are dotted keys (``{"scene.n_strands": 12, "tracking.targets": "static"}``)."""
     cfg = OmegaConf.structured(Config)
     base = {
         "controller.name": "tracking",
@@ -44,6 +45,7 @@ def tracked_cfg(overrides: dict | None = None):
         "scene.n_vertices": 12,
         "guides.count": 1,
         "tracking.points_per_guide": 4,
+        "tracking.assignment": "hard",
         "solver.compile": "off",
         "logging.rerun": False,
         "logging.progress": False,
@@ -64,8 +66,9 @@ def build_tracked(cfg):
 
 
 def tracking_cfg(**kw):
-    """A structured ``TrackingConfig`` (``variance`` as a dict)."""
+    """A structured ``TrackingConfig`` (``variance`` as a dict); hard assignment unless ``assignment`` says."""
     var = kw.pop("variance", {})
+    kw.setdefault("assignment", "hard")
     cfg = OmegaConf.structured(TrackingConfig)
     for k, v in kw.items():
         OmegaConf.update(cfg, k, v, merge=False)

@@ -63,6 +63,16 @@ class Targets(str, Enum):
     sliding = "sliding"   # t is an optimisation variable (paper 3.2, dynamic constraint targets)
 
 
+class Assignment(str, Enum):
+    hard = "hard"   # each strand follows the one guide nearest by eq. (1) (paper 3.1)
+    soft = "soft"   # each strand shares itself among the guides near it, weights over tracking.blend_width (paper 5, Fig. 8)
+
+
+class PointPlacement(str, Enum):
+    hair_mass = "hair_mass"     # tracking points at equal shares of the hair mass projected onto the guide
+    arc_length = "arc_length"   # equidistant in the guide's arc length (paper 3.1)
+
+
 class KKTSolve(str, Enum):
     schur = "schur"           # Schur complement on the constraint block (fast)
     reference = "reference"   # plain sparse saddle-point solve (SuperLU)
@@ -130,6 +140,11 @@ class BodyConfig:
     velocity: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])   # m/s at t = 0
 
 
+class RootLayout(str, Enum):
+    disk = "disk"   # roots evenly over the root disk (sunflower spiral)
+    line = "line"   # roots evenly along the disk's diameter on the first layout axis (body z for hair along -y)
+
+
 @dataclass
 class SceneConfig:
     name: str = "wisp"
@@ -138,6 +153,7 @@ class SceneConfig:
     n_vertices: int = 20
     length: float = 0.3               # m
     root_radius: float = 0.02         # m, radius of the disk the roots are spread over
+    root_layout: RootLayout = RootLayout.disk   # disk: evenly over it; line: evenly along one diameter (a flat strip)
     root_center: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # m, body frame
     direction: list[float] = field(default_factory=lambda: [0.0, -1.0, 0.0])   # strand direction at rest
     spread: float = 0.0               # rad, random tilt of each strand away from ``direction``
@@ -213,7 +229,15 @@ class VarianceConfig:
 @dataclass
 class TrackingConfig:
     targets: Targets = Targets.sliding
+    # hard | soft hair-to-guide assignment (hairexp/control/tracking/correspondence.py); soft by
+    # default (reports/assignment.md: goaling and celia stop tearing and still hit); splitting,
+    # whose guides do mean separate locks, sets hard
+    assignment: Assignment = Assignment.soft
+    # m, > 0, soft only: a guide whose mean squared distance (eq. 1 / n) to a strand exceeds the
+    # nearest guide's by this squared gets e^-1 of its weight
+    blend_width: float = 0.0125
     points_per_guide: int = 8
+    point_placement: PointPlacement = PointPlacement.hair_mass   # where the points sit on each guide
     kkt: KKTSolve = KKTSolve.schur
     rtol: float = 1e-5                 # |grad_x L| <= atol + rtol * force scale
     atol: float = 1e-10
@@ -271,6 +295,7 @@ class MeasureName(str, Enum):
     clumps = "clumps"                       # splitting
     tip_variance = "tip_variance"           # spreading
     block_rail = "block_rail"               # stylization
+    fan = "fan"                             # fanning
 
 
 class JudgeName(str, Enum):
@@ -279,6 +304,7 @@ class JudgeName(str, Enum):
     clumps_match_guides = "clumps_match_guides"
     variance_follows_targets = "variance_follows_targets"
     tracked_leaves_rail = "tracked_leaves_rail"
+    hard_clumps_soft_fans = "hard_clumps_soft_fans"
 
 
 @dataclass
@@ -291,6 +317,9 @@ class MeasureConfig:
     threshold: float = 0.02            # m, clumps: single-linkage distance threshold
     strand_fraction: float = 0.5       # clumps: a strand's feature is the mean of its vertices past this fraction
     min_share: float = 0.1             # clumps: smallest clump that counts, as a share of the strands
+    # every run: the cohesion summary (summary.json "cohesion", hairexp/evaluation/measures.py)
+    cohesion_threshold: float = 0.03   # m: single-linkage distance at which strands' lower parts form one clump
+    cohesion_fraction: float = 0.5     # a strand's lower part: its vertices past this fraction
     axis: list[float] = field(default_factory=lambda: [1.0, 0.0, 0.0])   # tip_variance: "ahead" direction
     rail_height: float = 0.0           # m, block_rail
     rail_end: float = 0.0              # m, block_rail

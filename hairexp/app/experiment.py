@@ -107,7 +107,8 @@ def apply_overrides(cfg, overrides: list[str], where: str):
 def _variant_facts(cfg) -> dict:
     p = to_plain(cfg)
     return {"controller": p["controller"]["name"], "guides": p["guides"]["count"],
-            "target_scale": max(p["tracking"]["variance"]["target_scale"] or [1.0])}
+            "target_scale": max(p["tracking"]["variance"]["target_scale"] or [1.0]),
+            "assignment": p["tracking"]["assignment"]}
 
 
 def run_experiment(cfg, out_dir) -> dict:
@@ -171,4 +172,6 @@ def _run_variants(out: Path, names: list[str], vcfgs: list, summary: dict, measu
             summary.update(status=status, error=f"variant {name}: {exc}", wall_seconds=time.perf_counter() - t0)
             raise
         measures[name] = s["measures"]
-        summary["variants"][name] = {**{k: s.get(k) for k in VARIANT_FIELDS}, **facts[name], "measures": s["measures"]}
+        coh = {k: v for k, v in (s.get("cohesion") or {}).items() if not isinstance(v, list)}   # scalars only
+        summary["variants"][name] = {**{k: s.get(k) for k in VARIANT_FIELDS}, **facts[name], "measures": s["measures"],
+                                     "cohesion": coh}

@@ -35,7 +35,7 @@ from hairexp.app.assemble import assemble
 from hairexp.app.config import to_plain
 from hairexp.app.signals import InterruptSignals
 from hairexp.errors import Interrupted, SimulationError
-from hairexp.evaluation.measures import RunData, compute
+from hairexp.evaluation.measures import RunData, cohesion, compute
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
 from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, write_json, write_npz
@@ -181,7 +181,8 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     scene, guides, sim = r.scene, r.guides, r.simulator
     scene_name, controller = plain["scene"]["name"], plain["controller"]["name"]
     atomic_write_bytes(out / "guides.npz", guides.save)
-    recorder = sinks.recorder = ResultRecorder(scene, out / STREAM, guides.offsets, r.controller.cluster_of_vertex())
+    recorder = sinks.recorder = ResultRecorder(scene, out / STREAM, guides.offsets, r.controller.cluster_of_vertex(),
+                                               r.controller.cluster_weights())
     if cfg.logging.rerun:
         from hairexp.outputs.rerun_sink import RerunSink  # rerun is imported only here
 
@@ -228,6 +229,8 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     times, positions = recorder.array("times"), recorder.frames_of("positions")
     measures = compute(cfg.measure, RunData(scene, times, positions, tracker, sim.objective.free_vertices,
                                             recorder.array("body_positions"), df))
+    coh = cohesion(scene.strands.offsets, times, positions, float(cfg.measure.cohesion_threshold),
+                   float(cfg.measure.cohesion_fraction))
     # the result files; a failure from here on removes those already written (no results beside a failed run)
     sinks.written.append(out / "result.npz")
     write_npz(out / "result.npz", out / STREAM)
@@ -248,6 +251,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
         rerun_sink.close(success=True)
     summary = summarize(df, plain, scene_name, controller, time.perf_counter() - t_start, "completed")
     summary["measures"] = measures
+    summary["cohesion"] = coh
     write_json(out / SUMMARY, summary)
     try:
         shutil.rmtree(out / STREAM)

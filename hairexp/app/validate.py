@@ -88,6 +88,7 @@ def _tracking(t) -> None:
     number(t.ctol_rel, "tracking.ctol_rel", lo=0, lo_open=True)
     integer(t.max_iterations, "tracking.max_iterations", 1)
     number(t.max_guide_distance, "tracking.max_guide_distance", lo=0)
+    number(t.blend_width, "tracking.blend_width", lo=0, lo_open=True)   # m
     n = t.points_per_guide   # >= 1: hairexp/control/tracking/correspondence.py
     for i, p in enumerate(t.variance.points):
         if integer(p, f"tracking.variance.points[{i}]", 0) >= max(int(n), 1):
@@ -133,6 +134,8 @@ def _measure(cfg) -> None:
     number(m.threshold, "measure.threshold", lo=0, lo_open=True)
     number(m.strand_fraction, "measure.strand_fraction", lo=0, hi=1, hi_open=True)
     number(m.min_share, "measure.min_share", lo=0, hi=1)
+    number(m.cohesion_threshold, "measure.cohesion_threshold", lo=0, lo_open=True)
+    number(m.cohesion_fraction, "measure.cohesion_fraction", lo=0, hi=1, hi_open=True)
     axis = [number(x, f"measure.axis[{i}]") for i, x in enumerate(m.axis)]
     if len(axis) != 3 or not any(axis):
         raise InputError(f"must be 3 numbers, not all 0, got {axis}", "measure.axis")

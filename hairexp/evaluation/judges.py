@@ -13,6 +13,12 @@ Each judge takes ``{variant name: measures dict}`` plus the variants' configs an
 * ``tracked_leaves_rail`` (stylization): the free run leaves the block on the rail, the tracked
   run pulls it off.
 
+* ``hard_clumps_soft_fans`` (fanning, paper Fig. 8): every hard-assigned tracked run splits
+  the hair into separate clumps (>= 2 at ``measure.threshold``); every soft-assigned one fans
+  out (no gap between neighbouring strands across the spread wider than ``FAN_GAP_RATIO`` x
+  the mean spacing, in any frame) and still tracks (largest residual <= ``FAN_RESIDUAL`` x
+  the hair length).  The free run is reported, not judged.
+
 ``RUN_RULES`` holds each judge's per-run rule (the test one run meets or not), which the judges
 apply to their variants and experiments/baselines.py to every controller's run.
 """
@@ -48,14 +54,31 @@ def leaves_rail(m: dict, facts: dict, tol: float) -> tuple[bool, str]:
     return bool(m["left_rail"]), f"travel {m['travel']:.3f} m"
 
 
+#: fanning: the widest gap a fanned-out wisp may have, in mean spacings, and its largest residual / hair length
+FAN_GAP_RATIO, FAN_RESIDUAL = 2.0, 1e-6
+
+
+def fans_or_clumps(m: dict, facts: dict, tol: float) -> tuple[bool, str]:
+    """Soft assignment: the hair fans out (``gap_ratio_max`` <= FAN_GAP_RATIO) and tracks
+    (``residual_rel_max`` <= FAN_RESIDUAL); hard: it splits into >= 2 clumps."""
+    figures = (f"{m['clumps']} clumps, widest gap {m['gap_ratio_max']:.2f} x the mean spacing, "
+               f"residual {m['residual_rel_max']} x L")
+    if facts.get("assignment") == "soft":
+        r = m["residual_rel_max"]
+        return bool(m["gap_ratio_max"] <= FAN_GAP_RATIO and r is not None and r <= FAN_RESIDUAL), figures
+    return bool(m["clumps"] >= 2), figures
+
+
 #: judge name -> its per-run rule (what a tracked run of the scene must show)
 RUN_RULES = {"free_misses_tracked_hits": hits_collider, "clumps_match_guides": clumps_equal_guides,
-             "variance_follows_targets": variance_on_target, "tracked_leaves_rail": leaves_rail}
+             "variance_follows_targets": variance_on_target, "tracked_leaves_rail": leaves_rail,
+             "hard_clumps_soft_fans": fans_or_clumps}
 
 
 #: judge name -> the measure (``measure.name``) its rule reads
 JUDGE_MEASURES = {"free_misses_tracked_hits": "collider_contact", "clumps_match_guides": "clumps",
-                  "variance_follows_targets": "tip_variance", "tracked_leaves_rail": "block_rail"}
+                  "variance_follows_targets": "tip_variance", "tracked_leaves_rail": "block_rail",
+                  "hard_clumps_soft_fans": "fan"}
 
 
 def _met(rule, m: dict, facts: dict, tol: float = 0.0) -> bool:
@@ -101,5 +124,13 @@ def tracked_leaves_rail(m: dict, variants: dict, tol: float):
     return ok, {k: {"left_rail": m[k]["left_rail"], "travel": m[k]["travel"]} for k in m}
 
 
+def hard_clumps_soft_fans(m: dict, variants: dict, tol: float):
+    tracked = [k for k in m if variants[k]["controller"] == "tracking"]
+    details = {k: fans_or_clumps(m[k], variants[k], tol)[1] for k in m}
+    ok = bool(tracked) and all(_met(fans_or_clumps, m[k], variants[k]) for k in tracked)
+    return ok, {"runs": details, "gap_ratio_limit": FAN_GAP_RATIO, "residual_limit": FAN_RESIDUAL}
+
+
 JUDGES = {"free_misses_tracked_hits": free_misses_tracked_hits, "clumps_match_guides": clumps_match_guides,
-          "variance_follows_targets": variance_follows_targets, "tracked_leaves_rail": tracked_leaves_rail}
+          "variance_follows_targets": variance_follows_targets, "tracked_leaves_rail": tracked_leaves_rail,
+          "hard_clumps_soft_fans": hard_clumps_soft_fans}

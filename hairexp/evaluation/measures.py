@@ -17,6 +17,20 @@ the tracker) and returns a flat dict of numbers that goes into ``summary.json`` 
   along ``measure.axis``) over its rest value v0; for tracked runs also the variance ratio
   V / V_rest of the last tracking point's cluster (eq. 4), the quantity the penalty controls.
 * ``block_rail`` (stylization): the block's travel along the rail and whether it left it.
+* ``fan`` (fanning, paper Fig. 8): the strands' lower parts (as for ``clumps``) projected on
+  ``measure.axis`` (across the spread), sorted: the largest gap between neighbours over the mean
+  spacing (spread / (S - 1)), at ``measure.time`` (``gap_ratio``) and the largest over all
+  frames (``gap_ratio_max``); the spread (m); the clumps at ``measure.threshold`` as ``clumps``
+  counts them; for tracked runs the largest tracking residual of the (weighted) centres of mass
+  over the hair length (``residual_rel_max``, from the metrics).
+
+Every run also gets a cohesion summary (``cohesion``, summary.json ``cohesion``), whatever
+its measure: per frame, single-linkage clustering of the strands' lower parts (the mean of
+each strand's vertices past ``measure.cohesion_fraction`` of it, default its lower half) at
+``measure.cohesion_threshold`` (m, default 3 cm): ``clumps`` is the number of connected groups
+(every group counts, a single strand flung away too), ``widest_gap`` the largest single-linkage
+merge distance (the longest edge of the features' minimum spanning tree, m): the gap a tear
+opens.  One clump in every frame means the hair never tore apart at that distance.
 """
 
 from __future__ import annotations
@@ -80,6 +94,42 @@ def strand_features(d: RunData, frame: int, fraction: float) -> np.ndarray:
     return np.array(out)
 
 
+def lower_part_features(offsets: np.ndarray, x: np.ndarray, fraction: float) -> np.ndarray:
+    """(S, 3) the mean of each strand's vertices past ``fraction`` of its vertex count (vectorised
+    ``strand_features``)."""
+    n = np.diff(offsets)
+    start = offsets[:-1] + np.minimum(np.floor(fraction * n).astype(np.int64), n - 1)
+    cnt = offsets[1:] - start
+    idx = np.repeat(start - np.concatenate([[0], np.cumsum(cnt)[:-1]]), cnt) + np.arange(cnt.sum())
+    return np.add.reduceat(x[idx], np.concatenate([[0], np.cumsum(cnt)[:-1]]), axis=0) / cnt[:, None]
+
+
+def merge_heights(X: np.ndarray) -> np.ndarray:
+    """(S - 1,) single-linkage merge distances of the points X (S, 3), ascending: the edge
+    lengths of their Euclidean minimum spanning tree."""
+    if len(X) < 2:
+        return np.zeros(0)
+    return linkage(X, method="single")[:, 2]
+
+
+def cohesion(offsets: np.ndarray, times, positions, threshold: float = 0.03, fraction: float = 0.5) -> dict:
+    """Per frame (``positions``: a sequence of (V, 3)) the clumps of the strands' lower parts at
+    ``threshold`` (m) and the widest gap (m) (module docstring), and their summary."""
+    clumps_f, gap_f = [], []
+    for x in positions:
+        h = merge_heights(lower_part_features(offsets, np.asarray(x), fraction))
+        clumps_f.append(1 + int(np.sum(h > threshold)))
+        gap_f.append(float(h.max()) if h.size else 0.0)
+    clumps_f, gap_f = np.array(clumps_f), np.array(gap_f)
+    t = np.asarray(times, dtype=np.float64)
+    g = int(np.argmax(gap_f))
+    return {"threshold": float(threshold), "fraction": float(fraction), "frames": int(len(clumps_f)),
+            "clumps_max": int(clumps_f.max()), "split_frames": int(np.sum(clumps_f > 1)),
+            "clumps_last": int(clumps_f[-1]), "widest_gap_max": float(gap_f[g]), "widest_gap_time": float(t[g]),
+            "widest_gap_last": float(gap_f[-1]),
+            "clumps": clumps_f.tolist(), "widest_gap": [round(float(v), 6) for v in gap_f]}
+
+
 def clumps(d: RunData, p) -> dict:
     f = _frame_at(d, p.time)
     X = strand_features(d, f, p.strand_fraction)
@@ -129,8 +179,38 @@ def block_rail(d: RunData, p) -> dict:
     return out
 
 
+def fan_gaps(z: np.ndarray) -> tuple[float, float]:
+    """(largest gap between neighbours / mean spacing, spread) of the positions z (S,) on a line."""
+    z = np.sort(z)
+    spread = float(z[-1] - z[0])
+    if len(z) < 2 or spread <= 0:
+        return float("nan"), spread
+    return float(np.diff(z).max() / (spread / (len(z) - 1))), spread
+
+
+def fan(d: RunData, p) -> dict:
+    axis = np.asarray(p.axis, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    f = _frame_at(d, p.time)
+    offsets = d.scene.strands.offsets
+    ratios, spreads = [], []
+    for x in d.positions:
+        r, sp = fan_gaps(lower_part_features(offsets, np.asarray(x), p.strand_fraction) @ axis)
+        ratios.append(r)
+        spreads.append(sp)
+    out = {"gap_ratio": ratios[f], "gap_ratio_max": float(np.nanmax(ratios)),
+           "gap_ratio_max_time": float(d.times[int(np.nanargmax(ratios))]), "spread": spreads[f],
+           "spread_rest": spreads[0], "time": float(d.times[f])}
+    c = clumps(d, p)
+    out.update(clumps=c["clumps"], clump_sizes=c["clump_sizes"], threshold=p.threshold)
+    m = d.metrics
+    out["residual_rel_max"] = (float(m["residual_rel_max"].max()) if m is not None and "residual_rel_max" in m
+                               and m["residual_rel_max"].notna().any() else None)
+    return out
+
+
 MEASURES = {"collider_contact": collider_contact, "clumps": clumps, "tip_variance": tip_variance,
-            "block_rail": block_rail}
+            "block_rail": block_rail, "fan": fan}
 
 
 def compute(cfg_measure, data: RunData) -> dict:

@@ -48,9 +48,19 @@ def disk_points(n: int, radius: float) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi)], 1)
 
 
+def line_points(n: int, radius: float) -> np.ndarray:
+    """n points evenly on the segment [-radius, radius] of the first layout axis (at the centres
+    of n equal intervals), (n, 2)."""
+    u = ((np.arange(n) + 0.5) / n * 2.0 - 1.0) * radius
+    return np.stack([u, np.zeros(n)], 1)
+
+
 def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius: float, center: np.ndarray,
-                     direction: np.ndarray, spread: float, seed: int, fan: bool = False) -> np.ndarray:
-    """(n_strands * n_vertices, 3) straight strands rooted on a disk normal to ``direction``.
+                     direction: np.ndarray, spread: float, seed: int, fan: bool = False,
+                     layout: str = "disk") -> np.ndarray:
+    """(n_strands * n_vertices, 3) straight strands rooted on a disk normal to ``direction``
+    (``layout="line"``: on a diameter of it, along the axis on which guide 0 of a guide pair
+    sits, hairexp/guides/animation.py ``rest_guides``: a flat strip of hair).
 
     ``fan``: strand i tilts outward in proportion to its root's distance from the centre (a
     cone, rim tilt ``spread``); otherwise each strand tilts by a random angle up to ``spread``."""
@@ -74,7 +84,9 @@ def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius
     u = np.cross(direction, a)
     u /= np.linalg.norm(u)
     w = np.cross(direction, u)
-    d2 = disk_points(n_strands, root_radius)
+    if layout not in ("disk", "line"):
+        raise InputError(f"unknown root layout {layout!r} (disk|line)", "scene.root_layout")
+    d2 = disk_points(n_strands, root_radius) if layout == "disk" else line_points(n_strands, root_radius)
     roots = center + d2[:, :1] * u + d2[:, 1:] * w
     rng = np.random.default_rng(seed)
     s = np.linspace(0.0, length, n_vertices)
@@ -134,7 +146,8 @@ def build_procedural_scene(cfg) -> Scene:
     center = vec3(cfg.root_center, "scene.root_center")
     if builder in ("wisp", "ponytail"):
         body_pts = straight_strands(cfg.n_strands, cfg.n_vertices, cfg.length, cfg.root_radius, center,
-                                    direction, cfg.spread, cfg.seed, fan=builder == "ponytail")
+                                    direction, cfg.spread, cfg.seed, fan=builder == "ponytail",
+                                    layout=str(getattr(cfg.root_layout, "value", cfg.root_layout)))
     else:  # pragma: no cover - the schema's Enum rejects other names
         raise InputError(f"unknown builder {builder!r}", "scene.builder")
     material = build_material(cfg.hair)

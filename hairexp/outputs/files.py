@@ -27,6 +27,9 @@ import numpy as np
 #: result.npz's arrays, in order; the per-frame ones (first axis: frames + 1) are streamed.
 RESULT_ARRAYS = ("positions", "strand_offsets", "times", "guide_positions", "masses", "guide_offsets",
                  "cluster_of_vertex", "targets", "com", "body_positions")
+#: written only when the run has them: cluster_weights (V, K), the soft assignment's shares
+#: (hairexp/control/tracking/correspondence.py; a hard run's cluster_of_vertex says it all)
+OPTIONAL_ARRAYS = ("cluster_weights",)
 PER_FRAME = ("positions", "times", "guide_positions", "targets", "com", "body_positions")
 HEADER_BYTES = 256        # fixed .npy header size of a growing file (rewritten in place)
 COPY_BYTES = 1 << 18      # block size when streaming an array into result.npz (256 kB)
@@ -119,7 +122,7 @@ class ResultRecorder:
     state); memory holds only the frames since the last ``flush``."""
 
     def __init__(self, scene, folder: Path, guide_offsets: np.ndarray | None = None,
-                 cluster_of_vertex: np.ndarray | None = None):
+                 cluster_of_vertex: np.ndarray | None = None, cluster_weights: np.ndarray | None = None):
         self.scene = scene
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -128,6 +131,8 @@ class ResultRecorder:
                          guide_offsets=np.zeros(1, dtype=np.int64) if guide_offsets is None else guide_offsets,
                          cluster_of_vertex=(np.full(s.n_vertices, -1, dtype=np.int64) if cluster_of_vertex is None
                                             else cluster_of_vertex))
+        if cluster_weights is not None:
+            constants["cluster_weights"] = cluster_weights
         for k, a in constants.items():
             save_npy(self.folder / f"{k}.npy", a)
         self.files: dict[str, GrowingNpy] = {}
@@ -230,10 +235,13 @@ def _read_npy_header(f) -> tuple[dict, int]:
     return {"shape": shape, "fortran_order": fortran, "descr": np.lib.format.dtype_to_descr(dtype)}, f.tell()
 
 
-def write_npz(path: Path, folder: Path, names=RESULT_ARRAYS) -> None:
+def write_npz(path: Path, folder: Path, names=None) -> None:
     """``result.npz`` (compressed, as ``np.savez_compressed``) from the ``.npy`` files in
-    ``folder``, copied in blocks; a non-finite float array is refused (AssertionError)."""
+    ``folder``, copied in blocks; a non-finite float array is refused (AssertionError).
+    ``names``: default RESULT_ARRAYS and those of OPTIONAL_ARRAYS that ``folder`` has."""
     folder = Path(folder)
+    if names is None:
+        names = RESULT_ARRAYS + tuple(n for n in OPTIONAL_ARRAYS if (folder / f"{n}.npy").is_file())
 
     def write(f):
         with zipfile.ZipFile(f, mode="w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:

@@ -83,7 +83,8 @@ class RerunSink:
 
     def log_static(self, guides, controller=None) -> None:
         """Collider shapes (in their body frames) and, for a controller with clusters (tracking),
-        cluster colours (vertices coloured by cluster, grey when in none)."""
+        cluster colours (vertices coloured by cluster, grey when in none; soft assignment: the
+        colours of a vertex's clusters mixed by its shares)."""
         from scipy.spatial.transform import Rotation
 
         z_to_y = Rotation.from_rotvec([-np.pi / 2, 0, 0]).as_quat()    # rerun's capsule/cylinder axis is +z
@@ -111,6 +112,7 @@ class RerunSink:
             K = tracker.cons.K
             rng = np.random.default_rng(7)
             self.cluster_colors = (60 + 195 * rng.random((K, 3))).astype(np.uint8)
+            self.cluster_share = tracker.cluster_weights()
 
     def log_frame(self, frame: int, state, obs: dict | None = None, motion=None) -> None:
         """One frame; ``motion``: the body's poses at ``state.time`` (``Simulator.motion_of``),
@@ -136,8 +138,12 @@ class RerunSink:
             rec.log("/world/guides", rr.LineStrips3D(g, radii=2.5 * self.radius, colors=[[230, 60, 60]]))
         if getattr(self, "tracker", None) is not None and obs.get("com") is not None:
             tr = self.tracker
-            cov = tr.corr.cluster_of_vertex
-            cols = np.where(cov[:, None] >= 0, self.cluster_colors[np.maximum(cov, 0)], 150).astype(np.uint8)
+            if self.cluster_share is None:
+                cov = tr.corr.cluster_of_vertex
+                cols = np.where(cov[:, None] >= 0, self.cluster_colors[np.maximum(cov, 0)], 150).astype(np.uint8)
+            else:   # soft assignment: the clusters' colours mixed by the vertex's shares
+                W = self.cluster_share
+                cols = np.where(W.sum(1)[:, None] > 0, W @ self.cluster_colors, 150).astype(np.uint8)
             rec.log("/world/clusters", rr.Points3D(state.x.astype(np.float32), radii=self.radius, colors=cols))
             rec.log("/world/com", rr.Points3D(obs["com"].astype(np.float32), radii=3 * self.radius,
                                               colors=self.cluster_colors))
@@ -147,6 +153,12 @@ class RerunSink:
                 if np.isfinite(v):
                     rec.log(f"/clusters/variance_ratio/{k}", rr.Scalars(float(v)))
             tg = tr.targets_at(state.time, motion)
+            if tr.cons.soft:   # soft assignment: each cluster's curve is a blend over the guides
+                L = max(float(s[-1]) for s in tg.knots)
+                pts = np.stack([tr.cons.target_points(tg, np.full(tr.cons.K, u)) for u in np.linspace(0.0, L, 24)], 1)
+                rec.log("/world/target_curves", rr.LineStrips3D(list(pts.astype(np.float32)), radii=0.5 * self.radius,
+                                                                colors=self.cluster_colors))
+                return
             curves = []
             for Q, s, ks in zip(tg.control, tg.knots, tg.clusters):
                 tt = torch.linspace(float(s[0]), float(s[-1]), 24, dtype=torch.float64)

@@ -59,3 +59,8 @@ class Controller:
     def cluster_of_vertex(self) -> np.ndarray | None:
         """(V,) cluster index of each vertex (-1: none), or None for a controller without clusters."""
         return None
+
+    def cluster_weights(self) -> np.ndarray | None:
+        """(V, K) each vertex's share in each cluster when a vertex can belong to several, or None
+        (then ``cluster_of_vertex`` says it all)."""
+        return None

@@ -1,13 +1,26 @@
 """Tracking constraints, paper eq. (3): C_k = c_k(x) - c_hat_k(t_k), three per cluster.
 
 * c_k(x) = sum_i m_i x_i / M_k over the cluster's (free) vertices, eq. (2): linear in x, so
-  dC/dx = A is a constant (3K x N) matrix built once.
+  dC/dx = A is a constant (3K x N) matrix built once.  With soft assignment (correspondence
+  module) vertex i belongs to cluster k with a weight s_ik (its weights sum to one) and c_k is
+  the weighted centre of mass c_k = sum_i s_ik m_i x_i / M_k, M_k = sum_i s_ik m_i: still
+  linear in x with a constant A (hard: s_ik = 1 for the vertex's one cluster, eq. 2 itself).
 * The target curve of cluster k is the Catmull-Rom spline through the guide's vertices offset
   by the registered offset in the parallel-transported frames (3.2):
   Q_ki = g_i + a_k N_i + b_k B_i + tau_k T_i, so c_hat_k(t) = g(t) + a_k N(t) + b_k B(t) + tau_k T(t)
   (Catmull-Rom is linear in its control points).  (a, b) = d (cos theta, sin theta) is the
   paper's (theta, d) encoding; tau is the tangential part, zero when t_k is the exact closest
   guide point, and kept so that the rest state meets the constraints to round-off.
+* Soft assignment: a cluster's members belong to several guides (strand shares s_sg).  Its
+  target is the blend c_hat_k(t) = sum_g beta_kg c_hat_kg(t) of one target curve per guide g,
+  beta_kg = sum_i w_ik s_(strand i) g its mass fraction that belongs to g, c_hat_kg the curve
+  of guide g through the sub-centre c_kg = sum_i w_ik s_ig x_i / beta_kg registered in g's
+  transported frames at t_k (sum_g beta_kg c_kg = c_k: C = 0 at rest).  So a hair that moves
+  as the shares' blend of its guides' motions (a skinned fan) meets the constraints; one target
+  per cluster on its own guide instead would pull the shared centres apart by more than the
+  guides (the overlapping weighted means must then be deconvolved: measured on fanning_smoke,
+  a 39 cm spread for guides 26 cm apart, 4 clumps).  Hard assignment: beta one-hot, the curve
+  above.
 * Static targets fix t_k at its rest value (the arc length of the guide point closest to the
   rest centre of mass); sliding targets make t_k a variable (dC/dt = -c_hat'(t)).
 """
@@ -44,15 +57,21 @@ class TrackingConstraints:
         self.K = K
         free = np.flatnonzero(~s.kinematic)
         cv = corr.cluster_of_vertex[free]
-        inc = cv >= 0
-        self.M = np.bincount(cv[inc], weights=s.masses[free][inc], minlength=K)      # (K,) cluster masses
-        w = s.masses[free][inc] / self.M[cv[inc]]
-        fidx = np.flatnonzero(inc)
-        rows = (3 * cv[inc][:, None] + np.arange(3)).ravel()
+        # memberships (vertex, cluster, share s_ik), vertex order: hard has one per clustered free vertex
+        free_index = np.full(s.n_vertices, -1)
+        free_index[free] = np.arange(len(free))
+        fidx = free_index[corr.member_vertex]
+        mc, share = corr.member_cluster, corr.member_weight
+        ms = share * s.masses[corr.member_vertex]                                   # s_ik m_i
+        self.M = np.bincount(mc, weights=ms, minlength=K)      # (K,) cluster masses, eq. (2)'s M_k
+        w = ms / self.M[mc]
+        rows = (3 * mc[:, None] + np.arange(3)).ravel()
         cols = (3 * fidx[:, None] + np.arange(3)).ravel()
         self.A = sp.csr_matrix((np.repeat(w, 3), (rows, cols)), shape=(3 * K, 3 * len(free)))
         self.AT = self.A.T.tocsr()
-        self.weights, self.free_in_cluster, self.cluster_of_free = w, fidx, cv
+        # per membership: the free-vertex index, its cluster, the COM weight s m / M and the share s
+        self.weights, self.free_in_cluster, self.member_cluster, self.member_share = w, fidx, mc, share
+        self.cluster_of_free = cv          # (n_free,) each free vertex's (dominant) cluster, -1: none
         # registration at rest (t = 0)
         G = guides.n_guides
         rest = guides.guides(guides.rest)
@@ -66,19 +85,46 @@ class TrackingConstraints:
             if ks.size:
                 _, arc = closest_points_on_polyline(com[ks], rest[g])
                 self.t_rest[ks] = arc
-        self.offset_local = np.zeros((K, 3))  # (a, b, tau)
+        # beta (K, G): each cluster's mass fraction per guide; the sub-centres c_kg (soft only)
+        gw = corr.guide_weights
+        strand_of_member = s.strand_of_vertex[corr.member_vertex]
+        beta = np.zeros((K, G))
+        if gw is None:
+            beta[np.arange(K), corr.cluster_guide] = 1.0
+        else:
+            for g in range(G):
+                beta[:, g] = np.bincount(mc, weights=w * gw[strand_of_member, g], minlength=K)
+        multi = (beta > 0).sum(1) > 1
+        self.soft = bool(multi.any())      # some cluster's target blends several guides
+        beta[~multi] = 0.0
+        beta[~multi, corr.cluster_guide[~multi]] = 1.0      # one guide: exactly 1 (hard: every cluster)
+        self.beta = beta
+        xr = scene.initial_positions()[free]
+        # per guide g: (its clusters, their beta, their offsets (a, b, tau) in g's frames)
+        self.blend = []
         frames = self._frames(guides.rest, 0.0)
         for g in range(G):
-            ks = self.by_guide[g]
-            if ks.size == 0:
-                continue
-            P, (T, N, B) = rest[g], frames[g]
-            basis = [torch.as_tensor(np.repeat(V[None], len(ks), 0)) for V in (P, N, B, T)]
-            tk = torch.as_tensor(self.t_rest[ks])
-            gp, Np, Bp, Tp = (spline.evaluate(b, self.knots[g], tk).numpy() for b in basis)
-            r = com[ks] - gp
-            F = np.stack([Np, Bp, Tp], axis=-1)                 # (k, 3, 3) columns N, B, T
-            self.offset_local[ks] = np.linalg.solve(F, r[..., None])[..., 0]
+            ks = np.flatnonzero(beta[:, g] > 0)
+            off = np.zeros((len(ks), 3))
+            if ks.size:
+                centre = com[ks].copy()
+                for j, k in enumerate(ks):
+                    if multi[k]:   # the sub-centre of the members' shares of guide g
+                        on = mc == k
+                        ww = w[on] * gw[strand_of_member[on], g]
+                        centre[j] = ww @ xr[fidx[on]] / ww.sum()
+                P, (T, N, B) = rest[g], frames[g]
+                basis = [torch.as_tensor(np.repeat(V[None], len(ks), 0)) for V in (P, N, B, T)]
+                tk = torch.as_tensor(self.t_rest[ks])
+                gp, Np, Bp, Tp = (spline.evaluate(b, self.knots[g], tk).numpy() for b in basis)
+                r = centre - gp
+                F = np.stack([Np, Bp, Tp], axis=-1)                 # (k, 3, 3) columns N, B, T
+                off = np.linalg.solve(F, r[..., None])[..., 0]
+            self.blend.append((ks, beta[ks, g], off))
+        self.offset_local = np.zeros((K, 3))  # (a, b, tau) on the cluster's own guide
+        for g, (ks, _, off) in enumerate(self.blend):
+            own = corr.cluster_guide[ks] == g
+            self.offset_local[ks[own]] = off[own]
         self.offset_d = np.linalg.norm(self.offset_local[:, :2], axis=1)
         self.offset_theta = np.arctan2(self.offset_local[:, 1], self.offset_local[:, 0])
 
@@ -99,10 +145,12 @@ class TrackingConstraints:
         frames = self._frames(shape, t, motion)
         ctrl, clusters = [], []
         for g, P in enumerate(self.guides.guides(shape)):
-            ks = self.by_guide[g]
+            ks, beta, off = self.blend[g]
             T, N, B = frames[g]
-            a, b, tau = (self.offset_local[ks, j][:, None, None] for j in range(3))
+            a, b, tau = (off[:, j][:, None, None] for j in range(3))
             Q = P[None] + a * N[None] + b * B[None] + tau * T[None]     # (k, n, 3)
+            if self.soft:
+                Q = beta[:, None, None] * Q       # Catmull-Rom is linear in its control points
             ctrl.append(torch.as_tensor(Q))
             clusters.append(ks)
         return TargetCurves(ctrl, self.knots, clusters, shape)
@@ -118,7 +166,14 @@ class TrackingConstraints:
             t = torch.as_tensor(tk[ks])
             if derivatives:
                 v, a, b = spline.eval_with_derivatives(Q, s, t)
-                c[ks], d1[ks], d2[ks] = v.numpy(), a.numpy(), b.numpy()
+                if self.soft:     # the blend over the guides (a cluster appears once per guide)
+                    np.add.at(c, ks, v.numpy())
+                    np.add.at(d1, ks, a.numpy())
+                    np.add.at(d2, ks, b.numpy())
+                else:
+                    c[ks], d1[ks], d2[ks] = v.numpy(), a.numpy(), b.numpy()
+            elif self.soft:
+                np.add.at(c, ks, spline.evaluate(Q, s, t).numpy())
             else:
                 c[ks] = spline.evaluate(Q, s, t).numpy()
         return (c, d1, d2) if derivatives else c

@@ -39,8 +39,10 @@ class TrackingController(Controller):
         s = scene.strands
         self.scene, self.guides = scene, guides
         free = ~s.kinematic
+        self.assignment = str(_v(tcfg.assignment))
         self.corr = build_correspondence(scene.initial_positions(), s.offsets, free, guides.guides(guides.rest), tcfg.points_per_guide,
-                                         tcfg.max_guide_distance)
+                                         tcfg.max_guide_distance, self.assignment,
+                                         float(tcfg.blend_width), str(_v(tcfg.point_placement)), s.masses)
         targets = str(_v(tcfg.targets))
         if targets not in ("static", "sliding"):
             raise InputError(f"unknown targets {targets!r} (static|sliding)", "tracking.targets")
@@ -83,6 +85,16 @@ class TrackingController(Controller):
 
     def cluster_of_vertex(self) -> np.ndarray:
         return self.corr.cluster_of_vertex
+
+    def cluster_weights(self) -> np.ndarray | None:
+        """Soft assignment: (V, K) each vertex's share in each cluster (rows of clustered free
+        vertices sum to one; root vertices are all zero); hard: None (``cluster_of_vertex`` says it)."""
+        if self.assignment == "hard":
+            return None
+        c = self.corr
+        W = np.zeros((len(c.cluster_of_vertex), c.n_clusters))
+        np.add.at(W, (c.member_vertex, c.member_cluster), c.member_weight)
+        return W
 
     # -- used by the SQP ------------------------------------------------------------------
     def targets_at(self, t: float, motion=None):

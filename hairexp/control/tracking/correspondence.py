@@ -2,11 +2,39 @@
 
 1. Each detail strand goes to the guide with the smallest integrated squared distance, eq. (1):
    d(d_j, g_i) = sum_k |d_jk - prox(d_jk, g_i)|^2, prox the closest point on the guide polyline.
-2. Each guide is sampled equidistantly (in arc length) with tracking points p_jk.
+2. Each guide is sampled with tracking points p_jk: equidistantly in arc length (the paper;
+   ``tracking.point_placement: arc_length``), or (``hair_mass``, the default) at the arc
+   lengths that split the free hair mass of the guide's strands, projected onto the guide
+   (closest points), into equal parts: point k at the (k + 1/2) / P quantile (midpoint rule).
+   Equidistant points can sit where there is no hair (near the root, where the first free
+   vertex is an edge away, or past the tips of hair shorter than its guide) and leave their
+   clusters empty; at the mass quantiles each point has hair around it, so a cluster is empty
+   only when the hair has fewer distinct heights than tracking points.
 3. Each detail strand is split into segments s_ik: its vertices closest to p_jk among the
    tracking points of its guide.  A cluster C_jk is the union of segments s_ik over the strands
    of guide j.  Only free (non-root) vertices join clusters: root vertices are prescribed by the
    body and cannot be steered.  Empty clusters are dropped with a warning that names them.
+
+Soft assignment (``tracking.assignment: soft``; the paper's section 5 / Fig. 8 names it as
+future work, it is not in the paper): step 1 gives each strand a weight per guide instead of
+one guide.  With D_sg^2 = d(d_s, g_g) / n_s the mean squared distance of eq. (1) (m^2) and
+D_s^2 = min_g D_sg^2, a softmax of -eq. (1):
+
+    w_sg = exp(-(D_sg^2 - D_s^2) / b^2) / sum_h exp(-(D_sh^2 - D_s^2) / b^2),
+
+b = ``tracking.blend_width`` (m): a guide whose mean squared distance exceeds the nearest
+one's by b^2 gets e^-1 of its weight; raw weights below ``WEIGHT_CUTOFF`` are set to 0 before
+the normalisation (an excess above 6.9 b^2).  For a strand at z between two guides at -a and +a
+the share of the guide at +a is the logistic 1 / (1 + exp(-4 a z / b^2)): it changes over
+|z| ~ b^2 / (4 a) and keeps changing past the guides, so the shares vary across the whole wisp
+when b is about the guides' spacing.  (A Gaussian of the excess RMS distance, tried first, is
+flat past the guides: every strand outside them got the same shares.)  Step 2 weighs each
+vertex's mass by its strand's weight for the guide.  Step 3 is done for every guide the strand
+has weight on: each free vertex joins, per such guide g, the cluster of g's tracking point
+nearest to it, with the strand's weight w_sg; a vertex's weights sum to one.  Hard assignment is the limit b -> 0 (one-hot weights).  The
+memberships are kept as triples (vertex, cluster, weight): ``member_vertex``,
+``member_cluster``, ``member_weight``; ``cluster_of_vertex`` is then each vertex's cluster of
+largest weight (its dominant cluster).
 """
 
 from __future__ import annotations
@@ -19,6 +47,11 @@ import numpy as np
 from hairexp.errors import InputError
 
 log = logging.getLogger(__name__)
+
+#: soft assignment: a strand's raw guide weight below this (its excess mean squared distance > 6.9 b^2) is 0
+WEIGHT_CUTOFF = 1e-3
+ASSIGNMENTS = ("hard", "soft")
+PLACEMENTS = ("hair_mass", "arc_length")
 
 
 def closest_points_on_polyline(X: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -39,8 +72,11 @@ def closest_points_on_polyline(X: np.ndarray, P: np.ndarray) -> tuple[np.ndarray
 
 @dataclass(frozen=True)
 class Correspondence:
-    """guide_of_strand (S,), tracking points (G, P, 3) with their arc lengths (P,) per guide,
-    cluster_of_vertex (V,) (-1: in no cluster), cluster_guide (K,), cluster_point (K,)."""
+    """guide_of_strand (S,) (soft: the guide of largest weight), tracking points (G, P, 3) with
+    their arc lengths (P,) per guide, cluster_of_vertex (V,) (-1: in no cluster; soft: the
+    dominant cluster), cluster_guide (K,), cluster_point (K,); the memberships as triples
+    member_vertex (E,), member_cluster (E,), member_weight (E,) (hard: one per clustered free
+    vertex, weight 1, in vertex order) and guide_weights (S, G) (hard: one-hot)."""
 
     guide_of_strand: np.ndarray
     tracking_points: np.ndarray
@@ -48,6 +84,10 @@ class Correspondence:
     cluster_of_vertex: np.ndarray
     cluster_guide: np.ndarray
     cluster_point: np.ndarray
+    member_vertex: np.ndarray = None
+    member_cluster: np.ndarray = None
+    member_weight: np.ndarray = None
+    guide_weights: np.ndarray = None
 
     @property
     def n_clusters(self) -> int:
@@ -63,6 +103,25 @@ def sample_tracking_points(P: np.ndarray, count: int) -> tuple[np.ndarray, np.nd
     return pts, targets
 
 
+def mass_tracking_points(P: np.ndarray, count: int, X: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points on the polyline P at the (k + 1/2) / count quantiles of the arc lengths
+    of the closest guide points of the hair vertices X (m, 3), weighted by w (m,) (their mass
+    times their share of this guide); equidistant (``sample_tracking_points``) when w is empty."""
+    keep = w > 0
+    if not keep.any():
+        return sample_tracking_points(P, count)
+    _, arc = closest_points_on_polyline(X[keep], P)
+    o = np.argsort(arc, kind="stable")
+    arc, ww = arc[o], w[keep][o]
+    c = np.cumsum(ww)
+    mid = (c - 0.5 * ww) / c[-1]                       # midpoint rule: each vertex's mass centred on it
+    targets = np.interp((np.arange(count) + 0.5) / count, mid, arc)
+    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    pts = np.stack([np.interp(targets, s, P[:, k]) for k in range(3)], axis=1)
+    return pts, targets
+
+
 def strand_guide_distances(detail_rest: np.ndarray, offsets: np.ndarray, guides_rest: list[np.ndarray]) -> np.ndarray:
     """(S, G) eq. (1): the integrated squared distance of each strand's vertices to each guide."""
     S = len(offsets) - 1
@@ -74,11 +133,31 @@ def strand_guide_distances(detail_rest: np.ndarray, offsets: np.ndarray, guides_
     return dist
 
 
+def soft_guide_weights(dist: np.ndarray, counts: np.ndarray, blend_width: float) -> np.ndarray:
+    """(S, G) the soft guide weights of the strands (module docstring) from eq. (1) ``dist``
+    (S, G) and the strands' vertex counts (S,); rows sum to one."""
+    if not (np.isfinite(blend_width) and blend_width > 0):
+        raise InputError(f"must be > 0 (m), got {blend_width}", "tracking.blend_width")
+    D2 = np.maximum(dist, 0.0) / counts[:, None]
+    w = np.exp(-(D2 - D2.min(axis=1, keepdims=True)) / blend_width ** 2)
+    w[w < WEIGHT_CUTOFF] = 0.0
+    return w / w.sum(axis=1, keepdims=True)
+
+
 def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.ndarray,
                          guides_rest: list[np.ndarray], points_per_guide: int,
-                         max_distance: float = 0.0) -> Correspondence:
+                         max_distance: float = 0.0, assignment: str = "hard",
+                         blend_width: float = 0.01, placement: str = "hair_mass",
+                         masses: np.ndarray | None = None) -> Correspondence:
     """``max_distance`` > 0: a strand whose RMS distance to every guide (eq. 1 over its vertex
-    count) exceeds it cannot be claimed by any guide, and is an error naming the strand."""
+    count) exceeds it cannot be claimed by any guide, and is an error naming the strand.
+    ``assignment``: ``hard`` (paper 3.1) or ``soft`` with ``blend_width`` b in metres (module
+    docstring).  ``placement``: ``hair_mass`` or ``arc_length`` (step 2); ``masses`` (V,)
+    the vertex masses it weighs (None: all equal)."""
+    if placement not in PLACEMENTS:
+        raise InputError(f"unknown placement {placement!r} (hair_mass|arc_length)", "tracking.point_placement")
+    if assignment not in ASSIGNMENTS:
+        raise InputError(f"unknown assignment {assignment!r} (hard|soft)", "tracking.assignment")
     if points_per_guide < 1:
         raise InputError(f"must be >= 1, got {points_per_guide}", "tracking.points_per_guide")
     if not guides_rest:
@@ -98,16 +177,50 @@ def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.
             raise InputError(f"strand {s0} is {rms[s0]:.4g} m (RMS) from the nearest guide, more than "
                              f"tracking.max_guide_distance={max_distance}; no guide can claim it "
                              f"({far.size} such strands)", "tracking.max_guide_distance")
+    # the strands' guide weights (soft: module docstring; hard: one-hot)
+    if assignment == "hard":
+        gw = np.zeros_like(dist)
+        gw[np.arange(len(gw)), guide_of_strand] = 1.0
+    else:
+        gw = soft_guide_weights(dist, np.diff(offsets), float(blend_width))
+        guide_of_strand = np.argmax(gw, axis=1)
     # 2. tracking points
-    tp, tp_s = zip(*(sample_tracking_points(P, points_per_guide) for P in guides_rest))
+    if placement == "arc_length":
+        tp, tp_s = zip(*(sample_tracking_points(P, points_per_guide) for P in guides_rest))
+    else:
+        m = np.ones(len(detail_rest)) if masses is None else np.asarray(masses, dtype=np.float64)
+        mf = np.where(free, m, 0.0)
+        tp, tp_s = zip(*(mass_tracking_points(P, points_per_guide, detail_rest, mf * gw[strand, g])
+                         for g, P in enumerate(guides_rest)))
     tracking = np.stack(tp)
-    # 3. segments: nearest tracking point of the strand's own guide
-    gv = guide_of_strand[strand]
-    d2 = np.sum((detail_rest[:, None, :] - tracking[gv]) ** 2, axis=-1)   # (V, P)
-    point_of_vertex = np.argmin(d2, axis=1)
-    raw = gv * points_per_guide + point_of_vertex
-    raw = np.where(free, raw, -1)
-    counts = np.bincount(raw[raw >= 0], minlength=G * points_per_guide)
+    # 3. segments: nearest tracking point of the strand's own guide (soft: of each guide it has weight on)
+    if assignment == "hard":
+        gv = guide_of_strand[strand]
+        d2 = np.sum((detail_rest[:, None, :] - tracking[gv]) ** 2, axis=-1)   # (V, P)
+        point_of_vertex = np.argmin(d2, axis=1)
+        raw = gv * points_per_guide + point_of_vertex
+        raw = np.where(free, raw, -1)
+        mv = np.flatnonzero(raw >= 0)
+        mraw, mw = raw[mv], np.ones(mv.size)
+    else:
+        vs, mvs, mws = [], [], []
+        fv = np.flatnonzero(free)
+        for g in range(G):
+            on = fv[gw[strand[fv], g] > 0]
+            d2 = np.sum((detail_rest[on][:, None, :] - tracking[g][None]) ** 2, axis=-1)
+            vs.append(on)
+            mvs.append(g * points_per_guide + np.argmin(d2, axis=1))
+            mws.append(gw[strand[on], g])
+        mv, mraw, mw = (np.concatenate(a) for a in (vs, mvs, mws))
+        order = np.lexsort((mraw, mv))             # vertex order, then cluster
+        mv, mraw, mw = mv[order], mraw[order], mw[order]
+        # the dominant cluster of each free vertex (largest weight; ties: the first guide)
+        raw = np.full(len(detail_rest), -1)
+        best = np.full(len(detail_rest), -1.0)
+        for v, k, w in zip(mv, mraw, mw):
+            if w > best[v]:
+                best[v], raw[v] = w, k
+    counts = np.bincount(mraw, minlength=G * points_per_guide)
     kept = np.flatnonzero(counts > 0)
     for k in np.flatnonzero(counts == 0):
         log.warning("cluster of guide %d, tracking point %d is empty (no free detail vertex is closest to it); "
@@ -118,4 +231,5 @@ def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.
     remap[kept] = np.arange(kept.size)
     cluster_of_vertex = np.where(raw >= 0, remap[np.maximum(raw, 0)], -1)
     return Correspondence(guide_of_strand, tracking, np.stack(tp_s), cluster_of_vertex,
-                          kept // points_per_guide, kept % points_per_guide)
+                          kept // points_per_guide, kept % points_per_guide,
+                          mv, remap[mraw], mw, gw)

@@ -13,7 +13,10 @@ S is built from one banded Cholesky H = L L^T as S = Y^T Y, Y = L^-1 A^T.  H is 
 diagonal over strands, so Y is computed strand by strand with batched dense triangular solves
 (torch), and the columns of A^T for clusters of *different* guides (disjoint strands) share one
 right-hand side "slot" (tracking point, coordinate): 3 x points-per-guide right-hand sides in
-all, not 3K.  ``reference_solve`` is the plain sparse saddle-point solve (SuperLU) that tests
+all, not 3K.  With soft assignment a strand belongs to clusters of several guides: the slot
+of (strand, cluster) is (r P + p, coordinate), r the rank of the cluster's guide among the
+guides the strand has weight on, so 3 x P x (most guides per strand) right-hand sides (hard:
+r = 0, the layout above).  ``reference_solve`` is the plain sparse saddle-point solve (SuperLU) that tests
 compare against.
 """
 
@@ -51,24 +54,33 @@ class SchurKKT:
         self._src, self._dst = np.concatenate(src), np.concatenate(dst)
         pad = [(si * nmax + k) * nmax + k for si in range(S) for k in range(n[si], nmax)]
         self._pad = np.asarray(pad, dtype=np.int64)
-        # right-hand-side slots: (tracking point p, coordinate c) -> slot 3 p + c
+        # right-hand-side slots: (guide rank r, tracking point p, coordinate c) -> slot 3 (r P + p) + c
         K = cons.K
         P = int(cons.corr.cluster_point.max()) + 1
-        self.R = 3 * P
+        G = cons.guides.n_guides
+        gw = cons.corr.guide_weights
+        on = gw > 0 if gw is not None else np.eye(G, dtype=bool)[cons.corr.guide_of_strand]   # (S, G)
+        rank = np.cumsum(on, axis=1) - 1                            # rank of guide g among the strand's guides
+        nr = int(on.sum(1).max())
+        self.R = 3 * P * nr
         AT = np.zeros((S, nmax, self.R))
-        fv = cons.free_in_cluster                                  # free-vertex indices
-        k = cons.cluster_of_free[fv]
+        fv = cons.free_in_cluster                                  # free-vertex index per membership
+        k = cons.member_cluster
         st = strand_of_free[fv]
         loc = 3 * fv - self.dof_off[st]
-        p = cons.corr.cluster_point[k]
+        slot = rank[st, cons.corr.cluster_guide[k]] * P + cons.corr.cluster_point[k]
         for c in range(3):
-            AT[st, loc + c, 3 * p + c] = cons.weights
+            AT[st, loc + c, 3 * slot + c] = cons.weights
         self.AT = torch.as_tensor(AT)
         # global constraint row of each (strand, slot); 3K is a dummy row for empty slots
-        guide_of_strand = cons.corr.guide_of_strand
-        lookup = np.full((cons.guides.n_guides, P), -1)
+        lookup = np.full((G, P), -1)
         lookup[cons.corr.cluster_guide, cons.corr.cluster_point] = np.arange(K)
-        kk = lookup[guide_of_strand][:, np.arange(self.R) // 3]       # (S, R)
+        kk = np.full((S, P * nr), -1)                                # (S, R / 3): cluster of each slot
+        for r in range(nr):
+            g_r = np.argmax(on & (rank == r), axis=1)               # the strand's guide of rank r
+            has = (on & (rank == r)).any(axis=1)
+            kk[:, r * P:(r + 1) * P] = np.where(has[:, None], lookup[g_r], -1)
+        kk = kk[:, np.arange(self.R) // 3]                          # (S, R)
         rows = np.where(kk >= 0, 3 * kk + np.arange(self.R) % 3, 3 * K)
         self._srow = (rows[:, :, None] * (3 * K + 1) + rows[:, None, :]).ravel()
         self.K = K

@@ -1,5 +1,7 @@
 """Spread control, paper 3.3: P = sum_k k_v,k(t) (V_k - V_bar_k(t))^2 with the cluster
-variance V_k = sum_{i in C_k} |c_k - d_i|^2, eq. (4).
+variance V_k = sum_{i in C_k} |c_k - d_i|^2, eq. (4).  With soft assignment the variance is
+weighted by the vertices' shares in the cluster: V_k = sum_i s_ik |c_k - d_i|^2 (c_k the
+weighted centre of mass, hairexp/control/tracking/constraints.py; hard: s_ik = 1, eq. 4).
 
 V_bar defaults to the rest variance.  k_v(t) = stiffness x stiffness_scale(t) and
 V_bar(t) = rest variance x target_scale(t) are keyframed (linear between keys), and apply to
@@ -28,12 +30,14 @@ def _keys(times, values, key: str) -> tuple[np.ndarray, np.ndarray]:
     return t, v
 
 
-def variance(xf: torch.Tensor, cluster: torch.Tensor, w: torch.Tensor, idx: torch.Tensor, K: int) -> torch.Tensor:
-    """(K,) V_k, eq. (4).  xf: (n_free, 3); idx: free-vertex indices in clusters, cluster: their
-    cluster, w: their mass weights m_i / M_k."""
+def variance(xf: torch.Tensor, cluster: torch.Tensor, w: torch.Tensor, idx: torch.Tensor, K: int,
+             share: torch.Tensor | None = None) -> torch.Tensor:
+    """(K,) V_k, eq. (4).  xf: (n_free, 3); per membership: idx the free-vertex index, cluster
+    its cluster, w its mass weight s_ik m_i / M_k, share s_ik (None: all 1, hard assignment)."""
     x = xf[idx]
     com = torch.zeros(K, 3, dtype=x.dtype).index_add_(0, cluster, w.unsqueeze(-1) * x)
-    return torch.zeros(K, dtype=x.dtype).index_add_(0, cluster, ((x - com[cluster]) ** 2).sum(-1))
+    sq = ((x - com[cluster]) ** 2).sum(-1)
+    return torch.zeros(K, dtype=x.dtype).index_add_(0, cluster, sq if share is None else share * sq)
 
 
 class VarianceControl:
@@ -55,8 +59,12 @@ class VarianceControl:
             raise InputError(f"none of the tracking points {pts} has a cluster (no free detail vertex is closest "
                              "to them): the variance penalty would be off", "tracking.variance.points")
         self.idx = torch.as_tensor(cons.free_in_cluster)
-        self.cluster = torch.as_tensor(cons.cluster_of_free[cons.free_in_cluster])
+        mc = getattr(cons, "member_cluster", None)
+        self.cluster = torch.as_tensor(cons.cluster_of_free[cons.free_in_cluster] if mc is None else mc)
         self.w = torch.as_tensor(cons.weights)
+        sh = getattr(cons, "member_share", None)
+        # None when every share is 1 (hard): eq. (4) exactly as written
+        self.share = None if sh is None or np.all(sh == 1.0) else torch.as_tensor(sh)
         self.rest = self.values(rest_free)
 
     @property
@@ -66,7 +74,7 @@ class VarianceControl:
 
     def values(self, xf: np.ndarray) -> np.ndarray:
         with torch.no_grad():
-            return variance(torch.as_tensor(xf.reshape(-1, 3)), self.cluster, self.w, self.idx, self.K).numpy()
+            return variance(torch.as_tensor(xf.reshape(-1, 3)), self.cluster, self.w, self.idx, self.K, self.share).numpy()
 
     def at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(k_v (K,), V_bar (K,)) at time t."""
@@ -87,21 +95,24 @@ class VarianceControl:
         active = np.flatnonzero(kk > 0)
         x = torch.as_tensor(xf.reshape(-1, 3)).clone().requires_grad_(True)
         with torch.enable_grad():
-            V = variance(x, self.cluster, self.w, self.idx, self.K)
+            V = variance(x, self.cluster, self.w, self.idx, self.K, self.share)
             cols = [torch.autograd.grad(V[j], x, retain_graph=True)[0].reshape(-1).numpy() * np.sqrt(2.0 * kk[j])
                     for j in active]
         U = np.stack(cols, 1) if cols else np.zeros((xf.size, 0))
         Vn = V.detach().numpy()
         curv = np.maximum(4.0 * kk * (Vn - np.asarray(vbar)), 0.0)
+        cm = curv[self.cluster.numpy()]
+        if self.share is not None:     # hess V ~ 2 s_ik I
+            cm = cm * self.share.numpy()
         d = np.zeros((xf.size // 3, 3))
-        np.add.at(d, self.idx.numpy(), np.repeat(curv[self.cluster.numpy()][:, None], 3, 1))
+        np.add.at(d, self.idx.numpy(), np.repeat(cm[:, None], 3, 1))
         return d.reshape(-1), U
 
     def value_grad(self, xf: np.ndarray, k: np.ndarray, vbar: np.ndarray, need_grad: bool = True):
         """P and its gradient over the free DOFs (N,)."""
         x = torch.as_tensor(xf.reshape(-1, 3)).clone().requires_grad_(need_grad)
         with torch.enable_grad():
-            V = variance(x, self.cluster, self.w, self.idx, self.K)
+            V = variance(x, self.cluster, self.w, self.idx, self.K, self.share)
             P = (torch.as_tensor(k) * (V - torch.as_tensor(vbar)) ** 2).sum()
             if not need_grad:
                 return P.item(), None
