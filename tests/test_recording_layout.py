@@ -34,19 +34,6 @@ def test_bounds_grow_frame_by_frame_to_those_of_all_frames():
     assert layout.Bounds.from_json(json.loads(json.dumps(b.to_json()))).to_json() == b.to_json()
 
 
-def test_collider_radius_holds_the_shape():
-    from types import SimpleNamespace as NS
-
-    class Cylinder(NS):
-        pass
-
-    class Plane(NS):
-        pass
-
-    assert layout.collider_radius(Cylinder(radius=0.03, half_height=0.04)) == pytest.approx(0.05)
-    assert layout.collider_radius(Plane()) == 0.0
-
-
 @pytest.mark.parametrize("lo, hi, aspect", [
     ((-0.03, -0.30, -0.06), (0.83, 0.03, 0.06), 2.6),   # goaling: wide along x, thin along z
     ((-0.2, -0.5, -0.1), (0.1, 0.1, 0.4), 1.2),         # a scene spread along z: seen along x

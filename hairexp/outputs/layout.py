@@ -74,20 +74,6 @@ class Bounds:
         return cls(np.asarray(d["min"], dtype=np.float64), np.asarray(d["max"], dtype=np.float64))
 
 
-def collider_radius(collider) -> float:
-    """The radius of a ball around a collider's origin holding its shape (0 for a plane: unbounded)."""
-    kind = type(collider).__name__.lower()
-    if kind == "sphere":
-        return float(collider.radius)
-    if kind == "capsule":
-        return float(collider.radius + collider.half_length)
-    if kind == "cylinder":
-        return float(np.hypot(collider.radius, collider.half_height))
-    if kind == "box":
-        return float(np.linalg.norm(collider.half_extents))
-    return 0.0
-
-
 def view_axis(size: np.ndarray, up: int = 1) -> np.ndarray:
     """The unit horizontal direction the camera looks along: the horizontal axis along which
     the box is thinnest (the motion is seen across its largest extents)."""

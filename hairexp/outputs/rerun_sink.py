@@ -211,8 +211,8 @@ class RerunSink:
         self.bounds.add_sphere(T, np.sqrt(3) * self.body_half)
         for c in self.scene.colliders:
             Rc, Tc = c.motion.pose(state.time)
-            if layout.collider_radius(c) > 0:   # a plane is unbounded: it does not frame the view
-                self.bounds.add_sphere(Tc, layout.collider_radius(c))
+            if np.isfinite(c.bounding_radius()):   # a plane is unbounded: it does not frame the view
+                self.bounds.add_sphere(Tc, c.bounding_radius())
             rec.log(f"/world/colliders/{c.name}", rr.Transform3D(translation=Tc, quaternion=Rotation.from_matrix(Rc).as_quat()))
         if obs.get("guides") is not None:
             g = np.split(obs["guides"].astype(np.float32), self.guide_offsets[1:-1])
