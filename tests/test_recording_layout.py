@@ -13,7 +13,7 @@ import pytest
 from hairexp.evaluation.measures import experiment_key_moment, key_moment
 from hairexp.outputs import layout
 
-SMALL = ["experiment=goaling_smoke", "frames=4", "scene.n_strands=3", "scene.n_vertices=6", "guides.source=rigid",
+SMALL = ["experiment=goaling_smoke", "frames=4", "scene.n_strands=6", "scene.n_vertices=10", "guides.source=rigid",
          "logging.progress=false", "logging.rerun=true"]
 
 
@@ -193,6 +193,8 @@ def test_comparison_holds_every_variant_side_by_side(experiment):
         steps = pq.read_metadata(out / v / "metrics.parquet").num_rows
         assert entity_rows(rrd, f"/metrics/iterations/{v}") == steps
     assert entity_rows(rrd, "/world/hair") == 0            # nothing left at a variant's own paths
+    assert entity_rows(out / "tracked" / "recording.rrd", "/world/com") > 0
+    assert entity_rows(rrd, "/runs/tracked/world/com") == 0   # the overlays stay in the variant's recording
     key = summary["comparison"]["key"]["time"]
     sel = blueprint_rows(rrd, "TimePanelBlueprint:time_selection")
     assert len(sel) == 1 and sel[0]["min"] <= key * 1e9 <= sel[0]["max"]

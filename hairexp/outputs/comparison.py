@@ -11,7 +11,8 @@ in some variant's ``metrics.parquet`` (read one column at a time).
 Layout: one 3D view per variant (same camera, one shared timeline), below them the shared plots
 (kinetic energy, contacts, iterations, and for tracked variants the residual and the control
 force) with one series per variant, one colour per variant (the legend on the first plot); the
-time panel loops over the experiment's key moment (``rerun_sink.time_panel``).
+time panel loops over the experiment's key moment (``rerun_sink.time_panel``).  The tracking
+overlays are left out (each variant's own recording has them).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
 from hairexp.outputs import layout
-from hairexp.outputs.rerun_sink import OVERLAYS, _camera, _check_complete, partial_name, plot_views, time_panel
+from hairexp.outputs.rerun_sink import OVERLAYS, _check_complete, framing, partial_name, plot_views, time_panel
 
 NAME = "comparison.rrd"
 #: the shared plots, one series per variant
@@ -72,10 +73,13 @@ def metric_ranges(parquet: Path, columns) -> dict[str, tuple[float, float]]:
 
 def _chunks(variant: str, rrd: Path):
     """The variant's recording's chunks, moved under its paths; its static series names are
-    dropped (the comparison names each series by its variant)."""
+    dropped (the comparison names each series by its variant), and so are the tracking overlays
+    (the comparison's views show the hair, guides and colliders; the overlays are as large as the
+    hair: the variant's own recording has them)."""
     def move(c):
         path = c.entity_path
-        if path.startswith("/__properties") or (path.startswith("/metrics/") and c.is_static):
+        if (path.startswith("/__properties") or (path.startswith("/metrics/") and c.is_static)
+                or any(path == e or path.startswith(e + "/") for e in OVERLAYS)):
             return []
         return [c.with_entity_path(run_path(variant, path))]
     return RrdReader(rrd).stream().flat_map(move)
@@ -131,7 +135,7 @@ def comparison_blueprint(variants: list[str], plots, ranges: dict, plan: dict) -
     aspect = 3.2 / cols if n <= 4 else 6.4 / cols   # a 3D view's width / height in a ~16:10 window
     views = [rrb.Spatial3DView(origin=f"/runs/{v}/world", name=v,
                                contents=["+ $origin/**", *(f"- /runs/{v}{e}" for e in OVERLAYS)],
-                               **_camera(plan, aspect=aspect)) for v in variants]
+                               **framing(plan, aspect=aspect)) for v in variants]
     top = rrb.Horizontal(*views) if n <= 4 else rrb.Grid(*views, grid_columns=cols)
     series = plot_views(plots, ranges, origin=lambda c: f"/metrics/{c}", legend_once=True)
     root = rrb.Vertical(top, rrb.Horizontal(*series), row_shares=[3, 2])

@@ -3,8 +3,13 @@
 Entities: /world/hair (line strips), /world/body (rigid body transform and box), /world/rail
 (a dynamic body's rail),
 /world/roots (root vertices), /metrics/<name> (scalars on the ``frame``, ``sim_time`` and
-``step`` timelines).  A default blueprint puts the 3D view beside the metric plots.  Each
-recording has an explicit recording id, so parallel workers never share one.
+``step`` timelines).  Each recording has an explicit recording id, so parallel workers never
+share one.
+
+Its layout (``blueprint(plan)``) is sent once, when the run ends (``close``): only then are the
+bounds of every frame (grown frame by frame in ``log_frame``), the metrics with data and their
+ranges (``on_step``) and the key moment (from the measure, passed by the app) known; see
+``hairexp.outputs.layout`` and the README's "Looking at a run".
 
 The recording is written while the run goes to ``recording.partial.rrd`` (rerun's file sink);
 ``flush()`` sends the metric scalars gathered since the last flush and waits for the writer,
@@ -37,7 +42,7 @@ OVERLAYS = ("/world/clusters", "/world/com", "/world/targets", "/world/target_cu
 TIMELINE = "sim_time"
 
 
-def _camera(plan: dict | None, aspect: float):
+def framing(plan: dict | None, aspect: float):
     """The eye framed on ``plan['bounds']`` (``layout.frame_camera``) and a floor grid at the
     bottom of the bounds with a spacing at the scene's scale; rerun's defaults without a plan."""
     if not plan or plan.get("bounds") is None:
@@ -96,12 +101,12 @@ def blueprint(plan: dict | None = None) -> rrb.Blueprint:
     plots = plan.get("plots") or layout.choose_plots({"kinetic_energy", "potential_energy", "contacts", "iterations"})
     ranges = plan.get("ranges", {})
     hair = rrb.Spatial3DView(origin="/world", name="hair", contents=["+ $origin/**", *(f"- {e}" for e in OVERLAYS)],
-                             **_camera(plan, aspect=1.2 if tracked else 2.6))
+                             **framing(plan, aspect=1.2 if tracked else 2.6))
     views = [hair]
     if tracked:
         views.append(rrb.Spatial3DView(origin="/world", name="tracking: clusters, centres of mass, targets",
                                        contents=["+ /world/colliders/**", "+ /world/body/**",
-                                                 *(f"+ {e}" for e in OVERLAYS)], **_camera(plan, aspect=1.2)))
+                                                 *(f"+ {e}" for e in OVERLAYS)], **framing(plan, aspect=1.2)))
     # the 3D views on top, the plots side by side below them (each about 300 px tall in a 1000 px window)
     review = rrb.Vertical(rrb.Horizontal(*views), rrb.Horizontal(*plot_views(plots, ranges)), row_shares=[3, 2],
                           name="review")
@@ -217,7 +222,7 @@ class RerunSink:
         if obs.get("guides") is not None:
             g = np.split(obs["guides"].astype(np.float32), self.guide_offsets[1:-1])
             self.bounds.add(obs["guides"])
-            rec.log("/world/guides", rr.LineStrips3D(g, radii=2.5 * self.radius, colors=[[230, 60, 60]]))
+            rec.log("/world/guides", rr.LineStrips3D(g, radii=1.5 * self.radius, colors=[[230, 60, 60]]))
         if getattr(self, "tracker", None) is not None and obs.get("com") is not None:
             tr = self.tracker
             cov = tr.corr.cluster_of_vertex
