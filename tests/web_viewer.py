@@ -161,7 +161,8 @@ class WebViewer:
     def screenshot(self) -> bytes:
         """The page as PNG bytes."""
         try:
-            data = self.chrome.call("Page.captureScreenshot", {"format": "png"}, session=self.session)["data"]
+            data = self.chrome.call("Page.captureScreenshot", {"format": "png"}, session=self.session,
+                                    timeout=240)["data"]
         except RuntimeError as exc:
             if "Not attached" not in str(exc):
                 raise
