@@ -130,6 +130,15 @@ def blueprint_rows(rrd, column: str) -> list:
     return out
 
 
+def key_ranges_hold(rrd, key: float, views: int) -> bool:
+    """``views`` 3D views show the one frame at ``key`` s on sim_time, and no other frame."""
+    ranges = blueprint_rows(rrd, "VisibleTimeRanges:ranges")
+    frame = 0.04e9   # 25 fps: the next frame must lie outside
+    return len(ranges) == views and all(
+        r["timeline"] == "sim_time" and r["range"]["start"] <= key * 1e9 <= r["range"]["end"]
+        and r["range"]["end"] - r["range"]["start"] < frame for r in ranges)
+
+
 def entity_rows(rrd, path: str) -> int:
     from rerun.chunk import RrdReader
 
@@ -174,6 +183,8 @@ def test_each_recording_has_one_layout_framed_on_its_run(experiment):
         sel = blueprint_rows(rrd, "TimePanelBlueprint:time_selection")
         key = view["key"]["time"]
         assert len(sel) == 1 and sel[0]["min"] <= key * 1e9 <= sel[0]["max"]
+        assert any(n.startswith("key moment: ") for n in names)   # a 3D view fixed at the key frame
+        assert key_ranges_hold(rrd, key, 1)
 
 
 def test_comparison_holds_every_variant_side_by_side(experiment):
@@ -199,3 +210,6 @@ def test_comparison_holds_every_variant_side_by_side(experiment):
     sel = blueprint_rows(rrd, "TimePanelBlueprint:time_selection")
     assert len(sel) == 1 and sel[0]["min"] <= key * 1e9 <= sel[0]["max"]
     assert len(RrdReader(rrd).recordings()) == 1
+    assert key_ranges_hold(rrd, key, 2)                       # both variants at the key moment
+    assert f"key moment: {summary['comparison']['key']['what']}" in blueprint_rows(
+        rrd, "ContainerBlueprint:display_name")

@@ -8,7 +8,8 @@ and its metric series under ``/metrics/<column>/<variant>``; the layout is frame
 the variants' bounds (``view.bounds`` of their ``summary.json``) and the plots are those with data
 in some variant's ``metrics.parquet`` (read one column at a time).
 
-Layout: one 3D view per variant (same camera, one shared timeline), below them the shared plots
+Layout: one 3D view per variant (same camera, one shared timeline; a first tab shows every variant
+fixed at the key moment, a second follows the time cursor), below them the shared plots
 (kinetic energy, contacts, iterations, and for tracked variants the residual and the control
 force) with one series per variant, one colour per variant (the legend on the first plot); the
 time panel loops over the experiment's key moment (``rerun_sink.time_panel``).  The tracking
@@ -29,7 +30,8 @@ import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
 from hairexp.outputs import layout
-from hairexp.outputs.rerun_sink import OVERLAYS, _check_complete, framing, partial_name, plot_views, time_panel
+from hairexp.outputs.rerun_sink import (OVERLAYS, _check_complete, framing, key_view, partial_name, plot_views,
+                                        time_panel)
 
 NAME = "comparison.rrd"
 #: the shared plots, one series per variant
@@ -136,7 +138,14 @@ def comparison_blueprint(variants: list[str], plots, ranges: dict, plan: dict) -
     views = [rrb.Spatial3DView(origin=f"/runs/{v}/world", name=v,
                                contents=["+ $origin/**", *(f"- /runs/{v}{e}" for e in OVERLAYS)],
                                **framing(plan, aspect=aspect)) for v in variants]
-    top = rrb.Horizontal(*views) if n <= 4 else rrb.Grid(*views, grid_columns=cols)
+    top = rrb.Horizontal(*views, name="live") if n <= 4 else rrb.Grid(*views, grid_columns=cols, name="live")
+    if plan.get("key"):   # the variants at the key moment (fixed, whatever the cursor), the tab shown first
+        k = plan["key"]
+        keys = [key_view(f"/runs/{v}/world", f"{v} at {k['time']:.2f} s ({k['what']})", plan, aspect,
+                         exclude=[f"/runs/{v}{e}" for e in OVERLAYS]) for v in variants]
+        at_key = (rrb.Horizontal(*keys, name=f"key moment: {k['what']}") if n <= 4
+                  else rrb.Grid(*keys, grid_columns=cols, name=f"key moment: {k['what']}"))
+        top = rrb.Tabs(at_key, top, active_tab=0)
     series = plot_views(plots, ranges, origin=lambda c: f"/metrics/{c}", legend_once=True)
     root = rrb.Vertical(top, rrb.Horizontal(*series), row_shares=[3, 2])
     return rrb.Blueprint(root, rrb.SelectionPanel(state="collapsed"), rrb.BlueprintPanel(state="collapsed"),

@@ -74,6 +74,24 @@ def plot_views(plots, ranges: dict, origin=lambda col: f"/metrics/{col}", legend
     return views
 
 
+#: half-width (s) of the time range a key-moment view shows: the one frame logged at the key time
+KEY_FRAME_EPS = 1e-6
+
+
+def key_view(origin: str, name: str, plan: dict, aspect: float, exclude=()):
+    """A 3D view of ``origin`` fixed at the key moment (``plan['key']``), whatever the time
+    cursor: its visible time range on ``TIMELINE`` is the key frame's time +- KEY_FRAME_EPS (the
+    key times of the measures are frame times).  The body is left out: rerun resolves transforms
+    at the cursor, not at the view's time range (hair, guides and roots are logged in world
+    coordinates; the paper scenes' colliders that matter do not move)."""
+    t = float(plan["key"]["time"])
+    rng = rr.VisibleTimeRange(TIMELINE, start=rr.TimeRangeBoundary.absolute(seconds=t - KEY_FRAME_EPS),
+                              end=rr.TimeRangeBoundary.absolute(seconds=t + KEY_FRAME_EPS))
+    return rrb.Spatial3DView(origin=origin, name=name, time_ranges=[rng],
+                             contents=["+ $origin/**", "- $origin/body/**", *(f"- {e}" for e in exclude)],
+                             **framing(plan, aspect=aspect))
+
+
 def time_panel(plan: dict | None):
     """The time panel on ``TIMELINE``.  rerun 0.41 has no blueprint property for the time cursor
     (the TimePanel sets the timeline, play state, loop mode, speed and a time selection only),
@@ -107,6 +125,14 @@ def blueprint(plan: dict | None = None) -> rrb.Blueprint:
         views.append(rrb.Spatial3DView(origin="/world", name="tracking: clusters, centres of mass, targets",
                                        contents=["+ /world/colliders/**", "+ /world/body/**",
                                                  *(f"+ {e}" for e in OVERLAYS)], **framing(plan, aspect=1.2)))
+    if (plan or {}).get("key"):   # the run at its key moment, whatever the time cursor
+        k = plan["key"]
+        views.append(key_view("/world", f"key moment: {k['what']} at {k['time']:.2f} s", plan,
+                              aspect=1.2 if tracked else 1.3, exclude=OVERLAYS))
+        if not tracked:
+            views[0] = rrb.Spatial3DView(origin="/world", name="hair",
+                                         contents=["+ $origin/**", *(f"- {e}" for e in OVERLAYS)],
+                                         **framing(plan, aspect=1.3))
     # the 3D views on top, the plots side by side below them (each about 300 px tall in a 1000 px window)
     review = rrb.Vertical(rrb.Horizontal(*views), rrb.Horizontal(*plot_views(plots, ranges)), row_shares=[3, 2],
                           name="review")
