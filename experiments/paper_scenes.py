@@ -26,6 +26,7 @@ from hairexp.app.report import header, write_report
 from hairexp.app.report_cache import cached, describe
 
 from experiments.common import ROOT, compose, fmt, md_row, md_table
+from experiments.scene_pictures import render_key_moment
 
 SCENES = ["goaling", "splitting", "spreading", "stylization", "celia", "fanning"]
 #: measure keys shown in the table, per measure
@@ -112,6 +113,16 @@ def main(argv=None):
                           f"{v['step_seconds_median']:.4f}", f"{v['stretch_max']:.3g}", fmt(v["residual_rel_max"], ".4g"),
                           f"`{v.get('config_hash')}`"])
         md += "\n"
+        png = ROOT / "reports" / "paper_scenes" / f"{name}.png"
+        if not info["hit"]:   # a fresh run: its picture at the key moment (experiments/scene_pictures.py)
+            png.parent.mkdir(parents=True, exist_ok=True)
+            pic = render_key_moment(out, png)
+            data[name]["picture"] = {k: pic[k] for k in ("frame", "time", "axis")} | {"key": pic["key"]}
+        if png.is_file():
+            md += (f"![{name} at its key moment](paper_scenes/{name}.png)\n\n"
+                   f"{'Picture of the run above' if not info['hit'] else 'Picture of an earlier fresh run'}: "
+                   "the variants at the key moment, from `result.npz` (`experiments/scene_pictures.py`); "
+                   f"the variants side by side in rerun: `outputs/paper_scenes/{name}/comparison.rrd`.\n\n")
     path = write_report("paper_scenes", md, {"scenes": data})
     print(f"wrote {path}")
     if failed:

@@ -34,7 +34,7 @@ LAYERS = {
 #: entry-point modules outside app/ that belong to the app layer (run with python -m, never imported)
 ENTRY_POINTS = {"hairexp.io.export_scene": 6}
 #: modules that may be imported inside a function (they import pxr or rerun at module level)
-LAZY = {"hairexp.io.usd_read", "hairexp.io.usd_write", "hairexp.outputs.rerun_sink"}
+LAZY = {"hairexp.io.usd_read", "hairexp.io.usd_write", "hairexp.outputs.rerun_sink", "hairexp.outputs.comparison"}
 
 
 def module_name(path: Path) -> str:

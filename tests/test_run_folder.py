@@ -307,6 +307,7 @@ def test_used_folder_exits_2_with_one_line(hydra_conf, tmp_path, capsys):
     ([".hydra", "tracked"], 0, "safe folder name"),
     (["free", "stream"], 1, "reserved"),
     (["summary.json", "tracked"], 0, "reserved"),
+    (["free", "comparison"], 1, "reserved"),   # comparison.rrd is the experiment folder's own
 ])
 def test_variant_names(hydra_conf, tmp_path, names, bad, match):
     cfg = hydra_conf(["experiment=goaling_smoke", "logging.rerun=false"])

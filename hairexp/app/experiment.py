@@ -3,7 +3,9 @@
 With ``variants`` empty, the run folder is that of ``hairexp.app.run.run``.  Otherwise each
 variant runs in ``<out>/<variant name>/`` (a complete run folder) with its overrides applied
 to the experiment's config, and ``<out>/summary.json`` gathers the variants' measures, their
-per-step times and iteration counts, and the judge's verdict (``success``).  A failing variant
+per-step times and iteration counts, and the judge's verdict (``success``); with
+``logging.rerun`` the variants' recordings are put side by side in ``<out>/comparison.rrd``
+(``hairexp.outputs.comparison``).  A failing variant
 stops the experiment: the top-level summary says ``failed`` (``interrupted`` on SIGINT/SIGTERM)
 and the error propagates.  Variant names are folder names: safe identifiers (letters, digits,
 ``_ . -``, not ``.`` or ``..``), unique within the experiment.
@@ -26,6 +28,7 @@ from hairexp.app.validate import validate_judge
 from hairexp.app.signals import InterruptSignals
 from hairexp.errors import InputError
 from hairexp.evaluation.judges import JUDGES
+from hairexp.evaluation.measures import experiment_key_moment
 from hairexp.app.run import config_hash, run
 from hairexp.outputs.files import write_json
 from hairexp.outputs.folder import SUMMARY, claim, owner
@@ -37,7 +40,7 @@ VARIANT_FIELDS = ("status", "steps", "iterations_mean", "iterations_max", "conve
                   "unconverged_steps", "step_seconds_median", "stretch_max", "residual_rel_max", "wall_seconds")
 SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 #: names a variant's folder may not have: the experiment folder's own entries
-RESERVED_NAMES = {"stream", "summary", "metrics", "result", "recording", "guides"}
+RESERVED_NAMES = {"stream", "summary", "metrics", "result", "recording", "guides", "comparison"}
 
 
 def check_variant_names(variants) -> list[str]:
@@ -141,6 +144,13 @@ def run_experiment(cfg, out_dir) -> dict:
         if judge != "none":
             ok, details = JUDGES[judge](measures, facts, float(cfg.judge_tolerance))
             summary.update(success=ok, verdict=details)
+        if cfg.logging.rerun:   # the variants side by side, from their folders (rerun is imported only here)
+            from hairexp.outputs.comparison import write_comparison
+
+            key = experiment_key_moment(str(plain["measure"]["name"]), measures)
+            if write_comparison(out, names, key) is not None:
+                summary["comparison"] = {"file": "comparison.rrd",
+                                         "key": None if key is None else {"time": key[0], "what": key[1]}}
         converged = [v.get("converged") for v in summary["variants"].values()]
         summary.update(status="completed", converged=all(c is not False for c in converged),
                        wall_seconds=time.perf_counter() - t0)

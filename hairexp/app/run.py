@@ -35,7 +35,7 @@ from hairexp.app.assemble import assemble
 from hairexp.app.config import to_plain
 from hairexp.app.signals import InterruptSignals
 from hairexp.errors import Interrupted, SimulationError
-from hairexp.evaluation.measures import RunData, cohesion, compute
+from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
 from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, write_json, write_npz
@@ -245,13 +245,17 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     sinks.written.append(usd)
     write_result_usd(usd, wscene, positions, recorder.frames_of("guide_positions"), guides.offsets, cfg.fps)
     recorder.close()
+    view = None
     if rerun_sink is not None:
         sinks.written.append(out / "recording.rrd")
         sinks.rerun = None
-        rerun_sink.close(success=True)
+        view = rerun_sink.close(success=True, key=key_moment(str(getattr(cfg.measure.name, "value", cfg.measure.name)),
+                                                              measures))
     summary = summarize(df, plain, scene_name, controller, time.perf_counter() - t_start, "completed")
     summary["measures"] = measures
     summary["cohesion"] = coh
+    if view is not None:   # the recording's framing and key moment (comparison.rrd unites the variants')
+        summary["view"] = view
     write_json(out / SUMMARY, summary)
     try:
         shutil.rmtree(out / STREAM)

@@ -72,8 +72,8 @@ def collider_contact(d: RunData, p) -> dict:
     first = float(d.times[np.argmax(hit)]) if hit.any() else None
     col_name = f"contacts_{p.collider}"
     contacts = int(d.metrics[col_name].fillna(0).sum()) if d.metrics is not None and col_name in d.metrics else 0
-    return {"min_distance": float(dist.min()), "hit_frames": int(hit.sum()), "hit": bool(hit.any() or contacts > 0),
-            "contacts": contacts,
+    return {"min_distance": float(dist.min()), "min_distance_time": float(d.times[int(np.argmin(dist))]),
+            "hit_frames": int(hit.sum()), "hit": bool(hit.any() or contacts > 0), "contacts": contacts,
             "first_hit_time": first, "thickness": col.thickness, "tolerance": p.tolerance}
 
 
@@ -211,6 +211,38 @@ def fan(d: RunData, p) -> dict:
 
 MEASURES = {"collider_contact": collider_contact, "clumps": clumps, "tip_variance": tip_variance,
             "block_rail": block_rail, "fan": fan}
+
+
+#: per measure: (the measure key holding the time of the scene's event, its name; the key
+#: holding a time to fall back on when the event did not happen, its name)
+KEY_TIMES = {"collider_contact": (("first_hit_time", "first hit"), ("min_distance_time", "closest approach")),
+             "tip_variance": (("apex_time", "apex"), None),
+             "clumps": (("time", "clump time"), None),
+             "block_rail": (("left_rail_time", "leaves the rail"), None)}
+
+
+def key_moment(name: str, measures: dict) -> tuple[float, str] | None:
+    """``(time s, what)`` of the moment a run's measure is about (the first hit, the apex, the
+    clump time, the block leaving the rail), its fallback (the closest approach of a run that
+    misses), or None (no measure, or no event and no fallback)."""
+    event, fallback = KEY_TIMES.get(name, (None, None))
+    for pick in (event, fallback):
+        if pick is not None and measures.get(pick[0]) is not None:
+            return float(measures[pick[0]]), pick[1]
+    return None
+
+
+def experiment_key_moment(name: str, variant_measures: dict[str, dict]) -> tuple[float, str] | None:
+    """The key moment of an experiment: the earliest event of any variant (the tracked run's
+    first hit, where the free run misses), else the earliest fallback; None when none has one."""
+    event, fallback = KEY_TIMES.get(name, (None, None))
+    for pick in (event, fallback):
+        if pick is None:
+            continue
+        times = [float(m[pick[0]]) for m in variant_measures.values() if m.get(pick[0]) is not None]
+        if times:
+            return min(times), pick[1]
+    return None
 
 
 def compute(cfg_measure, data: RunData) -> dict:

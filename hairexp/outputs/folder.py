@@ -26,7 +26,7 @@ SUMMARY = "summary.json"
 STREAM = "stream"
 #: what a run writes into its folder (README "Run folder")
 RUN_FILES = frozenset({SUMMARY, "metrics.parquet", "result.npz", "result.usda", "result.usdc", "guides.npz",
-                       "recording.rrd", "recording.partial.rrd"})
+                       "recording.rrd", "recording.partial.rrd", "comparison.rrd", "comparison.partial.rrd"})
 RUN_DIRS = frozenset({STREAM})
 
 
