@@ -133,7 +133,8 @@ class WebViewer:
         self.chrome.call("Emulation.setDeviceMetricsOverride", {"width": self.width, "height": self.height,
                                                                 "deviceScaleFactor": 1, "mobile": False},
                          session=self.session)
-        url = (f"http://127.0.0.1:{web}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc}%2Fproxy&renderer=webgl")
+        self.url = url = (f"http://127.0.0.1:{web}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc}%2Fproxy"
+                          "&renderer=webgl")
         self.chrome.call("Page.navigate", {"url": url}, session=self.session)
         return self
 
@@ -152,6 +153,8 @@ class WebViewer:
     def _attach(self) -> None:
         """Attach to the viewer's page again (its target is replaced when the page is swapped)."""
         pages = [t for t in self.chrome.call("Target.getTargets")["targetInfos"] if t["type"] == "page"]
+        ours = [t for t in pages if t.get("url", "").startswith(self.url.split("?")[0])]
+        pages = ours or pages   # the viewer's page, not headless Chromium's own blank one
         if not pages:
             raise RuntimeError("Chromium has no page left (the viewer's tab crashed?); see "
                                f"{self.workdir / 'chromium.log'}")
@@ -160,15 +163,16 @@ class WebViewer:
 
     def screenshot(self) -> bytes:
         """The page as PNG bytes."""
-        try:
-            data = self.chrome.call("Page.captureScreenshot", {"format": "png"}, session=self.session,
-                                    timeout=240)["data"]
-        except RuntimeError as exc:
-            if "Not attached" not in str(exc):
-                raise
-            self._attach()
-            data = self.chrome.call("Page.captureScreenshot", {"format": "png"}, session=self.session)["data"]
-        return base64.b64decode(data)
+        for attempt in range(10):   # the page's target is swapped while the viewer loads, maybe more than once
+            try:
+                data = self.chrome.call("Page.captureScreenshot", {"format": "png"}, session=self.session,
+                                        timeout=240)["data"]
+                return base64.b64decode(data)
+            except RuntimeError as exc:
+                if "Not attached" not in str(exc) or attempt == 9:
+                    raise
+                time.sleep(2.0)
+                self._attach()
 
     def screenshot_when(self, ready, timeout: float = 150.0, every: float = 3.0) -> tuple[bytes, bool]:
         """Screenshots every ``every`` s until ``ready(png)`` or ``timeout``: (the last one, ready)."""
