@@ -51,6 +51,7 @@ reports: bench paper-scenes
 	$(VPY) -m experiments.ablations
 	$(VPY) -m experiments.ablations --full
 	$(VPY) -m experiments.stress $(CACHE_FLAG)
+	$(VPY) -m experiments.stress --set solver.integrator=bdf2 --report stress_bdf2 $(CACHE_FLAG)
 	$(VPY) -m experiments.baselines
 	$(VPY) -m experiments.assignment
 	$(VPY) -m experiments.accuracy --scenes goaling celia --frames 30 $(CACHE_FLAG)
