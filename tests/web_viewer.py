@@ -17,6 +17,7 @@ import base64
 import json
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -125,7 +126,8 @@ class WebViewer:
         env = {**os.environ, "RERUN_ANALYTICS": "0"}
         self.server = subprocess.Popen([rerun_cli(), str(self.rrd), "--web-viewer", "--bind", "127.0.0.1",
                                         "--web-viewer-port", str(web), "--port", str(grpc)], env=env,
-                                       stdout=(self.workdir / "rerun.log").open("wb"), stderr=subprocess.STDOUT)
+                                       stdout=(self.workdir / "rerun.log").open("wb"), stderr=subprocess.STDOUT,
+                                       start_new_session=True)   # its own group: see __exit__
         self._wait_port(web)
         self.chrome = _Pipe(exe, self.width, self.height, self.workdir / "chromium.log")
         target = self.chrome.call("Target.createTarget", {"url": "about:blank"})["targetId"]
@@ -188,12 +190,22 @@ class WebViewer:
     def __exit__(self, *exc):
         if getattr(self, "chrome", None) is not None:
             self.chrome.close()
-        self.server.terminate()
+        # .venv/bin/rerun is a Python wrapper that starts the viewer binary as its child: ending only
+        # the wrapper left the binary serving (and using CPU) after the test; end the whole group
+        self._signal_group(signal.SIGTERM)
         try:
             self.server.wait(timeout=10)
         except subprocess.TimeoutExpired:
-            self.server.kill()
+            self._signal_group(signal.SIGKILL)
             self.server.wait()
+        time.sleep(0.5)
+        self._signal_group(signal.SIGKILL)   # a child that outlived the wrapper
+
+    def _signal_group(self, sig) -> None:
+        try:
+            os.killpg(self.server.pid, sig)
+        except (ProcessLookupError, PermissionError):
+            pass
 
 
 def main(argv=None):
