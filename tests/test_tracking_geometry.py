@@ -370,17 +370,24 @@ def test_free_vertices_join_the_cluster_of_their_nearest_tracking_point():
         assert (corr.cluster_guide[cov[v]], corr.cluster_point[cov[v]]) == (g, p), v
 
 
-def test_empty_cluster_is_dropped_with_a_warning_naming_it(caplog):
-    """Guide 1 is 1 m long but its strands only 0.3 m: with the paper's equidistant points its
-    tracking points 2 and 3 (at 0.625 and 0.875 m) have no vertex and are dropped; guide 0's
-    clusters all stay."""
+def long_guide_over_short_hair(caplog, **kw):
+    """Guide 0 with hair as long as it; guide 1 is 1 m long over two 0.3 m strands: (strands,
+    correspondence with 4 points per guide), warnings captured in ``caplog``."""
     near_a, _ = two_guide_strands()
     long_b = straight([0.1, 0.0, 0.0], [0, -1, 0], 1.0, 8)
     near_b = [straight([0.1 + dx, 0, 0], [0, -1, 0], 0.3, 10) for dx in (0.01, -0.01)]
     strands = near_a + near_b
     with caplog.at_level(logging.WARNING, logger="hairexp.control.tracking.correspondence"):
         corr = build_correspondence(np.concatenate(strands), offsets_of(strands), free_mask(strands),
-                                    [GUIDE_A, long_b], 4, placement="arc_length")
+                                    [GUIDE_A, long_b], 4, **kw)
+    return strands, corr
+
+
+def test_empty_cluster_is_dropped_with_a_warning_naming_it(caplog):
+    """Guide 1 is 1 m long but its strands only 0.3 m: with the paper's equidistant points its
+    tracking points 2 and 3 (at 0.625 and 0.875 m) have no vertex and are dropped; guide 0's
+    clusters all stay."""
+    strands, corr = long_guide_over_short_hair(caplog, placement="arc_length")
     msgs = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(msgs) == 2, msgs
     for p, m in zip((2, 3), msgs):
@@ -396,13 +403,7 @@ def test_hair_mass_points_leave_no_cluster_empty(caplog):
     sit at the quantiles of the hair mass projected onto it, every cluster keeps hair, no
     warning; the points of guide 0 (hair as long as the guide, 9 free vertices a strand) split
     its hair mass into near-equal parts."""
-    near_a, _ = two_guide_strands()
-    long_b = straight([0.1, 0.0, 0.0], [0, -1, 0], 1.0, 8)
-    near_b = [straight([0.1 + dx, 0, 0], [0, -1, 0], 0.3, 10) for dx in (0.01, -0.01)]
-    strands = near_a + near_b
-    with caplog.at_level(logging.WARNING, logger="hairexp.control.tracking.correspondence"):
-        corr = build_correspondence(np.concatenate(strands), offsets_of(strands), free_mask(strands),
-                                    [GUIDE_A, long_b], 4)
+    strands, corr = long_guide_over_short_hair(caplog)
     assert not [r for r in caplog.records if r.levelno == logging.WARNING]
     assert corr.n_clusters == 8
     assert corr.tracking_arclength[1].max() < 0.3        # all on the hair's 0.3 m of the 1 m guide
