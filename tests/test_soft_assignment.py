@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from helpers import bent_polyline
-from tracking_helpers import DT, GOALING_MOTION, build_tracked, polyline_scene, tracked_cfg, tracking_cfg
+from tracking_helpers import (DT, GOALING_MOTION, build_tracked, polyline_scene, structured_sliding_args, tracked_cfg,
+                              tracking_cfg)
 from hairexp.control.tracking.controller import TrackingController
 from hairexp.control.tracking.correspondence import WEIGHT_CUTOFF, build_correspondence
 from hairexp.control.tracking.kkt import reference_solve
@@ -164,10 +165,7 @@ def test_soft_schur_kkt_matches_reference_solve(system):
     r_x, C = rng.normal(size=obj.n_dofs) * 1e-3, rng.normal(size=3 * K) * 1e-3
     args = (None, None, None)
     if system == "sliding":
-        _, d1, _ = tr.cons.target_points(tr.tg, tr.cons.t_rest * 1.05, derivatives=True)
-        B = np.zeros((3 * K, K))
-        B[np.arange(3 * K), np.arange(3 * K) // 3] = -d1.reshape(-1)
-        args = (B, rng.uniform(0.0, 1e-3, K), rng.normal(size=K) * 1e-4)
+        args = structured_sliding_args(tr, rng, K)
     tr.kkt.factor(ab)
     got = tr.kkt.solve(r_x, C, *args)
     ref = reference_solve(ab, tr.cons.A, r_x, C, *args)

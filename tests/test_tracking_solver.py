@@ -16,7 +16,7 @@ import pytest
 
 from derivcheck import GRAD_RTOL
 from helpers import bent_polyline
-from tracking_helpers import (DT, GOALING_MOTION, NO_GRAVITY, build_tracked, free_vertex_com, polyline_scene,
+from tracking_helpers import (structured_sliding_args, DT, GOALING_MOTION, NO_GRAVITY, build_tracked, free_vertex_com, polyline_scene,
                               record_attempts, run_steps, static_guides, straight, tracked_cfg, tracking_cfg)
 from hairexp.control.tracking.controller import TrackingController
 from hairexp.control.tracking.controller import TrackingIterates
@@ -229,10 +229,7 @@ def test_schur_kkt_matches_reference_solve(case, system):
     if system == "sliding_random":
         args = (rng.normal(size=(3 * K, K)) * 0.5, rng.uniform(1e-4, 1e-2, K), rng.normal(size=K) * 1e-3)
     elif system == "sliding_structured":  # dC/dt = -c_hat'(t) as the SQP builds it
-        _, d1, d2 = tr.cons.target_points(tr.tg, tr.cons.t_rest * 1.05, derivatives=True)
-        B = np.zeros((3 * K, K))
-        B[np.arange(3 * K), np.arange(3 * K) // 3] = -d1.reshape(-1)
-        args = (B, rng.uniform(0.0, 1e-3, K), rng.normal(size=K) * 1e-4)
+        args = structured_sliding_args(tr, rng, K)
     tr.kkt.factor(ab)
     got = tr.kkt.solve(r_x, C, *args)
     ref = reference_solve(ab, tr.cons.A, r_x, C, *args)

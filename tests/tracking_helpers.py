@@ -153,3 +153,12 @@ def record_attempts(monkeypatch):
 def run_steps(sim: Simulator, n: int, dt: float = DT, state=None):
     """(states, infos): states[0] is the initial state."""
     return helpers.run_steps(sim, n, dt, state)
+
+
+def structured_sliding_args(tr, rng, K: int):
+    """The sliding-target blocks of eq. (8) as the SQP builds them (dC/dt = -c_hat'(t) at t 5 % past
+    rest), with random diagonal and right-hand side: (B, diag, r_t) for ``kkt.solve``."""
+    _, d1, _ = tr.cons.target_points(tr.tg, tr.cons.t_rest * 1.05, derivatives=True)
+    B = np.zeros((3 * K, K))
+    B[np.arange(3 * K), np.arange(3 * K) // 3] = -d1.reshape(-1)
+    return B, rng.uniform(0.0, 1e-3, K), rng.normal(size=K) * 1e-4
