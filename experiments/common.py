@@ -224,3 +224,14 @@ def describe_run(run) -> str:
             f"before t = 0" + ("" if settle > 0 else " (off)") + f"; controller `{run.controller_name}`"
             + (f" ({cons.K} clusters, {3 * cons.K} constraints)" if cons is not None else "")
             + f"; collision stage: {' and '.join(stage) if stage else 'off'}")
+
+
+def experiment_names(ap, names, default) -> list[str]:
+    """The experiments a script runs: ``names`` (command line) checked against conf/experiment/
+    (an unknown one is ``ap.error``, exit 2, naming the known ones), else those of ``default`` that
+    exist."""
+    available = {p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml")}
+    unknown = sorted(set(names or ()) - available)
+    if unknown:
+        ap.error(f"unknown experiment(s) {', '.join(unknown)} (conf/experiment/ has {', '.join(sorted(available))})")
+    return list(names) if names else [n for n in default if n in available]

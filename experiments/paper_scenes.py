@@ -25,7 +25,7 @@ from hairexp.app.experiment import run_experiment
 from hairexp.app.report import header, write_report
 from hairexp.app.report_cache import cached, describe
 
-from experiments.common import ROOT, compose, fmt, md_row, md_table
+from experiments.common import ROOT, compose, experiment_names, fmt, md_row, md_table
 from experiments.scene_pictures import render_key_moment
 
 SCENES = ["goaling", "splitting", "spreading", "stylization", "celia", "fanning"]
@@ -45,11 +45,7 @@ def main(argv=None):
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="hydra overrides applied to every scene (e.g. frames=10)")
     args = ap.parse_args(argv)
-    available = {p.stem for p in (ROOT / "conf" / "experiment").glob("*.yaml")}
-    unknown = sorted(set(args.names or ()) - available)
-    if unknown:
-        ap.error(f"unknown experiment(s) {', '.join(unknown)} (conf/experiment/ has {', '.join(sorted(available))})")
-    names = args.names or [n for n in SCENES if n in available]
+    names = experiment_names(ap, args.names, SCENES)
     md = header("The paper's scenes, judged")
     md += ("Each experiment runs its variants as `python -m hairexp experiment=<name>` does; `success` is the "
            "judge's verdict on the scene's measure (README, \"Paper scenes\").  Every scene and variant states the "
