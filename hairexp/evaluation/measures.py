@@ -83,20 +83,9 @@ def _frame_at(d: RunData, t: float) -> int:
     return int(np.argmin(np.abs(d.times - t)))
 
 
-def strand_features(d: RunData, frame: int, fraction: float) -> np.ndarray:
-    """(S, 3) mean position of each strand's vertices past ``fraction`` of its vertex count."""
-    s = d.scene.strands
-    x = d.positions[frame]
-    out = []
-    for a, b in zip(s.offsets[:-1], s.offsets[1:]):
-        k = a + min(int(np.floor(fraction * (b - a))), b - a - 1)
-        out.append(x[k:b].mean(0))
-    return np.array(out)
-
-
 def lower_part_features(offsets: np.ndarray, x: np.ndarray, fraction: float) -> np.ndarray:
-    """(S, 3) the mean of each strand's vertices past ``fraction`` of its vertex count (vectorised
-    ``strand_features``)."""
+    """(S, 3) the mean of each strand's vertices past ``fraction`` of its vertex count (at least the
+    last vertex)."""
     n = np.diff(offsets)
     start = offsets[:-1] + np.minimum(np.floor(fraction * n).astype(np.int64), n - 1)
     cnt = offsets[1:] - start
@@ -132,7 +121,7 @@ def cohesion(offsets: np.ndarray, times, positions, threshold: float = 0.03, fra
 
 def clumps(d: RunData, p) -> dict:
     f = _frame_at(d, p.time)
-    X = strand_features(d, f, p.strand_fraction)
+    X = lower_part_features(d.scene.strands.offsets, d.positions[f], p.strand_fraction)
     labels = fcluster(linkage(X, method="single"), t=p.threshold, criterion="distance")
     sizes = np.bincount(labels)[1:]
     big = sizes[sizes >= max(1, int(np.ceil(p.min_share * len(X))))]
