@@ -53,7 +53,8 @@ class SkinnedController(Controller):
         if prev is None:
             return None
         obj = sim.objective
-        plan = sim.integrator.plan(sim, State(state.time - prev.dt, prev.x, prev.v, history=prev.history), prev.dt)
+        scheme = getattr(sim.integrator, "final_stage", sim.integrator)   # TR-BDF2: its BDF2 stage
+        plan = scheme.plan(sim, State(state.time - prev.dt, prev.x, prev.v, history=prev.history), prev.dt)
         obj.begin_step(prev.x, prev.v, sim.scene.root_positions(state.time), prev.dt, None, plan)
         ev = obj.evaluate(sim.free_dofs(state.x), need_hessian=False)
         return float(np.linalg.norm(ev.grad)) / sim.scene.free_weight_norm()

@@ -36,7 +36,7 @@ from hairexp.model.rigid import RigidMotion
 from hairexp.model.scene import Material, Scene
 from hairexp.model.strands import Strands
 from hairexp.physics.energies import Bending, Stretch
-from hairexp.physics.integrators import GeneralizedAlpha
+from hairexp.physics.integrators import TRBDF2_GAMMA, GeneralizedAlpha, bdf2_coefficients
 from hairexp.physics.simulator import Simulator
 
 #: first zero of the Bessel function J_0
@@ -165,6 +165,20 @@ def linear_prediction(integrator: str, omega_dt: float) -> tuple[float, float]:
         L = np.array([[W * W * (1 - af), 0, 1 - am], [1, 0, -be], [0, 1, -gm]])
         R = np.array([[-W * W * af, 0, -am], [1, 1, 0.5 - be], [0, 1, 1 - gm]])
         A = np.linalg.solve(L, R)
+    elif integrator == "trbdf2":                 # state (x, v), dt = 1: TR stage, then BDF2 stage
+        g = TRBDF2_GAMMA
+        a0, a1, b = bdf2_coefficients((1 - g) / g)
+        beta = b * (1 - g)
+
+        def step(x0, v0):
+            tau = 0.5 * g
+            xg = (x0 + g * v0 - tau * tau * W * W * x0) / (1 + tau * tau * W * W)
+            vg = (xg - x0 - tau * v0) / tau
+            xref = a0 * xg - a1 * x0
+            x1 = (xref + beta * (a0 * vg - a1 * v0)) / (1 + beta * beta * W * W)
+            return x1, (x1 - xref) / beta
+
+        A = np.array([step(1.0, 0.0), step(0.0, 1.0)]).T
     else:
         raise ValueError(f"no linear prediction for {integrator!r}")
     ev = np.linalg.eigvals(A)

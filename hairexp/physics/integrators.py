@@ -206,8 +206,64 @@ class GeneralizedAlpha(ImplicitEuler):
         return History(a=(x_new - plan.x_star) / (self.beta * dt * dt))
 
 
+#: gamma of TR-BDF2 (Bank et al. 1985): 2 - sqrt(2) makes both stages' Jacobians equal and the
+#: scheme L-stable.
+TRBDF2_GAMMA = 2.0 - np.sqrt(2.0)
+
+
+class Trapezoidal(ImplicitEuler):
+    """The first stage of TR-BDF2: the trapezoidal rule over a stage of length dt,
+    x_1 - x_0 = dt/2 (v_0 + v_1),  M (v_1 - v_0) = dt/2 (F(x_0, v_0) + F(x_1, v_1)).
+    Eliminating v_1 with tau = dt/2: x_1 = x_0 + dt v_0 + tau^2 a_0 + tau^2 M^-1 F(x_1), the
+    stationarity condition of G with x_pred = x_0 + dt v_0 + tau^2 a_0, h = tau;
+    v_1 = (x_1 - x_0)/tau - v_0, i.e. x_ref = x_0 + tau v_0, h_v = tau.  a_0 = M^-1 F(x_0, v_0)
+    (``Simulator.accelerations``).  Its history is the stage's start (x_0, v_0, dt): the BDF2
+    stage that follows reads it."""
+
+    name = "trapezoidal"
+
+    def plan(self, sim, state, dt: float) -> StepPlan:
+        tau = 0.5 * dt
+        a0 = sim.accelerations(state)
+        return StepPlan(state.x + dt * state.v + tau * tau * a0, tau, state.x + tau * state.v, tau)
+
+    def history(self, state, x_new, v_new, plan, dt):
+        return History(x=state.x, v=state.v, dt=dt)
+
+    after_collision = BDF2.after_collision
+
+
+class TRBDF2:
+    """TR-BDF2 (Bank et al. 1985; Hosea and Shampine 1996): a trapezoidal stage to
+    t_n + gamma dt, then the variable-step BDF2 step through (t_n, x_n), (t_n + gamma dt, x_g)
+    to t_{n+1} (step ratio w = (1 - gamma)/gamma; with gamma = 2 - sqrt(2) its coefficients are
+    a0 = 1/(gamma (2 - gamma)), a1 = (1 - gamma)^2/(gamma (2 - gamma)), beta = (1 - gamma) dt/(2 - gamma),
+    the textbook TR-BDF2).  Second order, L-stable (stiff stretch modes decay: |r| -> 0), and
+    at omega dt = 0.28 (the chain at dt 0.04 s) the linear analysis gives 99.95 % amplitude per
+    period and +0.3 % period error, against BDF2's 97 % and +2.5 %.  Two solves per step, each
+    a stage of the step handled as a step of its own by the Simulator (controller, collision
+    stage, dynamic body); a one-step scheme: nothing is carried to the next step, so substep
+    recovery and the first step need no special case."""
+
+    name = "trbdf2"
+    gamma = TRBDF2_GAMMA
+
+    def __init__(self):
+        self.tr, self.bdf2 = Trapezoidal(), BDF2()
+
+    @property
+    def final_stage(self):
+        """The scheme of a step's last stage (what a state's velocity and history come from)."""
+        return self.bdf2
+
+    def stages(self, dt: float):
+        """[(stage scheme, stage length)] of one step."""
+        return [(self.tr, self.gamma * dt), (self.bdf2, (1.0 - self.gamma) * dt)]
+
+
 #: solver.integrator -> scheme
-INTEGRATORS = {"implicit_euler": ImplicitEuler, "bdf2": BDF2, "generalized_alpha": GeneralizedAlpha}
+INTEGRATORS = {"implicit_euler": ImplicitEuler, "bdf2": BDF2, "trbdf2": TRBDF2,
+               "generalized_alpha": GeneralizedAlpha}
 
 
 def make_integrator(name: str):

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -55,6 +56,34 @@ log = logging.getLogger(__name__)
 
 def _value(x):
     return getattr(x, "value", x)
+
+
+def _merge_stages(infos: list[SolveInfo]) -> SolveInfo:
+    """The stages of one multi-stage step as one SolveInfo: counts and seconds summed, the
+    status of the first failed stage (else converged), the last stage's residuals and warm
+    start, the collision stages' contacts summed."""
+    last = infos[-1]
+    out = SolveInfo(status=next((i.status for i in infos if not i.converged), CONVERGED),
+                    iterations=sum(i.iterations for i in infos), backtracks=sum(i.backtracks for i in infos),
+                    grad_norm=last.grad_norm, force_scale=last.force_scale,
+                    constraint_norm=max(i.constraint_norm for i in infos), tensions=last.tensions)
+    out.seconds = {k: sum(i.seconds.get(k, 0.0) for i in infos) for k in set().union(*(i.seconds for i in infos))}
+    cis = [i.collision for i in infos if i.collision is not None]
+    if cis:
+        c = replace(cis[-1], per_collider={}, broad_phases={})
+        c.object_contacts = sum(ci.object_contacts for ci in cis)
+        c.hair_contacts = sum(ci.hair_contacts for ci in cis)
+        c.penetration_max = max(ci.penetration_max for ci in cis)
+        c.strain_limited = sum(ci.strain_limited for ci in cis)
+        c.passes = sum(ci.passes for ci in cis)
+        c.seconds = sum(ci.seconds for ci in cis)
+        for ci in cis:
+            for k, n in ci.per_collider.items():
+                c.per_collider[k] = c.per_collider.get(k, 0) + n
+            for k, n in ci.broad_phases.items():
+                c.broad_phases[k] = c.broad_phases.get(k, 0) + n
+        out.collision = c
+    return out
 
 
 class _NoColliders:
@@ -181,6 +210,21 @@ class Simulator:
 
     # -- one attempt ----------------------------------------------------------------------
     def _attempt(self, state: State, dt: float) -> tuple[State, SolveInfo]:
+        """One step of the integrator; a multi-stage scheme (TR-BDF2) runs its stages as steps
+        of their own (each with its controller solve and collision stage) and reports them as
+        one solve.  A failed stage ends the attempt (recovery retries the whole step)."""
+        stages = getattr(self.integrator, "stages", None)
+        if stages is None:
+            return self._stage(state, dt, self.integrator)
+        infos = []
+        for scheme, h in stages(dt):
+            state, info = self._stage(state, h, scheme)
+            infos.append(info)
+            if not info.converged:
+                break
+        return replace(state, history=None), _merge_stages(infos)
+
+    def _stage(self, state: State, dt: float, integ) -> tuple[State, SolveInfo]:
         ctl = self.controller
         t_next = state.time + dt
         # 1. kinematics: the body's poses over the step (a dynamic block moves first, with the
@@ -193,7 +237,6 @@ class Simulator:
             motion = self.body.window(state.time, state.body, t_next, body)
         ctl.begin(t_next, motion)
         # 2. solve
-        integ = self.integrator
         plan = integ.plan(self, state, dt)
         if ctl.simulates:
             self.objective.begin_step(state.x, state.v, self.scene.root_positions(t_next, motion), dt, state.tensions,
