@@ -321,6 +321,9 @@ class MeasureConfig:
     cohesion_threshold: float = 0.03   # m: single-linkage distance at which strands' lower parts form one clump
     cohesion_fraction: float = 0.5     # a strand's lower part: its vertices past this fraction
     axis: list[float] = field(default_factory=lambda: [1.0, 0.0, 0.0])   # tip_variance: "ahead" direction
+    # tip_variance: the apex is searched from this time (s) up to apex_until (< 0: the last frame)
+    apex_from: float = 0.0
+    apex_until: float = -1.0
     rail_height: float = 0.0           # m, block_rail
     rail_end: float = 0.0              # m, block_rail
 

@@ -139,6 +139,11 @@ def _measure(cfg) -> None:
     axis = [number(x, f"measure.axis[{i}]") for i, x in enumerate(m.axis)]
     if len(axis) != 3 or not any(axis):
         raise InputError(f"must be 3 numbers, not all 0, got {axis}", "measure.axis")
+    a0, a1 = number(m.apex_from, "measure.apex_from", lo=0), number(m.apex_until, "measure.apex_until")
+    if 0 <= a1 < a0:
+        raise InputError(f"must be < 0 (the last frame) or >= measure.apex_from ({a0}), got {a1}", "measure.apex_until")
+    if a0 > cfg.frames / cfg.fps + 1e-9:
+        raise InputError(f"is after the run's last frame ({cfg.frames / cfg.fps:g} s), got {a0}", "measure.apex_from")
     number(m.rail_height, "measure.rail_height")
     number(m.rail_end, "measure.rail_end")
     number(cfg.judge_tolerance, "judge_tolerance", lo=0, lo_open=True)

@@ -14,7 +14,9 @@ the tracker) and returns a flat dict of numbers that goes into ``summary.json`` 
   the strands count.
 * ``tip_variance`` (spreading): the spread of the strand tips, V = mean |tip - mean tip|^2,
   at the apex (the frame where the tips' centroid is farthest ahead of the roots' centroid
-  along ``measure.axis``) over its rest value v0; for tracked runs also the variance ratio
+  along ``measure.axis``, searched between ``measure.apex_from`` and ``measure.apex_until``: the
+  swing the scene is about, not a later one that undamped hair may swing further) over its rest
+  value v0; for tracked runs also the variance ratio
   V / V_rest of the last tracking point's cluster (eq. 4), the quantity the penalty controls.
 * ``block_rail`` (stylization): the block's travel along the rail and whether it left it.
 * ``fan`` (fanning, paper Fig. 8): the strands' lower parts (as for ``clumps``) projected on
@@ -141,7 +143,13 @@ def tip_variance(d: RunData, p) -> dict:
     axis = np.asarray(p.axis, dtype=np.float64)
     axis = axis / np.linalg.norm(axis)
     ahead = np.array([float((_tips(d, x).mean(0) - _roots(d, x).mean(0)) @ axis) for x in d.positions])
-    f = int(np.argmax(ahead))
+    t = np.asarray(d.times)
+    until = float(getattr(p, "apex_until", -1.0))
+    window = (t >= float(getattr(p, "apex_from", 0.0)) - 1e-9) & ((t <= until + 1e-9) if until >= 0 else True)
+    if not window.any():
+        raise InputError(f"no frame between apex_from {getattr(p, 'apex_from', 0.0)} s and apex_until {until} s "
+                         f"(the run's frames span {t[0]:.3g}-{t[-1]:.3g} s)", "measure.apex_from")
+    f = int(np.flatnonzero(window)[np.argmax(ahead[window])])
     V = np.array([float(np.mean(np.sum((_tips(d, x) - _tips(d, x).mean(0)) ** 2, 1))) for x in d.positions])
     out = {"apex_time": float(d.times[f]), "apex_ahead": float(ahead[f]), "v0": float(V[0]),
            "tip_variance_ratio": float(V[f] / V[0]) if V[0] > 0 else float("nan")}
