@@ -393,8 +393,9 @@ def test_every_controller_runs_with_bdf2(controller, integrator):
     assert all(np.isfinite(s.x).all() and np.isfinite(s.v).all() for s in states)
     if integrator == "bdf2":
         assert states[-1].history is not None and states[-1].history.dt == run.dt
-    else:                                            # one-step: nothing carried between steps
-        assert states[-1].history is None and all(i.substeps == 1 and not i.recovered for i in infos)
+    else:                 # carries only the end acceleration (the next trapezoidal stage's a_0)
+        h = states[-1].history
+        assert h.x is None and h.a is not None and all(i.substeps == 1 and not i.recovered for i in infos)
     _, ie_states, _ = goaling_run(controller, "implicit_euler")
     d = np.abs(states[-1].x - ie_states[-1].x).max()
     assert 0 < d < 0.01                              # another scheme, the same motion
@@ -469,3 +470,45 @@ def test_unknown_integrator_exits_2(tmp_path):
                           cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2, proc.stderr
     assert "solver.integrator" in proc.stderr and "rk4" in proc.stderr
+
+
+# -- TR-BDF2 ------------------------------------------------------------------------------------
+def test_trbdf2_carries_the_equation_of_motions_acceleration():
+    """The acceleration TR-BDF2 carries, (x - x_pred)/h^2 of its BDF2 stage, is M^-1 F at the
+    step's end (the free chain: no constraint forces), to the solver's tolerance."""
+    sc = chain_scene()
+    sim = Simulator(sc, solver("trbdf2", rtol=1e-9, atol=1e-14))
+    st = sim.initial_state()
+    for _ in range(12):
+        st, info = sim.step(st, DT)
+        assert info.converged
+    free = ~sc.strands.kinematic
+    a_eval = sim.accelerations(st)
+    assert np.abs(st.history.a[free] - a_eval[free]).max() <= 1e-6 * np.abs(a_eval[free]).max()
+
+
+def test_trbdf2_restarts_with_implicit_euler_after_a_collision_stage_moved_vertices(monkeypatch):
+    pts = np.zeros((3, 3))
+    pts[:, 1] = -L0 * np.arange(3)
+    s = Strands.from_polylines(pts, np.array([3]), RHO, where="impulse")
+    sc = Scene("impulse", s, Material(RHO, 1e-3, 0.0), RigidMotion.static(), np.array([0.0, -9.81, 0.0]), pts.copy())
+    sim = Simulator(sc, solver("trbdf2"))
+    calls = []
+
+    def stage(cfg, scene, hh, x0, x1, t0, t1, dt, limiter=None):
+        calls.append(t1)
+        x1 = x1.copy()
+        if len(calls) == 4:                         # the second step's last stage: pushed up 1 mm
+            x1[2, 1] += 1e-3
+        return x1, (x1 - x0) / dt, CollisionInfo()
+
+    monkeypatch.setattr(simulator_module, "collision_stage", stage)
+    sim.collide_objects = True
+    sim.collision_cfg = SimpleNamespace()
+    st = sim.initial_state()
+    firsts = []
+    for _ in range(4):
+        firsts.append(type(sim.integrator.stages(st, DT)[0][0]).__name__)
+        st, info = sim.step(st, DT)
+        assert info.converged
+    assert firsts == ["Trapezoidal", "Trapezoidal", "_StageEuler", "Trapezoidal"]

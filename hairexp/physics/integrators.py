@@ -214,39 +214,31 @@ TRBDF2_GAMMA = 2.0 - np.sqrt(2.0)
 
 class Trapezoidal(ImplicitEuler):
     """The first stage of TR-BDF2: the trapezoidal rule over a stage of length dt,
-    x_1 - x_0 = dt/2 (v_0 + v_1),  M (v_1 - v_0) = dt/2 (F(x_0, v_0) + F(x_1, v_1)).
+    x_1 - x_0 = dt/2 (v_0 + v_1),  M (v_1 - v_0) = dt/2 (F_0 + F(x_1, v_1)).
     Eliminating v_1 with tau = dt/2: x_1 = x_0 + dt v_0 + tau^2 a_0 + tau^2 M^-1 F(x_1), the
     stationarity condition of G with x_pred = x_0 + dt v_0 + tau^2 a_0, h = tau;
-    v_1 = (x_1 - x_0)/tau - v_0, i.e. x_ref = x_0 + tau v_0, h_v = tau.  a_0 = M^-1 F(x_0, v_0)
-    (``Simulator.accelerations``).  Its history is the stage's start (x_0, v_0, dt): the BDF2
+    v_1 = (x_1 - x_0)/tau - v_0, i.e. x_ref = x_0 + tau v_0, h_v = tau.
+
+    a_0 = M^-1 F_0 is the total acceleration at the stage's start: the one the previous step's
+    BDF2 stage ended with (``History.a``, constraint forces of a tracked run included), else
+    (the first step of a run) M^-1 F(x_0, v_0) from ``Simulator.accelerations``.  Taking the
+    constraint forces from the previous step matters: without them the stage treats the hair's
+    tracking constraints as if they had exerted no force at x_0, and the SQP ran out of
+    iterations on goaling tracked from the stop on (65-100 iterations a step).  Its history is the stage's start (x_0, v_0, dt): the BDF2
     stage that follows reads it."""
 
     name = "trapezoidal"
 
-    theta = 0.5
-
     def plan(self, sim, state, dt: float) -> StepPlan:
-        th = self.theta
-        a0 = sim.accelerations(state)
-        return StepPlan(state.x + dt * state.v + th * (1 - th) * dt * dt * a0, th * dt,
-                        state.x + (1 - th) * dt * state.v, th * dt)
+        tau = 0.5 * dt
+        h = state.history
+        a0 = h.a if h is not None and h.a is not None else sim.accelerations(state)
+        return StepPlan(state.x + dt * state.v + tau * tau * a0, tau, state.x + tau * state.v, tau)
 
     def history(self, state, x_new, v_new, plan, dt):
         return History(x=state.x, v=state.v, dt=dt)
 
     after_collision = BDF2.after_collision
-
-
-class Theta(Trapezoidal):
-    """EXPERIMENTAL theta-method: x1 = x0 + dt ((1 - th) v0 + th v1), M (v1 - v0) = dt ((1 - th) F0 + th F1)."""
-
-    name = "theta"
-    theta = 0.55
-
-    def history(self, state, x_new, v_new, plan, dt):
-        return None
-
-    after_collision = ImplicitEuler.after_collision
 
 
 class _StageEuler(ImplicitEuler):
@@ -255,6 +247,19 @@ class _StageEuler(ImplicitEuler):
 
     history = Trapezoidal.history
     after_collision = BDF2.after_collision
+
+
+class _StageBDF2(BDF2):
+    """TR-BDF2's second stage: BDF2 through the stage's start and the first stage's end.  Its
+    history is the step's end acceleration a = (x - x_pred)/h^2 (the scheme's own: the discrete
+    equation of motion M (x - x_pred)/h^2 = F(x) + constraint forces), the next trapezoidal
+    stage's a_0; after a collision stage that moved vertices it is only the restart mark."""
+
+    def history(self, state, x_new, v_new, plan, dt):
+        return History(a=(x_new - plan.x_pred) / plan.h ** 2)
+
+    def after_collision(self, state, history, dx, dv, touched):
+        return History(restart=True) if touched.any() else history
 
 
 class TRBDF2:
@@ -266,38 +271,38 @@ class TRBDF2:
     at omega dt = 0.28 (the chain at dt 0.04 s) the linear analysis gives 99.95 % amplitude per
     period and +0.3 % period error, against BDF2's 97 % and +2.5 %.  Two solves per step, each
     a stage of the step handled as a step of its own by the Simulator (controller, collision
-    stage, dynamic body); a one-step scheme: nothing is carried to the next step, so substep
-    recovery and the first step need no special case."""
+    stage, dynamic body).  What it carries to the next step (``History``): the end
+    acceleration (the next trapezoidal stage's a_0), or the restart mark.
+
+    Restart: after a step whose collision stage moved vertices, the first stage is implicit
+    Euler instead of the trapezoidal rule.  The trapezoidal stage takes half of its force
+    explicitly, and a state the collision stage (or the strain limiter) displaced carries
+    stretch forces far from the smooth motion, which the trapezoidal rule (|r| = 1 on stiff
+    modes) does not damp: measured on goaling free with cubic keys at dt 0.04 s, the hair hit the
+    wheel and the strain grew to 150 within two steps.  Restarting a scheme at a discontinuity
+    is the standard remedy; it makes that one step first order, as the collision stage is
+    anyway.  The BDF2 stage then uses the same formula (variable step, ratio (1 - gamma)/gamma)."""
 
     name = "trbdf2"
     gamma = TRBDF2_GAMMA
 
     def __init__(self):
-        self.tr, self.bdf2, self.ie = Trapezoidal(), BDF2(), _StageEuler()
+        self.tr, self.bdf2, self.ie = Trapezoidal(), _StageBDF2(), _StageEuler()
 
     @property
     def final_stage(self):
-        """The scheme of a step's last stage (what a state's velocity and history come from)."""
+        """The scheme of a step's last stage (what a state's velocity comes from)."""
         return self.bdf2
 
     def stages(self, state, dt: float):
-        """[(stage scheme, stage length)] of the step from ``state``.  After a step whose
-        collision stage moved vertices (``History.restart``), the first stage is implicit Euler
-        instead of the trapezoidal rule: the trapezoidal stage takes half of its force explicitly,
-        F(x_n), and a state the collision stage (or the strain limiter) displaced carries stretch
-        forces far from the smooth motion, which the trapezoidal rule (|r| = 1 on stiff modes)
-        does not damp: measured on goaling free with cubic keys at dt 0.04 s, the hair hit the
-        wheel and the strain grew to 150 within two steps.  Restarting a scheme at a
-        discontinuity is the standard remedy; it makes that one step first order, as the
-        collision stage is anyway.  The BDF2 stage then uses the same formula (variable step,
-        ratio (1 - gamma)/gamma)."""
+        """[(stage scheme, stage length)] of the step from ``state``."""
         restart = state.history is not None and state.history.restart
         first = self.ie if restart else self.tr
         return [(first, self.gamma * dt), (self.bdf2, (1.0 - self.gamma) * dt)]
 
 
 #: solver.integrator -> scheme
-INTEGRATORS = {"implicit_euler": ImplicitEuler, "bdf2": BDF2, "trbdf2": TRBDF2, "theta": Theta,
+INTEGRATORS = {"implicit_euler": ImplicitEuler, "bdf2": BDF2, "trbdf2": TRBDF2,
                "generalized_alpha": GeneralizedAlpha}
 
 

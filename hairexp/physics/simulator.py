@@ -39,7 +39,7 @@ from hairexp.physics.collisions import HairHair, StrainLimit, collision_stage
 from hairexp.physics.controller import Controller
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
 from hairexp.physics.info import CONVERGED, DIVERGED, SolveInfo, StepInfo
-from hairexp.physics.integrators import History, ImplicitEuler, make_integrator
+from hairexp.physics.integrators import ImplicitEuler, make_integrator
 from hairexp.physics.newton import NewtonOptions
 from hairexp.physics.objective import ImplicitEulerObjective
 from hairexp.physics.state import State
@@ -222,13 +222,10 @@ class Simulator:
             infos.append(info)
             if info.status == DIVERGED:    # a non-finite state: the attempt ends here
                 break
-        # one-step scheme: nothing is carried but whether the collision stage displaced the state
-        history = History(restart=True) if self._touched else None
-        return replace(state, history=history), _merge_stages(infos)
+        return state, _merge_stages(infos)
 
     def _stage(self, state: State, dt: float, integ) -> tuple[State, SolveInfo]:
         ctl = self.controller
-        self._touched = False   # set by the collision stage below when it displaced vertices
         t_next = state.time + dt
         # 1. kinematics: the body's poses over the step (a dynamic block moves first, with the
         #    hair force of the previous step), the controller's targets at t_next
@@ -267,7 +264,6 @@ class Simulator:
                 dx = x_new - x_solve
                 touched = (np.any(np.abs(dx) > TOUCH_TOL_X, axis=1)
                            | np.any(np.abs(v_stage - (x_solve - state.x) / dt) > TOUCH_TOL_V, axis=1))
-                self._touched = bool(touched.any())
                 dx = np.where(touched[:, None], dx, 0.0)
                 dv = np.where(touched[:, None], v_stage - v_new, 0.0)
                 v_new = v_new + dv
