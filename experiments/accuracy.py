@@ -19,7 +19,7 @@ original run, and the report marks them with the cache date and entry.
 Each grid row is run with every ``--integrators`` value (``solver.integrator``, default implicit_euler and
 bdf2); the reference uses ``--ref-integrator`` (default bdf2, second order).
 Usage: python -m experiments.accuracy [--scenes goaling celia] [--frames N] [--budget 0.01 0.03 0.1]
-       [--integrators implicit_euler bdf2] [--ref-integrator bdf2] [--cache]
+       [--integrators implicit_euler bdf2 trbdf2] [--ref-integrator bdf2] [--cache]
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ def main(argv=None):
                     help="RMS error budgets (fractions of the hair length) to recommend a setting for")
     ap.add_argument("--dts", type=positive_float, nargs="*", default=DTS)
     ap.add_argument("--rtols", type=positive_float, nargs="*", default=RTOLS)
-    ap.add_argument("--integrators", nargs="+", default=["implicit_euler", "bdf2"], choices=list(INTEGRATORS),
+    ap.add_argument("--integrators", nargs="+", default=["implicit_euler", "bdf2", "trbdf2"], choices=list(INTEGRATORS),
                     help="solver.integrator values of the grid runs")
     ap.add_argument("--ref-integrator", default="bdf2", choices=list(INTEGRATORS),
                     help="solver.integrator of the reference run (second order: bdf2)")

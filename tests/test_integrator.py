@@ -405,33 +405,36 @@ def test_every_controller_runs_with_bdf2(controller, integrator):
         assert infos[-1].constraint_norm <= run.controller.opts.ctol
 
 
-def test_simulated_guides_use_the_run_integrator():
+@pytest.mark.parametrize("integrator", ["bdf2", "trbdf2"])
+def test_simulated_guides_use_the_run_integrator(integrator):
     """goaling_smoke's guides are simulated (hairexp/app/guides.py) with the run's integrator;
     the body starts moving at 0.2 s (frame 5)."""
-    run_b, _, _ = goaling_run("skinned", "bdf2", frames=10)
+    run_b, _, _ = goaling_run("skinned", integrator, frames=10)
     run_e, _, _ = goaling_run("skinned", "implicit_euler", frames=10)
     gb, ge = run_b.guides.positions, run_e.guides.positions
     assert np.isfinite(gb).all() and np.array_equal(gb[0], ge[0]) and not np.allclose(gb, ge, atol=1e-6)
 
 
-def test_dynamic_body_with_bdf2():
+@pytest.mark.parametrize("integrator", ["bdf2", "trbdf2"])
+def test_dynamic_body_with_bdf2(integrator):
     """Hanging hair on a block on a frictionless rail stays at rest; a block sliding on a rail
     with friction decelerates at mu g with light hair on it (tests/test_dynamic_body.py)."""
     from test_dynamic_body import G, POSITION, VELOCITY, dyn_scene, hair_mass
 
     scene = dyn_scene(dict(mass=0.01, rail_height=0.0, rail_end=0.1, rail_friction=0.0), n_strands=3, n_vertices=8)
-    sim = Simulator(scene, solver("bdf2", rtol=1e-10))
+    sim = Simulator(scene, solver(integrator, rtol=1e-10))
     st = sim.initial_state()
     x0 = st.x.copy()
     for _ in range(30):
         st, info = sim.step(st, DT)
         assert info.converged
-    assert np.array_equal(st.body[POSITION], np.zeros(3)) and np.max(np.abs(st.x - x0)) < 1e-4
+    # at rest to round-off (trbdf2: -9e-17 m from its two stages of gamma dt and (1 - gamma) dt)
+    assert np.abs(st.body[POSITION]).max() <= 1e-12 and np.max(np.abs(st.x - x0)) < 1e-4
     mu = 0.3
     scene = dyn_scene(dict(mass=0.01, rail_end=10.0, rail_friction=mu, velocity=[0.5, 0.0, 0.0]),
                       n_strands=3, n_vertices=8)
     assert hair_mass(scene) / scene.motion.mass < 0.01
-    sim = Simulator(scene, solver("bdf2"))
+    sim = Simulator(scene, solver(integrator))
     st = sim.initial_state()
     v = [0.5]
     for _ in range(12):
@@ -512,3 +515,31 @@ def test_trbdf2_restarts_with_implicit_euler_after_a_collision_stage_moved_verti
         st, info = sim.step(st, DT)
         assert info.converged
     assert firsts == ["Trapezoidal", "Trapezoidal", "_StageEuler", "Trapezoidal"]
+
+
+def test_trbdf2_substep_recovery_is_two_half_steps(monkeypatch):
+    """A failed TR-BDF2 step is redone as two half steps (each with both stages), the same as
+    stepping dt/2 twice; the carried acceleration is the second half step's."""
+    sc = chain_scene()
+    sim = Simulator(sc, solver("trbdf2"))
+    st = sim.initial_state()
+    for _ in range(12):
+        st, _ = sim.step(st, DT)
+    orig = sim._attempt
+    calls = []
+
+    def failing(state, dt):
+        new, info = orig(state, dt)
+        calls.append(dt)
+        if dt == DT and len(calls) == 1:
+            info.status = MAX_ITERATIONS
+        return new, info
+
+    monkeypatch.setattr(sim, "_attempt", failing)
+    rec, info = sim.step(st, DT)
+    assert info.recovered and info.substeps == 2 and calls == [DT, DT / 2, DT / 2]
+    monkeypatch.setattr(sim, "_attempt", orig)
+    mid, _ = sim.step(st, DT / 2)
+    end, _ = sim.step(mid, DT / 2)
+    assert np.array_equal(rec.x, end.x) and np.array_equal(rec.v, end.v)
+    assert np.array_equal(rec.history.a, end.history.a)
