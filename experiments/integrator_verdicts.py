@@ -17,6 +17,7 @@ import re
 from pathlib import Path
 
 from hairexp.app.report import header, write_report
+from hairexp.physics.integrators import DEFAULT_INTEGRATOR
 
 from experiments.common import fmt, md_row, md_table
 
@@ -31,13 +32,14 @@ KEY_FIGURES = {
 
 
 def column_of(report: dict, path: Path) -> tuple[str, float]:
-    """(integrator, dt) from the command the report records (defaults: implicit_euler, 0.04)."""
+    """(integrator, dt) from the command the report records (without them: the default integrator,
+    ``DEFAULT_INTEGRATOR``, and 0.04; the reports under reports/verdicts/ all name both)."""
     cmd = report.get("command", "")
     integ = re.search(r"solver\.integrator=(\w+)", cmd)
     dt = re.search(r"solver\.dt=([0-9.eE+-]+)", cmd)
     if not cmd:
         raise SystemExit(f"integrator_verdicts: {path}: no command recorded in the report")
-    return (integ.group(1) if integ else "implicit_euler", float(dt.group(1)) if dt else 0.04)
+    return (integ.group(1) if integ else DEFAULT_INTEGRATOR, float(dt.group(1)) if dt else 0.04)
 
 
 def load(paths: list[Path]) -> dict:

@@ -34,8 +34,9 @@ GOALING_MOTION = {
 
 def tracked_cfg(overrides: dict | None = None):
     """A structured ``Config`` for a small tracked run: 16 strands x 12 vertices, one straight
-    guide of 8 vertices, 4 tracking points, sliding targets, the paper's hard assignment (these
-    tests check the paper's formulation; tests/test_soft_assignment.py asks for soft), no
+    guide of 8 vertices, 4 tracking points, sliding targets, the paper's hard assignment and
+    implicit Euler (these tests check the paper's formulation; tests/test_soft_assignment.py
+    asks for soft), no
     recording.  ``overrides`` are dotted keys (``{"scene.n_strands": 12, "tracking.targets": "static"}``)."""
     cfg = OmegaConf.structured(Config)
     base = {
@@ -46,6 +47,9 @@ def tracked_cfg(overrides: dict | None = None):
         "guides.count": 1,
         "tracking.points_per_guide": 4,
         "tracking.assignment": "hard",
+        # the paper's time step, eq. (5), which these tests re-evaluate by hand (the default,
+        # trbdf2, is covered by tests/test_integrator.py with every controller)
+        "solver.integrator": "implicit_euler",
         "solver.compile": "off",
         "logging.rerun": False,
         "logging.progress": False,

@@ -18,6 +18,7 @@ from hydra.core.config_store import ConfigStore
 
 from hairexp.control import REGISTRY as CONTROLLERS
 from hairexp.errors import InputError
+from hairexp.physics.integrators import DEFAULT_INTEGRATOR
 
 
 class Interpolation(str, Enum):
@@ -265,10 +266,11 @@ class SolverConfig:
     compile: Compile = Compile.auto   # torch.compile of the closed forms (first step pays ~10-20 s)
     on_failure: OnFailure = OnFailure.substep
     max_substep_levels: int = 4       # a failing step is split into at most 2^levels substeps
-    # implicit_euler (paper eq. 5) | bdf2 | generalized_alpha (experimental), hairexp/physics/integrators.py.
+    # trbdf2 (the default) | implicit_euler (paper eq. 5) | bdf2 | generalized_alpha (experimental),
+    # hairexp/physics/integrators.py.
     # A string, not an Enum, checked by validate_config: an unknown name is an InputError naming
     # solver.integrator (exit 2), and the choices are the integrator registry's keys.
-    integrator: str = "implicit_euler"
+    integrator: str = DEFAULT_INTEGRATOR   # "trbdf2"
 
 
 @dataclass

@@ -19,7 +19,7 @@ from __future__ import annotations
 from hairexp.errors import InputError, finite_number
 from hairexp.evaluation.judges import JUDGE_MEASURES
 from hairexp.evaluation.measures import collider_named
-from hairexp.physics.integrators import make_integrator
+from hairexp.physics.integrators import DEFAULT_INTEGRATOR, make_integrator
 
 
 def _value(x):
@@ -66,7 +66,7 @@ MAX_SUBSTEP_LEVELS = 10
 
 
 def _solver(s) -> None:
-    make_integrator(getattr(s, "integrator", "implicit_euler"))   # InputError naming solver.integrator
+    make_integrator(getattr(s, "integrator", DEFAULT_INTEGRATOR))   # InputError naming solver.integrator
     rtol = number(s.rtol, "solver.rtol", lo=0)
     atol = number(s.atol, "solver.atol", lo=0)
     if rtol == 0 and atol == 0:
@@ -142,8 +142,9 @@ def _measure(cfg) -> None:
     a0, a1 = number(m.apex_from, "measure.apex_from", lo=0), number(m.apex_until, "measure.apex_until")
     if 0 <= a1 < a0:
         raise InputError(f"must be < 0 (the last frame) or >= measure.apex_from ({a0}), got {a1}", "measure.apex_until")
-    if a0 > cfg.frames / cfg.fps + 1e-9:
-        raise InputError(f"is after the run's last frame ({cfg.frames / cfg.fps:g} s), got {a0}", "measure.apex_from")
+    frames, fps = getattr(cfg, "frames", None), getattr(cfg, "fps", None)
+    if frames is not None and fps is not None and a0 > frames / fps + 1e-9:   # (a USD scene's come from its stage)
+        raise InputError(f"is after the run's last frame ({frames / fps:g} s), got {a0}", "measure.apex_from")
     number(m.rail_height, "measure.rail_height")
     number(m.rail_end, "measure.rail_end")
     number(cfg.judge_tolerance, "judge_tolerance", lo=0, lo_open=True)

@@ -33,13 +33,13 @@ import numpy as np
 import torch
 
 from hairexp import tune_runtime
-from hairexp.errors import SimulationError
+from hairexp.errors import InputError, SimulationError
 from hairexp.model.scene import Scene
 from hairexp.physics.collisions import HairHair, StrainLimit, collision_stage
 from hairexp.physics.controller import Controller
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
 from hairexp.physics.info import CONVERGED, DIVERGED, SolveInfo, StepInfo
-from hairexp.physics.integrators import ImplicitEuler, make_integrator
+from hairexp.physics.integrators import DEFAULT_INTEGRATOR, ImplicitEuler, make_integrator
 from hairexp.physics.newton import NewtonOptions
 from hairexp.physics.objective import ImplicitEulerObjective
 from hairexp.physics.state import State
@@ -103,7 +103,7 @@ class Simulator:
         self.scene = scene
         self.cfg = solver_cfg
         if integrator is None:
-            integrator = getattr(solver_cfg, "integrator", "implicit_euler")
+            integrator = getattr(solver_cfg, "integrator", DEFAULT_INTEGRATOR)
         self.integrator = make_integrator(integrator)
         self.controller = controller = Controller() if controller is None else controller
         s, m = scene.strands, scene.material
@@ -123,6 +123,16 @@ class Simulator:
         self.newton = NewtonOptions(solver_cfg.rtol, solver_cfg.atol, solver_cfg.max_iterations, solver_cfg.max_backtracks)
         self.on_failure = str(_value(solver_cfg.on_failure))
         self.body = scene.body
+        if self.body is not None:
+            hair = float(s.masses[~s.kinematic].sum())
+            need = getattr(self.integrator, "min_body_ratio", 1.0)
+            if need > 1.0 and self.body.total_mass < need * hair:   # 1 x: build_dynamic_body checks it
+                raise InputError(
+                    f"the block ({self.body.mass:.4g} kg, plus {self.body.carried_mass:.4g} kg of roots) must weigh at "
+                    f"least {need:g} x the free hair it carries ({hair:.4g} kg) with solver.integrator="
+                    f"{self.integrator.name}: lighter, the staggered block-hair coupling is unstable under this scheme "
+                    f"(hairexp/physics/integrators.py min_body_ratio); use a heavier block or "
+                    f"solver.integrator=implicit_euler (stable from 1 x)", "scene.body.mass")
         # collision stage: built only when the scene has something to collide (else no code runs)
         self.collision_cfg = collision_cfg
         cc = collision_cfg
@@ -233,7 +243,7 @@ class Simulator:
         if self.body is not None:
             if not ctl.simulates:
                 raise SimulationError(f"the {ctl.name} controller cannot drive a dynamic body")
-            body = self.body.advance(state.body, dt)
+            body = self.body.advance(state.body, dt, getattr(integ, "body_theta", 1.0))
             motion = self.body.window(state.time, state.body, t_next, body)
         ctl.begin(t_next, motion)
         # 2. solve
