@@ -1,4 +1,5 @@
-"""Time integrators of the step (``solver.integrator``), each written as a minimisation.
+"""Time integrators of the step (``solver.integrator``, default ``trbdf2``), each written as a
+minimisation (a multi-stage scheme: one per stage).
 
 Every scheme here advances (x_n, v_n, history) to x_{n+1} by minimising
 
@@ -31,6 +32,12 @@ beta = dt_n (1 + w) / (1 + 2w) (w = 1: the constant-step values; exact for quadr
 tests/test_integrator.py).  Zero-stable for w < 1 + sqrt(2); the halving recovery only makes
 w = 2^-k (shorter) and w = 2 (back up).  The first step of a run has no history: it is one
 implicit Euler step (the standard start; its local error O(dt^2) keeps BDF2 second order).
+
+``trbdf2`` (the default; Bank et al. 1985): a trapezoidal stage to t_n + gamma dt, then the
+variable-step BDF2 stage above through (t_n, x_n), (t_n + gamma dt, x_g) to t_{n+1}, gamma = 2 -
+sqrt 2.  Second order and L-stable; each stage is a minimisation of G solved by the Simulator as a
+step of its own.  See ``TRBDF2`` (what it carries between steps: the end acceleration, constraint
+forces included; its restart after a collision stage that moved vertices) and ``Trapezoidal``.
 
 ``generalized_alpha`` (Chung and Hulbert 1993, with high-frequency dissipation rho_inf):
 Newmark's x_{n+1} = x_n + dt v_n + dt^2 ((1/2 - beta) a_n + beta a_{n+1}),
