@@ -18,6 +18,12 @@ of (strand, cluster) is (r P + p, coordinate), r the rank of the cluster's guide
 guides the strand has weight on, so 3 x P x (most guides per strand) right-hand sides (hard:
 r = 0, the layout above).  ``reference_solve`` is the plain sparse saddle-point solve (SuperLU) that tests
 compare against.
+
+With the objective's compiled kernels (``kernels``: hairexp/physics/strand_kernels.py,
+``solver.kernels=numba``) the factorisation is the per-strand block Cholesky and Y^T Y is built
+strand by strand in numba (hairexp/physics/bandchol.py ``schur_*``: each column's forward
+substitution starts at its first non-zero row, the products skip the zero rows); otherwise
+LAPACK's banded Cholesky and batched torch triangular solves.
 """
 
 from __future__ import annotations
@@ -28,11 +34,14 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
+from hairexp.physics import bandchol
 from hairexp.physics.assembly import BandedAssembler
 
 
 class SchurKKT:
-    def __init__(self, strands, cons, bandwidth: int):
+    def __init__(self, strands, cons, bandwidth: int, kernels=None):
+        """``kernels``: the objective's ``StrandKernels`` (None: the LAPACK + torch path); used
+        only when each strand's DOFs are whole blocks of it."""
         s = strands
         free = np.flatnonzero(~s.kinematic)
         strand_of_free = s.strand_of_vertex[free]
@@ -85,9 +94,19 @@ class SchurKKT:
         self._srow = (rows[:, :, None] * (3 * K + 1) + rows[:, None, :]).ravel()
         self.K = K
         self.A, self.AT_sparse = cons.A, cons.AT
+        self.kernels = None
+        if kernels is not None and np.isin(self.dof_off, kernels.blk_dof).all():
+            self.kernels = kernels
+            self._AT = np.ascontiguousarray(AT)
+            nz = AT != 0
+            self._first = np.where(nz.any(axis=1), nz.argmax(axis=1), -1).astype(np.int64)   # (S, R)
+            self._dof_off = np.ascontiguousarray(self.dof_off, dtype=np.int64)
 
     def factor(self, ab: np.ndarray) -> None:
         """Factor H (lower band ``ab``) and build S = A H^-1 A^T."""
+        if self.kernels is not None:
+            self._factor_kernels(ab)
+            return
         try:
             self.cb = scipy.linalg.cholesky_banded(ab, lower=True, check_finite=False)
         except np.linalg.LinAlgError:
@@ -105,7 +124,23 @@ class SchurKKT:
         Sfull = np.bincount(self._srow, weights=YtY.ravel(), minlength=n * n).reshape(n, n)
         self.Smat = Sfull[:-1, :-1]
 
+    def _factor_kernels(self, ab: np.ndarray) -> None:
+        k = self.kernels
+        self.LT = k.factor(ab)
+        self.cb = self.LT.T        # scipy.linalg.cholesky_banded's layout
+        YtY = np.empty((self.S, self.R, self.R))
+        if k.parallel:
+            bandchol.set_threads(k.threads)
+            bandchol.schur_parallel(self.LT, self._AT, self._first, self._dof_off, YtY)
+        else:
+            bandchol.schur_serial(self.LT, self._AT, self._first, self._dof_off, YtY)
+        n = 3 * self.K + 1
+        Sfull = np.bincount(self._srow, weights=YtY.ravel(), minlength=n * n).reshape(n, n)
+        self.Smat = Sfull[:-1, :-1]
+
     def hinv(self, r: np.ndarray) -> np.ndarray:
+        if self.kernels is not None:
+            return self.kernels.cho_solve(self.LT, r)
         return scipy.linalg.cho_solve_banded((self.cb, True), r, check_finite=False)
 
     def solve(self, r_x: np.ndarray, C: np.ndarray, Bmat: np.ndarray | None = None, D: np.ndarray | None = None,
