@@ -292,12 +292,19 @@ def test_newton_solve_agrees_and_threads_are_bit_identical():
     assert np.abs(x1 - xt).max() <= AGREE * np.abs(xt).max()
 
 
-def test_tracked_steps_agree_with_the_torch_path():
-    """The SQP with the numba factorisation and Schur complement against the LAPACK + torch one."""
+@pytest.mark.parametrize("assignment", ["hard", "soft"])
+def test_tracked_steps_agree_with_the_torch_path(assignment):
+    """The SQP with the numba factorisation and Schur complement (with soft assignment a strand's
+    columns of A^T for one tracking point of several guides are proportional: one column kept)
+    against the LAPACK + torch one."""
     res = {}
     for kern in ("numba", "torch"):
-        _, _, sim = build_tracked(tracked_cfg({"frames": 3, "solver.kernels": kern, "solver.threads": "1"}))
-        assert (sim.controller.kkt.kernels is not None) == (kern == "numba")
+        _, _, sim = build_tracked(tracked_cfg({"frames": 3, "solver.kernels": kern, "solver.threads": "1",
+                                               "tracking.assignment": assignment, "guides.count": 2}))
+        kkt = sim.controller.kkt
+        assert (kkt.kernels is not None) == (kern == "numba")
+        if kern == "numba" and assignment == "soft":
+            assert kkt._Bt.shape[1] < kkt.R
         state = sim.initial_state()
         xs = []
         for _ in range(3):

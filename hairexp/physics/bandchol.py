@@ -102,12 +102,14 @@ def factor_block(blk, A, L, blk_dof):
 
 @njit(cache=True)
 def solve_block(blk, L, b, x, blk_dof):
-    """x = (L L^T)^-1 b on block ``blk`` (forward then back substitution; x may be b)."""
+    """x = (L L^T)^-1 b on block ``blk`` (forward then back substitution; x may be b).  The
+    pivots' reciprocals do not depend on x, so they leave the substitutions' dependency chain
+    (a division there costs its full latency per row)."""
     d0, d1 = blk_dof[blk], blk_dof[blk + 1]
     for j in range(d0, d1):
         x[j] = b[j]
     for j in range(d0, d1):
-        xj = x[j] / L[j, 0]
+        xj = x[j] * (1.0 / L[j, 0])
         x[j] = xj
         for a in range(1, min(BW, d1 - 1 - j) + 1):
             x[j + a] -= L[j, a] * xj
@@ -115,7 +117,7 @@ def solve_block(blk, L, b, x, blk_dof):
         s = x[j]
         for a in range(1, min(BW, d1 - 1 - j) + 1):
             s -= L[j, a] * x[j + a]
-        x[j] = s / L[j, 0]
+        x[j] = s * (1.0 / L[j, 0])
 
 
 @njit(cache=True, parallel=True)
@@ -129,6 +131,19 @@ def factor_parallel(A, L, blk_dof, ok):
 def factor_serial(A, L, blk_dof, ok):
     for blk in range(blk_dof.shape[0] - 1):
         ok[blk] = factor_block(blk, A, L, blk_dof)
+
+
+@njit(cache=True, parallel=True)
+def solve1_parallel(L, b, x, blk_dof):
+    """x = A^-1 b (vectors) with the factor L of every block."""
+    for blk in prange(blk_dof.shape[0] - 1):
+        solve_block(blk, L, b, x, blk_dof)
+
+
+@njit(cache=True)
+def solve1_serial(L, b, x, blk_dof):
+    for blk in range(blk_dof.shape[0] - 1):
+        solve_block(blk, L, b, x, blk_dof)
 
 
 @njit(cache=True, parallel=True)
@@ -147,47 +162,74 @@ def solve_serial(L, B, X, blk_dof):
 
 
 @njit(cache=True)
-def schur_block(s, L, AT, first, dof_off, out):
-    """out[s] = Y^T Y, Y = L_s^-1 A_s^T, for strand s (see ``schur_parallel``)."""
-    nmax, R = AT.shape[1], AT.shape[2]
+def schur_block(s, L, Bt, first, dof_off, out):
+    """out[s] = Y^T Y, Y = L_s^-1 B_s, for strand s (see ``schur_parallel``).  Y (rows, columns)
+    is solved right-looking with the columns innermost (contiguous, independent: they vectorise),
+    and Y^T Y is summed as rank-one updates row by row.  The columns are sorted by their first
+    non-zero row, so at row j only the prefix of columns with first <= j is non-zero."""
+    Rb, nmax = Bt.shape[1], Bt.shape[2]
     d0 = dof_off[s]
     n = dof_off[s + 1] - d0
-    Y = np.zeros((nmax, R))
-    for r in range(R):
-        f = first[s, r]
-        if f < 0:
-            continue
-        for j in range(f, n):   # forward substitution from the column's first non-zero row
-            acc = AT[s, j, r]
-            for k in range(max(f, j - BW), j):
-                acc -= L[d0 + k, j - k] * Y[k, r]
-            Y[j, r] = acc / L[d0 + j, 0]
-    for a in range(R):
-        fa = first[s, a]
+    Y = np.zeros((nmax, Rb))
+    for r in range(Rb):
+        if first[s, r] >= 0:
+            for j in range(first[s, r], n):
+                Y[j, r] = Bt[s, r, j]
+    G = np.zeros((Rb, Rb))
+    m = 0
+    for j in range(n):
+        while m < Rb and first[s, m] >= 0 and first[s, m] <= j:
+            m += 1
+        inv = 1.0 / L[d0 + j, 0]
+        for r in range(m):
+            Y[j, r] *= inv
+        for a in range(1, min(BW, n - 1 - j) + 1):
+            la = L[d0 + j, a]
+            for r in range(m):
+                Y[j + a, r] -= la * Y[j, r]
+        for a in range(m):
+            ya = Y[j, a]
+            for b in range(a + 1):
+                G[a, b] += ya * Y[j, b]
+    for a in range(Rb):
         for b in range(a + 1):
-            fb = first[s, b]
-            acc = 0.0
-            if fa >= 0 and fb >= 0:
-                for j in range(max(fa, fb), n):
-                    acc += Y[j, a] * Y[j, b]
-            out[s, a, b] = acc
-            out[s, b, a] = acc
+            out[s, a, b] = G[a, b]
+            out[s, b, a] = G[a, b]
 
 
 @njit(cache=True)
-def schur_serial(L, AT, first, dof_off, out):
-    for s in range(AT.shape[0]):
-        schur_block(s, L, AT, first, dof_off, out)
+def scatter_scaled(G, base, scale, rows, out):
+    """out[rows[s, a], rows[s, b]] += scale[s, a] scale[s, b] G[s, base[s, a], base[s, b]] over the
+    strands' non-empty columns (base >= 0): the strands' blocks A_s H_s^-1 A_s^T summed into S."""
+    for s in range(G.shape[0]):
+        for a in range(base.shape[1]):
+            ba = base[s, a]
+            if ba < 0:
+                continue
+            ra = rows[s, a]
+            sa = scale[s, a]
+            for b in range(base.shape[1]):
+                bb = base[s, b]
+                if bb >= 0:
+                    out[ra, rows[s, b]] += sa * scale[s, b] * G[s, ba, bb]
+
+
+@njit(cache=True)
+def schur_serial(L, Bt, first, dof_off, out):
+    for s in range(Bt.shape[0]):
+        schur_block(s, L, Bt, first, dof_off, out)
 
 
 @njit(cache=True, parallel=True)
-def schur_parallel(L, AT, first, dof_off, out):
-    """Per strand s: Y = L_s^-1 A_s^T (forward substitution), out[s] = Y^T Y (R, R).
+def schur_parallel(L, Bt, first, dof_off, out):
+    """Per strand s: Y = L_s^-1 B_s (forward substitution), out[s] = Y^T Y (Rb, Rb).
 
-    ``AT`` (S, nmax, R): the strand's rows of the constraint Jacobian's transpose (constant: a
-    centre of mass is linear in the positions, paper 3.2); ``first`` (S, R): the first non-zero
-    row of each column (-1: an empty column), where its forward substitution starts (Y is zero
-    above it).  Y^T Y summed over strands is the Schur complement S = A H^-1 A^T (paper eq. 8,
+    ``Bt`` (S, Rb, nmax): the strand's distinct columns of the constraint Jacobian's transpose
+    A_s^T up to scale (constant: a centre of mass is linear in the positions, paper 3.2; the
+    columns of one tracking point's clusters of different guides are proportional, so Celia's 72
+    columns per strand are 24); ``first`` (S, Rb): the first non-zero row of each, ascending
+(-1: padding, last).
+    ``scatter_scaled`` sums the blocks into the Schur complement S = A H^-1 A^T (paper eq. 8,
     hairexp/control/tracking/kkt.py)."""
-    for s in prange(AT.shape[0]):
-        schur_block(s, L, AT, first, dof_off, out)
+    for s in prange(Bt.shape[0]):
+        schur_block(s, L, Bt, first, dof_off, out)

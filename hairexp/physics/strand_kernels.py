@@ -195,10 +195,14 @@ class StrandKernels:
         """A^-1 rhs from the factor of ``factor``; rhs (N,) or (N, R)."""
         if self.parallel:
             set_threads(self.threads)
-        run = bandchol.solve_parallel if self.parallel else bandchol.solve_serial
         b = np.ascontiguousarray(rhs, dtype=np.float64)
         x = np.empty_like(b)
-        run(L, b.reshape(len(b), -1), x.reshape(len(b), -1), self.blk_dof)
+        if b.ndim == 1:
+            run = bandchol.solve1_parallel if self.parallel else bandchol.solve1_serial
+            run(L, b, x, self.blk_dof)
+        else:
+            run = bandchol.solve_parallel if self.parallel else bandchol.solve_serial
+            run(L, b, x, self.blk_dof)
         return x
 
     def solve(self, ab: np.ndarray, rhs: np.ndarray) -> np.ndarray:

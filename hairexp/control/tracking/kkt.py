@@ -91,15 +91,14 @@ class SchurKKT:
             kk[:, r * P:(r + 1) * P] = np.where(has[:, None], lookup[g_r], -1)
         kk = kk[:, np.arange(self.R) // 3]                          # (S, R)
         rows = np.where(kk >= 0, 3 * kk + np.arange(self.R) % 3, 3 * K)
+        self._rows = np.ascontiguousarray(rows, dtype=np.int64)     # (S, R)
         self._srow = (rows[:, :, None] * (3 * K + 1) + rows[:, None, :]).ravel()
         self.K = K
         self.A, self.AT_sparse = cons.A, cons.AT
         self.kernels = None
         if kernels is not None and np.isin(self.dof_off, kernels.blk_dof).all():
             self.kernels = kernels
-            self._AT = np.ascontiguousarray(AT)
-            nz = AT != 0
-            self._first = np.where(nz.any(axis=1), nz.argmax(axis=1), -1).astype(np.int64)   # (S, R)
+            self._Bt, self._first, self._base, self._scale = distinct_columns(AT)
             self._dof_off = np.ascontiguousarray(self.dof_off, dtype=np.int64)
 
     def factor(self, ab: np.ndarray) -> None:
@@ -128,14 +127,15 @@ class SchurKKT:
         k = self.kernels
         self.LT = k.factor(ab)
         self.cb = self.LT.T        # scipy.linalg.cholesky_banded's layout
-        YtY = np.empty((self.S, self.R, self.R))
+        G = np.empty((self.S, self._Bt.shape[1], self._Bt.shape[1]))
         if k.parallel:
             bandchol.set_threads(k.threads)
-            bandchol.schur_parallel(self.LT, self._AT, self._first, self._dof_off, YtY)
+            bandchol.schur_parallel(self.LT, self._Bt, self._first, self._dof_off, G)
         else:
-            bandchol.schur_serial(self.LT, self._AT, self._first, self._dof_off, YtY)
+            bandchol.schur_serial(self.LT, self._Bt, self._first, self._dof_off, G)
         n = 3 * self.K + 1
-        Sfull = np.bincount(self._srow, weights=YtY.ravel(), minlength=n * n).reshape(n, n)
+        Sfull = np.zeros((n, n))
+        bandchol.scatter_scaled(G, self._base, self._scale, self._rows, Sfull)
         self.Smat = Sfull[:-1, :-1]
 
     def hinv(self, r: np.ndarray) -> np.ndarray:
@@ -158,6 +158,46 @@ class SchurKKT:
             lam, dt = sol[:3 * self.K], sol[3 * self.K:]
         dx = -self.hinv(r_x + self.AT_sparse @ lam)
         return dx, dt, lam
+
+
+def distinct_columns(AT: np.ndarray):
+    """Each strand's columns of A^T (AT: (S, n, R)) up to scale: (Bt (S, Rb, n) the distinct
+    columns sorted by first (S, Rb), their first non-zero row (-1: padding, last), base (S, R) and scale (S, R)
+    with AT[s, :, r] = scale[s, r] Bt[s, base[s, r]] (base -1: an empty column)."""
+    S, n, R = AT.shape
+    base = np.full((S, R), -1, dtype=np.int64)
+    scale = np.zeros((S, R))
+    cols = []
+    for s in range(S):
+        c = AT[s].T                                                     # (R, n)
+        nz = c != 0
+        has = nz.any(axis=1)
+        lead = np.where(has, c[np.arange(R), nz.argmax(axis=1)], 1.0)  # the first non-zero entry
+        u = c / lead[:, None]
+        mine = []
+        for r in np.flatnonzero(has):
+            for b, v in enumerate(mine):
+                if np.array_equal(nz[r], v != 0) and np.allclose(u[r], v, rtol=1e-13, atol=0.0):
+                    break
+            else:
+                b = len(mine)
+                mine.append(u[r])
+            base[s, r], scale[s, r] = b, lead[r]
+        cols.append(mine)
+    Rb = max(1, max(len(m) for m in cols))
+    Bt = np.zeros((S, Rb, n))
+    first = np.full((S, Rb), -1, dtype=np.int64)
+    for s, mine in enumerate(cols):   # sorted by first non-zero row (bandchol.schur_block needs it)
+        f = np.array([int(np.flatnonzero(v)[0]) for v in mine], dtype=np.int64)
+        order = np.argsort(f, kind="stable")
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        for b, o in enumerate(order):
+            Bt[s, b] = mine[o]
+            first[s, b] = f[o]
+        has = base[s] >= 0
+        base[s, has] = rank[base[s, has]]
+    return Bt, first, base, scale
 
 
 def reference_solve(ab: np.ndarray, A: sp.spmatrix, r_x: np.ndarray, C: np.ndarray, Bmat: np.ndarray | None = None,
