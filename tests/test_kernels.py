@@ -362,3 +362,20 @@ def test_cli_bad_kernels_exits_2(tmp_path):
                           timeout=120)
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     assert "solver.kernels" in proc.stderr
+
+
+def test_numpy_spline_matches_the_torch_spline():
+    """The SQP's target points (``hermite_numpy``) against hairexp/guides/spline.py's torch curves,
+    inside the knots and beyond both ends (linear continuation)."""
+    from hairexp.guides import spline
+
+    rng = np.random.default_rng(9)
+    P = torch.from_numpy(rng.normal(size=(6, 7, 3)))
+    s = torch.from_numpy(np.cumsum(0.01 + rng.random(7)) - 0.5)
+    t = torch.from_numpy(np.array([-1.0, float(s[0]), 0.3, 1.2, float(s[-1]), 9.0]))
+    m = spline.tangents(P, s)
+    c = spline.hermite_numpy(P.numpy(), s.numpy(), m.numpy(), t.numpy())
+    np.testing.assert_allclose(c, spline.evaluate(P, s, t).numpy(), rtol=0, atol=1e-13)
+    got = spline.hermite_numpy(P.numpy(), s.numpy(), m.numpy(), t.numpy(), True)
+    for a, b in zip(got, spline.eval_with_derivatives(P, s, t)):
+        np.testing.assert_allclose(a, b.numpy(), rtol=0, atol=1e-12 * max(1.0, float(b.abs().max())))

@@ -155,27 +155,36 @@ class TrackingConstraints:
             clusters.append(ks)
         return TargetCurves(ctrl, self.knots, clusters, shape)
 
+    def _numpy_curves(self, tg: TargetCurves) -> list:
+        """Per guide (control points, knots, tangents, clusters) as numpy arrays, for the target
+        curves ``tg`` (kept for the last ``tg``: it is constant over a step's SQP iterations)."""
+        cached = getattr(self, "_np_curves", None)
+        if cached is None or cached[0] is not tg:
+            curves = [(Q.numpy(), s.numpy(), spline.tangents(Q, s).numpy(), ks)
+                      for Q, s, ks in zip(tg.control, tg.knots, tg.clusters) if ks.size]
+            cached = self._np_curves = (tg, curves)
+        return cached[1]
+
     def target_points(self, tg: TargetCurves, tk: np.ndarray, derivatives: bool = False):
-        """c_hat(t) (K, 3) and, with ``derivatives``, c_hat' and c_hat'' (K, 3) each."""
+        """c_hat(t) (K, 3) and, with ``derivatives``, c_hat' and c_hat'' (K, 3) each (the
+        Catmull-Rom curves of hairexp/guides/spline.py, in numpy: ``hermite_numpy``)."""
         c = np.zeros((self.K, 3))
         d1 = np.zeros((self.K, 3))
         d2 = np.zeros((self.K, 3))
-        for Q, s, ks in zip(tg.control, tg.knots, tg.clusters):
-            if ks.size == 0:
-                continue
-            t = torch.as_tensor(tk[ks])
+        for Q, s, m, ks in self._numpy_curves(tg):
+            t = np.asarray(tk[ks], dtype=np.float64)
             if derivatives:
-                v, a, b = spline.eval_with_derivatives(Q, s, t)
+                v, a, b = spline.hermite_numpy(Q, s, m, t, True)
                 if self.soft:     # the blend over the guides (a cluster appears once per guide)
-                    np.add.at(c, ks, v.numpy())
-                    np.add.at(d1, ks, a.numpy())
-                    np.add.at(d2, ks, b.numpy())
+                    np.add.at(c, ks, v)
+                    np.add.at(d1, ks, a)
+                    np.add.at(d2, ks, b)
                 else:
-                    c[ks], d1[ks], d2[ks] = v.numpy(), a.numpy(), b.numpy()
+                    c[ks], d1[ks], d2[ks] = v, a, b
             elif self.soft:
-                np.add.at(c, ks, spline.evaluate(Q, s, t).numpy())
+                np.add.at(c, ks, spline.hermite_numpy(Q, s, m, t))
             else:
-                c[ks] = spline.evaluate(Q, s, t).numpy()
+                c[ks] = spline.hermite_numpy(Q, s, m, t)
         return (c, d1, d2) if derivatives else c
 
     def residual(self, xf: np.ndarray, tg: TargetCurves, tk: np.ndarray) -> np.ndarray:
