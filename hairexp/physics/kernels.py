@@ -124,9 +124,10 @@ def _add_block(abT, rows, cols, H, p, q, scale):
 
 @njit(cache=True)
 def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
-                   b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian):
+                   b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W):
     """Gradient g_int of the energies and lower band abT (M/h^2 on the diagonal plus
-    (1 - alpha_f) x the element Hessians, ``h_scale``) of block ``blk``."""
+    (1 - alpha_f) x the element Hessians, ``h_scale``) of block ``blk``.  ``W`` (SCRATCH,):
+    scratch, one per thread (an allocation per block costs as much as a strand's stretch)."""
     d0, d1 = blk_dof[blk], blk_dof[blk + 1]
     bw = abT.shape[1] - 1
     for j in range(d0, d1):
@@ -135,8 +136,8 @@ def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, te
             abT[j, 0] = mass_diag[j]
             for d in range(1, bw + 1):
                 abT[j, d] = 0.0
-    H = np.zeros((9, 9))
-    u = np.empty(3)
+    H = W[:81].reshape((9, 9))
+    u = W[81:84]
     for k in range(e_ptr[blk], e_ptr[blk + 1]):
         e = e_idx[k]
         va, vb = edges[e, 0], edges[e, 1]
@@ -171,12 +172,11 @@ def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, te
             _add_block(abT, 3 * sb, 3 * sb, H, 1, 1, h_scale)
             if sa >= 0:
                 _add_block(abT, 3 * sb, 3 * sa, H, 1, 0, h_scale)
-    J = np.empty((3, 9))
-    kb = np.empty(3)
-    q = np.empty(9)
-    sl = np.empty(3, dtype=np.int64)
-    e0 = np.empty(3)
-    e1 = np.empty(3)
+    J = W[84:111].reshape((3, 9))
+    kb = W[111:114]
+    q = W[114:123]
+    e0 = W[123:126]
+    e1 = W[126:129]
     for k in range(b_ptr[blk], b_ptr[blk + 1]):
         e = b_idx[k]
         bend_jacobian(Y, bends[e, 0], bends[e, 1], bends[e, 2], J, kb, e0, e1)
@@ -186,8 +186,7 @@ def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, te
         if s > 0.0:
             ratio = s / nrm if nrm > KB_EPS else 1.0   # at the kink: no pull
         f = 2.0 * w[e] * (1.0 - ratio)
-        for i in range(3):
-            sl[i] = free_slot[bends[e, i]]
+        sl = (free_slot[bends[e, 0]], free_slot[bends[e, 1]], free_slot[bends[e, 2]])
         for a in range(9):
             ga = f * (J[0, a] * kb[0] + J[1, a] * kb[1] + J[2, a] * kb[2])
             if sl[a // 3] >= 0:
@@ -215,23 +214,33 @@ def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, te
                     _add_block(abT, 3 * sl[p], 3 * sl[qq], H, p, qq, h_scale)
 
 
+#: Length of ``assemble_block``'s scratch: H (9, 9), u (3), J (3, 9), kb (3), q (9), e0 (3), e1 (3).
+SCRATCH = 129
+
+
 @njit(cache=True, parallel=True)
 def assemble_parallel(Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
-                      b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian):
-    """``assemble_block`` for every block, in parallel over blocks."""
-    for blk in prange(blk_dof.shape[0] - 1):
-        assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
-                       b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian)
+                      b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, n_chunks):
+    """``assemble_block`` for every block, in parallel over ``n_chunks`` runs of blocks (one
+    scratch each)."""
+    nb = blk_dof.shape[0] - 1
+    size = (nb + n_chunks - 1) // n_chunks
+    for c in prange(n_chunks):
+        W = np.zeros(SCRATCH)
+        for blk in range(c * size, min(nb, (c + 1) * size)):
+            assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                           b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W)
 
 
 @njit(cache=True)
 def assemble_serial(Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
-                    b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian):
+                    b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, n_chunks):
     """``assemble_block`` for every block on the calling thread (a 1-thread ``prange`` region
     still pays the thread pool's launch)."""
+    W = np.zeros(SCRATCH)
     for blk in range(blk_dof.shape[0] - 1):
         assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
-                       b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian)
+                       b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W)
 
 
 @njit(cache=True)

@@ -148,7 +148,7 @@ class StrandKernels:
         run = kernels.assemble_parallel if self.parallel else kernels.assemble_serial
         run(Y, self.free_slot, self.blk_dof, self.e_ptr, self.e_idx, self.edges, self.k_l0, self.l0,
             tension, use_t, self.b_ptr, self.b_idx, self.bends, self.w, self.s_rest,
-            1.0 - obj.alpha_f, obj.mass_diag, abT, g_int, need_hessian)
+            1.0 - obj.alpha_f, obj.mass_diag, abT, g_int, need_hessian, 4 * self.threads)
         return g_int, (abT if need_hessian else None)
 
     def value_parts(self, obj, xf: np.ndarray) -> tuple[float, float, float, float]:
