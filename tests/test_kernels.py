@@ -338,6 +338,10 @@ def test_thread_choice(monkeypatch):
     assert bandchol.pick_threads("auto") == 1
     monkeypatch.setattr(os, "getloadavg", lambda: (0.2, 0.2, 0.2))
     assert bandchol.pick_threads("auto") == 2
+    monkeypatch.setattr(os, "getloadavg", lambda: (2.5, 2.5, 2.5))   # our own 2 threads: keep them
+    assert bandchol.pick_threads("auto", current=2) == 2 and bandchol.pick_threads("auto", current=1) == 1
+    monkeypatch.setattr(os, "getloadavg", lambda: (3.5, 3.5, 3.5))   # and another busy process: back to 1
+    assert bandchol.pick_threads("auto", current=2) == 1
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0})
     assert bandchol.pick_threads("2") == 1 and bandchol.pick_threads("auto") == 1
 

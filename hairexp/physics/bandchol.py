@@ -25,15 +25,19 @@ import numpy as np
 
 from hairexp.physics.kernels import HAVE_NUMBA, njit, prange
 
-#: ``solver.threads=auto`` uses 2 threads only while the 1-minute load average leaves about a core
-#: idle besides this process: load <= cores - AUTO_IDLE_CORES.
+#: ``solver.threads=auto`` starts 2 threads only while the 1-minute load average leaves about a core
+#: idle besides this process (load <= cores - AUTO_IDLE_CORES), and goes back to 1 once the load
+#: says another process is busy besides this one's 2 threads (load > cores + AUTO_IDLE_CORES).
 AUTO_IDLE_CORES = 0.75
+#: s between two re-decisions of ``auto`` (the load average itself moves over a minute).
+AUTO_RECHECK_S = 2.0
 THREAD_CHOICES = ("auto", "1", "2")
 
 
-def pick_threads(setting="auto") -> int:
+def pick_threads(setting="auto", current: int | None = None) -> int:
     """Threads for the kernels: ``1`` or ``2`` as asked (at most the usable cores), ``auto``: 2
-    when the process may use >= 2 cores and the load average says one is idle, else 1."""
+    when the process may use >= 2 cores and the load average says one is idle, else 1;
+    ``current``: the threads ``auto`` runs with now (their own load is allowed for)."""
     setting = str(getattr(setting, "value", setting))
     try:
         cores = len(os.sched_getaffinity(0))
@@ -44,7 +48,8 @@ def pick_threads(setting="auto") -> int:
             load = os.getloadavg()[0]
         except OSError:  # pragma: no cover
             load = float(cores)
-        want = 2 if load <= cores - AUTO_IDLE_CORES else 1
+        limit = cores + AUTO_IDLE_CORES if current == 2 else cores - AUTO_IDLE_CORES
+        want = 2 if load <= limit else 1
     else:
         want = int(setting)
     return max(1, min(want, cores, 2))

@@ -89,6 +89,8 @@ class ImplicitEulerObjective:
         iterates (spring tensions, ``State.tensions``) from the previous step, or None;
         ``plan``: the integrator's ``StepPlan`` (None: implicit Euler, eq. 5)."""
         self.dt = float(dt)
+        if self.kernels is not None:
+            self.kernels.retune()
         self.x_n = np.asarray(x_n)
         self.x_full = np.array(x_kinematic_next, dtype=np.float64)
         self.alpha_f = 0.0

@@ -16,13 +16,14 @@ are not numbered in stencil order (the DOFs are numbered strand by strand, so th
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 import torch
 
 from hairexp.errors import InputError
 from hairexp.physics import bandchol, kernels
-from hairexp.physics.bandchol import THREAD_CHOICES, pick_threads, set_threads
+from hairexp.physics.bandchol import AUTO_RECHECK_S, THREAD_CHOICES, pick_threads, set_threads
 from hairexp.physics.energies import Bending, Gravity, Stretch
 
 #: solver.kernels choices: compiled per-strand kernels, or the torch closed forms + bincount assembly.
@@ -91,6 +92,8 @@ class StrandKernels:
         self.n_dofs = int(self.blk_dof[-1])
         self.bw = int(bandwidth)
         self.threads = threads   # 1: the serial kernels; 2: the prange ones
+        self.thread_setting = "auto"
+        self._checked = time.monotonic()
         self.edges = np.ascontiguousarray(stretch.stencil, dtype=np.int64)
         self.bends = np.ascontiguousarray(bending.stencil, dtype=np.int64)
         self.e_idx, self.e_ptr, self.e_rest, _ = _group(self.edges, self.free_slot, blk_vert)
@@ -120,7 +123,18 @@ class StrandKernels:
             if not _group(np.asarray(t.stencil), free_slot, blk_vert)[3]:
                 return None
         gravity = len(external) == 1 and type(external[0]) is Gravity
-        return cls(st[0], be[0], gravity, free_slot, free_vertices, bandwidth, blk_vert, pick_threads(threads))
+        k = cls(st[0], be[0], gravity, free_slot, free_vertices, bandwidth, blk_vert, pick_threads(threads))
+        k.thread_setting = str(getattr(threads, "value", threads))
+        return k
+
+    def retune(self) -> None:
+        """``solver.threads=auto``: re-decide the threads from the load (at most every
+        ``AUTO_RECHECK_S``); called at the start of each step.  The kernels sum each strand in the
+        same order on any thread count, so the results do not change."""
+        now = time.monotonic()
+        if self.thread_setting == "auto" and now - self._checked >= AUTO_RECHECK_S:
+            self._checked = now
+            self.threads = pick_threads("auto", self.threads)
 
     @property
     def parallel(self) -> bool:
