@@ -212,6 +212,32 @@ def scatter_scaled(G, base, scale, rows, out):
 
 
 @njit(cache=True)
+def scatter_grouped(G, base, scale, g_ptr, g_strands, g_rows, out):
+    """``scatter_scaled`` by groups of strands with the same constraint rows (``g_rows`` (Gr, R);
+    strands ``g_strands[g_ptr[g]:g_ptr[g + 1]]``): each group is summed in a dense R x R buffer
+    (contiguous writes), then scattered into S once."""
+    R = base.shape[1]
+    acc = np.empty((R, R))
+    for g in range(g_ptr.shape[0] - 1):
+        acc[:, :] = 0.0
+        for k in range(g_ptr[g], g_ptr[g + 1]):
+            s = g_strands[k]
+            for a in range(R):
+                ba = base[s, a]
+                if ba < 0:
+                    continue
+                sa = scale[s, a]
+                for b in range(R):
+                    bb = base[s, b]
+                    if bb >= 0:
+                        acc[a, b] += sa * scale[s, b] * G[s, ba, bb]
+        for a in range(R):
+            ra = g_rows[g, a]
+            for b in range(R):
+                out[ra, g_rows[g, b]] += acc[a, b]
+
+
+@njit(cache=True)
 def schur_serial(L, Bt, first, dof_off, out):
     for s in range(Bt.shape[0]):
         schur_block(s, L, Bt, first, dof_off, out)

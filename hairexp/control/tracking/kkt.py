@@ -99,6 +99,12 @@ class SchurKKT:
         if kernels is not None and np.isin(self.dof_off, kernels.blk_dof).all():
             self.kernels = kernels
             self._Bt, self._first, self._base, self._scale = distinct_columns(AT)
+            # strands with the same constraint rows, summed together before the scatter into S
+            g_rows, g_of = np.unique(self._rows, axis=0, return_inverse=True)
+            order = np.argsort(g_of.ravel(), kind="stable")
+            self._g_rows = np.ascontiguousarray(g_rows, dtype=np.int64)
+            self._g_strands = order.astype(np.int64)
+            self._g_ptr = np.searchsorted(g_of.ravel()[order], np.arange(len(g_rows) + 1)).astype(np.int64)
             self._dof_off = np.ascontiguousarray(self.dof_off, dtype=np.int64)
 
     def factor(self, ab: np.ndarray) -> None:
@@ -135,7 +141,7 @@ class SchurKKT:
             bandchol.schur_serial(self.LT, self._Bt, self._first, self._dof_off, G)
         n = 3 * self.K + 1
         Sfull = np.zeros((n, n))
-        bandchol.scatter_scaled(G, self._base, self._scale, self._rows, Sfull)
+        bandchol.scatter_grouped(G, self._base, self._scale, self._g_ptr, self._g_strands, self._g_rows, Sfull)
         self.Smat = Sfull[:-1, :-1]
 
     def hinv(self, r: np.ndarray) -> np.ndarray:
