@@ -368,18 +368,20 @@ def test_cli_bad_kernels_exits_2(tmp_path):
     assert "solver.kernels" in proc.stderr
 
 
-def test_numpy_spline_matches_the_torch_spline():
-    """The SQP's target points (``hermite_numpy``) against hairexp/guides/spline.py's torch curves,
-    inside the knots and beyond both ends (linear continuation)."""
+def test_compiled_target_points_match_the_torch_spline():
+    """constraints._targets_into (hard: written, soft: added) against spline.eval_with_derivatives."""
+    from hairexp.control.tracking.constraints import _targets_into
     from hairexp.guides import spline
 
-    rng = np.random.default_rng(9)
-    P = torch.from_numpy(rng.normal(size=(6, 7, 3)))
-    s = torch.from_numpy(np.cumsum(0.01 + rng.random(7)) - 0.5)
-    t = torch.from_numpy(np.array([-1.0, float(s[0]), 0.3, 1.2, float(s[-1]), 9.0]))
-    m = spline.tangents(P, s)
-    c = spline.hermite_numpy(P.numpy(), s.numpy(), m.numpy(), t.numpy())
-    np.testing.assert_allclose(c, spline.evaluate(P, s, t).numpy(), rtol=0, atol=1e-13)
-    got = spline.hermite_numpy(P.numpy(), s.numpy(), m.numpy(), t.numpy(), True)
-    for a, b in zip(got, spline.eval_with_derivatives(P, s, t)):
-        np.testing.assert_allclose(a, b.numpy(), rtol=0, atol=1e-12 * max(1.0, float(b.abs().max())))
+    rng = np.random.default_rng(10)
+    P = torch.from_numpy(rng.normal(size=(5, 6, 3)))
+    s = torch.from_numpy(np.cumsum(0.01 + rng.random(6)))
+    ks = np.array([3, 0, 4, 1, 2], dtype=np.int64)
+    tk = np.array([-1.0, 0.7, float(s[-1]) + 2.0, float(s[0]), 1.9])
+    ref = spline.eval_with_derivatives(P, s, torch.from_numpy(tk[ks]))
+    m = spline.tangents(P, s).numpy()
+    for add in (False, True):
+        out = [np.full((5, 3), 1.0 if add else np.nan) for _ in range(3)]
+        _targets_into(P.numpy(), s.numpy(), m, tk, ks, add, True, *out)
+        for o, r in zip(out, ref):
+            np.testing.assert_allclose(o[ks] - (1.0 if add else 0.0), r.numpy(), rtol=0, atol=1e-11)

@@ -101,30 +101,3 @@ def rest_arclength(points) -> torch.Tensor:
     seg = torch.linalg.vector_norm(P[1:] - P[:-1], dim=-1)
     return torch.cat([torch.zeros(1, dtype=P.dtype), torch.cumsum(seg, 0)])
 
-
-def hermite_numpy(P, s, m, t, derivatives: bool = False):
-    """numpy twin of ``evaluate`` / ``eval_with_derivatives`` for the SQP's hot loop (no autograd;
-    a few dozen small torch ops cost ~0.5 ms a call, the same in numpy ~50 us).  P: (K, n, 3)
-    control points, s: (n,) knots, m: (K, n, 3) their ``tangents``, t: (K,).  Returns c (K, 3),
-    or (c, d1, d2) with ``derivatives``; tests check it against the torch functions."""
-    import numpy as np
-
-    n = s.shape[0]
-    i = np.clip(np.searchsorted(s, t, side="right") - 1, 0, n - 2)
-    k = np.arange(P.shape[0])
-    s0 = s[i]
-    h = (s[i + 1] - s0)[:, None]
-    u = (t - s0)[:, None] / h
-    p0, p1, m0, m1 = P[k, i], P[k, i + 1], m[k, i], m[k, i + 1]
-    u2, u3 = u * u, u * u * u
-    c = (2 * u3 - 3 * u2 + 1) * p0 + (u3 - 2 * u2 + u) * h * m0 + (-2 * u3 + 3 * u2) * p1 + (u3 - u2) * h * m1
-    tt = t[:, None]
-    lo, hi = tt < s[0], tt > s[-1]
-    c = np.where(lo, P[k, 0] + (tt - s[0]) * m[k, 0], np.where(hi, P[k, -1] + (tt - s[-1]) * m[k, -1], c))
-    if not derivatives:
-        return c
-    d1 = (6 * u2 - 6 * u) * (p0 - p1) / h + (3 * u2 - 4 * u + 1) * m0 + (3 * u2 - 2 * u) * m1
-    d2 = (12 * u - 6) * (p0 - p1) / h ** 2 + (6 * u - 4) * m0 / h + (6 * u - 2) * m1 / h
-    d1 = np.where(lo, m[k, 0], np.where(hi, m[k, -1], d1))
-    d2 = np.where(lo | hi, 0.0, d2)
-    return c, d1, d2

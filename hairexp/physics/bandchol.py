@@ -195,27 +195,12 @@ def schur_block(s, L, Bt, first, dof_off, out):
 
 
 @njit(cache=True)
-def scatter_scaled(G, base, scale, rows, out):
-    """out[rows[s, a], rows[s, b]] += scale[s, a] scale[s, b] G[s, base[s, a], base[s, b]] over the
-    strands' non-empty columns (base >= 0): the strands' blocks A_s H_s^-1 A_s^T summed into S."""
-    for s in range(G.shape[0]):
-        for a in range(base.shape[1]):
-            ba = base[s, a]
-            if ba < 0:
-                continue
-            ra = rows[s, a]
-            sa = scale[s, a]
-            for b in range(base.shape[1]):
-                bb = base[s, b]
-                if bb >= 0:
-                    out[ra, rows[s, b]] += sa * scale[s, b] * G[s, ba, bb]
-
-
-@njit(cache=True)
 def scatter_grouped(G, base, scale, g_ptr, g_strands, g_rows, out):
-    """``scatter_scaled`` by groups of strands with the same constraint rows (``g_rows`` (Gr, R);
-    strands ``g_strands[g_ptr[g]:g_ptr[g + 1]]``): each group is summed in a dense R x R buffer
-    (contiguous writes), then scattered into S once."""
+    """S[rows[a], rows[b]] += scale[s, a] scale[s, b] G[s, base[s, a], base[s, b]] over the strands'
+    non-empty columns (base >= 0): the strands' blocks A_s H_s^-1 A_s^T summed into S.  By groups of
+    strands with the same constraint rows (``g_rows`` (Gr, R); strands
+    ``g_strands[g_ptr[g]:g_ptr[g + 1]]``): each group is summed in a dense R x R buffer (contiguous
+    writes), then scattered into S once."""
     R = base.shape[1]
     acc = np.empty((R, R))
     for g in range(g_ptr.shape[0] - 1):
@@ -252,7 +237,7 @@ def schur_parallel(L, Bt, first, dof_off, out):
     columns of one tracking point's clusters of different guides are proportional, so Celia's 72
     columns per strand are 24); ``first`` (S, Rb): the first non-zero row of each, ascending
 (-1: padding, last).
-    ``scatter_scaled`` sums the blocks into the Schur complement S = A H^-1 A^T (paper eq. 8,
+    ``scatter_grouped`` sums the blocks into the Schur complement S = A H^-1 A^T (paper eq. 8,
     hairexp/control/tracking/kkt.py)."""
     for s in prange(Bt.shape[0]):
         schur_block(s, L, Bt, first, dof_off, out)
