@@ -385,3 +385,14 @@ def test_compiled_target_points_match_the_torch_spline():
         _targets_into(P.numpy(), s.numpy(), m, tk, ks, add, True, *out)
         for o, r in zip(out, ref):
             np.testing.assert_allclose(o[ks] - (1.0 if add else 0.0), r.numpy(), rtol=0, atol=1e-11)
+
+
+def test_degenerate_iterate_is_non_finite_not_an_exception():
+    """A zero-length edge divides by zero: inf/nan as on the torch path (Newton then reports the
+    step diverged and the Simulator recovers it), never a ZeroDivisionError."""
+    scene, obj = make_objective("straight", "numba")
+    xf = start(scene, obj, np.random.default_rng(11))
+    xf[3:6] = xf[0:3]   # two consecutive free vertices on top of each other
+    ev = obj.evaluate(xf)
+    assert not np.isfinite(ev.grad).all()
+    assert not np.isfinite(obj.value(xf))

@@ -68,7 +68,7 @@ def set_threads(n: int) -> None:
 BW = 8
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _eliminate(L, j, m):
     """Right-looking step at column j: scale it, subtract its outer product from the next m columns."""
     piv = L[j, 0]
@@ -86,7 +86,7 @@ def _eliminate(L, j, m):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def factor_block(blk, A, L, blk_dof):
     """L (in A's layout, half-bandwidth ``BW``) = Cholesky factor of block ``blk`` of A; False if
     a pivot is not > 0.  Right-looking: column j is scaled, then its outer product is taken from
@@ -105,7 +105,7 @@ def factor_block(blk, A, L, blk_dof):
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def solve_block(blk, L, b, x, blk_dof):
     """x = (L L^T)^-1 b on block ``blk`` (forward then back substitution; x may be b).  The
     pivots' reciprocals do not depend on x, so they leave the substitutions' dependency chain
@@ -125,33 +125,33 @@ def solve_block(blk, L, b, x, blk_dof):
         x[j] = s * (1.0 / L[j, 0])
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def factor_parallel(A, L, blk_dof, ok):
     """Factor every block (``ok[blk]``: its pivots were positive)."""
     for blk in prange(blk_dof.shape[0] - 1):
         ok[blk] = factor_block(blk, A, L, blk_dof)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def factor_serial(A, L, blk_dof, ok):
     for blk in range(blk_dof.shape[0] - 1):
         ok[blk] = factor_block(blk, A, L, blk_dof)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def solve1_parallel(L, b, x, blk_dof):
     """x = A^-1 b (vectors) with the factor L of every block."""
     for blk in prange(blk_dof.shape[0] - 1):
         solve_block(blk, L, b, x, blk_dof)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def solve1_serial(L, b, x, blk_dof):
     for blk in range(blk_dof.shape[0] - 1):
         solve_block(blk, L, b, x, blk_dof)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def solve_parallel(L, B, X, blk_dof):
     """X[:, r] = A^-1 B[:, r] for every column r (B, X: (N, R)) with the factor L of every block."""
     for blk in prange(blk_dof.shape[0] - 1):
@@ -159,14 +159,14 @@ def solve_parallel(L, B, X, blk_dof):
             solve_block(blk, L, B[:, r], X[:, r], blk_dof)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def solve_serial(L, B, X, blk_dof):
     for blk in range(blk_dof.shape[0] - 1):
         for r in range(B.shape[1]):
             solve_block(blk, L, B[:, r], X[:, r], blk_dof)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def schur_block(s, L, Bt, first, dof_off, out):
     """out[s] = Y^T Y, Y = L_s^-1 B_s, for strand s (see ``schur_parallel``).  Y (rows, columns)
     is solved right-looking with the columns innermost (contiguous, independent: they vectorise);
@@ -194,7 +194,7 @@ def schur_block(s, L, Bt, first, dof_off, out):
     out[s] = np.dot(Y.T, Y)   # BLAS: a third faster than the rank-one updates over the non-zero prefix
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def scatter_grouped(G, base, scale, g_ptr, g_strands, g_rows, out):
     """S[rows[a], rows[b]] += scale[s, a] scale[s, b] G[s, base[s, a], base[s, b]] over the strands'
     non-empty columns (base >= 0): the strands' blocks A_s H_s^-1 A_s^T summed into S.  By groups of
@@ -222,13 +222,13 @@ def scatter_grouped(G, base, scale, g_ptr, g_strands, g_rows, out):
                 out[ra, g_rows[g, b]] += acc[a, b]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def schur_serial(L, Bt, first, dof_off, out):
     for s in range(Bt.shape[0]):
         schur_block(s, L, Bt, first, dof_off, out)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def schur_parallel(L, Bt, first, dof_off, out):
     """Per strand s: Y = L_s^-1 B_s (forward substitution), out[s] = Y^T Y (Rb, Rb).
 

@@ -22,7 +22,7 @@ run in parallel (``prange``) without atomics.  The band is LAPACK's lower banded
 transposed, ``abT[j, d] = A[j + d, j]`` (``abT.T`` is what ``scipy.linalg.solveh_banded`` takes),
 so that one column's entries are contiguous.
 
-Everything is ``@njit(cache=True)``: the first run in a checkout compiles (a few seconds) and
+Everything is ``@njit(cache=True, error_model="numpy")``: the first run in a checkout compiles (a few seconds) and
 stores the machine code next to this file; later processes load it.
 """
 
@@ -49,7 +49,7 @@ except ImportError:  # pragma: no cover - exercised by monkeypatching HAVE_NUMBA
 KB_EPS = 1e-14
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def eval_points(xf, x_full, x_n, free_vertices, alpha_f, Y):
     """Y (V, 3): the evaluation point y = (1 - alpha_f) x + alpha_f x_n, x the prescribed
     ``x_full`` with the free rows from the DOF vector ``xf`` (as ``ImplicitEulerObjective.eval_positions``)."""
@@ -67,7 +67,7 @@ def eval_points(xf, x_full, x_n, free_vertices, alpha_f, Y):
                 Y[v, c] = (1.0 - alpha_f) * Y[v, c] + alpha_f * x_n[v, c]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def bend_jacobian(Y, a, b, c, J, kb, e0, e1):
     """kb (3,) and its Jacobian J (3, 9) w.r.t. (x_a, x_b, x_c), as ``energies.kb_jacobian``:
     d kb/d e0 = (-2[e1]x - kb (l1 e0/l0 + e1)^T)/chi, d kb/d e1 = (2[e0]x - kb (l0 e1/l1 + e0)^T)/chi.
@@ -108,7 +108,7 @@ def bend_jacobian(Y, a, b, c, J, kb, e0, e1):
             J[r, 6 + s] = J1
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _add_block(abT, rows, cols, H, p, q, scale):
     """Add scale * H[3p:3p+3, 3q:3q+3] at global DOF rows ``rows`` > cols ``cols`` (p > q), or
     its lower triangle on the diagonal (p = q, rows = cols)."""
@@ -122,7 +122,7 @@ def _add_block(abT, rows, cols, H, p, q, scale):
                 abT[cols + s, rows + r - cols - s] += scale * H[3 * p + r, 3 * q + s]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
                    b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W):
     """Gradient g_int of the energies and lower band abT (M/h^2 on the diagonal plus
@@ -218,7 +218,7 @@ def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, te
 SCRATCH = 129
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def assemble_parallel(Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
                       b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, n_chunks):
     """``assemble_block`` for every block, in parallel over ``n_chunks`` runs of blocks (one
@@ -232,7 +232,7 @@ def assemble_parallel(Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tens
                            b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def assemble_serial(Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
                     b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, n_chunks):
     """``assemble_block`` for every block on the calling thread (a 1-thread ``prange`` region
@@ -243,7 +243,7 @@ def assemble_serial(Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tensio
                        b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def stretch_energy_of(Y, edges, e, k_l0, l0):
     va, vb = edges[e, 0], edges[e, 1]
     d = 0.0
@@ -254,7 +254,7 @@ def stretch_energy_of(Y, edges, e, k_l0, l0):
     return 0.5 * k_l0[e] * dl * dl
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def bend_energy_of(Y, bends, e, w, s_rest):
     """w (|kb|^2 - 2 s |kb| + s^2), |kb| taken only where s > 0 (``energies.bending_energy``)."""
     a, b, c = bends[e, 0], bends[e, 1], bends[e, 2]
@@ -272,7 +272,7 @@ def bend_energy_of(Y, bends, e, w, s_rest):
     return w[e] * (sq - mid + s * s)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def energies_block(blk, Y, xf, x_pred, mass_diag, g_ext, free_vertices, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
                    b_ptr, b_idx, bends, w, s_rest, e_rest, b_rest, out):
     """out[blk] = (inertia 1/2 |x - x_pred|^2_M/h^2, stretch, bending, external g_ext . y) of
@@ -298,7 +298,7 @@ def energies_block(blk, Y, xf, x_pred, mass_diag, g_ext, free_vertices, blk_dof,
     out[blk, 3] = ext
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, error_model="numpy")
 def energies_parallel(Y, xf, x_pred, mass_diag, g_ext, free_vertices, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
                       b_ptr, b_idx, bends, w, s_rest, e_rest, b_rest, out):
     for blk in prange(blk_dof.shape[0] - 1):
@@ -306,7 +306,7 @@ def energies_parallel(Y, xf, x_pred, mass_diag, g_ext, free_vertices, blk_dof, e
                        l0, b_ptr, b_idx, bends, w, s_rest, e_rest, b_rest, out)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def energies_serial(Y, xf, x_pred, mass_diag, g_ext, free_vertices, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
                     b_ptr, b_idx, bends, w, s_rest, e_rest, b_rest, out):
     for blk in range(blk_dof.shape[0] - 1):
@@ -314,7 +314,7 @@ def energies_serial(Y, xf, x_pred, mass_diag, g_ext, free_vertices, blk_dof, e_p
                        l0, b_ptr, b_idx, bends, w, s_rest, e_rest, b_rest, out)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def tensions(Y, D, edges, k_l0, l0, out):
     """Spring tensions (N) of every edge at Y, linearised along the displacement D (V, 3):
     (k/l0)(l - l0 + u . (D_b - D_a)) (``Stretch.linearized_tension``; D = 0: ``tension_of``)."""

@@ -41,7 +41,7 @@ from hairexp.guides.animation import GuideAnimation
 from hairexp.physics.kernels import njit
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _targets_into(P, s, m, tk, ks, add, derivatives, c, d1, d2):
     """The Catmull-Rom curves of hairexp/guides/spline.py (``hermite_numpy``, compiled: the SQP
     evaluates them at every merit evaluation) at t = tk[ks[k]] for curve k, written (``add``:
