@@ -100,4 +100,3 @@ def rest_arclength(points) -> torch.Tensor:
     P = torch.as_tensor(points, dtype=torch.float64)
     seg = torch.linalg.vector_norm(P[1:] - P[:-1], dim=-1)
     return torch.cat([torch.zeros(1, dtype=P.dtype), torch.cumsum(seg, 0)])
-
