@@ -66,11 +66,13 @@ def newton_phases(run, state, repeats: int) -> dict:
     objs = {"torch": variant(sim, "torch", "1"), "numba, 1 thread": variant(sim, "numba", "1"),
             "numba, 2 threads": variant(sim, "numba", "2")}
     times = {k: {p: [] for p in PHASES} for k in objs}
+    cpu = {k: [] for k in objs}
     ref = {}
     for r in range(repeats + 1):
         for name, obj in objs.items():
             begin(run, obj, state)
             xf = obj.initial_guess()
+            c0 = time.process_time()
             t0 = time.perf_counter()
             ev = obj.evaluate(xf)
             t1 = time.perf_counter()
@@ -80,16 +82,19 @@ def newton_phases(run, state, repeats: int) -> dict:
             t3 = time.perf_counter()
             obj.update_tensions(xf, p)
             t4 = time.perf_counter()
+            c1 = time.process_time()
             if r == 0:   # the first round compiles / warms caches: untimed; keeps the answers
                 ref[name] = (ev.grad.copy(), np.array(ev.banded), p.copy())
                 continue
             for ph, dt in zip(PHASES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
                 times[name][ph].append(dt)
+            cpu[name].append(c1 - c0)
     out = {}
     g0, ab0, p0 = ref["torch"]
     for name in objs:
         med = {ph: 1e3 * float(np.median(v)) for ph, v in times[name].items()}
         med["iteration"] = sum(med[ph] for ph in PHASES)
+        med["iteration_cpu"] = 1e3 * float(np.median(cpu[name]))   # CPU time of all the process's threads
         g, ab, p = ref[name]
         out[name] = {"ms": med, "grad_rel_err": float(np.abs(g - g0).max() / np.abs(g0).max()),
                      "band_rel_err": float(np.abs(ab - ab0).max() / np.abs(ab0).max()),
@@ -136,13 +141,16 @@ def whole_steps(controller: str, kernels: str, steps: int) -> tuple[dict, object
     t0 = time.perf_counter()
     run = assemble(celia_bench(controller, steps, [f"solver.kernels={kernels}"]))
     t_asm = time.perf_counter() - t0
+    c0 = time.process_time()
     tm = time_steps(run, steps, WARMUP)
+    cpu_ms = 1e3 * (time.process_time() - c0) / (steps + WARMUP)
     k = run.simulator.objective.kernels
     res = {"controller": controller, "kernels": kernels, **tm.summary(), "assemble_s": t_asm,
-           "threads": None if k is None else k.threads, "run": describe_run(run)}
+           "threads": None if k is None else k.threads, "run": describe_run(run), "cpu_ms_per_step": cpu_ms}
     res["ms_per_iteration"] = 1e3 * res["mean_s"] / max(res["iterations_mean"], 1e-9)
     print(f"{controller:>8} {kernels:>5}: median {1e3 * res['median_s']:6.1f} ms/step  mean {1e3 * res['mean_s']:6.1f}  "
-          f"its {res['iterations_mean']:.2f} (max {res['iterations_max']})  {res['ms_per_iteration']:.2f} ms/iteration  "
+          f"CPU {cpu_ms:6.1f}  its {res['iterations_mean']:.2f} (max {res['iterations_max']})  "
+          f"{res['ms_per_iteration']:.2f} ms/iteration  "
           "split " + " ".join(f"{p[:5]} {pct(res['split'][p])}" for p in TIME_KEYS)
           + f"  (assemble + settle {t_asm:.0f} s)", flush=True)
     return res, tm.state
@@ -168,7 +176,8 @@ def main(argv=None):
     newton = newton_phases(free_run, state, args.repeats)
     for name, r in newton.items():
         print(f"Newton iteration, {name:>16}: " + "  ".join(f"{PHASE_NAMES[p]} {r['ms'][p]:.3f}" for p in PHASES)
-              + f"  = {r['ms']['iteration']:.3f} ms  (step rel. err. vs torch {r['step_rel_err']:.1e})", flush=True)
+              + f"  = {r['ms']['iteration']:.3f} ms (CPU {r['ms']['iteration_cpu']:.3f})  (step rel. err. vs torch "
+              f"{r['step_rel_err']:.1e})", flush=True)
     tr_run = assemble(celia_bench("tracking", args.steps))
     st = tr_run.initial_state()
     for _ in range(WARMUP + 3):
@@ -191,10 +200,15 @@ def main(argv=None):
            f"machine, so compare ratios measured in this one command.\n\n")
     md += "## One Newton iteration (ms, median of %d interleaved rounds, the free objective after the jerk)\n\n" % args.repeats
     t0 = newton["torch"]["ms"]
-    md += md_table(["path", *(PHASE_NAMES[p] for p in PHASES), "iteration", "speed-up vs torch", "step rel. err."],
+    md += md_table(["path", *(PHASE_NAMES[p] for p in PHASES), "iteration", "speed-up vs torch",
+                    "iteration, CPU ms (all threads)", "CPU ratio", "step rel. err."],
                    [[name, *(f"{r['ms'][p]:.3f}" for p in PHASES), f"{r['ms']['iteration']:.3f}",
-                     f"{t0['iteration'] / r['ms']['iteration']:.1f}x", f"{r['step_rel_err']:.1e}"]
+                     f"{t0['iteration'] / r['ms']['iteration']:.1f}x", f"{r['ms']['iteration_cpu']:.2f}",
+                     f"{t0['iteration_cpu'] / max(r['ms']['iteration_cpu'], 1e-9):.1f}x", f"{r['step_rel_err']:.1e}"]
                     for name, r in newton.items()])
+    md += ("\nThe CPU column is `time.process_time` over the iteration (every thread of the process, torch's 2 "
+           "intra-op threads included): unlike the wall times it does not count the time slices other processes "
+           "took, so it is the steadier figure on a shared machine (it still pays their cache and SMT contention).\n")
     md += ("\nThe numba path fuses the derivatives of stretch, bending, inertia and gravity with the band assembly "
            "(one pass per strand); torch computes the element derivatives (closed forms) then scatters them with "
            "`np.bincount`.  Gradient and band agree with torch to "
@@ -206,14 +220,15 @@ def main(argv=None):
     md += (f"\nnumba ran on {schur['threads']} thread(s) (`solver.threads=auto`); its KKT step agrees with the LAPACK + "
            f"torch one to {schur['numba']['dx_rel_err']:.1e} (dx) and {schur['numba']['lam_rel_err']:.1e} (lambda).\n\n")
     md += "## Whole steps\n\n"
-    md += md_table(["run", "kernels", "threads", "median ms/step", "mean", "p90", "iterations (mean/max)",
-                    "ms/iteration", "converged", *TIME_KEYS],
+    md += md_table(["run", "kernels", "threads", "median ms/step", "mean", "p90", "CPU ms/step (mean)",
+                    "iterations (mean/max)", "ms/iteration", "converged", *TIME_KEYS],
                    [[r["controller"], r["kernels"], r["threads"] or "-", f"{1e3 * r['median_s']:.1f}",
-                     f"{1e3 * r['mean_s']:.1f}", f"{1e3 * r['p90_s']:.1f}",
+                     f"{1e3 * r['mean_s']:.1f}", f"{1e3 * r['p90_s']:.1f}", f"{r['cpu_ms_per_step']:.1f}",
                      f"{r['iterations_mean']:.2f} / {r['iterations_max']}", f"{r['ms_per_iteration']:.2f}",
                      pct(r["converged_fraction"]), *(pct(r["split"][k]) for k in TIME_KEYS)]
                     for r in steps.values()])
-    md += ("\nIn the numba rows 'assembly' is the fused kernel (derivatives and band together) and 'derivatives' the "
+    md += ("\nCPU ms/step: `time.process_time` of the process over the run's warm-up and timed steps, per step. "
+           "In the numba rows 'assembly' is the fused kernel (derivatives and band together) and 'derivatives' the "
            "terms left on torch (none in these runs); the tracked rows' 'solve' includes the Schur complement, the "
            "target curves and the variance penalty.\n\n")
     sp = {c: steps[(c, "torch")]["median_s"] / steps[(c, "numba")]["median_s"] for c in ("free", "tracking")}
