@@ -271,6 +271,12 @@ class SolverConfig:
     # A string, not an Enum, checked by validate_config: an unknown name is an InputError naming
     # solver.integrator (exit 2), and the choices are the integrator registry's keys.
     integrator: str = DEFAULT_INTEGRATOR   # "trbdf2"
+    # numba: stretch, bending, inertia and gravity by compiled per-strand kernels and a per-strand
+    # banded Cholesky (hairexp/physics/strand_kernels.py; other terms stay on torch) | torch: every
+    # term through torch and LAPACK's banded solve.  Strings checked by validate_config (InputError).
+    kernels: str = "numba"
+    # threads of the numba kernels: auto (2 only while the load average leaves a core idle) | 1 | 2
+    threads: str = "auto"
 
 
 @dataclass

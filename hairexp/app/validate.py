@@ -10,7 +10,8 @@ hairexp/model/dynamic_body.py, scene.settle/settle_dt hairexp/physics/settle.py,
 fps and frames hairexp/physics/schedule.py, guides.count/n_vertices/keyframes/edits/file in
 hairexp/guides/, tracking.points_per_guide and tracking.variance.* in hairexp/control/tracking/,
 controller.attract_stiffness hairexp/control/attract.py).  The rest are checked here.
-``solver.integrator`` is checked by hairexp/physics/integrators.py ``make_integrator``, called
+``solver.integrator`` is checked by hairexp/physics/integrators.py ``make_integrator`` (and
+``solver.kernels`` / ``solver.threads`` by hairexp/physics/strand_kernels.py ``check_options``), called
 here too so that a bad name fails before the settle phase and the guides are simulated.
 """
 
@@ -20,6 +21,7 @@ from hairexp.errors import InputError, finite_number
 from hairexp.evaluation.judges import JUDGE_MEASURES
 from hairexp.evaluation.measures import collider_named
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR, make_integrator
+from hairexp.physics.strand_kernels import check_options
 
 
 def _value(x):
@@ -67,6 +69,7 @@ MAX_SUBSTEP_LEVELS = 10
 
 def _solver(s) -> None:
     make_integrator(getattr(s, "integrator", DEFAULT_INTEGRATOR))   # InputError naming solver.integrator
+    check_options(getattr(s, "kernels", "numba"), getattr(s, "threads", "auto"))   # solver.kernels, solver.threads
     rtol = number(s.rtol, "solver.rtol", lo=0)
     atol = number(s.atol, "solver.atol", lo=0)
     if rtol == 0 and atol == 0:

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 
 
@@ -83,3 +84,14 @@ class BandedAssembler:
         diags = [ab[d, : N - d] for d in range(bw1)]
         L = sp.diags(diags, offsets=[-d for d in range(bw1)], shape=(N, N), format="csc")
         return (L + sp.triu(L.T, k=1)).tocsc()
+
+
+def banded_solve(ab: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve with the lower banded SPD matrix ``ab``; if Cholesky fails (round-off made the
+    matrix indefinite), retry with a small diagonal shift."""
+    try:
+        return scipy.linalg.solveh_banded(ab.copy(), rhs, lower=True, check_finite=False, overwrite_ab=True)
+    except np.linalg.LinAlgError:
+        ab = ab.copy()
+        ab[0] += 1e-8 * np.abs(ab[0]).max()
+        return scipy.linalg.solveh_banded(ab, rhs, lower=True, check_finite=False, overwrite_ab=True)

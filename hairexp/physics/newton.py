@@ -1,8 +1,8 @@
 """Newton's method on the implicit Euler objective (eq. 5): the free step.
 
 Each iteration assembles the PSD Hessian in banded storage, solves with a banded Cholesky
-(``scipy.linalg.solveh_banded``: the Hessian is block diagonal over strands with
-half-bandwidth 8), and backtracks along the Newton direction until the Armijo condition
+(``ImplicitEulerObjective.solve``: per strand in numba with ``solver.kernels=numba``, else
+``scipy.linalg.solveh_banded``; the Hessian is block diagonal over strands with half-bandwidth 8), and backtracks along the Newton direction until the Armijo condition
 holds.  Convergence: |grad H| <= atol + rtol * (|f_inertia| + |f_internal| + |f_external|),
 i.e. the residual force is small relative to the forces acting.
 """
@@ -13,8 +13,8 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 
+from hairexp.physics.assembly import banded_solve  # noqa: F401  (re-exported: the LAPACK solve)
 from hairexp.physics.info import CONVERGED, DIVERGED, LINE_SEARCH_FAILED, MAX_ITERATIONS, SolveInfo
 from hairexp.physics.objective import ImplicitEulerObjective
 
@@ -30,17 +30,6 @@ class NewtonOptions:
     atol: float = 1e-10
     max_iterations: int = 30
     max_backtracks: int = 30
-
-
-def banded_solve(ab: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve with the lower banded SPD matrix ``ab``; if Cholesky fails (round-off made the
-    matrix indefinite), retry with a small diagonal shift."""
-    try:
-        return scipy.linalg.solveh_banded(ab.copy(), rhs, lower=True, check_finite=False, overwrite_ab=True)
-    except np.linalg.LinAlgError:
-        ab = ab.copy()
-        ab[0] += 1e-8 * np.abs(ab[0]).max()
-        return scipy.linalg.solveh_banded(ab, rhs, lower=True, check_finite=False, overwrite_ab=True)
 
 
 def line_search(value_fn, x: np.ndarray, p: np.ndarray, f0: float, slope: float, max_backtracks: int,
@@ -82,7 +71,7 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
             info.status = MAX_ITERATIONS
             return x, info
         t0 = time.perf_counter()
-        p = banded_solve(ev.banded, -ev.grad)
+        p = obj.solve(ev.banded, -ev.grad)
         sec["solve"] += time.perf_counter() - t0
         slope = float(np.dot(ev.grad, p))
         if not np.isfinite(slope):

@@ -11,6 +11,11 @@ Other integrators (``solver.integrator``, hairexp/physics/integrators.py) give `
 ``StepPlan``: the objective is then |x - x_pred|^2_M / (2 h^2) + E(y)/(1 - alpha_f) with
 y = (1 - alpha_f) x + alpha_f x_n the point where the energies are evaluated (alpha_f = 0 but for
 generalized-alpha), and the dissipation terms get the plan's velocity reference.
+
+``kernels="numba"`` (``solver.kernels``): stretch, bending, inertia and gravity are evaluated by
+the compiled per-strand kernels (hairexp/physics/strand_kernels.py), the band is factored block
+by block there; the other terms keep their torch path and are added to the same band.
+``kernels="torch"``: every term through torch and ``BandedAssembler`` (the reference).
 """
 
 from __future__ import annotations
@@ -21,7 +26,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from hairexp.physics.assembly import BandedAssembler
+from hairexp.physics.assembly import BandedAssembler, banded_solve
+from hairexp.physics.strand_kernels import StrandKernels
 from hairexp.physics.terms import DTYPE, Term
 
 #: How many ulps of the summed term magnitudes a value of H is trusted to.
@@ -42,9 +48,12 @@ class ImplicitEulerObjective:
     """Eq. (5) for one time step.  Built once per run; ``begin_step`` sets x_n, v_n, dt."""
 
     def __init__(self, terms: list[Term], masses: np.ndarray, kinematic: np.ndarray, free_slot: np.ndarray,
-                 derivatives: str = "closed_form", external: list[Term] = (), primal_dual: bool = True):
+                 derivatives: str = "closed_form", external: list[Term] = (), primal_dual: bool = True,
+                 kernels: str = "numba", threads: str = "auto"):
         """``terms``: energies with Hessians (assembled each iteration); ``external``: linear
-        potentials (gravity) whose gradient is constant and is computed once here."""
+        potentials (gravity) whose gradient is constant and is computed once here.
+        ``kernels``: "numba" (compiled per-strand kernels where the terms allow, with ``threads``
+        "auto" | "1" | "2") or "torch"; the compiled path needs closed-form derivatives."""
         self.terms = list(terms)
         self.external = list(external)
         self.free_vertices = np.flatnonzero(~np.asarray(kinematic))
@@ -61,6 +70,16 @@ class ImplicitEulerObjective:
             with torch.no_grad():
                 self.g_ext = ext_asm.gradient([t.grad_hess(x0[t.stencil_t], False)[0].numpy() for t in self.external])
         self.ext_norm = float(np.linalg.norm(self.g_ext))
+        self.kernels = None
+        if kernels == "numba" and derivatives == "closed_form":
+            self.kernels = StrandKernels.build(self.terms, self.external, free_slot, self.free_vertices,
+                                               self.assembler.bandwidth, threads)
+        #: the terms evaluated through torch (all of them without kernels)
+        self.torch_terms = [t for t in self.terms if self.kernels is None or not self.kernels.handles(t)]
+        if self.kernels is not None and self.torch_terms:
+            self.torch_assembler = BandedAssembler(free_slot, [t.stencil for t in self.torch_terms])
+        else:
+            self.torch_assembler = self.assembler
 
     # -- per step -------------------------------------------------------------------------
     def begin_step(self, x_n: np.ndarray, v_n: np.ndarray, x_kinematic_next: np.ndarray, dt: float,
@@ -70,6 +89,8 @@ class ImplicitEulerObjective:
         iterates (spring tensions, ``State.tensions``) from the previous step, or None;
         ``plan``: the integrator's ``StepPlan`` (None: implicit Euler, eq. 5)."""
         self.dt = float(dt)
+        if self.kernels is not None:
+            self.kernels.retune()
         self.x_n = np.asarray(x_n)
         self.x_full = np.array(x_kinematic_next, dtype=np.float64)
         self.alpha_f = 0.0
@@ -93,9 +114,15 @@ class ImplicitEulerObjective:
     def _dual_terms(self):
         return [t for t in self.terms if hasattr(t, "linearized_tension")] if self.primal_dual else []
 
+    def _kernel_dual(self) -> bool:
+        return self.kernels is not None and self.primal_dual
+
     def update_tensions(self, xf: np.ndarray, step: np.ndarray) -> None:
         """Advance the tension iterates by their linearisation along the accepted step."""
         terms = self._dual_terms
+        if self._kernel_dual():
+            self.kernels.stretch.tension = torch.from_numpy(self.kernels.tensions(self, xf, step))
+            terms = [t for t in terms if not self.kernels.handles(t)]
         if not terms:
             return
         x = self.eval_positions(xf)
@@ -113,6 +140,10 @@ class ImplicitEulerObjective:
         out = {}
         with torch.no_grad():
             for t in self._dual_terms:
+                if self._kernel_dual() and self.kernels.handles(t):
+                    t.tension = torch.from_numpy(self.kernels.tensions(self, xf, None))
+                    out[t.name] = t.tension.numpy().copy()
+                    continue
                 t.tension = t.tension_of(x[t.stencil_t])
                 out[t.name] = t.tension.numpy().copy()
         return out
@@ -138,17 +169,30 @@ class ImplicitEulerObjective:
     def value(self, xf: np.ndarray) -> float:
         """H(xf).  Also sets ``value_noise``: the round-off of that sum (a few ulps of the sum of
         the terms' magnitudes), below which two values cannot be told apart."""
-        d = xf - self.x_pred
-        inertia = 0.5 * float(np.dot(self.mass_diag * d, d))  # 1/2 dv^T M dv
-        x = self.eval_positions(xf)
-        with torch.no_grad():
-            parts = [float(t.total(x)) for t in self.terms + self.external]
+        if self.kernels is not None:
+            inertia, e_st, e_bend, e_ext = self.kernels.value_parts(self, xf)
+            parts = [e_st, e_bend]
+            rest = self.torch_terms + ([] if self.kernels.handles_gravity else self.external)
+            if self.kernels.handles_gravity:
+                parts.append(e_ext)
+            if rest:
+                x = self.eval_positions(xf)
+                with torch.no_grad():
+                    parts += [float(t.total(x)) for t in rest]
+        else:
+            d = xf - self.x_pred
+            inertia = 0.5 * float(np.dot(self.mass_diag * d, d))  # 1/2 dv^T M dv
+            x = self.eval_positions(xf)
+            with torch.no_grad():
+                parts = [float(t.total(x)) for t in self.terms + self.external]
         if self.alpha_f != 0.0:
             parts = [p / (1.0 - self.alpha_f) for p in parts]
         self.value_noise = ROUNDOFF_ULPS * np.finfo(float).eps * (abs(inertia) + sum(abs(p) for p in parts))
         return inertia + sum(parts)
 
     def evaluate(self, xf: np.ndarray, need_hessian: bool = True) -> Evaluation:
+        if self.kernels is not None:
+            return self._evaluate_kernels(xf, need_hessian)
         t0 = time.perf_counter()
         x = self.eval_positions(xf)
         grads, hessians = [], []
@@ -168,3 +212,41 @@ class ImplicitEulerObjective:
         ab = self.assembler.banded(hessians, self.mass_diag) if need_hessian else None
         t2 = time.perf_counter()
         return Evaluation(grad, ab, scale, {"derivatives": t1 - t0, "assembly": t2 - t1})
+
+    def _evaluate_kernels(self, xf: np.ndarray, need_hessian: bool) -> Evaluation:
+        """The compiled path: stretch, bending and inertia fused per strand into the band (timed
+        as "assembly"); the other terms through torch (their derivatives timed as "derivatives")
+        added to it."""
+        t0 = time.perf_counter()
+        g_int, abT = self.kernels.evaluate(self, xf, need_hessian)
+        t1 = time.perf_counter()
+        t_deriv = 0.0
+        if self.torch_terms:
+            x = self.eval_positions(xf)
+            grads, hessians = [], []
+            with torch.no_grad():
+                for term in self.torch_terms:
+                    g, H = term.grad_hess(x[term.stencil_t], need_hessian, self.derivatives)
+                    grads.append(g.numpy())
+                    if need_hessian:
+                        hessians.append(H.numpy())
+            t_deriv = time.perf_counter() - t1
+            g_int += self.torch_assembler.gradient(grads)
+            if need_hessian:
+                if self.alpha_f != 0.0:
+                    hessians = [(1.0 - self.alpha_f) * H for H in hessians]
+                ab_o = self.torch_assembler.banded(hessians)
+                abT[:, : ab_o.shape[0]] += ab_o.T
+        f_inertia = self.mass_diag * (xf - self.x_pred)
+        grad = f_inertia + g_int + self.g_ext
+        scale = float(np.linalg.norm(f_inertia) + np.linalg.norm(g_int) + self.ext_norm)
+        t2 = time.perf_counter()
+        return Evaluation(grad, abT.T if need_hessian else None, scale,
+                          {"derivatives": t_deriv, "assembly": t2 - t0 - t_deriv})
+
+    def solve(self, ab: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+        """A^-1 rhs for the lower band ``ab`` of ``evaluate``: the compiled block Cholesky, or
+        LAPACK's banded one (``assembly.banded_solve``) on the torch path."""
+        if self.kernels is not None:
+            return self.kernels.solve(ab, rhs)
+        return banded_solve(ab, rhs)

@@ -43,6 +43,7 @@ from hairexp.physics.integrators import DEFAULT_INTEGRATOR, ImplicitEuler, make_
 from hairexp.physics.newton import NewtonOptions
 from hairexp.physics.objective import ImplicitEulerObjective
 from hairexp.physics.state import State
+from hairexp.physics.strand_kernels import check_options
 
 TIME_KEYS = ("derivatives", "assembly", "solve", "collision", "other")
 #: ``solver.compile=auto`` compiles the derivative kernels from this many vertices on.
@@ -117,9 +118,11 @@ class Simulator:
         terms += controller.energy_terms(scene)
         external = [Gravity(s.masses, scene.gravity, free_vertices)] if np.any(scene.gravity != 0) else []
         self.terms, self.external = terms, external
+        kernels, threads = check_options(getattr(solver_cfg, "kernels", "numba"), getattr(solver_cfg, "threads", "auto"))
         self.objective = ImplicitEulerObjective(terms, s.masses, s.kinematic, s.free_slot,
                                                 str(_value(solver_cfg.derivatives)), external,
-                                                primal_dual=str(_value(solver_cfg.stretch_hessian)) == "primal_dual")
+                                                primal_dual=str(_value(solver_cfg.stretch_hessian)) == "primal_dual",
+                                                kernels=kernels, threads=threads)
         self.newton = NewtonOptions(solver_cfg.rtol, solver_cfg.atol, solver_cfg.max_iterations, solver_cfg.max_backtracks)
         self.on_failure = str(_value(solver_cfg.on_failure))
         self.body = scene.body
@@ -152,7 +155,7 @@ class Simulator:
     def _compile(self) -> None:
         if str(_value(self.cfg.derivatives)) != "closed_form":
             return
-        for t in self.terms:
+        for t in self.objective.torch_terms:   # the terms without a compiled numba kernel
             t.compile()  # compiles lazily at the first call; falls back to eager if that fails
 
     def free_dofs(self, x: np.ndarray) -> np.ndarray:

@@ -38,6 +38,45 @@ from hairexp.guides import spline
 from hairexp.control.tracking.correspondence import Correspondence, closest_points_on_polyline
 from hairexp.guides.frames import BodyCarriedFrames
 from hairexp.guides.animation import GuideAnimation
+from hairexp.physics.kernels import njit
+
+
+@njit(cache=True, error_model="numpy")
+def _targets_into(P, s, m, tk, ks, add, derivatives, c, d1, d2):
+    """The Catmull-Rom curves of hairexp/guides/spline.py (``hermite_numpy``, compiled: the SQP
+    evaluates them at every merit evaluation) at t = tk[ks[k]] for curve k, written (``add``:
+    added, the soft blend over guides) into row ks[k] of c and, with ``derivatives``, d1, d2."""
+    n = s.shape[0]
+    for k in range(ks.shape[0]):
+        t = tk[ks[k]]
+        i = min(max(np.searchsorted(s, t, side="right") - 1, 0), n - 2)
+        h = s[i + 1] - s[i]
+        u = (t - s[i]) / h
+        u2 = u * u
+        u3 = u2 * u
+        for x in range(3):
+            p0, p1, m0, m1 = P[k, i, x], P[k, i + 1, x], m[k, i, x], m[k, i + 1, x]
+            if t < s[0]:
+                v, a, b = P[k, 0, x] + (t - s[0]) * m[k, 0, x], m[k, 0, x], 0.0
+            elif t > s[n - 1]:
+                v, a, b = P[k, n - 1, x] + (t - s[n - 1]) * m[k, n - 1, x], m[k, n - 1, x], 0.0
+            else:
+                v = ((2 * u3 - 3 * u2 + 1) * p0 + (u3 - 2 * u2 + u) * h * m0 + (-2 * u3 + 3 * u2) * p1
+                     + (u3 - u2) * h * m1)
+                a = (6 * u2 - 6 * u) * (p0 - p1) / h + (3 * u2 - 4 * u + 1) * m0 + (3 * u2 - 2 * u) * m1
+                b = (12 * u - 6) * (p0 - p1) / (h * h) + (6 * u - 4) * m0 / h + (6 * u - 2) * m1 / h
+            r = ks[k]
+            if add:
+                c[r, x] += v
+            else:
+                c[r, x] = v
+            if derivatives:
+                if add:
+                    d1[r, x] += a
+                    d2[r, x] += b
+                else:
+                    d1[r, x] = a
+                    d2[r, x] = b
 
 
 @dataclass
@@ -155,27 +194,26 @@ class TrackingConstraints:
             clusters.append(ks)
         return TargetCurves(ctrl, self.knots, clusters, shape)
 
+    def _numpy_curves(self, tg: TargetCurves) -> list:
+        """Per guide (control points, knots, tangents, clusters) as numpy arrays, for the target
+        curves ``tg`` (kept for the last ``tg``: it is constant over a step's SQP iterations)."""
+        cached = getattr(self, "_np_curves", None)
+        if cached is None or cached[0] is not tg:
+            curves = [(Q.numpy(), s.numpy(), spline.tangents(Q, s).numpy(), np.ascontiguousarray(ks, dtype=np.int64))
+                      for Q, s, ks in zip(tg.control, tg.knots, tg.clusters) if ks.size]
+            cached = self._np_curves = (tg, curves)
+        return cached[1]
+
     def target_points(self, tg: TargetCurves, tk: np.ndarray, derivatives: bool = False):
-        """c_hat(t) (K, 3) and, with ``derivatives``, c_hat' and c_hat'' (K, 3) each."""
+        """c_hat(t) (K, 3) and, with ``derivatives``, c_hat' and c_hat'' (K, 3) each (the
+        Catmull-Rom curves of hairexp/guides/spline.py, compiled: ``_targets_into``)."""
         c = np.zeros((self.K, 3))
         d1 = np.zeros((self.K, 3))
         d2 = np.zeros((self.K, 3))
-        for Q, s, ks in zip(tg.control, tg.knots, tg.clusters):
-            if ks.size == 0:
-                continue
-            t = torch.as_tensor(tk[ks])
-            if derivatives:
-                v, a, b = spline.eval_with_derivatives(Q, s, t)
-                if self.soft:     # the blend over the guides (a cluster appears once per guide)
-                    np.add.at(c, ks, v.numpy())
-                    np.add.at(d1, ks, a.numpy())
-                    np.add.at(d2, ks, b.numpy())
-                else:
-                    c[ks], d1[ks], d2[ks] = v.numpy(), a.numpy(), b.numpy()
-            elif self.soft:
-                np.add.at(c, ks, spline.evaluate(Q, s, t).numpy())
-            else:
-                c[ks] = spline.evaluate(Q, s, t).numpy()
+        tk = np.ascontiguousarray(tk, dtype=np.float64)
+        for Q, s, m, ks in self._numpy_curves(tg):
+            # soft: the blend over the guides (a cluster appears once per guide)
+            _targets_into(Q, s, m, tk, ks, self.soft, derivatives, c, d1, d2)
         return (c, d1, d2) if derivatives else c
 
     def residual(self, xf: np.ndarray, tg: TargetCurves, tk: np.ndarray) -> np.ndarray:

@@ -61,7 +61,7 @@ class TrackingController(Controller):
 
     # -- Controller -------------------------------------------------------------------------
     def bind(self, sim) -> None:
-        self.kkt = SchurKKT(self.scene.strands, self.cons, sim.objective.assembler.bandwidth)
+        self.kkt = SchurKKT(self.scene.strands, self.cons, sim.objective.assembler.bandwidth, sim.objective.kernels)
 
     def initial_control(self) -> TrackingIterates:
         return TrackingIterates(self.cons.t_rest.copy(), np.zeros(3 * self.cons.K))

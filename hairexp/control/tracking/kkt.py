@@ -18,6 +18,12 @@ of (strand, cluster) is (r P + p, coordinate), r the rank of the cluster's guide
 guides the strand has weight on, so 3 x P x (most guides per strand) right-hand sides (hard:
 r = 0, the layout above).  ``reference_solve`` is the plain sparse saddle-point solve (SuperLU) that tests
 compare against.
+
+With the objective's compiled kernels (``kernels``: hairexp/physics/strand_kernels.py,
+``solver.kernels=numba``) the factorisation is the per-strand block Cholesky and Y^T Y is built
+strand by strand in numba (hairexp/physics/bandchol.py ``schur_*``: each column's forward
+substitution starts at its first non-zero row, the products skip the zero rows); otherwise
+LAPACK's banded Cholesky and batched torch triangular solves.
 """
 
 from __future__ import annotations
@@ -28,11 +34,14 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
+from hairexp.physics import bandchol
 from hairexp.physics.assembly import BandedAssembler
 
 
 class SchurKKT:
-    def __init__(self, strands, cons, bandwidth: int):
+    def __init__(self, strands, cons, bandwidth: int, kernels=None):
+        """``kernels``: the objective's ``StrandKernels`` (None: the LAPACK + torch path); used
+        only when each strand's DOFs are whole blocks of it."""
         s = strands
         free = np.flatnonzero(~s.kinematic)
         strand_of_free = s.strand_of_vertex[free]
@@ -82,12 +91,27 @@ class SchurKKT:
             kk[:, r * P:(r + 1) * P] = np.where(has[:, None], lookup[g_r], -1)
         kk = kk[:, np.arange(self.R) // 3]                          # (S, R)
         rows = np.where(kk >= 0, 3 * kk + np.arange(self.R) % 3, 3 * K)
+        self._rows = np.ascontiguousarray(rows, dtype=np.int64)     # (S, R)
         self._srow = (rows[:, :, None] * (3 * K + 1) + rows[:, None, :]).ravel()
         self.K = K
         self.A, self.AT_sparse = cons.A, cons.AT
+        self.kernels = None
+        if kernels is not None and np.isin(self.dof_off, kernels.blk_dof).all():
+            self.kernels = kernels
+            self._Bt, self._first, self._base, self._scale = distinct_columns(AT)
+            # strands with the same constraint rows, summed together before the scatter into S
+            g_rows, g_of = np.unique(self._rows, axis=0, return_inverse=True)
+            order = np.argsort(g_of.ravel(), kind="stable")
+            self._g_rows = np.ascontiguousarray(g_rows, dtype=np.int64)
+            self._g_strands = order.astype(np.int64)
+            self._g_ptr = np.searchsorted(g_of.ravel()[order], np.arange(len(g_rows) + 1)).astype(np.int64)
+            self._dof_off = np.ascontiguousarray(self.dof_off, dtype=np.int64)
 
     def factor(self, ab: np.ndarray) -> None:
         """Factor H (lower band ``ab``) and build S = A H^-1 A^T."""
+        if self.kernels is not None:
+            self._factor_kernels(ab)
+            return
         try:
             self.cb = scipy.linalg.cholesky_banded(ab, lower=True, check_finite=False)
         except np.linalg.LinAlgError:
@@ -105,7 +129,24 @@ class SchurKKT:
         Sfull = np.bincount(self._srow, weights=YtY.ravel(), minlength=n * n).reshape(n, n)
         self.Smat = Sfull[:-1, :-1]
 
+    def _factor_kernels(self, ab: np.ndarray) -> None:
+        k = self.kernels
+        self.LT = k.factor(ab)
+        self.cb = self.LT.T        # scipy.linalg.cholesky_banded's layout
+        G = np.empty((self.S, self._Bt.shape[1], self._Bt.shape[1]))
+        if k.parallel:
+            bandchol.set_threads(k.threads)
+            bandchol.schur_parallel(self.LT, self._Bt, self._first, self._dof_off, G)
+        else:
+            bandchol.schur_serial(self.LT, self._Bt, self._first, self._dof_off, G)
+        n = 3 * self.K + 1
+        Sfull = np.zeros((n, n))
+        bandchol.scatter_grouped(G, self._base, self._scale, self._g_ptr, self._g_strands, self._g_rows, Sfull)
+        self.Smat = Sfull[:-1, :-1]
+
     def hinv(self, r: np.ndarray) -> np.ndarray:
+        if self.kernels is not None:
+            return self.kernels.cho_solve(self.LT, r)
         return scipy.linalg.cho_solve_banded((self.cb, True), r, check_finite=False)
 
     def solve(self, r_x: np.ndarray, C: np.ndarray, Bmat: np.ndarray | None = None, D: np.ndarray | None = None,
@@ -123,6 +164,46 @@ class SchurKKT:
             lam, dt = sol[:3 * self.K], sol[3 * self.K:]
         dx = -self.hinv(r_x + self.AT_sparse @ lam)
         return dx, dt, lam
+
+
+def distinct_columns(AT: np.ndarray):
+    """Each strand's columns of A^T (AT: (S, n, R)) up to scale: (Bt (S, Rb, n) the distinct
+    columns sorted by first (S, Rb), their first non-zero row (-1: padding, last), base (S, R) and scale (S, R)
+    with AT[s, :, r] = scale[s, r] Bt[s, base[s, r]] (base -1: an empty column)."""
+    S, n, R = AT.shape
+    base = np.full((S, R), -1, dtype=np.int64)
+    scale = np.zeros((S, R))
+    cols = []
+    for s in range(S):
+        c = AT[s].T                                                     # (R, n)
+        nz = c != 0
+        has = nz.any(axis=1)
+        lead = np.where(has, c[np.arange(R), nz.argmax(axis=1)], 1.0)  # the first non-zero entry
+        u = c / lead[:, None]
+        mine = []
+        for r in np.flatnonzero(has):
+            for b, v in enumerate(mine):
+                if np.array_equal(nz[r], v != 0) and np.allclose(u[r], v, rtol=1e-13, atol=0.0):
+                    break
+            else:
+                b = len(mine)
+                mine.append(u[r])
+            base[s, r], scale[s, r] = b, lead[r]
+        cols.append(mine)
+    Rb = max(1, max(len(m) for m in cols))
+    Bt = np.zeros((S, Rb, n))
+    first = np.full((S, Rb), -1, dtype=np.int64)
+    for s, mine in enumerate(cols):   # sorted by first non-zero row (bandchol.schur_block needs it)
+        f = np.array([int(np.flatnonzero(v)[0]) for v in mine], dtype=np.int64)
+        order = np.argsort(f, kind="stable")
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        for b, o in enumerate(order):
+            Bt[s, b] = mine[o]
+            first[s, b] = f[o]
+        has = base[s] >= 0
+        base[s, has] = rank[base[s, has]]
+    return Bt, first, base, scale
 
 
 def reference_solve(ab: np.ndarray, A: sp.spmatrix, r_x: np.ndarray, C: np.ndarray, Bmat: np.ndarray | None = None,

@@ -1,0 +1,330 @@
+"""Compiled (numba) per-strand kernels of the free objective, paper eq. (5):
+
+    G(x) = 1/(2 h^2) |x - x_pred|^2_M + (E_stretch(y) + E_bend(y) + E_grav(y)) / (1 - alpha_f),
+
+y = (1 - alpha_f) x + alpha_f x_n (hairexp/physics/integrators.py; alpha_f = 0 but for
+generalized-alpha).  The element formulas are those of hairexp/physics/energies.py, term for
+term (torch autograd of those energies is the reference they are tested against,
+tests/test_kernels.py):
+
+* stretch (``Stretch``): E = 1/2 (k/l0)(l - l0)^2, gradient (k/l0)(l - l0) u on the second
+  vertex; PSD Hessian block K = c I + (k/l0 - c) u u^T with c = max(T, 0)/l, T the tension
+  iterate of the primal-dual Hessian (or (k/l0)(l - l0) without one);
+* bending (``Bending``): E = w (|kb| - s)^2, kb = 2 e0 x e1 / (|e0||e1| + e0.e1) (Bergou et al.
+  2008), gradient 2w J^T kb (1 - s/|kb|), Gauss-Newton Hessian 2w [c J^T J + (1 - c) q q^T],
+  c = max(0, 1 - s/|kb|), q = J^T kb/|kb| (``bending_kernel``);
+* inertia M/h^2 on the diagonal and the constant external gradient (gravity).
+
+Work is split by *blocks*: runs of free vertices that no element couples to the next run
+(a strand's free vertices).  Every element is assigned to the block of its free vertices, and
+each block's rows of the band and of the gradient are written by one thread only, so the blocks
+run in parallel (``prange``) without atomics.  The band is LAPACK's lower banded storage
+transposed, ``abT[j, d] = A[j + d, j]`` (``abT.T`` is what ``scipy.linalg.solveh_banded`` takes),
+so that one column's entries are contiguous.
+
+Everything is ``@njit(cache=True, error_model="numpy")``: the first run in a checkout compiles (a few seconds) and
+stores the machine code next to this file; later processes load it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+try:  # numba is a dependency, but a missing or broken install must not stop the torch path
+    from numba import njit, prange
+    HAVE_NUMBA = True
+except ImportError:  # pragma: no cover - exercised by monkeypatching HAVE_NUMBA in the tests
+    HAVE_NUMBA = False
+
+    def njit(*args, **kwargs):
+        if args and callable(args[0]):
+            return args[0]
+        return lambda f: f
+
+    prange = range
+
+#: Below this |kb| the bending direction is undefined (hairexp/physics/energies.py KB_EPS).
+KB_EPS = 1e-14
+
+
+@njit(cache=True, error_model="numpy")
+def eval_points(xf, x_full, x_n, free_vertices, alpha_f, Y):
+    """Y (V, 3): the evaluation point y = (1 - alpha_f) x + alpha_f x_n, x the prescribed
+    ``x_full`` with the free rows from the DOF vector ``xf`` (as ``ImplicitEulerObjective.eval_positions``)."""
+    V = x_full.shape[0]
+    for v in range(V):
+        for c in range(3):
+            Y[v, c] = x_full[v, c]
+    for i in range(free_vertices.shape[0]):
+        v = free_vertices[i]
+        for c in range(3):
+            Y[v, c] = xf[3 * i + c]
+    if alpha_f != 0.0:
+        for v in range(V):
+            for c in range(3):
+                Y[v, c] = (1.0 - alpha_f) * Y[v, c] + alpha_f * x_n[v, c]
+
+
+@njit(cache=True, error_model="numpy")
+def bend_jacobian(Y, a, b, c, J, kb, e0, e1):
+    """kb (3,) and its Jacobian J (3, 9) w.r.t. (x_a, x_b, x_c), as ``energies.kb_jacobian``:
+    d kb/d e0 = (-2[e1]x - kb (l1 e0/l0 + e1)^T)/chi, d kb/d e1 = (2[e0]x - kb (l0 e1/l1 + e0)^T)/chi.
+    ``e0``, ``e1`` (3,): scratch (the edge vectors)."""
+    for i in range(3):
+        e0[i] = Y[b, i] - Y[a, i]
+        e1[i] = Y[c, i] - Y[b, i]
+    l0 = math.sqrt(e0[0] * e0[0] + e0[1] * e0[1] + e0[2] * e0[2])
+    l1 = math.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
+    ic = 1.0 / (l0 * l1 + e0[0] * e1[0] + e0[1] * e1[1] + e0[2] * e1[2])    # 1 / chi
+    kb[0] = 2.0 * ic * (e0[1] * e1[2] - e0[2] * e1[1])
+    kb[1] = 2.0 * ic * (e0[2] * e1[0] - e0[0] * e1[2])
+    kb[2] = 2.0 * ic * (e0[0] * e1[1] - e0[1] * e1[0])
+    r01, r10 = l1 / l0, l0 / l1
+    for r in range(3):
+        for s in range(3):
+            J[r, s] = -kb[r] * (r01 * e0[s] + e1[s])     # chi d kb/d e0 without the skew part
+            J[r, 3 + s] = -kb[r] * (r10 * e1[s] + e0[s])  # chi d kb/d e1 without the skew part
+    # skew parts: -2 [e1]x in d kb/d e0, +2 [e0]x in d kb/d e1; [v]x = [[0, -v2, v1], [v2, 0, -v0], [-v1, v0, 0]]
+    J[0, 1] += 2.0 * e1[2]
+    J[0, 2] -= 2.0 * e1[1]
+    J[1, 0] -= 2.0 * e1[2]
+    J[1, 2] += 2.0 * e1[0]
+    J[2, 0] += 2.0 * e1[1]
+    J[2, 1] -= 2.0 * e1[0]
+    J[0, 4] -= 2.0 * e0[2]
+    J[0, 5] += 2.0 * e0[1]
+    J[1, 3] += 2.0 * e0[2]
+    J[1, 5] -= 2.0 * e0[0]
+    J[2, 3] -= 2.0 * e0[1]
+    J[2, 4] += 2.0 * e0[0]
+    for r in range(3):
+        for s in range(3):
+            J0 = J[r, s] * ic
+            J1 = J[r, 3 + s] * ic
+            J[r, s] = -J0
+            J[r, 3 + s] = J0 - J1
+            J[r, 6 + s] = J1
+
+
+@njit(cache=True, error_model="numpy")
+def _add_block(abT, rows, cols, H, p, q, scale):
+    """Add scale * H[3p:3p+3, 3q:3q+3] at global DOF rows ``rows`` > cols ``cols`` (p > q), or
+    its lower triangle on the diagonal (p = q, rows = cols)."""
+    if p == q:
+        for r in range(3):
+            for s in range(r + 1):
+                abT[cols + s, r - s] += scale * H[3 * p + r, 3 * p + s]
+    else:
+        for r in range(3):
+            for s in range(3):
+                abT[cols + s, rows + r - cols - s] += scale * H[3 * p + r, 3 * q + s]
+
+
+@njit(cache=True, error_model="numpy")
+def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                   b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W):
+    """Gradient g_int of the energies and lower band abT (M/h^2 on the diagonal plus
+    (1 - alpha_f) x the element Hessians, ``h_scale``) of block ``blk``.  ``W`` (SCRATCH,):
+    scratch, one per thread (an allocation per block costs as much as a strand's stretch)."""
+    d0, d1 = blk_dof[blk], blk_dof[blk + 1]
+    bw = abT.shape[1] - 1
+    for j in range(d0, d1):
+        g_int[j] = 0.0
+        if need_hessian:
+            abT[j, 0] = mass_diag[j]
+            for d in range(1, bw + 1):
+                abT[j, d] = 0.0
+    H = W[:81].reshape((9, 9))
+    u = W[81:84]
+    for k in range(e_ptr[blk], e_ptr[blk + 1]):
+        e = e_idx[k]
+        va, vb = edges[e, 0], edges[e, 1]
+        for i in range(3):
+            u[i] = Y[vb, i] - Y[va, i]
+        ln = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+        il = 1.0 / ln
+        for i in range(3):
+            u[i] *= il
+        T_now = k_l0[e] * (ln - l0[e])
+        sa, sb = free_slot[va], free_slot[vb]
+        for i in range(3):
+            if sa >= 0:
+                g_int[3 * sa + i] -= T_now * u[i]
+            if sb >= 0:
+                g_int[3 * sb + i] += T_now * u[i]
+        if not need_hessian:
+            continue
+        T = tension[e] if use_tension else T_now
+        cc = max(T, 0.0) * il
+        for r in range(3):
+            for s in range(3):
+                K = (k_l0[e] - cc) * u[r] * u[s]
+                if r == s:
+                    K += cc
+                H[r, s] = K
+                H[3 + r, 3 + s] = K
+                H[3 + r, s] = -K
+        if sa >= 0:
+            _add_block(abT, 3 * sa, 3 * sa, H, 0, 0, h_scale)
+        if sb >= 0:
+            _add_block(abT, 3 * sb, 3 * sb, H, 1, 1, h_scale)
+            if sa >= 0:
+                _add_block(abT, 3 * sb, 3 * sa, H, 1, 0, h_scale)
+    J = W[84:111].reshape((3, 9))
+    kb = W[111:114]
+    q = W[114:123]
+    e0 = W[123:126]
+    e1 = W[126:129]
+    for k in range(b_ptr[blk], b_ptr[blk + 1]):
+        e = b_idx[k]
+        bend_jacobian(Y, bends[e, 0], bends[e, 1], bends[e, 2], J, kb, e0, e1)
+        nrm = math.sqrt(kb[0] * kb[0] + kb[1] * kb[1] + kb[2] * kb[2])
+        s = s_rest[e]
+        ratio = 0.0
+        if s > 0.0:
+            ratio = s / nrm if nrm > KB_EPS else 1.0   # at the kink: no pull
+        f = 2.0 * w[e] * (1.0 - ratio)
+        sl = (free_slot[bends[e, 0]], free_slot[bends[e, 1]], free_slot[bends[e, 2]])
+        for a in range(9):
+            ga = f * (J[0, a] * kb[0] + J[1, a] * kb[1] + J[2, a] * kb[2])
+            if sl[a // 3] >= 0:
+                g_int[3 * sl[a // 3] + a % 3] += ga
+        if not need_hessian:
+            continue
+        c = max(1.0 - ratio, 0.0)
+        wc = 2.0 * w[e] * c
+        wq = 2.0 * w[e] * (1.0 - c)
+        for a in range(9):
+            for bb in range(a + 1):
+                H[a, bb] = wc * (J[0, a] * J[0, bb] + J[1, a] * J[1, bb] + J[2, a] * J[2, bb])
+        if wq != 0.0 and nrm > KB_EPS:   # curved rest shape: the rank-one part along kb/|kb|
+            inrm = 1.0 / nrm
+            for a in range(9):
+                q[a] = (J[0, a] * kb[0] + J[1, a] * kb[1] + J[2, a] * kb[2]) * inrm
+            for a in range(9):
+                for bb in range(a + 1):
+                    H[a, bb] += wq * q[a] * q[bb]
+        for p in range(3):
+            if sl[p] < 0:
+                continue
+            for qq in range(p + 1):
+                if sl[qq] >= 0:
+                    _add_block(abT, 3 * sl[p], 3 * sl[qq], H, p, qq, h_scale)
+
+
+#: Length of ``assemble_block``'s scratch: H (9, 9), u (3), J (3, 9), kb (3), q (9), e0 (3), e1 (3).
+SCRATCH = 129
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def assemble_parallel(Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                      b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, n_chunks):
+    """``assemble_block`` for every block, in parallel over ``n_chunks`` runs of blocks (one
+    scratch each)."""
+    nb = blk_dof.shape[0] - 1
+    size = (nb + n_chunks - 1) // n_chunks
+    for c in prange(n_chunks):
+        W = np.zeros(SCRATCH)
+        for blk in range(c * size, min(nb, (c + 1) * size)):
+            assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                           b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W)
+
+
+@njit(cache=True, error_model="numpy")
+def assemble_serial(Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                    b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, n_chunks):
+    """``assemble_block`` for every block on the calling thread (a 1-thread ``prange`` region
+    still pays the thread pool's launch)."""
+    W = np.zeros(SCRATCH)
+    for blk in range(blk_dof.shape[0] - 1):
+        assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                       b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W)
+
+
+@njit(cache=True, error_model="numpy")
+def stretch_energy_of(Y, edges, e, k_l0, l0):
+    va, vb = edges[e, 0], edges[e, 1]
+    d = 0.0
+    for i in range(3):
+        t = Y[vb, i] - Y[va, i]
+        d += t * t
+    dl = math.sqrt(d) - l0[e]
+    return 0.5 * k_l0[e] * dl * dl
+
+
+@njit(cache=True, error_model="numpy")
+def bend_energy_of(Y, bends, e, w, s_rest):
+    """w (|kb|^2 - 2 s |kb| + s^2), |kb| taken only where s > 0 (``energies.bending_energy``)."""
+    a, b, c = bends[e, 0], bends[e, 1], bends[e, 2]
+    p0, p1, p2 = Y[b, 0] - Y[a, 0], Y[b, 1] - Y[a, 1], Y[b, 2] - Y[a, 2]
+    q0, q1, q2 = Y[c, 0] - Y[b, 0], Y[c, 1] - Y[b, 1], Y[c, 2] - Y[b, 2]
+    l0 = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+    l1 = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
+    chi = l0 * l1 + p0 * q0 + p1 * q1 + p2 * q2
+    k0 = 2.0 * (p1 * q2 - p2 * q1) / chi
+    k1 = 2.0 * (p2 * q0 - p0 * q2) / chi
+    k2 = 2.0 * (p0 * q1 - p1 * q0) / chi
+    sq = k0 * k0 + k1 * k1 + k2 * k2
+    s = s_rest[e]
+    mid = 2.0 * s * math.sqrt(max(sq, 1e-300)) if s > 0.0 else 0.0
+    return w[e] * (sq - mid + s * s)
+
+
+@njit(cache=True, error_model="numpy")
+def energies_block(blk, Y, xf, x_pred, mass_diag, g_ext, free_vertices, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                   b_ptr, b_idx, bends, w, s_rest, e_rest, b_rest, out):
+    """out[blk] = (inertia 1/2 |x - x_pred|^2_M/h^2, stretch, bending, external g_ext . y) of
+    block ``blk`` (the line search's value); ``e_rest``/``b_rest``: elements without a free
+    vertex (their energy is constant over the step but part of the value), in block 0's sums."""
+    ine, st, be, ext = 0.0, 0.0, 0.0, 0.0
+    for j in range(blk_dof[blk], blk_dof[blk + 1]):
+        d = xf[j] - x_pred[j]
+        ine += 0.5 * mass_diag[j] * d * d
+        ext += g_ext[j] * Y[free_vertices[j // 3], j % 3]
+    for k in range(e_ptr[blk], e_ptr[blk + 1]):
+        st += stretch_energy_of(Y, edges, e_idx[k], k_l0, l0)
+    for k in range(b_ptr[blk], b_ptr[blk + 1]):
+        be += bend_energy_of(Y, bends, b_idx[k], w, s_rest)
+    if blk == 0:
+        for k in range(e_rest.shape[0]):
+            st += stretch_energy_of(Y, edges, e_rest[k], k_l0, l0)
+        for k in range(b_rest.shape[0]):
+            be += bend_energy_of(Y, bends, b_rest[k], w, s_rest)
+    out[blk, 0] = ine
+    out[blk, 1] = st
+    out[blk, 2] = be
+    out[blk, 3] = ext
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def energies_parallel(Y, xf, x_pred, mass_diag, g_ext, free_vertices, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                      b_ptr, b_idx, bends, w, s_rest, e_rest, b_rest, out):
+    for blk in prange(blk_dof.shape[0] - 1):
+        energies_block(blk, Y, xf, x_pred, mass_diag, g_ext, free_vertices, blk_dof, e_ptr, e_idx, edges, k_l0,
+                       l0, b_ptr, b_idx, bends, w, s_rest, e_rest, b_rest, out)
+
+
+@njit(cache=True, error_model="numpy")
+def energies_serial(Y, xf, x_pred, mass_diag, g_ext, free_vertices, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                    b_ptr, b_idx, bends, w, s_rest, e_rest, b_rest, out):
+    for blk in range(blk_dof.shape[0] - 1):
+        energies_block(blk, Y, xf, x_pred, mass_diag, g_ext, free_vertices, blk_dof, e_ptr, e_idx, edges, k_l0,
+                       l0, b_ptr, b_idx, bends, w, s_rest, e_rest, b_rest, out)
+
+
+@njit(cache=True, error_model="numpy")
+def tensions(Y, D, edges, k_l0, l0, out):
+    """Spring tensions (N) of every edge at Y, linearised along the displacement D (V, 3):
+    (k/l0)(l - l0 + u . (D_b - D_a)) (``Stretch.linearized_tension``; D = 0: ``tension_of``)."""
+    for e in range(edges.shape[0]):
+        va, vb = edges[e, 0], edges[e, 1]
+        d2 = 0.0
+        lin = 0.0
+        for i in range(3):
+            t = Y[vb, i] - Y[va, i]
+            d2 += t * t
+            lin += (D[vb, i] - D[va, i]) * t
+        ln = math.sqrt(d2)
+        out[e] = k_l0[e] * (ln - l0[e] + lin / ln)
