@@ -33,8 +33,29 @@ import math
 import numpy as np
 
 try:  # numba is a dependency, but a missing or broken install must not stop the torch path
-    from numba import njit, prange
+    from numba import njit as _numba_njit
+    from numba import prange
     HAVE_NUMBA = True
+
+    def njit(*args, **kwargs):
+        """numba's ``njit``; where its cache cannot be written (the checkout is read-only to this
+        user and so is the user's cache folder: numba raises "no locator available" when the
+        function is defined), the function is compiled without the on-disk cache instead of the
+        import failing (it then compiles in every process, a few seconds)."""
+        def deco(f):
+            try:
+                return _numba_njit(**kwargs)(f)
+            except RuntimeError as exc:
+                if not kwargs.get("cache") or "cannot cache" not in str(exc):
+                    raise
+                import logging
+
+                logging.getLogger(__name__).debug("numba cache unavailable for %s (%s)", f.__name__, exc)
+                return _numba_njit(**dict(kwargs, cache=False))(f)
+
+        if args and callable(args[0]):
+            return deco(args[0])
+        return deco
 except ImportError:  # pragma: no cover - exercised by monkeypatching HAVE_NUMBA in the tests
     HAVE_NUMBA = False
 
