@@ -213,6 +213,18 @@ def test_bad_guide_files_are_named(guide_file, spoil):
     assert str(path) in str(err.value) and "\n" not in str(err.value)
 
 
+@pytest.mark.parametrize("content,says", [(b"", r"is empty \(0 bytes\)"), (b"hello\n", "is not an npz file"),
+                                           (b"\x80\x04\x95 pickle", "is not an npz file")])
+def test_a_guide_file_of_another_kind_is_named_as_such(tmp_path, content, says):
+    """A text file or a pickle named as the guide npz: np.load would call it "pickled (object)
+    data" and advise loading it unsafely (probe of issue 12); it is named for what it is."""
+    path = tmp_path / "guides.npz"
+    path.write_bytes(content)
+    with pytest.raises(InputError, match=says) as err:
+        file_guides(path, RigidMotion.static(), 3, 25.0)
+    assert str(path) in err.value.where and "pickle" not in str(err.value) and "allow_pickle" not in str(err.value)
+
+
 def test_a_guide_file_shorter_than_the_run(guide_file):
     file_guides(guide_file, RigidMotion.static(), 3, 25.0)    # frames 0..3 at 25 fps: exactly long enough
     with pytest.raises(InputError, match=r"frames 0\.\.3 .* needs 4 frames") as err:
