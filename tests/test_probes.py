@@ -246,3 +246,19 @@ def test_sweep_job_started_after_stop_is_interrupted(tmp_path):
     assert (res["status"], res["code"]) == ("interrupted", 143)
     assert json.loads((out / ".hydra" / "outcome.json").read_text())["status"] == "interrupted"
     assert not (out / "summary.json").exists()
+
+
+# 5. (issue 12 probes) a guide simulation that fails is said to be the guides', and the exit line
+#    does not promise partial metrics that were never written
+
+def test_failing_guide_simulation_is_named(tmp_path):
+    out = tmp_path / "run"
+    proc = run_cli([*SMALL, "solver.max_iterations=1", "solver.rtol=1e-30", "solver.atol=0", "solver.on_failure=fail",
+                    f"hydra.run.dir={out}"], cwd=tmp_path)
+    assert proc.returncode == 3 and "Traceback" not in proc.stderr, proc.stderr
+    line = [ln for ln in proc.stderr.splitlines() if ln.startswith("hairexp: simulation failed:")]
+    assert len(line) == 1, proc.stderr
+    assert "the guide simulation (guides.source=simulated), frame 1 of 2" in line[0]
+    assert "no step of the hair ran; summary.json in" in line[0] and "partial metrics" not in line[0]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["status"] == "failed" and "guide simulation" in s["error"] and not (out / "metrics.parquet").exists()

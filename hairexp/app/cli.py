@@ -84,7 +84,8 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         print(f"hairexp: error: {exc}", file=sys.stderr)
         res = outcome(out, "failed", 2, str(exc))
     except SimulationError as exc:
-        print(f"hairexp: simulation failed: {exc} (partial metrics in {out})", file=sys.stderr)
+        kept = "partial metrics" if any(Path(out).rglob("metrics.parquet")) else "no step of the hair ran; summary.json"
+        print(f"hairexp: simulation failed: {exc} ({kept} in {out})", file=sys.stderr)
         _print_notes(exc)
         res = outcome(out, "failed", 3, str(exc))
     except OSError as exc:   # the run folder could not be written (a full disk, a blocked path)
