@@ -405,3 +405,16 @@ def test_default_run_folder_in_an_unwritable_working_folder():
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("hairexp: error: the default run folder outputs/"), proc.stderr
     assert "hydra.run.dir" in lines[0] and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("key,value", [("fps", "inf"), ("solver.dt", "nan"), ("scene.length", "inf"),
+                                       ("scene.hair.stretch_stiffness", "nan"), ("scene.hair.air_drag", "inf")])
+def test_non_finite_values_are_called_non_finite(key, value):
+    """fps=inf used to get "must be > 0, got inf" (inf is > 0): a non-finite value is told the
+    number must be finite (probe of issue 12)."""
+    from hairexp.app.config import compose_config
+
+    cfg = compose_config(["experiment=goaling_smoke", "variants=[]", "frames=2", "logging.rerun=false", f"{key}={value}"])
+    with pytest.raises(InputError, match=rf"must be a finite number >=? 0, got {value}") as err:
+        assemble_scene(cfg, settle=False)
+    assert err.value.where == key
