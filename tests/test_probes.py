@@ -262,3 +262,19 @@ def test_failing_guide_simulation_is_named(tmp_path):
     assert "no step of the hair ran; summary.json in" in line[0] and "partial metrics" not in line[0]
     s = json.loads((out / "summary.json").read_text())
     assert s["status"] == "failed" and "guide simulation" in s["error"] and not (out / "metrics.parquet").exists()
+
+
+# 6. (issue 12 probes) a bad strand count in a variant is refused before any variant runs, naming
+#    the variant (the count was checked only when the variant's hair was built: variant a had
+#    started, and -2 x -3 strands passed the resource guard as 6)
+
+@pytest.mark.parametrize("override", ["scene.n_strands=-2", "scene.n_vertices=2"])
+def test_bad_counts_in_a_variant_fail_before_any_variant_runs(tmp_path, override):
+    from hairexp.app.experiment import run_experiment
+
+    cfg = compose_config(["experiment=goaling_smoke", "frames=2", "logging.rerun=false",
+                          f"variants=[{{name: a, overrides: ['{override}']}}]"])
+    with pytest.raises(InputError, match=r"\(variants\[0\] a, checked before any variant runs\)") as err:
+        run_experiment(cfg, tmp_path / "run")
+    assert str(err.value).startswith(override.split("=")[0] + ": must be >=")
+    assert not (tmp_path / "run" / "a").exists()

@@ -55,6 +55,16 @@ def line_points(n: int, radius: float) -> np.ndarray:
     return np.stack([u, np.zeros(n)], 1)
 
 
+def check_counts(n_strands: int, n_vertices: int) -> None:
+    """``scene.n_strands`` >= 1 and ``scene.n_vertices`` >= 3, or an InputError naming the key (also
+    called before the resource guard and by an experiment's check of every variant's config, so a
+    bad count fails before anything runs: -2 x -3 strands would pass the guard's size)."""
+    if n_strands < 1:
+        raise InputError(f"must be >= 1, got {n_strands}", "scene.n_strands")
+    if n_vertices < 3:
+        raise InputError(f"must be >= 3 (two root vertices and one free), got {n_vertices}", "scene.n_vertices")
+
+
 def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius: float, center: np.ndarray,
                      direction: np.ndarray, spread: float, seed: int, fan: bool = False,
                      layout: str = "disk") -> np.ndarray:
@@ -64,10 +74,7 @@ def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius
 
     ``fan``: strand i tilts outward in proportion to its root's distance from the centre (a
     cone, rim tilt ``spread``); otherwise each strand tilts by a random angle up to ``spread``."""
-    if n_strands < 1:
-        raise InputError(f"must be >= 1, got {n_strands}", "scene.n_strands")
-    if n_vertices < 3:
-        raise InputError(f"must be >= 3 (two root vertices and one free), got {n_vertices}", "scene.n_vertices")
+    check_counts(n_strands, n_vertices)
     if not (length > 0 and np.isfinite(length)):
         raise InputError(f"must be a finite number > 0, got {length}", "scene.length")
     if not (root_radius >= 0 and np.isfinite(root_radius)):
