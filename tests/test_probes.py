@@ -278,3 +278,14 @@ def test_bad_counts_in_a_variant_fail_before_any_variant_runs(tmp_path, override
         run_experiment(cfg, tmp_path / "run")
     assert str(err.value).startswith(override.split("=")[0] + ": must be >=")
     assert not (tmp_path / "run" / "a").exists()
+
+
+# 7. (issue 12 probes) integers in a list of float lists: OmegaConf's "Value 0 (int) is incompatible
+#    with type hint 'float'" gets the fix spelled out
+
+def test_integers_in_nested_float_lists_get_a_hint():
+    msg = cli.config_error(["experiment=goaling_smoke", "variants=[]", "scene.motion.translations=[[0,0,0]]"])
+    assert msg.startswith("hairexp: error: ") and "\n" not in msg
+    assert "incompatible with type hint 'float'" in msg and "as a float (0.0, not 0)" in msg
+    assert cli.config_error(["experiment=goaling_smoke", "variants=[]", "scene.motion.translations=[[0.0,0.0,0.0]]"]) \
+        is None

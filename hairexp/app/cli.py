@@ -371,5 +371,8 @@ def config_error(argv: list[str]) -> str | None:
         cause = exc.__cause__ or exc.__context__
         if cause is not None and str(cause).strip():   # "Error merging override x=y" says why only here
             msg += ": " + str(cause).strip().splitlines()[0]
+        if "incompatible with type hint 'float'" in msg:   # scene.motion.translations=[[0,0,0]]
+            msg += ("; write such a number as a float (0.0, not 0): inside a list of lists OmegaConf does not "
+                    "turn an integer into a float")
         return f"hairexp: error: {' '.join(msg.split())}"
     return None
