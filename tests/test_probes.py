@@ -289,3 +289,15 @@ def test_integers_in_nested_float_lists_get_a_hint():
     assert "incompatible with type hint 'float'" in msg and "as a float (0.0, not 0)" in msg
     assert cli.config_error(["experiment=goaling_smoke", "variants=[]", "scene.motion.translations=[[0.0,0.0,0.0]]"]) \
         is None
+
+
+# 8. (issue 12 probes) a key not in the schema without "+": Hydra advised "+key=value", which the
+#    schema refuses too; the line names the key and the nearest valid one instead
+
+@pytest.mark.parametrize("override, key, near", [("foo=1", "foo", "the keys of the top level are:"),
+                                                  ("solver.rtoll=1e-3", "solver.rtoll", "did you mean 'solver.rtol'?"),
+                                                  ("scene.hair.stiff=3", "scene.hair.stiff", "scene.hair.")])
+def test_unknown_key_without_plus_names_the_nearest(override, key, near):
+    msg = cli.config_error(["experiment=goaling_smoke", "variants=[]", override])
+    assert msg.startswith(f"hairexp: error: {key}: unknown key, not in the schema") and near in msg
+    assert "To append" not in msg and "\n" not in msg
