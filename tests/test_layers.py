@@ -23,7 +23,7 @@ PKG = Path(__file__).resolve().parents[1] / "hairexp"
 
 #: layer of each top-level part of the package (a subpackage or a module directly under hairexp/)
 LAYERS = {
-    "__init__": 0, "errors": 0,
+    "__init__": 0, "errors": 0, "memory": 0,
     "model": 1,
     "guides": 2,
     "physics": 3,

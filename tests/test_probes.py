@@ -246,3 +246,58 @@ def test_sweep_job_started_after_stop_is_interrupted(tmp_path):
     assert (res["status"], res["code"]) == ("interrupted", 143)
     assert json.loads((out / ".hydra" / "outcome.json").read_text())["status"] == "interrupted"
     assert not (out / "summary.json").exists()
+
+
+# 5. (issue 12 probes) a guide simulation that fails is said to be the guides', and the exit line
+#    does not promise partial metrics that were never written
+
+def test_failing_guide_simulation_is_named(tmp_path):
+    out = tmp_path / "run"
+    proc = run_cli([*SMALL, "solver.max_iterations=1", "solver.rtol=1e-30", "solver.atol=0", "solver.on_failure=fail",
+                    f"hydra.run.dir={out}"], cwd=tmp_path)
+    assert proc.returncode == 3 and "Traceback" not in proc.stderr, proc.stderr
+    line = [ln for ln in proc.stderr.splitlines() if ln.startswith("hairexp: simulation failed:")]
+    assert len(line) == 1, proc.stderr
+    assert "the guide simulation (guides.source=simulated), frame 1 of 2" in line[0]
+    assert "no step of the hair ran; summary.json in" in line[0] and "partial metrics" not in line[0]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["status"] == "failed" and "guide simulation" in s["error"] and not (out / "metrics.parquet").exists()
+
+
+# 6. (issue 12 probes) a bad strand count in a variant is refused before any variant runs, naming
+#    the variant (the count was checked only when the variant's hair was built: variant a had
+#    started, and -2 x -3 strands passed the resource guard as 6)
+
+@pytest.mark.parametrize("override", ["scene.n_strands=-2", "scene.n_vertices=2"])
+def test_bad_counts_in_a_variant_fail_before_any_variant_runs(tmp_path, override):
+    from hairexp.app.experiment import run_experiment
+
+    cfg = compose_config(["experiment=goaling_smoke", "frames=2", "logging.rerun=false",
+                          f"variants=[{{name: a, overrides: ['{override}']}}]"])
+    with pytest.raises(InputError, match=r"\(variants\[0\] a, checked before any variant runs\)") as err:
+        run_experiment(cfg, tmp_path / "run")
+    assert str(err.value).startswith(override.split("=")[0] + ": must be >=")
+    assert not (tmp_path / "run" / "a").exists()
+
+
+# 7. (issue 12 probes) integers in a list of float lists: OmegaConf's "Value 0 (int) is incompatible
+#    with type hint 'float'" gets the fix spelled out
+
+def test_integers_in_nested_float_lists_get_a_hint():
+    msg = cli.config_error(["experiment=goaling_smoke", "variants=[]", "scene.motion.translations=[[0,0,0]]"])
+    assert msg.startswith("hairexp: error: ") and "\n" not in msg
+    assert "incompatible with type hint 'float'" in msg and "as a float (0.0, not 0)" in msg
+    assert cli.config_error(["experiment=goaling_smoke", "variants=[]", "scene.motion.translations=[[0.0,0.0,0.0]]"]) \
+        is None
+
+
+# 8. (issue 12 probes) a key not in the schema without "+": Hydra advised "+key=value", which the
+#    schema refuses too; the line names the key and the nearest valid one instead
+
+@pytest.mark.parametrize("override, key, near", [("foo=1", "foo", "the keys of the top level are:"),
+                                                  ("solver.rtoll=1e-3", "solver.rtoll", "did you mean 'solver.rtol'?"),
+                                                  ("scene.hair.stiff=3", "scene.hair.stiff", "scene.hair.")])
+def test_unknown_key_without_plus_names_the_nearest(override, key, near):
+    msg = cli.config_error(["experiment=goaling_smoke", "variants=[]", override])
+    assert msg.startswith(f"hairexp: error: {key}: unknown key, not in the schema") and near in msg
+    assert "To append" not in msg and "\n" not in msg

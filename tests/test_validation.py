@@ -213,6 +213,18 @@ def test_bad_guide_files_are_named(guide_file, spoil):
     assert str(path) in str(err.value) and "\n" not in str(err.value)
 
 
+@pytest.mark.parametrize("content,says", [(b"", r"is empty \(0 bytes\)"), (b"hello\n", "is not an npz file"),
+                                           (b"\x80\x04\x95 pickle", "is not an npz file")])
+def test_a_guide_file_of_another_kind_is_named_as_such(tmp_path, content, says):
+    """A text file or a pickle named as the guide npz: np.load would call it "pickled (object)
+    data" and advise loading it unsafely (probe of issue 12); it is named for what it is."""
+    path = tmp_path / "guides.npz"
+    path.write_bytes(content)
+    with pytest.raises(InputError, match=says) as err:
+        file_guides(path, RigidMotion.static(), 3, 25.0)
+    assert str(path) in err.value.where and "pickle" not in str(err.value) and "allow_pickle" not in str(err.value)
+
+
 def test_a_guide_file_shorter_than_the_run(guide_file):
     file_guides(guide_file, RigidMotion.static(), 3, 25.0)    # frames 0..3 at 25 fps: exactly long enough
     with pytest.raises(InputError, match=r"frames 0\.\.3 .* needs 4 frames") as err:
@@ -393,3 +405,16 @@ def test_default_run_folder_in_an_unwritable_working_folder():
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("hairexp: error: the default run folder outputs/"), proc.stderr
     assert "hydra.run.dir" in lines[0] and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("key,value", [("fps", "inf"), ("solver.dt", "nan"), ("scene.length", "inf"),
+                                       ("scene.hair.stretch_stiffness", "nan"), ("scene.hair.air_drag", "inf")])
+def test_non_finite_values_are_called_non_finite(key, value):
+    """fps=inf used to get "must be > 0, got inf" (inf is > 0): a non-finite value is told the
+    number must be finite (probe of issue 12)."""
+    from hairexp.app.config import compose_config
+
+    cfg = compose_config(["experiment=goaling_smoke", "variants=[]", "frames=2", "logging.rerun=false", f"{key}={value}"])
+    with pytest.raises(InputError, match=rf"must be a finite number >=? 0, got {value}") as err:
+        assemble_scene(cfg, settle=False)
+    assert err.value.where == key

@@ -30,6 +30,7 @@ from hairexp.app.guides import build_guides
 from hairexp.app.validate import validate_config, validate_measure
 from hairexp.control import build_controller
 from hairexp.guides.animation import GuideAnimation
+from hairexp.model.builders import check_counts
 from hairexp.model.scene import Scene
 from hairexp.physics.controller import Controller
 from hairexp.physics.info import StepInfo
@@ -103,6 +104,7 @@ def check_config(cfg) -> None:
     cfg = timed_config(cfg)
     n_sub, _ = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
     if str(_value(cfg.scene.builder)) != "usd":
+        check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices))
         guard_run(cfg, int(cfg.scene.n_strands) * int(cfg.scene.n_vertices), n_sub)
 
 
@@ -113,6 +115,7 @@ def _assemble_scene(cfg, settle: bool):
     n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)   # validated before anything is built
     usd = str(_value(cfg.scene.builder)) == "usd"
     if not usd:   # the resource guard (hairexp/app/guard.py) before the hair is built
+        check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices))
         guard_run(cfg, int(cfg.scene.n_strands) * int(cfg.scene.n_vertices), n_sub, run=settle)
     scene = build_scene(cfg.scene)
     if usd:       # a stage's size is known once it is read

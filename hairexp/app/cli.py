@@ -26,6 +26,7 @@ import errno
 import json
 import logging
 import os
+import re
 import signal
 import sys
 import tempfile
@@ -35,7 +36,7 @@ from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
-from hairexp.app.config import CONF_DIR, check_bool_overrides, check_keys, compose_config
+from hairexp.app.config import CONF_DIR, check_bool_overrides, check_keys, compose_config, unknown_key_hint
 from hairexp.app.experiment import run_experiment
 from hairexp.app.signals import child_pids, forward
 from hairexp.app.signals import exit_code as signal_exit_code
@@ -84,7 +85,8 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         print(f"hairexp: error: {exc}", file=sys.stderr)
         res = outcome(out, "failed", 2, str(exc))
     except SimulationError as exc:
-        print(f"hairexp: simulation failed: {exc} (partial metrics in {out})", file=sys.stderr)
+        kept = "partial metrics" if any(Path(out).rglob("metrics.parquet")) else "no step of the hair ran; summary.json"
+        print(f"hairexp: simulation failed: {exc} ({kept} in {out})", file=sys.stderr)
         _print_notes(exc)
         res = outcome(out, "failed", 3, str(exc))
     except OSError as exc:   # the run folder could not be written (a full disk, a blocked path)
@@ -370,5 +372,13 @@ def config_error(argv: list[str]) -> str | None:
         cause = exc.__cause__ or exc.__context__
         if cause is not None and str(cause).strip():   # "Error merging override x=y" says why only here
             msg += ": " + str(cause).strip().splitlines()[0]
+        unknown = re.match(r"Could not override '([^']+)'\.\s+To append to your config use \+", msg)
+        if unknown:   # Hydra advises "+key", which the schema refuses too (check_keys)
+            hint = unknown_key_hint(unknown.group(1))
+            return (f"hairexp: error: {unknown.group(1)}: unknown key, not in the schema (hairexp/app/config.py)"
+                    + (f"; {hint}" if hint else ""))
+        if "incompatible with type hint 'float'" in msg:   # scene.motion.translations=[[0,0,0]]
+            msg += ("; write such a number as a float (0.0, not 0): inside a list of lists OmegaConf does not "
+                    "turn an integer into a float")
         return f"hairexp: error: {' '.join(msg.split())}"
     return None

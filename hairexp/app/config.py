@@ -482,6 +482,31 @@ def check_keys(cfg) -> None:
     raise InputError(f"unknown key, not in the schema (hairexp/app/config.py); {hint}{more}", key)
 
 
+def unknown_key_hint(key: str) -> str:
+    """For a dotted ``key`` that the schema does not have (``solver.rtoll``): "did you mean
+    'solver.rtol'?", or the keys of its parent node."""
+    import re
+    import typing
+
+    parts = re.sub(r"\[\d*\]", "", key.lstrip("+~")).split(".")
+    t: Any = Config
+    for part in parts[:-1]:
+        hints = typing.get_type_hints(t) if isinstance(t, type) and dataclasses.is_dataclass(t) else {}
+        if part not in hints:
+            return ""
+        t = hints[part]
+        if typing.get_origin(t) is list:
+            t = typing.get_args(t)[0]
+    if not (isinstance(t, type) and dataclasses.is_dataclass(t)):
+        return ""
+    fields = [f.name for f in dataclasses.fields(t)]
+    parent = ".".join(parts[:-1])
+    near = [f"{parent}.{f}" if parent else f for f in _nearest(parts[-1], fields)]
+    if near:
+        return "did you mean " + " or ".join(repr(n) for n in near) + "?"
+    return f"the keys of {parent or 'the top level'} are: {', '.join(fields)}"
+
+
 def is_bool_key(key: str) -> bool:
     """Whether the dotted ``key`` (list indices allowed: ``variants[0].x``) is a ``bool`` field of
     the schema."""

@@ -1,23 +1,29 @@
-"""The resource guard: before a run builds anything big, estimate its memory and its step count
-from the config alone, refuse what cannot fit in the machine's available memory (an InputError
-naming the keys that size the run, unless ``guard.allow_large=true``) and log a warning with the
-estimated steps and time of a long run.
+"""The resource guard: before a run builds anything big, estimate its memory, its disk and its
+step count from the config alone, refuse what cannot fit in the machine's available memory or in
+the free space of the run folder's disk (an InputError naming the keys that size the run, unless
+``guard.allow_large=true``) and log a warning with the estimated steps and time of a long run.
 
 The estimate (``estimate``, a pure function) is
 
-    memory = V x BYTES_PER_VERTEX                         (state, banded Hessian, energies' stencils,
+    memory = (V + Vg) x BYTES_PER_VERTEX                  (state, banded Hessian, energies' stencils,
                                                            torch buffers of the closed forms, ...)
-           + (frames + 1) x V x 3 x 8 x FRAME_COPIES      (the per-frame positions kept for
-                                                           result.npz, its array copy and result.usda)
-           + steps x BYTES_PER_STEP                       (one metrics row per step, kept to the end)
+           + (frames + 1) x BYTES_PER_FRAME               (what still grows with the frames: the USD
+                                                           crate layer's index of its time samples)
+    disk   = (frames + 1) x (V + Vg) x DISK_BYTES_PER_VERTEX_FRAME + steps x DISK_BYTES_PER_STEP
     time   = (steps + settle steps) x (SECONDS_PER_STEP + V x SECONDS_PER_VERTEX_STEP)
+
+(V hair vertices, Vg vertices of a simulated guide animation).  Frames and metrics rows are
+streamed to the run folder while the run goes (hairexp/app/run.py), so memory is flat in the
+frames (reports/bench_memory.md: +2 to +3 MB from 200 to 3,000 frames, about 1 kB a frame of which
+the crate index is 0.2-0.5 kB) and a long run's cost is disk: the streamed positions (float64, 24 B
+a vertex a frame) while it runs, result.npz (at most as much again) and result.usdc (float32, 12 B,
+plus the crate's saves), about 70 B a vertex a frame in all, and ~110 B of metrics.parquet a step.
 
 Constants measured on this project's goaling_smoke scene (controller free, ``logging.rerun=false``,
 peak RSS from ``/usr/bin/time -v``, 2 cores): 20 000 vertices peaked at 683 MB and 50 000 at
 819 MB (2 frames; 4.5 kB per vertex, rounded up to 6 kB for hair-hair lists and the tracking's KKT
-blocks: 20 000 tracked vertices peaked at 694 MB); 20 frames instead of 2 at 20 000 vertices
-added 20 MB (2.3 copies of the positions: 3); 3000 steps of a 10-vertex scene added 31 MB over 2
-steps (10 kB per step).  A step took 4 ms at 10 vertices and 0.18 s at 20 000 (9 us per vertex).
+blocks: 20 000 tracked vertices peaked at 694 MB).  A step took 4 ms at 10 vertices and 0.18 s at
+20 000 (9 us per vertex).
 """
 
 from __future__ import annotations
@@ -33,8 +39,9 @@ from hairexp.physics.settle import settle_seconds, settle_step
 log = logging.getLogger(__name__)
 
 BYTES_PER_VERTEX = 6_000
-FRAME_COPIES = 3
-BYTES_PER_STEP = 10_000
+BYTES_PER_FRAME = 1_000
+DISK_BYTES_PER_VERTEX_FRAME = 72
+DISK_BYTES_PER_STEP = 200
 SECONDS_PER_STEP = 4e-3
 SECONDS_PER_VERTEX_STEP = 1e-5
 #: runs with more steps (settle phases included) are announced with a warning
@@ -44,6 +51,7 @@ LONG_RUN_STEPS = 100_000
 @dataclass(frozen=True)
 class Estimate:
     memory: float        # bytes beyond the interpreter's own
+    disk: float          # bytes the run folder's files take (the stream while it runs, then the results)
     steps: int           # recorded steps of the run (frames x steps per frame)
     settle_steps: int    # steps of the settle phases and of a guide simulation
     seconds: float       # rough wall time of all steps
@@ -59,12 +67,11 @@ def estimate(n_vertices: int, frames: int, steps_per_frame: int, settle_steps: i
     ``steps_per_frame`` steps, after ``settle_steps`` settle steps; ``guide_steps`` steps of a
     guide simulation of ``guide_vertices`` vertices (``guides.source=simulated``)."""
     steps = int(frames) * int(steps_per_frame)
-    memory = (float(n_vertices) * BYTES_PER_VERTEX + (frames + 1.0) * n_vertices * 24.0 * FRAME_COPIES
-              + float(steps) * BYTES_PER_STEP
-              + float(guide_vertices) * BYTES_PER_VERTEX + (frames + 1.0) * guide_vertices * 24.0)
+    memory = float(n_vertices + guide_vertices) * BYTES_PER_VERTEX + (frames + 1.0) * BYTES_PER_FRAME
+    disk = (frames + 1.0) * float(n_vertices + guide_vertices) * DISK_BYTES_PER_VERTEX_FRAME + float(steps) * DISK_BYTES_PER_STEP
     seconds = ((steps + settle_steps) * (SECONDS_PER_STEP + n_vertices * SECONDS_PER_VERTEX_STEP)
                + guide_steps * (SECONDS_PER_STEP + guide_vertices * SECONDS_PER_VERTEX_STEP))
-    return Estimate(memory, steps, int(settle_steps) + int(guide_steps), seconds)
+    return Estimate(memory, disk, steps, int(settle_steps) + int(guide_steps), seconds)
 
 
 def available_memory() -> float | None:
@@ -80,6 +87,30 @@ def available_memory() -> float | None:
     try:
         return float(os.sysconf("SC_AVPHYS_PAGES")) * float(os.sysconf("SC_PAGE_SIZE"))
     except (ValueError, OSError, AttributeError):
+        return None
+
+
+def available_disk(folder) -> float | None:
+    """Free bytes of the disk holding ``folder`` (its nearest existing ancestor), or None."""
+    import shutil
+    from pathlib import Path
+
+    p = Path(folder).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    try:
+        return float(shutil.disk_usage(p).free)
+    except OSError:
+        return None
+
+
+def run_folder() -> str | None:
+    """The Hydra job's output folder (the run folder), or None outside a Hydra job."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return str(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else None
+    except Exception:   # noqa: BLE001  (no Hydra, or no job: no folder to check)
         return None
 
 
@@ -104,9 +135,11 @@ def _duration(s: float) -> str:
 MAX_RUN_SECONDS = 7 * 86400.0
 
 
-def check(est: Estimate, keys: str, allow_large: bool, available: float | None) -> None:
-    """Refuse ``est`` when it needs more than ``available`` bytes (an InputError naming ``keys``,
-    the config keys that size the run), unless ``allow_large``; warn about a long run."""
+def check(est: Estimate, keys: str, allow_large: bool, available: float | None, disk_free: float | None = None,
+          folder: str | None = None) -> None:
+    """Refuse ``est`` when it needs more than ``available`` bytes of memory or ``disk_free`` bytes
+    of the disk of ``folder`` (an InputError naming ``keys``, the config keys that size the run),
+    unless ``allow_large``; warn about a long run."""
     def refuse(msg: str) -> None:   # an InputError, or with allow_large a warning
         if not allow_large:
             raise InputError(msg, keys)
@@ -116,6 +149,11 @@ def check(est: Estimate, keys: str, allow_large: bool, available: float | None) 
         refuse(f"the run would need about {_size(est.memory)} of memory ({est.steps:.3g} steps, "
                f"{est.total_steps:.3g} with settle and guide-simulation steps) but {_size(available)} is available; make it smaller "
                "or set guard.allow_large=true to run anyway")
+    if disk_free is not None and est.disk > disk_free:
+        refuse(f"the run's files would take about {_size(est.disk)} of disk ({est.steps:.3g} steps; "
+               f"{DISK_BYTES_PER_VERTEX_FRAME} B a vertex a frame) but {_size(disk_free)} is free"
+               f"{f' where {folder} is' if folder else ''}; make it smaller or shorter, or set "
+               "guard.allow_large=true to run anyway")
     if est.seconds > MAX_RUN_SECONDS:
         refuse(f"the run would take roughly {_duration(est.seconds)} (about {est.total_steps:.3g} steps, "
                f"{est.settle_steps:.3g} of them settle and guide steps), more than {_duration(MAX_RUN_SECONDS)}; "
@@ -144,5 +182,7 @@ def guard_run(cfg, n_vertices: int, steps_per_frame: int, run: bool = True) -> E
     est = estimate(n_vertices, frames, steps_per_frame, hair_settle if run else 0, gv, gsteps)
     keys = "scene.usd" if str(_value(cfg.scene.builder)) == "usd" else "scene.n_strands x scene.n_vertices"
     keys += ", frames, solver.dt" + (", scene.settle" if hair_settle else "")
-    check(est, keys, bool(getattr(getattr(cfg, "guard", None), "allow_large", False)), available_memory())
+    folder = run_folder() if run else None
+    check(est, keys, bool(getattr(getattr(cfg, "guard", None), "allow_large", False)), available_memory(),
+          None if folder is None else available_disk(folder), folder)
     return est

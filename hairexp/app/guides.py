@@ -8,7 +8,7 @@ import copy
 
 import numpy as np
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, SimulationError
 from hairexp.guides.animation import GuideAnimation, carried_guides, file_guides, rest_guides
 from hairexp.guides.authoring import apply_edits, keyframed_positions
 from hairexp.guides.store import FrameStore
@@ -72,9 +72,13 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
     state = sim.initial_state()
     out = FrameStore(state.x.shape)   # frame by frame to a temporary file: memory flat in the frames
     out.append(state.x)
-    for _ in range(frames):
-        for _ in range(n_sub):
-            state, _ = sim.step(state, dt)
+    for f in range(frames):
+        try:
+            for _ in range(n_sub):
+                state, _ = sim.step(state, dt)
+        except SimulationError as exc:   # said to be the guides', not the hair's (no hair step has run)
+            raise SimulationError(f"the guide simulation (guides.source=simulated), frame {f + 1} of {frames}: "
+                                  f"{exc}") from exc
         out.append(state.x)
     return GuideAnimation(out, offsets, fps, motion=scene.motion)
 

@@ -40,6 +40,7 @@ from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCIT
 from hairexp.model.rigid import RigidMotion
 from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, write_json, write_npz
 from hairexp.outputs.folder import STREAM, SUMMARY, claim, owner, remove_tmp
+from hairexp.memory import release
 from hairexp.outputs.metrics import MetricsTable, measure
 from hairexp.outputs.progress import Progress, progress_enabled
 
@@ -181,6 +182,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     scene, guides, sim = r.scene, r.guides, r.simulator
     scene_name, controller = plain["scene"]["name"], plain["controller"]["name"]
     atomic_write_bytes(out / "guides.npz", guides.save)
+    release()   # between phases: the freed blocks of one do not stack under the next (hairexp/memory.py)
     recorder = sinks.recorder = ResultRecorder(scene, out / STREAM, guides.offsets, r.controller.cluster_of_vertex(),
                                                r.controller.cluster_weights())
     if cfg.logging.rerun:
@@ -220,8 +222,10 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     progress.close()
     # metrics.parquet first (a failed run keeps it too), then read back column by column: the
     # end of a run holds one column or one block of frames at a time, whatever its length
+    release()
     df = table.write(out / "metrics.parquet")
     shutil.rmtree(out / STREAM / "metrics", ignore_errors=True)
+    release()
     why = convergence_error(df, str(getattr(cfg.on_unconverged, "value", cfg.on_unconverged)))
     if why:
         raise SimulationError(why)
@@ -231,9 +235,11 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
                                             recorder.array("body_positions"), df))
     coh = cohesion(scene.strands.offsets, times, positions, float(cfg.measure.cohesion_threshold),
                    float(cfg.measure.cohesion_fraction))
+    release()
     # the result files; a failure from here on removes those already written (no results beside a failed run)
     sinks.written.append(out / "result.npz")
     write_npz(out / "result.npz", out / STREAM)
+    release()
     from hairexp.io.usd_write import write_result_usd  # pxr is imported here
 
     wscene = scene
@@ -245,6 +251,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     sinks.written.append(usd)
     write_result_usd(usd, wscene, positions, recorder.frames_of("guide_positions"), guides.offsets, cfg.fps)
     recorder.close()
+    release()
     view = None
     if rerun_sink is not None:
         sinks.written.append(out / "recording.rrd")

@@ -165,6 +165,23 @@ def rest_guides(scene_cfg, count: int, n_vertices: int, layout_radius: float) ->
     return np.concatenate([r0 + s[:, None] * d for r0 in roots])
 
 
+#: how the files np.load reads begin: an npz is a zip archive, a .npy has its own magic
+ZIP_MAGIC, NPY_MAGIC = b"PK\x03\x04", b"\x93NUMPY"
+
+
+def npz_kind(path: Path, where: str) -> None:
+    """An InputError naming ``where`` unless ``path`` begins as an npz (a zip archive) or a .npy
+    does: an empty file, or one of another kind (text, a pickle), which np.load would report as
+    "pickled (object) data" and advise loading unsafely."""
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if not head:
+        raise InputError("is empty (0 bytes), not a guide npz", where)
+    if not (head.startswith(ZIP_MAGIC) or head.startswith(NPY_MAGIC)):
+        raise InputError(f"is not an npz file (a zip archive of .npy arrays, as np.savez writes): it begins "
+                         f"with {head!r}", where)
+
+
 def file_guides(path, motion, frames: int | None = None, fps: float | None = None) -> GuideAnimation:
     """The ``file`` source: an npz with ``guide_positions``, ``guide_offsets`` and ``fps``.  With
     ``frames``/``fps`` (the run's), a file that ends before the run does is an error: the guides
@@ -172,6 +189,7 @@ def file_guides(path, motion, frames: int | None = None, fps: float | None = Non
     path = Path(path)
     where = f"guides.file={path}"
     regular_file(path, where, "guide npz")
+    npz_kind(path, where)
     try:
         data = np.load(path, allow_pickle=False)
         if not isinstance(data, np.lib.npyio.NpzFile):

@@ -23,6 +23,7 @@ import numpy as np
 from pxr import Usd, UsdGeom, Vt
 
 from hairexp.io.usd_colliders import write_colliders
+from hairexp.memory import release
 from hairexp.io.usd_layout import (BODY, GUIDE_WIDTH, GUIDES, HAIR, HAIR_WIDTH, RESULT, RESULT_HAIR, ROOT,
                                    matrix_from_pose, set_transform)
 
@@ -53,6 +54,7 @@ class Saves:
             if not self.stage.GetRootLayer().Save():
                 raise OSError(f"cannot write {self.stage.GetRootLayer().realPath}")
             self.added = 0
+            release()   # each save's packing tables grow with the samples saved: free them, or the heap grows
 
 
 def new_stage(fps: float, frames: int, doc: str, path=None) -> Usd.Stage:

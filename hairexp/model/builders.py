@@ -55,6 +55,16 @@ def line_points(n: int, radius: float) -> np.ndarray:
     return np.stack([u, np.zeros(n)], 1)
 
 
+def check_counts(n_strands: int, n_vertices: int) -> None:
+    """``scene.n_strands`` >= 1 and ``scene.n_vertices`` >= 3, or an InputError naming the key (also
+    called before the resource guard and by an experiment's check of every variant's config, so a
+    bad count fails before anything runs: -2 x -3 strands would pass the guard's size)."""
+    if n_strands < 1:
+        raise InputError(f"must be >= 1, got {n_strands}", "scene.n_strands")
+    if n_vertices < 3:
+        raise InputError(f"must be >= 3 (two root vertices and one free), got {n_vertices}", "scene.n_vertices")
+
+
 def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius: float, center: np.ndarray,
                      direction: np.ndarray, spread: float, seed: int, fan: bool = False,
                      layout: str = "disk") -> np.ndarray:
@@ -64,14 +74,11 @@ def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius
 
     ``fan``: strand i tilts outward in proportion to its root's distance from the centre (a
     cone, rim tilt ``spread``); otherwise each strand tilts by a random angle up to ``spread``."""
-    if n_strands < 1:
-        raise InputError(f"must be >= 1, got {n_strands}", "scene.n_strands")
-    if n_vertices < 3:
-        raise InputError(f"must be >= 3 (two root vertices and one free), got {n_vertices}", "scene.n_vertices")
+    check_counts(n_strands, n_vertices)
     if not (length > 0 and np.isfinite(length)):
-        raise InputError(f"must be > 0, got {length}", "scene.length")
+        raise InputError(f"must be a finite number > 0, got {length}", "scene.length")
     if not (root_radius >= 0 and np.isfinite(root_radius)):
-        raise InputError(f"must be >= 0 (m), got {root_radius}", "scene.root_radius")
+        raise InputError(f"must be a finite number >= 0 (m), got {root_radius}", "scene.root_radius")
     if fan and spread > 0 and root_radius == 0:
         raise InputError("must be > 0 for a ponytail with scene.spread > 0 (the rim strands tilt by spread)",
                          "scene.root_radius")
@@ -129,13 +136,13 @@ def build_material(h) -> Material:
     """The hair material of ``scene.hair``, validated."""
     for key in ("linear_density", "stretch_stiffness", "bending_stiffness"):
         if not (getattr(h, key) > 0 and np.isfinite(getattr(h, key))):
-            raise InputError(f"must be > 0, got {getattr(h, key)}", f"scene.hair.{key}")
+            raise InputError(f"must be a finite number > 0, got {getattr(h, key)}", f"scene.hair.{key}")
         if getattr(h, key) > MATERIAL_MAX:   # hair: EA ~ 1-100 N, EI ~ 1e-9-1e-5 N m^2, 1e-5-1e-3 kg/m
             raise InputError(f"is {getattr(h, key):g}, beyond {MATERIAL_MAX:g}: the step's Newton system (stiffness "
                              "against mass / dt^2) is then beyond double precision", f"scene.hair.{key}")
     for key in ("edge_damping", "air_drag"):
         if not (getattr(h, key) >= 0 and np.isfinite(getattr(h, key))):
-            raise InputError(f"must be >= 0, got {getattr(h, key)}", f"scene.hair.{key}")
+            raise InputError(f"must be a finite number >= 0, got {getattr(h, key)}", f"scene.hair.{key}")
     return Material(h.linear_density, h.stretch_stiffness, h.bending_stiffness, h.edge_damping, h.air_drag)
 
 
@@ -175,7 +182,7 @@ def build_collider(c, i: int):
                   thickness=c.thickness, friction=c.friction, where=key)
     for k in ("radius", "half_length", "half_height"):
         if not (getattr(c, k) > 0 and np.isfinite(getattr(c, k))):
-            raise InputError(f"must be > 0 (m), got {getattr(c, k)}", f"{key}.{k}")
+            raise InputError(f"must be a finite number > 0 (m), got {getattr(c, k)}", f"{key}.{k}")
     if shape != "cylinder" and c.spin != 0:
         raise InputError(f"is {c.spin} but only a cylinder spins (shape {shape})", f"{key}.spin")
     if shape == "sphere":

@@ -37,9 +37,9 @@ class Collider:
 
     def __post_init__(self):
         if not (self.thickness >= 0 and np.isfinite(self.thickness)):
-            raise InputError(f"thickness must be >= 0, got {self.thickness}", self._key("thickness"))
+            raise InputError(f"thickness must be a finite number >= 0, got {self.thickness}", self._key("thickness"))
         if not (self.friction >= 0 and np.isfinite(self.friction)):
-            raise InputError(f"friction must be >= 0, got {self.friction}", self._key("friction"))
+            raise InputError(f"friction must be a finite number >= 0, got {self.friction}", self._key("friction"))
 
     # shape interface (body frame) ------------------------------------------------------
     def sdf_body(self, X: np.ndarray) -> np.ndarray:

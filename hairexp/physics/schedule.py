@@ -10,9 +10,9 @@ from hairexp.errors import InputError
 def step_schedule(fps: float, dt: float, frames: int) -> tuple[int, float]:
     """Steps per frame and the step size that divides the frame interval evenly."""
     if not (fps > 0 and math.isfinite(fps)):
-        raise InputError(f"must be > 0, got {fps}", "fps")
+        raise InputError(f"must be a finite number > 0, got {fps}", "fps")
     if not (dt > 0 and math.isfinite(dt)):
-        raise InputError(f"must be > 0, got {dt}", "solver.dt")
+        raise InputError(f"must be a finite number > 0, got {dt}", "solver.dt")
     if frames < 1:
         raise InputError(f"must be >= 1, got {frames}", "frames")
     frame_dt = 1.0 / fps
