@@ -271,10 +271,24 @@ class SolverConfig:
     integrator: str = "implicit_euler"
 
 
+class ContactMode(str, Enum):
+    barrier = "barrier"   # hair-object contact inside the objective: IPC barrier + CCD line search + lagged friction
+    stage = "stage"       # hair-object contact after the solve (paper 3.4, Bridson et al. 2002) + strain_limit
+
+
 @dataclass
 class CollisionConfig:
-    """The collision stage after each step (paper 3.4, Bridson et al. 2002)."""
+    """Contact: hair against the colliders (inside the objective, or after the solve) and hair
+    against hair (after the solve: paper 3.4, Bridson et al. 2002)."""
     objects: bool = True              # hair against the scene's colliders (no colliders: nothing runs)
+    # barrier: the IPC barrier in the objective Newton and the SQP minimise (hairexp/physics/barrier.py);
+    # stage: the post-solve collision stage (hairexp/physics/collisions.py), kept for the ablation.
+    # Hair-hair contact (hair_hair) is always the post-solve stage's.
+    contact: ContactMode = ContactMode.stage
+    barrier_dhat: float = 0.5         # activation distance d_hat as a fraction of max(collider thickness, hair_thickness)
+    barrier_stiffness: float = 10.0   # kappa = this x linear density / dt^2 (N/m^2)
+    friction: bool = True             # barrier: lagged smoothed Coulomb friction with each collider's coefficient
+    friction_epsilon: float = 1e-3    # m/s, barrier friction: slip speeds below this are static friction (IPC eps_v)
     hair_hair: bool = False           # hair against hair
     hair_thickness: float = 0.001     # m, edge-edge distance kept by repulsion
     skin: float = 0.003               # m, hair-hair neighbour-list skin: the list is reused while no vertex moves skin/2

@@ -101,6 +101,12 @@ def _collision(c) -> None:
     number(c.skin, "collision.skin", lo=0)
     integer(c.max_passes, "collision.max_passes", 1)
     number(c.strain_limit, "collision.strain_limit", lo=0, hi=1, hi_open=True)
+    mode = str(_value(c.contact))
+    if mode not in ("barrier", "stage"):
+        raise InputError(f"unknown contact {mode!r} (barrier|stage)", "collision.contact")
+    number(c.barrier_dhat, "collision.barrier_dhat", lo=0, lo_open=True)
+    number(c.barrier_stiffness, "collision.barrier_stiffness", lo=0, lo_open=True)
+    number(c.friction_epsilon, "collision.friction_epsilon", lo=0, lo_open=True)
 
 
 def _guides(cfg) -> None:

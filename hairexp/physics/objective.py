@@ -61,6 +61,10 @@ class ImplicitEulerObjective:
             with torch.no_grad():
                 self.g_ext = ext_asm.gradient([t.grad_hess(x0[t.stencil_t], False)[0].numpy() for t in self.external])
         self.ext_norm = float(np.linalg.norm(self.g_ext))
+        # contact inside the objective (hairexp/physics/barrier.py ObjectContact), set by the
+        # Simulator when collision.contact=barrier; None: no contact code runs
+        self.contact = None
+        self.x_start = None   # the contact's feasible start of this step (DOF vector), or None
 
     # -- per step -------------------------------------------------------------------------
     def begin_step(self, x_n: np.ndarray, v_n: np.ndarray, x_kinematic_next: np.ndarray, dt: float,
@@ -118,7 +122,22 @@ class ImplicitEulerObjective:
         return out
 
     def initial_guess(self) -> np.ndarray:
-        return self.x_pred.copy()
+        return (self.x_pred if self.x_start is None else self.x_start).copy()
+
+    # -- contact hooks (barrier.ObjectContact; all no-ops without contact) -----------------
+    def full_positions(self, xf: np.ndarray) -> np.ndarray:
+        """(V, 3) numpy: prescribed kinematic rows, free rows from xf."""
+        x = self.x_full.copy()
+        x[self.free_vertices] = xf.reshape(-1, 3)
+        return x
+
+    def max_step(self, xf: np.ndarray, p: np.ndarray) -> float:
+        """Largest step <= 1 along p that no contact barrier forbids (CCD line-search filter)."""
+        if self.contact is None:
+            return 1.0
+        P = np.zeros_like(self.x_full)
+        P[self.free_vertices] = p.reshape(-1, 3)
+        return self.contact.max_step(self.full_positions(xf), P)
 
     def positions(self, xf: np.ndarray) -> torch.Tensor:
         """(V, 3) tensor: prescribed kinematic rows, free rows from the DOF vector xf."""
@@ -145,6 +164,8 @@ class ImplicitEulerObjective:
             parts = [float(t.total(x)) for t in self.terms + self.external]
         if self.alpha_f != 0.0:
             parts = [p / (1.0 - self.alpha_f) for p in parts]
+        if self.contact is not None:
+            parts.append(self.contact.energy(self.full_positions(xf)))
         self.value_noise = ROUNDOFF_ULPS * np.finfo(float).eps * (abs(inertia) + sum(abs(p) for p in parts))
         return inertia + sum(parts)
 
@@ -166,5 +187,9 @@ class ImplicitEulerObjective:
         if need_hessian and self.alpha_f != 0.0:
             hessians = [(1.0 - self.alpha_f) * H for H in hessians]   # d^2/dx^2 E(y)/(1 - alpha_f)
         ab = self.assembler.banded(hessians, self.mass_diag) if need_hessian else None
+        if self.contact is not None:   # friction lag refreshed here: callers re-take H's value after
+            xc = self.full_positions(xf)
+            self.contact.update_lag(xc)
+            scale += self.contact.add_to(xc, grad, ab)
         t2 = time.perf_counter()
         return Evaluation(grad, ab, scale, {"derivatives": t1 - t0, "assembly": t2 - t1})
