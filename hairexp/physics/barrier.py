@@ -54,6 +54,7 @@ import numpy as np
 import torch
 
 from hairexp.physics.contact_geometry import EdgeGaps, advance
+from hairexp.physics.newton import NewtonOptions, newton_solve
 
 #: Contacts closer than this fraction of d_hat count as "in contact" in the step's info.
 CONTACT_REPORT = 1.0
@@ -202,32 +203,46 @@ class ObjectContact:
         return np.flatnonzero(lb < margin)
 
     def active(self, x: np.ndarray, normals: bool = False):
-        """Per collider: (edge indices, gaps[, s, normals]) of the edges within d_hat."""
+        """Per collider: (edge indices, gaps, weight factors[, s, normals]) of the contacts within
+        d_hat.  A contact is an edge's closest point; against a plane (whose minimum over a
+        segment is at an end point, so min(d_a, d_b) has a kink where an edge lies parallel to
+        it) each edge is instead two end-point contacts of half its weight: smooth, and feasible
+        exactly when the segment is."""
         out = []
         for k, gp in enumerate(self.gaps):
             idx = self._near(x, k, self.dhat[k])
             E = self.E[idx]
+            if type(self.colliders[k]).__name__ == "Plane":
+                da, db = gp.vertex_gaps(x[E[:, 0]]), gp.vertex_gaps(x[E[:, 1]])
+                idx2 = np.concatenate([idx, idx])
+                d = np.concatenate([da, db])
+                s = np.concatenate([np.zeros(idx.size), np.ones(idx.size)])
+                n = np.broadcast_to(gp.R[:, 1], (2 * idx.size, 3))
+                on = d < self.dhat[k]
+                wf = np.full(on.sum(), 0.5)
+                out.append((idx2[on], d[on], wf, s[on], n[on]) if normals else (idx2[on], d[on], wf))
+                continue
             if normals:
                 d, s, n = gp.edge_gaps(x[E[:, 0]], x[E[:, 1]], normals=True)
                 on = d < self.dhat[k]
-                out.append((idx[on], d[on], s[on], n[on]))
+                out.append((idx[on], d[on], np.ones(on.sum()), s[on], n[on]))
             else:
                 d = gp.edge_gaps(x[E[:, 0]], x[E[:, 1]])
                 on = d < self.dhat[k]
-                out.append((idx[on], d[on]))
+                out.append((idx[on], d[on], np.ones(on.sum())))
         return out
 
     def feasible(self, x: np.ndarray) -> bool:
-        return all(np.all(d > 0) for _, d in self.active(x))
+        return all(np.all(d > 0) for _, d, _ in self.active(x))
 
     # -- objective pieces (x: full positions (V, 3)) ----------------------------------------
     def energy(self, x: np.ndarray) -> float:
         """B(x) + D(x); inf if an edge touches or enters a thickness shell."""
         e = 0.0
-        for k, (idx, d) in enumerate(self.active(x)):
+        for k, (idx, d, wf) in enumerate(self.active(x)):
             if np.any(d <= 0):
                 return np.inf
-            e += self.kappa * float(np.dot(self.w[idx], barrier(d, self.dhat[k])))
+            e += self.kappa * float(np.dot(self.w[idx] * wf, barrier(d, self.dhat[k])))
         if self._lag is not None:
             e += self._friction(x, need_hessian=False)[0]
         return e
@@ -235,15 +250,15 @@ class ObjectContact:
     def derivatives(self, x: np.ndarray, need_hessian: bool = True):
         """Per-edge gradient (n, 6) and PSD Hessian (n, 6, 6) or None, and edge indices (n,)."""
         idx_all, g_all, H_all = [], [], []
-        for k, (idx, d, s, n) in enumerate(self.active(x, normals=True)):
+        for k, (idx, d, wf, s, n) in enumerate(self.active(x, normals=True)):
             if idx.size == 0:
                 continue
             J = np.concatenate([(1 - s)[:, None] * n, s[:, None] * n], axis=1)   # grad d, (n, 6)
-            c1 = self.kappa * self.w[idx] * barrier_d1(d, self.dhat[k])
+            c1 = self.kappa * self.w[idx] * wf * barrier_d1(d, self.dhat[k])
             idx_all.append(idx)
             g_all.append(c1[:, None] * J)
             if need_hessian:
-                c2 = self.kappa * self.w[idx] * barrier_d2(d, self.dhat[k])
+                c2 = self.kappa * self.w[idx] * wf * barrier_d2(d, self.dhat[k])
                 H_all.append(c2[:, None, None] * J[:, :, None] * J[:, None, :])
         if self._lag is not None:
             idx, g, H = self._friction(x, need_hessian, derivatives=True)
@@ -379,11 +394,11 @@ class ObjectContact:
         if not self.use_friction:
             return
         parts = []
-        for k, (idx, d, s, n) in enumerate(self.active(x, normals=True)):
+        for k, (idx, d, wf, s, n) in enumerate(self.active(x, normals=True)):
             c = self.colliders[k]
             if idx.size == 0 or c.friction <= 0:
                 continue
-            lam = self.kappa * self.w[idx] * np.abs(barrier_d1(d, self.dhat[k]))
+            lam = self.kappa * self.w[idx] * wf * np.abs(barrier_d1(d, self.dhat[k]))
             E = self.E[idx]
             P = (1 - s)[:, None] * x[E[:, 0]] + s[:, None] * x[E[:, 1]]
             R0, T0 = c.motion.pose(self.t0)
@@ -475,8 +490,6 @@ def begin_contact_step(contact: ObjectContact, objective, x_n: np.ndarray, t0: f
     pose is the step's own.  Carrying the hair by the whole step's motion instead (m = 1) was
     tried: the 10 m/s ball then carried the struck strands 0.4 m ahead of itself every step, they
     stayed trapped in front of it with 11,000 % strain, and Newton stalled (reports/contact.md)."""
-    from hairexp.physics.newton import NewtonOptions, newton_solve
-
     contact.begin(x_n, t0, t1, dt)
     m = contact.sub_intervals(x_n)
     contact.stats.sub_intervals = m

@@ -122,31 +122,51 @@ class EdgeGaps:
 
 def advance(gaps: EdgeGaps, xa, xb, pa, pb, alpha_hi: float = 1.0, eta: float = CCD_ETA) -> np.ndarray:
     """Per edge, the largest alpha in [0, alpha_hi] reached by conservative advancement along
-    xa + alpha pa, xb + alpha pb with every gap on the way above ``eta`` times its start value
-    (see module doc).  Edges already at gap <= 0 get alpha 0.  With eta = 0 an alpha < alpha_hi
-    means the path reaches the shell (to the advancement's convergence)."""
+    xa + alpha pa, xb + alpha pb with every gap on the way above ``eta`` times its start value.
+    Edges already at gap <= 0 get alpha 0.  With eta = 0 an alpha < alpha_hi means the path
+    reaches the shell (to the advancement's convergence).
+
+    The bound of each advancement step is the separating plane of two convex sets (the shape's
+    thickness shell is convex; Boyd & Vandenberghe 2004, 8.2): at alpha_k, with y* the closest
+    point of the segment, n* the shape's normal there and d_k the gap, the plane n*.y = n*.y* - d_k
+    supports the shell and the whole segment lies on its far side, so for alpha > alpha_k
+
+        d(alpha) >= min over the end points e of  g_e + (alpha - alpha_k) n*.p_e,
+        g_e = n*.(x_e - y*) + d_k >= d_k
+
+    (a linear function over a segment is smallest at an end point).  Unlike the Lipschitz bound
+    d_k - (alpha - alpha_k) max |p_e|, it lets hair slide along a surface (n*.p ~ 0) in one step
+    even at a tiny gap; both are rigorous for convex shapes."""
     d0 = gaps.edge_gaps(xa, xb)
     speed = np.maximum(np.linalg.norm(pa, axis=1), np.linalg.norm(pb, axis=1))
-    alpha = np.zeros(len(xa))
     out = np.full(len(xa), alpha_hi)
     cand = (d0 - alpha_hi * speed < eta * d0) & (speed > 0)   # the others cannot come closer than eta d0
     out[d0 <= 0] = 0.0
     cand &= d0 > 0
     idx = np.flatnonzero(cand)
-    d = d0[idx]
     floor = eta * d0[idx]
-    a = alpha[idx]
+    a = np.zeros(idx.size)
     active = np.ones(idx.size, dtype=bool)
     for _ in range(CCD_ITERATIONS):
-        step = (d - floor) / speed[idx]
-        a_new = np.where(active, np.minimum(a + step, alpha_hi), a)
-        done = active & (a_new >= alpha_hi)
-        stalled = active & (step <= 1e-3 * (a + 1e-12))   # converged onto the floor: stop here
-        active &= ~(done | stalled)
-        a = np.where(done, alpha_hi, np.where(stalled, a, a_new))
-        if not active.any():
-            break
         j = np.flatnonzero(active)
-        d[j] = gaps.edge_gaps(xa[idx[j]] + a[j, None] * pa[idx[j]], xb[idx[j]] + a[j, None] * pb[idx[j]])
+        if j.size == 0:
+            break
+        i = idx[j]
+        A = xa[i] + a[j, None] * pa[i]
+        B = xb[i] + a[j, None] * pb[i]
+        d, s, n = gaps.edge_gaps(A, B, normals=True)
+        y = A + s[:, None] * (B - A)
+        steps = []
+        for X, P in ((A, pa[i]), (B, pb[i])):
+            g = np.einsum("ij,ij->i", n, X - y) + d
+            v = np.einsum("ij,ij->i", n, P)
+            steps.append(np.where(v < 0, (g - floor[j]) / np.maximum(-v, 1e-300), np.inf))
+        step = np.minimum(*steps)
+        step = np.where(d > floor[j], step, 0.0)
+        a_new = np.minimum(a[j] + np.maximum(step, 0.0), alpha_hi)
+        done = a_new >= alpha_hi
+        stalled = ~done & (a_new - a[j] <= 1e-3 * (a[j] + 1e-12))   # converged onto the floor: stop here
+        a[j] = np.where(stalled, a[j], a_new)
+        active[j[done | stalled]] = False
     out[idx] = a
     return out
