@@ -243,6 +243,12 @@ class TrackingConfig:
     atol: float = 1e-10
     ctol_rel: float = 1e-9             # max |C_k| <= ctol_rel * mean hair length
     max_iterations: int = 50
+    # elastic mode: a step whose SQP fails while the barrier contact is on (collision.contact=barrier)
+    # is solved again with the clusters it could not reach (targets inside an obstacle) relaxed to
+    # penalties elastic_stiffness x cluster mass / dt^2 x |C_k|^2 / 2; the others stay exact.
+    # metrics.parquet: relaxed_clusters, relaxed_slack_rel_max; summary.json: relaxed_steps, relaxed_slack_rel_max
+    elastic: bool = True
+    elastic_stiffness: float = 1000.0
     max_guide_distance: float = 0.0    # m; > 0: a strand whose RMS distance (eq. 1) to every guide exceeds it is an error
     variance: VarianceConfig = field(default_factory=VarianceConfig)
 

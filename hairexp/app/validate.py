@@ -88,6 +88,7 @@ def _tracking(t) -> None:
     number(t.ctol_rel, "tracking.ctol_rel", lo=0, lo_open=True)
     integer(t.max_iterations, "tracking.max_iterations", 1)
     number(t.max_guide_distance, "tracking.max_guide_distance", lo=0)
+    number(t.elastic_stiffness, "tracking.elastic_stiffness", lo=0, lo_open=True)
     number(t.blend_width, "tracking.blend_width", lo=0, lo_open=True)   # m
     n = t.points_per_guide   # >= 1: hairexp/control/tracking/correspondence.py
     for i, p in enumerate(t.variance.points):
