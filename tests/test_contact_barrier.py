@@ -327,3 +327,32 @@ def test_bad_contact_keys_name_the_key():
         with pytest.raises(InputError) as e:
             _collision(c)
         assert f"collision.{key}" in str(e.value)
+
+
+# -- elastic mode: the relaxed rows' KKT block ----------------------------------------------------
+def test_elastic_kkt_schur_matches_reference_and_the_penalty_step():
+    """With reg = 1/rho on relaxed rows, the Schur solve equals the sparse reference, and its dx is
+    the Newton step of H + rho/2 |A x + C|^2 (the elastic slack eliminated, N&W 18.3)."""
+    from test_tracking_solver import kkt_scene, kkt_system
+
+    from hairexp.control.tracking.kkt import reference_solve
+    from hairexp.physics.assembly import BandedAssembler
+
+    scene, sim = kkt_scene("wisp_3_guides")
+    tr = sim.controller
+    ab, r_x, C, rng, K = kkt_system(sim, seed=0)
+    rho = np.zeros(3 * K)
+    rho[:3] = 50.0                          # cluster 0 relaxed, the others hard
+    reg = np.where(rho > 0, 1.0 / np.where(rho > 0, rho, 1.0), 0.0)
+    tr.kkt.factor(ab)
+    dx, _, lam = tr.kkt.solve(r_x, C, None, None, None, reg)
+    dxr, _, lamr = reference_solve(ab, tr.cons.A, r_x, C, None, None, None, reg)
+    assert np.allclose(dx, dxr, atol=1e-10 * np.abs(dxr).max())
+    assert np.allclose(lam, lamr, atol=1e-8 * np.abs(lamr).max())
+    # relaxed rows: lam = rho (A dx + C); hard rows: A dx + C = 0
+    A = tr.cons.A.toarray()
+    lin = A @ dx + C
+    assert np.allclose(lam[:3], rho[:3] * lin[:3], rtol=1e-6)
+    assert np.abs(lin[3:]).max() < 1e-10 * np.abs(C).max()
+    H = BandedAssembler.to_sparse(ab).toarray()
+    assert np.allclose(H @ dx + A.T @ lam, -r_x, atol=1e-8 * np.abs(r_x).max())
