@@ -244,6 +244,12 @@ class TrackingConfig:
     atol: float = 1e-10
     ctol_rel: float = 1e-9             # max |C_k| <= ctol_rel * mean hair length
     max_iterations: int = 50
+    # elastic mode: a step whose SQP fails while the barrier contact is on (collision.contact=barrier)
+    # is solved again with the clusters it could not reach (targets inside an obstacle) relaxed to
+    # penalties elastic_stiffness x cluster mass / dt^2 x |C_k|^2 / 2; the others stay exact.
+    # metrics.parquet: relaxed_clusters, relaxed_slack_rel_max; summary.json: relaxed_steps, relaxed_slack_rel_max
+    elastic: bool = True
+    elastic_stiffness: float = 1000.0
     max_guide_distance: float = 0.0    # m; > 0: a strand whose RMS distance (eq. 1) to every guide exceeds it is an error
     variance: VarianceConfig = field(default_factory=VarianceConfig)
 
@@ -279,10 +285,24 @@ class SolverConfig:
     threads: str = "auto"
 
 
+class ContactMode(str, Enum):
+    barrier = "barrier"   # hair-object contact inside the objective: IPC barrier + CCD line search + lagged friction
+    stage = "stage"       # hair-object contact after the solve (paper 3.4, Bridson et al. 2002) + strain_limit
+
+
 @dataclass
 class CollisionConfig:
-    """The collision stage after each step (paper 3.4, Bridson et al. 2002)."""
+    """Contact: hair against the colliders (inside the objective, or after the solve) and hair
+    against hair (after the solve: paper 3.4, Bridson et al. 2002)."""
     objects: bool = True              # hair against the scene's colliders (no colliders: nothing runs)
+    # barrier: the IPC barrier in the objective Newton and the SQP minimise (hairexp/physics/barrier.py);
+    # stage: the post-solve collision stage (hairexp/physics/collisions.py), kept for the ablation.
+    # Hair-hair contact (hair_hair) is always the post-solve stage's.
+    contact: ContactMode = ContactMode.stage
+    barrier_dhat: float = 0.5         # activation distance d_hat as a fraction of max(collider thickness, hair_thickness)
+    barrier_stiffness: float = 10.0   # kappa = this x linear density / dt^2 (N/m^2)
+    friction: bool = True             # barrier: lagged smoothed Coulomb friction with each collider's coefficient
+    friction_epsilon: float = 1e-3    # m/s, barrier friction: slip speeds below this are static friction (IPC eps_v)
     hair_hair: bool = False           # hair against hair
     hair_thickness: float = 0.001     # m, edge-edge distance kept by repulsion
     skin: float = 0.003               # m, hair-hair neighbour-list skin: the list is reused while no vertex moves skin/2

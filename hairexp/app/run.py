@@ -93,6 +93,10 @@ def summarize(df, plain: dict, scene_name: str, controller: str, wall: float, st
             "residual_rel_max": (float(df["residual_rel_max"].max()) if df["residual_rel_max"].notna().any()
                                  else None),
         }
+        if "relaxed_clusters" in df:   # tracking's elastic mode: steps and how far targets were relaxed
+            agg["relaxed_steps"] = int((df["relaxed_clusters"] > 0).sum())
+            agg["relaxed_clusters_max"] = int(df["relaxed_clusters"].max())
+            agg["relaxed_slack_rel_max"] = float(df["relaxed_slack_rel_max"].max())
     return {
         "scene": scene_name, "controller": controller, "experiment": plain.get("experiment"),
         "status": status, "error": error, **owner(), "success": None, "measures": {},

@@ -91,6 +91,7 @@ def _tracking(t) -> None:
     number(t.ctol_rel, "tracking.ctol_rel", lo=0, lo_open=True)
     integer(t.max_iterations, "tracking.max_iterations", 1)
     number(t.max_guide_distance, "tracking.max_guide_distance", lo=0)
+    number(t.elastic_stiffness, "tracking.elastic_stiffness", lo=0, lo_open=True)
     number(t.blend_width, "tracking.blend_width", lo=0, lo_open=True)   # m
     n = t.points_per_guide   # >= 1: hairexp/control/tracking/correspondence.py
     for i, p in enumerate(t.variance.points):
@@ -104,6 +105,12 @@ def _collision(c) -> None:
     number(c.skin, "collision.skin", lo=0)
     integer(c.max_passes, "collision.max_passes", 1)
     number(c.strain_limit, "collision.strain_limit", lo=0, hi=1, hi_open=True)
+    mode = str(_value(c.contact))
+    if mode not in ("barrier", "stage"):
+        raise InputError(f"unknown contact {mode!r} (barrier|stage)", "collision.contact")
+    number(c.barrier_dhat, "collision.barrier_dhat", lo=0, lo_open=True)
+    number(c.barrier_stiffness, "collision.barrier_stiffness", lo=0, lo_open=True)
+    number(c.friction_epsilon, "collision.friction_epsilon", lo=0, lo_open=True)
 
 
 def _guides(cfg) -> None:

@@ -33,14 +33,15 @@ class NewtonOptions:
 
 
 def line_search(value_fn, x: np.ndarray, p: np.ndarray, f0: float, slope: float, max_backtracks: int,
-                noise: float = 0.0):
+                noise: float = 0.0, alpha0: float = 1.0):
     """Backtracking Armijo search on ``value_fn`` from x along p (slope = grad . p < 0).
 
     ``noise``: the round-off of the values.  Near convergence the predicted decrease drops
     below it and a strict Armijo test would reject good Newton steps (seen as a stall at
     |grad|/F ~ 1e-7 with steps of 1e-9); a value within ``noise`` of the Armijo bound passes.
+    ``alpha0``: the first trial step (the contact barrier's collision-free bound, <= 1).
     Returns (alpha, new value, backtracks) or (0, f0, n) if no decrease was found."""
-    alpha = 1.0
+    alpha = alpha0
     for k in range(max_backtracks + 1):
         f = value_fn(x + alpha * p)
         if np.isfinite(f) and f <= f0 + ARMIJO_C1 * alpha * slope + noise:
@@ -53,7 +54,7 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
     info = SolveInfo()
     x = x0.copy()
     ev = obj.evaluate(x, need_hessian=True)
-    f = obj.value(x)
+    f = obj.value(x)   # after evaluate: the contact's friction lag is set there
     sec = info.seconds
     while True:
         for k in ("derivatives", "assembly"):
@@ -77,7 +78,8 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         if not np.isfinite(slope):
             info.status = DIVERGED
             return x, info
-        alpha, f_new, bt = line_search(obj.value, x, p, f, slope, opts.max_backtracks, obj.value_noise)
+        alpha, f_new, bt = line_search(obj.value, x, p, f, slope, opts.max_backtracks, obj.value_noise,
+                                       obj.max_step(x, p))
         info.backtracks += bt
         info.iterations += 1
         if alpha == 0.0:
@@ -89,3 +91,5 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         # gradient and Hessian together: a separate gradient-only check would repeat most of
         # the derivative work on every iterate that is not yet converged
         ev = obj.evaluate(x, need_hessian=True)
+        if obj.contact is not None:
+            f = obj.value(x)   # the contact's friction lag moved with the evaluation

@@ -80,6 +80,10 @@ class ImplicitEulerObjective:
             self.torch_assembler = BandedAssembler(free_slot, [t.stencil for t in self.torch_terms])
         else:
             self.torch_assembler = self.assembler
+        # contact inside the objective (hairexp/physics/barrier.py ObjectContact), set by the
+        # Simulator when collision.contact=barrier; None: no contact code runs
+        self.contact = None
+        self.x_start = None   # the contact's feasible start of this step (DOF vector), or None
 
     # -- per step -------------------------------------------------------------------------
     def begin_step(self, x_n: np.ndarray, v_n: np.ndarray, x_kinematic_next: np.ndarray, dt: float,
@@ -149,7 +153,22 @@ class ImplicitEulerObjective:
         return out
 
     def initial_guess(self) -> np.ndarray:
-        return self.x_pred.copy()
+        return (self.x_pred if self.x_start is None else self.x_start).copy()
+
+    # -- contact hooks (barrier.ObjectContact; all no-ops without contact) -----------------
+    def full_positions(self, xf: np.ndarray) -> np.ndarray:
+        """(V, 3) numpy: prescribed kinematic rows, free rows from xf."""
+        x = self.x_full.copy()
+        x[self.free_vertices] = xf.reshape(-1, 3)
+        return x
+
+    def max_step(self, xf: np.ndarray, p: np.ndarray) -> float:
+        """Largest step <= 1 along p that no contact barrier forbids (CCD line-search filter)."""
+        if self.contact is None:
+            return 1.0
+        P = np.zeros_like(self.x_full)
+        P[self.free_vertices] = p.reshape(-1, 3)
+        return self.contact.max_step(self.full_positions(xf), P)
 
     def positions(self, xf: np.ndarray) -> torch.Tensor:
         """(V, 3) tensor: prescribed kinematic rows, free rows from the DOF vector xf."""
@@ -187,6 +206,8 @@ class ImplicitEulerObjective:
                 parts = [float(t.total(x)) for t in self.terms + self.external]
         if self.alpha_f != 0.0:
             parts = [p / (1.0 - self.alpha_f) for p in parts]
+        if self.contact is not None:
+            parts.append(self.contact.energy(self.full_positions(xf)))
         self.value_noise = ROUNDOFF_ULPS * np.finfo(float).eps * (abs(inertia) + sum(abs(p) for p in parts))
         return inertia + sum(parts)
 
@@ -210,6 +231,10 @@ class ImplicitEulerObjective:
         if need_hessian and self.alpha_f != 0.0:
             hessians = [(1.0 - self.alpha_f) * H for H in hessians]   # d^2/dx^2 E(y)/(1 - alpha_f)
         ab = self.assembler.banded(hessians, self.mass_diag) if need_hessian else None
+        if self.contact is not None:   # friction lag refreshed here: callers re-take H's value after
+            xc = self.full_positions(xf)
+            self.contact.update_lag(xc)
+            scale += self.contact.add_to(xc, grad, ab)
         t2 = time.perf_counter()
         return Evaluation(grad, ab, scale, {"derivatives": t1 - t0, "assembly": t2 - t1})
 
@@ -240,9 +265,13 @@ class ImplicitEulerObjective:
         f_inertia = self.mass_diag * (xf - self.x_pred)
         grad = f_inertia + g_int + self.g_ext
         scale = float(np.linalg.norm(f_inertia) + np.linalg.norm(g_int) + self.ext_norm)
+        ab = abT.T if need_hessian else None
+        if self.contact is not None:   # as in ``evaluate``: the barrier's gradient and band (a view of abT)
+            xc = self.full_positions(xf)
+            self.contact.update_lag(xc)
+            scale += self.contact.add_to(xc, grad, ab)
         t2 = time.perf_counter()
-        return Evaluation(grad, abT.T if need_hessian else None, scale,
-                          {"derivatives": t_deriv, "assembly": t2 - t0 - t_deriv})
+        return Evaluation(grad, ab, scale, {"derivatives": t_deriv, "assembly": t2 - t0 - t_deriv})
 
     def solve(self, ab: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """A^-1 rhs for the lower band ``ab`` of ``evaluate``: the compiled block Cholesky, or

@@ -35,7 +35,8 @@ import torch
 from hairexp import tune_runtime
 from hairexp.errors import InputError, SimulationError
 from hairexp.model.scene import Scene
-from hairexp.physics.collisions import HairHair, StrainLimit, collision_stage
+from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact
+from hairexp.physics.collisions import CollisionInfo, HairHair, StrainLimit, collision_stage
 from hairexp.physics.controller import Controller
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
 from hairexp.physics.info import CONVERGED, DIVERGED, SolveInfo, StepInfo
@@ -140,6 +141,12 @@ class Simulator:
         self.collision_cfg = collision_cfg
         cc = collision_cfg
         self.collide_objects = bool(cc is not None and cc.objects and scene.colliders)
+        # collision.contact=barrier: object contact inside the objective (hairexp/physics/barrier.py);
+        # the post-solve stage then only handles hair-hair contact
+        self.contact = make_object_contact(scene, cc)
+        if self.contact is not None:
+            self.objective.contact = self.contact
+            self.collide_objects = False
         self.hair_hair = self.limiter = None
         if (self.collide_objects or (cc is not None and cc.hair_hair)) and cc.strain_limit > 0:
             self.limiter = StrainLimit(s, cc.strain_limit)
@@ -254,6 +261,8 @@ class Simulator:
         if ctl.simulates:
             self.objective.begin_step(state.x, state.v, self.scene.root_positions(t_next, motion), dt, state.tensions,
                                       plan)
+            if self.contact is not None:   # collider poses at t_next, a feasible start
+                begin_contact_step(self.contact, self.objective, state.x, state.time, t_next, dt, self.newton)
         x_new, control, info = ctl.solve(self, state, dt, t_next, motion)
         # 3. velocities (the integrator's), its history, and the hair's force on a dynamic body
         v_new = integ.velocity(x_new, state, plan)
@@ -263,7 +272,9 @@ class Simulator:
         if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()
                 and (body is None or np.isfinite(body).all())):
             info.status = DIVERGED
-        # 4. collision stage
+        # 4. collision stage (the barrier's contact figures first, when it ran)
+        elif ctl.simulates and self.contact is not None and self.hair_hair is None:
+            info.collision = contact_collision_info(self.contact, x_new, CollisionInfo)
         elif ctl.simulates and (self.collide_objects or self.hair_hair is not None):
             sc = self.scene if self.collide_objects else _NoColliders(self.scene)
             x_solve = x_new
@@ -282,6 +293,10 @@ class Simulator:
                 v_new = v_new + dv
                 history = integ.after_collision(state, history, dx, dv, touched)
             info.seconds["collision"] = info.seconds.get("collision", 0.0) + cinfo.seconds
+            if self.contact is not None:   # object contact was the barrier's: its figures
+                bc = contact_collision_info(self.contact, x_new, CollisionInfo)
+                cinfo.object_contacts, cinfo.per_collider = bc.object_contacts, bc.per_collider
+                cinfo.penetration_max = max(cinfo.penetration_max, bc.penetration_max)
             info.collision = cinfo
             if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()):  # never return a non-finite state
                 info.status = DIVERGED

@@ -150,16 +150,18 @@ class SchurKKT:
         return scipy.linalg.cho_solve_banded((self.cb, True), r, check_finite=False)
 
     def solve(self, r_x: np.ndarray, C: np.ndarray, Bmat: np.ndarray | None = None, D: np.ndarray | None = None,
-              r_t: np.ndarray | None = None):
-        """(dx, dt or None, lam) for the system above; C: (3K,), Bmat: (3K, K) or None (static)."""
+              r_t: np.ndarray | None = None, reg: np.ndarray | None = None):
+        """(dx, dt or None, lam) for the system above; C: (3K,), Bmat: (3K, K) or None (static);
+        ``reg`` (3K,): -diag(reg) in the (lam, lam) block (the SQP's elastic rows, reg = 1/rho)."""
         u = self.hinv(r_x)
         rhs_l = C - self.A @ u
+        Smat = self.Smat if reg is None else self.Smat + np.diag(reg)
         if Bmat is None:
-            lam = np.linalg.solve(self.Smat, rhs_l)
+            lam = np.linalg.solve(Smat, rhs_l)
             dt = None
         else:
             K = Bmat.shape[1]
-            M = np.block([[self.Smat, -Bmat], [Bmat.T, np.diag(D)]])
+            M = np.block([[Smat, -Bmat], [Bmat.T, np.diag(D)]])
             sol = np.linalg.solve(M, np.concatenate([rhs_l, -r_t]))
             lam, dt = sol[:3 * self.K], sol[3 * self.K:]
         dx = -self.hinv(r_x + self.AT_sparse @ lam)
@@ -207,16 +209,18 @@ def distinct_columns(AT: np.ndarray):
 
 
 def reference_solve(ab: np.ndarray, A: sp.spmatrix, r_x: np.ndarray, C: np.ndarray, Bmat: np.ndarray | None = None,
-                    D: np.ndarray | None = None, r_t: np.ndarray | None = None):
-    """The plain sparse saddle-point solve of the same system (SuperLU)."""
+                    D: np.ndarray | None = None, r_t: np.ndarray | None = None, reg: np.ndarray | None = None):
+    """The plain sparse saddle-point solve of the same system (SuperLU); ``reg`` as in
+    ``SchurKKT.solve``."""
     H = BandedAssembler.to_sparse(ab)
     m = A.shape[0]
+    Z = None if reg is None else sp.diags(-np.asarray(reg))
     if Bmat is None:
-        Kk = sp.bmat([[H, A.T], [A, None]], format="csc")
+        Kk = sp.bmat([[H, A.T], [A, Z]], format="csc")
         sol = spla.spsolve(Kk, -np.concatenate([r_x, C]))
         return sol[:H.shape[0]], None, sol[H.shape[0]:]
     Bs = sp.csr_matrix(Bmat)
-    Kk = sp.bmat([[H, None, A.T], [None, sp.diags(D), Bs.T], [A, Bs, None]], format="csc")
+    Kk = sp.bmat([[H, None, A.T], [None, sp.diags(D), Bs.T], [A, Bs, Z]], format="csc")
     sol = spla.spsolve(Kk, -np.concatenate([r_x, r_t, C]))
     N, K = H.shape[0], Bmat.shape[1]
     return sol[:N], sol[N:N + K], sol[N + K:]

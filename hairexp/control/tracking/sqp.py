@@ -59,23 +59,40 @@ def woodbury(solve, U: np.ndarray, step: tuple, zero_c: np.ndarray) -> tuple:
     return dx, dt, lam
 
 
-def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, opts: SQPOptions):
-    """Returns (x, t, lam, SolveInfo).  ``tracker`` supplies the constraints at this step."""
+def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, opts: SQPOptions,
+              rho: np.ndarray | None = None):
+    """Returns (x, t, lam, SolveInfo).  ``tracker`` supplies the constraints at this step.
+
+    Elastic mode (``rho``: (3K,) penalty stiffness per constraint row, 0 for rows kept hard): a
+    relaxed row's constraint C_k = 0 becomes the quadratic penalty rho/2 |C_k|^2 (an elastic
+    slack s_k = C_k, Nocedal & Wright 2006, 18.3 "elastic mode").  Eliminating s_k (lam_k =
+    rho s_k) leaves the KKT system (8) with -I/rho in the relaxed rows' (lam, lam) block: the
+    Schur matrix S becomes S + diag(1/rho).  The merit function takes rho/2 |C_k|^2 for those rows
+    instead of mu |C_k|, and their convergence test is |C_k - lam_k / rho_k| <= ctol."""
     info = SolveInfo()
     sec = info.seconds
     x, t, lam = x0.copy(), t0.copy(), lam0.copy()
     cons, kkt = tracker.cons, tracker.kkt
     sliding = cons.sliding
     mu = MU_FACTOR * float(np.abs(lam).max(initial=0.0)) + MU_MARGIN
+    relaxed = None if rho is None or not np.any(rho > 0) else rho > 0
+    reg = None if relaxed is None else np.where(relaxed, 1.0 / np.where(relaxed, rho, 1.0), 0.0)
 
     def merit_parts(xf, tk):
         f = obj.value(xf) + tracker.penalty(xf)[0]
         C = cons.residual(xf, tracker.tg, tk).reshape(-1)
         return f, C
 
+    def merit(f, C):
+        if relaxed is None:
+            return f + mu * float(np.abs(C).sum())
+        return f + mu * float(np.abs(C[~relaxed]).sum()) + 0.5 * float(np.dot(rho[relaxed] * C[relaxed], C[relaxed]))
+
     f, C = merit_parts(x, t)
     while True:
         ev = obj.evaluate(x, need_hessian=True)
+        if obj.contact is not None:   # the contact's friction lag moved with the evaluation
+            f, C = merit_parts(x, t)
         sec["derivatives"] += ev.seconds["derivatives"]
         sec["assembly"] += ev.seconds["assembly"]
         t0_ = time.perf_counter()
@@ -96,7 +113,8 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
             Bmat = D = r_t = None
         sec["solve"] += time.perf_counter() - t0_
         gnorm = float(np.linalg.norm(r_x))
-        cmax = float(np.abs(C).max(initial=0.0))
+        Ct = C if relaxed is None else np.where(relaxed, C - lam * reg, C)   # relaxed rows: lam = rho C
+        cmax = float(np.abs(Ct).max(initial=0.0))
         info.grad_norm, info.force_scale, info.constraint_norm = gnorm, ev.force_scale + float(np.linalg.norm(ATlam)), cmax
         if not (np.isfinite(gnorm) and np.isfinite(f) and np.isfinite(cmax)):
             info.status = DIVERGED
@@ -116,8 +134,8 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
         def solve(r_x, c):
             r_t = np.zeros(cons.K) if sliding else None
             if opts.kkt == "reference":
-                return reference_solve(ev.banded, cons.A, r_x, c, Bmat, D, r_t)
-            return kkt.solve(r_x, c, Bmat, D, r_t)
+                return reference_solve(ev.banded, cons.A, r_x, c, Bmat, D, r_t, reg)
+            return kkt.solve(r_x, c, Bmat, D, r_t, reg)
 
         if opts.kkt != "reference":
             kkt.factor(ev.banded)
@@ -127,19 +145,24 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
         sec["solve"] += time.perf_counter() - t1
         # l1 merit line search
         mu = max(mu, MU_FACTOR * float(np.abs(lam_new).max(initial=0.0)) + MU_MARGIN)
-        phi0 = f + mu * float(np.abs(C).sum())
-        dphi = float(np.dot(g, dx)) - mu * float(np.abs(C).sum())
+        phi0 = merit(f, C)
+        if relaxed is None:
+            dphi = float(np.dot(g, dx)) - mu * float(np.abs(C).sum())
+        else:   # hard rows: -mu |C|_1 (the step satisfies their linearisation); relaxed: rho C . dC
+            dC = cons.A @ dx + (Bmat @ dt if sliding else 0.0)
+            dphi = (float(np.dot(g, dx)) - mu * float(np.abs(C[~relaxed]).sum())
+                    + float(np.dot(rho[relaxed] * C[relaxed], dC[relaxed])))
         # round-off of phi: that of H (value_noise) plus that of mu |C|_1, whose terms are
         # differences of centre-of-mass coordinates; without the second part a large mu made the
         # search reject steps at the solution and stall (tests: rigid translation, static targets)
         com_scale = float(np.abs(cons.com(x)).sum())
         noise = obj.value_noise + mu * 8.0 * np.finfo(float).eps * com_scale
-        alpha, bt = 1.0, 0
+        alpha, bt = obj.max_step(x, dx), 0   # <= 1: the contact barrier's collision-free bound (CCD)
         while True:
             xa = x + alpha * dx
             ta = t + alpha * dt if sliding else t
             fa, Ca = merit_parts(xa, ta)
-            phia = fa + mu * float(np.abs(Ca).sum())
+            phia = merit(fa, Ca)
             if np.isfinite(phia) and phia <= phi0 + MERIT_ETA * alpha * min(dphi, 0.0) + noise:
                 break
             bt += 1

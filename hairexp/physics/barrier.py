@@ -1,0 +1,566 @@
+"""Hair-object contact inside the time-step objective: an IPC log barrier on the gaps of hair
+edges to the colliders, with lagged smoothed Coulomb friction (``collision.contact=barrier``).
+
+Incremental Potential Contact (Li et al. 2020, "Incremental Potential Contact", eq. 6) adds to
+the objective that Newton and the SQP minimise (eq. 5, hairexp/physics/objective.py)
+
+    B(x) = kappa sum_e w_e b(d_e(x)),   b(d) = -(d - d_hat)^2 ln(d / d_hat)  for 0 < d < d_hat,
+                                        b(d) = 0 for d >= d_hat,
+
+d_e the gap of edge e to a collider shape at its *end-of-step* pose (the distance of the whole
+segment minus the collider's thickness, hairexp/physics/contact_geometry.py; the vertices are
+the segments' end points, so they are covered).  w_e is the edge's rest length: B is then a
+quadrature of a barrier density along the hair, independent of the resolution (codimensional
+IPC, Li et al. 2021, weights the rods' barrier by their discretisation in the same way), and an
+edge whose closest point is a shared vertex counts half a length on each side.
+
+    b'(d)  = -2 (d - d_hat) ln(d / d_hat) - (d - d_hat)^2 / d,
+    b''(d) = -2 ln(d / d_hat) - 4 (d - d_hat) / d + (d - d_hat)^2 / d^2   (> 0 on (0, d_hat)).
+
+Gradient: kappa w b'(d) grad d, grad d = ((1 - s*) n, s* n) (contact_geometry).  Hessian: the
+Gauss-Newton part kappa w b''(d) grad d grad d^T, PSD; the curvature part kappa w b'(d) hess d is
+dropped: b' < 0 and hess d is PSD for convex shapes, so it is negative semi-definite (dropping it
+is the PSD projection of IPC's per-contact Hessian).  An edge couples two consecutive vertices of
+a strand: its 6 x 6 block lies inside the strand's band (half-bandwidth 5 <= 8).
+
+Activation distance d_hat = ``collision.barrier_dhat`` x max(collider thickness, hair thickness)
+per collider; stiffness kappa = ``collision.barrier_stiffness`` x rho / dt^2 (rho the mean linear
+density): the barrier's curvature b''(d_hat / 2) ~ 3.6 then exceeds the inertia term rho / dt^2
+of the same length of hair, so a contact stops the hair within d_hat in one step.  The value is
++inf where any gap is <= 0: a line search can never accept a point inside a collider, and the
+step bound ``max_step`` (conservative advancement) keeps the iterates out of the sets between
+line-search samples too (no tunnelling).
+
+Friction (IPC sec. 5, lagged): per active contact the normal force lambda = kappa w |b'(d)|, the
+closest parameter s, the tangent basis T (3 x 2) and the collider surface's displacement over the
+step dc (rigid motion and spin) are frozen at the lag point; the tangential relative displacement
+u = T^T ((1 - s) (x_a - x_a^n) + s (x_b - x_b^n) - dc) gets the potential
+
+    D = mu lambda f0(|u|),  f0(y) = -y^3 / (3 eps^2) + y^2 / eps + eps / 3  (y < eps),  y  (else),
+
+eps = eps_v dt (``collision.friction_epsilon`` = eps_v, m/s: slower is static friction).
+f1 = f0' = -y^2/eps^2 + 2 y / eps (y < eps), 1 (else); grad_u D = mu lambda f1(y) u / y; the
+Hessian mu lambda [(f1' y - f1) / y^3 u u^T + f1 / y I] is PSD on both branches (y < eps:
+eigenvalues 2/eps (1 - y/eps) and 2/eps - y/eps^2; y >= eps: (I - u u^T / y^2) / y).  The lag is
+refreshed at every Newton/SQP iteration (the solver re-evaluates H after it), so the converged
+step satisfies the friction law with the normal forces of its own end state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from hairexp.physics.contact_geometry import EdgeGaps, advance
+from hairexp.physics.newton import NewtonOptions, newton_solve
+
+#: Contacts closer than this fraction of d_hat count as "in contact" in the step's info.
+CONTACT_REPORT = 1.0
+#: Shapes with flat faces or straight rulings: edge contacts as end-point pairs (``_hybrid``).
+FLAT_SHAPES = ("Box", "Cylinder")
+#: An edge's interior closest point counts only when closer than both end points by this
+#: fraction of d_hat (``_hybrid``).
+INTERIOR_MARGIN = 1e-3
+#: A collider that sweeps over hair within a step is advanced in sub-intervals of at most this
+#: fraction of its thinnest size (``thin_size``), each followed by a few Newton iterations
+#: (``begin_contact_step``).
+SWEEP_FRACTION = 0.5
+MAX_SUB_INTERVALS = 64
+#: Newton iterations of each intermediate sub-interval solve.
+SUB_INTERVAL_ITERATIONS = 8
+
+
+def thin_size(col) -> float:
+    """The collider's thinnest half size (m): what a sweep must not jump over in one piece."""
+    name = type(col).__name__
+    if name in ("Sphere", "Capsule"):
+        return float(col.radius)
+    if name == "Cylinder":
+        return float(min(col.radius, col.half_height))
+    if name == "Box":
+        return float(min(col.half_extents))
+    return np.inf
+
+
+def barrier(d: np.ndarray, dh) -> np.ndarray:
+    """IPC barrier b(d) (Li et al. 2020 eq. 6); 0 for d >= d_hat, inf for d <= 0."""
+    d = np.asarray(d, dtype=np.float64)
+    out = np.zeros_like(d)
+    on = (d < dh) & (d > 0)
+    dhb = np.broadcast_to(dh, d.shape)
+    out[on] = -(d[on] - dhb[on]) ** 2 * np.log(d[on] / dhb[on])
+    out[d <= 0] = np.inf
+    return out
+
+
+def barrier_d1(d, dh):
+    """b'(d) on (0, d_hat), 0 beyond."""
+    r = np.where((d < dh) & (d > 0), -2 * (d - dh) * np.log(np.maximum(d, 1e-300) / dh) - (d - dh) ** 2 / np.maximum(d, 1e-300), 0.0)
+    return r
+
+
+def barrier_d2(d, dh):
+    """b''(d) on (0, d_hat), 0 beyond."""
+    dd = np.maximum(d, 1e-300)
+    return np.where((d < dh) & (d > 0), -2 * np.log(dd / dh) - 4 * (d - dh) / dd + (d - dh) ** 2 / dd ** 2, 0.0)
+
+
+def barrier_torch(d: torch.Tensor, dh) -> torch.Tensor:
+    """The same b(d) in torch (the autograd reference of the tests)."""
+    dh = torch.as_tensor(dh, dtype=d.dtype)
+    inside = (d < dh) & (d > 0)
+    ds = torch.where(inside, d, dh)
+    return torch.where(inside, -(ds - dh) ** 2 * torch.log(ds / dh), torch.zeros_like(d))
+
+
+def f0_friction(y, eps):
+    """IPC's smoothed friction magnitude f0 (Li et al. 2020 eq. 16)."""
+    return np.where(y < eps, -y ** 3 / (3 * eps ** 2) + y ** 2 / eps + eps / 3, y)
+
+
+def f1_over_y(y, eps):
+    """f1(y) / y (finite at y = 0: 2 / eps)."""
+    return np.where(y < eps, -y / eps ** 2 + 2 / eps, 1.0 / np.maximum(y, 1e-300))
+
+
+@dataclass
+class ContactStats:
+    """The barrier's view of one step, for ``StepInfo`` (pure data)."""
+
+    contacts: int = 0            # edges within d_hat of a collider at the end of the step
+    per_collider: dict = None
+    gap_min: float = np.inf      # m, smallest edge gap (edge distance minus thickness) at the end
+    penetration_max: float = 0.0  # m, deepest vertex or edge point inside a thickness shell
+    start_moved: int = 0         # free vertices the feasible start carried with a collider
+    start_feasible: bool = True
+    friction_contacts: int = 0
+    sub_intervals: int = 1       # pieces the colliders' motion over the step was advanced in
+
+
+class ObjectContact:
+    """Barrier + friction for all hair edges against all colliders (one object per Simulator).
+
+    ``edges`` (E, 2) vertex indices, ``weights`` (E,) m (rest lengths), ``kinematic`` (V,),
+    ``free_slot`` (V,) as in hairexp/model/strands.py; ``colliders``: hairexp/model/colliders.py."""
+
+    def __init__(self, colliders, edges, weights, kinematic, free_slot, strand_of_vertex, linear_density: float,
+                 hair_thickness: float, dhat_scale: float, stiffness_scale: float, friction_eps_v: float,
+                 friction: bool = True):
+        self.colliders = list(colliders)
+        E = np.asarray(edges)
+        free = ~np.asarray(kinematic)
+        keep = free[E[:, 0]] | free[E[:, 1]]            # an edge of two roots is prescribed: nothing to do
+        self.E, self.w = E[keep], np.asarray(weights, dtype=np.float64)[keep]
+        self.free_slot = np.asarray(free_slot)
+        self.kinematic = np.asarray(kinematic)
+        self.strand_of_vertex = np.asarray(strand_of_vertex)
+        self.rho = float(linear_density)
+        self.dhat = np.array([dhat_scale * max(c.thickness, hair_thickness) for c in self.colliders])
+        self.stiffness_scale = float(stiffness_scale)
+        self.eps_v = float(friction_eps_v)
+        self.use_friction = bool(friction) and any(c.friction > 0 for c in self.colliders)
+        self.kappa = 0.0
+        self.gaps: list[EdgeGaps] = []
+        self._lag = None
+        self.stats = ContactStats()
+
+    # -- per step -------------------------------------------------------------------------
+    def begin(self, x_n: np.ndarray, t0: float, t1: float, dt: float) -> None:
+        """Collider poses at the end of the step, kappa for this dt; friction lag cleared."""
+        self.dt, self.t0, self.t1 = float(dt), float(t0), float(t1)
+        self.x_n = np.asarray(x_n, dtype=np.float64)
+        self.kappa = self.stiffness_scale * self.rho / self.dt ** 2
+        self.set_time(t1)
+        self._lag = None
+        self.stats = ContactStats(per_collider={c.name: 0 for c in self.colliders})
+
+    def set_time(self, t: float) -> None:
+        """Collider poses at time t (t1 but for the sub-intervals of ``begin_contact_step``)."""
+        self.t_pose = float(t)
+        self.gaps = [EdgeGaps(c, *c.motion.pose(t)) for c in self.colliders]
+
+    def poses(self) -> list:
+        return [(g.R, g.T) for g in self.gaps]
+
+    def sub_intervals(self, x_n: np.ndarray) -> int:
+        """How many sub-intervals the colliders' motion over the step is cut into: a collider
+        that sweeps over hair (``_swept``) by more than SWEEP_FRACTION of its thinnest size
+        (``thin_size``) is advanced in pieces of that length (see ``begin_contact_step``)."""
+        m = 1
+        for k, c in enumerate(self.colliders):
+            R0, T0 = c.motion.pose(self.t0)
+            idx = self._swept(x_n, k, R0, T0)
+            bad = self._near(x_n, k, 0.0)
+            if idx.size == 0 and (bad.size == 0 or np.all(self.gaps[k].edge_gaps(x_n[self.E[bad, 0]], x_n[self.E[bad, 1]]) > 0)):
+                continue
+            X0, X1 = (x_n - T0) @ R0, self.gaps[k].body(x_n)
+            sweep = float(np.linalg.norm(X1 - X0, axis=1).max(initial=0.0))
+            m = max(m, int(np.ceil(sweep / (SWEEP_FRACTION * thin_size(c)))))
+        return min(m, MAX_SUB_INTERVALS)
+
+    def _near(self, x: np.ndarray, k: int, margin: float) -> np.ndarray:
+        """Edge indices whose gap to collider k can be below margin (cheap vertex bound)."""
+        g = self.gaps[k].vertex_gaps(x)
+        E = self.E
+        lb = self.gaps[k].edge_lower_bound(x[E[:, 0]], x[E[:, 1]], g[E[:, 0]], g[E[:, 1]])
+        return np.flatnonzero(lb < margin)
+
+    def active(self, x: np.ndarray, normals: bool = False):
+        """Per collider: (edge indices, gaps, weight factors[, s, normals]) of the contacts within
+        d_hat.  A contact is an edge's closest point; against a plane (whose minimum over a
+        segment is at an end point, so min(d_a, d_b) has a kink where an edge lies parallel to
+        it) each edge is instead two end-point contacts of half its weight: smooth, and feasible
+        exactly when the segment is."""
+        out = []
+        for k, gp in enumerate(self.gaps):
+            idx = self._near(x, k, self.dhat[k])
+            E = self.E[idx]
+            if type(self.colliders[k]).__name__ == "Plane":
+                da, db = gp.vertex_gaps(x[E[:, 0]]), gp.vertex_gaps(x[E[:, 1]])
+                idx2 = np.concatenate([idx, idx])
+                d = np.concatenate([da, db])
+                s = np.concatenate([np.zeros(idx.size), np.ones(idx.size)])
+                n = np.broadcast_to(gp.R[:, 1], (2 * idx.size, 3))
+                on = d < self.dhat[k]
+                wf = np.full(on.sum(), 0.5)
+                out.append((idx2[on], d[on], wf, s[on], n[on]) if normals else (idx2[on], d[on], wf))
+                continue
+            if type(self.colliders[k]).__name__ in FLAT_SHAPES:
+                out.append(self._hybrid(gp, x, idx, k, normals))
+                continue
+            if normals:
+                d, s, n = gp.edge_gaps(x[E[:, 0]], x[E[:, 1]], normals=True)
+                on = d < self.dhat[k]
+                out.append((idx[on], d[on], np.ones(on.sum()), s[on], n[on]))
+            else:
+                d = gp.edge_gaps(x[E[:, 0]], x[E[:, 1]])
+                on = d < self.dhat[k]
+                out.append((idx[on], d[on], np.ones(on.sum())))
+        return out
+
+    def _hybrid(self, gp, x, idx, k, normals):
+        """Contacts of edges against a shape with flat faces (box, cylinder): an edge lying on a
+        face has its minimum gap at both end points at once, where min(d_a, d_b) has a kink that
+        stalls Newton (measured: a wisp pressed onto a box face did not converge in 50 SQP
+        iterations).  Its contacts are the two end points (half its weight each: smooth) plus,
+        only where the segment's closest point is interior and closer than both end points (an
+        edge across a box edge or corner), that interior point with the edge's weight."""
+        E = self.E[idx]
+        d, s, n = gp.edge_gaps(x[E[:, 0]], x[E[:, 1]], normals=True)
+        da, db = gp.vertex_gaps(x[E[:, 0]]), gp.vertex_gaps(x[E[:, 1]])
+        inner = (s > 0) & (s < 1) & (d < np.minimum(da, db) - INTERIOR_MARGIN * self.dhat[k])
+        col = self.colliders[k]
+        parts = []
+        for dv, sv, vert in ((da, 0.0, E[:, 0]), (db, 1.0, E[:, 1])):
+            on = dv < self.dhat[k]
+            nv = col.normal_body(gp.body(x[vert[on]])) @ gp.R.T if normals else None
+            parts.append((idx[on], dv[on], np.full(on.sum(), 0.5), np.full(on.sum(), sv), nv))
+        on = inner & (d < self.dhat[k])
+        parts.append((idx[on], d[on], np.ones(on.sum()), s[on], n[on] if normals else None))
+        cat = [np.concatenate([p[i] for p in parts]) for i in range(4)]
+        if normals:
+            return (*cat[:3], cat[3], np.concatenate([p[4] for p in parts]))
+        return tuple(cat[:3])
+
+    def segments_clear(self, x: np.ndarray) -> bool:
+        """Every whole edge (not only its contacts) outside every thickness shell."""
+        for k, gp in enumerate(self.gaps):
+            idx = self._near(x, k, 0.0)
+            if idx.size and np.any(gp.edge_gaps(x[self.E[idx, 0]], x[self.E[idx, 1]]) <= 0):
+                return False
+        return True
+
+    def feasible(self, x: np.ndarray) -> bool:
+        return self.segments_clear(x) and all(np.all(d > 0) for _, d, _ in self.active(x))
+
+    # -- objective pieces (x: full positions (V, 3)) ----------------------------------------
+    def energy(self, x: np.ndarray) -> float:
+        """B(x) + D(x); inf if an edge touches or enters a thickness shell."""
+        e = 0.0
+        if not self.segments_clear(x):
+            return np.inf
+        for k, (idx, d, wf) in enumerate(self.active(x)):
+            if np.any(d <= 0):
+                return np.inf
+            e += self.kappa * float(np.dot(self.w[idx] * wf, barrier(d, self.dhat[k])))
+        if self._lag is not None:
+            e += self._friction(x, need_hessian=False)[0]
+        return e
+
+    def derivatives(self, x: np.ndarray, need_hessian: bool = True):
+        """Per-edge gradient (n, 6) and PSD Hessian (n, 6, 6) or None, and edge indices (n,)."""
+        idx_all, g_all, H_all = [], [], []
+        for k, (idx, d, wf, s, n) in enumerate(self.active(x, normals=True)):
+            if idx.size == 0:
+                continue
+            J = np.concatenate([(1 - s)[:, None] * n, s[:, None] * n], axis=1)   # grad d, (n, 6)
+            c1 = self.kappa * self.w[idx] * wf * barrier_d1(d, self.dhat[k])
+            idx_all.append(idx)
+            g_all.append(c1[:, None] * J)
+            if need_hessian:
+                c2 = self.kappa * self.w[idx] * wf * barrier_d2(d, self.dhat[k])
+                H_all.append(c2[:, None, None] * J[:, :, None] * J[:, None, :])
+        if self._lag is not None:
+            idx, g, H = self._friction(x, need_hessian, derivatives=True)
+            if idx.size:
+                idx_all.append(idx)
+                g_all.append(g)
+                if need_hessian:
+                    H_all.append(H)
+        if not idx_all:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 6)), (np.zeros((0, 6, 6)) if need_hessian else None)
+        return (np.concatenate(idx_all), np.concatenate(g_all), np.concatenate(H_all) if need_hessian else None)
+
+    def add_to(self, x: np.ndarray, grad: np.ndarray, ab: np.ndarray | None) -> float:
+        """Add the contact gradient to ``grad`` (N,) and its Hessian to the lower band ``ab``
+        (bw + 1, N) of the free DOFs; returns the norm of the contact force."""
+        idx, g, H = self.derivatives(x, ab is not None)
+        if idx.size == 0:
+            return 0.0
+        E = self.E[idx]
+        slot = self.free_slot[E]                                            # (n, 2)
+        dof = (3 * slot[:, :, None] + np.arange(3)).reshape(-1, 6)          # negative for roots
+        ok = np.repeat(slot >= 0, 3, axis=1)
+        gd = np.where(ok, dof, 0)
+        contrib = np.bincount(gd[ok], weights=g[ok], minlength=len(grad))
+        grad += contrib
+        if ab is not None:
+            N = ab.shape[1]
+            ii = np.broadcast_to(dof[:, :, None], H.shape)
+            jj = np.broadcast_to(dof[:, None, :], H.shape)
+            m = np.broadcast_to(ok[:, :, None] & ok[:, None, :], H.shape) & (ii >= jj)
+            flat = (ii[m] - jj[m]) * N + jj[m]
+            ab += np.bincount(flat, weights=H[m], minlength=ab.size).reshape(ab.shape)
+        return float(np.linalg.norm(contrib))
+
+    # -- line-search filter -----------------------------------------------------------------
+    def max_step(self, x: np.ndarray, p: np.ndarray) -> float:
+        """Largest alpha <= 1 such that x + a p (p: (V, 3), 0 on the roots) keeps every edge gap
+        above CCD_ETA times its value at x for all a in [0, alpha] (contact_geometry.advance)."""
+        return float(self.max_step_per_edge(x, p).min(initial=1.0))
+
+    def max_step_per_edge(self, x: np.ndarray, p: np.ndarray) -> np.ndarray:
+        E = self.E
+        alpha = np.ones(len(E))
+        speed = np.maximum(np.linalg.norm(p[E[:, 0]], axis=1), np.linalg.norm(p[E[:, 1]], axis=1))
+        for k, gp in enumerate(self.gaps):
+            idx = self._near(x, k, float(speed.max(initial=0.0)) + self.dhat[k])
+            if idx.size == 0:
+                continue
+            a = advance(gp, x[E[idx, 0]], x[E[idx, 1]], p[E[idx, 0]], p[E[idx, 1]])
+            alpha[idx] = np.minimum(alpha[idx], a)
+        return alpha
+
+    # -- a feasible start ---------------------------------------------------------------------
+    def feasible_start(self, x_n: np.ndarray, x_guess: np.ndarray, poses0=None) -> np.ndarray:
+        """A start of the solve inside the feasible set at the end-of-step poses, as near the
+        guess (x_n + dt v_n) as conservative advancement from x_n allows.
+
+        1. Carry with the colliders: x_n is feasible against the colliders at t_n (the previous
+           step ended there), and a rigid motion keeps every distance, so a point moved with a
+           collider's relative motion Phi_{n+1} Phi_n^-1 is as far from it at t_{n+1} as it was at
+           t_n.  Each free vertex of an edge that is infeasible at t_{n+1} (a collider swept onto
+           it: a 10 m/s ball moves 0.4 m per 0.04 s step) is carried; an edge between a carried
+           and an uncarried vertex that is then infeasible carries its other end too, until no
+           edge is infeasible (the carried part of a strand keeps its shape: it is pushed ahead).
+        2. Each strand moves from there toward the guess by its own conservative-advancement
+           step (strands do not interact through object contact).
+        If an edge of two root vertices is infeasible nothing helps: the start stays infeasible,
+        the solve reports divergence and the step is retried as substeps."""
+        x0 = np.array(x_n, dtype=np.float64)
+        x0[self.kinematic] = x_guess[self.kinematic]
+        moved = np.zeros(len(x0), dtype=bool)
+        free = ~self.kinematic
+        E = self.E
+        for _ in range(3):   # several colliders: carrying by one may push into another
+            bad_any = False
+            for k, (c, gp) in enumerate(zip(self.colliders, self.gaps)):
+                R0, T0 = c.motion.pose(self.t0) if poses0 is None else poses0[k]
+                R1, T1 = gp.R, gp.T
+                carried = moved.copy()
+                swept = self._swept(x_n, k, R0, T0)
+                for _it in range(len(x0)):
+                    idx = self._near(x0, k, 0.0)
+                    d = gp.edge_gaps(x0[E[idx, 0]], x0[E[idx, 1]])
+                    bad = np.union1d(idx[d <= 0], swept)
+                    swept = np.zeros(0, dtype=np.int64)
+                    if bad.size == 0:
+                        break
+                    verts = np.unique(E[bad].ravel())
+                    verts = verts[free[verts] & ~carried[verts]]
+                    if verts.size == 0:
+                        bad_any = True
+                        break
+                    X = (x_n[verts] - T0) @ R0                  # body frame at t_n
+                    x0[verts] = X @ R1.T + T1                   # the same body point at t_{n+1}
+                    carried[verts] = True
+                moved |= carried
+            if not bad_any:
+                break
+        self.stats.start_moved = int((moved & free).sum())
+        p = x_guess - x0
+        p[self.kinematic] = 0.0
+        a_edge = self.max_step_per_edge(x0, p)
+        S = int(self.strand_of_vertex.max()) + 1
+        a_strand = np.ones(S)
+        np.minimum.at(a_strand, self.strand_of_vertex[E[:, 0]], a_edge)
+        x_start = x0 + a_strand[self.strand_of_vertex][:, None] * p
+        self.stats.start_feasible = self.feasible(x_start)
+        return x_start
+
+    def _swept(self, x_n: np.ndarray, k: int, R0, T0) -> np.ndarray:
+        """Edges of x_n that collider k sweeps over during the step although they may be outside
+        it at both ends (a 10 m/s ball passes a strand within one step): in the collider's frame
+        the hair's points move from Phi_n^-1 x_n to Phi_{n+1}^-1 x_n (linearly, as the collision
+        stage takes them); conservative advancement with floor 0 finds the paths that reach the shell."""
+        gp = self.gaps[k]
+        X0, X1 = (x_n - T0) @ R0, gp.body(x_n)
+        E = self.E
+        move = np.linalg.norm(X1 - X0, axis=1)
+        body = EdgeGaps(self.colliders[k], np.eye(3), np.zeros(3))
+        g0 = body.vertex_gaps(X0)
+        lb = body.edge_lower_bound(X0[E[:, 0]], X0[E[:, 1]], g0[E[:, 0]], g0[E[:, 1]])
+        idx = np.flatnonzero(lb - np.maximum(move[E[:, 0]], move[E[:, 1]]) < 0)
+        if idx.size == 0:
+            return idx
+        P = X1 - X0
+        a = advance(body, X0[E[idx, 0]], X0[E[idx, 1]], P[E[idx, 0]], P[E[idx, 1]], eta=0.0)
+        return idx[a < 1.0]
+
+    # -- friction ---------------------------------------------------------------------------
+    def update_lag(self, x: np.ndarray) -> None:
+        """Freeze the friction data at x: normal forces, closest parameters, tangent bases and
+        the colliders' surface displacement over the step at the contact points."""
+        if not self.use_friction:
+            return
+        parts = []
+        for k, (idx, d, wf, s, n) in enumerate(self.active(x, normals=True)):
+            c = self.colliders[k]
+            if idx.size == 0 or c.friction <= 0:
+                continue
+            lam = self.kappa * self.w[idx] * wf * np.abs(barrier_d1(d, self.dhat[k]))
+            E = self.E[idx]
+            P = (1 - s)[:, None] * x[E[:, 0]] + s[:, None] * x[E[:, 1]]
+            R0, T0 = c.motion.pose(self.t0)
+            gp = self.gaps[k]
+            Xb = gp.body(P)
+            P0 = Xb @ R0.T + T0                                          # the collider point at t_n
+            dc = (P - P0) + self.dt * (c.spin_velocity_body(Xb) @ gp.R.T)
+            a = np.where(np.abs(n[:, 0:1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+            t1 = np.cross(n, a)
+            t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+            t2 = np.cross(n, t1)
+            parts.append((idx, s, np.stack([t1, t2], axis=2), lam * c.friction, dc))
+        if not parts:
+            self._lag = None
+            return
+        cat = lambda i: np.concatenate([p[i] for p in parts])   # noqa: E731
+        self._lag = (cat(0), cat(1), cat(2), cat(3), cat(4))
+        self.stats.friction_contacts = len(self._lag[0])
+
+    def _friction(self, x: np.ndarray, need_hessian: bool, derivatives: bool = False):
+        idx, s, T, mulam, dc = self._lag
+        E = self.E[idx]
+        eps = self.eps_v * self.dt
+        rel = ((1 - s)[:, None] * (x[E[:, 0]] - self.x_n[E[:, 0]]) + s[:, None] * (x[E[:, 1]] - self.x_n[E[:, 1]]) - dc)
+        u = np.einsum("nij,ni->nj", T, rel)                                # (n, 2)
+        y = np.linalg.norm(u, axis=1)
+        if not derivatives:
+            return (float(np.dot(mulam, f0_friction(y, eps))),)
+        Jw = np.stack([1 - s, s], axis=1)                                  # (n, 2) vertex weights
+        gu = (mulam * f1_over_y(y, eps))[:, None] * u                       # dD/du (n, 2)
+        g3 = np.einsum("nij,nj->ni", T, gu)                                 # dD/d(contact point) (n, 3)
+        g = (Jw[:, :, None] * g3[:, None, :]).reshape(-1, 6)
+        if not need_hessian:
+            return idx, g, None
+        small = y < eps
+        uh = u / np.maximum(y, 1e-300)[:, None]
+        coef_uu = np.where(small, -y / eps ** 2, -1.0 / np.maximum(y, 1e-300))   # (f1' y - f1)/y^3 |u|^2
+        M = f1_over_y(y, eps)[:, None, None] * np.eye(2) + coef_uu[:, None, None] * uh[:, :, None] * uh[:, None, :]
+        M *= mulam[:, None, None]
+        H3 = np.einsum("nij,njk,nlk->nil", T, M, T)                         # (n, 3, 3)
+        H = (Jw[:, :, None, None, None] * Jw[:, None, :, None, None]) * H3[:, None, None]   # (n, 2, 2, 3, 3)
+        H = H.transpose(0, 1, 3, 2, 4).reshape(-1, 6, 6)
+        return idx, g, H
+
+    # -- after the step ---------------------------------------------------------------------
+    def end_stats(self, x: np.ndarray) -> ContactStats:
+        """Contacts, smallest gap and deepest penetration (vertices and whole edges) at x."""
+        st = self.stats
+        pen, gmin, total = 0.0, np.inf, 0
+        for k, gp in enumerate(self.gaps):
+            idx = self._near(x, k, self.dhat[k] * CONTACT_REPORT)
+            E = self.E[idx]
+            d = gp.edge_gaps(x[E[:, 0]], x[E[:, 1]]) if idx.size else np.zeros(0)
+            n = int(np.sum(d < self.dhat[k] * CONTACT_REPORT))
+            st.per_collider[self.colliders[k].name] = n
+            total += n
+            if d.size:
+                gmin = min(gmin, float(d.min()))
+                pen = max(pen, float(np.maximum(-d, 0.0).max()))
+        st.contacts, st.gap_min, st.penetration_max = total, gmin, pen
+        return st
+
+
+def make_object_contact(scene, collision_cfg) -> ObjectContact | None:
+    """The barrier for ``collision.contact=barrier`` when the scene has colliders and
+    ``collision.objects`` is on; None otherwise (the post-solve stage handles object contact, or
+    nothing does).  Hair-hair contact stays in the post-solve stage either way."""
+    cc = collision_cfg
+    mode = str(getattr(getattr(cc, "contact", "stage"), "value", getattr(cc, "contact", "stage"))) if cc is not None else "stage"
+    if cc is None or mode != "barrier" or not cc.objects or not scene.colliders:
+        return None
+    s = scene.strands
+    rho = float(np.sum(s.masses) / max(float(np.sum(s.rest_lengths)), 1e-300))
+    return ObjectContact(scene.colliders, s.edges, s.rest_lengths, s.kinematic, s.free_slot, s.strand_of_vertex, rho,
+                         float(cc.hair_thickness), float(cc.barrier_dhat), float(cc.barrier_stiffness),
+                         float(cc.friction_epsilon), bool(cc.friction))
+
+
+def begin_contact_step(contact: ObjectContact, objective, x_n: np.ndarray, t0: float, t1: float, dt: float,
+                       newton_opts=None) -> None:
+    """Poses at t1, kappa, and the objective's feasible start (``objective.x_start``) for a step
+    begun with ``objective.begin_step``.
+
+    A collider that sweeps over hair during the step (a 10 m/s ball moves 0.4 m per 0.04 s step,
+    8 times its radius) is advanced in m sub-intervals (``sub_intervals``): at each intermediate
+    pose t0 + k dt / m the start is made feasible (``feasible_start``: elements it reached are
+    carried by the pose's small relative motion) and a few Newton iterations on the step's
+    objective at that pose (``SUB_INTERVAL_ITERATIONS``) let the hair slide around it; the last
+    pose is the step's own.  Carrying the hair by the whole step's motion instead (m = 1) was
+    tried: the 10 m/s ball then carried the struck strands 0.4 m ahead of itself every step, they
+    stayed trapped in front of it with 11,000 % strain, and Newton stalled (reports/contact.md)."""
+    contact.begin(x_n, t0, t1, dt)
+    m = contact.sub_intervals(x_n)
+    contact.stats.sub_intervals = m
+    x = np.asarray(x_n, dtype=np.float64)
+    poses_prev = [c.motion.pose(t0) for c in contact.colliders]
+    fv = objective.free_vertices
+    for k in range(1, m):
+        contact.set_time(t0 + k * dt / m)
+        x = x.copy()
+        x[contact.kinematic] = objective.x_full[contact.kinematic]
+        x = contact.feasible_start(x, x, poses_prev)
+        opts = NewtonOptions(max_iterations=SUB_INTERVAL_ITERATIONS)
+        if newton_opts is not None:
+            opts = NewtonOptions(newton_opts.rtol, newton_opts.atol, SUB_INTERVAL_ITERATIONS, newton_opts.max_backtracks)
+        xf, _ = newton_solve(objective, x[fv].reshape(-1), opts)
+        x = objective.full_positions(xf)
+        poses_prev = contact.poses()
+    contact.set_time(t1)
+    guess = objective.full_positions(objective.x_pred)
+    start = contact.feasible_start(x, guess, poses_prev)
+    objective.x_start = start[fv].reshape(-1)
+
+
+def contact_collision_info(contact: ObjectContact, x: np.ndarray, info_cls):
+    """The step's barrier figures as the collision stage's info record (``info_cls``:
+    collisions.CollisionInfo), so metrics and summaries read them where they read the stage's."""
+    st = contact.end_stats(x)
+    ci = info_cls()
+    ci.object_contacts = st.contacts
+    ci.penetration_max = st.penetration_max
+    ci.per_collider = dict(st.per_collider)
+    return ci
