@@ -274,15 +274,9 @@ def test_first_step_has_no_history_and_a_documented_start(integrator):
         assert np.array_equal(st1.history.x, st0.x) and st1.history.dt == DT
 
 
-def test_bdf2_substep_recovery_uses_the_step_ratio_and_leaves_the_right_history(monkeypatch):
-    """A step that fails at dt is redone as two halves: the same as stepping dt/2 twice (first
-    with w = 1/2, then w = 1), the history is the middle state and dt/2, and the next full step
-    (w = 2) stays on the chain's motion."""
-    sc = chain_scene()
-    sim = Simulator(sc, solver("bdf2"))
-    st = sim.initial_state()
-    for _ in range(12):
-        st, _ = sim.step(st, DT)
+def recovered_step(sim, st, monkeypatch):
+    """Step ``sim`` from ``st`` with its first full-dt attempt failing (the recovery redoes it as
+    two halves); returns the recovered state and the stepped halves ((mid, end) from st at dt/2)."""
     orig = sim._attempt
     calls = []
 
@@ -300,6 +294,19 @@ def test_bdf2_substep_recovery_uses_the_step_ratio_and_leaves_the_right_history(
     mid, _ = sim.step(st, DT / 2)
     end, _ = sim.step(mid, DT / 2)
     assert np.array_equal(rec.x, end.x) and np.array_equal(rec.v, end.v)
+    return rec, mid, end
+
+
+def test_bdf2_substep_recovery_uses_the_step_ratio_and_leaves_the_right_history(monkeypatch):
+    """A step that fails at dt is redone as two halves: the same as stepping dt/2 twice (first
+    with w = 1/2, then w = 1), the history is the middle state and dt/2, and the next full step
+    (w = 2) stays on the chain's motion."""
+    sc = chain_scene()
+    sim = Simulator(sc, solver("bdf2"))
+    st = sim.initial_state()
+    for _ in range(12):
+        st, _ = sim.step(st, DT)
+    rec, mid, end = recovered_step(sim, st, monkeypatch)
     assert rec.history.dt == DT / 2 and np.array_equal(rec.history.x, mid.x) and np.array_equal(rec.history.v, mid.v)
     a0, a1, b = bdf2_coefficients(0.5)
     p = sim.integrator.plan(sim, st, DT / 2)
@@ -528,21 +535,5 @@ def test_trbdf2_substep_recovery_is_two_half_steps(monkeypatch):
     st = sim.initial_state()
     for _ in range(12):
         st, _ = sim.step(st, DT)
-    orig = sim._attempt
-    calls = []
-
-    def failing(state, dt):
-        new, info = orig(state, dt)
-        calls.append(dt)
-        if dt == DT and len(calls) == 1:
-            info.status = MAX_ITERATIONS
-        return new, info
-
-    monkeypatch.setattr(sim, "_attempt", failing)
-    rec, info = sim.step(st, DT)
-    assert info.recovered and info.substeps == 2 and calls == [DT, DT / 2, DT / 2]
-    monkeypatch.setattr(sim, "_attempt", orig)
-    mid, _ = sim.step(st, DT / 2)
-    end, _ = sim.step(mid, DT / 2)
-    assert np.array_equal(rec.x, end.x) and np.array_equal(rec.v, end.v)
+    rec, mid, end = recovered_step(sim, st, monkeypatch)
     assert np.array_equal(rec.history.a, end.history.a)

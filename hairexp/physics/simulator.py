@@ -70,22 +70,28 @@ def _merge_stages(infos: list[SolveInfo]) -> SolveInfo:
                     grad_norm=last.grad_norm, force_scale=last.force_scale,
                     constraint_norm=max(i.constraint_norm for i in infos), tensions=last.tensions)
     out.seconds = {k: sum(i.seconds.get(k, 0.0) for i in infos) for k in set().union(*(i.seconds for i in infos))}
-    cis = [i.collision for i in infos if i.collision is not None]
-    if cis:
-        c = replace(cis[-1], per_collider={}, broad_phases={})
-        c.object_contacts = sum(ci.object_contacts for ci in cis)
-        c.hair_contacts = sum(ci.hair_contacts for ci in cis)
-        c.penetration_max = max(ci.penetration_max for ci in cis)
-        c.strain_limited = sum(ci.strain_limited for ci in cis)
-        c.passes = sum(ci.passes for ci in cis)
-        c.seconds = sum(ci.seconds for ci in cis)
-        for ci in cis:
-            for k, n in ci.per_collider.items():
-                c.per_collider[k] = c.per_collider.get(k, 0) + n
-            for k, n in ci.broad_phases.items():
-                c.broad_phases[k] = c.broad_phases.get(k, 0) + n
-        out.collision = c
+    out.collision = _sum_collisions([i.collision for i in infos if i.collision is not None])
     return out
+
+
+def _sum_collisions(cis: list):
+    """Several collision stages' ``CollisionInfo`` as one (counts and seconds summed, the deepest
+    penetration, contacts per collider summed), or None for none."""
+    if not cis:
+        return None
+    c = replace(cis[-1], per_collider={}, broad_phases={})
+    c.object_contacts = sum(ci.object_contacts for ci in cis)
+    c.hair_contacts = sum(ci.hair_contacts for ci in cis)
+    c.penetration_max = max(ci.penetration_max for ci in cis)
+    c.strain_limited = sum(ci.strain_limited for ci in cis)
+    c.passes = sum(ci.passes for ci in cis)
+    c.seconds = sum(ci.seconds for ci in cis)
+    for ci in cis:
+        for k, n in ci.per_collider.items():
+            c.per_collider[k] = c.per_collider.get(k, 0) + n
+        for k, n in ci.broad_phases.items():
+            c.broad_phases[k] = c.broad_phases.get(k, 0) + n
+    return c
 
 
 class _NoColliders:
@@ -337,14 +343,11 @@ class Simulator:
                         grad_norm=last.grad_norm, force_scale=last.force_scale, constraint_norm=last.constraint_norm,
                         recovered=len(infos) > 1 and all(i.converged for i in infos), seconds=sec,
                         iterations_attempted=self._attempted)
-        cis = [i.collision for i in infos if i.collision is not None]
-        if cis:
-            info.object_contacts = sum(c.object_contacts for c in cis)
-            info.hair_contacts = sum(c.hair_contacts for c in cis)
-            info.penetration_max = max(c.penetration_max for c in cis)
-            for c in cis:
-                for k, n in c.per_collider.items():
-                    info.collider_contacts[k] = info.collider_contacts.get(k, 0) + n
+        c = _sum_collisions([i.collision for i in infos if i.collision is not None])
+        if c is not None:
+            info.object_contacts, info.hair_contacts = c.object_contacts, c.hair_contacts
+            info.penetration_max = c.penetration_max
+            info.collider_contacts.update(c.per_collider)
         if len(infos) > 1 and info.recovered:
             info.status = CONVERGED
         return new, info
