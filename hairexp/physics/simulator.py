@@ -1,12 +1,13 @@
-"""The time step, phase by phase (``Simulator._attempt``, top to bottom):
+"""The time step, phase by phase (``Simulator._stage``, top to bottom; a multi-stage integrator,
+the default TR-BDF2, runs phases 1-4 once per stage, ``Simulator._attempt``):
 
 1. kinematics: the body's poses over the step (``motion_of``): a keyframed body's motion, or a
    dynamic body (``scene.body``) that first moves under gravity, its rail and the hair's force of
    the previous step (hairexp/model/dynamic_body.py; its state travels in ``State.body``, its
    poses in an explicit ``BodyWindow``); the root positions at t + dt; the controller's
    ``begin`` (targets, anchors at t + dt);
-2. solve: minimise the time-step objective of ``solver.integrator`` (implicit Euler, eq. 5, or
-   BDF2 or generalized-alpha: hairexp/physics/integrators.py, the step's ``StepPlan``) plus the
+2. solve: minimise the time-step objective of ``solver.integrator`` (TR-BDF2's stage, implicit
+   Euler, eq. 5, BDF2 or generalized-alpha: hairexp/physics/integrators.py, the ``StepPlan``) plus the
    controller's terms, under its constraints: the controller's ``solve`` (Newton for the free
    controller, SQP for tracking, hairexp/physics/controller.py);
 3. velocities: the integrator's, v_{n+1} = (x_{n+1} - x_n) / dt for implicit Euler, and its
@@ -238,7 +239,9 @@ class Simulator:
     def _attempt(self, state: State, dt: float) -> tuple[State, SolveInfo]:
         """One step of the integrator; a multi-stage scheme (TR-BDF2) runs its stages as steps
         of their own (each with its controller solve and collision stage) and reports them as
-        one solve.  A failed stage ends the attempt (recovery retries the whole step)."""
+        one solve.  A stage that did not converge is reported in that solve (recovery then
+        retries the whole step) but the later stages still run, so the state ends at the step's
+        time; a stage that diverged (a non-finite state) ends the attempt."""
         stages = getattr(self.integrator, "stages", None)
         if stages is None:
             return self._stage(state, dt, self.integrator)
