@@ -58,8 +58,8 @@ def load(paths: list[Path]) -> dict:
 
 def markdown(cols: dict) -> str:
     md = header("Paper scene verdicts per integrator and time step")
-    md += ("Every column is one run of all five paper scenes (full scenes, every variant, recording off) by the "
-           "command given below it; the verdict is the scene's judge (README, \"Paper scenes\").  Beside each "
+    md += ("Every column is the paper scenes run in full (every variant) by the command or commands given below "
+           "it (several when a column was run in parts); the verdict is the scene's judge (README, \"Paper scenes\").  Beside each "
            "verdict: the figures its judge rests on (free: smallest distance to the target object in m; tracked: "
            "first hit time in s; splitting: clumps free and with 2 and 3 guides; spreading: the 10 v0 cluster variance "
            "ratio and the apex time (s) it is measured at; "
