@@ -119,7 +119,6 @@ class DynamicBody:
         M = self.total_mass
         u_new = u + dt * (self.gravity + fh / M)
         rail = np.zeros(3)
-        u_old = u
         if self.supported(p) and p[1] + dt * u_new[1] < self.rail_height:
             theta = 1.0
             uy = (self.rail_height - p[1]) / dt            # land exactly on the rail (or stay on it)
@@ -135,7 +134,7 @@ class DynamicBody:
             rail = np.array([Jt[0], Jn, Jt[1]]) / dt
         out = b.copy()
         out[VELOCITY] = u_new
-        out[POSITION] = p + dt * (theta * u_new + (1.0 - theta) * u_old)
+        out[POSITION] = p + dt * (theta * u_new + (1.0 - theta) * u)
         out[RAIL_FORCE] = rail
         return out
 

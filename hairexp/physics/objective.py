@@ -215,26 +215,11 @@ class ImplicitEulerObjective:
         if self.kernels is not None:
             return self._evaluate_kernels(xf, need_hessian)
         t0 = time.perf_counter()
-        x = self.eval_positions(xf)
-        grads, hessians = [], []
-        with torch.no_grad():
-            for term in self.terms:
-                g, H = term.grad_hess(x[term.stencil_t], need_hessian, self.derivatives)
-                grads.append(g.numpy())
-                if need_hessian:
-                    hessians.append(H.numpy())
+        grads, hessians = self._torch_derivatives(self.terms, xf, need_hessian)
         t1 = time.perf_counter()
         g_int = self.assembler.gradient(grads)
-        f_inertia = self.mass_diag * (xf - self.x_pred)
-        grad = f_inertia + g_int + self.g_ext
-        scale = float(np.linalg.norm(f_inertia) + np.linalg.norm(g_int) + self.ext_norm)
-        if need_hessian and self.alpha_f != 0.0:
-            hessians = [(1.0 - self.alpha_f) * H for H in hessians]   # d^2/dx^2 E(y)/(1 - alpha_f)
         ab = self.assembler.banded(hessians, self.mass_diag) if need_hessian else None
-        if self.contact is not None:   # friction lag refreshed here: callers re-take H's value after
-            xc = self.full_positions(xf)
-            self.contact.update_lag(xc)
-            scale += self.contact.add_to(xc, grad, ab)
+        grad, scale = self._total_gradient(xf, g_int, ab)
         t2 = time.perf_counter()
         return Evaluation(grad, ab, scale, {"derivatives": t1 - t0, "assembly": t2 - t1})
 
@@ -247,31 +232,44 @@ class ImplicitEulerObjective:
         t1 = time.perf_counter()
         t_deriv = 0.0
         if self.torch_terms:
-            x = self.eval_positions(xf)
-            grads, hessians = [], []
-            with torch.no_grad():
-                for term in self.torch_terms:
-                    g, H = term.grad_hess(x[term.stencil_t], need_hessian, self.derivatives)
-                    grads.append(g.numpy())
-                    if need_hessian:
-                        hessians.append(H.numpy())
+            grads, hessians = self._torch_derivatives(self.torch_terms, xf, need_hessian)
             t_deriv = time.perf_counter() - t1
             g_int += self.torch_assembler.gradient(grads)
             if need_hessian:
-                if self.alpha_f != 0.0:
-                    hessians = [(1.0 - self.alpha_f) * H for H in hessians]
                 ab_o = self.torch_assembler.banded(hessians)
                 abT[:, : ab_o.shape[0]] += ab_o.T
+        ab = abT.T if need_hessian else None   # a view of abT: what the contact adds lands in it
+        grad, scale = self._total_gradient(xf, g_int, ab)
+        t2 = time.perf_counter()
+        return Evaluation(grad, ab, scale, {"derivatives": t_deriv, "assembly": t2 - t0 - t_deriv})
+
+    def _torch_derivatives(self, terms, xf: np.ndarray, need_hessian: bool):
+        """Element gradients and PSD Hessians (numpy) of ``terms`` at the evaluation point y; the
+        Hessians scaled by (1 - alpha_f), d^2/dx^2 E(y)/(1 - alpha_f)."""
+        x = self.eval_positions(xf)
+        grads, hessians = [], []
+        with torch.no_grad():
+            for term in terms:
+                g, H = term.grad_hess(x[term.stencil_t], need_hessian, self.derivatives)
+                grads.append(g.numpy())
+                if need_hessian:
+                    hessians.append(H.numpy())
+        if need_hessian and self.alpha_f != 0.0:
+            hessians = [(1.0 - self.alpha_f) * H for H in hessians]
+        return grads, hessians
+
+    def _total_gradient(self, xf: np.ndarray, g_int: np.ndarray, ab: np.ndarray | None):
+        """(gradient of the objective, force scale) from the internal gradient ``g_int``: plus the
+        inertial and external forces and, with contact, the barrier's gradient (its Hessian added to
+        ``ab`` in place; the friction lag is refreshed here: callers re-take H's value after)."""
         f_inertia = self.mass_diag * (xf - self.x_pred)
         grad = f_inertia + g_int + self.g_ext
         scale = float(np.linalg.norm(f_inertia) + np.linalg.norm(g_int) + self.ext_norm)
-        ab = abT.T if need_hessian else None
-        if self.contact is not None:   # as in ``evaluate``: the barrier's gradient and band (a view of abT)
+        if self.contact is not None:
             xc = self.full_positions(xf)
             self.contact.update_lag(xc)
             scale += self.contact.add_to(xc, grad, ab)
-        t2 = time.perf_counter()
-        return Evaluation(grad, ab, scale, {"derivatives": t_deriv, "assembly": t2 - t0 - t_deriv})
+        return grad, scale
 
     def solve(self, ab: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """A^-1 rhs for the lower band ``ab`` of ``evaluate``: the compiled block Cholesky, or
