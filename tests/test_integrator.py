@@ -274,9 +274,14 @@ def test_first_step_has_no_history_and_a_documented_start(integrator):
         assert np.array_equal(st1.history.x, st0.x) and st1.history.dt == DT
 
 
-def recovered_step(sim, st, monkeypatch):
-    """Step ``sim`` from ``st`` with its first full-dt attempt failing (the recovery redoes it as
-    two halves); returns the recovered state and the stepped halves ((mid, end) from st at dt/2)."""
+def recovered_step(integrator: str, monkeypatch):
+    """The swung chain under ``integrator``, 12 steps in; from there one step whose first full-dt
+    attempt fails (the recovery redoes it as two halves).  Returns (sim, st: the state before that
+    step, the recovered state, and the halves stepped by hand from st: mid, end)."""
+    sim = Simulator(chain_scene(), solver(integrator))
+    st = sim.initial_state()
+    for _ in range(12):
+        st, _ = sim.step(st, DT)
     orig = sim._attempt
     calls = []
 
@@ -294,19 +299,14 @@ def recovered_step(sim, st, monkeypatch):
     mid, _ = sim.step(st, DT / 2)
     end, _ = sim.step(mid, DT / 2)
     assert np.array_equal(rec.x, end.x) and np.array_equal(rec.v, end.v)
-    return rec, mid, end
+    return sim, st, rec, mid, end
 
 
 def test_bdf2_substep_recovery_uses_the_step_ratio_and_leaves_the_right_history(monkeypatch):
     """A step that fails at dt is redone as two halves: the same as stepping dt/2 twice (first
     with w = 1/2, then w = 1), the history is the middle state and dt/2, and the next full step
     (w = 2) stays on the chain's motion."""
-    sc = chain_scene()
-    sim = Simulator(sc, solver("bdf2"))
-    st = sim.initial_state()
-    for _ in range(12):
-        st, _ = sim.step(st, DT)
-    rec, mid, end = recovered_step(sim, st, monkeypatch)
+    sim, st, rec, mid, end = recovered_step("bdf2", monkeypatch)
     assert rec.history.dt == DT / 2 and np.array_equal(rec.history.x, mid.x) and np.array_equal(rec.history.v, mid.v)
     a0, a1, b = bdf2_coefficients(0.5)
     p = sim.integrator.plan(sim, st, DT / 2)
@@ -530,10 +530,5 @@ def test_trbdf2_restarts_with_implicit_euler_after_a_collision_stage_moved_verti
 def test_trbdf2_substep_recovery_is_two_half_steps(monkeypatch):
     """A failed TR-BDF2 step is redone as two half steps (each with both stages), the same as
     stepping dt/2 twice; the carried acceleration is the second half step's."""
-    sc = chain_scene()
-    sim = Simulator(sc, solver("trbdf2"))
-    st = sim.initial_state()
-    for _ in range(12):
-        st, _ = sim.step(st, DT)
-    rec, mid, end = recovered_step(sim, st, monkeypatch)
+    _, _, rec, _, end = recovered_step("trbdf2", monkeypatch)
     assert np.array_equal(rec.history.a, end.history.a)
