@@ -43,17 +43,17 @@ RTOLS = [1e-3, 1e-5, 1e-7]
 
 
 def cfg_for(scene: str, controller: str, dt: float, rtol: float, frames: int | None,
-            integrator: str = "implicit_euler"):
+            integrator: str = "implicit_euler", extra: tuple = ()):
     over = [f"experiment={scene}", "variants=[]", f"controller.name={controller}", "logging=off",
             f"solver.dt={dt}", f"solver.rtol={rtol}", f"tracking.rtol={rtol}", "solver.on_failure=warn",
             f"solver.integrator={integrator}"]
     if frames:
         over.append(f"frames={frames}")
-    return compose(over)
+    return compose(over + list(extra))
 
 
-def one(scene, controller, dt, rtol, frames, out: Path, integrator: str = "implicit_euler") -> dict:
-    cfg = cfg_for(scene, controller, dt, rtol, frames, integrator)
+def one(scene, controller, dt, rtol, frames, out: Path, integrator: str = "implicit_euler", extra: tuple = ()) -> dict:
+    cfg = cfg_for(scene, controller, dt, rtol, frames, integrator, extra)
     t0 = time.perf_counter()
     s = run(cfg, out)
     wall = time.perf_counter() - t0
@@ -101,16 +101,23 @@ def main(argv=None):
                     help="solver.integrator values of the grid runs")
     ap.add_argument("--ref-integrator", default="bdf2", choices=list(INTEGRATORS),
                     help="solver.integrator of the reference run (second order: bdf2)")
+    ap.add_argument("--controllers", nargs="+", default=["free", "tracking"], choices=["free", "tracking"])
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="overrides applied to every run, the reference's included (e.g. "
+                         "scene.motion.interpolation=cubic): a variant of the study, written with --report")
+    ap.add_argument("--report", default="accuracy", choices=["accuracy", "accuracy_variant"],
+                    help="the report's name under reports/ (default: accuracy; a --set study: accuracy_variant)")
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/accuracy/ entries (same config, solver source and versions)")
     args = ap.parse_args(argv)
     from hairexp.app.report import header, write_report
 
-    base = ROOT / "outputs" / "accuracy"
+    base = ROOT / "outputs" / args.report
+    extra = tuple(args.set)
     all_rows, recs, refs = [], {}, {}
     for scene in args.scenes:
-        for controller in ("free", "tracking"):
-            ref_plain = to_plain(cfg_for(scene, controller, args.ref_dt, 1e-9, args.frames, args.ref_integrator))
+        for controller in args.controllers:
+            ref_plain = to_plain(cfg_for(scene, controller, args.ref_dt, 1e-9, args.frames, args.ref_integrator, extra))
             ref_box = {}
 
             def reference(scene=scene, controller=controller, ref_plain=ref_plain, ref_box=ref_box):
@@ -118,7 +125,8 @@ def main(argv=None):
                 if not ref_box:
                     ref, info = cached("accuracy", {"config": ref_plain, "role": "reference"},
                                        lambda: one(scene, controller, args.ref_dt, 1e-9, args.frames,
-                                                   base / scene / controller / "ref", args.ref_integrator), args.cache)
+                                                   base / scene / controller / "ref", args.ref_integrator, extra),
+                                       args.cache)
                     ref_box.update(ref=ref, info=info)
                     print(f"{scene} {controller} reference: {describe(info)}", flush=True)
                 return ref_box["ref"]
@@ -129,13 +137,13 @@ def main(argv=None):
                     def compute(dt=dt, rtol=rtol, scene=scene, controller=controller, reference=reference,
                                 integrator=integrator):
                         r = one(scene, controller, dt, rtol, args.frames,
-                                base / scene / controller / f"{integrator}_dt{dt}_rtol{rtol}", integrator)
+                                base / scene / controller / f"{integrator}_dt{dt}_rtol{rtol}", integrator, extra)
                         d = np.linalg.norm(r.pop("positions") - reference()["positions"], axis=-1)
                         r["rms_rel"] = float(np.sqrt(np.mean(d ** 2)) / r["length"])
                         r["max_rel"] = float(d.max() / r["length"])
                         return r
 
-                    plain = to_plain(cfg_for(scene, controller, dt, rtol, args.frames, integrator))
+                    plain = to_plain(cfg_for(scene, controller, dt, rtol, args.frames, integrator, extra))
                     r, info = cached("accuracy", {"config": plain, "reference_config": ref_plain}, compute, args.cache)
                     r["cache"] = {k: info.get(k) for k in ("hit", "hash", "date", "source_hash")}
                     rows.append(r)
@@ -151,7 +159,9 @@ def main(argv=None):
                                              "cache": ({k: ref_box["info"].get(k) for k in ("hit", "hash", "date")}
                                                        if ref_box else None)}
             all_rows += rows
-    md = header("Run time against error")
+    md = header("Run time against error" + (f" with {', '.join(f'`{e}`' for e in extra)}" if extra else ""))
+    if extra:
+        md += f"Every run, the reference's included, with the overrides {', '.join(f'`{e}`' for e in extra)}.  "
     md += (f"Reference: `{args.ref_integrator}`, dt = {args.ref_dt} s, rtol = 1e-9 (Newton and SQP); integrators "
            f"of the grid: {', '.join(f'`{i}`' for i in args.integrators)}; errors are vertex distances to it at every "
            "output frame, over the hair length L; cost is the steps' seconds per simulated second (set-up and the settle phase excluded); `*` marks the Pareto front "
@@ -161,7 +171,7 @@ def main(argv=None):
            "reused from reports/cache/accuracy/ (`--cache`: same config, reference config, solver source and "
            "versions), and then its cost is that of the original run on that date.\n\n")
     for scene in args.scenes:
-        for controller in ("free", "tracking"):
+        for controller in args.controllers:
             rows = [r for r in all_rows if r["scene"] == scene and r["controller"] == controller]
             ref = refs[f"{scene}/{controller}"]
             rsrc = ("not needed (every grid row cached)" if ref["cache"] is None else
@@ -184,7 +194,7 @@ def main(argv=None):
 
         fig, axes = plt.subplots(1, len(args.scenes), figsize=(5.5 * len(args.scenes), 4), squeeze=False)
         for ax, scene in zip(axes[0], args.scenes):
-            for controller, mk in (("free", "o"), ("tracking", "s")):
+            for controller, mk in [(c, m) for c, m in (("free", "o"), ("tracking", "s")) if c in args.controllers]:
                 for integrator, fill in zip(args.integrators, ("full", "none", "left", "right")):
                     rows = [r for r in all_rows if r["scene"] == scene and r["controller"] == controller
                             and r.get("integrator") == integrator]
@@ -197,13 +207,14 @@ def main(argv=None):
             ax.grid(True, which="both", alpha=0.3)
             ax.legend()
         fig.tight_layout()
-        fig.savefig(ROOT / "reports" / "accuracy.png", dpi=110)
-        md += "![Pareto](accuracy.png)\n"
+        fig.savefig(ROOT / "reports" / f"{args.report}.png", dpi=110)
+        md += f"![Pareto]({args.report}.png)\n"
     except ImportError:
         md += "(matplotlib is not installed: no plot)\n"
-    path = write_report("accuracy", md, {"rows": all_rows, "recommended": {f"{k[0]}/{k[1]}": {f"{b:g}": r for b, r in v.items()}
+    path = write_report(args.report, md, {"rows": all_rows, "recommended": {f"{k[0]}/{k[1]}": {f"{b:g}": r for b, r in v.items()}
                                                                          for k, v in recs.items()},
-                                         "references": refs, "ref_dt": args.ref_dt, "budget": args.budget})
+                                         "references": refs, "ref_dt": args.ref_dt, "budget": args.budget,
+                                         "set": list(extra)})
     print(f"wrote {path}")
 
 

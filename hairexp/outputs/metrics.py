@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hairexp.memory import use_system_arrow_pool
 from hairexp.outputs.files import atomic_write_bytes
 from hairexp.physics.info import StepInfo
 from hairexp.model.scene import Scene
@@ -84,6 +85,7 @@ class MetricsTable:
         self.steps = 0
         self.written: MetricColumns | None = None   # the parquet file ``write`` wrote last
         self.written_parts = 0
+        use_system_arrow_pool()   # freed parquet buffers go back to the system (hairexp/memory.py)
         if self.folder is not None:
             self.folder.mkdir(parents=True, exist_ok=True)
 
