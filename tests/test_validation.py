@@ -418,3 +418,17 @@ def test_non_finite_values_are_called_non_finite(key, value):
     with pytest.raises(InputError, match=rf"must be a finite number >=? 0, got {value}") as err:
         assemble_scene(cfg, settle=False)
     assert err.value.where == key
+
+
+def test_a_step_longer_than_a_frame_is_said(caplog):
+    """solver.dt above the frame interval runs one step per frame (README: steps no longer than
+    dt); the run says so instead of silently using another step."""
+    import logging
+
+    with caplog.at_level(logging.WARNING, logger="hairexp.app.assemble"):
+        assemble_scene(compose_config(["experiment=goaling_smoke", "variants=[]", "frames=2", "solver.dt=100"]))
+    assert any("longer than a frame" in r.getMessage() and "0.04" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hairexp.app.assemble"):
+        assemble_scene(compose_config(["experiment=goaling_smoke", "variants=[]", "frames=2", "solver.dt=0.04"]))
+    assert not any("longer than a frame" in r.getMessage() for r in caplog.records)

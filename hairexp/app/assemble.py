@@ -21,6 +21,7 @@ hairexp/physics/settle.py), the guide animation (``app.guides.build_guides``), t
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Iterator
 
@@ -38,6 +39,8 @@ from hairexp.physics.schedule import step_schedule
 from hairexp.physics.settle import settle_scene
 from hairexp.physics.simulator import Simulator
 from hairexp.physics.state import State
+
+log = logging.getLogger(__name__)
 
 
 def _value(x):
@@ -113,6 +116,9 @@ def _assemble_scene(cfg, settle: bool):
     validate_config(cfg)                                # the config's ranges (hairexp/app/validate.py)
     cfg = timed_config(cfg)
     n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)   # validated before anything is built
+    if float(cfg.solver.dt) > dt * (1 + 1e-9):
+        log.warning("solver.dt=%g s is longer than a frame (1/fps = %.4g s): each step is one frame, %.4g s",
+                    float(cfg.solver.dt), dt, dt)
     usd = str(_value(cfg.scene.builder)) == "usd"
     if not usd:   # the resource guard (hairexp/app/guard.py) before the hair is built
         check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices))
