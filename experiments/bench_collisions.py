@@ -24,7 +24,12 @@ from hairexp.app.report import header, write_report
 from experiments.common import (positive_int, WARMUP, celia_bench, describe_run, jerk, jerk_start, md_table, motion_record,
                                 time_steps)
 
-CASES = {"head + hair-hair": "hair_hair", "head only": "default", "collisions off": "off"}
+#: case -> (collision group, overrides)
+CASES = {"head + hair-hair": ("hair_hair", ()),
+         "head + hair volume": ("hair_hair", ("collision.hair_hair_model=volume",)),
+         "head only": ("default", ()), "collisions off": ("off", ())}
+#: m: pairs of edges (not sharing a vertex) closer than this at a step's end count as touching
+TOUCH = 0.001
 
 
 def head_collider() -> str:
@@ -33,15 +38,24 @@ def head_collider() -> str:
             f"motion: {motion_record(*jerk(jerk_start()))}}}]")
 
 
-def run(collision: str, steps: int) -> dict:
-    r = assemble(celia_bench("free", steps, typed=[head_collider()], collision=collision))
-    tm = time_steps(r, steps, WARMUP)
+def touching(strands):
+    """``observe`` for ``time_steps``: the edge pairs closer than TOUCH at the step's end (not timed)."""
+    from hairexp.physics.collisions import HairHair
+
+    hh = HairHair(strands, TOUCH)
+    return lambda run, state, info: {"touching": len(hh.near_pairs(state.x, TOUCH)[0])}
+
+
+def run(collision: str, steps: int, overrides=()) -> dict:
+    r = assemble(celia_bench("free", steps, overrides, typed=[head_collider()], collision=collision))
+    tm = time_steps(r, steps, WARMUP, observe=touching(r.scene.strands))
     s = tm.summary()
     return {"median_s": s["median_s"], "mean_s": s["mean_s"], "collision_share": s["split"]["collision"],
             "collision_median_s": float(np.median(tm.column("collision"))),
             "object_contacts_mean": float(tm.column("object_contacts").mean()),
             "hair_contacts_mean": float(tm.column("hair_contacts").mean()),
             "penetration_max": float(tm.column("penetration_max").max()), "iterations_mean": s["iterations_mean"],
+            "touching_mean": float(tm.column("touching").mean()), "touching_max": int(tm.column("touching").max()),
             "colliders": len(r.scene.colliders), "run": describe_run(r)}
 
 
@@ -51,28 +65,36 @@ def main(argv=None):
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
     res = {}
-    for name, collision in CASES.items():
-        res[name] = r = run(collision, args.steps)
+    for name, (collision, over) in CASES.items():
+        res[name] = r = run(collision, args.steps, over)
         print(f"{name:>18}: median {1e3 * r['median_s']:6.1f} ms/step, collision {100 * r['collision_share']:5.1f}% "
               f"({1e3 * r['collision_median_s']:.1f} ms median), contacts/step object {r['object_contacts_mean']:.0f} "
-              f"hair {r['hair_contacts_mean']:.0f}, max penetration {r['penetration_max']:.1e} m, its {r['iterations_mean']:.2f}",
+              f"hair {r['hair_contacts_mean']:.0f}, touching pairs {r['touching_mean']:.0f}, max penetration {r['penetration_max']:.1e} m, its {r['iterations_mean']:.2f}",
               flush=True)
     share = res["head + hair-hair"]["collision_share"]
     md = header("Collision cost at Celia scale")
     md += (f"Run (head + hair-hair): {res['head + hair-hair']['run']}; Celia's colliders replaced by the head sphere "
-           "(r = 8.5 cm) moving with the body, hair thickness 1 mm; the other cases with `collision=default` (head only) "
+           "(r = 8.5 cm) moving with the body, hair thickness 1 mm; the volume case with `collision.hair_hair_model=volume` (hairexp/physics/hair_volume.py, cell 1 cm), the others with `collision=default` (head only) "
            f"and `collision=off`, each settled with its own collision stage.  The head is still for {WARMUP} untimed "
            f"warm-up steps from the run's initial state, then jerks; {args.steps} steps timed per case "
            "(`python -m experiments.bench_collisions`, `common.celia_bench`).\n\n")
     md += md_table(["case", "median s/step", "collision share", "collision median s", "object contacts/step",
-                    "hair-hair contacts/step", "max penetration (m)", "Newton its"],
+                    "hair-hair contacts/step", "touching edge pairs (mean / max)", "max penetration (m)", "Newton its"],
                    [[name, f"{r['median_s']:.4f}", f"{100 * r['collision_share']:.1f}%", f"{r['collision_median_s']:.4f}",
-                     f"{r['object_contacts_mean']:.0f}", f"{r['hair_contacts_mean']:.0f}", f"{r['penetration_max']:.1e}",
+                     f"{r['object_contacts_mean']:.0f}", f"{r['hair_contacts_mean']:.0f}",
+                     f"{r['touching_mean']:.0f} / {r['touching_max']}", f"{r['penetration_max']:.1e}",
                      f"{r['iterations_mean']:.2f}"] for name, r in res.items()])
-    md += (f"\nTarget: collision handling <= 20% of the step with hair-hair on: "
-           f"**{'met' if share <= 0.2 else 'missed'}** ({100 * share:.1f}%). The paper reports 10-20%. "
+    vshare = res["head + hair volume"]["collision_share"]
+    md += (f"\nHair-hair contacts/step: edge pairs given impulses (edges), free vertices in over-dense cells "
+           f"(volume).  Touching edge pairs: non-adjacent edges closer than {1e3 * TOUCH:g} mm at the step's end "
+           "(what the edge contacts prevent; counted outside the timing).\n\n"
+           f"Target: collision handling <= 20% of the step with hair-hair on: edge contacts "
+           f"**{'met' if share <= 0.2 else 'missed'}** ({100 * share:.1f}%); the volumetric model "
+           f"(`collision.hair_hair_model=volume`) **{'met' if vshare <= 0.2 else 'missed'}** ({100 * vshare:.1f}%). "
+           "The paper reports 10-20%. "
            f"With collisions off the stage does not run (share {100 * res['collisions off']['collision_share']:.1f}%).\n")
     path = write_report("bench_collisions", md, {"results": res, "target_share": 0.2, "met": share <= 0.2,
+                                                 "volume_met": vshare <= 0.2,
                                                  "wall_s": time.perf_counter() - t0})
     print(f"wrote {path}")
 

@@ -285,6 +285,11 @@ class SolverConfig:
     threads: str = "auto"
 
 
+class HairHairModel(str, Enum):
+    edges = "edges"     # edge-edge contacts: CCD impulses and proximity repulsion (Bridson et al. 2002)
+    volume = "volume"   # the hair as a continuum on a grid: friction and pressure (Petrovic et al. 2005, McAdams et al. 2009)
+
+
 class ContactMode(str, Enum):
     barrier = "barrier"   # hair-object contact inside the objective: IPC barrier + CCD line search + lagged friction
     stage = "stage"       # hair-object contact after the solve (paper 3.4, Bridson et al. 2002) + strain_limit
@@ -308,6 +313,12 @@ class CollisionConfig:
     skin: float = 0.003               # m, hair-hair neighbour-list skin: the list is reused while no vertex moves skin/2
     max_passes: int = 3
     strain_limit: float = 0.0         # > 0: after object contacts, edge lengths are clamped to (1 -+ this) x rest
+    # hair_hair's model: edges (edge-edge contacts) | volume (grid friction and pressure,
+    # hairexp/physics/hair_volume.py; linear in the vertices, but strands may pass through each other)
+    hair_hair_model: HairHairModel = HairHairModel.edges
+    volume_cell: float = 0.01             # m, volume: grid cell size
+    volume_friction: float = 2.0          # 1/s, volume: rate at which hair takes the velocity of the hair around it
+    volume_pressure_speed: float = 0.1    # m/s, volume: c of the pressure c^2 (rho - rho_0) of over-dense hair
 
 
 @dataclass

@@ -105,6 +105,9 @@ def _collision(c) -> None:
     number(c.skin, "collision.skin", lo=0)
     integer(c.max_passes, "collision.max_passes", 1)
     number(c.strain_limit, "collision.strain_limit", lo=0, hi=1, hi_open=True)
+    number(c.volume_cell, "collision.volume_cell", lo=0, lo_open=True)
+    number(c.volume_friction, "collision.volume_friction", lo=0)
+    number(c.volume_pressure_speed, "collision.volume_pressure_speed", lo=0)
     mode = str(_value(c.contact))
     if mode not in ("barrier", "stage"):
         raise InputError(f"unknown contact {mode!r} (barrier|stage)", "collision.contact")

@@ -429,6 +429,11 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
     info = CollisionInfo()
     movable = ~scene.strands.kinematic
     v1 = (x1 - x0) / dt
+    volume = hh is not None and not isinstance(hh, HairHair)
+    if volume:   # collision.hair_hair_model=volume (hairexp/physics/hair_volume.py): once, before the passes
+        v1, info.hair_contacts = hh.apply(x1, v1, dt)
+        x1 = np.where(movable[:, None], x0 + dt * v1, x1)
+        hh = None
     for p in range(max(1, cfg.max_passes)):
         n_obj = n_hh = 0
         if hh is not None:

@@ -39,6 +39,7 @@ from hairexp.model.scene import Scene
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact
 from hairexp.physics.collisions import CollisionInfo, HairHair, StrainLimit, collision_stage
 from hairexp.physics.controller import Controller
+from hairexp.physics.hair_volume import HairVolume
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
 from hairexp.physics.info import CONVERGED, DIVERGED, SolveInfo, StepInfo
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR, ImplicitEuler, make_integrator
@@ -158,7 +159,10 @@ class Simulator:
         if (self.collide_objects or (cc is not None and cc.hair_hair)) and cc.strain_limit > 0:
             self.limiter = StrainLimit(s, cc.strain_limit)
         if cc is not None and cc.hair_hair:
-            self.hair_hair = HairHair(s, cc.hair_thickness, cc.skin)
+            if str(_value(getattr(cc, "hair_hair_model", "edges"))) == "volume":
+                self.hair_hair = HairVolume(s, cc.volume_cell, cc.volume_friction, cc.volume_pressure_speed)
+            else:
+                self.hair_hair = HairHair(s, cc.hair_thickness, cc.skin)
         controller.bind(self)
         #: internal terms (their forces on the roots are the hair's force on a dynamic body)
         self._internal = [t for t in terms if t.name in ("stretch", "bending", "edge_damping")]
