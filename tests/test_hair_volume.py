@@ -124,3 +124,18 @@ def test_a_run_with_the_volume_model(tmp_path):
     assert s["status"] == "completed" and s["converged"]
     with np.load(tmp_path / "run" / "result.npz") as r:
         assert np.isfinite(r["positions"]).all()
+
+
+def test_the_volume_acts_once_a_step_over_the_whole_step(tmp_path, monkeypatch):
+    """Under TR-BDF2 (two stages) the volume's friction and pressure act after the last stage,
+    with the step's dt (not the stage's)."""
+    from hairexp.app.run import run
+
+    calls = []
+    orig = HairVolume.apply
+    monkeypatch.setattr(HairVolume, "apply", lambda self, x, v, dt: calls.append(dt) or orig(self, x, v, dt))
+    cfg = compose_config(["experiment=goaling_smoke", "variants=[]", "frames=2", "logging=off", "solver.integrator=trbdf2",
+                          "collision=hair_hair", "collision.hair_hair_model=volume", "solver.dt=0.04"])
+    s = run(cfg, tmp_path / "run")
+    assert s["status"] == "completed"
+    assert calls and len(calls) == s["steps"] and all(abs(c - 0.04) < 1e-12 for c in calls)

@@ -422,16 +422,19 @@ class StrainLimit:
         return over
 
 
-def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter: StrainLimit | None = None):
+def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter: StrainLimit | None = None,
+                    volume_dt: float | None = None):
     """Filter (x1, v1) for contacts.  Returns (x1, v1, CollisionInfo).  With ``limiter``, a
-    step with object contacts ends with strain limiting (``StrainLimit``)."""
+    step with object contacts ends with strain limiting (``StrainLimit``).  ``hh``: the edge
+    contacts (``HairHair``) or the volume model (hairexp/physics/hair_volume.py), whose friction
+    and pressure act over ``volume_dt`` (default dt: the whole step of a multi-stage scheme)."""
     tic = time.perf_counter()
     info = CollisionInfo()
     movable = ~scene.strands.kinematic
     v1 = (x1 - x0) / dt
     volume = hh is not None and not isinstance(hh, HairHair)
     if volume:   # collision.hair_hair_model=volume (hairexp/physics/hair_volume.py): once, before the passes
-        v1, info.hair_contacts = hh.apply(x1, v1, dt)
+        v1, info.hair_contacts = hh.apply(x1, v1, dt if volume_dt is None else volume_dt)
         x1 = np.where(movable[:, None], x0 + dt * v1, x1)
         hh = None
     for p in range(max(1, cfg.max_passes)):

@@ -247,6 +247,7 @@ class Simulator:
         retries the whole step) but the later stages still run, so the state ends at the step's
         time; a stage that diverged (a non-finite state) ends the attempt."""
         stages = getattr(self.integrator, "stages", None)
+        self._step_dt = dt
         if stages is None:
             return self._stage(state, dt, self.integrator)
         infos = []
@@ -291,8 +292,16 @@ class Simulator:
         elif ctl.simulates and (self.collide_objects or self.hair_hair is not None):
             sc = self.scene if self.collide_objects else _NoColliders(self.scene)
             x_solve = x_new
-            x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, self.hair_hair, state.x, x_new,
-                                                    state.time, t_next, dt, self.limiter)
+            hh, volume_dt = self.hair_hair, None
+            if isinstance(hh, HairVolume):
+                # the volume's friction and pressure act once per step, after its last stage, over
+                # the whole step (an explicit splitting; hairexp/physics/hair_volume.py)
+                if integ is getattr(self.integrator, "final_stage", integ):
+                    volume_dt = getattr(self, "_step_dt", dt)
+                else:
+                    hh = None
+            x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_new,
+                                                    state.time, t_next, dt, self.limiter, volume_dt)
             if type(integ) is ImplicitEuler:
                 v_new = v_stage
             else:
