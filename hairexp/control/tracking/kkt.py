@@ -138,6 +138,9 @@ class SchurKKT:
         self._A_il = A_pad[:, il_dof.ravel()].tocsr()
         self._AT_il = self._A_il.T.tocsr()
         self._L_il = None                     # the factor interleaved, built on the first product
+        self._uniform = bool(np.all(n == nmax))
+        jj, aa = np.meshgrid(np.arange(nmax), np.arange(bandwidth + 1), indexing="ij")
+        self._il_cut = (jj + aa >= nmax) & (aa > 0)                                   # (nmax, bw + 1)
         self.kernels = None
         if kernels is not None and np.isin(self.dof_off, kernels.blk_dof).all():
             self.kernels = kernels
@@ -215,9 +218,16 @@ class SchurKKT:
             return out
         if self._L_il is None:
             LT = self.LT if self.kernels is not None else np.ascontiguousarray(self.cb.T)
-            self._L_il = np.empty((self.nmax, LT.shape[1], self.S))
-            self._inv_il = np.empty((self.nmax, self.S))
-            interleave_factor(LT, np.ascontiguousarray(self.dof_off, dtype=np.int64), self.nmax, self._L_il, self._inv_il)
+            bw1 = LT.shape[1]
+            if self._uniform and bw1 == self._il_cut.shape[1]:    # every strand nmax DOFs: a transpose, and the band cut at each strand's end
+                self._L_il = np.ascontiguousarray(LT.reshape(self.S, self.nmax, bw1).transpose(1, 2, 0))
+                self._L_il[self._il_cut] = 0.0
+                self._inv_il = 1.0 / self._L_il[:, 0, :]
+            else:
+                self._L_il = np.empty((self.nmax, bw1, self.S))
+                self._inv_il = np.empty((self.nmax, self.S))
+                interleave_factor(LT, np.ascontiguousarray(self.dof_off, dtype=np.int64), self.nmax, self._L_il,
+                                  self._inv_il)
         x = np.array(r_il, dtype=np.float64).reshape(self.nmax, self.S)
         solve_interleaved(self._L_il, self._inv_il, x)
         return x.reshape(-1)
@@ -307,13 +317,15 @@ class SchurKKT:
             return np.zeros(n), np.zeros((1, self._A_il.shape[1])), np.zeros(1)
         scales = (bnorm / max(float(np.abs(self.Smat).max()), 1e-300),
                   0.0 if Bmat is None else bnorm / max(float(np.abs(Bmat).max()), 1e-300))
-        V = np.zeros((kmax + 1, n))       # rows: the orthonormal basis
-        Z = np.zeros((kmax, n))           # rows: the preconditioned basis
-        W = np.zeros((kmax, self._A_il.shape[1]))   # rows: H^-1 A^T Z[j, :m], strand-interleaved
-        Hh = np.zeros((kmax + 1, kmax))
+        V = np.empty((kmax + 1, n))       # rows: the orthonormal basis
+        Z = np.empty((kmax, n))           # rows: the preconditioned basis
+        W = np.empty((kmax, self._A_il.shape[1]))   # rows: H^-1 A^T Z[j, :m], strand-interleaved
+        Hh = np.zeros((kmax + 1, kmax))   # the Arnoldi relation M Z = V Hh
+        R = np.zeros((kmax + 1, kmax))    # Hh rotated to upper triangular (Givens)
+        cs, sn = np.zeros(kmax), np.zeros(kmax)
+        g = np.zeros(kmax + 1)            # Q^T |b| e1
+        g[0] = bnorm
         V[0] = b / bnorm
-        e1 = np.zeros(kmax + 1)
-        e1[0] = bnorm
         for j in range(kmax):
             z = scipy.linalg.lu_solve(P, V[j], check_finite=False)
             Z[j] = z
@@ -324,17 +336,27 @@ class SchurKKT:
                 h = V[:j + 1] @ w
                 Hh[:j + 1, j] += h
                 w -= h @ V[:j + 1]
-            Hh[j + 1, j] = float(np.linalg.norm(w))
-            y, *_ = np.linalg.lstsq(Hh[:j + 2, :j + 1], e1[:j + 2], rcond=None)
-            rel = float(np.linalg.norm(e1[:j + 2] - Hh[:j + 2, :j + 1] @ y)) / bnorm
+            hn = float(np.linalg.norm(w))
+            Hh[j + 1, j] = hn
+            col = Hh[:j + 2, j].copy()
+            for i in range(j):
+                col[i], col[i + 1] = cs[i] * col[i] + sn[i] * col[i + 1], -sn[i] * col[i] + cs[i] * col[i + 1]
+            rr = float(np.hypot(col[j], col[j + 1]))
+            cs[j], sn[j] = (col[j] / rr, col[j + 1] / rr) if rr > 0 else (1.0, 0.0)
+            col[j], col[j + 1] = rr, 0.0
+            R[:j + 2, j] = col
+            g[j], g[j + 1] = cs[j] * g[j], -sn[j] * g[j]
+            rel = abs(float(g[j + 1])) / bnorm
             self.stats["krylov_iterations"] += 1
             self.history.append(rel)
-            if rel <= tol or Hh[j + 1, j] <= 1e-300 * bnorm:
+            if rel <= tol or hn <= 1e-300 * bnorm:
+                y = scipy.linalg.solve_triangular(R[:j + 1, :j + 1], g[:j + 1], check_finite=False)
                 zz = y @ Z[:j + 1]
-                # and the error: its estimate P^-1 (b - M z) (a small residual alone allowed a
-                # relative error in lam of cond(S) x tol, which changed an SQP's iteration count)
-                r = (e1[:j + 2] - Hh[:j + 2, :j + 1] @ y) @ V[:j + 2]
-                if self._small(P, r, zz, tol, scales) or Hh[j + 1, j] <= 1e-300 * bnorm:
+                # and the error: its estimate P^-1 (b - M z) (with a small residual alone, lam's
+                # relative error may be cond(S) x tol)
+                r = -(Hh[:j + 2, :j + 1] @ y) @ V[:j + 2]
+                r += b
+                if self._small(P, r, zz, tol, scales) or hn <= 1e-300 * bnorm:
                     # the true residual, without a further solve with H: S z = A W^T y
                     r = b - M0 @ zz
                     r[:m] -= self._A_il @ (y @ W[:j + 1])
@@ -345,7 +367,7 @@ class SchurKKT:
                     return None
             if j >= 2 and rel ** (kmax / (j + 1)) > tol:   # at this rate kmax iterations would not do
                 return None
-            V[j + 1] = w / Hh[j + 1, j]
+            V[j + 1] = w / hn
         return None
 
 
