@@ -245,10 +245,12 @@ class TrackingConfig:
     points_per_guide: int = 8
     point_placement: PointPlacement = PointPlacement.hair_mass   # where the points sit on each guide
     kkt: KKTSolve = KKTSolve.schur
-    # how kkt=schur treats S (hairexp/control/tracking/kkt.py SchurKKT): exact | krylov (reduced
-    # system by GMRES to the relative residual krylov_tol, preconditioned by the last S built,
-    # which is rebuilt when a solve needs more than krylov_max iterations)
-    schur: SchurSolve = SchurSolve.exact
+    # how kkt=schur treats S = A H^-1 A^T (hairexp/control/tracking/kkt.py SchurKKT): krylov (the
+    # reduced system by GMRES to the relative residual and error krylov_tol, preconditioned by the
+    # last S built, which is rebuilt when a solve needs more than krylov_max iterations; Celia's
+    # tracked step 0.8 x exact's, the same SQP iterations: reports/bench_tracking.md) | exact (S
+    # built at every SQP iteration)
+    schur: SchurSolve = SchurSolve.krylov
     krylov_tol: float = 1e-12
     krylov_max: int = 16
     rtol: float = 1e-5                 # |grad_x L| <= atol + rtol * force scale

@@ -48,7 +48,7 @@ class TrackingController(Controller):
         if targets not in ("static", "sliding"):
             raise InputError(f"unknown targets {targets!r} (static|sliding)", "tracking.targets")
         self.cons = TrackingConstraints(scene, self.corr, guides, sliding=targets == "sliding")
-        schur = str(_v(getattr(tcfg, "schur", "exact")))
+        schur = str(_v(getattr(tcfg, "schur", "krylov")))
         if schur not in SCHUR_MODES:
             raise InputError(f"unknown schur {schur!r} ({'|'.join(SCHUR_MODES)})", "tracking.schur")
         self.kkt = None   # bound to the objective's band (``bind``)
@@ -74,7 +74,7 @@ class TrackingController(Controller):
     def bind(self, sim) -> None:
         t = self.tcfg
         self.kkt = SchurKKT(self.scene.strands, self.cons, sim.objective.assembler.bandwidth, sim.objective.kernels,
-                            schur=str(_v(getattr(t, "schur", "exact"))), krylov_tol=float(getattr(t, "krylov_tol", 1e-12)),
+                            schur=str(_v(getattr(t, "schur", "krylov"))), krylov_tol=float(getattr(t, "krylov_tol", 1e-12)),
                             krylov_max=int(getattr(t, "krylov_max", 16)))
 
     def initial_control(self) -> TrackingIterates:

@@ -31,10 +31,13 @@ solved by GMRES right-preconditioned with the exact solve of the same system wit
 built (an earlier iteration's or step's Hessian).  The products' solves run over all strands at
 once, strand-interleaved (``solve_interleaved``: one strand's banded substitution is a chain of
 dependent operations, 301 of them side by side vectorise), and dx comes from the products'
-solves (no further solve).  A solve that would need more than ``krylov_max`` iterations to reach
-|b - M z| <= krylov_tol |b| (checked with the true residual at the end) builds S for the
-current factor and solves directly: the exact path, which is also the whole of
-``tracking.schur=exact``.
+solves (no further solve).  A solve stops at |b - M z| <= krylov_tol |b| (checked again with the
+true residual) and an error estimate |P^-1 (b - M z)| within krylov_tol of each block of z (lam,
+dt); one that would need more than ``krylov_max`` iterations builds S for the current factor and
+solves directly: the exact path, which is also the whole of ``tracking.schur=exact``.  The SQP
+then solves for the multiplier's change (hairexp/control/tracking/sqp.py), so that the relative
+tolerance applies to the step.  With krylov_tol = 1e-12 the KKT residual of a solve is that of
+the direct solves (round-off; tests/test_tracking_solver.py).
 """
 
 from __future__ import annotations

@@ -11,6 +11,11 @@ a step that satisfies the linearised constraints is grad(H+P).dx - mu |C|_1 (The
 mu is kept above |lam+|_inf (eq. 18.32).  Convergence needs both residuals small:
 |grad_x L| <= atol + rtol (force scale + |A^T lam|), |grad_t L| <= rtol |lam| |c_hat'| and
 max |C_k| <= ctol.  t and lam are warm-started from the previous step.
+
+With ``tracking.schur=krylov`` (hairexp/control/tracking/kkt.py) the KKT system is solved to a
+relative tolerance, so it is posed for the multiplier's change lam+ - lam, whose right-hand side
+is the Lagrangian's residual at (x, t, lam), small near a solution, instead of for lam+ itself,
+whose right-hand side holds the whole constraint force (|grad H| ~ |A^T lam| >> |grad_x L|).
 """
 
 from __future__ import annotations
