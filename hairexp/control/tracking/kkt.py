@@ -340,6 +340,8 @@ class SchurKKT:
                 Hh[:j + 1, j] += h
                 w -= h @ V[:j + 1]
             hn = float(np.linalg.norm(w))
+            if not np.isfinite(hn):      # a non-finite system (a diverging iterate): the direct solve says so
+                return None
             Hh[j + 1, j] = hn
             col = Hh[:j + 2, j].copy()
             for i in range(j):
