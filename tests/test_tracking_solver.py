@@ -343,7 +343,8 @@ def test_krylov_schur_falls_back_to_the_exact_solve():
 @pytest.mark.parametrize("case", ["wisp_3_guides", "unequal_strands_2_guides"])
 def test_interleaved_substitution_is_the_banded_solve(case):
     """The Krylov products' strand-interleaved solve equals the per-strand banded solve (hinv),
-    on equal strands (the factor transposed) and on strands of unequal lengths (padding rows)."""
+    on equal strands (the factor transposed) and on strands of unequal lengths (padding rows);
+    the fused product A H^-1 A^T v equals the Schur complement built, times v."""
     _, sim = kkt_scene(case)
     ab, r_x, _, rng, _ = kkt_system(sim, seed=4)
     kkt = krylov_kkt(sim)
@@ -359,6 +360,18 @@ def test_interleaved_substitution_is_the_banded_solve(case):
     pad = np.ones(got.size, bool)
     pad[kkt._il_of_dof] = False
     assert pad.any() != uniform and np.all(got[pad] == 0.0)
+    # the fused product with S (A^T v, the interleaved solve, A x) against the S built
+    from hairexp.control.tracking.kkt import schur_product
+
+    assert kkt.fresh and kkt.Smat is not None
+    kkt._interleave()
+    for v in rng.normal(size=(3, kkt.Smat.shape[0])):
+        x = np.empty((kkt.nmax, kkt.S))
+        Sv = np.empty(v.size)
+        schur_product(kkt._m_rows, kkt._m_wts, v, kkt._L_il, kkt._inv_il, x, Sv)
+        np.testing.assert_allclose(Sv, kkt.Smat @ v, rtol=0, atol=1e-11 * np.abs(kkt.Smat @ v).max())
+        want = kkt.hinv(kkt.AT_sparse @ v)
+        np.testing.assert_allclose(x.reshape(-1)[kkt._il_of_dof], want, rtol=0, atol=1e-12 * np.abs(want).max())
 
 
 def test_krylov_schur_needs_a_known_mode():

@@ -141,6 +141,19 @@ class SchurKKT:
         self._A_il = A_pad[:, il_dof.ravel()].tocsr()
         self._AT_il = self._A_il.T.tocsr()
         self._L_il = None                     # the factor interleaved, built on the first product
+        # A^T's rows in the interleaved order as (position, membership) lists, padded with weight 0
+        # (``schur_product``: A^T v, the solve and A x in one pass)
+        ATc = self._AT_il.tocsr()
+        cnt = np.diff(ATc.indptr)
+        cmax = max(int(cnt.max(initial=0)), 1)
+        self._m_rows = np.zeros((nmax * S, cmax), dtype=np.int64)
+        self._m_wts = np.zeros((nmax * S, cmax))
+        slot = np.arange(ATc.nnz) - np.repeat(ATc.indptr[:-1], cnt)
+        pos_of = np.repeat(np.arange(nmax * S), cnt)
+        self._m_rows[pos_of, slot] = ATc.indices
+        self._m_wts[pos_of, slot] = ATc.data
+        self._m_rows = self._m_rows.reshape(nmax, S, cmax)
+        self._m_wts = self._m_wts.reshape(nmax, S, cmax)
         self._uniform = bool(np.all(n == nmax))
         jj, aa = np.meshgrid(np.arange(nmax), np.arange(bandwidth + 1), indexing="ij")
         self._il_cut = (jj + aa >= nmax) & (aa > 0)                                   # (nmax, bw + 1)
@@ -219,6 +232,13 @@ class SchurKKT:
             out = np.zeros_like(r_il)
             out[self._il_of_dof] = self.hinv(r)
             return out
+        self._interleave()
+        x = np.array(r_il, dtype=np.float64).reshape(self.nmax, self.S)
+        solve_interleaved(self._L_il, self._inv_il, x)
+        return x.reshape(-1)
+
+    def _interleave(self) -> None:
+        """The current factor strand-interleaved (``interleave_factor``), once per factorisation."""
         if self._L_il is None:
             LT = self.LT if self.kernels is not None else np.ascontiguousarray(self.cb.T)
             bw1 = LT.shape[1]
@@ -231,9 +251,6 @@ class SchurKKT:
                 self._inv_il = np.empty((self.nmax, self.S))
                 interleave_factor(LT, np.ascontiguousarray(self.dof_off, dtype=np.int64), self.nmax, self._L_il,
                                   self._inv_il)
-        x = np.array(r_il, dtype=np.float64).reshape(self.nmax, self.S)
-        solve_interleaved(self._L_il, self._inv_il, x)
-        return x.reshape(-1)
 
     def hinv(self, r: np.ndarray) -> np.ndarray:
         if self.kernels is not None:
@@ -329,12 +346,20 @@ class SchurKKT:
         g = np.zeros(kmax + 1)            # Q^T |b| e1
         g[0] = bnorm
         V[0] = b / bnorm
+        if HAVE_NUMBA:
+            self._interleave()
         for j in range(kmax):
             z = scipy.linalg.lu_solve(P, V[j], check_finite=False)
             Z[j] = z
-            W[j] = self._hinv_il(self._AT_il @ z[:m])
             w = M0 @ z
-            w[:m] += self._A_il @ W[j]
+            if HAVE_NUMBA:     # W[j] = H^-1 A^T z_lam and A W[j] in one pass
+                Av = np.empty(m)
+                schur_product(self._m_rows, self._m_wts, np.ascontiguousarray(z[:m]), self._L_il, self._inv_il,
+                              W[j].reshape(self.nmax, self.S), Av)
+                w[:m] += Av
+            else:
+                W[j] = self._hinv_il(self._AT_il @ z[:m])
+                w[:m] += self._A_il @ W[j]
             for _ in range(2):     # Gram-Schmidt, twice: the basis stays orthogonal to round-off
                 h = V[:j + 1] @ w
                 Hh[:j + 1, j] += h
@@ -343,6 +368,7 @@ class SchurKKT:
             if not np.isfinite(hn):      # a non-finite system (a diverging iterate): the direct solve says so
                 return None
             Hh[j + 1, j] = hn
+            V[j + 1] = w / hn if hn > 1e-300 * bnorm else 0.0
             col = Hh[:j + 2, j].copy()
             for i in range(j):
                 col[i], col[i + 1] = cs[i] * col[i] + sn[i] * col[i + 1], -sn[i] * col[i] + cs[i] * col[i + 1]
@@ -372,7 +398,6 @@ class SchurKKT:
                     return None
             if j >= 2 and rel ** (kmax / (j + 1)) > tol:   # at this rate kmax iterations would not do
                 return None
-            V[j + 1] = w / hn
         return None
 
 
@@ -423,6 +448,28 @@ def solve_interleaved(L, inv, x):
         ij = inv[j]
         for s in range(S):
             xj[s] *= ij[s]
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def schur_product(rows, wts, v, L, inv, x, Av):
+    """x = H^-1 A^T v (strand-interleaved, (nmax, S)) and Av = A x: a product with the Schur
+    complement, S v = A H^-1 A^T v, in one pass.  A^T's row at interleaved position (j, s) is
+    sum_q wts[j, s, q] e_{rows[j, s, q]} (padding: weight 0)."""
+    n, S, c = rows.shape
+    for j in range(n):
+        for s in range(S):
+            acc = 0.0
+            for q in range(c):
+                acc += wts[j, s, q] * v[rows[j, s, q]]
+            x[j, s] = acc
+    solve_interleaved(L, inv, x)
+    for i in range(Av.shape[0]):
+        Av[i] = 0.0
+    for j in range(n):
+        for s in range(S):
+            xv = x[j, s]
+            for q in range(c):
+                Av[rows[j, s, q]] += wts[j, s, q] * xv
 
 
 def distinct_columns(AT: np.ndarray):
