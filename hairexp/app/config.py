@@ -79,6 +79,11 @@ class KKTSolve(str, Enum):
     reference = "reference"   # plain sparse saddle-point solve (SuperLU)
 
 
+class SchurSolve(str, Enum):
+    exact = "exact"     # S = A H^-1 A^T built at every SQP iteration, solved directly
+    krylov = "krylov"   # GMRES preconditioned by the last S built; S rebuilt only when it needs > krylov_max iterations
+
+
 class GuideSource(str, Enum):
     rigid = "rigid"     # rest guides carried by the rigid body
     scaled = "scaled"   # rest guides scaled about their roots by keyframed factors, carried by the body
@@ -240,6 +245,14 @@ class TrackingConfig:
     points_per_guide: int = 8
     point_placement: PointPlacement = PointPlacement.hair_mass   # where the points sit on each guide
     kkt: KKTSolve = KKTSolve.schur
+    # how kkt=schur treats S = A H^-1 A^T (hairexp/control/tracking/kkt.py SchurKKT): krylov (the
+    # reduced system by GMRES to the relative residual and error krylov_tol, preconditioned by the
+    # last S built, which is rebuilt when a solve needs more than krylov_max iterations; Celia's
+    # tracked step 0.8 x exact's, the same SQP iterations: reports/bench_tracking.md) | exact (S
+    # built at every SQP iteration)
+    schur: SchurSolve = SchurSolve.krylov
+    krylov_tol: float = 1e-12
+    krylov_max: int = 16
     rtol: float = 1e-5                 # |grad_x L| <= atol + rtol * force scale
     atol: float = 1e-10
     ctol_rel: float = 1e-9             # max |C_k| <= ctol_rel * mean hair length

@@ -12,7 +12,7 @@ import numpy as np
 from hairexp.errors import InputError
 from hairexp.control.tracking.constraints import TrackingConstraints
 from hairexp.control.tracking.correspondence import build_correspondence
-from hairexp.control.tracking.kkt import SchurKKT
+from hairexp.control.tracking.kkt import SCHUR_MODES, SchurKKT
 from hairexp.control.tracking.sqp import SQPOptions, sqp_solve
 from hairexp.control.tracking.variance import VarianceControl
 from hairexp.guides.animation import GuideAnimation
@@ -38,7 +38,7 @@ class TrackingController(Controller):
 
     def __init__(self, scene, guides: GuideAnimation, tcfg):
         s = scene.strands
-        self.scene, self.guides = scene, guides
+        self.scene, self.guides, self.tcfg = scene, guides, tcfg
         free = ~s.kinematic
         self.assignment = str(_v(tcfg.assignment))
         self.corr = build_correspondence(scene.initial_positions(), s.offsets, free, guides.guides(guides.rest), tcfg.points_per_guide,
@@ -48,6 +48,9 @@ class TrackingController(Controller):
         if targets not in ("static", "sliding"):
             raise InputError(f"unknown targets {targets!r} (static|sliding)", "tracking.targets")
         self.cons = TrackingConstraints(scene, self.corr, guides, sliding=targets == "sliding")
+        schur = str(_v(getattr(tcfg, "schur", "krylov")))
+        if schur not in SCHUR_MODES:
+            raise InputError(f"unknown schur {schur!r} ({'|'.join(SCHUR_MODES)})", "tracking.schur")
         self.kkt = None   # bound to the objective's band (``bind``)
         self.hair_length = float(np.mean(s.strand_lengths()))
         rest_free = scene.initial_positions()[free].reshape(-1)
@@ -69,7 +72,10 @@ class TrackingController(Controller):
 
     # -- Controller -------------------------------------------------------------------------
     def bind(self, sim) -> None:
-        self.kkt = SchurKKT(self.scene.strands, self.cons, sim.objective.assembler.bandwidth, sim.objective.kernels)
+        t = self.tcfg
+        self.kkt = SchurKKT(self.scene.strands, self.cons, sim.objective.assembler.bandwidth, sim.objective.kernels,
+                            schur=str(_v(getattr(t, "schur", "krylov"))), krylov_tol=float(getattr(t, "krylov_tol", 1e-12)),
+                            krylov_max=int(getattr(t, "krylov_max", 16)))
 
     def initial_control(self) -> TrackingIterates:
         return TrackingIterates(self.cons.t_rest.copy(), np.zeros(3 * self.cons.K))

@@ -11,6 +11,11 @@ a step that satisfies the linearised constraints is grad(H+P).dx - mu |C|_1 (The
 mu is kept above |lam+|_inf (eq. 18.32).  Convergence needs both residuals small:
 |grad_x L| <= atol + rtol (force scale + |A^T lam|), |grad_t L| <= rtol |lam| |c_hat'| and
 max |C_k| <= ctol.  t and lam are warm-started from the previous step.
+
+With ``tracking.schur=krylov`` (hairexp/control/tracking/kkt.py) the KKT system is solved to a
+relative tolerance, so it is posed for the multiplier's change lam+ - lam, whose right-hand side
+is the Lagrangian's residual at (x, t, lam), small near a solution, instead of for lam+ itself,
+whose right-hand side holds the whole constraint force (|grad H| ~ |A^T lam| >> |grad_x L|).
 """
 
 from __future__ import annotations
@@ -131,17 +136,28 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
         if hp is not None:
             ev.banded[0] += hp[0]    # the variance penalty's positive curvature (diagonal)
 
-        def solve(r_x, c):
-            r_t = np.zeros(cons.K) if sliding else None
+        def solve(r_x, c, r_t=None):
+            if sliding and r_t is None:
+                r_t = np.zeros(cons.K)
             if opts.kkt == "reference":
                 return reference_solve(ev.banded, cons.A, r_x, c, Bmat, D, r_t, reg)
             return kkt.solve(r_x, c, Bmat, D, r_t, reg)
 
         if opts.kkt != "reference":
             kkt.factor(ev.banded)
-        dx, dt, lam_new = solve(g, C)
+        if opts.kkt == "reference" or kkt.mode == "exact":
+            dx, dt, lam_new = solve(g, C)     # for the new multiplier itself
+            shift = None
+        else:
+            # an iterative KKT solve (tracking.schur=krylov) for the multiplier's change: its
+            # right-hand side is the Lagrangian's residual at lam (small near a solution), so its
+            # relative tolerance bounds the change's error, not lam's (|g| ~ |A^T lam| >> the residual)
+            shift = lam
+            dx, dt, lam_new = solve(r_x, C if reg is None else C - reg * lam, r_t if sliding else None)   # r_t = B^T lam
         if hp is not None and hp[1].shape[1]:
             dx, dt, lam_new = woodbury(solve, hp[1], (dx, dt, lam_new), np.zeros_like(C))
+        if shift is not None:
+            lam_new = shift + lam_new
         sec["solve"] += time.perf_counter() - t1
         # l1 merit line search
         mu = max(mu, MU_FACTOR * float(np.abs(lam_new).max(initial=0.0)) + MU_MARGIN)
