@@ -131,8 +131,9 @@ def bend_jacobian(Y, a, b, c, J, kb, e0, e1):
 
 @njit(cache=True, error_model="numpy")
 def _add_block(abT, rows, cols, H, p, q, scale):
-    """Add scale * H[3p:3p+3, 3q:3q+3] at global DOF rows ``rows`` > cols ``cols`` (p > q), or
-    its lower triangle on the diagonal (p = q, rows = cols)."""
+    """Add scale * H[3p:3p+3, 3q:3q+3] at DOF rows ``rows`` > cols ``cols`` (p > q), or its lower
+    triangle on the diagonal (p = q, rows = cols); rows and cols are rows of ``abT`` (a block's
+    own band: the DOFs less the block's first one)."""
     if p == q:
         for r in range(3):
             for s in range(r + 1):
@@ -144,19 +145,22 @@ def _add_block(abT, rows, cols, H, p, q, scale):
 
 
 @njit(cache=True, error_model="numpy")
-def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
-                   b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W):
-    """Gradient g_int of the energies and lower band abT (M/h^2 on the diagonal plus
-    (1 - alpha_f) x the element Hessians, ``h_scale``) of block ``blk``.  ``W`` (SCRATCH,):
-    scratch, one per thread (an allocation per block costs as much as a strand's stretch)."""
+def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                       b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, off, need_hessian, W):
+    """Gradient g_int (rows d0..d1 of the block's DOFs) of the energies and the lower band
+    (M/h^2 on the diagonal plus (1 - alpha_f) x the element Hessians, ``h_scale``) of block
+    ``blk``, the band's DOF j in row j - ``off`` of ``abT`` (``off`` = 0: the global band;
+    ``off`` = the block's first DOF: a block-sized buffer that stays in cache).  ``W``
+    (SCRATCH,): scratch, one per thread (an allocation per block costs as much as a strand's
+    stretch)."""
     d0, d1 = blk_dof[blk], blk_dof[blk + 1]
     bw = abT.shape[1] - 1
     for j in range(d0, d1):
         g_int[j] = 0.0
         if need_hessian:
-            abT[j, 0] = mass_diag[j]
+            abT[j - off, 0] = mass_diag[j]
             for d in range(1, bw + 1):
-                abT[j, d] = 0.0
+                abT[j - off, d] = 0.0
     H = W[:81].reshape((9, 9))
     u = W[81:84]
     for k in range(e_ptr[blk], e_ptr[blk + 1]):
@@ -188,11 +192,11 @@ def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, te
                 H[3 + r, 3 + s] = K
                 H[3 + r, s] = -K
         if sa >= 0:
-            _add_block(abT, 3 * sa, 3 * sa, H, 0, 0, h_scale)
+            _add_block(abT, 3 * sa - off, 3 * sa - off, H, 0, 0, h_scale)
         if sb >= 0:
-            _add_block(abT, 3 * sb, 3 * sb, H, 1, 1, h_scale)
+            _add_block(abT, 3 * sb - off, 3 * sb - off, H, 1, 1, h_scale)
             if sa >= 0:
-                _add_block(abT, 3 * sb, 3 * sa, H, 1, 0, h_scale)
+                _add_block(abT, 3 * sb - off, 3 * sa - off, H, 1, 0, h_scale)
     J = W[84:111].reshape((3, 9))
     kb = W[111:114]
     q = W[114:123]
@@ -232,10 +236,18 @@ def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, te
                 continue
             for qq in range(p + 1):
                 if sl[qq] >= 0:
-                    _add_block(abT, 3 * sl[p], 3 * sl[qq], H, p, qq, h_scale)
+                    _add_block(abT, 3 * sl[p] - off, 3 * sl[qq] - off, H, p, qq, h_scale)
 
 
-#: Length of ``assemble_block``'s scratch: H (9, 9), u (3), J (3, 9), kb (3), q (9), e0 (3), e1 (3).
+@njit(cache=True, error_model="numpy")
+def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                   b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W):
+    """``strand_derivatives`` of block ``blk`` into the global band abT (N, bw + 1)."""
+    strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                       b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, 0, need_hessian, W)
+
+
+#: Length of ``strand_derivatives``' scratch: H (9, 9), u (3), J (3, 9), kb (3), q (9), e0 (3), e1 (3).
 SCRATCH = 129
 
 
@@ -349,3 +361,143 @@ def tensions(Y, D, edges, k_l0, l0, out):
             lin += (D[vb, i] - D[va, i]) * t
         ln = math.sqrt(d2)
         out[e] = k_l0[e] * (ln - l0[e] + lin / ln)
+
+
+@njit(cache=True, error_model="numpy")
+def tensions_along(Y, step, scale, free_slot, edges, k_l0, l0, out):
+    """``tensions`` with the displacement D = ``scale`` x the DOF vector ``step`` on the free
+    vertices (0 on the prescribed ones), without building D: the same sums, bit for bit."""
+    for e in range(edges.shape[0]):
+        va, vb = edges[e, 0], edges[e, 1]
+        sa, sb = free_slot[va], free_slot[vb]
+        d2 = 0.0
+        lin = 0.0
+        for i in range(3):
+            t = Y[vb, i] - Y[va, i]
+            d2 += t * t
+            da = scale * step[3 * sa + i] if sa >= 0 else 0.0
+            db = scale * step[3 * sb + i] if sb >= 0 else 0.0
+            lin += (db - da) * t
+        ln = math.sqrt(d2)
+        out[e] = k_l0[e] * (ln - l0[e] + lin / ln)
+
+
+# -- the fused Newton direction of the free step -------------------------------------------
+#: Half-bandwidth of the fused pass's band (bending triples: 3 * 2 + 2), as ``bandchol.BW``.  The
+#: band Cholesky rows below repeat bandchol's factorisation (same operations, same order) rather
+#: than calling it: numba's on-disk cache of a function does not notice edits to compiled
+#: functions of another file that it calls.
+BW = 8
+
+
+@njit(cache=True, error_model="numpy")
+def _eliminate(L, j, m):
+    """Right-looking step at column j: scale it, subtract its outer product from the next m
+    columns (``bandchol._eliminate``)."""
+    piv = L[j, 0]
+    if not piv > 0.0:
+        return False
+    r = math.sqrt(piv)
+    L[j, 0] = r
+    inv = 1.0 / r
+    for a in range(1, m + 1):
+        L[j, a] *= inv
+    for a in range(1, m + 1):
+        la = L[j, a]
+        for b in range(a, m + 1):
+            L[j + a, b - a] -= L[j, b] * la
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def factor_rows(L, n):
+    """Cholesky factor, in place, of the band in rows 0..n-1 of L ((>= n, BW + 1), layout
+    ``abT``); False if a pivot is not > 0 (``bandchol.factor_block`` on one block)."""
+    for j in range(max(0, n - BW)):
+        if not _eliminate(L, j, BW):
+            return False
+    for j in range(max(0, n - BW), n):
+        if not _eliminate(L, j, n - 1 - j):
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def solve_rows(L, n, x):
+    """x = (L L^T)^-1 x in place with the factor of ``factor_rows`` (``bandchol.solve_block``)."""
+    for j in range(n):
+        xj = x[j] * (1.0 / L[j, 0])
+        x[j] = xj
+        for a in range(1, min(BW, n - 1 - j) + 1):
+            x[j + a] -= L[j, a] * xj
+    for j in range(n - 1, -1, -1):
+        s = x[j]
+        for a in range(1, min(BW, n - 1 - j) + 1):
+            s -= L[j, a] * x[j + a]
+        x[j] = s * (1.0 / L[j, 0])
+
+
+@njit(cache=True, error_model="numpy")
+def direction_block(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
+                    use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, W, band):
+    """One block of ``direction_serial``: its derivatives into the block-sized ``band`` (it stays
+    in cache), the total gradient, the factor in place and the step p = -A^-1 grad: the
+    operations of ``assemble_block`` + ``objective._total_gradient`` + ``bandchol.factor_block``
+    + ``bandchol.solve_block`` in their order."""
+    d0, d1 = blk_dof[blk], blk_dof[blk + 1]
+    n = d1 - d0
+    strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                       b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, band, grad, d0, True, W)
+    s_in = 0.0
+    s_int = 0.0
+    for j in range(d0, d1):
+        fi = mass_diag[j] * (xf[j] - x_pred[j])
+        gi = grad[j]
+        s_in += fi * fi
+        s_int += gi * gi
+        g = fi + gi + g_ext[j]
+        grad[j] = g
+        p[j] = -g
+    sums[blk, 0] = s_in
+    sums[blk, 1] = s_int
+    if not factor_rows(band, n):
+        return False
+    solve_rows(band, n, p[d0:d1])
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def direction_serial(Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                     b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, n_chunks):
+    """Newton direction of the free objective (stretch, bending, inertia, gravity), block by block
+    in one pass: grad (N,) the objective's gradient, p (N,) = -A^-1 grad with A its banded
+    Hessian (never stored whole), ``sums[blk]`` the block's squared norms of the inertial and
+    internal forces (the force scale), ``ok[blk]``: its pivots were positive (else p is not set
+    there and the caller factors the band with a shift)."""
+    nmax = 0
+    for blk in range(blk_dof.shape[0] - 1):
+        nmax = max(nmax, blk_dof[blk + 1] - blk_dof[blk])
+    W = np.zeros(SCRATCH)
+    band = np.empty((nmax, BW + 1))
+    for blk in range(blk_dof.shape[0] - 1):
+        ok[blk] = direction_block(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                                  tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p,
+                                  sums, W, band)
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def direction_parallel(Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
+                       use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, n_chunks):
+    """``direction_serial`` in parallel over ``n_chunks`` runs of blocks (one scratch each)."""
+    nb = blk_dof.shape[0] - 1
+    nmax = 0
+    for blk in range(nb):
+        nmax = max(nmax, blk_dof[blk + 1] - blk_dof[blk])
+    size = (nb + n_chunks - 1) // n_chunks
+    for c in prange(n_chunks):
+        W = np.zeros(SCRATCH)
+        band = np.empty((nmax, BW + 1))
+        for blk in range(c * size, min(nb, (c + 1) * size)):
+            ok[blk] = direction_block(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                                      tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad,
+                                      p, sums, W, band)

@@ -50,10 +50,19 @@ def line_search(value_fn, x: np.ndarray, p: np.ndarray, f0: float, slope: float,
     return 0.0, f0, max_backtracks
 
 
+def _evaluate(obj, x: np.ndarray):
+    """(evaluation, Newton step or None): the objective's fused pass where it has one
+    (``ImplicitEulerObjective.evaluate_step``), else its evaluation (the step solved after)."""
+    step = getattr(obj, "evaluate_step", None)
+    if step is None:
+        return obj.evaluate(x, need_hessian=True), None
+    return step(x)
+
+
 def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOptions) -> tuple[np.ndarray, SolveInfo]:
     info = SolveInfo()
     x = x0.copy()
-    ev = obj.evaluate(x, need_hessian=True)
+    ev, p = _evaluate(obj, x)
     f = obj.value(x)   # after evaluate: the contact's friction lag is set there
     sec = info.seconds
     while True:
@@ -71,9 +80,10 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         if info.iterations >= opts.max_iterations:
             info.status = MAX_ITERATIONS
             return x, info
-        t0 = time.perf_counter()
-        p = obj.solve(ev.banded, -ev.grad)
-        sec["solve"] += time.perf_counter() - t0
+        if p is None:
+            t0 = time.perf_counter()
+            p = obj.solve(ev.banded, -ev.grad)
+            sec["solve"] += time.perf_counter() - t0
         slope = float(np.dot(ev.grad, p))
         if not np.isfinite(slope):
             info.status = DIVERGED
@@ -90,6 +100,6 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         f = f_new
         # gradient and Hessian together: a separate gradient-only check would repeat most of
         # the derivative work on every iterate that is not yet converged
-        ev = obj.evaluate(x, need_hessian=True)
+        ev, p = _evaluate(obj, x)
         if obj.contact is not None:
             f = obj.value(x)   # the contact's friction lag moved with the evaluation
