@@ -29,14 +29,19 @@ from experiments.common import WARMUP, celia_bench, describe_run, md_table, pct,
 AUTOGRAD_STEPS = 15   # the autograd row: the first (violent) steps only
 
 
-def run_case(name: str, overrides: list[str], steps: int):
+def run_case(name: str, overrides: list[str], steps: int, fused: bool = True):
+    """One run's timed steps; ``fused`` False: Newton without the fused pass (``evaluate`` then
+    ``solve``, the free step before it)."""
     t0 = time.perf_counter()
     run = assemble(celia_bench("free", steps, overrides))
+    run.simulator.objective.fused = fused
     t_assemble = time.perf_counter() - t0
     tm = time_steps(run, steps, WARMUP, observe=stretch_max)
-    res = {"case": name, "overrides": overrides, **tm.summary(), "stretch_max": float(tm.column("stretch").max()),
+    res = {"case": name, "overrides": overrides, "fused": fused, **tm.summary(), "stretch_max": float(tm.column("stretch").max()),
            "vertices": run.scene.strands.n_vertices, "dofs": run.simulator.objective.n_dofs,
-           "settle_s": float(run.cfg.scene.settle), "assemble_s": t_assemble, "run": describe_run(run)}
+           "settle_s": float(run.cfg.scene.settle), "assemble_s": t_assemble, "run": describe_run(run),
+           "integrator": run.simulator.integrator.name,
+           "stages": 2 if getattr(run.simulator.integrator, "stages", None) is not None else 1}
     split = res["split"]
     print(f"{name:>28}: median {1e3 * res['median_s']:6.1f} ms/step  mean {1e3 * res['mean_s']:6.1f}  "
           f"p90 {1e3 * res['p90_s']:6.1f}  its {res['iterations_mean']:.2f} (max {res['iterations_max']})  "
@@ -54,7 +59,9 @@ def main(argv=None):
     t0 = time.perf_counter()
     main_res = run_case("free (default)", [], args.steps)
     results = [main_res, run_case("penalty stretch Hessian", ["solver.stretch_hessian=penalty"], args.steps),
-               run_case("torch kernels", ["solver.kernels=torch"], args.steps)]
+               run_case("torch kernels", ["solver.kernels=torch"], args.steps),
+               run_case("numba, evaluate + solve (no fused pass)", [], args.steps, fused=False)]
+    unfused = results[3]
     if not args.quick:
         results.append(run_case("autograd derivatives", ["solver.derivatives=autograd"],
                                 min(args.steps, AUTOGRAD_STEPS)))
@@ -73,21 +80,28 @@ def main(argv=None):
            f"({main_res['median_s']:.4f} s). Paper's C++ prototype: 0.045 s/frame. "
            f"Ratios within this command: penalty/primal-dual = {results[1]['median_s'] / main_res['median_s']:.2f}, "
            f"torch/numba kernels = {results[2]['median_s'] / main_res['median_s']:.2f}"
-           + (f", autograd/closed form = {results[3]['median_s'] / main_res['median_s']:.1f}" if len(results) > 3 else "")
+           + f", evaluate + solve/fused pass = {unfused['median_s'] / main_res['median_s']:.2f} (wall medians; "
+           f"the same iterations: {unfused['iterations_mean']:.2f} vs {main_res['iterations_mean']:.2f})"
+           + (f", autograd/closed form = {results[4]['median_s'] / main_res['median_s']:.1f}" if len(results) > 4 else "")
            + ".\n")
-    evals = main_res["iterations_mean"] + 1  # one derivative evaluation per iterate, the last one included
+    evals = main_res["iterations_mean"] + main_res["stages"]  # one evaluation per iterate, each solve's last included
     per = {k: 1e3 * main_res["mean_s"] * v for k, v in main_res["split"].items()}
     md += (f"\nWhat bounds it: the default step needs {main_res['iterations_mean']:.2f} Newton iterations on average "
-           f"({evals:.2f} derivative evaluations). Per step (mean): derivatives {per['derivatives']:.1f} ms "
-           f"({per['derivatives'] / evals:.1f} ms per evaluation), assembly {per['assembly']:.1f} ms "
-           f"({per['assembly'] / evals:.1f} ms per evaluation), banded Cholesky solve {per['solve']:.1f} ms "
-           f"({per['solve'] / max(main_res['iterations_mean'], 1e-9):.1f} ms per solve: per-strand banded Cholesky on {main_res['dofs']} DOFs with "
-           f"half-bandwidth 8), other (line search, dual updates, kinematics) {per['other']:.1f} ms. "
+           f"({evals:.2f} derivative evaluations; integrator `{main_res['integrator']}`, {main_res['stages']} solve(s) per step). "
+           f"Per step (mean): "
+           f"derivatives {per['derivatives']:.1f} ms, the fused pass ('assembly': per strand the derivatives, the band in "
+           f"a strand-sized buffer, its block Cholesky and the step) {per['assembly']:.1f} ms "
+           f"({per['assembly'] / evals:.2f} ms per pass on {main_res['dofs']} DOFs, half-bandwidth 8), separate solve "
+           f"{per['solve']:.1f} ms, other (line-search energies, dual updates, kinematics, Python) {per['other']:.1f} ms. "
+           f"Without the fused pass (evaluate, then solve): assembly "
+           f"{1e3 * unfused['mean_s'] * unfused['split']['assembly'] / evals:.2f} ms per evaluation, solve "
+           f"{1e3 * unfused['mean_s'] * unfused['split']['solve'] / max(unfused['iterations_mean'], 1e-9):.2f} ms per solve. "
            f"Steps right after a jerk take up to {main_res['iterations_max']} iterations.\n")
-    md += ("\nThe default uses `solver.kernels=numba` (compiled per-strand kernels: its 'assembly' is the fused "
-           "derivatives + band pass, 'derivatives' the terms left on torch); the torch-kernels row is the torch closed "
-           "forms, bincount assembly and LAPACK's banded Cholesky (experiments/bench_kernels.py splits one iteration).\n")
-    if len(results) > 3:
+    md += ("\nThe default uses `solver.kernels=numba` (compiled per-strand kernels; the free step's Newton takes the "
+           "fused pass `ImplicitEulerObjective.evaluate_step`, bit-identical to evaluate + solve; 'derivatives' is the "
+           "terms left on torch); the torch-kernels row is the torch closed forms, bincount assembly and LAPACK's "
+           "banded Cholesky (experiments/bench_kernels.py splits one iteration).\n")
+    if len(results) > 4:
         md += (f"\nThe autograd row is timed over the first {min(args.steps, AUTOGRAD_STEPS)} steps only (the violent "
                "ones) and uses the exact Hessian with eigenvalue clamping, without the primal-dual tension; its run "
                "settles with autograd derivatives too.\n")

@@ -161,42 +161,70 @@ def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0
             abT[j - off, 0] = mass_diag[j]
             for d in range(1, bw + 1):
                 abT[j - off, d] = 0.0
-    H = W[:81].reshape((9, 9))
-    u = W[81:84]
     for k in range(e_ptr[blk], e_ptr[blk + 1]):
         e = e_idx[k]
         va, vb = edges[e, 0], edges[e, 1]
-        for i in range(3):
-            u[i] = Y[vb, i] - Y[va, i]
-        ln = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+        u0 = Y[vb, 0] - Y[va, 0]
+        u1 = Y[vb, 1] - Y[va, 1]
+        u2 = Y[vb, 2] - Y[va, 2]
+        ln = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
         il = 1.0 / ln
-        for i in range(3):
-            u[i] *= il
+        u0 *= il
+        u1 *= il
+        u2 *= il
         T_now = k_l0[e] * (ln - l0[e])
         sa, sb = free_slot[va], free_slot[vb]
-        for i in range(3):
-            if sa >= 0:
-                g_int[3 * sa + i] -= T_now * u[i]
-            if sb >= 0:
-                g_int[3 * sb + i] += T_now * u[i]
+        if sa >= 0:
+            g_int[3 * sa] -= T_now * u0
+            g_int[3 * sa + 1] -= T_now * u1
+            g_int[3 * sa + 2] -= T_now * u2
+        if sb >= 0:
+            g_int[3 * sb] += T_now * u0
+            g_int[3 * sb + 1] += T_now * u1
+            g_int[3 * sb + 2] += T_now * u2
         if not need_hessian:
             continue
         T = tension[e] if use_tension else T_now
         cc = max(T, 0.0) * il
-        for r in range(3):
-            for s in range(3):
-                K = (k_l0[e] - cc) * u[r] * u[s]
-                if r == s:
-                    K += cc
-                H[r, s] = K
-                H[3 + r, 3 + s] = K
-                H[3 + r, s] = -K
+        kc = k_l0[e] - cc
+        # h_scale x K, K = cc I + (k/l0 - cc) u u^T: the blocks (a, a), (b, b) = K, (b, a) = -K
+        K00 = h_scale * (kc * u0 * u0 + cc)
+        K11 = h_scale * (kc * u1 * u1 + cc)
+        K22 = h_scale * (kc * u2 * u2 + cc)
+        K10 = h_scale * (kc * u1 * u0)
+        K20 = h_scale * (kc * u2 * u0)
+        K21 = h_scale * (kc * u2 * u1)
         if sa >= 0:
-            _add_block(abT, 3 * sa - off, 3 * sa - off, H, 0, 0, h_scale)
+            C = 3 * sa - off
+            abT[C, 0] += K00
+            abT[C, 1] += K10
+            abT[C, 2] += K20
+            abT[C + 1, 0] += K11
+            abT[C + 1, 1] += K21
+            abT[C + 2, 0] += K22
         if sb >= 0:
-            _add_block(abT, 3 * sb - off, 3 * sb - off, H, 1, 1, h_scale)
-            if sa >= 0:
-                _add_block(abT, 3 * sb - off, 3 * sa - off, H, 1, 0, h_scale)
+            C = 3 * sb - off
+            abT[C, 0] += K00
+            abT[C, 1] += K10
+            abT[C, 2] += K20
+            abT[C + 1, 0] += K11
+            abT[C + 1, 1] += K21
+            abT[C + 2, 0] += K22
+            if sa >= 0:   # abT[C + s, R + r - C - s] -= K[r, s], R = the rows of b, C the columns of a
+                K01 = h_scale * (kc * u0 * u1)
+                K02 = h_scale * (kc * u0 * u2)
+                K12 = h_scale * (kc * u1 * u2)
+                C = 3 * sa - off
+                D = 3 * sb - off - C
+                abT[C, D] -= K00
+                abT[C, D + 1] -= K10
+                abT[C, D + 2] -= K20
+                abT[C + 1, D - 1] -= K01
+                abT[C + 1, D] -= K11
+                abT[C + 1, D + 1] -= K21
+                abT[C + 2, D - 2] -= K02
+                abT[C + 2, D - 1] -= K12
+                abT[C + 2, D] -= K22
     J = W[84:111].reshape((3, 9))
     kb = W[111:114]
     q = W[114:123]
@@ -212,31 +240,39 @@ def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0
             ratio = s / nrm if nrm > KB_EPS else 1.0   # at the kink: no pull
         f = 2.0 * w[e] * (1.0 - ratio)
         sl = (free_slot[bends[e, 0]], free_slot[bends[e, 1]], free_slot[bends[e, 2]])
-        for a in range(9):
-            ga = f * (J[0, a] * kb[0] + J[1, a] * kb[1] + J[2, a] * kb[2])
-            if sl[a // 3] >= 0:
-                g_int[3 * sl[a // 3] + a % 3] += ga
+        for p in range(3):
+            if sl[p] >= 0:
+                for r in range(3):
+                    a = 3 * p + r
+                    g_int[3 * sl[p] + r] += f * (J[0, a] * kb[0] + J[1, a] * kb[1] + J[2, a] * kb[2])
         if not need_hessian:
             continue
         c = max(1.0 - ratio, 0.0)
         wc = 2.0 * w[e] * c
         wq = 2.0 * w[e] * (1.0 - c)
-        for a in range(9):
-            for bb in range(a + 1):
-                H[a, bb] = wc * (J[0, a] * J[0, bb] + J[1, a] * J[1, bb] + J[2, a] * J[2, bb])
-        if wq != 0.0 and nrm > KB_EPS:   # curved rest shape: the rank-one part along kb/|kb|
+        rank_one = wq != 0.0 and nrm > KB_EPS   # curved rest shape: the rank-one part along kb/|kb|
+        if rank_one:
             inrm = 1.0 / nrm
             for a in range(9):
                 q[a] = (J[0, a] * kb[0] + J[1, a] * kb[1] + J[2, a] * kb[2]) * inrm
-            for a in range(9):
-                for bb in range(a + 1):
-                    H[a, bb] += wq * q[a] * q[bb]
+        # the lower triangle of the 9 x 9 Gauss-Newton Hessian, entry by entry into the band:
+        # H[a, bb] at abT[C + s, R + r - C - s] (a = 3p + r, bb = 3qq + s, p >= qq)
         for p in range(3):
             if sl[p] < 0:
                 continue
+            R = 3 * sl[p] - off
             for qq in range(p + 1):
-                if sl[qq] >= 0:
-                    _add_block(abT, 3 * sl[p] - off, 3 * sl[qq] - off, H, p, qq, h_scale)
+                if sl[qq] < 0:
+                    continue
+                C = 3 * sl[qq] - off
+                for r in range(3):
+                    a = 3 * p + r
+                    for s3 in range(r + 1 if qq == p else 3):
+                        bb = 3 * qq + s3
+                        h = wc * (J[0, a] * J[0, bb] + J[1, a] * J[1, bb] + J[2, a] * J[2, bb])
+                        if rank_one:
+                            h += wq * q[a] * q[bb]
+                        abT[C + s3, R + r - C - s3] += h_scale * h
 
 
 @njit(cache=True, error_model="numpy")
@@ -438,14 +474,47 @@ def solve_rows(L, n, x):
 
 
 @njit(cache=True, error_model="numpy")
-def direction_block(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
-                    use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, W, band):
-    """One block of ``direction_serial``: its derivatives into the block-sized ``band`` (it stays
-    in cache), the total gradient, the factor in place and the step p = -A^-1 grad: the
-    operations of ``assemble_block`` + ``objective._total_gradient`` + ``bandchol.factor_block``
-    + ``bandchol.solve_block`` in their order."""
+def factor_rows2(L, M, n):
+    """``factor_rows`` of two blocks of the same size at once: each column's pivot waits on the
+    previous one's square root and division (a latency chain); two independent chains side by
+    side keep the core busy.  Each block's operations are those of ``factor_rows``."""
+    for j in range(max(0, n - BW)):
+        if not (_eliminate(L, j, BW) & _eliminate(M, j, BW)):
+            return False
+    for j in range(max(0, n - BW), n):
+        if not (_eliminate(L, j, n - 1 - j) & _eliminate(M, j, n - 1 - j)):
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def solve_rows2(L, M, n, x, y):
+    """``solve_rows`` of two blocks of the same size at once (x with L, y with M)."""
+    for j in range(n):
+        xj = x[j] * (1.0 / L[j, 0])
+        yj = y[j] * (1.0 / M[j, 0])
+        x[j] = xj
+        y[j] = yj
+        for a in range(1, min(BW, n - 1 - j) + 1):
+            x[j + a] -= L[j, a] * xj
+            y[j + a] -= M[j, a] * yj
+    for j in range(n - 1, -1, -1):
+        s = x[j]
+        t = y[j]
+        for a in range(1, min(BW, n - 1 - j) + 1):
+            s -= L[j, a] * x[j + a]
+            t -= M[j, a] * y[j + a]
+        x[j] = s * (1.0 / L[j, 0])
+        y[j] = t * (1.0 / M[j, 0])
+
+
+@njit(cache=True, error_model="numpy")
+def direction_gradient(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
+                       use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, W, band):
+    """Block ``blk``'s derivatives into the block-sized ``band`` (it stays in cache), the total
+    gradient into grad, p = -grad, and the block's squared force norms into ``sums``: the
+    operations of ``assemble_block`` + ``objective._total_gradient`` in their order."""
     d0, d1 = blk_dof[blk], blk_dof[blk + 1]
-    n = d1 - d0
     strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
                        b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, band, grad, d0, True, W)
     s_in = 0.0
@@ -460,10 +529,45 @@ def direction_block(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx,
         p[j] = -g
     sums[blk, 0] = s_in
     sums[blk, 1] = s_int
-    if not factor_rows(band, n):
-        return False
-    solve_rows(band, n, p[d0:d1])
-    return True
+
+
+@njit(cache=True, error_model="numpy")
+def direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
+                     use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, W, band,
+                     band2, nb):
+    """Blocks ``blk`` and, if it has the same size and is below ``nb``, ``blk + 1`` of
+    ``direction_serial`` (their factorisations and solves side by side: ``factor_rows2``); returns
+    how many blocks it did."""
+    d0, d1 = blk_dof[blk], blk_dof[blk + 1]
+    n = d1 - d0
+    direction_gradient(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
+                       use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, W, band)
+    if blk + 1 < nb and blk_dof[blk + 2] - d1 == n:
+        direction_gradient(blk + 1, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                           tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums,
+                           W, band2)
+        if factor_rows2(band, band2, n):
+            solve_rows2(band, band2, n, p[d0:d1], p[d1:d1 + n])
+            ok[blk] = True
+            ok[blk + 1] = True
+        else:   # which one failed: each on its own (the next pass shifts the failed one)
+            direction_gradient(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                               tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p,
+                               sums, W, band)
+            ok[blk] = factor_rows(band, n)
+            if ok[blk]:
+                solve_rows(band, n, p[d0:d1])
+            direction_gradient(blk + 1, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                               tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p,
+                               sums, W, band2)
+            ok[blk + 1] = factor_rows(band2, n)
+            if ok[blk + 1]:
+                solve_rows(band2, n, p[d1:d1 + n])
+        return 2
+    ok[blk] = factor_rows(band, n)
+    if ok[blk]:
+        solve_rows(band, n, p[d0:d1])
+    return 1
 
 
 @njit(cache=True, error_model="numpy")
@@ -473,16 +577,21 @@ def direction_serial(Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edg
     in one pass: grad (N,) the objective's gradient, p (N,) = -A^-1 grad with A its banded
     Hessian (never stored whole), ``sums[blk]`` the block's squared norms of the inertial and
     internal forces (the force scale), ``ok[blk]``: its pivots were positive (else p is not set
-    there and the caller factors the band with a shift)."""
+    there and the caller factors the band with a shift).  The same operations in the same order,
+    per block, as ``assemble_block`` + ``objective._total_gradient`` + ``bandchol.factor_block``
+    + ``bandchol.solve_block``: bit-identical results."""
+    nb = blk_dof.shape[0] - 1
     nmax = 0
-    for blk in range(blk_dof.shape[0] - 1):
+    for blk in range(nb):
         nmax = max(nmax, blk_dof[blk + 1] - blk_dof[blk])
     W = np.zeros(SCRATCH)
     band = np.empty((nmax, BW + 1))
-    for blk in range(blk_dof.shape[0] - 1):
-        ok[blk] = direction_block(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
-                                  tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p,
-                                  sums, W, band)
+    band2 = np.empty((nmax, BW + 1))
+    blk = 0
+    while blk < nb:
+        blk += direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                                tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p,
+                                sums, ok, W, band, band2, nb)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -497,7 +606,10 @@ def direction_parallel(Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, e
     for c in prange(n_chunks):
         W = np.zeros(SCRATCH)
         band = np.empty((nmax, BW + 1))
-        for blk in range(c * size, min(nb, (c + 1) * size)):
-            ok[blk] = direction_block(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
-                                      tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad,
-                                      p, sums, W, band)
+        band2 = np.empty((nmax, BW + 1))
+        end = min(nb, (c + 1) * size)
+        blk = c * size
+        while blk < end:
+            blk += direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                                    tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad,
+                                    p, sums, ok, W, band, band2, end)
