@@ -92,41 +92,51 @@ def eval_points(xf, x_full, x_n, free_vertices, alpha_f, Y):
 def bend_jacobian(Y, a, b, c, J, kb, e0, e1):
     """kb (3,) and its Jacobian J (3, 9) w.r.t. (x_a, x_b, x_c), as ``energies.kb_jacobian``:
     d kb/d e0 = (-2[e1]x - kb (l1 e0/l0 + e1)^T)/chi, d kb/d e1 = (2[e0]x - kb (l0 e1/l1 + e0)^T)/chi.
-    ``e0``, ``e1`` (3,): scratch (the edge vectors)."""
-    for i in range(3):
-        e0[i] = Y[b, i] - Y[a, i]
-        e1[i] = Y[c, i] - Y[b, i]
-    l0 = math.sqrt(e0[0] * e0[0] + e0[1] * e0[1] + e0[2] * e0[2])
-    l1 = math.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
-    ic = 1.0 / (l0 * l1 + e0[0] * e1[0] + e0[1] * e1[1] + e0[2] * e1[2])    # 1 / chi
-    kb[0] = 2.0 * ic * (e0[1] * e1[2] - e0[2] * e1[1])
-    kb[1] = 2.0 * ic * (e0[2] * e1[0] - e0[0] * e1[2])
-    kb[2] = 2.0 * ic * (e0[0] * e1[1] - e0[1] * e1[0])
+    In registers, J written once.  ``e0``, ``e1`` (3,): the edge vectors (set here)."""
+    p0, p1, p2 = Y[b, 0] - Y[a, 0], Y[b, 1] - Y[a, 1], Y[b, 2] - Y[a, 2]   # e0
+    q0, q1, q2 = Y[c, 0] - Y[b, 0], Y[c, 1] - Y[b, 1], Y[c, 2] - Y[b, 2]   # e1
+    e0[0], e0[1], e0[2] = p0, p1, p2
+    e1[0], e1[1], e1[2] = q0, q1, q2
+    l0 = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+    l1 = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
+    ic = 1.0 / (l0 * l1 + p0 * q0 + p1 * q1 + p2 * q2)    # 1 / chi
+    k0 = 2.0 * ic * (p1 * q2 - p2 * q1)
+    k1 = 2.0 * ic * (p2 * q0 - p0 * q2)
+    k2 = 2.0 * ic * (p0 * q1 - p1 * q0)
+    kb[0], kb[1], kb[2] = k0, k1, k2
     r01, r10 = l1 / l0, l0 / l1
-    for r in range(3):
-        for s in range(3):
-            J[r, s] = -kb[r] * (r01 * e0[s] + e1[s])     # chi d kb/d e0 without the skew part
-            J[r, 3 + s] = -kb[r] * (r10 * e1[s] + e0[s])  # chi d kb/d e1 without the skew part
-    # skew parts: -2 [e1]x in d kb/d e0, +2 [e0]x in d kb/d e1; [v]x = [[0, -v2, v1], [v2, 0, -v0], [-v1, v0, 0]]
-    J[0, 1] += 2.0 * e1[2]
-    J[0, 2] -= 2.0 * e1[1]
-    J[1, 0] -= 2.0 * e1[2]
-    J[1, 2] += 2.0 * e1[0]
-    J[2, 0] += 2.0 * e1[1]
-    J[2, 1] -= 2.0 * e1[0]
-    J[0, 4] -= 2.0 * e0[2]
-    J[0, 5] += 2.0 * e0[1]
-    J[1, 3] += 2.0 * e0[2]
-    J[1, 5] -= 2.0 * e0[0]
-    J[2, 3] -= 2.0 * e0[1]
-    J[2, 4] += 2.0 * e0[0]
-    for r in range(3):
-        for s in range(3):
-            J0 = J[r, s] * ic
-            J1 = J[r, 3 + s] * ic
-            J[r, s] = -J0
-            J[r, 3 + s] = J0 - J1
-            J[r, 6 + s] = J1
+    m0, m1, m2 = r01 * p0 + q0, r01 * p1 + q1, r01 * p2 + q2
+    n0, n1, n2 = r10 * q0 + p0, r10 * q1 + p1, r10 * q2 + p2
+    # d kb/d e0 = (-kb m^T - 2 [e1]x) / chi,  d kb/d e1 = (-kb n^T + 2 [e0]x) / chi,
+    # [v]x = [[0, -v2, v1], [v2, 0, -v0], [-v1, v0, 0]]
+    a00 = -k0 * m0 * ic
+    a01 = (-k0 * m1 + 2.0 * q2) * ic
+    a02 = (-k0 * m2 - 2.0 * q1) * ic
+    a10 = (-k1 * m0 - 2.0 * q2) * ic
+    a11 = -k1 * m1 * ic
+    a12 = (-k1 * m2 + 2.0 * q0) * ic
+    a20 = (-k2 * m0 + 2.0 * q1) * ic
+    a21 = (-k2 * m1 - 2.0 * q0) * ic
+    a22 = -k2 * m2 * ic
+    b00 = -k0 * n0 * ic
+    b01 = (-k0 * n1 - 2.0 * p2) * ic
+    b02 = (-k0 * n2 + 2.0 * p1) * ic
+    b10 = (-k1 * n0 + 2.0 * p2) * ic
+    b11 = -k1 * n1 * ic
+    b12 = (-k1 * n2 - 2.0 * p0) * ic
+    b20 = (-k2 * n0 - 2.0 * p1) * ic
+    b21 = (-k2 * n1 + 2.0 * p0) * ic
+    b22 = -k2 * n2 * ic
+    # J = (-d kb/d e0, d kb/d e0 - d kb/d e1, d kb/d e1)
+    J[0, 0], J[0, 1], J[0, 2] = -a00, -a01, -a02
+    J[1, 0], J[1, 1], J[1, 2] = -a10, -a11, -a12
+    J[2, 0], J[2, 1], J[2, 2] = -a20, -a21, -a22
+    J[0, 3], J[0, 4], J[0, 5] = a00 - b00, a01 - b01, a02 - b02
+    J[1, 3], J[1, 4], J[1, 5] = a10 - b10, a11 - b11, a12 - b12
+    J[2, 3], J[2, 4], J[2, 5] = a20 - b20, a21 - b21, a22 - b22
+    J[0, 6], J[0, 7], J[0, 8] = b00, b01, b02
+    J[1, 6], J[1, 7], J[1, 8] = b10, b11, b12
+    J[2, 6], J[2, 7], J[2, 8] = b20, b21, b22
 
 
 @njit(cache=True, error_model="numpy")
@@ -157,7 +167,8 @@ def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0
     bw = abT.shape[1] - 1
     for j in range(d0, d1):
         g_int[j] = 0.0
-        if need_hessian:
+    if need_hessian:
+        for j in range(d0, d1):
             abT[j - off, 0] = mass_diag[j]
             for d in range(1, bw + 1):
                 abT[j - off, d] = 0.0
@@ -255,8 +266,17 @@ def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0
             inrm = 1.0 / nrm
             for a in range(9):
                 q[a] = (J[0, a] * kb[0] + J[1, a] * kb[1] + J[2, a] * kb[2]) * inrm
-        # the lower triangle of the 9 x 9 Gauss-Newton Hessian, entry by entry into the band:
-        # H[a, bb] at abT[C + s, R + r - C - s] (a = 3p + r, bb = 3qq + s, p >= qq)
+        # the lower triangle of the 9 x 9 Gauss-Newton Hessian, entry by entry into the band
+        if not rank_one and sl[1] == sl[0] + 1 and sl[2] == sl[0] + 2 and sl[0] >= 0:
+            # a strand's interior bend (the common case): its 9 DOFs are the band's consecutive rows
+            # B..B+8, H[a, bb] (a >= bb) at abT[B + bb, a - bb], one contiguous run per column bb
+            B = 3 * sl[0] - off
+            for bb in range(9):
+                j0, j1, j2 = J[0, bb], J[1, bb], J[2, bb]
+                for a in range(bb, 9):
+                    abT[B + bb, a - bb] += h_scale * (wc * (J[0, a] * j0 + J[1, a] * j1 + J[2, a] * j2))
+            continue
+        # any bend: H[a, bb] at abT[C + s, R + r - C - s] (a = 3p + r, bb = 3qq + s, p >= qq)
         for p in range(3):
             if sl[p] < 0:
                 continue
