@@ -167,11 +167,12 @@ def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0
     bw = abT.shape[1] - 1
     for j in range(d0, d1):
         g_int[j] = 0.0
-    if need_hessian:
+    if need_hessian:   # the block's rows are contiguous: zeroed as one run, then the diagonal
+        flat = abT.reshape(abT.shape[0] * (bw + 1))
+        for i in range((d0 - off) * (bw + 1), (d1 - off) * (bw + 1)):
+            flat[i] = 0.0
         for j in range(d0, d1):
             abT[j - off, 0] = mass_diag[j]
-            for d in range(1, bw + 1):
-                abT[j - off, d] = 0.0
     for k in range(e_ptr[blk], e_ptr[blk + 1]):
         e = e_idx[k]
         va, vb = edges[e, 0], edges[e, 1]
