@@ -9,13 +9,15 @@ untimed warm-up steps.
 1. One Newton iteration, phase by phase, on the real free objective at the state after the
    warm-up (the objective of the run, rebuilt with each setting from the run's own terms):
    derivatives + band assembly (``evaluate``), factor + solve, one line-search energy
-   (``value``), the tension (dual) update; torch, numba on 1 thread and numba on 2 threads,
-   interleaved round by round so that they share the machine's load; the agreement of the
-   gradient, band and Newton step between the paths.
+   (``value``), the tension (dual) update; torch, numba's evaluate + solve on 1 thread and its
+   fused pass (``evaluate_step``: derivatives, factor and step per strand in one pass) on 1 and 2
+   threads, interleaved round by round so that they share the machine's load; the agreement of
+   the gradient, band and Newton step between the paths.
 2. The SQP's Schur complement (``SchurKKT.factor`` + one KKT solve) of the tracked run, with the
    numba and the LAPACK + torch factorisation.
 3. Whole steps: free and tracked runs with each ``solver.kernels`` (``solver.threads`` as
-   configured, ``auto`` by default), ``--steps`` timed steps each, the per-phase split.
+   configured, ``auto`` by default), and the free run without the fused pass, ``--steps`` timed
+   steps each, a controller's runs stepped in turn; the per-phase split.
 
 Prints and writes reports/bench_kernels.{md,json}.
 Usage:  python -m experiments.bench_kernels [--steps 30] [--repeats 30]
@@ -35,7 +37,8 @@ from hairexp.control.tracking.kkt import SchurKKT
 from hairexp.physics.objective import ImplicitEulerObjective
 from hairexp.physics.simulator import TIME_KEYS
 
-from experiments.common import WARMUP, celia_bench, describe_run, md_table, pct, positive_int, time_steps
+from experiments.bench_free import time_interleaved
+from experiments.common import WARMUP, celia_bench, describe_run, md_table, pct, positive_int
 
 PHASES = ("evaluate", "solve", "value", "tensions")
 PHASE_NAMES = {"evaluate": "derivatives + assembly", "solve": "factor + solve", "value": "line-search energy",
@@ -154,26 +157,31 @@ def schur_phases(run, state, repeats: int) -> dict:
     return out
 
 
-def whole_steps(controller: str, kernels: str, steps: int, fused: bool = True) -> tuple[dict, object]:
-    """A run's timed steps; ``fused`` False: the free step's Newton without the fused pass
-    (``evaluate`` then ``solve``, as before it)."""
-    t0 = time.perf_counter()
-    run = assemble(celia_bench(controller, steps, [f"solver.kernels={kernels}"]))
-    run.simulator.objective.fused = fused
-    t_asm = time.perf_counter() - t0
-    c0 = time.process_time()
-    tm = time_steps(run, steps, WARMUP)
-    cpu_ms = 1e3 * (time.process_time() - c0) / (steps + WARMUP)
-    k = run.simulator.objective.kernels
-    res = {"controller": controller, "kernels": kernels, "fused": fused, **tm.summary(), "assemble_s": t_asm,
-           "threads": None if k is None else k.threads, "run": describe_run(run), "cpu_ms_per_step": cpu_ms}
-    res["ms_per_iteration"] = 1e3 * res["mean_s"] / max(res["iterations_mean"], 1e-9)
-    print(f"{controller:>8} {kernels:>5}{'' if fused else ' unfused'}: median {1e3 * res['median_s']:6.1f} ms/step  mean {1e3 * res['mean_s']:6.1f}  "
-          f"CPU {cpu_ms:6.1f}  its {res['iterations_mean']:.2f} (max {res['iterations_max']})  "
-          f"{res['ms_per_iteration']:.2f} ms/iteration  "
-          "split " + " ".join(f"{p[:5]} {pct(res['split'][p])}" for p in TIME_KEYS)
-          + f"  (assemble + settle {t_asm:.0f} s)", flush=True)
-    return res, tm.state
+def whole_steps(cases: list[tuple[str, str, bool]], steps: int) -> list[tuple[dict, object]]:
+    """The timed steps of runs (controller, solver.kernels, fused pass), stepped in turn
+    (``bench_free.time_interleaved``) so that the machine's load weighs on each alike; ``fused``
+    False: the free step's Newton without the fused pass (``evaluate`` then ``solve``, as before it)."""
+    runs, t_asm = [], []
+    for controller, kernels, fused in cases:
+        t0 = time.perf_counter()
+        run = assemble(celia_bench(controller, steps, [f"solver.kernels={kernels}"]))
+        run.simulator.objective.fused = fused
+        runs.append(run)
+        t_asm.append(time.perf_counter() - t0)
+    out = []
+    for (controller, kernels, fused), run, ta, tm in zip(cases, runs, t_asm, time_interleaved(runs, steps, WARMUP)):
+        cpu_ms = 1e3 * float(tm.column("cpu").mean())
+        k = run.simulator.objective.kernels
+        res = {"controller": controller, "kernels": kernels, "fused": fused, **tm.summary(), "assemble_s": ta,
+               "threads": None if k is None else k.threads, "run": describe_run(run), "cpu_ms_per_step": cpu_ms}
+        res["ms_per_iteration"] = 1e3 * res["mean_s"] / max(res["iterations_mean"], 1e-9)
+        print(f"{controller:>8} {kernels:>5}{'' if fused else ' unfused'}: median {1e3 * res['median_s']:6.1f} ms/step  "
+              f"mean {1e3 * res['mean_s']:6.1f}  CPU {cpu_ms:6.1f}  its {res['iterations_mean']:.2f} "
+              f"(max {res['iterations_max']})  {res['ms_per_iteration']:.2f} ms/iteration  "
+              "split " + " ".join(f"{p[:5]} {pct(res['split'][p])}" for p in TIME_KEYS)
+              + f"  (assemble + settle {ta:.0f} s)", flush=True)
+        out.append((res, tm.state))
+    return out
 
 
 def main(argv=None):
@@ -185,11 +193,12 @@ def main(argv=None):
     load0 = os.getloadavg()
     # 3. whole steps (first: the runs give the states the micro-benchmarks start from)
     steps, finals = {}, {}
-    for controller in ("free", "tracking"):
-        for kernels in ("torch", "numba"):
-            steps[(controller, kernels)], finals[(controller, kernels)] = whole_steps(controller, kernels, args.steps)
-        if controller == "free":   # the same run without the fused pass: the before/after ratio in this command
-            steps[("free", "unfused")], finals[("free", "unfused")] = whole_steps("free", "numba", args.steps, False)
+    # each controller's runs interleaved; free also without the fused pass (the before/after ratio)
+    for controller, cases in (("free", [("torch", True), ("numba", True), ("unfused", False)]),
+                              ("tracking", [("torch", True), ("numba", True)])):
+        done = whole_steps([(controller, "numba" if k == "unfused" else k, f) for k, f in cases], args.steps)
+        for (k, _), (res, final) in zip(cases, done):
+            steps[(controller, k)], finals[(controller, k)] = res, final
     # 1. and 2. on fresh runs at the state after the warm-up steps
     free_run = assemble(celia_bench("free", args.steps))
     state = free_run.initial_state()
@@ -258,7 +267,8 @@ def main(argv=None):
                      f"{r['iterations_mean']:.2f} / {r['iterations_max']}", f"{r['ms_per_iteration']:.2f}",
                      pct(r["converged_fraction"]), *(pct(r["split"][k]) for k in TIME_KEYS)]
                     for r in steps.values()])
-    md += ("\nCPU ms/step: `time.process_time` of the process over the run's warm-up and timed steps, per step. "
+    md += ("\nEach controller's runs stepped in turn (step k of every run, then step k + 1), so they met the same "
+           "load.  CPU ms/step: `time.process_time` of the process over each timed step (mean). "
            "In the numba rows 'assembly' is the compiled per-strand kernel (derivatives and band together; with the "
            "fused pass also the factor and solve, so 'solve' is 0 there) and 'derivatives' the terms left on torch "
            "(none in these runs); the tracked rows' 'solve' includes the Schur complement, the target curves and the "
