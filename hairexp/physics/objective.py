@@ -229,8 +229,9 @@ class ImplicitEulerObjective:
         """(evaluation, Newton step p = -A^-1 grad or None).  With the compiled kernels taking
         every term and no contact (and ``fused``), one pass per strand computes the gradient,
         the band in a strand-sized buffer (it stays in cache; ``banded`` is then None), its
-        factor and p: the same operations as ``evaluate`` + ``solve``, bit for bit, timed
-        together as "assembly".  Otherwise ``evaluate`` and p None (the caller solves)."""
+        factor and p: the gradient and step of ``evaluate`` + ``solve`` bit for bit (the force
+        scale to round-off: its norms are summed per strand), timed together as "assembly".
+        Otherwise ``evaluate`` and p None (the caller solves)."""
         if not (self.fused and self.kernels is not None and not self.torch_terms and self.contact is None):
             return self.evaluate(xf, need_hessian=True), None
         t0 = time.perf_counter()
