@@ -246,9 +246,11 @@ def main(argv=None):
            "`np.bincount`.  'evaluate + solve' is the compiled path that writes the whole band and then factors it "
            "(`evaluate`, then `solve`: what the tracked step and the runs with torch terms or contact use); the fused "
            "pass (`evaluate_step`, the free step's default) derives, factors and solves each strand in a strand-sized "
-           "band that stays in cache: its 'derivatives + assembly' includes the factor and solve.  Fused vs "
+           "band that stays in cache: its 'derivatives + assembly' includes the factor and solve (in whole steps Newton "
+           "evaluates without it where the iterate is predicted to be the last, `newton._likely_converged`).  Fused vs "
            f"evaluate + solve, 1 thread, within this command: {un['ms']['iteration'] / fu['ms']['iteration']:.2f}x per "
-           f"iteration (gradient and step bit-identical: {fu['identical_to_unfused']}).  Gradient and band agree with "
+           f"iteration in wall time, {un['ms']['iteration_cpu'] / fu['ms']['iteration_cpu']:.2f}x in CPU time (gradient "
+           f"and step bit-identical: {fu['identical_to_unfused']}).  Gradient and band agree with "
            f"torch to {max(newton[n]['grad_rel_err'] for n in newton):.1e} / "
            f"{max(newton[n]['band_rel_err'] for n in newton if newton[n]['band_rel_err'] is not None):.1e} "
            "(relative to their largest entry).\n\n")
