@@ -9,13 +9,15 @@ untimed warm-up steps.
 1. One Newton iteration, phase by phase, on the real free objective at the state after the
    warm-up (the objective of the run, rebuilt with each setting from the run's own terms):
    derivatives + band assembly (``evaluate``), factor + solve, one line-search energy
-   (``value``), the tension (dual) update; torch, numba on 1 thread and numba on 2 threads,
-   interleaved round by round so that they share the machine's load; the agreement of the
-   gradient, band and Newton step between the paths.
+   (``value``), the tension (dual) update; torch, numba's evaluate + solve on 1 thread and its
+   fused pass (``evaluate_step``: derivatives, factor and step per strand in one pass) on 1 and 2
+   threads, interleaved round by round so that they share the machine's load; the agreement of
+   the gradient, band and Newton step between the paths.
 2. The SQP's Schur complement (``SchurKKT.factor`` + one KKT solve) of the tracked run, with the
    numba and the LAPACK + torch factorisation.
 3. Whole steps: free and tracked runs with each ``solver.kernels`` (``solver.threads`` as
-   configured, ``auto`` by default), ``--steps`` timed steps each, the per-phase split.
+   configured, ``auto`` by default), and the free run without the fused pass, ``--steps`` timed
+   steps each, a controller's runs stepped in turn; the per-phase split.
 
 Prints and writes reports/bench_kernels.{md,json}.
 Usage:  python -m experiments.bench_kernels [--steps 30] [--repeats 30]
@@ -35,11 +37,15 @@ from hairexp.control.tracking.kkt import SchurKKT
 from hairexp.physics.objective import ImplicitEulerObjective
 from hairexp.physics.simulator import TIME_KEYS
 
-from experiments.common import WARMUP, celia_bench, describe_run, md_table, pct, positive_int, time_steps
+from experiments.bench_free import time_interleaved
+from experiments.common import WARMUP, celia_bench, describe_run, md_table, pct, positive_int
 
 PHASES = ("evaluate", "solve", "value", "tensions")
 PHASE_NAMES = {"evaluate": "derivatives + assembly", "solve": "factor + solve", "value": "line-search energy",
                "tensions": "dual update"}
+#: the Newton-iteration paths: (solver.kernels, solver.threads, the fused pass ``evaluate_step``)
+PATHS = {"torch": ("torch", "1", False), "numba, evaluate + solve, 1 thread": ("numba", "1", False),
+         "numba, fused pass, 1 thread": ("numba", "1", True), "numba, fused pass, 2 threads": ("numba", "2", True)}
 TARGETS = {"free_ms": 5.0, "tracked_ms": 10.0, "ratio": 1.5}
 
 
@@ -54,17 +60,26 @@ def variant(sim, kernels: str, threads: str) -> ImplicitEulerObjective:
 
 
 def begin(run, obj, state):
+    """``obj.begin_step`` as the run's step does it (a multi-stage integrator: its first stage)."""
     sim = run.simulator
-    t_next = state.time + run.dt
-    plan = sim.integrator.plan(sim, state, run.dt)
-    obj.begin_step(state.x, state.v, run.scene.root_positions(t_next, run.scene.motion), run.dt, state.tensions, plan)
+    integ, dt = sim.integrator, run.dt
+    stages = getattr(integ, "stages", None)
+    if stages is not None:
+        integ, dt = stages(state, run.dt)[0]
+    t_next = state.time + dt
+    plan = integ.plan(sim, state, dt)
+    obj.begin_step(state.x, state.v, run.scene.root_positions(t_next, run.scene.motion), dt, state.tensions, plan)
 
 
 def newton_phases(run, state, repeats: int) -> dict:
-    """Median ms of each phase of one Newton iteration for each path, interleaved."""
+    """Median ms of each phase of one Newton iteration for each path (``PATHS``), interleaved.  The
+    fused pass (``ImplicitEulerObjective.evaluate_step``) computes the step with the derivatives:
+    its 'derivatives + assembly' includes the factor and solve, and its 'factor + solve' is 0."""
     sim = run.simulator
-    objs = {"torch": variant(sim, "torch", "1"), "numba, 1 thread": variant(sim, "numba", "1"),
-            "numba, 2 threads": variant(sim, "numba", "2")}
+    objs = {}
+    for name, (kern, threads, fused) in PATHS.items():
+        objs[name] = variant(sim, kern, threads)
+        objs[name].fused = fused
     times = {k: {p: [] for p in PHASES} for k in objs}
     cpu = {k: [] for k in objs}
     ref = {}
@@ -74,9 +89,10 @@ def newton_phases(run, state, repeats: int) -> dict:
             xf = obj.initial_guess()
             c0 = time.process_time()
             t0 = time.perf_counter()
-            ev = obj.evaluate(xf)
+            ev, p = obj.evaluate_step(xf)
             t1 = time.perf_counter()
-            p = obj.solve(ev.banded, -ev.grad)
+            if p is None:
+                p = obj.solve(ev.banded, -ev.grad)
             t2 = time.perf_counter()
             obj.value(xf + p)
             t3 = time.perf_counter()
@@ -84,7 +100,7 @@ def newton_phases(run, state, repeats: int) -> dict:
             t4 = time.perf_counter()
             c1 = time.process_time()
             if r == 0:   # the first round compiles / warms caches: untimed; keeps the answers
-                ref[name] = (ev.grad.copy(), np.array(ev.banded), p.copy())
+                ref[name] = (ev.grad.copy(), None if ev.banded is None else np.array(ev.banded), p.copy())
                 continue
             for ph, dt in zip(PHASES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3)):
                 times[name][ph].append(dt)
@@ -97,8 +113,12 @@ def newton_phases(run, state, repeats: int) -> dict:
         med["iteration_cpu"] = 1e3 * float(np.median(cpu[name]))   # CPU time of all the process's threads
         g, ab, p = ref[name]
         out[name] = {"ms": med, "grad_rel_err": float(np.abs(g - g0).max() / np.abs(g0).max()),
-                     "band_rel_err": float(np.abs(ab - ab0).max() / np.abs(ab0).max()),
+                     "band_rel_err": None if ab is None else float(np.abs(ab - ab0).max() / np.abs(ab0).max()),
                      "step_rel_err": float(np.abs(p - p0).max() / np.abs(p0).max())}
+    _, _, pu = ref["numba, evaluate + solve, 1 thread"]
+    for name in ("numba, fused pass, 1 thread", "numba, fused pass, 2 threads"):
+        out[name]["identical_to_unfused"] = bool(np.array_equal(ref[name][2], pu)
+                                                 and np.array_equal(ref[name][0], ref["numba, evaluate + solve, 1 thread"][0]))
     return out
 
 
@@ -137,23 +157,31 @@ def schur_phases(run, state, repeats: int) -> dict:
     return out
 
 
-def whole_steps(controller: str, kernels: str, steps: int) -> tuple[dict, object]:
-    t0 = time.perf_counter()
-    run = assemble(celia_bench(controller, steps, [f"solver.kernels={kernels}"]))
-    t_asm = time.perf_counter() - t0
-    c0 = time.process_time()
-    tm = time_steps(run, steps, WARMUP)
-    cpu_ms = 1e3 * (time.process_time() - c0) / (steps + WARMUP)
-    k = run.simulator.objective.kernels
-    res = {"controller": controller, "kernels": kernels, **tm.summary(), "assemble_s": t_asm,
-           "threads": None if k is None else k.threads, "run": describe_run(run), "cpu_ms_per_step": cpu_ms}
-    res["ms_per_iteration"] = 1e3 * res["mean_s"] / max(res["iterations_mean"], 1e-9)
-    print(f"{controller:>8} {kernels:>5}: median {1e3 * res['median_s']:6.1f} ms/step  mean {1e3 * res['mean_s']:6.1f}  "
-          f"CPU {cpu_ms:6.1f}  its {res['iterations_mean']:.2f} (max {res['iterations_max']})  "
-          f"{res['ms_per_iteration']:.2f} ms/iteration  "
-          "split " + " ".join(f"{p[:5]} {pct(res['split'][p])}" for p in TIME_KEYS)
-          + f"  (assemble + settle {t_asm:.0f} s)", flush=True)
-    return res, tm.state
+def whole_steps(cases: list[tuple[str, str, bool]], steps: int) -> list[tuple[dict, object]]:
+    """The timed steps of runs (controller, solver.kernels, fused pass), stepped in turn
+    (``bench_free.time_interleaved``) so that the machine's load weighs on each alike; ``fused``
+    False: the free step's Newton without the fused pass (``evaluate`` then ``solve``, as before it)."""
+    runs, t_asm = [], []
+    for controller, kernels, fused in cases:
+        t0 = time.perf_counter()
+        run = assemble(celia_bench(controller, steps, [f"solver.kernels={kernels}"]))
+        run.simulator.objective.fused = fused
+        runs.append(run)
+        t_asm.append(time.perf_counter() - t0)
+    out = []
+    for (controller, kernels, fused), run, ta, tm in zip(cases, runs, t_asm, time_interleaved(runs, steps, WARMUP)):
+        cpu_ms = 1e3 * float(tm.column("cpu").mean())
+        k = run.simulator.objective.kernels
+        res = {"controller": controller, "kernels": kernels, "fused": fused, **tm.summary(), "assemble_s": ta,
+               "threads": None if k is None else k.threads, "run": describe_run(run), "cpu_ms_per_step": cpu_ms}
+        res["ms_per_iteration"] = 1e3 * res["mean_s"] / max(res["iterations_mean"], 1e-9)
+        print(f"{controller:>8} {kernels:>5}{'' if fused else ' unfused'}: median {1e3 * res['median_s']:6.1f} ms/step  "
+              f"mean {1e3 * res['mean_s']:6.1f}  CPU {cpu_ms:6.1f}  its {res['iterations_mean']:.2f} "
+              f"(max {res['iterations_max']})  {res['ms_per_iteration']:.2f} ms/iteration  "
+              "split " + " ".join(f"{p[:5]} {pct(res['split'][p])}" for p in TIME_KEYS)
+              + f"  (assemble + settle {ta:.0f} s)", flush=True)
+        out.append((res, tm.state))
+    return out
 
 
 def main(argv=None):
@@ -165,9 +193,12 @@ def main(argv=None):
     load0 = os.getloadavg()
     # 3. whole steps (first: the runs give the states the micro-benchmarks start from)
     steps, finals = {}, {}
-    for controller in ("free", "tracking"):
-        for kernels in ("torch", "numba"):
-            steps[(controller, kernels)], finals[(controller, kernels)] = whole_steps(controller, kernels, args.steps)
+    # each controller's runs interleaved; free also without the fused pass (the before/after ratio)
+    for controller, cases in (("free", [("torch", True), ("numba", True), ("unfused", False)]),
+                              ("tracking", [("torch", True), ("numba", True)])):
+        done = whole_steps([(controller, "numba" if k == "unfused" else k, f) for k, f in cases], args.steps)
+        for (k, _), (res, final) in zip(cases, done):
+            steps[(controller, k)], finals[(controller, k)] = res, final
     # 1. and 2. on fresh runs at the state after the warm-up steps
     free_run = assemble(celia_bench("free", args.steps))
     state = free_run.initial_state()
@@ -209,10 +240,19 @@ def main(argv=None):
     md += ("\nThe CPU column is `time.process_time` over the iteration (every thread of the process, torch's 2 "
            "intra-op threads included): unlike the wall times it does not count the time slices other processes "
            "took, so it is the steadier figure on a shared machine (it still pays their cache and SMT contention).\n")
-    md += ("\nThe numba path fuses the derivatives of stretch, bending, inertia and gravity with the band assembly "
+    fu, un = newton["numba, fused pass, 1 thread"], newton["numba, evaluate + solve, 1 thread"]
+    md += ("\nThe numba paths fuse the derivatives of stretch, bending, inertia and gravity with the band assembly "
            "(one pass per strand); torch computes the element derivatives (closed forms) then scatters them with "
-           "`np.bincount`.  Gradient and band agree with torch to "
-           f"{max(newton[n]['grad_rel_err'] for n in newton):.1e} / {max(newton[n]['band_rel_err'] for n in newton):.1e} "
+           "`np.bincount`.  'evaluate + solve' is the compiled path that writes the whole band and then factors it "
+           "(`evaluate`, then `solve`: what the tracked step and the runs with torch terms or contact use); the fused "
+           "pass (`evaluate_step`, the free step's default) derives, factors and solves each strand in a strand-sized "
+           "band that stays in cache: its 'derivatives + assembly' includes the factor and solve (in whole steps Newton "
+           "evaluates without it where the iterate is predicted to be the last, `newton._likely_converged`).  Fused vs "
+           f"evaluate + solve, 1 thread, within this command: {un['ms']['iteration'] / fu['ms']['iteration']:.2f}x per "
+           f"iteration in wall time, {un['ms']['iteration_cpu'] / fu['ms']['iteration_cpu']:.2f}x in CPU time (gradient "
+           f"and step bit-identical: {fu['identical_to_unfused']}).  Gradient and band agree with "
+           f"torch to {max(newton[n]['grad_rel_err'] for n in newton):.1e} / "
+           f"{max(newton[n]['band_rel_err'] for n in newton if newton[n]['band_rel_err'] is not None):.1e} "
            "(relative to their largest entry).\n\n")
     md += f"## SQP Schur complement ({schur['K']} clusters, {3 * schur['K']} constraints; ms, median)\n\n"
     md += md_table(["path", "factor H + S = A H^-1 A^T", "one KKT solve"],
@@ -220,17 +260,27 @@ def main(argv=None):
     md += (f"\nnumba ran on {schur['threads']} thread(s) (`solver.threads=auto`); its KKT step agrees with the LAPACK + "
            f"torch one to {schur['numba']['dx_rel_err']:.1e} (dx) and {schur['numba']['lam_rel_err']:.1e} (lambda).\n\n")
     md += "## Whole steps\n\n"
-    md += md_table(["run", "kernels", "threads", "median ms/step", "mean", "p90", "CPU ms/step (mean)",
+    md += md_table(["run", "kernels", "Newton pass", "threads", "median ms/step", "mean", "p90", "CPU ms/step (mean)",
                     "iterations (mean/max)", "ms/iteration", "converged", *TIME_KEYS],
-                   [[r["controller"], r["kernels"], r["threads"] or "-", f"{1e3 * r['median_s']:.1f}",
+                   [[r["controller"], r["kernels"],
+                     "-" if r["kernels"] == "torch" else ("fused" if r["fused"] and r["controller"] == "free" else "evaluate + solve"),
+                     r["threads"] or "-", f"{1e3 * r['median_s']:.1f}",
                      f"{1e3 * r['mean_s']:.1f}", f"{1e3 * r['p90_s']:.1f}", f"{r['cpu_ms_per_step']:.1f}",
                      f"{r['iterations_mean']:.2f} / {r['iterations_max']}", f"{r['ms_per_iteration']:.2f}",
                      pct(r["converged_fraction"]), *(pct(r["split"][k]) for k in TIME_KEYS)]
                     for r in steps.values()])
-    md += ("\nCPU ms/step: `time.process_time` of the process over the run's warm-up and timed steps, per step. "
-           "In the numba rows 'assembly' is the fused kernel (derivatives and band together) and 'derivatives' the "
-           "terms left on torch (none in these runs); the tracked rows' 'solve' includes the Schur complement, the "
-           "target curves and the variance penalty.\n\n")
+    md += ("\nEach controller's runs stepped in turn (step k of every run, then step k + 1), so they met the same "
+           "load.  CPU ms/step: `time.process_time` of the process over each timed step (mean). "
+           "In the numba rows 'assembly' is the compiled per-strand kernel (derivatives and band together; with the "
+           "fused pass also the factor and solve, so 'solve' is 0 there) and 'derivatives' the terms left on torch "
+           "(none in these runs); the tracked rows' 'solve' includes the Schur complement, the target curves and the "
+           "variance penalty.\n\n")
+    uf = steps[("free", "unfused")]
+    same = bool(np.array_equal(finals[("free", "numba")].x, finals[("free", "unfused")].x))
+    md += (f"Free step, fused pass vs evaluate + solve (the same run config, both in this command): median "
+           f"{1e3 * fr['median_s']:.1f} vs {1e3 * uf['median_s']:.1f} ms/step ({uf['median_s'] / fr['median_s']:.2f}x), "
+           f"CPU {fr['cpu_ms_per_step']:.1f} vs {uf['cpu_ms_per_step']:.1f} ms/step "
+           f"({uf['cpu_ms_per_step'] / max(fr['cpu_ms_per_step'], 1e-9):.2f}x); final positions bit-identical: {same}.\n\n")
     sp = {c: steps[(c, "torch")]["median_s"] / steps[(c, "numba")]["median_s"] for c in ("free", "tracking")}
     md += (f"Speed-up of whole steps (median, torch / numba): free {sp['free']:.1f}x, tracked {sp['tracking']:.1f}x.  "
            f"Positions after the {args.steps} steps, numba vs torch: max difference {agree['free']:.1e} m (free), "

@@ -253,14 +253,96 @@ def test_indefinite_block_is_reported_and_shifted():
     assert ok.tolist() == [True, False]
 
 
+# -- 2b. the fused Newton pass (kernels.direction_serial / direction_parallel) -------------------------
+@pytest.mark.parametrize("kind", ["straight", "bent", "mixed"])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_fused_pass_is_bit_identical_to_evaluate_and_solve(kind, threads):
+    """``evaluate_step`` (derivatives, band, factor and step per strand in one pass, blocks of equal
+    size factored in pairs) gives the gradient and step of ``evaluate`` + ``solve`` bit for bit (on
+    1 and 2 threads), the same force scale to round-off, and no band."""
+    scene, obj = make_objective(kind, "numba")
+    obj.kernels.threads = threads
+    rng = np.random.default_rng(5)
+    xf = start(scene, obj, rng)
+    obj.update_tensions(xf, 1e-4 * rng.normal(size=obj.n_dofs))
+    ev, p = obj.evaluate_step(xf)
+    assert p is not None and ev.banded is None
+    ev0 = obj.evaluate(xf)
+    p0 = obj.solve(ev0.banded, -ev0.grad)
+    np.testing.assert_array_equal(ev.grad, ev0.grad)
+    np.testing.assert_array_equal(p, p0)
+    assert ev.force_scale == pytest.approx(ev0.force_scale, rel=1e-14)
+    obj.fused = False
+    ev1, p1 = obj.evaluate_step(xf)
+    assert p1 is None and ev1.banded is not None
+
+
+def test_fused_pass_falls_back_where_a_block_is_indefinite():
+    """A block whose pivot is not positive: ``ok`` flags it alone (its pair partner is factored on its
+    own), and ``evaluate_step`` returns the band for the shifted factorisation."""
+    scene, obj = make_objective("straight", "numba")   # 3 strands of equal size: a pair, then one
+    xf = start(scene, obj, np.random.default_rng(6))
+    blk = obj.kernels.blk_dof
+    obj.mass_diag = obj.mass_diag.copy()
+    obj.mass_diag[blk[1]] = -1e9   # block 1, the pair's second
+    ev, p = obj.evaluate_step(xf)
+    assert p is None and ev.banded is not None
+    assert obj.kernels._ok.tolist() == [True, False, True]
+
+
+def test_paired_block_factorisation_is_the_single_one():
+    """``factor_rows2`` / ``solve_rows2`` (two blocks side by side) against ``factor_rows`` /
+    ``solve_rows`` and bandchol's factorisation: bit-identical."""
+    rng = np.random.default_rng(9)
+    A, off = block_banded(rng, [24, 24])
+    L1, L2 = A[:24].copy(), A[24:].copy()
+    M1, M2 = L1.copy(), L2.copy()
+    assert kernels.factor_rows2(L1, L2, 24)
+    assert kernels.factor_rows(M1, 24) and kernels.factor_rows(M2, 24)
+    np.testing.assert_array_equal(L1, M1)
+    np.testing.assert_array_equal(L2, M2)
+    L, ok = np.empty_like(A), np.ones(2, dtype=np.bool_)
+    bandchol.factor_serial(A, L, off, ok)
+    np.testing.assert_array_equal(L, np.concatenate([M1, M2]))
+    x, y = rng.normal(size=24), rng.normal(size=24)
+    x2, y2 = x.copy(), y.copy()
+    kernels.solve_rows2(L1, L2, 24, x, y)
+    kernels.solve_rows(M1, 24, x2)
+    kernels.solve_rows(M2, 24, y2)
+    np.testing.assert_array_equal(x, x2)
+    np.testing.assert_array_equal(y, y2)
+    assert kernels.BW == bandchol.BW
+
+
+def test_tensions_along_a_step_match_the_displacement_form_and_torch():
+    scene, obj = make_objective("mixed", "numba")
+    rng = np.random.default_rng(10)
+    xf = start(scene, obj, rng)
+    step = 1e-3 * rng.normal(size=obj.n_dofs)
+    K = obj.kernels
+    Y = K._points(obj, xf).copy()
+    D = np.zeros_like(Y)
+    D[obj.free_vertices] = step.reshape(-1, 3)
+    ref = np.empty(len(K.edges))
+    kernels.tensions(Y, D, K.edges, K.k_l0, K.l0, ref)
+    np.testing.assert_array_equal(K.tensions(obj, xf, step), ref)
+    exact = np.empty(len(K.edges))
+    kernels.tensions(Y, np.zeros_like(Y), K.edges, K.k_l0, K.l0, exact)
+    np.testing.assert_array_equal(K.tensions(obj, xf, None), exact)
+    st = K.stretch
+    t = st.linearized_tension(torch.from_numpy(Y)[st.stencil_t], torch.from_numpy(D)[st.stencil_t]).numpy()
+    np.testing.assert_allclose(ref, t, rtol=1e-12, atol=1e-12 * np.abs(t).max())
+
+
 # -- 3. whole solves and runs: numba == torch ---------------------------------------------------------
-def simulate(kern: str, integrator="implicit_euler", steps=4, threads="1", hair=None):
+def simulate(kern: str, integrator="implicit_euler", steps=4, threads="1", hair=None, fused=True):
     hair = {"edge_damping": 0.05, "air_drag": 2.0} if hair is None else hair
     scene = build_scene(scene_cfg(n_strands=3, n_vertices=7, direction=[1.0, -0.3, 0.2], spread=0.4, hair=hair,
                                   motion=MOTION))
     cfg = solver_cfg(integrator=integrator)
     cfg.kernels, cfg.threads = kern, threads
     sim = Simulator(scene, cfg)
+    sim.objective.fused = fused
     state = sim.initial_state()
     xs, its = [], []
     for _ in range(steps):
@@ -285,7 +367,10 @@ def test_steps_agree_with_the_torch_path(integrator):
 
 
 def test_newton_solve_agrees_and_threads_are_bit_identical():
-    _, x1, _ = simulate("numba", threads="1", steps=3, hair={})
+    _, x1, its1 = simulate("numba", threads="1", steps=3, hair={})
+    _, xu, itsu = simulate("numba", threads="1", steps=3, hair={}, fused=False)
+    np.testing.assert_array_equal(x1, xu)   # the fused pass is evaluate + solve, bit for bit
+    assert its1 == itsu
     _, x2, _ = simulate("numba", threads="2", steps=3, hair={})
     _, xt, _ = simulate("torch", steps=3, hair={})
     np.testing.assert_array_equal(x1, x2)   # blocks are summed in the same order either way
@@ -396,3 +481,15 @@ def test_degenerate_iterate_is_non_finite_not_an_exception():
     ev = obj.evaluate(xf)
     assert not np.isfinite(ev.grad).all()
     assert not np.isfinite(obj.value(xf))
+
+
+def test_newton_predicts_the_last_evaluation():
+    """``newton._likely_converged``: after a full step, quadratic convergence from the last two
+    gradient norms; never after a shortened step or without two norms.  It only picks the fused
+    pass or evaluate + solve, whose results are the same (test_newton_solve_agrees_...)."""
+    from hairexp.physics.newton import _likely_converged
+
+    assert _likely_converged([1e-2, 1e-4], 1.0, 1e-7)        # predicted 1e-8
+    assert not _likely_converged([1e-2, 1e-4], 1.0, 1e-9)
+    assert not _likely_converged([1e-2, 1e-4], 0.5, 1e-7)    # shortened step: no rate
+    assert not _likely_converged([1e-4], 1.0, 1.0)

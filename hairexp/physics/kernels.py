@@ -92,47 +92,58 @@ def eval_points(xf, x_full, x_n, free_vertices, alpha_f, Y):
 def bend_jacobian(Y, a, b, c, J, kb, e0, e1):
     """kb (3,) and its Jacobian J (3, 9) w.r.t. (x_a, x_b, x_c), as ``energies.kb_jacobian``:
     d kb/d e0 = (-2[e1]x - kb (l1 e0/l0 + e1)^T)/chi, d kb/d e1 = (2[e0]x - kb (l0 e1/l1 + e0)^T)/chi.
-    ``e0``, ``e1`` (3,): scratch (the edge vectors)."""
-    for i in range(3):
-        e0[i] = Y[b, i] - Y[a, i]
-        e1[i] = Y[c, i] - Y[b, i]
-    l0 = math.sqrt(e0[0] * e0[0] + e0[1] * e0[1] + e0[2] * e0[2])
-    l1 = math.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
-    ic = 1.0 / (l0 * l1 + e0[0] * e1[0] + e0[1] * e1[1] + e0[2] * e1[2])    # 1 / chi
-    kb[0] = 2.0 * ic * (e0[1] * e1[2] - e0[2] * e1[1])
-    kb[1] = 2.0 * ic * (e0[2] * e1[0] - e0[0] * e1[2])
-    kb[2] = 2.0 * ic * (e0[0] * e1[1] - e0[1] * e1[0])
+    In registers, J written once.  ``e0``, ``e1`` (3,): the edge vectors (set here)."""
+    p0, p1, p2 = Y[b, 0] - Y[a, 0], Y[b, 1] - Y[a, 1], Y[b, 2] - Y[a, 2]   # e0
+    q0, q1, q2 = Y[c, 0] - Y[b, 0], Y[c, 1] - Y[b, 1], Y[c, 2] - Y[b, 2]   # e1
+    e0[0], e0[1], e0[2] = p0, p1, p2
+    e1[0], e1[1], e1[2] = q0, q1, q2
+    l0 = math.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+    l1 = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2)
+    ic = 1.0 / (l0 * l1 + p0 * q0 + p1 * q1 + p2 * q2)    # 1 / chi
+    k0 = 2.0 * ic * (p1 * q2 - p2 * q1)
+    k1 = 2.0 * ic * (p2 * q0 - p0 * q2)
+    k2 = 2.0 * ic * (p0 * q1 - p1 * q0)
+    kb[0], kb[1], kb[2] = k0, k1, k2
     r01, r10 = l1 / l0, l0 / l1
-    for r in range(3):
-        for s in range(3):
-            J[r, s] = -kb[r] * (r01 * e0[s] + e1[s])     # chi d kb/d e0 without the skew part
-            J[r, 3 + s] = -kb[r] * (r10 * e1[s] + e0[s])  # chi d kb/d e1 without the skew part
-    # skew parts: -2 [e1]x in d kb/d e0, +2 [e0]x in d kb/d e1; [v]x = [[0, -v2, v1], [v2, 0, -v0], [-v1, v0, 0]]
-    J[0, 1] += 2.0 * e1[2]
-    J[0, 2] -= 2.0 * e1[1]
-    J[1, 0] -= 2.0 * e1[2]
-    J[1, 2] += 2.0 * e1[0]
-    J[2, 0] += 2.0 * e1[1]
-    J[2, 1] -= 2.0 * e1[0]
-    J[0, 4] -= 2.0 * e0[2]
-    J[0, 5] += 2.0 * e0[1]
-    J[1, 3] += 2.0 * e0[2]
-    J[1, 5] -= 2.0 * e0[0]
-    J[2, 3] -= 2.0 * e0[1]
-    J[2, 4] += 2.0 * e0[0]
-    for r in range(3):
-        for s in range(3):
-            J0 = J[r, s] * ic
-            J1 = J[r, 3 + s] * ic
-            J[r, s] = -J0
-            J[r, 3 + s] = J0 - J1
-            J[r, 6 + s] = J1
+    m0, m1, m2 = r01 * p0 + q0, r01 * p1 + q1, r01 * p2 + q2
+    n0, n1, n2 = r10 * q0 + p0, r10 * q1 + p1, r10 * q2 + p2
+    # d kb/d e0 = (-kb m^T - 2 [e1]x) / chi,  d kb/d e1 = (-kb n^T + 2 [e0]x) / chi,
+    # [v]x = [[0, -v2, v1], [v2, 0, -v0], [-v1, v0, 0]]
+    a00 = -k0 * m0 * ic
+    a01 = (-k0 * m1 + 2.0 * q2) * ic
+    a02 = (-k0 * m2 - 2.0 * q1) * ic
+    a10 = (-k1 * m0 - 2.0 * q2) * ic
+    a11 = -k1 * m1 * ic
+    a12 = (-k1 * m2 + 2.0 * q0) * ic
+    a20 = (-k2 * m0 + 2.0 * q1) * ic
+    a21 = (-k2 * m1 - 2.0 * q0) * ic
+    a22 = -k2 * m2 * ic
+    b00 = -k0 * n0 * ic
+    b01 = (-k0 * n1 - 2.0 * p2) * ic
+    b02 = (-k0 * n2 + 2.0 * p1) * ic
+    b10 = (-k1 * n0 + 2.0 * p2) * ic
+    b11 = -k1 * n1 * ic
+    b12 = (-k1 * n2 - 2.0 * p0) * ic
+    b20 = (-k2 * n0 - 2.0 * p1) * ic
+    b21 = (-k2 * n1 + 2.0 * p0) * ic
+    b22 = -k2 * n2 * ic
+    # J = (-d kb/d e0, d kb/d e0 - d kb/d e1, d kb/d e1)
+    J[0, 0], J[0, 1], J[0, 2] = -a00, -a01, -a02
+    J[1, 0], J[1, 1], J[1, 2] = -a10, -a11, -a12
+    J[2, 0], J[2, 1], J[2, 2] = -a20, -a21, -a22
+    J[0, 3], J[0, 4], J[0, 5] = a00 - b00, a01 - b01, a02 - b02
+    J[1, 3], J[1, 4], J[1, 5] = a10 - b10, a11 - b11, a12 - b12
+    J[2, 3], J[2, 4], J[2, 5] = a20 - b20, a21 - b21, a22 - b22
+    J[0, 6], J[0, 7], J[0, 8] = b00, b01, b02
+    J[1, 6], J[1, 7], J[1, 8] = b10, b11, b12
+    J[2, 6], J[2, 7], J[2, 8] = b20, b21, b22
 
 
 @njit(cache=True, error_model="numpy")
 def _add_block(abT, rows, cols, H, p, q, scale):
-    """Add scale * H[3p:3p+3, 3q:3q+3] at global DOF rows ``rows`` > cols ``cols`` (p > q), or
-    its lower triangle on the diagonal (p = q, rows = cols)."""
+    """Add scale * H[3p:3p+3, 3q:3q+3] at DOF rows ``rows`` > cols ``cols`` (p > q), or its lower
+    triangle on the diagonal (p = q, rows = cols); rows and cols are rows of ``abT`` (a block's
+    own band: the DOFs less the block's first one)."""
     if p == q:
         for r in range(3):
             for s in range(r + 1):
@@ -144,55 +155,88 @@ def _add_block(abT, rows, cols, H, p, q, scale):
 
 
 @njit(cache=True, error_model="numpy")
-def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
-                   b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W):
-    """Gradient g_int of the energies and lower band abT (M/h^2 on the diagonal plus
-    (1 - alpha_f) x the element Hessians, ``h_scale``) of block ``blk``.  ``W`` (SCRATCH,):
-    scratch, one per thread (an allocation per block costs as much as a strand's stretch)."""
+def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                       b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, off, need_hessian, W):
+    """Gradient g_int (rows d0..d1 of the block's DOFs) of the energies and the lower band
+    (M/h^2 on the diagonal plus (1 - alpha_f) x the element Hessians, ``h_scale``) of block
+    ``blk``, the band's DOF j in row j - ``off`` of ``abT`` (``off`` = 0: the global band;
+    ``off`` = the block's first DOF: a block-sized buffer that stays in cache).  ``W``
+    (SCRATCH,): scratch, one per thread (an allocation per block costs as much as a strand's
+    stretch)."""
     d0, d1 = blk_dof[blk], blk_dof[blk + 1]
     bw = abT.shape[1] - 1
     for j in range(d0, d1):
         g_int[j] = 0.0
-        if need_hessian:
-            abT[j, 0] = mass_diag[j]
-            for d in range(1, bw + 1):
-                abT[j, d] = 0.0
-    H = W[:81].reshape((9, 9))
-    u = W[81:84]
+    if need_hessian:   # the block's rows are contiguous: zeroed as one run, then the diagonal
+        flat = abT.reshape(abT.shape[0] * (bw + 1))
+        for i in range((d0 - off) * (bw + 1), (d1 - off) * (bw + 1)):
+            flat[i] = 0.0
+        for j in range(d0, d1):
+            abT[j - off, 0] = mass_diag[j]
     for k in range(e_ptr[blk], e_ptr[blk + 1]):
         e = e_idx[k]
         va, vb = edges[e, 0], edges[e, 1]
-        for i in range(3):
-            u[i] = Y[vb, i] - Y[va, i]
-        ln = math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+        u0 = Y[vb, 0] - Y[va, 0]
+        u1 = Y[vb, 1] - Y[va, 1]
+        u2 = Y[vb, 2] - Y[va, 2]
+        ln = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
         il = 1.0 / ln
-        for i in range(3):
-            u[i] *= il
+        u0 *= il
+        u1 *= il
+        u2 *= il
         T_now = k_l0[e] * (ln - l0[e])
         sa, sb = free_slot[va], free_slot[vb]
-        for i in range(3):
-            if sa >= 0:
-                g_int[3 * sa + i] -= T_now * u[i]
-            if sb >= 0:
-                g_int[3 * sb + i] += T_now * u[i]
+        if sa >= 0:
+            g_int[3 * sa] -= T_now * u0
+            g_int[3 * sa + 1] -= T_now * u1
+            g_int[3 * sa + 2] -= T_now * u2
+        if sb >= 0:
+            g_int[3 * sb] += T_now * u0
+            g_int[3 * sb + 1] += T_now * u1
+            g_int[3 * sb + 2] += T_now * u2
         if not need_hessian:
             continue
         T = tension[e] if use_tension else T_now
         cc = max(T, 0.0) * il
-        for r in range(3):
-            for s in range(3):
-                K = (k_l0[e] - cc) * u[r] * u[s]
-                if r == s:
-                    K += cc
-                H[r, s] = K
-                H[3 + r, 3 + s] = K
-                H[3 + r, s] = -K
+        kc = k_l0[e] - cc
+        # h_scale x K, K = cc I + (k/l0 - cc) u u^T: the blocks (a, a), (b, b) = K, (b, a) = -K
+        K00 = h_scale * (kc * u0 * u0 + cc)
+        K11 = h_scale * (kc * u1 * u1 + cc)
+        K22 = h_scale * (kc * u2 * u2 + cc)
+        K10 = h_scale * (kc * u1 * u0)
+        K20 = h_scale * (kc * u2 * u0)
+        K21 = h_scale * (kc * u2 * u1)
         if sa >= 0:
-            _add_block(abT, 3 * sa, 3 * sa, H, 0, 0, h_scale)
+            C = 3 * sa - off
+            abT[C, 0] += K00
+            abT[C, 1] += K10
+            abT[C, 2] += K20
+            abT[C + 1, 0] += K11
+            abT[C + 1, 1] += K21
+            abT[C + 2, 0] += K22
         if sb >= 0:
-            _add_block(abT, 3 * sb, 3 * sb, H, 1, 1, h_scale)
-            if sa >= 0:
-                _add_block(abT, 3 * sb, 3 * sa, H, 1, 0, h_scale)
+            C = 3 * sb - off
+            abT[C, 0] += K00
+            abT[C, 1] += K10
+            abT[C, 2] += K20
+            abT[C + 1, 0] += K11
+            abT[C + 1, 1] += K21
+            abT[C + 2, 0] += K22
+            if sa >= 0:   # abT[C + s, R + r - C - s] -= K[r, s], R = the rows of b, C the columns of a
+                K01 = h_scale * (kc * u0 * u1)
+                K02 = h_scale * (kc * u0 * u2)
+                K12 = h_scale * (kc * u1 * u2)
+                C = 3 * sa - off
+                D = 3 * sb - off - C
+                abT[C, D] -= K00
+                abT[C, D + 1] -= K10
+                abT[C, D + 2] -= K20
+                abT[C + 1, D - 1] -= K01
+                abT[C + 1, D] -= K11
+                abT[C + 1, D + 1] -= K21
+                abT[C + 2, D - 2] -= K02
+                abT[C + 2, D - 1] -= K12
+                abT[C + 2, D] -= K22
     J = W[84:111].reshape((3, 9))
     kb = W[111:114]
     q = W[114:123]
@@ -208,34 +252,59 @@ def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, te
             ratio = s / nrm if nrm > KB_EPS else 1.0   # at the kink: no pull
         f = 2.0 * w[e] * (1.0 - ratio)
         sl = (free_slot[bends[e, 0]], free_slot[bends[e, 1]], free_slot[bends[e, 2]])
-        for a in range(9):
-            ga = f * (J[0, a] * kb[0] + J[1, a] * kb[1] + J[2, a] * kb[2])
-            if sl[a // 3] >= 0:
-                g_int[3 * sl[a // 3] + a % 3] += ga
+        for p in range(3):
+            if sl[p] >= 0:
+                for r in range(3):
+                    a = 3 * p + r
+                    g_int[3 * sl[p] + r] += f * (J[0, a] * kb[0] + J[1, a] * kb[1] + J[2, a] * kb[2])
         if not need_hessian:
             continue
         c = max(1.0 - ratio, 0.0)
         wc = 2.0 * w[e] * c
         wq = 2.0 * w[e] * (1.0 - c)
-        for a in range(9):
-            for bb in range(a + 1):
-                H[a, bb] = wc * (J[0, a] * J[0, bb] + J[1, a] * J[1, bb] + J[2, a] * J[2, bb])
-        if wq != 0.0 and nrm > KB_EPS:   # curved rest shape: the rank-one part along kb/|kb|
+        rank_one = wq != 0.0 and nrm > KB_EPS   # curved rest shape: the rank-one part along kb/|kb|
+        if rank_one:
             inrm = 1.0 / nrm
             for a in range(9):
                 q[a] = (J[0, a] * kb[0] + J[1, a] * kb[1] + J[2, a] * kb[2]) * inrm
-            for a in range(9):
-                for bb in range(a + 1):
-                    H[a, bb] += wq * q[a] * q[bb]
+        # the lower triangle of the 9 x 9 Gauss-Newton Hessian, entry by entry into the band
+        if not rank_one and sl[1] == sl[0] + 1 and sl[2] == sl[0] + 2 and sl[0] >= 0:
+            # a strand's interior bend (the common case): its 9 DOFs are the band's consecutive rows
+            # B..B+8, H[a, bb] (a >= bb) at abT[B + bb, a - bb], one contiguous run per column bb
+            B = 3 * sl[0] - off
+            for bb in range(9):
+                j0, j1, j2 = J[0, bb], J[1, bb], J[2, bb]
+                for a in range(bb, 9):
+                    abT[B + bb, a - bb] += h_scale * (wc * (J[0, a] * j0 + J[1, a] * j1 + J[2, a] * j2))
+            continue
+        # any bend: H[a, bb] at abT[C + s, R + r - C - s] (a = 3p + r, bb = 3qq + s, p >= qq)
         for p in range(3):
             if sl[p] < 0:
                 continue
+            R = 3 * sl[p] - off
             for qq in range(p + 1):
-                if sl[qq] >= 0:
-                    _add_block(abT, 3 * sl[p], 3 * sl[qq], H, p, qq, h_scale)
+                if sl[qq] < 0:
+                    continue
+                C = 3 * sl[qq] - off
+                for r in range(3):
+                    a = 3 * p + r
+                    for s3 in range(r + 1 if qq == p else 3):
+                        bb = 3 * qq + s3
+                        h = wc * (J[0, a] * J[0, bb] + J[1, a] * J[1, bb] + J[2, a] * J[2, bb])
+                        if rank_one:
+                            h += wq * q[a] * q[bb]
+                        abT[C + s3, R + r - C - s3] += h_scale * h
 
 
-#: Length of ``assemble_block``'s scratch: H (9, 9), u (3), J (3, 9), kb (3), q (9), e0 (3), e1 (3).
+@njit(cache=True, error_model="numpy")
+def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                   b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W):
+    """``strand_derivatives`` of block ``blk`` into the global band abT (N, bw + 1)."""
+    strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                       b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, 0, need_hessian, W)
+
+
+#: Length of ``strand_derivatives``' scratch: H (9, 9), u (3), J (3, 9), kb (3), q (9), e0 (3), e1 (3).
 SCRATCH = 129
 
 
@@ -349,3 +418,219 @@ def tensions(Y, D, edges, k_l0, l0, out):
             lin += (D[vb, i] - D[va, i]) * t
         ln = math.sqrt(d2)
         out[e] = k_l0[e] * (ln - l0[e] + lin / ln)
+
+
+@njit(cache=True, error_model="numpy")
+def tensions_along(Y, step, scale, free_slot, edges, k_l0, l0, out):
+    """``tensions`` with the displacement D = ``scale`` x the DOF vector ``step`` on the free
+    vertices (0 on the prescribed ones), without building D: the same sums, bit for bit."""
+    for e in range(edges.shape[0]):
+        va, vb = edges[e, 0], edges[e, 1]
+        sa, sb = free_slot[va], free_slot[vb]
+        d2 = 0.0
+        lin = 0.0
+        for i in range(3):
+            t = Y[vb, i] - Y[va, i]
+            d2 += t * t
+            da = scale * step[3 * sa + i] if sa >= 0 else 0.0
+            db = scale * step[3 * sb + i] if sb >= 0 else 0.0
+            lin += (db - da) * t
+        ln = math.sqrt(d2)
+        out[e] = k_l0[e] * (ln - l0[e] + lin / ln)
+
+
+# -- the fused Newton direction of the free step -------------------------------------------
+#: Half-bandwidth of the fused pass's band (bending triples: 3 * 2 + 2), as ``bandchol.BW``.  The
+#: band Cholesky rows below repeat bandchol's factorisation (same operations, same order) rather
+#: than calling it: numba's on-disk cache of a function does not notice edits to compiled
+#: functions of another file that it calls.
+BW = 8
+
+
+@njit(cache=True, error_model="numpy")
+def _eliminate(L, j, m):
+    """Right-looking step at column j: scale it, subtract its outer product from the next m
+    columns (``bandchol._eliminate``)."""
+    piv = L[j, 0]
+    if not piv > 0.0:
+        return False
+    r = math.sqrt(piv)
+    L[j, 0] = r
+    inv = 1.0 / r
+    for a in range(1, m + 1):
+        L[j, a] *= inv
+    for a in range(1, m + 1):
+        la = L[j, a]
+        for b in range(a, m + 1):
+            L[j + a, b - a] -= L[j, b] * la
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def factor_rows(L, n):
+    """Cholesky factor, in place, of the band in rows 0..n-1 of L ((>= n, BW + 1), layout
+    ``abT``); False if a pivot is not > 0 (``bandchol.factor_block`` on one block)."""
+    for j in range(max(0, n - BW)):
+        if not _eliminate(L, j, BW):
+            return False
+    for j in range(max(0, n - BW), n):
+        if not _eliminate(L, j, n - 1 - j):
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def solve_rows(L, n, x):
+    """x = (L L^T)^-1 x in place with the factor of ``factor_rows`` (``bandchol.solve_block``)."""
+    for j in range(n):
+        xj = x[j] * (1.0 / L[j, 0])
+        x[j] = xj
+        for a in range(1, min(BW, n - 1 - j) + 1):
+            x[j + a] -= L[j, a] * xj
+    for j in range(n - 1, -1, -1):
+        s = x[j]
+        for a in range(1, min(BW, n - 1 - j) + 1):
+            s -= L[j, a] * x[j + a]
+        x[j] = s * (1.0 / L[j, 0])
+
+
+@njit(cache=True, error_model="numpy")
+def factor_rows2(L, M, n):
+    """``factor_rows`` of two blocks of the same size at once: each column's pivot waits on the
+    previous one's square root and division (a latency chain); two independent chains side by
+    side keep the core busy.  Each block's operations are those of ``factor_rows``."""
+    for j in range(max(0, n - BW)):
+        if not (_eliminate(L, j, BW) & _eliminate(M, j, BW)):
+            return False
+    for j in range(max(0, n - BW), n):
+        if not (_eliminate(L, j, n - 1 - j) & _eliminate(M, j, n - 1 - j)):
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def solve_rows2(L, M, n, x, y):
+    """``solve_rows`` of two blocks of the same size at once (x with L, y with M)."""
+    for j in range(n):
+        xj = x[j] * (1.0 / L[j, 0])
+        yj = y[j] * (1.0 / M[j, 0])
+        x[j] = xj
+        y[j] = yj
+        for a in range(1, min(BW, n - 1 - j) + 1):
+            x[j + a] -= L[j, a] * xj
+            y[j + a] -= M[j, a] * yj
+    for j in range(n - 1, -1, -1):
+        s = x[j]
+        t = y[j]
+        for a in range(1, min(BW, n - 1 - j) + 1):
+            s -= L[j, a] * x[j + a]
+            t -= M[j, a] * y[j + a]
+        x[j] = s * (1.0 / L[j, 0])
+        y[j] = t * (1.0 / M[j, 0])
+
+
+@njit(cache=True, error_model="numpy")
+def direction_gradient(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
+                       use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, W, band):
+    """Block ``blk``'s derivatives into the block-sized ``band`` (it stays in cache), the total
+    gradient into grad, p = -grad, and the block's squared force norms into ``sums``: the
+    operations of ``assemble_block`` + ``objective._total_gradient`` in their order."""
+    d0, d1 = blk_dof[blk], blk_dof[blk + 1]
+    strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                       b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, band, grad, d0, True, W)
+    s_in = 0.0
+    s_int = 0.0
+    for j in range(d0, d1):
+        fi = mass_diag[j] * (xf[j] - x_pred[j])
+        gi = grad[j]
+        s_in += fi * fi
+        s_int += gi * gi
+        g = fi + gi + g_ext[j]
+        grad[j] = g
+        p[j] = -g
+    sums[blk, 0] = s_in
+    sums[blk, 1] = s_int
+
+
+@njit(cache=True, error_model="numpy")
+def direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
+                     use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, W, band,
+                     band2, nb):
+    """Blocks ``blk`` and, if it has the same size and is below ``nb``, ``blk + 1`` of
+    ``direction_serial`` (their factorisations and solves side by side: ``factor_rows2``); returns
+    how many blocks it did."""
+    d0, d1 = blk_dof[blk], blk_dof[blk + 1]
+    n = d1 - d0
+    direction_gradient(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
+                       use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, W, band)
+    if blk + 1 < nb and blk_dof[blk + 2] - d1 == n:
+        direction_gradient(blk + 1, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                           tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums,
+                           W, band2)
+        if factor_rows2(band, band2, n):
+            solve_rows2(band, band2, n, p[d0:d1], p[d1:d1 + n])
+            ok[blk] = True
+            ok[blk + 1] = True
+        else:   # which one failed: each on its own (the next pass shifts the failed one)
+            direction_gradient(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                               tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p,
+                               sums, W, band)
+            ok[blk] = factor_rows(band, n)
+            if ok[blk]:
+                solve_rows(band, n, p[d0:d1])
+            direction_gradient(blk + 1, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                               tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p,
+                               sums, W, band2)
+            ok[blk + 1] = factor_rows(band2, n)
+            if ok[blk + 1]:
+                solve_rows(band2, n, p[d1:d1 + n])
+        return 2
+    ok[blk] = factor_rows(band, n)
+    if ok[blk]:
+        solve_rows(band, n, p[d0:d1])
+    return 1
+
+
+@njit(cache=True, error_model="numpy")
+def direction_serial(Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
+                     b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, n_chunks):
+    """Newton direction of the free objective (stretch, bending, inertia, gravity), block by block
+    in one pass: grad (N,) the objective's gradient, p (N,) = -A^-1 grad with A its banded
+    Hessian (never stored whole), ``sums[blk]`` the block's squared norms of the inertial and
+    internal forces (the force scale), ``ok[blk]``: its pivots were positive (else p is not set
+    there and the caller factors the band with a shift).  The same operations in the same order,
+    per block, as ``assemble_block`` + ``objective._total_gradient`` + ``bandchol.factor_block``
+    + ``bandchol.solve_block``: bit-identical results."""
+    nb = blk_dof.shape[0] - 1
+    nmax = 0
+    for blk in range(nb):
+        nmax = max(nmax, blk_dof[blk + 1] - blk_dof[blk])
+    W = np.zeros(SCRATCH)
+    band = np.empty((nmax, BW + 1))
+    band2 = np.empty((nmax, BW + 1))
+    blk = 0
+    while blk < nb:
+        blk += direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                                tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p,
+                                sums, ok, W, band, band2, nb)
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def direction_parallel(Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
+                       use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, n_chunks):
+    """``direction_serial`` in parallel over ``n_chunks`` runs of blocks (one scratch each)."""
+    nb = blk_dof.shape[0] - 1
+    nmax = 0
+    for blk in range(nb):
+        nmax = max(nmax, blk_dof[blk + 1] - blk_dof[blk])
+    size = (nb + n_chunks - 1) // n_chunks
+    for c in prange(n_chunks):
+        W = np.zeros(SCRATCH)
+        band = np.empty((nmax, BW + 1))
+        band2 = np.empty((nmax, BW + 1))
+        end = min(nb, (c + 1) * size)
+        blk = c * size
+        while blk < end:
+            blk += direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                                    tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad,
+                                    p, sums, ok, W, band, band2, end)

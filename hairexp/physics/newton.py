@@ -50,16 +50,39 @@ def line_search(value_fn, x: np.ndarray, p: np.ndarray, f0: float, slope: float,
     return 0.0, f0, max_backtracks
 
 
+def _evaluate(obj, x: np.ndarray, want_step: bool = True):
+    """(evaluation, Newton step or None): the objective's fused pass where it has one
+    (``ImplicitEulerObjective.evaluate_step``) and the step is likely needed, else its evaluation
+    (the step solved after, if needed)."""
+    step = getattr(obj, "evaluate_step", None)
+    if step is None or not want_step:
+        return obj.evaluate(x, need_hessian=True), None
+    return step(x)
+
+
+def _likely_converged(norms: list, alpha: float, tol: float) -> bool:
+    """Whether the next iterate's gradient norm is predicted below ``tol``: after a full step, by
+    quadratic convergence from the last two norms, g_next = g_k (g_k / g_k-1)^2.  Only chooses
+    between the fused pass and evaluate + solve (the same results); a wrong guess costs time only:
+    a factorisation for nothing, or the unfused pass."""
+    if alpha != 1.0 or len(norms) < 2 or not norms[-2] > 0.0:
+        return False
+    r = norms[-1] / norms[-2]
+    return norms[-1] * r * r <= tol
+
+
 def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOptions) -> tuple[np.ndarray, SolveInfo]:
     info = SolveInfo()
     x = x0.copy()
-    ev = obj.evaluate(x, need_hessian=True)
+    ev, p = _evaluate(obj, x)
     f = obj.value(x)   # after evaluate: the contact's friction lag is set there
     sec = info.seconds
+    norms = []
     while True:
         for k in ("derivatives", "assembly"):
             sec[k] += ev.seconds[k]
         gnorm = float(np.linalg.norm(ev.grad))
+        norms.append(gnorm)
         info.grad_norm, info.force_scale = gnorm, ev.force_scale
         if not (np.isfinite(gnorm) and np.isfinite(f)):
             info.status = DIVERGED
@@ -71,9 +94,10 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         if info.iterations >= opts.max_iterations:
             info.status = MAX_ITERATIONS
             return x, info
-        t0 = time.perf_counter()
-        p = obj.solve(ev.banded, -ev.grad)
-        sec["solve"] += time.perf_counter() - t0
+        if p is None:
+            t0 = time.perf_counter()
+            p = obj.solve(ev.banded, -ev.grad)
+            sec["solve"] += time.perf_counter() - t0
         slope = float(np.dot(ev.grad, p))
         if not np.isfinite(slope):
             info.status = DIVERGED
@@ -90,6 +114,6 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         f = f_new
         # gradient and Hessian together: a separate gradient-only check would repeat most of
         # the derivative work on every iterate that is not yet converged
-        ev = obj.evaluate(x, need_hessian=True)
+        ev, p = _evaluate(obj, x, not _likely_converged(norms, alpha, opts.atol + opts.rtol * ev.force_scale))
         if obj.contact is not None:
             f = obj.value(x)   # the contact's friction lag moved with the evaluation

@@ -71,6 +71,8 @@ class ImplicitEulerObjective:
                 self.g_ext = ext_asm.gradient([t.grad_hess(x0[t.stencil_t], False)[0].numpy() for t in self.external])
         self.ext_norm = float(np.linalg.norm(self.g_ext))
         self.kernels = None
+        #: the free step's fused Newton pass (``evaluate_step``); False: evaluate, then solve
+        self.fused = True
         if kernels == "numba" and derivatives == "closed_form":
             self.kernels = StrandKernels.build(self.terms, self.external, free_slot, self.free_vertices,
                                                self.assembler.bandwidth, threads)
@@ -222,6 +224,23 @@ class ImplicitEulerObjective:
         grad, scale = self._total_gradient(xf, g_int, ab)
         t2 = time.perf_counter()
         return Evaluation(grad, ab, scale, {"derivatives": t1 - t0, "assembly": t2 - t1})
+
+    def evaluate_step(self, xf: np.ndarray) -> tuple[Evaluation, np.ndarray | None]:
+        """(evaluation, Newton step p = -A^-1 grad or None).  With the compiled kernels taking
+        every term and no contact (and ``fused``), one pass per strand computes the gradient,
+        the band in a strand-sized buffer (it stays in cache; ``banded`` is then None), its
+        factor and p: the gradient and step of ``evaluate`` + ``solve`` bit for bit (the force
+        scale to round-off: its norms are summed per strand), timed together as "assembly".
+        Otherwise ``evaluate`` and p None (the caller solves)."""
+        if not (self.fused and self.kernels is not None and not self.torch_terms and self.contact is None):
+            return self.evaluate(xf, need_hessian=True), None
+        t0 = time.perf_counter()
+        out = self.kernels.direction(self, xf)
+        if out is None:   # a block is not positive definite (round-off): the shifted factorisation
+            return self.evaluate(xf, need_hessian=True), None
+        grad, p, n_inertia, n_int = out
+        t1 = time.perf_counter()
+        return Evaluation(grad, None, n_inertia + n_int + self.ext_norm, {"derivatives": 0.0, "assembly": t1 - t0}), p
 
     def _evaluate_kernels(self, xf: np.ndarray, need_hessian: bool) -> Evaluation:
         """The compiled path: stretch, bending and inertia fused per strand into the band (timed

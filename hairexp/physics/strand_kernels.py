@@ -103,6 +103,8 @@ class StrandKernels:
         self._Y = np.zeros((len(self.free_slot), 3))
         self._ok = np.ones(len(self.blk_dof) - 1, dtype=np.bool_)
         self._zero_t = np.zeros(len(self.edges))
+        self._zero_dofs = np.zeros(self.n_dofs)
+        self._sums = np.empty((len(self.blk_dof) - 1, 2))
         self.seconds_compile = 0.0
 
     @classmethod
@@ -178,13 +180,34 @@ class StrandKernels:
 
     def tensions(self, obj, xf: np.ndarray, step: np.ndarray | None) -> np.ndarray:
         """(E,) tensions at y(xf), linearised along ``step`` (None: exact), as ``Stretch``."""
-        Y = self._points(obj, xf).copy()
-        D = np.zeros_like(Y)
-        if step is not None:
-            D[self.free_vertices] = (1.0 - obj.alpha_f) * step.reshape(-1, 3)
+        Y = self._points(obj, xf)
         out = np.empty(len(self.edges))
-        kernels.tensions(Y, D, self.edges, self.k_l0, self.l0, out)
+        if step is None:
+            kernels.tensions_along(Y, self._zero_dofs, 0.0, self.free_slot, self.edges, self.k_l0, self.l0, out)
+        else:
+            kernels.tensions_along(Y, np.ascontiguousarray(step, dtype=np.float64), 1.0 - obj.alpha_f, self.free_slot,
+                                   self.edges, self.k_l0, self.l0, out)
         return out
+
+    def direction(self, obj, xf: np.ndarray):
+        """The fused Newton pass of the free objective (``kernels.direction_serial``): (grad (N,),
+        p = -A^-1 grad (N,), |inertial force|, |internal force|), or None where a block's pivot
+        was not positive (the caller then factors the band with a shift)."""
+        Y = self._points(obj, xf)
+        T = self.stretch.tension
+        use_t = T is not None
+        tension = _np(T) if use_t else self._zero_t
+        grad = np.empty(self.n_dofs)
+        p = np.empty(self.n_dofs)
+        sums = self._sums
+        run = kernels.direction_parallel if self.parallel else kernels.direction_serial
+        run(Y, np.ascontiguousarray(xf, dtype=np.float64), obj.x_pred, obj.g_ext, self.free_slot, self.blk_dof,
+            self.e_ptr, self.e_idx, self.edges, self.k_l0, self.l0, tension, use_t, self.b_ptr, self.b_idx, self.bends,
+            self.w, self.s_rest, 1.0 - obj.alpha_f, obj.mass_diag, grad, p, sums, self._ok, 4 * self.threads)
+        if not self._ok.all():
+            return None
+        s = sums.sum(axis=0)
+        return grad, p, float(np.sqrt(s[0])), float(np.sqrt(s[1]))
 
     # -- the band ------------------------------------------------------------------------
     def factor(self, ab: np.ndarray) -> np.ndarray:
