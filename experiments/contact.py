@@ -16,6 +16,7 @@ Per run (one controller variant of a scene, both contact modes, same config othe
 * cost: median step seconds of contact frames / of non-contact frames, target <= 1.3.
 
 Usage: python -m experiments.contact [--runs NAME ...] [--frames N] [--keep] [--extra ROWS.json ...]
+                                     [--set KEY=VALUE ...]
 
 ``--keep`` keeps the rows of the existing report (reports/contact.json) ahead of the new ones and
 the hand-written sections of reports/contact.md (from its first "## " heading on); ``--extra``
@@ -88,7 +89,7 @@ def penetration(cfg, out: Path) -> tuple[float, float]:
     return pv, pe
 
 
-def measure(name: str, mode: str, frames: int | None, work: Path) -> dict:
+def measure(name: str, mode: str, frames: int | None, work: Path, extra: list | None = None) -> dict:
     import pandas as pd
 
     from hairexp.app.run import run
@@ -98,10 +99,12 @@ def measure(name: str, mode: str, frames: int | None, work: Path) -> dict:
                         "logging.progress=false"]
     if frames:
         ov.append(f"frames={frames}")
+    ov += list(extra or [])
     cfg = compose(ov, typed, where=name)
-    out = work / f"{name}_{mode}"
+    label = mode + (f" [{' '.join(extra)}]" if extra else "")
+    out = work / (f"{name}_{mode}" + ("_" + "_".join(e.replace("/", "-") for e in extra) if extra else ""))
     t0 = time.perf_counter()
-    row = {"run": name, "mode": mode, "controller": controller}
+    row = {"run": name, "mode": label, "controller": controller}
     try:
         s = run(cfg, out)
         row["outcome"] = "completed"
@@ -179,6 +182,7 @@ def main(argv=None):
     ap.add_argument("--out", default=str(ROOT / "reports" / "contact"))
     ap.add_argument("--keep", action="store_true", help="keep the existing report's rows and analysis")
     ap.add_argument("--extra", nargs="*", default=[], help="result files whose rows to add")
+    ap.add_argument("--set", nargs="*", default=[], help="config overrides of every run (a variant; named in the mode column)")
     args = ap.parse_args(argv)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -194,7 +198,7 @@ def main(argv=None):
     t0 = time.perf_counter()
     for name in args.runs:
         for mode in args.modes:
-            r = measure(name, mode, args.frames, work)
+            r = measure(name, mode, args.frames, work, args.set)
             r["code"] = code
             rows.append(r)
             print(json.dumps(r, default=str), flush=True)
