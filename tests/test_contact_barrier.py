@@ -212,7 +212,7 @@ def edge_grad_d(col, xe):
 def test_edge_distance_hessian_vs_fd(shape):
     """hess d of the edge gap (the closest point's motion with the edge included by the implicit
     function theorem) against central differences of grad d, s* re-optimised at every point;
-    the golden-section shapes rely on the Newton polish of s* (``_newton_polish``)."""
+    the box and cylinder rely on s* to round-off (``_safeguarded_newton``)."""
     col = SHAPES[shape]()
     R, T = col.motion.pose(0.0)
     R6 = np.kron(np.eye(2), R)

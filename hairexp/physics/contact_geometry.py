@@ -12,8 +12,9 @@ ball whose centre passes between two vertices (codimensional IPC, Li et al. 2021
 distances of rods' edges for the same reason).  phi along the segment is convex in s, so s* is
 unique up to flat parts; closed forms give it for the sphere (closest point of the segment to
 the centre), the capsule (closest points of two segments) and the plane (the lower end point);
-the box and the cylinder use a golden-section search (``GOLDEN_ITERATIONS``, bracket shrinks by
-0.618 per iteration: 1e-10 of the edge after 48).  By the envelope theorem the gradient of d_e
+the box and the cylinder a safeguarded Newton search on the slope of phi along the segment
+(``_safeguarded_newton``: closed-form normals and Hessians, bisection across region boundaries).
+By the envelope theorem the gradient of d_e
 is ((1 - s*) n, s* n), n the unit outward normal at the closest point (Danskin).
 
 Conservative advancement (Mirtich 1996; IPC's additive CCD, Li et al. 2020 sec. 4, uses the same
@@ -39,8 +40,8 @@ CCD_ETA = 0.1
 #: Conservative-advancement iterations per line search; an element that has not reached
 #: alpha = 1 by then stops the step where it is (conservative).
 CCD_ITERATIONS = 60
-#: Largest Newton correction of a golden-section closest parameter (``_newton_polish``).
-POLISH_STEP = 1e-6
+#: Iterations of the safeguarded Newton search of the box's and the cylinder's closest points.
+NEWTON_ITERATIONS = 40
 
 
 def segment_closest(col, A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -59,28 +60,11 @@ def segment_closest(col, A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.n
         s, _ = _closest_segment_params(A, B, p2, q2)
     elif name == "Plane":
         s = (B[:, 1] < A[:, 1]).astype(np.float64)
+    elif name in ("Box", "Cylinder"):
+        s = _safeguarded_newton(col, A, D)
     else:
-        lo, hi = np.zeros(len(A)), np.ones(len(A))
-        m1, m2 = hi - _INVPHI, lo + _INVPHI
-        f1 = col.sdf_body(A + m1[:, None] * D)
-        f2 = col.sdf_body(A + m2[:, None] * D)
-        for _ in range(GOLDEN_ITERATIONS):
-            left = f1 < f2          # the minimum lies in [lo, m2]
-            hi = np.where(left, m2, hi)
-            lo = np.where(left, lo, m1)
-            m2n = np.where(left, m1, lo + _INVPHI * (hi - lo))
-            m1n = np.where(left, hi - _INVPHI * (hi - lo), m2)
-            f2n = np.where(left, f1, np.nan)
-            f1n = np.where(left, np.nan, f2)
-            m1, m2 = m1n, m2n
-            need1, need2 = np.isnan(f1n), np.isnan(f2n)
-            if need1.any():
-                f1n[need1] = col.sdf_body(A[need1] + m1[need1, None] * D[need1])
-            if need2.any():
-                f2n[need2] = col.sdf_body(A[need2] + m2[need2, None] * D[need2])
-            f1, f2 = f1n, f2n
-        s = 0.5 * (lo + hi)
-        s = _newton_polish(col, A, D, s)
+        s = _golden(col, A, D)
+    if name not in ("Sphere", "Capsule", "Plane"):
         # the end points themselves (a minimum at an end is common: a vertex touching a face)
         fs = col.sdf_body(A + s[:, None] * D)
         f0, fb = col.sdf_body(A), col.sdf_body(B)
@@ -90,26 +74,61 @@ def segment_closest(col, A: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.n
     return s, col.sdf_body(A + s[:, None] * D)
 
 
-def _newton_polish(col, A: np.ndarray, D: np.ndarray, s: np.ndarray, iterations: int = 2) -> np.ndarray:
-    """Newton steps on phi(A + s D) over s from the golden-section result: phi is flat at its
-    minimum, so comparisons of its values locate s* only to ~sqrt(eps phi / F_ss) (1e-8 of an edge
-    on a 3 cm box), while s -= F_s / F_ss with the closed-form normal and Hessian converges to
-    round-off.  A step is kept only where it stays in (0, 1) and is a correction (< POLISH_STEP):
-    a larger one means the golden section stopped at a kink, where Newton's model does not hold."""
-    for _ in range(iterations):
-        inner = (s > 0) & (s < 1)
-        if not inner.any():
+def _golden(col, A: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """Golden-section search of min_s phi(A + s D) on [0, 1] (shapes without closed-form normals)."""
+    lo, hi = np.zeros(len(A)), np.ones(len(A))
+    m1, m2 = hi - _INVPHI, lo + _INVPHI
+    f1 = col.sdf_body(A + m1[:, None] * D)
+    f2 = col.sdf_body(A + m2[:, None] * D)
+    for _ in range(GOLDEN_ITERATIONS):
+        left = f1 < f2          # the minimum lies in [lo, m2]
+        hi = np.where(left, m2, hi)
+        lo = np.where(left, lo, m1)
+        m2n = np.where(left, m1, lo + _INVPHI * (hi - lo))
+        m1n = np.where(left, hi - _INVPHI * (hi - lo), m2)
+        f2n = np.where(left, f1, np.nan)
+        f1n = np.where(left, np.nan, f2)
+        m1, m2 = m1n, m2n
+        need1, need2 = np.isnan(f1n), np.isnan(f2n)
+        if need1.any():
+            f1n[need1] = col.sdf_body(A[need1] + m1[need1, None] * D[need1])
+        if need2.any():
+            f2n[need2] = col.sdf_body(A[need2] + m2[need2, None] * D[need2])
+        f1, f2 = f1n, f2n
+    return 0.5 * (lo + hi)
+
+
+def _safeguarded_newton(col, A: np.ndarray, D: np.ndarray) -> np.ndarray:
+    """min_s phi(A + s D) on [0, 1] for the box and the cylinder: phi is convex along the segment,
+    so its slope F_s = D . n is nondecreasing in s and its sign brackets s*.  Each iteration
+    shrinks the bracket by that sign and takes the Newton step s - F_s / F_ss (closed-form normal
+    and Hessian, ``sdf_normal_hessian``) where it stays inside the bracket, else the bracket's
+    midpoint: quadratic convergence on a smooth piece, bisection across the shapes' region
+    boundaries (face to edge, side to rim).  It replaced a 48-iteration golden-section search, the
+    largest cost of a contact iteration on goaling's wheel (10.8 of 17.2 s of its SQP solves)."""
+    m = len(A)
+    lo, hi = np.zeros(m), np.ones(m)
+    n0 = sdf_normal_hessian(col, A)[0]
+    n1 = sdf_normal_hessian(col, A + D)[0]
+    g0 = np.einsum("mi,mi->m", D, n0)
+    g1 = np.einsum("mi,mi->m", D, n1)
+    s = np.where(g0 >= 0, 0.0, np.where(g1 <= 0, 1.0, 0.5))
+    act = np.flatnonzero((g0 < 0) & (g1 > 0))
+    for _ in range(NEWTON_ITERATIONS):
+        if act.size == 0:
             break
-        P = A + s[:, None] * D
-        n, H = sdf_normal_hessian(col, P)
-        Fs = np.einsum("mi,mi->m", D, n)
-        Fss = np.einsum("mi,mij,mj->m", D, H, D)
-        ok = inner & (Fss > 0)
-        s_new = np.where(ok, s - Fs / np.where(ok, Fss, 1.0), s)
-        ok &= (s_new > 0) & (s_new < 1) & (np.abs(s_new - s) < POLISH_STEP)
-        if not ok.any():
-            break
-        s = np.where(ok, s_new, s)
+        Da = D[act]
+        n, H = sdf_normal_hessian(col, A[act] + s[act, None] * Da)
+        g = np.einsum("mi,mi->m", Da, n)
+        h = np.einsum("mi,mij,mj->m", Da, H, Da)
+        lo[act] = np.where(g < 0, s[act], lo[act])
+        hi[act] = np.where(g > 0, s[act], hi[act])
+        sn = s[act] - g / np.where(h > 0, h, 1.0)
+        inside = (h > 0) & (sn > lo[act]) & (sn < hi[act])
+        sn = np.where(inside, sn, 0.5 * (lo[act] + hi[act]))
+        step = np.abs(sn - s[act])
+        s[act] = sn
+        act = act[(step > 0) & (g != 0) & (hi[act] > lo[act])]
     return s
 
 
