@@ -128,7 +128,7 @@ def _safeguarded_newton(col, A: np.ndarray, D: np.ndarray) -> np.ndarray:
         sn = np.where(inside, sn, 0.5 * (lo[act] + hi[act]))
         step = np.abs(sn - s[act])
         s[act] = sn
-        act = act[(step > 0) & (g != 0) & (hi[act] > lo[act])]
+        act = act[(step > 1e-15) & (g != 0) & (hi[act] > lo[act])]
     return s
 
 
