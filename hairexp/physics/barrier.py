@@ -227,13 +227,20 @@ class ObjectContact:
         d_hat.  A contact is an edge's closest point; against a plane (whose minimum over a
         segment is at an end point, so min(d_a, d_b) has a kink where an edge lies parallel to
         it) each edge is instead two end-point contacts of half its weight: smooth, and feasible
-        exactly when the segment is."""
+        exactly when the segment is.
+
+        Side result ``self.segments_were_clear``: every edge within d_hat (a superset of those that
+        can touch a shell) had a segment gap > 0, i.e. ``segments_clear(x)`` without a second
+        closest-point search (``energy``)."""
         out = []
+        self.segments_were_clear = True
         for k, gp in enumerate(self.gaps):
             idx = self._near(x, k, self.dhat[k])
             E = self.E[idx]
             if type(self.colliders[k]).__name__ == "Plane":
                 da, db = gp.vertex_gaps(x[E[:, 0]]), gp.vertex_gaps(x[E[:, 1]])
+                if np.any(np.minimum(da, db) <= 0):
+                    self.segments_were_clear = False
                 idx2 = np.concatenate([idx, idx])
                 d = np.concatenate([da, db])
                 s = np.concatenate([np.zeros(idx.size), np.ones(idx.size)])
@@ -247,10 +254,12 @@ class ObjectContact:
                 continue
             if normals:
                 d, s, n = gp.edge_gaps(x[E[:, 0]], x[E[:, 1]], normals=True)
+                self.segments_were_clear &= not np.any(d <= 0)
                 on = d < self.dhat[k]
                 out.append((idx[on], d[on], np.ones(on.sum()), s[on], n[on]))
             else:
                 d = gp.edge_gaps(x[E[:, 0]], x[E[:, 1]])
+                self.segments_were_clear &= not np.any(d <= 0)
                 on = d < self.dhat[k]
                 out.append((idx[on], d[on], np.ones(on.sum())))
         return out
@@ -264,6 +273,7 @@ class ObjectContact:
         edge across a box edge or corner), that interior point with the edge's weight."""
         E = self.E[idx]
         d, s, n = gp.edge_gaps(x[E[:, 0]], x[E[:, 1]], normals=True)
+        self.segments_were_clear &= not np.any(d <= 0)
         da, db = gp.vertex_gaps(x[E[:, 0]]), gp.vertex_gaps(x[E[:, 1]])
         inner = (s > 0) & (s < 1) & (d < np.minimum(da, db) - INTERIOR_MARGIN * self.dhat[k])
         col = self.colliders[k]
@@ -294,9 +304,10 @@ class ObjectContact:
     def energy(self, x: np.ndarray) -> float:
         """B(x) + D(x); inf if an edge touches or enters a thickness shell."""
         e = 0.0
-        if not self.segments_clear(x):
+        acts = self.active(x)
+        if not self.segments_were_clear:
             return np.inf
-        for k, (idx, d, wf) in enumerate(self.active(x)):
+        for k, (idx, d, wf) in enumerate(acts):
             if np.any(d <= 0):
                 return np.inf
             e += self.kappa * float(np.dot(self.w[idx] * wf, barrier(d, self.dhat[k])))
