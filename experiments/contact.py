@@ -15,13 +15,20 @@ Per run (one controller variant of a scene, both contact modes, same config othe
   times), target none;
 * cost: median step seconds of contact frames / of non-contact frames, target <= 1.3.
 
-Usage: python -m experiments.contact [--runs NAME ...] [--frames N]
+Usage: python -m experiments.contact [--runs NAME ...] [--frames N] [--keep] [--extra ROWS.json ...]
+                                     [--set KEY=VALUE ...]
+
+``--keep`` keeps the rows of the existing report (reports/contact.json) ahead of the new ones and
+the hand-written sections of reports/contact.md (from its first "## " heading on); ``--extra``
+adds the rows of other result files (e.g. a before run written with ``--out``).  Each row
+records the commit it was measured at (``code``; "+wip" when hairexp/ had uncommitted changes).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -82,7 +89,7 @@ def penetration(cfg, out: Path) -> tuple[float, float]:
     return pv, pe
 
 
-def measure(name: str, mode: str, frames: int | None, work: Path) -> dict:
+def measure(name: str, mode: str, frames: int | None, work: Path, extra: list | None = None) -> dict:
     import pandas as pd
 
     from hairexp.app.run import run
@@ -92,10 +99,12 @@ def measure(name: str, mode: str, frames: int | None, work: Path) -> dict:
                         "logging.progress=false"]
     if frames:
         ov.append(f"frames={frames}")
+    ov += list(extra or [])
     cfg = compose(ov, typed, where=name)
-    out = work / f"{name}_{mode}"
+    label = mode + (f" [{' '.join(extra)}]" if extra else "")
+    out = work / (f"{name}_{mode}" + ("_" + "_".join(e.replace("/", "-") for e in extra) if extra else ""))
     t0 = time.perf_counter()
-    row = {"run": name, "mode": mode, "controller": controller}
+    row = {"run": name, "mode": label, "controller": controller}
     try:
         s = run(cfg, out)
         row["outcome"] = "completed"
@@ -135,9 +144,20 @@ def measure(name: str, mode: str, frames: int | None, work: Path) -> dict:
     return row
 
 
+def code_version() -> str:
+    import subprocess
+
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "hairexp"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    except OSError:
+        return "-"
+    return head + ("+wip" if dirty else "")
+
+
 COLUMNS = ["run", "mode", "outcome", "contact steps / steps", "strain max in contact", "residual max / L",
            "frames residual > 1e-6 L", "iterations contact / mean", "penetration vertex / edge (mm)",
-           "s/step contact / non-contact", "unconverged", "wall s"]
+           "s/step contact / non-contact", "unconverged", "wall s", "code"]
 
 
 def table_row(r: dict) -> list[str]:
@@ -150,7 +170,7 @@ def table_row(r: dict) -> list[str]:
             f"{fmt(1e3 * r['pen_vertex'] if r.get('pen_vertex') is not None else None, '.3g')} / "
             f"{fmt(1e3 * r['pen_edge'] if r.get('pen_edge') is not None else None, '.3g')}",
             f"{fmt(r.get('sec_contact'), '.3g')} / {fmt(r.get('sec_free'), '.3g')} ({fmt(r.get('cost_ratio'), '.2f')}x)",
-            fmt(r.get("unconverged"), "d"), fmt(r.get("wall"), ".0f")]
+            fmt(r.get("unconverged"), "d"), fmt(r.get("wall"), ".0f"), str(r.get("code", "-"))]
 
 
 def main(argv=None):
@@ -160,22 +180,33 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=None)
     ap.add_argument("--work", default=str(ROOT / "outputs" / "contact"))
     ap.add_argument("--out", default=str(ROOT / "reports" / "contact"))
+    ap.add_argument("--keep", action="store_true", help="keep the existing report's rows and analysis")
+    ap.add_argument("--extra", nargs="*", default=[], help="result files whose rows to add")
+    ap.add_argument("--set", nargs="*", default=[], help="config overrides of every run (a variant; named in the mode column)")
     args = ap.parse_args(argv)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
-    rows = []
+    out = Path(args.out)
+    rows, notes = [], ""
+    if args.keep and out.with_suffix(".json").is_file():
+        rows += json.loads(out.with_suffix(".json").read_text())
+        md_old = out.with_suffix(".md").read_text() if out.with_suffix(".md").is_file() else ""
+        notes = md_old[md_old.index("\n## ") + 1:] if "\n## " in md_old else ""
+    for f in args.extra:
+        rows += json.loads(Path(f).read_text())
+    code = code_version()
     t0 = time.perf_counter()
     for name in args.runs:
         for mode in args.modes:
-            r = measure(name, mode, args.frames, work)
+            r = measure(name, mode, args.frames, work, args.set)
+            r["code"] = code
             rows.append(r)
             print(json.dumps(r, default=str), flush=True)
-    out = Path(args.out)
     out.with_suffix(".json").write_text(json.dumps(rows, indent=1, default=str))
     md = ["# Contact inside the optimisation: barrier vs post-solve stage", "",
-          "Command: `python -m experiments.contact " + " ".join(argv or []) + "`", "",
+          "Command: `python -m experiments.contact " + " ".join(argv if argv is not None else sys.argv[1:]) + "`", "",
           __doc__.split("Usage:")[0], "", md_table(COLUMNS, [table_row(r) for r in rows]), "",
-          f"Total wall time {time.perf_counter() - t0:.0f} s.", ""]
+          f"Total wall time {time.perf_counter() - t0:.0f} s.", "", notes]
     out.with_suffix(".md").write_text("\n".join(md))
 
 

@@ -17,11 +17,19 @@ edge whose closest point is a shared vertex counts half a length on each side.
     b'(d)  = -2 (d - d_hat) ln(d / d_hat) - (d - d_hat)^2 / d,
     b''(d) = -2 ln(d / d_hat) - 4 (d - d_hat) / d + (d - d_hat)^2 / d^2   (> 0 on (0, d_hat)).
 
-Gradient: kappa w b'(d) grad d, grad d = ((1 - s*) n, s* n) (contact_geometry).  Hessian: the
-Gauss-Newton part kappa w b''(d) grad d grad d^T, PSD; the curvature part kappa w b'(d) hess d is
-dropped: b' < 0 and hess d is PSD for convex shapes, so it is negative semi-definite (dropping it
-is the PSD projection of IPC's per-contact Hessian).  An edge couples two consecutive vertices of
-a strand: its 6 x 6 block lies inside the strand's band (half-bandwidth 5 <= 8).
+Gradient: kappa w b'(d) grad d, grad d = ((1 - s*) n, s* n) (contact_geometry).  Hessian
+(``HESSIAN``, ``ObjectContact.contact_hessians``): per contact the full kappa w (b''(d) grad d
+grad d^T + b'(d) hess d), hess d in closed form (contact_geometry.sdf_normal_hessian,
+edge_distance_hessian: the shape's curvature at the closest point and the closest point's motion
+along the edge).  b' < 0, so on a curved surface the second part softens the tangential
+directions by lambda / rho (lambda the contact force, rho the radius of curvature); the
+Gauss-Newton Hessian that drops it (and IPC's eigenvalue-clamped per-contact Hessian, which
+for a vertex contact is the same) overestimates that stiffness, and where lambda / rho is
+comparable to the inertia m / h^2 Newton and the SQP converged only linearly (|dx| halving per
+iteration on splitting's ball).  The default keeps the negative part up to MASS_FRACTION of the
+inertia diagonal, so the assembled Hessian stays positive definite.  An edge couples two
+consecutive vertices of a strand: its 6 x 6 block lies inside the strand's band (half-bandwidth
+5 <= 8).
 
 Activation distance d_hat = ``collision.barrier_dhat`` x max(collider thickness, hair thickness)
 per collider; stiffness kappa = ``collision.barrier_stiffness`` x rho / dt^2 (rho the mean linear
@@ -53,7 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from hairexp.physics.contact_geometry import EdgeGaps, advance
+from hairexp.physics.contact_geometry import EdgeGaps, advance, edge_distance_hessian, sdf_normal_hessian, shape_normal
 from hairexp.physics.newton import NewtonOptions, newton_solve
 
 #: Contacts closer than this fraction of d_hat count as "in contact" in the step's info.
@@ -70,6 +78,11 @@ SWEEP_FRACTION = 0.5
 MAX_SUB_INTERVALS = 64
 #: Newton iterations of each intermediate sub-interval solve.
 SUB_INTERVAL_ITERATIONS = 8
+#: The barrier Hessian: "gauss_newton" (kappa w b'' grad d grad d^T only), "projected" (IPC's
+#: per-contact full Hessian, eigenvalues clamped at 0) or "mass_bounded" (the full Hessian, its
+#: negative curvature part kept up to MASS_FRACTION of the inertia, ``contact_hessians``).
+HESSIAN = "mass_bounded"
+MASS_FRACTION = 0.9
 
 
 def thin_size(col) -> float:
@@ -137,6 +150,7 @@ class ContactStats:
     start_feasible: bool = True
     friction_contacts: int = 0
     sub_intervals: int = 1       # pieces the colliders' motion over the step was advanced in
+    curvature_scale_min: float = 1.0   # smallest gamma of ObjectContact.contact_hessians (1: exact)
 
 
 class ObjectContact:
@@ -162,6 +176,7 @@ class ObjectContact:
         self.eps_v = float(friction_eps_v)
         self.use_friction = bool(friction) and any(c.friction > 0 for c in self.colliders)
         self.kappa = 0.0
+        self.vertex_mass = None   # (V,) inertia diagonal m / h^2 of the step (begin_contact_step)
         self.gaps: list[EdgeGaps] = []
         self._lag = None
         self.stats = ContactStats()
@@ -212,13 +227,20 @@ class ObjectContact:
         d_hat.  A contact is an edge's closest point; against a plane (whose minimum over a
         segment is at an end point, so min(d_a, d_b) has a kink where an edge lies parallel to
         it) each edge is instead two end-point contacts of half its weight: smooth, and feasible
-        exactly when the segment is."""
+        exactly when the segment is.
+
+        Side result ``self.segments_were_clear``: every edge within d_hat (a superset of those that
+        can touch a shell) had a segment gap > 0, i.e. ``segments_clear(x)`` without a second
+        closest-point search (``energy``)."""
         out = []
+        self.segments_were_clear = True
         for k, gp in enumerate(self.gaps):
             idx = self._near(x, k, self.dhat[k])
             E = self.E[idx]
             if type(self.colliders[k]).__name__ == "Plane":
                 da, db = gp.vertex_gaps(x[E[:, 0]]), gp.vertex_gaps(x[E[:, 1]])
+                if np.any(np.minimum(da, db) <= 0):
+                    self.segments_were_clear = False
                 idx2 = np.concatenate([idx, idx])
                 d = np.concatenate([da, db])
                 s = np.concatenate([np.zeros(idx.size), np.ones(idx.size)])
@@ -232,10 +254,12 @@ class ObjectContact:
                 continue
             if normals:
                 d, s, n = gp.edge_gaps(x[E[:, 0]], x[E[:, 1]], normals=True)
+                self.segments_were_clear &= not np.any(d <= 0)
                 on = d < self.dhat[k]
                 out.append((idx[on], d[on], np.ones(on.sum()), s[on], n[on]))
             else:
                 d = gp.edge_gaps(x[E[:, 0]], x[E[:, 1]])
+                self.segments_were_clear &= not np.any(d <= 0)
                 on = d < self.dhat[k]
                 out.append((idx[on], d[on], np.ones(on.sum())))
         return out
@@ -249,13 +273,14 @@ class ObjectContact:
         edge across a box edge or corner), that interior point with the edge's weight."""
         E = self.E[idx]
         d, s, n = gp.edge_gaps(x[E[:, 0]], x[E[:, 1]], normals=True)
+        self.segments_were_clear &= not np.any(d <= 0)
         da, db = gp.vertex_gaps(x[E[:, 0]]), gp.vertex_gaps(x[E[:, 1]])
         inner = (s > 0) & (s < 1) & (d < np.minimum(da, db) - INTERIOR_MARGIN * self.dhat[k])
         col = self.colliders[k]
         parts = []
         for dv, sv, vert in ((da, 0.0, E[:, 0]), (db, 1.0, E[:, 1])):
             on = dv < self.dhat[k]
-            nv = col.normal_body(gp.body(x[vert[on]])) @ gp.R.T if normals else None
+            nv = shape_normal(col, gp.body(x[vert[on]])) @ gp.R.T if normals else None
             parts.append((idx[on], dv[on], np.full(on.sum(), 0.5), np.full(on.sum(), sv), nv))
         on = inner & (d < self.dhat[k])
         parts.append((idx[on], d[on], np.ones(on.sum()), s[on], n[on] if normals else None))
@@ -279,9 +304,10 @@ class ObjectContact:
     def energy(self, x: np.ndarray) -> float:
         """B(x) + D(x); inf if an edge touches or enters a thickness shell."""
         e = 0.0
-        if not self.segments_clear(x):
+        acts = self.active(x)
+        if not self.segments_were_clear:
             return np.inf
-        for k, (idx, d, wf) in enumerate(self.active(x)):
+        for k, (idx, d, wf) in enumerate(acts):
             if np.any(d <= 0):
                 return np.inf
             e += self.kappa * float(np.dot(self.w[idx] * wf, barrier(d, self.dhat[k])))
@@ -290,7 +316,8 @@ class ObjectContact:
         return e
 
     def derivatives(self, x: np.ndarray, need_hessian: bool = True):
-        """Per-edge gradient (n, 6) and PSD Hessian (n, 6, 6) or None, and edge indices (n,)."""
+        """Per-contact gradient (n, 6), Hessian (n, 6, 6) or None, and edge indices (n,).  The
+        Hessian is the one ``HESSIAN`` names (see ``contact_hessians``)."""
         idx_all, g_all, H_all = [], [], []
         for k, (idx, d, wf, s, n) in enumerate(self.active(x, normals=True)):
             if idx.size == 0:
@@ -301,7 +328,12 @@ class ObjectContact:
             g_all.append(c1[:, None] * J)
             if need_hessian:
                 c2 = self.kappa * self.w[idx] * wf * barrier_d2(d, self.dhat[k])
-                H_all.append(c2[:, None, None] * J[:, :, None] * J[:, None, :])
+                H = c2[:, None, None] * J[:, :, None] * J[:, None, :]
+                if HESSIAN != "gauss_newton":
+                    H = H + c1[:, None, None] * self.distance_hessian(x, k, idx, s)
+                H_all.append(H)
+        if need_hessian and H_all and HESSIAN != "gauss_newton":
+            H_all = self.contact_hessians(np.concatenate(idx_all), np.concatenate(H_all))
         if self._lag is not None:
             idx, g, H = self._friction(x, need_hessian, derivatives=True)
             if idx.size:
@@ -312,6 +344,54 @@ class ObjectContact:
         if not idx_all:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 6)), (np.zeros((0, 6, 6)) if need_hessian else None)
         return (np.concatenate(idx_all), np.concatenate(g_all), np.concatenate(H_all) if need_hessian else None)
+
+    def distance_hessian(self, x: np.ndarray, k: int, idx: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """hess d (n, 6, 6), world frame, of the contacts (edges ``idx``, closest parameters s)
+        against collider k (contact_geometry.edge_distance_hessian; an end-point contact, s = 0
+        or 1, is a vertex's: s fixed)."""
+        gp = self.gaps[k]
+        E = self.E[idx]
+        A, B = gp.body(x[E[:, 0]]), gp.body(x[E[:, 1]])
+        D = B - A
+        nb, Hb = sdf_normal_hessian(self.colliders[k], A + s[:, None] * D)
+        Hd = edge_distance_hessian(Hb, nb, D, s, (s > 0) & (s < 1))
+        R6 = np.kron(np.eye(2), gp.R)
+        return R6 @ Hd @ R6.T
+
+    def contact_hessians(self, idx: np.ndarray, H: np.ndarray) -> list:
+        """The per-contact Hessians kappa w (b'' grad d grad d^T + b' hess d) made safe for the
+        solver: each split by its eigenvalues into a PSD part H+ and an NSD part H- (b' < 0 and hess
+        d is PSD on a convex shape's curved side: H- is the tangential softening of a curved
+        contact, e.g. -lambda / rho (I - n n^T) for a vertex on a sphere).
+
+        ``HESSIAN = "projected"``: H+ only (IPC's projection, Li et al. 2020 sec. 5; for a vertex
+        contact this is the Gauss-Newton term, as the curvature is all tangential and negative).
+        ``HESSIAN = "mass_bounded"``: H+ + gamma_c H-, gamma_c in [0, 1] the largest scale with
+        sum_c gamma_c H-_c >= -MASS_FRACTION M (M the inertia diagonal mass / h^2 of the step,
+        ``vertex_mass``): with |H-_c| <= mu_c on its vertices, L_v = sum of mu_c over the contacts
+        on vertex v and gamma_c = min(1, MASS_FRACTION min_v m_v / L_v).  The total Hessian M + (PSD
+        elastic terms) + sum H+ + sum gamma H- stays >= (1 - MASS_FRACTION) M > 0, so the Newton/SQP
+        step is a descent direction, and where the bound does not bite (gamma = 1) it is the exact
+        Hessian: the iteration converges quadratically instead of linearly at the rate
+        (lambda / rho) / (m / h^2) that dropping the term costs (measured: |dx| halved per iteration
+        on splitting's ball, where lambda / rho ~ m / h^2)."""
+        lam, V = np.linalg.eigh(0.5 * (H + H.transpose(0, 2, 1)))
+        Hp = np.einsum("nij,nj,nkj->nik", V, np.maximum(lam, 0.0), V)
+        if HESSIAN == "projected" or self.vertex_mass is None:
+            return [Hp]
+        Hm = np.einsum("nij,nj,nkj->nik", V, np.minimum(lam, 0.0), V)
+        mu = np.maximum(-lam[:, 0], 0.0)
+        E = self.E[idx]
+        # the vertices an NSD part acts on (a zero block: an end-point contact of the other vertex)
+        on = np.stack([np.abs(Hm[:, :3, :3]).max(axis=(1, 2)) > 0, np.abs(Hm[:, 3:, 3:]).max(axis=(1, 2)) > 0], axis=1)
+        on &= ~self.kinematic[E]
+        L = np.zeros(len(self.kinematic))
+        np.add.at(L, E[on], np.broadcast_to(mu[:, None], on.shape)[on])
+        with np.errstate(over="ignore", divide="ignore"):
+            cap = np.where(on, MASS_FRACTION * self.vertex_mass[E] / np.maximum(L[E], 1e-300), np.inf).min(axis=1)
+        gamma = np.clip(cap, 0.0, 1.0)
+        self.stats.curvature_scale_min = min(self.stats.curvature_scale_min, float(gamma.min(initial=1.0)))
+        return [Hp + gamma[:, None, None] * Hm]
 
     def add_to(self, x: np.ndarray, grad: np.ndarray, ab: np.ndarray | None) -> float:
         """Add the contact gradient to ``grad`` (N,) and its Hessian to the lower band ``ab``
@@ -533,6 +613,11 @@ def begin_contact_step(contact: ObjectContact, objective, x_n: np.ndarray, t0: f
     tried: the 10 m/s ball then carried the struck strands 0.4 m ahead of itself every step, they
     stayed trapped in front of it with 11,000 % strain, and Newton stalled (reports/contact.md)."""
     contact.begin(x_n, t0, t1, dt)
+    md = getattr(objective, "mass_diag", None)
+    if md is not None:
+        vm = np.zeros(len(contact.kinematic))
+        vm[objective.free_vertices] = np.asarray(md, dtype=np.float64).reshape(-1, 3).min(axis=1)
+        contact.vertex_mass = vm
     m = contact.sub_intervals(x_n)
     contact.stats.sub_intervals = m
     x = np.asarray(x_n, dtype=np.float64)
