@@ -300,8 +300,9 @@ class Simulator:
                     volume_dt = getattr(self, "_step_dt", dt)
                 else:
                     hh = None
+            extra = {} if volume_dt is None else {"volume_dt": volume_dt}
             x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_new,
-                                                    state.time, t_next, dt, self.limiter, volume_dt)
+                                                    state.time, t_next, dt, self.limiter, **extra)
             if type(integ) is ImplicitEuler:
                 v_new = v_stage
             else:
