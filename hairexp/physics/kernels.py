@@ -155,6 +155,18 @@ def _add_block(abT, rows, cols, H, p, q, scale):
 
 
 @njit(cache=True, error_model="numpy")
+def _add_diagonal_block(abT, C, K00, K10, K20, K11, K21, K22):
+    """Adds the lower triangle of the symmetric 3x3 block K to the band's diagonal block whose
+    first column is C (transposed band storage: abT[column, row - column])."""
+    abT[C, 0] += K00
+    abT[C, 1] += K10
+    abT[C, 2] += K20
+    abT[C + 1, 0] += K11
+    abT[C + 1, 1] += K21
+    abT[C + 2, 0] += K22
+
+
+@njit(cache=True, error_model="numpy")
 def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
                        b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, off, need_hessian, W):
     """Gradient g_int (rows d0..d1 of the block's DOFs) of the energies and the lower band
@@ -207,21 +219,9 @@ def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0
         K20 = h_scale * (kc * u2 * u0)
         K21 = h_scale * (kc * u2 * u1)
         if sa >= 0:
-            C = 3 * sa - off
-            abT[C, 0] += K00
-            abT[C, 1] += K10
-            abT[C, 2] += K20
-            abT[C + 1, 0] += K11
-            abT[C + 1, 1] += K21
-            abT[C + 2, 0] += K22
+            _add_diagonal_block(abT, 3 * sa - off, K00, K10, K20, K11, K21, K22)
         if sb >= 0:
-            C = 3 * sb - off
-            abT[C, 0] += K00
-            abT[C, 1] += K10
-            abT[C, 2] += K20
-            abT[C + 1, 0] += K11
-            abT[C + 1, 1] += K21
-            abT[C + 2, 0] += K22
+            _add_diagonal_block(abT, 3 * sb - off, K00, K10, K20, K11, K21, K22)
             if sa >= 0:   # abT[C + s, R + r - C - s] -= K[r, s], R = the rows of b, C the columns of a
                 K01 = h_scale * (kc * u0 * u1)
                 K02 = h_scale * (kc * u0 * u2)
