@@ -70,8 +70,8 @@ def test_fast_sweep_does_not_tunnel_through_a_thin_box(monkeypatch):
     calls = []
     original = coll.collision_stage
 
-    def recording(cfg, sc, hh, x0, x1, t0, t1, dt, *rest):
-        out = original(cfg, sc, hh, x0, x1, t0, t1, dt, *rest)
+    def recording(cfg, sc, hh, x0, x1, t0, t1, dt, *rest, **kw):
+        out = original(cfg, sc, hh, x0, x1, t0, t1, dt, *rest, **kw)
         calls.append((x0.copy(), out[0].copy()))
         return out
 

@@ -41,8 +41,6 @@ import numpy as np
 from hairexp.errors import SimulationError
 from hairexp.physics.kernels import njit
 
-#: rho_0: this quantile of the occupied cells' densities in the first state seen (1: the densest)
-REST_DENSITY_QUANTILE = 1.0
 #: The grid is refused above this many cells (the hair spread far apart against a small cell)
 MAX_CELLS = 20_000_000
 
@@ -134,7 +132,7 @@ class HairVolume:
         P = np.zeros((n, 3))
         _splat(i0, f, self.m, np.ascontiguousarray(v, dtype=np.float64), dims, M, P)
         if self.rho0 is None:
-            self.rho0 = float(np.quantile(M[M > 0], REST_DENSITY_QUANTILE)) / self.cell ** 3
+            self.rho0 = float(M.max()) / self.cell ** 3   # the densest cell (module doc)
         inv_m0 = 1.0 / (self.rho0 * self.cell ** 3) if self.rho0 > 0 else 0.0
         vg, pv, gp = np.empty((len(x), 3)), np.empty(len(x)), np.empty((len(x), 3))
         _gather(i0, f, dims, M, P, inv_m0, 1.0 / self.cell, vg, pv, gp)

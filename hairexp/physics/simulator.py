@@ -247,18 +247,19 @@ class Simulator:
         retries the whole step) but the later stages still run, so the state ends at the step's
         time; a stage that diverged (a non-finite state) ends the attempt."""
         stages = getattr(self.integrator, "stages", None)
-        self._step_dt = dt
         if stages is None:
-            return self._stage(state, dt, self.integrator)
+            return self._stage(state, dt, self.integrator, dt)
         infos = []
         for scheme, h in stages(state, dt):
-            state, info = self._stage(state, h, scheme)
+            state, info = self._stage(state, h, scheme, dt)
             infos.append(info)
             if info.status == DIVERGED:    # a non-finite state: the attempt ends here
                 break
         return state, _merge_stages(infos)
 
-    def _stage(self, state: State, dt: float, integ) -> tuple[State, SolveInfo]:
+    def _stage(self, state: State, dt: float, integ, step_dt: float) -> tuple[State, SolveInfo]:
+        """One stage of length dt with the scheme ``integ`` (the whole step for a one-stage
+        scheme), within a step of length ``step_dt``."""
         ctl = self.controller
         t_next = state.time + dt
         # 1. kinematics: the body's poses over the step (a dynamic block moves first, with the
@@ -297,12 +298,11 @@ class Simulator:
                 # the volume's friction and pressure act once per step, after its last stage, over
                 # the whole step (an explicit splitting; hairexp/physics/hair_volume.py)
                 if integ is getattr(self.integrator, "final_stage", integ):
-                    volume_dt = getattr(self, "_step_dt", dt)
+                    volume_dt = step_dt
                 else:
                     hh = None
-            extra = {} if volume_dt is None else {"volume_dt": volume_dt}
             x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_new,
-                                                    state.time, t_next, dt, self.limiter, **extra)
+                                                    state.time, t_next, dt, self.limiter, volume_dt=volume_dt)
             if type(integ) is ImplicitEuler:
                 v_new = v_stage
             else:
