@@ -70,11 +70,9 @@ def run(collision: str, steps: int, overrides=(), observe: bool = False) -> dict
     r = assemble(celia_bench("free", steps, overrides, typed=[head_collider()], collision=collision))
     tm = time_steps(r, steps, WARMUP, observe=touching(r.scene.strands) if observe else None)
     s = tm.summary()
-    if observe:
-        return {"touching_mean": float(tm.column("touching").mean()), "touching_max": int(tm.column("touching").max()),
-                "crossings_total": int(tm.column("crossings").sum()), "median_s": s["median_s"],
-                "collision_share": s["split"]["collision"], "iterations_mean": s["iterations_mean"]}
-    return {"median_s": s["median_s"], "mean_s": s["mean_s"], "collision_share": s["split"]["collision"],
+    seen = ({"touching_mean": float(tm.column("touching").mean()), "touching_max": int(tm.column("touching").max()),
+             "crossings_total": int(tm.column("crossings").sum())} if observe else {})
+    return {**seen, "median_s": s["median_s"], "mean_s": s["mean_s"], "collision_share": s["split"]["collision"],
             "collision_median_s": float(np.median(tm.column("collision"))),
             "object_contacts_mean": float(tm.column("object_contacts").mean()),
             "hair_contacts_mean": float(tm.column("hair_contacts").mean()),
