@@ -422,21 +422,17 @@ class StrainLimit:
         return over
 
 
-def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter: StrainLimit | None = None,
-                    volume_dt: float | None = None):
+def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter: StrainLimit | None = None):
     """Filter (x1, v1) for contacts.  Returns (x1, v1, CollisionInfo).  With ``limiter``, a
     step with object contacts ends with strain limiting (``StrainLimit``).  ``hh``: the edge
-    contacts (``HairHair``) or the volume model (hairexp/physics/hair_volume.py), whose friction
-    and pressure act over ``volume_dt`` (default dt: the whole step of a multi-stage scheme)."""
+    contacts (``HairHair``) or None.  The volume model (``collision.hair_hair_model=volume``,
+    hairexp/physics/hair_volume.py) is not a pass of this stage: it filters the scheme's end
+    velocities and moves no position, so the Simulator applies it (``Simulator._stage``) and
+    these passes see the solve's path."""
     tic = time.perf_counter()
     info = CollisionInfo()
     movable = ~scene.strands.kinematic
     v1 = (x1 - x0) / dt
-    volume = hh is not None and not isinstance(hh, HairHair)
-    if volume:   # collision.hair_hair_model=volume (hairexp/physics/hair_volume.py): once, before the passes
-        v1, info.hair_contacts = hh.apply(x1, v1, dt if volume_dt is None else volume_dt)
-        x1 = np.where(movable[:, None], x0 + dt * v1, x1)
-        hh = None
     for p in range(max(1, cfg.max_passes)):
         n_obj = n_hh = 0
         if hh is not None:

@@ -89,6 +89,30 @@ itself works, as under implicit Euler, on the path x_n -> x_{n+1} and its veloci
 an untouched one keeps the scheme's (touched: moved by > 1e-12 m or its velocity changed by
 > 1e-9 m/s, ``TOUCH_TOL_*`` in hairexp/physics/simulator.py).
 
+Velocity filters (``after_velocity_filter``; the hair volume, hairexp/physics/hair_volume.py,
+after Petrovic et al. 2005, who filter the grid-smoothed velocities and let the next implicit
+solve carry the change into positions): after the last stage of a step the filter changes the
+scheme's end velocity v_{n+1} by dv and moves no position.  It is an impulse at t_{n+1} (an
+operator split), and each scheme carries it into the next step as it would the start of a motion
+that had had the filtered velocity all along:
+
+- implicit Euler: x_pred = x_{n+1} + dt (v_{n+1} + dv), nothing else is carried;
+- BDF2: v_n += dv (as after a collision: the recursion keeps the acceleration memory and does
+  not re-inject -dv) and x_n -= dt_n dv (the positions' backward difference then also sees
+  v_{n+1} + dv: x_ref = a0 x_{n+1} - a1 x_n gains a1 dt_n dv, and x_pred = x_ref + beta (a0 v_{n+1} -
+  a1 v_n) gains exactly dt dv in total, as under implicit Euler.  With x_n kept, a free vertex
+  would move beta dv = 2/3 dt dv the next step and lag dt dv / 2 behind in the end);
+- TR-BDF2: the next trapezoidal stage starts from v_0 = v_{n+1} + dv (x_pred gains gamma dt dv)
+  and keeps a_0 = the BDF2 stage's end acceleration.  a_0 is M^-1 F at x_{n+1} (elastic,
+  gravity, tracking constraint forces), which the filter does not change since it moves no
+  position; the filter is not a force of the model, and adding dv / dt to a_0 would apply it a
+  second time through tau^2 a_0.  Only the dissipation in a_0 (edge damping, air drag) was
+  evaluated at the unfiltered velocity: the stage's explicit half keeps that, its implicit half
+  sees the filtered motion.  No restart either: the restart is for positions a collision moved
+  (stretch forces far from the smooth motion); a velocity-only change leaves the state's
+  positions and forces smooth (reports/bench_collisions.md: the volume's Newton iterations);
+- generalized-alpha keeps its a_{n+1} (as after a collision).
+
 The settle phase (hairexp/physics/settle.py) always uses implicit Euler: it exists to reach
 the equilibrium under gravity, which implicit Euler's damping reaches fastest, and runs with
 different integrators then start from the same state.
@@ -165,6 +189,11 @@ class ImplicitEuler:
     def after_collision(self, state, history, dx, dv, touched):
         return history
 
+    def after_velocity_filter(self, state, history, dv):
+        """A velocity filter (the hair volume) changed the end velocities by dv (V, 3) and moved
+        no position (module doc, "Velocity filters"): nothing is carried here."""
+        return history
+
 
 def bdf2_coefficients(w: float) -> tuple[float, float, float]:
     """(a0, a1, beta/dt) of variable-step BDF2 for the step ratio w = dt_n / dt_{n-1}."""
@@ -193,6 +222,12 @@ class BDF2(ImplicitEuler):
         if history is None or not touched.any():
             return history
         return replace(history, x=history.x + dx, v=history.v + dv)
+
+    def after_velocity_filter(self, state, history, dv):
+        """v_n += dv, x_n -= dt_n dv (module doc, "Velocity filters")."""
+        if history is None or history.x is None:
+            return history
+        return replace(history, x=history.x - history.dt * dv, v=history.v + dv)
 
 
 class GeneralizedAlpha(ImplicitEuler):
@@ -257,6 +292,7 @@ class Trapezoidal(ImplicitEuler):
         return History(x=state.x, v=state.v, dt=dt)
 
     after_collision = BDF2.after_collision
+    after_velocity_filter = BDF2.after_velocity_filter
 
 
 class _StageEuler(ImplicitEuler):
@@ -265,6 +301,7 @@ class _StageEuler(ImplicitEuler):
 
     history = Trapezoidal.history
     after_collision = BDF2.after_collision
+    after_velocity_filter = BDF2.after_velocity_filter
 
 
 class _StageBDF2(BDF2):
@@ -280,6 +317,11 @@ class _StageBDF2(BDF2):
 
     def after_collision(self, state, history, dx, dv, touched):
         return History(restart=True) if touched.any() else history
+
+    def after_velocity_filter(self, state, history, dv):
+        """The end acceleration stays the next trapezoidal stage's a_0, and no restart (module
+        doc, "Velocity filters")."""
+        return history
 
 
 class TRBDF2:

@@ -37,7 +37,7 @@ from hairexp import tune_runtime
 from hairexp.errors import InputError, SimulationError
 from hairexp.model.scene import Scene
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact
-from hairexp.physics.collisions import CollisionInfo, HairHair, StrainLimit, collision_stage
+from hairexp.physics.collisions import CollisionInfo, HairHair, StrainLimit, collision_stage, contact_velocities
 from hairexp.physics.controller import Controller
 from hairexp.physics.hair_volume import HairVolume
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
@@ -293,28 +293,49 @@ class Simulator:
         elif ctl.simulates and (self.collide_objects or self.hair_hair is not None):
             sc = self.scene if self.collide_objects else _NoColliders(self.scene)
             x_solve = x_new
-            hh, volume_dt = self.hair_hair, None
+            hh, volume = self.hair_hair, None
             if isinstance(hh, HairVolume):
-                # the volume's friction and pressure act once per step, after its last stage, over
-                # the whole step (an explicit splitting; hairexp/physics/hair_volume.py)
+                # the volume is a velocity filter (hairexp/physics/hair_volume.py): once per step,
+                # after its last stage, over the whole step, on the scheme's end velocity at the
+                # solve's positions; it moves no position, so the object contacts below see the
+                # solve's path, as without it
+                hh = None
                 if integ is getattr(self.integrator, "final_stage", integ):
-                    volume_dt = step_dt
+                    volume = self.hair_hair
+            if volume is not None:
+                tic = time.perf_counter()
+                v_filtered, pressed = volume.apply(x_solve, v_new, step_dt)
+                dv_volume = v_filtered - v_new
+                t_volume = time.perf_counter() - tic
+            if self.collide_objects or hh is not None:
+                x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_new,
+                                                        state.time, t_next, dt, self.limiter)
+                if type(integ) is ImplicitEuler:
+                    v_new = v_stage
                 else:
-                    hh = None
-            x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_new,
-                                                    state.time, t_next, dt, self.limiter, volume_dt=volume_dt)
-            if type(integ) is ImplicitEuler:
-                v_new = v_stage
+                    # the stage filters the path velocity (x_solve - x_n)/dt; the vertices it touched
+                    # take its velocity, the others keep the integrator's
+                    dx = x_new - x_solve
+                    touched = (np.any(np.abs(dx) > TOUCH_TOL_X, axis=1)
+                               | np.any(np.abs(v_stage - (x_solve - state.x) / dt) > TOUCH_TOL_V, axis=1))
+                    dx = np.where(touched[:, None], dx, 0.0)
+                    dv = np.where(touched[:, None], v_stage - v_new, 0.0)
+                    v_new = v_new + dv
+                    history = integ.after_collision(state, history, dx, dv, touched)
             else:
-                # the stage filters the path velocity (x_solve - x_n)/dt; the vertices it touched
-                # take its velocity, the others keep the integrator's
-                dx = x_new - x_solve
-                touched = (np.any(np.abs(dx) > TOUCH_TOL_X, axis=1)
-                           | np.any(np.abs(v_stage - (x_solve - state.x) / dt) > TOUCH_TOL_V, axis=1))
-                dx = np.where(touched[:, None], dx, 0.0)
-                dv = np.where(touched[:, None], v_stage - v_new, 0.0)
-                v_new = v_new + dv
-                history = integ.after_collision(state, history, dx, dv, touched)
+                cinfo = CollisionInfo()
+            if volume is not None:
+                # the filter's change on top of the contact response; a vertex on a collider's shell
+                # is then filtered by the inelastic contact again (no approaching normal velocity,
+                # Coulomb friction), so the filter never drives hair into a collider
+                tic = time.perf_counter()
+                v_end = v_new + dv_volume
+                if sc.colliders:
+                    v_end = contact_velocities(sc.colliders, x_new, v_end, t_next, ~self.scene.strands.kinematic)
+                history = integ.after_velocity_filter(state, history, v_end - v_new)
+                v_new = v_end
+                cinfo.hair_contacts += pressed
+                cinfo.seconds += t_volume + time.perf_counter() - tic
             info.seconds["collision"] = info.seconds.get("collision", 0.0) + cinfo.seconds
             if self.contact is not None:   # object contact was the barrier's: its figures
                 bc = contact_collision_info(self.contact, x_new, CollisionInfo)
