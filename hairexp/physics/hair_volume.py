@@ -6,8 +6,11 @@ contacts of ``collisions.HairHair`` where their cost is too high: a production g
 interaction as friction and pressure of the hair volume, O(vertices) per step, with no edge
 pairs.
 
-After the solve (in the collision stage, where the edge contacts act), with the step's end
-positions x and velocities v of every vertex, kinematic roots included:
+A velocity filter (Petrovic et al. 2005, sec. 3.2: the hair's velocities are filtered on the
+grid and the next implicit solve carries the change into the positions): once per step, after
+the solve of its last stage (``Simulator._stage``) and before the object contacts, with the
+solve's end positions x and the scheme's end velocities v of every vertex, kinematic roots
+included:
 
 1. splat mass and momentum onto a regular grid of cell size ``cell`` with trilinear weights
    w_ic (sum_c w_ic = 1): M_c = sum_i w_ic m_i, P_c = sum_i w_ic m_i v_i; the grid velocity
@@ -26,10 +29,21 @@ positions x and velocities v of every vertex, kinematic roots included:
    dt < 0.1 s), and no vertex takes more than cell / dt from the pressure in one step (hair
    crushed far past rho_0 spreads over several steps).
 
-The positions then follow the velocities (x = x_n + dt v, as the edge contacts do).  What is
-lost against the edge contacts: strands can pass through each other (there is no edge-edge
-collision at all), and contact below the cell size is not resolved; what is gained: cost linear
-in the vertices, no broad phase.  reports/bench_collisions.md measures both.
+Only the velocities change (v_{n+1} += dv); the positions the solve produced stay, so every edge
+keeps the length the solve gave it.  The object contacts then act on the solve's path as without
+the volume; a vertex they touched takes their velocity plus dv, and a vertex on a collider's shell
+is filtered by the inelastic contact again (``collisions.contact_velocities``).  The integrator
+carries dv into the next step as an impulse at t_{n+1} (``after_velocity_filter``,
+hairexp/physics/integrators.py, "Velocity filters": BDF2 shifts its history, TR-BDF2 keeps its
+a_0 and does not restart), so the next solve moves each free vertex by about dt dv more, under
+its stretch and bending forces.  (Until 2026-12-02 the positions followed the filtered velocities
+vertex by vertex, x = x_n + dt v, as the edge contacts' impulses do: that ignored the edges
+and stretched the strands, max strain 2.5 % on celia_smoke free against 0.03 % without hair-hair,
+and it made TR-BDF2 restart with implicit Euler after every step.)
+
+What is lost against the edge contacts: strands can pass through each other (there is no
+edge-edge collision at all), and contact below the cell size is not resolved; what is gained:
+cost linear in the vertices, no broad phase.  reports/bench_collisions.md measures both.
 """
 
 from __future__ import annotations

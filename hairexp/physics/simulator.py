@@ -16,7 +16,9 @@ the default TR-BDF2, runs phases 1-4 once per stage, ``Simulator._attempt``):
 4. collision stage: hair against the colliders and itself, after the solve (paper 3.4;
    hairexp/physics/collisions.py), only when the scene has something to collide; the vertices
    it moved or whose velocity it changed take its positions and velocities, and the
-   integrator adjusts its history to them (``after_collision``);
+   integrator adjusts its history to them (``after_collision``).  The hair volume
+   (``collision.hair_hair_model=volume``) is a velocity filter before the object contacts, after
+   a step's last stage: it changes the end velocities only (``after_velocity_filter``);
 5. recovery (``_advance``): a step that diverged or did not converge is retried as two half
    steps from the same State (``solver.on_failure=substep``, recursively), kept and flagged
    (``warn``), or stops the run (``fail``).  A non-finite state is never returned.
