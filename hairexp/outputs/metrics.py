@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hairexp.memory import use_system_arrow_pool
+from hairexp.memory import release, use_system_arrow_pool
 from hairexp.outputs.files import atomic_write_bytes
 from hairexp.physics.info import StepInfo
 from hairexp.model.scene import Scene
@@ -149,6 +149,7 @@ class MetricsTable:
                     if rows >= ROW_GROUP_ROWS or k == len(self.parts) - 1:   # few, large row groups
                         w.write_table(pa.concat_tables(group).combine_chunks())
                         group, rows = [], 0
+                        release()   # the parts read for this group: their freed blocks back to the system
 
         atomic_write_bytes(path, write)
         return MetricColumns(path)
