@@ -8,7 +8,7 @@ import copy
 
 import numpy as np
 
-from hairexp.errors import InputError, SimulationError
+from hairexp.errors import InputError, SimulationError, check_extent
 from hairexp.guides.animation import GuideAnimation, carried_guides, file_guides, rest_guides
 from hairexp.guides.authoring import apply_edits, keyframed_positions
 from hairexp.guides.store import FrameStore
@@ -27,7 +27,17 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     source = str(getattr(g.source, "value", g.source))
     motion = authoring_motion(scene.motion)   # a dynamic body: its initial pose held still
     if source == "file":
-        return file_guides(g.file, scene.motion, frames, fps)
+        check_guide_file(g.file)
+        try:
+            anim = file_guides(g.file, scene.motion, frames, fps)
+        except InputError as exc:   # the file's own errors name the path: say which key it is
+            where = exc.where or ""
+            if where.startswith(str(g.file)) and not where.startswith("guides.file="):
+                raise InputError(str(exc)[len(where) + 2:], f"guides.file={where}") from exc
+            raise
+        for f, X in enumerate(anim.frames):   # one frame at a time (a FrameStore)
+            check_extent(X, f"guides.file={g.file}", np.diff(anim.offsets), frame=f)
+        return anim
     if source == "usd":  # the guide prim of the stage scene.usd
         from hairexp.io.usd_read import read_guides   # pxr is imported only for USD scenes
 
@@ -41,6 +51,36 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
         return GuideAnimation(pos, offsets, fps, where="guides.keyframes", motion=scene.motion)
     pos = carried_guides(g, body, offsets, motion, frames, fps, scaled=source == "scaled")
     return GuideAnimation(pos, offsets, fps, motion=scene.motion)
+
+
+#: dtype kinds of a guide npz's arrays (numpy's ``dtype.kind``): real numbers, integer offsets
+GUIDE_FILE_KINDS = {"guide_positions": ("f", "floating-point numbers (float64, m)"),
+                    "guide_offsets": ("iuf", "integers"), "fps": ("iuf", "a real number (frames per second)")}
+
+
+def check_guide_file(path) -> None:
+    """The dtypes of a guide npz's arrays, read from their headers (no data is loaded): complex
+    positions would lose their imaginary part without an error, strings or booleans would be read
+    as numbers, and integer positions are not metres (millimetres or a grid's indices).  A file that cannot be read this way is left to ``file_guides``, which names it."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            headers = {}
+            for name in GUIDE_FILE_KINDS:
+                if f"{name}.npy" not in z.namelist():
+                    continue
+                with z.open(f"{name}.npy") as f:
+                    version = np.lib.format.read_magic(f)
+                    read = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                        np.lib.format.read_array_header_2_0
+                    headers[name] = read(f)[2]
+    except Exception:  # noqa: BLE001  (not a zip, a bad header: file_guides says what the file is)
+        return
+    for name, dtype in headers.items():
+        kinds, what = GUIDE_FILE_KINDS[name]
+        if dtype.kind not in kinds:
+            raise InputError(f"{name} has dtype {dtype}, expected {what}", f"guides.file={path}")
 
 
 def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: int, fps: float) -> GuideAnimation:

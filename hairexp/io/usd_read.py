@@ -22,7 +22,7 @@ import numpy as np
 from omegaconf import OmegaConf
 from pxr import Usd, UsdGeom
 
-from hairexp.errors import InputError, regular_file
+from hairexp.errors import InputError, check_extent, regular_file
 from hairexp.io.usd_colliders import read_colliders
 from hairexp.io.usd_layout import read_motion, time_label
 from hairexp.guides.animation import GuideAnimation
@@ -121,6 +121,7 @@ def build_usd_scene(cfg):
     tc = rest_time(UsdGeom.BasisCurves(hair).GetPointsAttr())
     pts, counts = read_curves(hair, tc, where)
     validate_polylines(pts, counts, where, min_vertices=N_ROOT_VERTICES + 1)  # before any transform
+    check_extent(pts, where, counts)
     # hair space -> body space at the rest time (identity for hair authored under the body)
     t0 = Usd.TimeCode(0) if tc.IsDefault() else tc
     rel = (UsdGeom.Xformable(hair).ComputeLocalToWorldTransform(t0)
@@ -174,6 +175,7 @@ def read_guides(cfg, scene, frames: int, fps: float):
             raise InputError(f"time code {f} has {len(pts)} points, time code 0 has {n0}: the guide topology "
                              "must stay the same in every frame", where)
         validate_polylines(pts, counts, f"{where} frame {f}", min_vertices=2)
+        check_extent(pts, where, counts, frame=f)
         X = apply(pts, xf.ComputeLocalToWorldTransform(Usd.TimeCode(f)))
         if frames_pos is None:
             frames_pos = FrameStore(X.shape)
