@@ -256,6 +256,38 @@ def _static_part(path: str) -> str | None:
     return static[:static.rindex("/") + 1] if "/" in static else "."
 
 
+#: Hydra's command-line flags that take the next argument as their value
+_FLAGS_WITH_VALUE = ("--cfg", "-c", "--package", "-p", "--config-path", "-cp", "--config-name", "-cn",
+                     "--config-dir", "-cd", "--info", "-i", "--experimental-rerun")
+
+
+def override_syntax_error(argv: list[str]) -> str | None:
+    """The error line for a ``key=value`` argument that Hydra's override grammar cannot parse (a
+    value with non-ASCII characters or an unbalanced bracket, unquoted), or for an empty run folder
+    (``hydra.run.dir=`` would write the run into the working folder), or None.  Every override is
+    checked, Hydra's own keys and sweeps included: Hydra would print its multi-line message and
+    exit 1 (for hydra.* keys and ``-m``), before any of hairexp's checks."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    for i, arg in enumerate(argv):
+        if arg.startswith("-") or "=" not in arg or (i and argv[i - 1] in _FLAGS_WITH_VALUE):
+            continue
+        try:
+            o = parser.parse_override(arg)
+        except Exception as exc:  # noqa: BLE001  (Hydra's grammar errors)
+            why = " ".join(str(exc).split()).split(" See https://")[0]
+            why = re.sub(r"^.*?Exception: \S.*?\^ ", "", why)
+            key = arg.split("=", 1)[0]
+            return (f"hairexp: error: {arg}: not a valid override ({why}); quote a value with spaces, "
+                    f"non-ASCII characters or brackets: {key}='...' (in the shell: \"{key}='...'\")")
+        if o.key_or_group in ("hydra.run.dir", "hydra.sweep.dir") and not o.is_sweep_override() and \
+                str(o.value() if o.value() is not None else "").strip() == "":
+            return (f"hairexp: error: {o.key_or_group}: is empty; give the run folder's path "
+                    "(an empty one would put the run's files in the working folder)")
+    return None
+
+
 def run_dir_error(argv: list[str]) -> str | None:
     """The error line for a run folder that cannot be written, or None: the command line's
     ``hydra.run.dir`` (with ``-m``: ``hydra.sweep.dir``), or when none is given the default of
@@ -358,7 +390,12 @@ def config_error(argv: list[str]) -> str | None:
     """The one-line error of a single run's command line whose config cannot be composed (a key
     not in the schema, a wrong type, an unknown choice), or None.  The config is composed here
     first, as ``compose_config`` does, so that such input exits 2 like any bad value instead of
-    Hydra's exit 1; sweeps (``-m``, comma lists) and Hydra's own flags and keys are left to Hydra."""
+    Hydra's exit 1; sweeps (``-m``, comma lists) and Hydra's own flags and keys are left to Hydra,
+    except for an override Hydra's grammar cannot parse or an empty run folder
+    (``override_syntax_error``: checked in every command line)."""
+    bad = override_syntax_error(argv)
+    if bad is not None:
+        return bad
     if any(a.startswith("-") for a in argv):
         return None
     overrides = [a for a in argv if not (a.startswith("hydra.") or a.startswith("hydra/") or a.startswith("+hydra")
