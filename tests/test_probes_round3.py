@@ -16,7 +16,8 @@ input:
 4. run folders and the command line: an override Hydra's grammar cannot parse (a non-ASCII path,
    unquoted) is one line and exit 2, for ``hydra.*`` keys and sweeps too (Hydra's multi-line
    message, exit 1); an empty ``hydra.run.dir`` is refused (the run was written into the working
-   folder, exit 0).
+   folder, exit 0); a ``-m`` sweep with a job whose config cannot be composed (a wrong type, an
+   unknown key or choice) is one line naming the job's values, exit 2 (Hydra: exit 1, multi-line).
 5. ``python -m hairexp.io.export_scene --help`` prints its help (exit 0; it was exit 1), and no
    arguments is a usage error, exit 2.
 6. experiments/ scripts: counts and step lengths given as plain ints/floats are checked
@@ -198,6 +199,32 @@ def test_unparsable_overrides_are_one_line(argv, needle):
 def test_parsable_overrides_pass():
     assert cli.override_syntax_error(["scene.usd='/tmp/scène a.usda'", "--cfg", "job", "-m", "solver.dt=0.04,0.02",
                                       "hydra.run.dir=/tmp/x/${now:%H}"]) is None
+
+
+@pytest.mark.parametrize("sweep, needle", [
+    (["solver.dt=0.04,abc"], "sweep job [solver.dt=abc]: Error merging override solver.dt=abc"),
+    (["solver.dtt=1,2"], "sweep job [solver.dtt=1]: solver.dtt: unknown key, not in the schema"),
+    (["solver.rtol=1e-5,1e-6", "tracking.kkt=schur,lu"], "sweep job [solver.rtol=1e-05 tracking.kkt=lu]: Error merging override tracking.kkt=lu"),
+])
+def test_sweep_composition_errors_are_one_line(sweep, needle):
+    """A -m sweep whose job cannot be composed: Hydra stopped the whole sweep with its multi-line
+    message, exit 1; now one line naming the job's swept values, exit 2 (entry's config_error)."""
+    msg = cli.config_error(["-m", *SMALL, *sweep])
+    assert msg is not None and msg.startswith("hairexp: error: ") and "\n" not in msg, msg
+    assert needle in msg, msg
+
+
+@pytest.mark.parametrize("sweep", [["solver.dt=0.04,-1"], ["logging.progress=true,2"], ["solver.rtol=1e-5,1e-6"],
+                                   ["experiment=goaling_smoke,spreading_smoke"]])
+def test_sweep_values_checked_by_the_jobs_pass(sweep):
+    """Values hairexp checks (a range, a boolean) stay each job's error: the other jobs run."""
+    assert cli.config_error(["-m", *SMALL, *sweep]) is None
+
+
+def test_unknown_experiment_in_a_sweep_is_short():
+    msg = cli.config_error(["-m", "experiment=goaling_smoke,goalng", "variants=[]"])
+    assert "sweep job [experiment=goalng]" in msg and "Could not find 'experiment/goalng'" in msg, msg
+    assert "search path" not in msg
 
 
 def run_cli(args, cwd, timeout=120):
