@@ -139,6 +139,29 @@ def test_usd_colliders_path_set_but_missing(stage):
     assert len(build_scene(usd_cfg(stage).scene).colliders) == 1   # the default path: as before
 
 
+def test_usd_cubic_hair_is_warned_about(stage, caplog):
+    """A cubic (bezier) hair prim is read as its control points: said, not silent."""
+    import logging
+
+    from usd_helpers import edit_stage, usd_cfg
+    from pxr import UsdGeom
+
+    from hairexp.app.builders import build_scene
+
+    def cubic(st):
+        c = UsdGeom.BasisCurves.Get(st, "/Root/Body/Hair")
+        c.GetTypeAttr().Set("cubic")
+        c.GetBasisAttr().Set("bezier")
+
+    with caplog.at_level(logging.WARNING, logger="hairexp.io.usd_read"):
+        build_scene(usd_cfg(stage).scene)
+    assert not any("type is" in r.getMessage() for r in caplog.records)   # linear: no warning
+    edit_stage(stage, cubic)
+    with caplog.at_level(logging.WARNING, logger="hairexp.io.usd_read"):
+        build_scene(usd_cfg(stage).scene)
+    assert any(f"{stage}:/Root/Body/Hair: type is cubic (basis bezier)" in r.getMessage() for r in caplog.records)
+
+
 # 3. guide files
 
 @pytest.fixture(scope="module")

@@ -14,6 +14,7 @@ error is an ``InputError`` whose ``where`` is ``scene.usd=<file>:<prim>``.
 from __future__ import annotations
 
 import copy
+import logging
 import math
 import re
 from pathlib import Path
@@ -32,6 +33,8 @@ from hairexp.model.scene import Scene
 from hairexp.model.strands import N_ROOT_VERTICES, Strands, validate_polylines
 
 _open: dict = {}   # path -> stage of the last read (reloaded when the file changes)
+_warned: set = set()   # the prims whose cubic type was warned about
+log = logging.getLogger(__name__)
 
 
 def _message(exc: Exception) -> str:
@@ -80,10 +83,17 @@ def get_prim(stage, path: str, where: str, what: str, key: str, schema=None) -> 
 
 
 def read_curves(prim, tc, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """(points (V, 3) float64 in the prim's space, counts (S,)) of a BasisCurves at ``tc``."""
+    """(points (V, 3) float64 in the prim's space, counts (S,)) of a BasisCurves at ``tc``.  A
+    ``cubic`` curve is read as its control polygon, with a warning (once per prim and file)."""
     curves = UsdGeom.BasisCurves(prim)
     if curves.GetWrapAttr().Get() not in (None, UsdGeom.Tokens.nonperiodic):
         raise InputError(f"wrap is {curves.GetWrapAttr().Get()}; hair curves are open (nonperiodic)", where)
+    kind = curves.GetTypeAttr().Get()
+    if kind not in (None, UsdGeom.Tokens.linear) and where not in _warned:
+        _warned.add(where)
+        log.warning("%s: type is %s (basis %s): hairexp simulates the points as the vertices of a polyline, not as "
+                    "the curve they control; author type = \"linear\" so that viewers draw what is simulated",
+                    where, kind, curves.GetBasisAttr().Get())
     pts, counts = curves.GetPointsAttr().Get(tc), curves.GetCurveVertexCountsAttr().Get(tc)
     if pts is None or len(pts) == 0:
         raise InputError(f"has no points at {time_label(tc)}", where)
