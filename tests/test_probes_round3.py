@@ -278,3 +278,41 @@ def test_export_scene_help_and_usage(capsys):
     assert "usage:" in err and "hairexp: error: the path of the stage to write is required" in err
     assert main(["--bogus"]) == 2
     assert "unknown option --bogus" in capsys.readouterr().err
+
+
+# 6. experiments/ scripts: bad arguments are usage errors before anything runs
+
+@pytest.mark.parametrize("module, argv, needle", [
+    ("contact", ["--frames", "-5"], "argument --frames: '-5' is not a positive integer"),
+    ("contact", ["--runs", "nope"], "argument --runs: invalid choice: 'nope'"),
+    ("contact", ["--modes", "nope"], "argument --modes: invalid choice: 'nope'"),
+    ("contact", ["--set", "solver.dtt=1"], "--set solver.dtt=1: Could not override 'solver.dtt'"),
+    ("fidelity", ["--vertices", "-4"], "argument --vertices: '-4' is not an integer >= 3"),
+    ("fidelity_static", ["--vertices", "2"], "argument --vertices: '2' is not an integer >= 3"),
+    ("integrators", ["--dts", "-0.01"], "argument --dts: '-0.01' is not a positive number"),
+    ("integrators", ["--reps", "0"], "argument --reps: '0' is not a positive integer"),
+    ("integrators", ["--cost-integrators", "rk4"], "argument --cost-integrators: invalid choice: 'rk4'"),
+    ("stress", ["--set", "solver.dt=abc", "--no-report"], "--set solver.dt=abc: Error merging override"),
+    ("accuracy", ["--set", "solver.dt=-1"], "--set solver.dt=-1: solver.dt: must be a finite number > 0"),
+    ("assignment", ["goaling_smoke", "--set", "solver.max_iterations=0"], "solver.max_iterations: must be >= 1"),
+])
+def test_experiment_scripts_refuse_bad_arguments(module, argv, needle, capsys):
+    import importlib
+
+    main = importlib.import_module(f"experiments.{module}").main
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err, err
+
+
+def test_traced_run_help_does_not_run(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run([sys.executable, "-m", "experiments.traced_run", "--help"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and "usage: python -m experiments.traced_run OUT.json" in proc.stdout, proc.stderr
+    assert list(tmp_path.iterdir()) == []
+    proc = subprocess.run([sys.executable, "-m", "experiments.traced_run", str(tmp_path / "no" / "x.json")],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "cannot be written" in proc.stderr, proc.stderr
