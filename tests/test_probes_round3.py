@@ -316,3 +316,33 @@ def test_traced_run_help_does_not_run(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "experiments.traced_run", str(tmp_path / "no" / "x.json")],
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "cannot be written" in proc.stderr, proc.stderr
+
+
+# 7. interruption while the command line starts (imports take seconds)
+
+@pytest.mark.parametrize("sig, code", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_a_signal_while_starting_is_one_line(sig, code):
+    """Before the command line's own handlers (InterruptSignals) are in place, SIGINT ended with
+    Python's traceback from the import it landed in, SIGTERM without a word: now one line and
+    128 + signal.  The handlers are installed only for ``python -m hairexp`` (``is_command_line``)."""
+    import signal as signals
+
+    code_lines = ("import sys, time; sys.argv = ['/x/hairexp/__main__.py']\n"
+                  "import hairexp.app\n"
+                  "print('ready', flush=True); time.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code_lines], env=dict(os.environ, PYTHONPATH=str(REPO)),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    proc.send_signal(getattr(signals, sig))
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == code, err
+    assert err.strip() == f"hairexp: interrupted by {sig} while starting; nothing was run or written", err
+
+
+def test_startup_handlers_only_for_the_command_line():
+    from hairexp.app import startup
+
+    assert not startup.is_command_line()   # pytest: importing hairexp.app leaves the signals alone
+    import signal as signals
+
+    assert signals.getsignal(signals.SIGTERM) is not startup._handler
