@@ -8,7 +8,7 @@ import copy
 
 import numpy as np
 
-from hairexp.errors import InputError, SimulationError, check_extent
+from hairexp.errors import InputError, SimulationError, check_extent, regular_file
 from hairexp.guides.animation import GuideAnimation, carried_guides, file_guides, rest_guides
 from hairexp.guides.authoring import apply_edits, keyframed_positions
 from hairexp.guides.store import FrameStore
@@ -64,6 +64,7 @@ def check_guide_file(path) -> None:
     as numbers, and integer positions are not metres (millimetres or a grid's indices).  A file that cannot be read this way is left to ``file_guides``, which names it."""
     import zipfile
 
+    regular_file(path, f"guides.file={path}", "guide npz")   # a FIFO would block the zip reader
     try:
         with zipfile.ZipFile(path) as z:
             headers = {}
