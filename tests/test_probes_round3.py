@@ -346,3 +346,26 @@ def test_startup_handlers_only_for_the_command_line():
     import signal as signals
 
     assert signals.getsignal(signals.SIGTERM) is not startup._handler
+
+
+@pytest.mark.parametrize("module, argv, needle", [
+    ("scene_pictures", ["/nonexistent", "/tmp/x.png"], "/nonexistent: not a run folder (no summary.json)"),
+    ("integrator_verdicts", ["/nonexistent.json"], "/nonexistent.json: cannot read the report"),
+    ("bench_scale", ["--one", "abc", "free"], "argument --one STRANDS: 'abc' is not a positive integer"),
+])
+def test_report_scripts_refuse_bad_inputs(module, argv, needle, capsys):
+    import importlib
+
+    with pytest.raises(SystemExit) as exc:
+        importlib.import_module(f"experiments.{module}").main(argv)
+    assert exc.value.code == 2
+    assert needle in capsys.readouterr().err
+
+
+def test_compare_runs_of_empty_folders_is_an_error(tmp_path, monkeypatch, capsys):
+    from experiments import compare_runs
+
+    (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
+    monkeypatch.setattr(sys, "argv", ["compare_runs", str(tmp_path / "a"), str(tmp_path / "b")])
+    assert compare_runs.main() == 2
+    assert "no run files to compare" in capsys.readouterr().err
