@@ -9,7 +9,8 @@ input:
    are checked all the same; ``tracking.points_per_guide`` is bounded (1e7 grew a 14 GB table).
 2. USD: a point more than 10 km from the origin is a unit error naming the prim, curve and vertex
    (1e30 m ended in a "diverged" simulation failure); ``scene.usd_colliders`` set to a path with no
-   prim is an error (it ran the scene without colliders, exit 0).
+   prim is an error (it ran the scene without colliders, exit 0); a cubic hair prim and guides far
+   from the hair are warned about (both ran without a word).
 3. guide files: positions that are complex, integer or strings are refused by dtype (complex ones
    lost their imaginary part with exit 0, strings gave a traceback); every error of the file names
    ``guides.file=``; a far point is a unit error (1e30 m: a LinAlgError traceback).
@@ -160,6 +161,27 @@ def test_usd_cubic_hair_is_warned_about(stage, caplog):
     with caplog.at_level(logging.WARNING, logger="hairexp.io.usd_read"):
         build_scene(usd_cfg(stage).scene)
     assert any(f"{stage}:/Root/Body/Hair: type is cubic (basis bezier)" in r.getMessage() for r in caplog.records)
+
+
+def test_guides_far_from_the_hair_are_warned_about(stage, caplog):
+    """Guides 100 m from the hair (another space or unit) ran without a word; now a warning."""
+    import logging
+
+    from usd_helpers import edit_stage, usd_cfg, vec3f
+    from pxr import UsdGeom
+
+    def shift(st):
+        attr = UsdGeom.BasisCurves.Get(st, "/Root/Guides").GetPointsAttr()
+        for t in attr.GetTimeSamples():
+            attr.Set(vec3f(np.asarray(attr.Get(t), dtype=np.float64) + [100.0, 0.0, 0.0]), t)
+
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        assemble_scene(usd_cfg(stage), settle=False)
+    assert not any("from the nearest hair root" in r.getMessage() for r in caplog.records)
+    edit_stage(stage, shift)
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        assemble_scene(usd_cfg(stage), settle=False)
+    assert any("guides: guide 0's root is 100 m from the nearest hair root" in r.getMessage() for r in caplog.records)
 
 
 # 3. guide files

@@ -130,7 +130,29 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     (``authoring.apply_edits``; paper 4: the artist edits a coarse best-guess guide simulation by
     keyframing; ``source=keyframed`` keys the guides directly)."""
     anim = source_guides(cfg, scene, frames, fps)
-    if not cfg.guides.edits:
-        return anim
-    pos = apply_edits(anim.frames, anim.offsets, anim.fps, authoring_motion(scene.motion), cfg.guides.edits)
-    return GuideAnimation(pos, anim.offsets, anim.fps, where="guides.edits", motion=scene.motion)
+    if cfg.guides.edits:
+        pos = apply_edits(anim.frames, anim.offsets, anim.fps, authoring_motion(scene.motion), cfg.guides.edits)
+        anim = GuideAnimation(pos, anim.offsets, anim.fps, where="guides.edits", motion=scene.motion)
+    if str(getattr(cfg.controller.name, "value", cfg.controller.name)) != "free":
+        warn_far_guides(scene, anim)
+    return anim
+
+
+def warn_far_guides(scene, anim) -> None:
+    """A warning when a guide's root at frame 0 is farther from every hair root than the hair is
+    long: the guides are likely in another space or unit than the hair (a guide file or stage made
+    for another scene).  The run goes on (tracking.max_guide_distance > 0 makes it an error)."""
+    import logging
+
+    s = scene.strands
+    hair_roots = scene.initial_positions()[np.asarray(s.offsets[:-1])]
+    length = float(np.sum(s.rest_lengths)) / max(1, len(s.offsets) - 1)
+    guide_roots = np.asarray(anim.frames[0])[np.asarray(anim.offsets[:-1])]
+    d = np.linalg.norm(guide_roots[:, None, :] - hair_roots[None, :, :], axis=-1).min(axis=1)
+    far = np.flatnonzero(d > length)
+    if far.size:
+        g = int(far[0])
+        logging.getLogger("hairexp").warning(
+            "guides: guide %d's root is %.3g m from the nearest hair root at frame 0, farther than the hair is long "
+            "(%.3g m; %d of %d guides): check that the guides are in the hair's space and units", g, d[g], length,
+            far.size, len(d))
