@@ -100,6 +100,16 @@ def test_points_per_guide_is_bounded(base):
     validate_config(updated(base, tracking__points_per_guide=256))
 
 
+def test_tracked_cluster_count_is_bounded(base):
+    """500 guides x 6 points (9,000 constraints in a dense Schur complement) ran for minutes a step."""
+    tracked = updated(base, controller__name="tracking")
+    with pytest.raises(InputError, match=r"500 x 6 = 3000 clusters, more than 1024") as err:
+        validate_config(updated(tracked, guides__count=500))
+    assert err.value.where == "guides.count"
+    validate_config(updated(tracked, guides__count=100))           # 600 clusters
+    validate_config(updated(base, guides__count=500))              # a free run builds no constraints
+
+
 # 2. USD stages
 
 @pytest.fixture

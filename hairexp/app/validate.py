@@ -96,6 +96,23 @@ def _solver(s) -> None:
 MAX_POINTS_PER_GUIDE = 256
 
 
+#: guides.count x tracking.points_per_guide at most, for the guides the config makes (a guide file's or
+#: a stage's are counted once read): 3 constraints per cluster, and the Schur complement of a tracked
+#: step is a dense (3 x clusters)^2 matrix factored at every SQP iteration (500 guides x 6 points:
+#: 9,000 constraints, 648 MB and minutes per iteration; Celia has 24 clusters)
+MAX_CLUSTERS = 1024
+
+
+def _clusters(cfg) -> None:
+    if str(_value(cfg.controller.name)) != "tracking" or str(_value(cfg.guides.source)) in ("file", "usd"):
+        return
+    g, n = cfg.guides.count, cfg.tracking.points_per_guide
+    if isinstance(g, int) and isinstance(n, int) and g >= 1 and n >= 1 and g * n > MAX_CLUSTERS:
+        raise InputError(f"x tracking.points_per_guide = {g} x {n} = {g * n} clusters, more than {MAX_CLUSTERS}: "
+                         "each is 3 tracking constraints in a dense Schur complement factored at every SQP "
+                         "iteration (the paper's Celia has 24)", "guides.count")
+
+
 def _tracking(t) -> None:
     rtol = number(t.rtol, "tracking.rtol", lo=0)
     atol = number(t.atol, "tracking.atol", lo=0)
@@ -220,6 +237,7 @@ def validate_config(cfg) -> None:
     _guides(cfg)
     _solver(cfg.solver)
     _tracking(cfg.tracking)
+    _clusters(cfg)
     _collision(cfg.collision)
     _measure(cfg)
 
