@@ -6,7 +6,8 @@ input:
    got nan``, not ``must be finite``); ``fps=0`` / ``fps=-1`` name ``fps`` (they used to fail with
    a ZeroDivisionError traceback, or an error blaming ``measure.apex_from``); keys read only by a
    controller or body the run does not build (``controller.attract_stiffness``, ``scene.body.*``)
-   are checked all the same; ``tracking.points_per_guide`` is bounded (1e7 grew a 14 GB table).
+   are checked all the same; ``tracking.points_per_guide`` is bounded (1e7 grew a 14 GB table),
+   and so are a tracked run's clusters (500 guides: minutes a step in a dense Schur complement).
 2. USD: a point more than 10 km from the origin is a unit error naming the prim, curve and vertex
    (1e30 m ended in a "diverged" simulation failure); ``scene.usd_colliders`` set to a path with no
    prim is an error (it ran the scene without colliders, exit 0); a cubic hair prim and guides far
@@ -21,8 +22,11 @@ input:
    unknown key or choice) is one line naming the job's values, exit 2 (Hydra: exit 1, multi-line).
 5. ``python -m hairexp.io.export_scene --help`` prints its help (exit 0; it was exit 1), and no
    arguments is a usage error, exit 2.
-6. experiments/ scripts: counts and step lengths given as plain ints/floats are checked
-   argparse-style (exit 2, no traceback, nothing run).
+6. experiments/ scripts: counts, step lengths, choices and ``--set`` overrides are checked
+   argparse-style before anything runs (exit 2, no traceback; contact replaced its report with
+   failed rows, exit 0; traced_run --help started a run).
+7. SIGINT / SIGTERM while ``python -m hairexp`` imports: one line, exit 130 / 143 (a traceback
+   from the import it landed in, or no word).
 """
 
 from __future__ import annotations
@@ -401,3 +405,33 @@ def test_compare_runs_of_empty_folders_is_an_error(tmp_path, monkeypatch, capsys
     monkeypatch.setattr(sys, "argv", ["compare_runs", str(tmp_path / "a"), str(tmp_path / "b")])
     assert compare_runs.main() == 2
     assert "no run files to compare" in capsys.readouterr().err
+
+
+def test_a_signal_right_after_the_running_summary_still_ends_the_run(tmp_path, monkeypatch):
+    """SIGTERM between summary.json's "running" and the run's own handlers (the metrics table is
+    made there: pyarrow's first import) left summary.json saying "running" with exit 143."""
+    import json
+    import signal as signals
+
+    from hairexp.app import run as run_module
+    from hairexp.errors import Interrupted
+
+    real = run_module.MetricsTable
+
+    def table_then_signal(*a, **kw):
+        t = real(*a, **kw)
+        os.kill(os.getpid(), signals.SIGTERM)
+        return t
+
+    def outer(signum, frame):   # what the command line's handler does outside run()
+        raise Interrupted(signum)
+
+    monkeypatch.setattr(run_module, "MetricsTable", table_then_signal)
+    old = signals.signal(signals.SIGTERM, outer)
+    try:
+        with pytest.raises(Interrupted):
+            run_module.run(compose_config(SMALL), tmp_path / "run")
+    finally:
+        signals.signal(signals.SIGTERM, old)
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["status"] == "interrupted" and summary["error"] == "interrupted by SIGTERM", summary["status"]
