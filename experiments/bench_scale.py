@@ -60,7 +60,13 @@ def main(argv=None):
     ap.add_argument("--one", nargs=2, metavar=("STRANDS", "CONTROLLER"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.one:
-        print(json.dumps(one(int(args.one[0]), args.one[1], args.steps)))
+        try:
+            strands = positive_int(args.one[0])
+        except argparse.ArgumentTypeError as exc:
+            ap.error(f"argument --one STRANDS: {exc}")
+        if args.one[1] not in ("free", "tracking"):
+            ap.error(f"argument --one CONTROLLER: {args.one[1]!r} is not free or tracking")
+        print(json.dumps(one(strands, args.one[1], args.steps)))
         return
     from hairexp.app.report import header, write_report
 

@@ -43,8 +43,23 @@ def _number(kind, low: float, inclusive: bool, what: str):
 
 
 positive_int = _number(int, 1, True, "a positive integer")
+strand_vertices = _number(int, 3, True, "an integer >= 3 (a strand's vertices: two clamped, one free)")
 nonnegative_int = _number(int, 0, True, "an integer >= 0")
 positive_float = _number(float, 0.0, False, "a positive number")
+
+
+def check_set(ap, overrides, base=("experiment=goaling_smoke", "variants=[]")) -> None:
+    """``--set KEY=VALUE ...`` overrides that compose and pass the config's checks on ``base``
+    (``hairexp.app.assemble.check_config``: keys, types, ranges, the step schedule), else a usage
+    error naming them (``ap.error``: exit 2), before a script runs anything or rewrites its report."""
+    if not overrides:
+        return
+    from hairexp.app.assemble import check_config
+
+    try:
+        check_config(compose([*base, *overrides]))
+    except Exception as exc:   # noqa: BLE001  (Hydra's composition errors, the schema's, InputError)
+        ap.error(f"--set {' '.join(overrides)}: {' '.join(str(exc).split())}")
 
 
 # -- configs -----------------------------------------------------------------------------------

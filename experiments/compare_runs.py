@@ -69,6 +69,9 @@ def main() -> int:
             print(f"compare_runs: error: {p}: not a folder", file=sys.stderr)
             return 2
     n, bad = compare(args.before, args.after)
+    if n == 0:
+        print(f"compare_runs: error: no run files to compare in {args.before} and {args.after}", file=sys.stderr)
+        return 2
     print(f"{n} files compared, {bad} differ")
     return 1 if bad or n == 0 else 0
 

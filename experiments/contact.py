@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import ROOT, compose, fmt, md_table
+from experiments.common import ROOT, check_set, compose, fmt, md_table, positive_int
 
 EDGE_SAMPLES = 16
 #: stress cases: the stress matrix's scene (experiments/stress.py BASE) with a fast collider
@@ -175,15 +175,16 @@ def table_row(r: dict) -> list[str]:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--runs", nargs="*", default=list(RUNS))
-    ap.add_argument("--modes", nargs="*", default=list(MODES))
-    ap.add_argument("--frames", type=int, default=None)
+    ap.add_argument("--runs", nargs="*", default=list(RUNS), choices=list(RUNS))
+    ap.add_argument("--modes", nargs="*", default=list(MODES), choices=list(MODES))
+    ap.add_argument("--frames", type=positive_int, default=None)
     ap.add_argument("--work", default=str(ROOT / "outputs" / "contact"))
     ap.add_argument("--out", default=str(ROOT / "reports" / "contact"))
     ap.add_argument("--keep", action="store_true", help="keep the existing report's rows and analysis")
     ap.add_argument("--extra", nargs="*", default=[], help="result files whose rows to add")
     ap.add_argument("--set", nargs="*", default=[], help="config overrides of every run (a variant; named in the mode column)")
     args = ap.parse_args(argv)
+    check_set(ap, args.set)   # before any run (a bad key would fail every run and replace the report)
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     out = Path(args.out)
@@ -202,6 +203,11 @@ def main(argv=None):
             r["code"] = code
             rows.append(r)
             print(json.dumps(r, default=str), flush=True)
+    new = rows[len(rows) - len(args.runs) * len(args.modes):]
+    if new and not any(r.get("outcome") == "completed" for r in new):
+        print(f"contact.py: error: no run completed ({new[0].get('outcome')}); {out}.md/.json left as they were",
+              file=sys.stderr)
+        return 3
     out.with_suffix(".json").write_text(json.dumps(rows, indent=1, default=str))
     md = ["# Contact inside the optimisation: barrier vs post-solve stage", "",
           "Command: `python -m experiments.contact " + " ".join(argv if argv is not None else sys.argv[1:]) + "`", "",
@@ -211,4 +217,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

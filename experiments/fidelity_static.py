@@ -16,12 +16,12 @@ import argparse
 from hairexp.app.report import header, write_report
 from hairexp.evaluation import fidelity_static as fs
 
-from experiments.common import md_table
+from experiments.common import md_table, strand_vertices
 
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--vertices", type=int, nargs="+", default=[10, 20, 40, 80])
+    ap.add_argument("--vertices", type=strand_vertices, nargs="+", default=[10, 20, 40, 80])
     args = ap.parse_args(argv)
     ns = args.vertices
     rows = {c: fs.table(ns, clamp=c) for c in fs.CLAMPS}

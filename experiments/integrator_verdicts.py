@@ -98,7 +98,10 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("reports", nargs="+", type=Path, help="paper_scenes JSON reports, one per integrator and dt")
     a = ap.parse_args(argv)
-    cols = load(a.reports)
+    try:
+        cols = load(a.reports)
+    except SystemExit as exc:   # an unreadable or foreign report: a usage error (exit 2), before anything is written
+        ap.error(str(exc).removeprefix("integrator_verdicts: "))
     md = markdown(cols)
     path = write_report("integrator_verdicts", md, {"columns": [
         {"integrator": i, "dt": dt, "report": c["path"], "command": c["command"],

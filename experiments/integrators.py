@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from experiments.common import ROOT, compose, md_table, time_steps
+from experiments.common import ROOT, compose, md_table, positive_float, positive_int, time_steps
 from hairexp.evaluation.fidelity_chain import linear_prediction, measure_chain
 from hairexp.physics.integrators import INTEGRATORS
 
@@ -77,9 +77,9 @@ def cost_table(integrators, reps: int) -> str:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--dts", type=float, nargs="+", default=[0.001, 0.01, 0.04])
-    ap.add_argument("--reps", type=int, default=7)
-    ap.add_argument("--cost-integrators", nargs="+", default=["implicit_euler", "bdf2", "trbdf2"])
+    ap.add_argument("--dts", type=positive_float, nargs="+", default=[0.001, 0.01, 0.04])
+    ap.add_argument("--reps", type=positive_int, default=7)
+    ap.add_argument("--cost-integrators", nargs="+", default=["implicit_euler", "bdf2", "trbdf2"], choices=list(INTEGRATORS))
     ap.add_argument("--no-chain", action="store_true", help="only the cost table (reuses nothing: the chain section is left out)")
     a = ap.parse_args(argv)
     t0 = time.time()

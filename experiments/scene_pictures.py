@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import zipfile
 from pathlib import Path
 
@@ -157,6 +158,11 @@ def main(argv=None):
     ap.add_argument("folder")
     ap.add_argument("png")
     args = ap.parse_args(argv)
+    if not (Path(args.folder) / "summary.json").is_file():
+        ap.error(f"{args.folder}: not a run folder (no summary.json)")
+    out = Path(args.png).resolve().parent
+    if not out.is_dir() or not os.access(out, os.W_OK) or Path(args.png).is_dir():
+        ap.error(f"{args.png}: cannot be written (a directory, or its folder does not exist or cannot be written)")
     info = render_key_moment(args.folder, args.png)
     print(f"wrote {args.png}: {info}")
 

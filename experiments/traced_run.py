@@ -11,13 +11,28 @@ memory of its own, so the resident-memory figures are measured in separate, untr
 from __future__ import annotations
 
 import json
+import os
 import runpy
 import sys
 import tracemalloc
 
 
+USAGE = "usage: python -m experiments.traced_run OUT.json [hairexp arguments ...]"
+
+
 def main() -> int:
+    if len(sys.argv) > 1 and sys.argv[1] in ("-h", "--help"):
+        print(USAGE + "\n\n" + __doc__.strip())
+        return 0
+    if len(sys.argv) < 2 or sys.argv[1].startswith("-") or "=" in sys.argv[1]:
+        print(f"{USAGE}\ntraced_run.py: error: the first argument is the OUT.json to write", file=sys.stderr)
+        return 2
     out, args = sys.argv[1], sys.argv[2:]
+    folder = os.path.dirname(os.path.abspath(out))
+    if os.path.isdir(out) or not os.path.isdir(folder) or not os.access(folder, os.W_OK):
+        print(f"{USAGE}\ntraced_run.py: error: OUT.json {out}: cannot be written (a directory, or its folder "
+              "does not exist or cannot be written)", file=sys.stderr)
+        return 2
     tracemalloc.start(1)
     sys.argv = ["hairexp", *args]
     try:   # exactly as ``python -m hairexp`` (Hydra finds its config relative to the __main__ file)

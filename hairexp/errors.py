@@ -21,17 +21,48 @@ class SimulationError(HairexpError, RuntimeError):
     """The solver could not produce a finite state, even after the configured recovery."""
 
 
-def finite_number(value, key: str) -> float:
-    """``value`` as a finite float, or an InputError naming ``key``."""
+def finite_number(value, key: str, allowed: str = "") -> float:
+    """``value`` as a finite float, or an InputError naming ``key`` and, when given, the
+    ``allowed`` range (``">= 0"``, ``"in [0, 1)"``): ``must be a finite number >= 0, got nan``."""
     import math
 
+    what = f"a finite number {allowed}".rstrip() if allowed else "a finite number"
     try:
         v = float(value)
     except (TypeError, ValueError) as exc:
-        raise InputError(f"must be a number, got {value!r}", key) from exc
+        raise InputError(f"must be {what}, got {value!r}", key) from exc
     if not math.isfinite(v):
-        raise InputError(f"must be finite, got {v}", key)
+        raise InputError(f"must be {what}, got {v}", key)
     return v
+
+
+#: m: a point of an input (a USD stage's curves, a guide file) farther than this from the origin
+#: is refused as a unit error (hairexp reads metres; a far point also breaks the solver's linear
+#: algebra, at 1e30 m a singular system instead of a named error)
+MAX_COORDINATE = 1e4
+
+
+def check_extent(points, where: str, counts=None, frame: int | None = None) -> None:
+    """InputError naming ``where`` (and the curve and vertex, with ``counts``: vertices per curve;
+    ``frame`` when given) when a point of ``points`` (N, 3) lies farther than MAX_COORDINATE from
+    the origin.  Non-finite points are left to the callers' finiteness checks."""
+    import numpy as np
+
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    with np.errstate(invalid="ignore"):
+        far = np.flatnonzero(np.abs(P).max(axis=1, initial=0.0) > MAX_COORDINATE)
+    if not len(far):
+        return
+    i = int(far[0])
+    at = f"vertex {i}"
+    if counts is not None:
+        ends = np.cumsum(np.asarray(counts, dtype=np.int64))
+        c = int(np.searchsorted(ends, i, side="right"))
+        at = f"curve {c} vertex {i - (int(ends[c - 1]) if c else 0)}"
+    if frame is not None:
+        at = f"frame {frame}, {at}"
+    raise InputError(f"{at} is at {P[i].tolist()}, more than {MAX_COORDINATE:g} m from the origin: hairexp reads "
+                     "metres (check the units of the input)", where)
 
 
 class Interrupted(KeyboardInterrupt):

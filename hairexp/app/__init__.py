@@ -11,8 +11,12 @@ guides, controller and simulator (hairexp/app/assemble.py); ``run_folder`` runs 
 experiment into a run folder as ``python -m hairexp`` does (README "Run folder").
 """
 
-from hairexp.app.assemble import Run, assemble, assemble_scene
-from hairexp.app.config import compose_config, to_plain
-from hairexp.app.experiment import run_experiment as run_folder
+from hairexp.app import startup
+
+startup.install()   # python -m hairexp: a signal during the imports below is one line, exit 130 / 143
+
+from hairexp.app.assemble import Run, assemble, assemble_scene  # noqa: E402
+from hairexp.app.config import compose_config, to_plain  # noqa: E402
+from hairexp.app.experiment import run_experiment as run_folder  # noqa: E402
 
 __all__ = ["Run", "assemble", "assemble_scene", "compose_config", "run_folder", "to_plain"]

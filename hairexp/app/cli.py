@@ -256,6 +256,38 @@ def _static_part(path: str) -> str | None:
     return static[:static.rindex("/") + 1] if "/" in static else "."
 
 
+#: Hydra's command-line flags that take the next argument as their value
+_FLAGS_WITH_VALUE = ("--cfg", "-c", "--package", "-p", "--config-path", "-cp", "--config-name", "-cn",
+                     "--config-dir", "-cd", "--info", "-i", "--experimental-rerun")
+
+
+def override_syntax_error(argv: list[str]) -> str | None:
+    """The error line for a ``key=value`` argument that Hydra's override grammar cannot parse (a
+    value with non-ASCII characters or an unbalanced bracket, unquoted), or for an empty run folder
+    (``hydra.run.dir=`` would write the run into the working folder), or None.  Every override is
+    checked, Hydra's own keys and sweeps included: Hydra would print its multi-line message and
+    exit 1 (for hydra.* keys and ``-m``), before any of hairexp's checks."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    for i, arg in enumerate(argv):
+        if arg.startswith("-") or "=" not in arg or (i and argv[i - 1] in _FLAGS_WITH_VALUE):
+            continue
+        try:
+            o = parser.parse_override(arg)
+        except Exception as exc:  # noqa: BLE001  (Hydra's grammar errors)
+            why = " ".join(str(exc).split()).split(" See https://")[0]
+            why = re.sub(r"^.*?Exception: \S.*?\^ ", "", why)
+            key = arg.split("=", 1)[0]
+            return (f"hairexp: error: {arg}: not a valid override ({why}); quote a value with spaces, "
+                    f"non-ASCII characters or brackets: {key}='...' (in the shell: \"{key}='...'\")")
+        if o.key_or_group in ("hydra.run.dir", "hydra.sweep.dir") and not o.is_sweep_override() and \
+                str(o.value() if o.value() is not None else "").strip() == "":
+            return (f"hairexp: error: {o.key_or_group}: is empty; give the run folder's path "
+                    "(an empty one would put the run's files in the working folder)")
+    return None
+
+
 def run_dir_error(argv: list[str]) -> str | None:
     """The error line for a run folder that cannot be written, or None: the command line's
     ``hydra.run.dir`` (with ``-m``: ``hydra.sweep.dir``), or when none is given the default of
@@ -354,19 +386,18 @@ def stop_sweep_jobs(signum: int) -> None:
               f"{', '.join(d.name for d in sorted(left))}", file=sys.stderr)
 
 
-def config_error(argv: list[str]) -> str | None:
-    """The one-line error of a single run's command line whose config cannot be composed (a key
-    not in the schema, a wrong type, an unknown choice), or None.  The config is composed here
-    first, as ``compose_config`` does, so that such input exits 2 like any bad value instead of
-    Hydra's exit 1; sweeps (``-m``, comma lists) and Hydra's own flags and keys are left to Hydra."""
-    if any(a.startswith("-") for a in argv):
-        return None
-    overrides = [a for a in argv if not (a.startswith("hydra.") or a.startswith("hydra/") or a.startswith("+hydra")
-                                         or a.startswith("~hydra"))]
+def _hydra_arg(a: str) -> bool:
+    return a.startswith(("hydra.", "hydra/", "+hydra", "~hydra"))
+
+
+def _compose_error(overrides: list[str], input_errors: bool = True) -> str | None:
+    """The message (without the ``hairexp: error:`` prefix) of ``overrides`` whose config cannot
+    be composed, or None; ``input_errors=False``: hairexp's own checks (``InputError``: a ``+key``
+    not in the schema, a boolean given ``2``) are left to the jobs."""
     try:
         compose_config(overrides)
     except InputError as exc:
-        return f"hairexp: error: {exc}"
+        return str(exc) if input_errors else None
     except Exception as exc:   # Hydra's composition and override-parsing errors, OmegaConf's validation
         msg = str(exc).strip()
         cause = exc.__cause__ or exc.__context__
@@ -375,10 +406,67 @@ def config_error(argv: list[str]) -> str | None:
         unknown = re.match(r"Could not override '([^']+)'\.\s+To append to your config use \+", msg)
         if unknown:   # Hydra advises "+key", which the schema refuses too (check_keys)
             hint = unknown_key_hint(unknown.group(1))
-            return (f"hairexp: error: {unknown.group(1)}: unknown key, not in the schema (hairexp/app/config.py)"
+            return (f"{unknown.group(1)}: unknown key, not in the schema (hairexp/app/config.py)"
                     + (f"; {hint}" if hint else ""))
         if "incompatible with type hint 'float'" in msg:   # scene.motion.translations=[[0,0,0]]
             msg += ("; write such a number as a float (0.0, not 0): inside a list of lists OmegaConf does not "
                     "turn an integer into a float")
-        return f"hairexp: error: {' '.join(msg.split())}"
+        return " ".join(msg.split()).split(" Config search path:")[0]   # (Hydra's list of its search path)
+    return None
+
+
+def _sweep_jobs(overrides: list[str]) -> list[tuple[list[str], list[str]]] | None:
+    """For a ``-m`` command line: (the overrides of a job, its swept ``key=value``s) for the first
+    job and, for each swept key, one job per other value (the other keys at their first value):
+    every value of every sweep is composed once, in 1 + sum(values - 1) jobs.  None when a sweep
+    cannot be listed here (``glob``, an interval): then Hydra composes it."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+        values = [list(o.sweep_string_iterator()) if o.is_sweep_override() else None for o in parsed]
+    except Exception:  # noqa: BLE001
+        return None
+
+    def job(choice: dict) -> tuple[list[str], list[str]]:
+        args, swept = [], []
+        for arg, o, vals in zip(overrides, parsed, values):
+            if vals is None:
+                args.append(arg)
+                continue
+            kv = f"{o.get_key_element()}={vals[choice.get(id(o), 0)]}"
+            args.append(kv)
+            swept.append(kv)
+        return args, swept
+
+    jobs = [job({})]
+    for o, vals in zip(parsed, values):
+        for i in range(1, len(vals or [])):
+            jobs.append(job({id(o): i}))
+    return jobs
+
+
+def config_error(argv: list[str]) -> str | None:
+    """The one-line error of a command line whose config cannot be composed (a key not in the
+    schema, a wrong type, an unknown choice), or None.  The config is composed here first, as
+    ``compose_config`` does, so that such input exits 2 like any bad value instead of Hydra's
+    multi-line message and exit 1.  A ``-m`` sweep: every value of every swept key is composed
+    (``_sweep_jobs``; Hydra would stop the sweep at its start), the error names the job's swept
+    values; the values hairexp checks (ranges, booleans, ``+key``) are left to each job, so that
+    the other jobs run.  Hydra's own flags and keys are left to Hydra, except for an override its
+    grammar cannot parse or an empty run folder (``override_syntax_error``: every command line)."""
+    bad = override_syntax_error(argv)
+    if bad is not None:
+        return bad
+    multirun = any(a in ("-m", "--multirun") for a in argv)
+    if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
+        return None
+    overrides = [a for a in argv if not (a.startswith("-") or _hydra_arg(a))]
+    if not multirun:
+        msg = _compose_error(overrides)
+        return None if msg is None else f"hairexp: error: {msg}"
+    for job_overrides, swept in _sweep_jobs(overrides) or []:
+        msg = _compose_error(job_overrides, input_errors=False)
+        if msg is not None:
+            return f"hairexp: error: sweep job [{' '.join(swept)}]: {msg}" if swept else f"hairexp: error: {msg}"
     return None

@@ -5,7 +5,7 @@
 The overrides compose as for ``python -m hairexp`` (conf/); the stage holds the body motion,
 the detail hair at rest, the guide animation of frames 0..frames at fps (``guides.*``) and the
 colliders.  ``python -m hairexp experiment=from_usd scene.usd=scene.usda`` runs it.
-Exit codes: 0 written, 1 bad config (Hydra's message), 2 bad input (``hairexp: error: ...``).
+Exit codes: 0 written (or ``--help``), 2 bad input or arguments (``hairexp: error: ...``).
 """
 
 from __future__ import annotations
@@ -58,9 +58,15 @@ def check_writable(path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
+    usage = "usage: python -m hairexp.io.export_scene OUT.usda|OUT.usdc|OUT.usd [key=value ...]"
+    if args and args[0] in ("-h", "--help"):
+        print(usage + "\n\n" + __doc__.strip())
+        return 0
     if not args or "=" in args[0] or args[0].startswith("-"):
-        print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
-        return 1
+        why = ("the path of the stage to write is required" if not args or "=" in args[0]
+               else f"unknown option {args[0]}")
+        print(f"{usage}\nhairexp: error: {why}", file=sys.stderr)
+        return 2
     try:
         cfg = compose_config(args[1:])
     except Exception as exc:  # unknown key, wrong type (Hydra's message, or the schema check's): bad input

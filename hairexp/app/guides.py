@@ -8,7 +8,7 @@ import copy
 
 import numpy as np
 
-from hairexp.errors import InputError, SimulationError
+from hairexp.errors import InputError, SimulationError, check_extent, regular_file
 from hairexp.guides.animation import GuideAnimation, carried_guides, file_guides, rest_guides
 from hairexp.guides.authoring import apply_edits, keyframed_positions
 from hairexp.guides.store import FrameStore
@@ -27,7 +27,17 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     source = str(getattr(g.source, "value", g.source))
     motion = authoring_motion(scene.motion)   # a dynamic body: its initial pose held still
     if source == "file":
-        return file_guides(g.file, scene.motion, frames, fps)
+        check_guide_file(g.file)
+        try:
+            anim = file_guides(g.file, scene.motion, frames, fps)
+        except InputError as exc:   # the file's own errors name the path: say which key it is
+            where = exc.where or ""
+            if where.startswith(str(g.file)) and not where.startswith("guides.file="):
+                raise InputError(str(exc)[len(where) + 2:], f"guides.file={where}") from exc
+            raise
+        for f, X in enumerate(anim.frames):   # one frame at a time (a FrameStore)
+            check_extent(X, f"guides.file={g.file}", np.diff(anim.offsets), frame=f)
+        return anim
     if source == "usd":  # the guide prim of the stage scene.usd
         from hairexp.io.usd_read import read_guides   # pxr is imported only for USD scenes
 
@@ -41,6 +51,37 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
         return GuideAnimation(pos, offsets, fps, where="guides.keyframes", motion=scene.motion)
     pos = carried_guides(g, body, offsets, motion, frames, fps, scaled=source == "scaled")
     return GuideAnimation(pos, offsets, fps, motion=scene.motion)
+
+
+#: dtype kinds of a guide npz's arrays (numpy's ``dtype.kind``): real numbers, integer offsets
+GUIDE_FILE_KINDS = {"guide_positions": ("f", "floating-point numbers (float64, m)"),
+                    "guide_offsets": ("iuf", "integers"), "fps": ("iuf", "a real number (frames per second)")}
+
+
+def check_guide_file(path) -> None:
+    """The dtypes of a guide npz's arrays, read from their headers (no data is loaded): complex
+    positions would lose their imaginary part without an error, strings or booleans would be read
+    as numbers, and integer positions are not metres (millimetres or a grid's indices).  A file that cannot be read this way is left to ``file_guides``, which names it."""
+    import zipfile
+
+    regular_file(path, f"guides.file={path}", "guide npz")   # a FIFO would block the zip reader
+    try:
+        with zipfile.ZipFile(path) as z:
+            headers = {}
+            for name in GUIDE_FILE_KINDS:
+                if f"{name}.npy" not in z.namelist():
+                    continue
+                with z.open(f"{name}.npy") as f:
+                    version = np.lib.format.read_magic(f)
+                    read = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+                        np.lib.format.read_array_header_2_0
+                    headers[name] = read(f)[2]
+    except Exception:  # noqa: BLE001  (not a zip, a bad header: file_guides says what the file is)
+        return
+    for name, dtype in headers.items():
+        kinds, what = GUIDE_FILE_KINDS[name]
+        if dtype.kind not in kinds:
+            raise InputError(f"{name} has dtype {dtype}, expected {what}", f"guides.file={path}")
 
 
 def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: int, fps: float) -> GuideAnimation:
@@ -89,7 +130,29 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     (``authoring.apply_edits``; paper 4: the artist edits a coarse best-guess guide simulation by
     keyframing; ``source=keyframed`` keys the guides directly)."""
     anim = source_guides(cfg, scene, frames, fps)
-    if not cfg.guides.edits:
-        return anim
-    pos = apply_edits(anim.frames, anim.offsets, anim.fps, authoring_motion(scene.motion), cfg.guides.edits)
-    return GuideAnimation(pos, anim.offsets, anim.fps, where="guides.edits", motion=scene.motion)
+    if cfg.guides.edits:
+        pos = apply_edits(anim.frames, anim.offsets, anim.fps, authoring_motion(scene.motion), cfg.guides.edits)
+        anim = GuideAnimation(pos, anim.offsets, anim.fps, where="guides.edits", motion=scene.motion)
+    if str(getattr(cfg.controller.name, "value", cfg.controller.name)) != "free":
+        warn_far_guides(scene, anim)
+    return anim
+
+
+def warn_far_guides(scene, anim) -> None:
+    """A warning when a guide's root at frame 0 is farther from every hair root than the hair is
+    long: the guides are likely in another space or unit than the hair (a guide file or stage made
+    for another scene).  The run goes on (tracking.max_guide_distance > 0 makes it an error)."""
+    import logging
+
+    s = scene.strands
+    hair_roots = scene.initial_positions()[np.asarray(s.offsets[:-1])]
+    length = float(np.sum(s.rest_lengths)) / max(1, len(s.offsets) - 1)
+    guide_roots = np.asarray(anim.frames[0])[np.asarray(anim.offsets[:-1])]
+    d = np.linalg.norm(guide_roots[:, None, :] - hair_roots[None, :, :], axis=-1).min(axis=1)
+    far = np.flatnonzero(d > length)
+    if far.size:
+        g = int(far[0])
+        logging.getLogger("hairexp").warning(
+            "guides: guide %d's root is %.3g m from the nearest hair root at frame 0, farther than the hair is long "
+            "(%.3g m; %d of %d guides): check that the guides are in the hair's space and units", g, d[g], length,
+            far.size, len(d))

@@ -164,10 +164,13 @@ def run(cfg, out_dir: str | Path) -> dict:
     controller = plain["controller"]["name"]
     scene_name = plain["scene"]["name"]
     t_start = time.perf_counter()
-    write_json(out / SUMMARY, summarize(None, plain, scene_name, controller, 0.0, "running"))
-    sinks = _Sinks(cfg, plain, MetricsTable(out / STREAM / "metrics"))
     with InterruptSignals() as signals:
+        with signals.deferred():   # a signal meanwhile is kept for the try below: "running" is never left behind
+            write_json(out / SUMMARY, summarize(None, plain, scene_name, controller, 0.0, "running"))
+            sinks = _Sinks(cfg, plain, MetricsTable(out / STREAM / "metrics"))
         try:
+            if signals.pending is not None:
+                raise Interrupted(signals.pending)
             return _run(sinks, out, t_start)
         except BaseException as exc:
             with signals.deferred():

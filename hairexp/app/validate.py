@@ -9,13 +9,17 @@ scene.hair.* ``build_material``, keyframed motions in hairexp/model/rigid.py, sc
 hairexp/model/dynamic_body.py, scene.settle/settle_dt hairexp/physics/settle.py, solver.dt,
 fps and frames hairexp/physics/schedule.py, guides.count/n_vertices/keyframes/edits/file in
 hairexp/guides/, tracking.points_per_guide and tracking.variance.* in hairexp/control/tracking/,
-controller.attract_stiffness hairexp/control/attract.py).  The rest are checked here.
+controller.attract_stiffness hairexp/control/attract.py).  The rest are checked here, and so are
+the ranges of controller.attract_stiffness and scene.body.* whether or not their layer reads
+them (``_unused``: a free run never builds the attract controller, a keyframed body no block).
 ``solver.integrator`` is checked by hairexp/physics/integrators.py ``make_integrator`` (and
 ``solver.kernels`` / ``solver.threads`` by hairexp/physics/strand_kernels.py ``check_options``), called
 here too so that a bad name fails before the settle phase and the guides are simulated.
 """
 
 from __future__ import annotations
+
+import math
 
 from hairexp.errors import InputError, finite_number
 from hairexp.evaluation.judges import JUDGE_MEASURES
@@ -30,12 +34,17 @@ def _value(x):
 
 def number(value, key: str, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
            hi_open: bool = False) -> float:
-    """``value`` as a finite float within [lo, hi] (``lo_open``/``hi_open``: the bound excluded)."""
-    v = finite_number(value, key)
-    if lo is not None and (v < lo or (lo_open and v == lo)):
-        raise InputError(f"must be {'>' if lo_open else '>='} {lo:g}, got {v:g}", key)
-    if hi is not None and (v > hi or (hi_open and v == hi)):
-        raise InputError(f"must be {'<' if hi_open else '<='} {hi:g}, got {v:g}", key)
+    """``value`` as a finite float within [lo, hi] (``lo_open``/``hi_open``: the bound excluded).
+    Every error names ``key`` and the whole allowed range (``must be a finite number > 0, got nan``)."""
+    parts = []
+    if lo is not None:
+        parts.append(f"{'>' if lo_open else '>='} {lo:g}")
+    if hi is not None:
+        parts.append(f"{'<' if hi_open else '<='} {hi:g}")
+    allowed = " and ".join(parts)
+    v = finite_number(value, key, allowed)
+    if (lo is not None and (v < lo or (lo_open and v == lo))) or (hi is not None and (v > hi or (hi_open and v == hi))):
+        raise InputError(f"must be {allowed}, got {v:g}", key)
     return v
 
 
@@ -82,6 +91,28 @@ def _solver(s) -> None:
                          "solver.max_substep_levels")
 
 
+#: tracking.points_per_guide at most: beyond, most clusters are empty (a warning each) and the
+#: correspondence's (vertices, points) distance table grows without bound (1e7 points: 14 GB for 60 vertices)
+MAX_POINTS_PER_GUIDE = 256
+
+
+#: guides.count x tracking.points_per_guide at most, for the guides the config makes (a guide file's or
+#: a stage's are counted once read): 3 constraints per cluster, and the Schur complement of a tracked
+#: step is a dense (3 x clusters)^2 matrix factored at every SQP iteration (500 guides x 6 points:
+#: 9,000 constraints, 648 MB and minutes per iteration; Celia has 24 clusters)
+MAX_CLUSTERS = 1024
+
+
+def _clusters(cfg) -> None:
+    if str(_value(cfg.controller.name)) != "tracking" or str(_value(cfg.guides.source)) in ("file", "usd"):
+        return
+    g, n = cfg.guides.count, cfg.tracking.points_per_guide
+    if isinstance(g, int) and isinstance(n, int) and g >= 1 and n >= 1 and g * n > MAX_CLUSTERS:
+        raise InputError(f"x tracking.points_per_guide = {g} x {n} = {g * n} clusters, more than {MAX_CLUSTERS}: "
+                         "each is 3 tracking constraints in a dense Schur complement factored at every SQP "
+                         "iteration (the paper's Celia has 24)", "guides.count")
+
+
 def _tracking(t) -> None:
     rtol = number(t.rtol, "tracking.rtol", lo=0)
     atol = number(t.atol, "tracking.atol", lo=0)
@@ -96,6 +127,10 @@ def _tracking(t) -> None:
     number(t.elastic_stiffness, "tracking.elastic_stiffness", lo=0, lo_open=True)
     number(t.blend_width, "tracking.blend_width", lo=0, lo_open=True)   # m
     n = t.points_per_guide   # >= 1: hairexp/control/tracking/correspondence.py
+    if isinstance(n, int) and n > MAX_POINTS_PER_GUIDE:
+        raise InputError(f"must be <= {MAX_POINTS_PER_GUIDE} (the paper uses 8; each point is a cluster with 3 "
+                         "constraints per guide, and the correspondence holds a vertices x points distance table), "
+                         f"got {n}", "tracking.points_per_guide")
     for i, p in enumerate(t.variance.points):
         if integer(p, f"tracking.variance.points[{i}]", 0) >= max(int(n), 1):
             raise InputError(f"is {p}, but tracking points are numbered 0..{int(n) - 1} along each guide "
@@ -158,7 +193,8 @@ def _measure(cfg) -> None:
     if 0 <= a1 < a0:
         raise InputError(f"must be < 0 (the last frame) or >= measure.apex_from ({a0}), got {a1}", "measure.apex_until")
     frames, fps = getattr(cfg, "frames", None), getattr(cfg, "fps", None)
-    if frames is not None and fps is not None and a0 > frames / fps + 1e-9:   # (a USD scene's come from its stage)
+    # (a USD scene's come from its stage; a bad frames or fps is named by hairexp/physics/schedule.py)
+    if _positive(frames) and _positive(fps) and a0 > frames / fps + 1e-9:
         raise InputError(f"is after the run's last frame ({frames / fps:g} s), got {a0}", "measure.apex_from")
     number(m.rail_height, "measure.rail_height")
     number(m.rail_end, "measure.rail_end")
@@ -168,12 +204,40 @@ def _measure(cfg) -> None:
 
 
 
+def _positive(x) -> bool:
+    """``x`` is a finite number > 0 (frames and fps before the schedule checks them)."""
+    try:
+        return math.isfinite(float(x)) and float(x) > 0
+    except (TypeError, ValueError):
+        return False
+
+
+def _unused(cfg) -> None:
+    """Keys whose layer reads (and checks) them only when they are used: a free run never builds
+    the attract controller (controller.attract_stiffness), a keyframed body never builds the
+    dynamic block (scene.body.*).  A bad value there is refused all the same, so that a typo is
+    not found only by the variant or the later run that uses it."""
+    c, b = cfg.controller, cfg.scene.body
+    number(c.attract_stiffness, "controller.attract_stiffness", lo=0, lo_open=True)   # 1/s^2
+    number(b.mass, "scene.body.mass", lo=0, lo_open=True)                             # kg
+    number(b.rail_height, "scene.body.rail_height")                                   # m
+    number(b.rail_end, "scene.body.rail_end")                                         # m
+    number(b.rail_friction, "scene.body.rail_friction", lo=0)
+    vel = list(b.velocity)
+    if len(vel) != 3:
+        raise InputError(f"expected 3 finite numbers (m/s), got {vel}", "scene.body.velocity")
+    for i, v in enumerate(vel):
+        number(v, f"scene.body.velocity[{i}]")
+
+
 def validate_config(cfg) -> None:
     """Every config key the layers below do not check where they read it (see module doc)."""
     _scene(cfg)
+    _unused(cfg)
     _guides(cfg)
     _solver(cfg.solver)
     _tracking(cfg.tracking)
+    _clusters(cfg)
     _collision(cfg.collision)
     _measure(cfg)
 

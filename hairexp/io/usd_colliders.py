@@ -56,10 +56,15 @@ def _axis_y(prim, where: str) -> None:
 
 
 def read_colliders(stage, path: str, tcps: float, file: str) -> list:
-    """The colliders under ``path`` (none when the prim does not exist)."""
+    """The colliders under ``path``: none when the prim does not exist at the default path
+    ``/Root/Colliders`` (a stage without colliders); a ``scene.usd_colliders`` set to another path
+    must name a prim (a misspelt path would silently run the scene without its colliders)."""
     root = stage.GetPrimAtPath(path) if path.startswith("/") else None
     if not root:
-        return []
+        if path == COLLIDERS:
+            return []
+        raise InputError(f"no prim at {path} (the colliders; scene.usd_colliders names its path: an absolute prim "
+                         f"path, or {COLLIDERS} for a stage without colliders)", file)
     out = []
     for prim in root.GetChildren():
         where = f"{file}:{prim.GetPath()}"

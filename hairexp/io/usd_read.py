@@ -14,6 +14,7 @@ error is an ``InputError`` whose ``where`` is ``scene.usd=<file>:<prim>``.
 from __future__ import annotations
 
 import copy
+import logging
 import math
 import re
 from pathlib import Path
@@ -22,7 +23,7 @@ import numpy as np
 from omegaconf import OmegaConf
 from pxr import Usd, UsdGeom
 
-from hairexp.errors import InputError, regular_file
+from hairexp.errors import InputError, check_extent, regular_file
 from hairexp.io.usd_colliders import read_colliders
 from hairexp.io.usd_layout import read_motion, time_label
 from hairexp.guides.animation import GuideAnimation
@@ -32,6 +33,8 @@ from hairexp.model.scene import Scene
 from hairexp.model.strands import N_ROOT_VERTICES, Strands, validate_polylines
 
 _open: dict = {}   # path -> stage of the last read (reloaded when the file changes)
+_warned: set = set()   # the prims whose cubic type was warned about
+log = logging.getLogger(__name__)
 
 
 def _message(exc: Exception) -> str:
@@ -80,10 +83,17 @@ def get_prim(stage, path: str, where: str, what: str, key: str, schema=None) -> 
 
 
 def read_curves(prim, tc, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """(points (V, 3) float64 in the prim's space, counts (S,)) of a BasisCurves at ``tc``."""
+    """(points (V, 3) float64 in the prim's space, counts (S,)) of a BasisCurves at ``tc``.  A
+    ``cubic`` curve is read as its control polygon, with a warning (once per prim and file)."""
     curves = UsdGeom.BasisCurves(prim)
     if curves.GetWrapAttr().Get() not in (None, UsdGeom.Tokens.nonperiodic):
         raise InputError(f"wrap is {curves.GetWrapAttr().Get()}; hair curves are open (nonperiodic)", where)
+    kind = curves.GetTypeAttr().Get()
+    if kind not in (None, UsdGeom.Tokens.linear) and where not in _warned:
+        _warned.add(where)
+        log.warning("%s: type is %s (basis %s): hairexp simulates the points as the vertices of a polyline, not as "
+                    "the curve they control; author type = \"linear\" so that viewers draw what is simulated",
+                    where, kind, curves.GetBasisAttr().Get())
     pts, counts = curves.GetPointsAttr().Get(tc), curves.GetCurveVertexCountsAttr().Get(tc)
     if pts is None or len(pts) == 0:
         raise InputError(f"has no points at {time_label(tc)}", where)
@@ -121,6 +131,7 @@ def build_usd_scene(cfg):
     tc = rest_time(UsdGeom.BasisCurves(hair).GetPointsAttr())
     pts, counts = read_curves(hair, tc, where)
     validate_polylines(pts, counts, where, min_vertices=N_ROOT_VERTICES + 1)  # before any transform
+    check_extent(pts, where, counts)
     # hair space -> body space at the rest time (identity for hair authored under the body)
     t0 = Usd.TimeCode(0) if tc.IsDefault() else tc
     rel = (UsdGeom.Xformable(hair).ComputeLocalToWorldTransform(t0)
@@ -174,6 +185,7 @@ def read_guides(cfg, scene, frames: int, fps: float):
             raise InputError(f"time code {f} has {len(pts)} points, time code 0 has {n0}: the guide topology "
                              "must stay the same in every frame", where)
         validate_polylines(pts, counts, f"{where} frame {f}", min_vertices=2)
+        check_extent(pts, where, counts, frame=f)
         X = apply(pts, xf.ComputeLocalToWorldTransform(Usd.TimeCode(f)))
         if frames_pos is None:
             frames_pos = FrameStore(X.shape)

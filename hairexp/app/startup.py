@@ -1,0 +1,45 @@
+"""Ctrl-C (SIGINT) or SIGTERM while ``python -m hairexp`` starts: one line and exit 130 / 143.
+
+Importing torch, scipy and numba takes seconds; a signal then would land in whichever import is
+running and end the process with Python's traceback (SIGINT) or no word at all (SIGTERM).  Nothing
+has been run or written yet, so ``install`` (called first thing by the app layer's package, only
+when the process runs ``hairexp/__main__.py``) makes both signals print one line and exit
+128 + signal at once, until the command line installs its own handlers around the run
+(hairexp/app/signals.py ``InterruptSignals``, which end a run as ``interrupted``).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import threading
+
+
+def _handler(signum, frame) -> None:
+    name = signal.Signals(signum).name
+    try:
+        sys.stderr.write(f"hairexp: interrupted by {name} while starting; nothing was run or written\n")
+        sys.stderr.flush()
+    finally:
+        os._exit(128 + int(signum))   # no traceback from the import it landed in, no atexit work to do
+
+
+def is_command_line() -> bool:
+    """Whether this process runs ``python -m hairexp`` (its ``__main__.py``)."""
+    main = sys.argv[0] if sys.argv else ""
+    return os.path.basename(main) == "__main__.py" and os.path.basename(os.path.dirname(main)) == "hairexp"
+
+
+def install(force: bool = False) -> bool:
+    """The quiet startup handlers for SIGINT and SIGTERM, in the main thread of ``python -m hairexp``
+    (``force``: whatever the process); whether they were installed.  Handlers someone else set
+    (not the defaults) are left alone."""
+    if not (force or is_command_line()) or threading.current_thread() is not threading.main_thread():
+        return False
+    installed = False
+    for s in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(s) in (signal.default_int_handler, signal.SIG_DFL):
+            signal.signal(s, _handler)
+            installed = True
+    return installed

@@ -1,0 +1,437 @@
+"""Findings of the third independent probe round (bad input a new user gives), one test or a
+few each; every test checks the exit code or the error's ``where`` and the message naming the
+input:
+
+1. config: a non-finite value is told the whole allowed range (``must be a finite number >= 0,
+   got nan``, not ``must be finite``); ``fps=0`` / ``fps=-1`` name ``fps`` (they used to fail with
+   a ZeroDivisionError traceback, or an error blaming ``measure.apex_from``); keys read only by a
+   controller or body the run does not build (``controller.attract_stiffness``, ``scene.body.*``)
+   are checked all the same; ``tracking.points_per_guide`` is bounded (1e7 grew a 14 GB table),
+   and so are a tracked run's clusters (500 guides: minutes a step in a dense Schur complement).
+2. USD: a point more than 10 km from the origin is a unit error naming the prim, curve and vertex
+   (1e30 m ended in a "diverged" simulation failure); ``scene.usd_colliders`` set to a path with no
+   prim is an error (it ran the scene without colliders, exit 0); a cubic hair prim and guides far
+   from the hair are warned about (both ran without a word).
+3. guide files: positions that are complex, integer or strings are refused by dtype (complex ones
+   lost their imaginary part with exit 0, strings gave a traceback); every error of the file names
+   ``guides.file=``; a far point is a unit error (1e30 m: a LinAlgError traceback).
+4. run folders and the command line: an override Hydra's grammar cannot parse (a non-ASCII path,
+   unquoted) is one line and exit 2, for ``hydra.*`` keys and sweeps too (Hydra's multi-line
+   message, exit 1); an empty ``hydra.run.dir`` is refused (the run was written into the working
+   folder, exit 0); a ``-m`` sweep with a job whose config cannot be composed (a wrong type, an
+   unknown key or choice) is one line naming the job's values, exit 2 (Hydra: exit 1, multi-line).
+5. ``python -m hairexp.io.export_scene --help`` prints its help (exit 0; it was exit 1), and no
+   arguments is a usage error, exit 2.
+6. experiments/ scripts: counts, step lengths, choices and ``--set`` overrides are checked
+   argparse-style before anything runs (exit 2, no traceback; contact replaced its report with
+   failed rows, exit 0; traced_run --help started a run).
+7. SIGINT / SIGTERM while ``python -m hairexp`` imports: one line, exit 130 / 143 (a traceback
+   from the import it landed in, or no word).
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from hairexp.app import cli
+from hairexp.app.assemble import assemble_scene
+from hairexp.app.config import compose_config
+from hairexp.app.validate import validate_config
+from hairexp.errors import MAX_COORDINATE, InputError
+
+SMALL = ["experiment=goaling_smoke", "variants=[]", "frames=2", "logging.rerun=false"]
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def base():
+    return compose_config(SMALL)
+
+
+def updated(cfg, **kv):
+    out = copy.deepcopy(cfg)
+    for k, v in kv.items():
+        OmegaConf.update(out, k.replace("__", "."), v, merge=False)
+    return out
+
+
+# 1. config values
+
+@pytest.mark.parametrize("key, value, allowed", [
+    ("solver__rtol", float("nan"), "a finite number >= 0"),
+    ("tracking__ctol_rel", float("inf"), "a finite number > 0"),
+    ("collision__strain_limit", float("nan"), "a finite number >= 0 and < 1"),
+    ("measure__min_share", float("nan"), "a finite number >= 0 and <= 1"),
+])
+def test_non_finite_values_are_told_the_range(base, key, value, allowed):
+    with pytest.raises(InputError, match=rf"must be {allowed}, got {value}") as err:
+        validate_config(updated(base, **{key: value}))
+    assert err.value.where == key.replace("__", ".")
+
+
+@pytest.mark.parametrize("fps", [0.0, -1.0])
+def test_a_bad_fps_names_fps(base, fps):
+    with pytest.raises(InputError) as err:
+        assemble_scene(updated(base, fps=fps), settle=False)
+    assert err.value.where == "fps", str(err.value)
+
+
+@pytest.mark.parametrize("key, value", [
+    ("controller__attract_stiffness", float("nan")), ("controller__attract_stiffness", -1.0),
+    ("scene__body__mass", 0.0), ("scene__body__rail_friction", -1.0), ("scene__body__rail_end", float("nan")),
+    ("scene__body__velocity", [0.0, 1.0]),
+])
+def test_keys_of_unbuilt_layers_are_checked(base, key, value):
+    """The run is free with a keyframed body: neither reads these keys, which are refused anyway."""
+    assert base.controller.name.value == "free" and not base.scene.body.dynamic
+    with pytest.raises(InputError) as err:
+        validate_config(updated(base, **{key: value}))
+    assert err.value.where.startswith(key.replace("__", ".")), str(err.value)
+
+
+def test_points_per_guide_is_bounded(base):
+    with pytest.raises(InputError, match=r"must be <= 256.*got 10000000") as err:
+        validate_config(updated(base, tracking__points_per_guide=10_000_000))
+    assert err.value.where == "tracking.points_per_guide"
+    validate_config(updated(base, tracking__points_per_guide=256))
+
+
+def test_tracked_cluster_count_is_bounded(base):
+    """500 guides x 6 points (9,000 constraints in a dense Schur complement) ran for minutes a step."""
+    tracked = updated(base, controller__name="tracking")
+    with pytest.raises(InputError, match=r"500 x 6 = 3000 clusters, more than 1024") as err:
+        validate_config(updated(tracked, guides__count=500))
+    assert err.value.where == "guides.count"
+    validate_config(updated(tracked, guides__count=100))           # 600 clusters
+    validate_config(updated(base, guides__count=500))              # a free run builds no constraints
+
+
+# 2. USD stages
+
+@pytest.fixture
+def stage(tmp_path):
+    from usd_helpers import COLLIDERS, source_cfg, write_stage
+
+    path = tmp_path / "scene.usda"
+    write_stage(path, source_cfg(colliders=COLLIDERS[:1]))
+    return path
+
+
+def test_usd_point_far_from_the_origin_is_a_unit_error(stage):
+    from usd_helpers import edit_stage, usd_cfg, vec3f
+    from pxr import UsdGeom
+
+    from hairexp.app.builders import build_scene
+
+    def far(st):
+        attr = UsdGeom.BasisCurves.Get(st, "/Root/Body/Hair").GetPointsAttr()
+        P = np.asarray(attr.Get(), dtype=np.float64)
+        P[10] = [1e30, 0.0, 0.0]   # curve 1 (8 vertices a curve), vertex 2
+        attr.Set(vec3f(P))
+
+    edit_stage(stage, far)
+    with pytest.raises(InputError, match=r"curve 1 vertex 2 is at .* more than 10000 m from the origin") as err:
+        build_scene(usd_cfg(stage).scene)
+    assert err.value.where == f"scene.usd={stage}:/Root/Body/Hair"
+
+
+def test_usd_colliders_path_set_but_missing(stage):
+    from usd_helpers import usd_cfg
+
+    from hairexp.app.builders import build_scene
+
+    with pytest.raises(InputError, match=r"no prim at /Root/Obstacles \(the colliders; scene.usd_colliders") as err:
+        build_scene(usd_cfg(stage, **{"scene.usd_colliders": "/Root/Obstacles"}).scene)
+    assert err.value.where == f"scene.usd={stage}"
+    assert len(build_scene(usd_cfg(stage).scene).colliders) == 1   # the default path: as before
+
+
+def test_usd_cubic_hair_is_warned_about(stage, caplog):
+    """A cubic (bezier) hair prim is read as its control points: said, not silent."""
+    import logging
+
+    from usd_helpers import edit_stage, usd_cfg
+    from pxr import UsdGeom
+
+    from hairexp.app.builders import build_scene
+
+    def cubic(st):
+        c = UsdGeom.BasisCurves.Get(st, "/Root/Body/Hair")
+        c.GetTypeAttr().Set("cubic")
+        c.GetBasisAttr().Set("bezier")
+
+    with caplog.at_level(logging.WARNING, logger="hairexp.io.usd_read"):
+        build_scene(usd_cfg(stage).scene)
+    assert not any("type is" in r.getMessage() for r in caplog.records)   # linear: no warning
+    edit_stage(stage, cubic)
+    with caplog.at_level(logging.WARNING, logger="hairexp.io.usd_read"):
+        build_scene(usd_cfg(stage).scene)
+    assert any(f"{stage}:/Root/Body/Hair: type is cubic (basis bezier)" in r.getMessage() for r in caplog.records)
+
+
+def test_guides_far_from_the_hair_are_warned_about(stage, caplog):
+    """Guides 100 m from the hair (another space or unit) ran without a word; now a warning."""
+    import logging
+
+    from usd_helpers import edit_stage, usd_cfg, vec3f
+    from pxr import UsdGeom
+
+    def shift(st):
+        attr = UsdGeom.BasisCurves.Get(st, "/Root/Guides").GetPointsAttr()
+        for t in attr.GetTimeSamples():
+            attr.Set(vec3f(np.asarray(attr.Get(t), dtype=np.float64) + [100.0, 0.0, 0.0]), t)
+
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        assemble_scene(usd_cfg(stage), settle=False)
+    assert not any("from the nearest hair root" in r.getMessage() for r in caplog.records)
+    edit_stage(stage, shift)
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        assemble_scene(usd_cfg(stage), settle=False)
+    assert any("guides: guide 0's root is 100 m from the nearest hair root" in r.getMessage() for r in caplog.records)
+
+
+# 3. guide files
+
+@pytest.fixture(scope="module")
+def guide_file(tmp_path_factory, base):
+    """A valid guide npz of the goaling_smoke guides (3 x 10 vertices), 3 frames at 25 fps."""
+    cfg, scene, guides = assemble_scene(updated(base, guides__source="rigid", guides__edits=[]), settle=False)
+    pos = np.asarray(guides.frames)
+    d = tmp_path_factory.mktemp("guides")
+    return d, pos, np.asarray(guides.offsets)
+
+
+def file_cfg(base, path):
+    return updated(base, guides__source="file", guides__file=str(path), guides__edits=[],
+                   controller__name="tracking")
+
+
+@pytest.mark.parametrize("name, make, match", [
+    ("complex", lambda p: p.astype(complex), r"guide_positions has dtype complex128, expected floating-point"),
+    ("int", lambda p: (1000 * p).astype(np.int32), r"guide_positions has dtype int32, expected floating-point"),
+    ("str", lambda p: np.array([["a"]]), r"guide_positions has dtype <U1"),
+    ("far", lambda p: p * 1e30, r"frame 0, curve 0 vertex 0 is at .* more than 10000 m from the origin"),
+    ("shape", lambda p: p[..., :2], r"guide positions must have shape \(frames, vertices, 3\)"),
+])
+def test_bad_guide_files_name_the_key_and_file(base, guide_file, name, make, match):
+    d, pos, off = guide_file
+    path = d / f"{name}.npz"
+    np.savez(path, guide_positions=make(pos), guide_offsets=off, fps=np.float64(25.0))
+    with pytest.raises(InputError, match=match) as err:
+        assemble_scene(file_cfg(base, path), settle=False)
+    assert err.value.where.startswith(f"guides.file={path}"), str(err.value)
+
+
+def test_a_valid_guide_file_still_runs(base, guide_file):
+    d, pos, off = guide_file
+    path = d / "ok.npz"
+    np.savez(path, guide_positions=pos, guide_offsets=off, fps=np.float64(25.0))
+    assert MAX_COORDINATE == 1e4
+    _, _, guides = assemble_scene(file_cfg(base, path), settle=False)
+    assert np.allclose(np.asarray(guides.frames), pos)
+
+
+# 4. command line: override syntax, empty run folder
+
+@pytest.mark.parametrize("argv, needle", [
+    (["scene.usd=/tmp/scène.usda"], "scene.usd=/tmp/scène.usda: not a valid override"),
+    (["-m", "hydra.sweep.dir=/tmp/ünï", "solver.dt=0.04,0.02"], "hydra.sweep.dir=/tmp/ünï: not a valid override"),
+    (["hydra.run.dir=/tmp/ünï"], "quote a value"),
+    (["solver.dt=[0.1"], "solver.dt=[0.1: not a valid override"),
+    (["hydra.run.dir="], "hydra.run.dir: is empty"),
+    (["-m", "hydra.sweep.dir=''"], "hydra.sweep.dir: is empty"),
+])
+def test_unparsable_overrides_are_one_line(argv, needle):
+    msg = cli.config_error(SMALL + argv)
+    assert msg is not None and msg.startswith("hairexp: error: ") and "\n" not in msg, msg
+    assert needle in msg, msg
+
+
+def test_parsable_overrides_pass():
+    assert cli.override_syntax_error(["scene.usd='/tmp/scène a.usda'", "--cfg", "job", "-m", "solver.dt=0.04,0.02",
+                                      "hydra.run.dir=/tmp/x/${now:%H}"]) is None
+
+
+@pytest.mark.parametrize("sweep, needle", [
+    (["solver.dt=0.04,abc"], "sweep job [solver.dt=abc]: Error merging override solver.dt=abc"),
+    (["solver.dtt=1,2"], "sweep job [solver.dtt=1]: solver.dtt: unknown key, not in the schema"),
+    (["solver.rtol=1e-5,1e-6", "tracking.kkt=schur,lu"], "sweep job [solver.rtol=1e-05 tracking.kkt=lu]: Error merging override tracking.kkt=lu"),
+])
+def test_sweep_composition_errors_are_one_line(sweep, needle):
+    """A -m sweep whose job cannot be composed: Hydra stopped the whole sweep with its multi-line
+    message, exit 1; now one line naming the job's swept values, exit 2 (entry's config_error)."""
+    msg = cli.config_error(["-m", *SMALL, *sweep])
+    assert msg is not None and msg.startswith("hairexp: error: ") and "\n" not in msg, msg
+    assert needle in msg, msg
+
+
+@pytest.mark.parametrize("sweep", [["solver.dt=0.04,-1"], ["logging.progress=true,2"], ["solver.rtol=1e-5,1e-6"],
+                                   ["experiment=goaling_smoke,spreading_smoke"]])
+def test_sweep_values_checked_by_the_jobs_pass(sweep):
+    """Values hairexp checks (a range, a boolean) stay each job's error: the other jobs run."""
+    assert cli.config_error(["-m", *SMALL, *sweep]) is None
+
+
+def test_unknown_experiment_in_a_sweep_is_short():
+    msg = cli.config_error(["-m", "experiment=goaling_smoke,goalng", "variants=[]"])
+    assert "sweep job [experiment=goalng]" in msg and "Could not find 'experiment/goalng'" in msg, msg
+    assert "search path" not in msg
+
+
+def run_cli(args, cwd, timeout=120):
+    env = dict(os.environ, CI="1", PYTHONPATH=str(REPO))
+    return subprocess.run([sys.executable, "-m", "hairexp", *args], cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_cli_non_ascii_run_dir_and_empty_run_dir_exit_2(tmp_path):
+    proc = run_cli(SMALL + [f"hydra.run.dir={tmp_path}/ünï"], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "hydra.run.dir=" in lines[0] and "not a valid override" in lines[0], proc.stderr
+    proc = run_cli(SMALL + ["hydra.run.dir="], tmp_path)
+    assert proc.returncode == 2 and "hydra.run.dir: is empty" in proc.stderr, proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == []   # nothing written into the working folder
+
+
+# 5. export_scene's arguments
+
+def test_export_scene_help_and_usage(capsys):
+    from hairexp.app.export_scene import main
+
+    assert main(["--help"]) == 0
+    assert "usage: python -m hairexp.io.export_scene" in capsys.readouterr().out
+    assert main([]) == 2
+    err = capsys.readouterr().err
+    assert "usage:" in err and "hairexp: error: the path of the stage to write is required" in err
+    assert main(["--bogus"]) == 2
+    assert "unknown option --bogus" in capsys.readouterr().err
+
+
+# 6. experiments/ scripts: bad arguments are usage errors before anything runs
+
+@pytest.mark.parametrize("module, argv, needle", [
+    ("contact", ["--frames", "-5"], "argument --frames: '-5' is not a positive integer"),
+    ("contact", ["--runs", "nope"], "argument --runs: invalid choice: 'nope'"),
+    ("contact", ["--modes", "nope"], "argument --modes: invalid choice: 'nope'"),
+    ("contact", ["--set", "solver.dtt=1"], "--set solver.dtt=1: Could not override 'solver.dtt'"),
+    ("fidelity", ["--vertices", "-4"], "argument --vertices: '-4' is not an integer >= 3"),
+    ("fidelity_static", ["--vertices", "2"], "argument --vertices: '2' is not an integer >= 3"),
+    ("integrators", ["--dts", "-0.01"], "argument --dts: '-0.01' is not a positive number"),
+    ("integrators", ["--reps", "0"], "argument --reps: '0' is not a positive integer"),
+    ("integrators", ["--cost-integrators", "rk4"], "argument --cost-integrators: invalid choice: 'rk4'"),
+    ("stress", ["--set", "solver.dt=abc", "--no-report"], "--set solver.dt=abc: Error merging override"),
+    ("accuracy", ["--set", "solver.dt=-1"], "--set solver.dt=-1: solver.dt: must be a finite number > 0"),
+    ("assignment", ["goaling_smoke", "--set", "solver.max_iterations=0"], "solver.max_iterations: must be >= 1"),
+])
+def test_experiment_scripts_refuse_bad_arguments(module, argv, needle, capsys):
+    import importlib
+
+    main = importlib.import_module(f"experiments.{module}").main
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert needle in err and "Traceback" not in err, err
+
+
+def test_traced_run_help_does_not_run(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run([sys.executable, "-m", "experiments.traced_run", "--help"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and "usage: python -m experiments.traced_run OUT.json" in proc.stdout, proc.stderr
+    assert list(tmp_path.iterdir()) == []
+    proc = subprocess.run([sys.executable, "-m", "experiments.traced_run", str(tmp_path / "no" / "x.json")],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "cannot be written" in proc.stderr, proc.stderr
+
+
+# 7. interruption while the command line starts (imports take seconds)
+
+@pytest.mark.parametrize("sig, code", [("SIGINT", 130), ("SIGTERM", 143)])
+def test_a_signal_while_starting_is_one_line(sig, code):
+    """Before the command line's own handlers (InterruptSignals) are in place, SIGINT ended with
+    Python's traceback from the import it landed in, SIGTERM without a word: now one line and
+    128 + signal.  The handlers are installed only for ``python -m hairexp`` (``is_command_line``)."""
+    import signal as signals
+
+    code_lines = ("import sys, time; sys.argv = ['/x/hairexp/__main__.py']\n"
+                  "import hairexp.app\n"
+                  "print('ready', flush=True); time.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code_lines], env=dict(os.environ, PYTHONPATH=str(REPO)),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    proc.send_signal(getattr(signals, sig))
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == code, err
+    assert err.strip() == f"hairexp: interrupted by {sig} while starting; nothing was run or written", err
+
+
+def test_startup_handlers_only_for_the_command_line():
+    from hairexp.app import startup
+
+    assert not startup.is_command_line()   # pytest: importing hairexp.app leaves the signals alone
+    import signal as signals
+
+    assert signals.getsignal(signals.SIGTERM) is not startup._handler
+
+
+@pytest.mark.parametrize("module, argv, needle", [
+    ("scene_pictures", ["/nonexistent", "/tmp/x.png"], "/nonexistent: not a run folder (no summary.json)"),
+    ("integrator_verdicts", ["/nonexistent.json"], "/nonexistent.json: cannot read the report"),
+    ("bench_scale", ["--one", "abc", "free"], "argument --one STRANDS: 'abc' is not a positive integer"),
+])
+def test_report_scripts_refuse_bad_inputs(module, argv, needle, capsys):
+    import importlib
+
+    with pytest.raises(SystemExit) as exc:
+        importlib.import_module(f"experiments.{module}").main(argv)
+    assert exc.value.code == 2
+    assert needle in capsys.readouterr().err
+
+
+def test_compare_runs_of_empty_folders_is_an_error(tmp_path, monkeypatch, capsys):
+    from experiments import compare_runs
+
+    (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
+    monkeypatch.setattr(sys, "argv", ["compare_runs", str(tmp_path / "a"), str(tmp_path / "b")])
+    assert compare_runs.main() == 2
+    assert "no run files to compare" in capsys.readouterr().err
+
+
+def test_a_signal_right_after_the_running_summary_still_ends_the_run(tmp_path, monkeypatch):
+    """SIGTERM between summary.json's "running" and the run's own handlers (the metrics table is
+    made there: pyarrow's first import) left summary.json saying "running" with exit 143."""
+    import json
+    import signal as signals
+
+    from hairexp.app import run as run_module
+    from hairexp.errors import Interrupted
+
+    real = run_module.MetricsTable
+
+    def table_then_signal(*a, **kw):
+        t = real(*a, **kw)
+        os.kill(os.getpid(), signals.SIGTERM)
+        return t
+
+    def outer(signum, frame):   # what the command line's handler does outside run()
+        raise Interrupted(signum)
+
+    monkeypatch.setattr(run_module, "MetricsTable", table_then_signal)
+    old = signals.signal(signals.SIGTERM, outer)
+    try:
+        with pytest.raises(Interrupted):
+            run_module.run(compose_config(SMALL), tmp_path / "run")
+    finally:
+        signals.signal(signals.SIGTERM, old)
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["status"] == "interrupted" and summary["error"] == "interrupted by SIGTERM", summary["status"]
