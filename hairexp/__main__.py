@@ -48,6 +48,9 @@ def entry() -> int:
             main()
     except KeyboardInterrupt as exc:
         code = exit_code(exc.signum) if isinstance(exc, Interrupted) else 130
+        # outside a run (a run prints its own line): while the config was composed, or between sweep jobs
+        what = str(exc) if isinstance(exc, Interrupted) and str(exc) else "interrupted by SIGINT"
+        print(f"hairexp: {what}", file=sys.stderr)
         cli.clear_stop_mark()   # the launcher has torn its workers down
         cli.exit_code()   # a sweep's jobs so far
         return code

@@ -435,3 +435,26 @@ def test_a_signal_right_after_the_running_summary_still_ends_the_run(tmp_path, m
         signals.signal(signals.SIGTERM, old)
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["status"] == "interrupted" and summary["error"] == "interrupted by SIGTERM", summary["status"]
+
+
+# 8. a judge whose variants cannot give it a verdict (a free-vs-tracked judge without a free run
+#    used to end the experiment with success: false instead of refusing it)
+@pytest.mark.parametrize("controller, missing", [("tracking", "controller.name=free"),
+                                                 ("free", "controller.name=tracking")])
+def test_judge_without_the_controllers_it_compares_is_refused(tmp_path, controller, missing):
+    out = tmp_path / "run"
+    proc = run_cli(["experiment=goaling_smoke", "frames=2", "logging.rerun=false",
+                    f"variants=[{{name: a, overrides: ['controller.name={controller}']}}]",
+                    f"hydra.run.dir={out}"], tmp_path)
+    assert proc.returncode == 2, proc.stderr
+    line = proc.stderr.strip().splitlines()[-1]
+    assert "judge" in line and "free_misses_tracked_hits" in line and missing in line, proc.stderr
+    assert not (out / "summary.json").exists()   # refused before any variant ran
+
+
+def test_judge_needs_are_known_for_every_judge():
+    from hairexp.evaluation.judges import JUDGE_NEEDS, JUDGES, missing_controllers
+
+    assert set(JUDGE_NEEDS) == set(JUDGES)
+    assert missing_controllers("free_misses_tracked_hits", ["free", "tracking"]) == []
+    assert missing_controllers("variance_follows_targets", ["free"]) == ["tracking"]

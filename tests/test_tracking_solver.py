@@ -731,3 +731,24 @@ def test_tracked_cli_recording_has_tracking_entities(tracked_cli_run):
     paths = {str(c.entity_path) for c in RrdReader(str(out / "recording.rrd")).stream()}
     for e in ("/world/guides", "/world/com", "/world/targets", "/world/target_curves"):
         assert e in paths, (e, sorted(paths))
+
+
+def test_a_singular_kkt_system_fails_the_solve_not_the_process(monkeypatch):
+    """A KKT matrix that cannot be factored (np.linalg.LinAlgError from the Schur complement's
+    solve) ends the SQP with status ``singular``: a failed solve the Simulator recovers from or
+    reports (substeps, then the failure policy), not an exception escaping as a traceback."""
+    from hairexp.control.tracking.kkt import SchurKKT
+    from hairexp.physics.info import SINGULAR
+
+    scene, _, sim = build_tracked(fig2("sliding"))
+    calls = []
+
+    def broken(self, *a, **k):
+        calls.append(1)
+        raise np.linalg.LinAlgError("singular matrix")
+
+    monkeypatch.setattr(SchurKKT, "solve", broken)
+    sim.on_failure = "warn"
+    states, infos = run_steps(sim, 1)
+    assert calls and infos[0].status == SINGULAR and not infos[0].converged
+    assert np.isfinite(states[-1].x).all()

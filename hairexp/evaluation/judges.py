@@ -81,6 +81,19 @@ JUDGE_MEASURES = {"free_misses_tracked_hits": "collider_contact", "clumps_match_
                   "hard_clumps_soft_fans": "fan"}
 
 
+#: judge name -> the controllers its variants must include (a judge that compares free with
+#: tracked runs has no verdict without both; checked before any variant runs, hairexp/app/experiment.py)
+JUDGE_NEEDS = {"free_misses_tracked_hits": ("free", "tracking"), "clumps_match_guides": (),
+               "variance_follows_targets": ("tracking",), "tracked_leaves_rail": ("free", "tracking"),
+               "hard_clumps_soft_fans": ("tracking",)}
+
+
+def missing_controllers(judge: str, controllers) -> list[str]:
+    """The controllers ``judge`` needs that none of the variants (``controllers``) has."""
+    have = set(controllers)
+    return [c for c in JUDGE_NEEDS.get(judge, ()) if c not in have]
+
+
 def _met(rule, m: dict, facts: dict, tol: float = 0.0) -> bool:
     return rule(m, facts, tol)[0]
 

@@ -13,6 +13,7 @@ class Status(str, Enum):
     MAX_ITERATIONS = "max_iterations"
     LINE_SEARCH_FAILED = "line_search_failed"
     DIVERGED = "diverged"
+    SINGULAR = "singular"   # the step's linear system could not be solved (a singular KKT matrix)
 
     def __str__(self) -> str:
         return self.value
@@ -20,6 +21,7 @@ class Status(str, Enum):
 
 CONVERGED, MAX_ITERATIONS, LINE_SEARCH_FAILED, DIVERGED = (Status.CONVERGED, Status.MAX_ITERATIONS,
                                                            Status.LINE_SEARCH_FAILED, Status.DIVERGED)
+SINGULAR = Status.SINGULAR
 
 
 @dataclass

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hairexp.physics.info import CONVERGED, DIVERGED, LINE_SEARCH_FAILED, MAX_ITERATIONS, SolveInfo
+from hairexp.physics.info import CONVERGED, DIVERGED, LINE_SEARCH_FAILED, MAX_ITERATIONS, SINGULAR, SolveInfo
 from hairexp.control.tracking.kkt import reference_solve
 
 #: Sufficient-decrease constant of the merit line search (N&W eq. 18.28, eta).
@@ -143,19 +143,26 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
                 return reference_solve(ev.banded, cons.A, r_x, c, Bmat, D, r_t, reg)
             return kkt.solve(r_x, c, Bmat, D, r_t, reg)
 
-        if opts.kkt != "reference":
-            kkt.factor(ev.banded)
-        if opts.kkt == "reference" or kkt.mode == "exact":
-            dx, dt, lam_new = solve(g, C)     # for the new multiplier itself
-            shift = None
-        else:
-            # an iterative KKT solve (tracking.schur=krylov) for the multiplier's change: its
-            # right-hand side is the Lagrangian's residual at lam (small near a solution), so its
-            # relative tolerance bounds the change's error, not lam's (|g| ~ |A^T lam| >> the residual)
-            shift = lam
-            dx, dt, lam_new = solve(r_x, C if reg is None else C - reg * lam, r_t if sliding else None)   # r_t = B^T lam
-        if hp is not None and hp[1].shape[1]:
-            dx, dt, lam_new = woodbury(solve, hp[1], (dx, dt, lam_new), np.zeros_like(C))
+        try:
+            if opts.kkt != "reference":
+                kkt.factor(ev.banded)
+            if opts.kkt == "reference" or kkt.mode == "exact":
+                dx, dt, lam_new = solve(g, C)     # for the new multiplier itself
+                shift = None
+            else:
+                # an iterative KKT solve (tracking.schur=krylov) for the multiplier's change: its
+                # right-hand side is the Lagrangian's residual at lam (small near a solution), so its
+                # relative tolerance bounds the change's error, not lam's (|g| ~ |A^T lam| >> the residual)
+                shift = lam
+                dx, dt, lam_new = solve(r_x, C if reg is None else C - reg * lam, r_t if sliding else None)   # r_t = B^T lam
+            if hp is not None and hp[1].shape[1]:
+                dx, dt, lam_new = woodbury(solve, hp[1], (dx, dt, lam_new), np.zeros_like(C))
+        except np.linalg.LinAlgError:
+            # a singular KKT matrix (e.g. two clusters' constraints that coincide): the step fails
+            # as a solve, and the Simulator's recovery (substeps) or its failure policy takes over
+            sec["solve"] += time.perf_counter() - t1
+            info.status = SINGULAR
+            break
         if shift is not None:
             lam_new = shift + lam_new
         sec["solve"] += time.perf_counter() - t1
