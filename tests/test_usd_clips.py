@@ -238,3 +238,34 @@ def test_config_key_is_documented():
     assert cfg.output.usd_clips == UsdClips.auto
     assert {v.value for v in UsdClips} == set(usd_write.CLIP_POLICIES)
     assert "output.usd_clips" in (Path(__file__).resolve().parents[1] / "README.md").read_text()
+
+
+def test_clipped_result_reimports(tmp_path, small_clips):
+    """``experiment=from_usd`` reads a clipped result as the single layer: the body's and the
+    colliders' motions, the guides and the hair at rest."""
+    from usd_helpers import usd_cfg
+
+    from hairexp.app.guides import build_guides
+    from hairexp.io.usd_read import stage_timing
+
+    scene, pos, _, _ = frames_of()
+    rng = np.random.default_rng(5)   # guides of the scene's layout (the reader checks them)
+    gscene = build_scene(source_cfg(frames=N).scene)
+    guides = np.stack([gscene.strands.rest[:12] + 0.01 * rng.normal(size=(12, 3)) for _ in range(N + 1)])
+    goff = np.array([0, 6, 12])
+    read = {}
+    for mode in ("never", "always"):
+        (tmp_path / mode).mkdir()
+        write_result_usd(tmp_path / mode / "result.usdc", scene, pos, guides, goff, FPS, clips=mode)
+        cfg = stage_timing(usd_cfg(tmp_path / mode / "result.usdc"))
+        s = build_scene(cfg.scene)
+        read[mode] = (cfg, s, build_guides(cfg, s, cfg.frames, cfg.fps))
+    (c1, s1, g1), (c2, s2, g2) = read["never"], read["always"]
+    assert (c2.frames, c2.fps) == (c1.frames, c1.fps) == (N, FPS)
+    np.testing.assert_array_equal(s2.root_body, s1.root_body)
+    assert len(s2.colliders) == len(s1.colliders) == 5
+    for t in np.arange(0, N + 1) / FPS:
+        for m1, m2 in [(s1.motion, s2.motion), *((a.motion, b.motion) for a, b in zip(s1.colliders, s2.colliders))]:
+            for x, y in zip(m1.pose(t), m2.pose(t)):
+                np.testing.assert_array_equal(y, x)
+        np.testing.assert_array_equal(g2.shape_at(t), g1.shape_at(t))
