@@ -400,6 +400,12 @@ class UsdFormat(str, Enum):
     usda = "usda"   # result.usda, ASCII (readable, diffable)
 
 
+class UsdClips(str, Enum):
+    auto = "auto"       # one layer for a run of at most 250 frames (usd_write.CLIP_FRAMES), value clips beyond
+    always = "always"   # value clips: result.clips/<k>.usdc hold the per-frame samples, 250 frames each
+    never = "never"     # one layer whatever the length (its writer's memory grows with the frames)
+
+
 class OnUnconverged(str, Enum):
     warn = "warn"   # a run with unconverged steps completes (summary converged: false), a warning, exit 0
     fail = "fail"   # such a run fails (status failed, no result files), exit 3
@@ -409,6 +415,9 @@ class OnUnconverged(str, Enum):
 class OutputConfig:
     """The run folder's result files (README "Run folder")."""
     usd_format: UsdFormat = UsdFormat.usdc
+    # value clips (README "USD scenes"): the per-frame samples in result.clips/, so that writing a
+    # long run's result holds one chunk of frames in memory
+    usd_clips: UsdClips = UsdClips.auto
 
 
 @dataclass

@@ -2,7 +2,8 @@
 the run folder.
 
 Files (see README "Run folder"): metrics.parquet, summary.json, recording.rrd, result.npz,
-guides.npz, result.usdc (or .usda, ``output.usd_format``).
+guides.npz, result.usdc (or .usda, ``output.usd_format``) and, for a long run, its value clips
+result.clips/ (``output.usd_clips``).
 
 The folder must be empty (``hairexp.outputs.folder.claim``; ``overwrite=true`` replaces a
 previous run).  ``summary.json`` says ``running`` from the start.  While the run goes, metrics
@@ -13,7 +14,7 @@ flushed.  At the end the result files are made from the stream and it is removed
 Endings: ``completed`` (with ``converged``: whether every step converged; under
 ``on_unconverged=fail`` unconverged steps fail the run; a run in which no step converged always
 fails); ``failed`` with the error (metrics.parquet of the steps done, ``stream/`` with the frames
-done, no result.npz / result.usd* / recording.rrd: the recording keeps its
+done, no result.npz / result.usd* / result.clips/ / recording.rrd: the recording keeps its
 ``recording.partial.rrd`` name); ``interrupted`` on SIGINT or SIGTERM (the same partial files).
 A failure while writing an ending is logged and noted on the original error, which propagates.
 """
@@ -50,7 +51,7 @@ FLUSH_FRAMES = 25          # the stream is flushed at least every this many fram
 FLUSH_SECONDS = 2.0        # every this many seconds,
 FLUSH_BYTES = 64 << 20     # or when this many bytes of frames are buffered
 #: final result files: present only when the run completed
-RESULT_FILES = ("result.npz", "result.usda", "result.usdc", "recording.rrd")
+RESULT_FILES = ("result.npz", "result.usda", "result.usdc", "result.clips", "recording.rrd")
 
 
 def body_metrics(b: np.ndarray) -> dict:
@@ -247,7 +248,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     sinks.written.append(out / "result.npz")
     write_npz(out / "result.npz", out / STREAM)
     release()
-    from hairexp.io.usd_write import write_result_usd  # pxr is imported here
+    from hairexp.io.usd_write import clips_dir, write_result_usd  # pxr is imported here
 
     wscene = scene
     if sim.body is not None:  # the block's recorded poses, linear between frames
@@ -255,8 +256,9 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
         rv = np.repeat(sim.body.rotvecs, len(P), axis=0)
         wscene = replace(scene, motion=RigidMotion(np.array(times), P, rv, "linear"))
     usd = out / f"result.{getattr(cfg.output.usd_format, 'value', cfg.output.usd_format)}"
-    sinks.written.append(usd)
-    write_result_usd(usd, wscene, positions, recorder.frames_of("guide_positions"), guides.offsets, cfg.fps)
+    sinks.written += [usd, clips_dir(usd)]   # the clips folder (if any) goes with the stage
+    write_result_usd(usd, wscene, positions, recorder.frames_of("guide_positions"), guides.offsets, cfg.fps,
+                     clips=str(getattr(cfg.output.usd_clips, "value", cfg.output.usd_clips)))
     recorder.close()
     release()
     view = None
@@ -314,8 +316,8 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
             df = attempt("metrics", sinks.table.frame)
     if sinks.rerun is not None:
         attempt("recording", lambda: sinks.rerun.close(success=False))
-    for p in sinks.written:
-        attempt(p.name, lambda p=p: p.unlink(missing_ok=True))
+    for p in sinks.written:   # files, and result.clips/ (a folder)
+        attempt(p.name, lambda p=p: shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True))
     summary = summarize(df, sinks.plain, scene_name, controller, time.perf_counter() - t_start, status, error)
     attempt("summary.json", lambda: write_json(out / SUMMARY, summary))
     stream = out / STREAM

@@ -101,13 +101,14 @@ def _custom(prim, name: str, value: float) -> None:
     prim.CreateAttribute(name, Sdf.ValueTypeNames.Double, custom=True).Set(float(value))
 
 
-def write_colliders(stage, colliders: list, pose_samples) -> None:
+def write_colliders(stage, colliders: list, pose_samples) -> list:
     """Define one prim per collider under ``/Root/Colliders``; ``pose_samples(motion)`` gives
-    the (time code or None for the default, matrix) pairs of its transform."""
+    the (time code or None for the default, matrix) pairs of its transform.  Returns the
+    (prim path, collider) pairs written."""
     if not colliders:
-        return
+        return []
     UsdGeom.Scope.Define(stage, COLLIDERS)
-    used = set()
+    used, written = set(), []
     for c in colliders:
         name = Tf.MakeValidIdentifier(c.name)
         while name in used:
@@ -140,3 +141,5 @@ def write_colliders(stage, colliders: list, pose_samples) -> None:
         _custom(g.GetPrim(), THICKNESS, c.thickness)
         _custom(g.GetPrim(), FRICTION, c.friction)
         g.CreateExtentAttr(UsdGeom.Boundable.ComputeExtentFromPlugins(g, Usd.TimeCode.Default()))
+        written.append((path, c))
+    return written

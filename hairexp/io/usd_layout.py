@@ -12,7 +12,9 @@ Input layout, read by ``experiment=from_usd`` and written by ``write_scene_usd``
                           time-sampled, with hairexp:thickness, hairexp:friction, hairexp:spin
 
 A run's ``result.usdc`` (or ``.usda``) has the same prims (so it re-imports) plus
-``/Root/Result/Hair``: the simulated hair in world space, one time sample per frame.
+``/Root/Result/Hair``: the simulated hair in world space, one time sample per frame.  A long
+run's time samples are in value clips (``result.clips/``, a clip set on ``/Root``; see
+``usd_write``): read the stage through ``Usd.Stage.Open``, which composes them.
 
 USD composes row vectors: ``p_world = p_local * M`` with the translation in the last row;
 hairexp's poses are column-vector ``x = R X + T``.

@@ -2,25 +2,43 @@
 
 * ``write_scene_usd(path, scene, guides, fps, frames)``: a scene in the input layout that
   ``experiment=from_usd`` reads (a template for users, and the round trip);
-* ``write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps)``: a run's
-  ``result.usdc`` (binary crate, the default) or ``result.usda`` (``output.usd_format``): the
-  input layout sampled at every frame plus ``/Root/Result/Hair``.
+* ``write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps, clips)``: a
+  run's ``result.usdc`` (binary crate, the default) or ``result.usda`` (``output.usd_format``):
+  the input layout sampled at every frame plus ``/Root/Result/Hair``; a long run's samples in
+  value clips (``result.clips/``, ``write_clipped``).
 
 Body and collider transforms: a ``linear`` motion is written at its keyframes (it re-imports
 exactly); a ``cubic`` one, and every motion in a result stage, once per frame (it re-imports
 linear between frames); a still one as an untimed value.  Points are float32 (USD's
 ``point3f``), transforms and sizes float64.  Files are written to a temporary name in the same
 folder, then renamed: a failed write leaves nothing under the final name.
+
+Value clips (``output.usd_clips``; README "USD scenes"): every time-sampled attribute of a
+result (hair and guide points and extents, the moving transforms) is written in chunks of
+CLIP_FRAMES frames into ``<stem>.clips/<k>.usdc``, one crate layer a chunk, each written once and
+released, so the writer holds one chunk whatever the run's length (a single file-backed layer is
+packed whole at every save: its tables grow with the frames).  The root layer ``<stem>.usdc``
+holds the prims, the topology, the widths, the untimed values and one clip set on ``/Root``
+(``clipPrimPath`` /Root: the clips mirror the root's prim paths, so one list of assets serves every
+animated prim below it) with a manifest ``<stem>.clips/manifest.usdc`` declaring the clipped
+attributes.  Clip k holds frames k x CLIP_FRAMES .. (k + 1) x CLIP_FRAMES (the next chunk's first
+frame too, so that times between two frames interpolate across a clip boundary as in one layer);
+it is active from k x CLIP_FRAMES on, and clip time = stage time.  Clips are crate files whatever
+the root's format (a ``.usda`` root stays readable: the bulk of the samples is binary).  Asset paths
+are relative (``./result.clips/0.usdc``): the run folder can be moved.  The clips are written into
+``<stem>.clips.tmp/``, renamed to ``<stem>.clips/``, then the root layer is written and renamed; a
+failure removes both.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
-from pxr import Usd, UsdGeom, Vt
+from pxr import Sdf, Usd, UsdGeom, Vt
 
 from hairexp.io.usd_colliders import write_colliders
 from hairexp.memory import release
@@ -29,6 +47,10 @@ from hairexp.io.usd_layout import (BODY, GUIDE_WIDTH, GUIDES, HAIR, HAIR_WIDTH, 
 
 log = logging.getLogger(__name__)
 FORMATS = (".usda", ".usdc", ".usd")
+#: frames in one value clip (``write_clipped``); ``output.usd_clips=auto`` writes a run of at most
+#: this many frames as a single layer
+CLIP_FRAMES = 250
+CLIP_POLICIES = ("auto", "always", "never")
 
 
 #: a streamed stage (``write_result_usd``) is saved whenever this many bytes of samples (points,
@@ -42,17 +64,18 @@ SAMPLE_BYTES = 256
 
 
 class Saves:
-    """Saves a file-backed stage every SAVE_BYTES of samples added (``add``), so that its samples
-    leave memory (a saved crate layer reads them back from the file on demand)."""
+    """Saves a file-backed stage (or Sdf layer) every SAVE_BYTES of samples added (``add``), so
+    that its samples leave memory (a saved crate layer reads them back from the file on demand)."""
 
     def __init__(self, stage):
-        self.stage, self.added = stage, 0
+        self.layer = stage.GetRootLayer() if isinstance(stage, Usd.Stage) else stage
+        self.added = 0
 
     def add(self, nbytes: int) -> None:
         self.added += nbytes
         if self.added >= SAVE_BYTES:
-            if not self.stage.GetRootLayer().Save():
-                raise OSError(f"cannot write {self.stage.GetRootLayer().realPath}")
+            if not self.layer.Save():
+                raise OSError(f"cannot write {self.layer.realPath}")
             self.added = 0
             release()   # each save's packing tables grow with the samples saved: free them, or the heap grows
 
@@ -107,12 +130,15 @@ def define_curves(stage, path: str, counts, width: float) -> UsdGeom.BasisCurves
     return c
 
 
+def _extent(p: np.ndarray, r: float) -> np.ndarray:
+    return np.stack([p.min(axis=0) - r, p.max(axis=0) + r]).astype(np.float32)
+
+
 def set_points(curves: UsdGeom.BasisCurves, points: np.ndarray, tc=Usd.TimeCode.Default()) -> None:
     p = np.ascontiguousarray(points, dtype=np.float32)
     curves.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(p), tc)
     r = 0.5 * curves.GetWidthsAttr().Get()[0]
-    extent = np.stack([p.min(axis=0) - r, p.max(axis=0) + r]).astype(np.float32)
-    curves.GetExtentAttr().Set(Vt.Vec3fArray.FromNumpy(extent), tc)
+    curves.GetExtentAttr().Set(Vt.Vec3fArray.FromNumpy(_extent(p, r)), tc)
 
 
 def write_body(stage, scene, samples) -> None:
@@ -163,18 +189,40 @@ def write_scene_usd(path, scene, guides, fps: float, frames: int) -> None:
     save(stage, path)
 
 
-def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps: float) -> None:
+def clipped(policy: str, frames: int) -> bool:
+    """Whether a result of ``frames`` frames is written with value clips (``output.usd_clips``)."""
+    if policy not in CLIP_POLICIES:
+        raise ValueError(f"usd_clips is {policy!r}; use one of {', '.join(CLIP_POLICIES)}")
+    return policy == "always" or (policy == "auto" and frames > CLIP_FRAMES)
+
+
+def clips_dir(path) -> Path:
+    """The folder of the value clips of the result stage ``path``: ``result.usdc`` -> ``result.clips``."""
+    path = Path(path)
+    return path.with_name(path.stem + ".clips")
+
+
+def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps: float,
+                     clips: str = "auto") -> None:
     """A run's result.usdc (or .usda: the format follows the suffix): positions (frames+1, V, 3)
     and guide_positions (frames+1, Vg, 3) in world space (arrays, or sequences of frames such
     as ``NpyFrames``), body and colliders sampled at every frame.
 
-    The stage is written as a crate file under a temporary name, saved every ``SAVE_BYTES``
-    of samples, transforms included (memory stays flat in the number of frames), then renamed; an ASCII result is
-    exported from it at the end."""
+    ``clips`` (``output.usd_clips``): ``never``: one layer; ``always``: value clips
+    (``write_clipped``); ``auto``: clips when there are more than CLIP_FRAMES frames.  A
+    ``<stem>.clips`` folder left beside ``path`` by an earlier write is removed.
+
+    One layer: the stage is written as a crate file under a temporary name, saved every
+    ``SAVE_BYTES`` of samples, transforms included, then renamed; an ASCII result is exported
+    from it at the end.  Its memory still grows with the frames (each save packs the whole
+    layer's tables)."""
     path = Path(path)
     if path.suffix not in FORMATS:
         raise ValueError(f"{path}: a USD file name ends with one of {', '.join(FORMATS)}")
     frames = len(positions) - 1
+    if clipped(str(getattr(clips, "value", clips)), frames):
+        write_clipped(path, scene, positions, guide_positions, guide_offsets, fps)
+        return
     crate = path.with_name(path.stem + ".tmp.usdc")
     stage = None
     try:
@@ -183,7 +231,7 @@ def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps
         saves = Saves(stage)
         samples = lambda motion: pose_samples(motion, fps, frames, keyframes=False, saves=saves)  # noqa: E731
         write_body(stage, scene, samples(scene.motion))
-        if np.ndim(guide_positions) == 3 and len(guide_positions) and len(guide_positions[0]) > 0:
+        if _has_guides(guide_positions):
             write_animation(stage, GUIDES, guide_positions, guide_offsets, GUIDE_WIDTH, saves, "guide_positions")
         write_colliders(stage, scene.colliders, samples)
         UsdGeom.Scope.Define(stage, RESULT)
@@ -195,6 +243,129 @@ def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps
                 raise OSError(f"cannot write {crate}")
             stage = None
             os.replace(crate, path)
+        shutil.rmtree(clips_dir(path), ignore_errors=True)   # an earlier write's clips: not this stage's
     finally:
         stage = None   # releases the layer (a traceback keeps this frame alive) before its file goes
         crate.unlink(missing_ok=True)
+
+
+def _has_guides(guide_positions) -> bool:
+    return np.ndim(guide_positions) == 3 and len(guide_positions) > 0 and len(guide_positions[0]) > 0
+
+
+class _Channel:
+    """One time-sampled attribute of a clipped result: its prim path, name, value type and the
+    per-frame value (``value(f)``, with the bytes it costs) made on demand."""
+
+    def __init__(self, prim: str, name: str, type_name, value, nbytes: int):
+        self.prim, self.name, self.type_name, self.value, self.nbytes = prim, name, type_name, value, nbytes
+
+
+def _curve_channels(path: str, frames, width: float, what: str, file) -> list:
+    """Points and extent of a BasisCurves prim; each frame is read once for both (a non-finite
+    frame is refused: AssertionError naming ``what``)."""
+    cache = {}
+
+    def frame(f):
+        if f not in cache:
+            cache.clear()
+            p = np.ascontiguousarray(frames[f], dtype=np.float32)
+            if not np.isfinite(p).all():
+                raise AssertionError(f"refusing to write non-finite {what} (frame {f}) to {file}")
+            cache[f] = (Vt.Vec3fArray.FromNumpy(p), Vt.Vec3fArray.FromNumpy(_extent(p, 0.5 * width)))
+        return cache[f]
+
+    n = len(frames[0])
+    return [_Channel(path, "points", Sdf.ValueTypeNames.Point3fArray, lambda f: frame(f)[0], 12 * n + SAMPLE_BYTES),
+            _Channel(path, "extent", Sdf.ValueTypeNames.Float3Array, lambda f: frame(f)[1], 24 + SAMPLE_BYTES)]
+
+
+def _pose_channel(prim: str, motion, fps: float) -> _Channel:
+    return _Channel(prim, "xformOp:transform", Sdf.ValueTypeNames.Matrix4d,
+                    lambda f: matrix_from_pose(*motion.pose(f / fps)), MATRIX_BYTES + SAMPLE_BYTES)
+
+
+def _write_clip(file: Path, channels: list, first: int, last: int, fps: float) -> Sdf.Layer:
+    """Clip layer ``file``: the channels' samples at frames first..last (over specs), saved every
+    SAVE_BYTES and at the end; returns the layer (the caller drops it)."""
+    layer = Sdf.Layer.CreateNew(str(file))
+    if layer is None:
+        raise OSError(f"cannot create {file}")
+    layer.timeCodesPerSecond = layer.framesPerSecond = float(fps)   # as the root's: no time scaling
+    paths = []
+    for c in channels:
+        spec = Sdf.CreatePrimInLayer(layer, c.prim)
+        attr = spec.attributes.get(c.name) or Sdf.AttributeSpec(spec, c.name, c.type_name)
+        paths.append(attr.path)
+    saves = Saves(layer)
+    for f in range(first, last + 1):
+        for c, p in zip(channels, paths):
+            layer.SetTimeSample(p, float(f), c.value(f))
+            saves.add(c.nbytes)
+    if not layer.Save():
+        raise OSError(f"cannot write {file}")
+    return layer
+
+
+def write_clipped(path, scene, positions, guide_positions, guide_offsets, fps: float) -> None:
+    """``write_result_usd`` with value clips (module docstring): ``<stem>.clips/<k>.usdc`` with
+    frames k x CLIP_FRAMES .. (k + 1) x CLIP_FRAMES of every time-sampled attribute, a manifest,
+    and the root layer ``path`` with the rest and the clip set on /Root.  Memory: one chunk."""
+    path = Path(path)
+    frames = len(positions) - 1
+    final, tmp = clips_dir(path), path.with_name(path.stem + ".clips.tmp")
+    stage = None
+    renamed = False
+    try:
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        # the root layer in memory (small: no per-frame samples); a moving transform's op is
+        # declared without values, the clips hold them
+        stage = new_stage(fps, frames, "hairexp result: the input layout plus /Root/Result/Hair, the per-frame "
+                          f"samples in value clips ./{final.name}/ (README 'USD scenes')")
+        moving = lambda motion: len(motion.times) > 1  # noqa: E731
+        samples = lambda motion: [] if moving(motion) else pose_samples(motion, fps, frames, keyframes=False)  # noqa: E731
+        channels = []
+        write_body(stage, scene, samples(scene.motion))
+        if moving(scene.motion):
+            channels.append(_pose_channel(BODY, scene.motion, fps))
+        if _has_guides(guide_positions):
+            define_curves(stage, GUIDES, np.diff(guide_offsets), GUIDE_WIDTH)
+            channels += _curve_channels(GUIDES, guide_positions, GUIDE_WIDTH, "guide_positions", path)
+        for prim, c in write_colliders(stage, scene.colliders, samples):
+            if moving(c.motion):
+                channels.append(_pose_channel(prim, c.motion, fps))
+        UsdGeom.Scope.Define(stage, RESULT)
+        define_curves(stage, RESULT_HAIR, np.diff(scene.strands.offsets), HAIR_WIDTH)
+        channels += _curve_channels(RESULT_HAIR, positions, HAIR_WIDTH, "positions", path)
+
+        starts = list(range(0, frames, CLIP_FRAMES)) or [0]
+        assets = []
+        for k, first in enumerate(starts):
+            layer = _write_clip(tmp / f"{k}.usdc", channels, first, min(first + CLIP_FRAMES, frames), fps)
+            if k == 0:   # every clip has the same attributes: the manifest is the first one's
+                manifest = Usd.ClipsAPI.GenerateClipManifestFromLayers([layer], ROOT)
+                if not manifest.Export(str(tmp / "manifest.usdc")):
+                    raise OSError(f"cannot write {tmp / 'manifest.usdc'}")
+                manifest = None
+            layer = None
+            release()   # the chunk's samples and packing tables
+            assets.append(f"./{final.name}/{k}.usdc")
+
+        api = Usd.ClipsAPI(stage.GetPrimAtPath(ROOT))
+        api.SetClipPrimPath(ROOT)
+        api.SetClipAssetPaths(Sdf.AssetPathArray(assets))
+        api.SetClipManifestAssetPath(Sdf.AssetPath(f"./{final.name}/manifest.usdc"))
+        api.SetClipActive(Vt.Vec2dArray([(float(s), float(k)) for k, s in enumerate(starts)]))
+        api.SetClipTimes(Vt.Vec2dArray([(float(t), float(t)) for t in sorted({*starts, frames})]))
+        shutil.rmtree(final, ignore_errors=True)   # an earlier write's clips
+        os.replace(tmp, final)
+        renamed = True
+        save(stage, path)
+    except BaseException:
+        if renamed:
+            shutil.rmtree(final, ignore_errors=True)
+        raise
+    finally:
+        stage = None
+        shutil.rmtree(tmp, ignore_errors=True)
