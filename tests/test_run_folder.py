@@ -276,6 +276,20 @@ def test_used_folder_is_refused_unless_overwrite(hydra_conf, tmp_path):
     assert (out / "notes.txt").read_text() == "mine" and (out / "result.npz").is_file()
 
 
+
+def test_overwrite_replaces_a_run_with_value_clips(hydra_conf, tmp_path):
+    """A run whose USD result is clipped (result.clips/, output.usd_clips) is a run's folder:
+    overwrite=true replaces it, a leftover result.clips.tmp/ of a killed writer included."""
+    out = tmp_path / "run"
+    run(hydra_conf([*TINY, "frames=2", "output.usd_clips=always"]), out)
+    assert (out / "result.clips").is_dir()
+    (out / "result.clips.tmp").mkdir()
+    with pytest.raises(InputError, match="not empty"):
+        run(hydra_conf([*TINY, "frames=2"]), out)
+    s = run(hydra_conf([*TINY, "frames=2", "output.usd_clips=never", "overwrite=true"]), out)
+    assert s["status"] == "completed"
+    assert not (out / "result.clips").exists() and not (out / "result.clips.tmp").exists()
+
 def test_default_folders_are_unique(tmp_path):
     procs = [cli([*TINY, "frames=1"], tmp_path) for _ in range(2)]               # launched in the same second
     for p in procs:

@@ -27,7 +27,7 @@ STREAM = "stream"
 #: what a run writes into its folder (README "Run folder")
 RUN_FILES = frozenset({SUMMARY, "metrics.parquet", "result.npz", "result.usda", "result.usdc", "guides.npz",
                        "recording.rrd", "recording.partial.rrd", "comparison.rrd", "comparison.partial.rrd"})
-RUN_DIRS = frozenset({STREAM})
+RUN_DIRS = frozenset({STREAM, "result.clips", "result.clips.tmp"})   # the USD result's value clips (io/usd_write.py)
 
 
 def _hydras(p: Path) -> bool:
