@@ -458,3 +458,17 @@ def test_judge_needs_are_known_for_every_judge():
     assert set(JUDGE_NEEDS) == set(JUDGES)
     assert missing_controllers("free_misses_tracked_hits", ["free", "tracking"]) == []
     assert missing_controllers("variance_follows_targets", ["free"]) == ["tracking"]
+
+
+# 9. a run whose steps are too short to converge (fps=1e9: frames of 1e-9 s) names the step length
+def test_no_step_converged_names_a_tiny_step_length():
+    import pandas as pd
+
+    from hairexp.app.run import convergence_error
+
+    df = pd.DataFrame({"converged": [False, False], "status": ["max_iterations"] * 2, "dt": [1e-9, 1e-9],
+                       "time": [1e-9, 2e-9]})
+    why = convergence_error(df, "warn")
+    assert why.startswith("no step converged") and "1e-09 s" in why and "fps" in why and "solver.dt" in why
+    df["dt"] = 0.04   # an ordinary step: no word about its length
+    assert "s long" not in convergence_error(df, "warn")

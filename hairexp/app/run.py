@@ -105,6 +105,10 @@ def summarize(df, plain: dict, scene_name: str, controller: str, wall: float, st
     }
 
 
+#: s, a step shorter than this that never converges is told so (see ``convergence_error``)
+TINY_STEP = 1e-6
+
+
 def convergence_error(df, policy: str) -> str | None:
     """Why a run with these metrics fails for non-convergence, or None."""
     n = len(df)
@@ -116,7 +120,13 @@ def convergence_error(df, policy: str) -> str | None:
         return None
     statuses = ", ".join(f"{s}: {c}" for s, c in df["status"][bad].value_counts().items())
     if k == n:
-        return f"no step converged ({n} steps; {statuses})"
+        why = f"no step converged ({n} steps; {statuses})"
+        dt = float(df["dt"].min()) if "dt" in df else float("nan")
+        if dt < TINY_STEP:   # measured on goaling_smoke: steps of 1e-6 s converge, of 1e-7 s none does
+            why += (f"; its steps are {dt:.3g} s long (solver.dt, or a frame of 1/fps when fps is higher than "
+                    f"1/solver.dt): steps that short do not converge in double precision (goaling_smoke: "
+                    f"{TINY_STEP:g} s does, 1e-7 s does not); set a larger solver.dt or a smaller fps")
+        return why
     if policy == "fail":
         return (f"{k} of {n} steps did not converge (first at t={float(df['time'][bad].iloc[0]):.4g} s; "
                 f"{statuses}); on_unconverged=fail")
