@@ -296,7 +296,6 @@ class Trapezoidal(ImplicitEuler):
         return History(x=state.x, v=state.v, dt=dt)
 
     after_collision = BDF2.after_collision
-    after_velocity_filter = BDF2.after_velocity_filter
 
 
 class _StageEuler(ImplicitEuler):
@@ -305,7 +304,6 @@ class _StageEuler(ImplicitEuler):
 
     history = Trapezoidal.history
     after_collision = BDF2.after_collision
-    after_velocity_filter = BDF2.after_velocity_filter
 
 
 class _StageBDF2(BDF2):
