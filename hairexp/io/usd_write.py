@@ -134,6 +134,15 @@ def _extent(p: np.ndarray, r: float) -> np.ndarray:
     return np.stack([p.min(axis=0) - r, p.max(axis=0) + r]).astype(np.float32)
 
 
+def finite_frame(P, f: int, what: str, file) -> np.ndarray:
+    """Frame ``f`` of ``what`` as USD stores it (point3f: float32, contiguous); a non-finite one
+    is refused (AssertionError naming ``what``, the frame and ``file``)."""
+    p = np.ascontiguousarray(P, dtype=np.float32)
+    if not np.isfinite(p).all():
+        raise AssertionError(f"refusing to write non-finite {what} (frame {f}) to {file}")
+    return p
+
+
 def set_points(curves: UsdGeom.BasisCurves, points: np.ndarray, tc=Usd.TimeCode.Default()) -> None:
     p = np.ascontiguousarray(points, dtype=np.float32)
     curves.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(p), tc)
@@ -155,9 +164,7 @@ def write_animation(stage, path: str, frames, offsets: np.ndarray, width: float,
     one block of frames; a non-finite frame is refused (AssertionError naming ``what``)."""
     curves = define_curves(stage, path, np.diff(offsets), width)
     for f, P in enumerate(frames):
-        if not np.isfinite(P).all():
-            raise AssertionError(f"refusing to write non-finite {what} (frame {f}) to {stage.GetRootLayer().realPath}")
-        set_points(curves, P, Usd.TimeCode(f))
+        set_points(curves, finite_frame(P, f, what, stage.GetRootLayer().realPath), Usd.TimeCode(f))
         if saves is not None:
             saves.add(12 * len(P) + 24 + 2 * SAMPLE_BYTES)   # points and extent
 
@@ -269,9 +276,7 @@ def _curve_channels(path: str, frames, width: float, what: str, file) -> list:
     def frame(f):
         if f not in cache:
             cache.clear()
-            p = np.ascontiguousarray(frames[f], dtype=np.float32)
-            if not np.isfinite(p).all():
-                raise AssertionError(f"refusing to write non-finite {what} (frame {f}) to {file}")
+            p = finite_frame(frames[f], f, what, file)
             cache[f] = (Vt.Vec3fArray.FromNumpy(p), Vt.Vec3fArray.FromNumpy(_extent(p, 0.5 * width)))
         return cache[f]
 
