@@ -24,10 +24,10 @@ from omegaconf import OmegaConf
 
 from hairexp.app.assemble import check_config
 from hairexp.app.config import check_bool, to_plain
-from hairexp.app.validate import validate_judge
+from hairexp.app.validate import validate_judge, validate_judge_controllers
 from hairexp.app.signals import InterruptSignals
 from hairexp.errors import InputError
-from hairexp.evaluation.judges import JUDGES, missing_controllers
+from hairexp.evaluation.judges import JUDGES
 from hairexp.evaluation.measures import experiment_key_moment
 from hairexp.app.run import config_hash, run
 from hairexp.outputs.files import write_json
@@ -129,11 +129,7 @@ def run_experiment(cfg, out_dir) -> dict:
             validate_judge(cfg, vcfg.measure)
         except InputError as exc:   # the key's own message, said to be the variant's
             raise InputError(f"{exc} (variants[{i}] {name}, checked before any variant runs)") from exc
-    judge = str(getattr(cfg.judge, "value", cfg.judge))
-    missing = missing_controllers(judge, [_variant_facts(v)["controller"] for v in vcfgs])
-    if missing:
-        raise InputError(f"{judge} needs a variant with " + " and one with ".join(f"controller.name={c}" for c in missing)
-                         + f", and the variants ({', '.join(names)}) have none; add one or set judge=none", "judge")
+    validate_judge_controllers(cfg, names, [_variant_facts(v)["controller"] for v in vcfgs])
     plain = to_plain(cfg)
     claim(out, overwrite=bool(cfg.overwrite))
     t0 = time.perf_counter()

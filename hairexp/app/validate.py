@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 
 from hairexp.errors import InputError, finite_number
-from hairexp.evaluation.judges import JUDGE_MEASURES
+from hairexp.evaluation.judges import JUDGE_MEASURES, missing_controllers
 from hairexp.evaluation.measures import collider_named
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR, make_integrator
 from hairexp.physics.strand_kernels import check_options
@@ -251,6 +251,16 @@ def validate_judge(cfg, measure_cfg) -> None:
                          f"set measure.name={JUDGE_MEASURES[judge]} (and its keys) or judge=none", "judge")
 
 
+def validate_judge_controllers(cfg, names: list[str], controllers: list[str]) -> None:
+    """An experiment's ``judge`` compares runs of the controllers it needs (``JUDGE_NEEDS``): its
+    variants (``names``, with their ``controllers``) must include each, else it has no verdict."""
+    judge = str(_value(cfg.judge))
+    missing = missing_controllers(judge, controllers)
+    if missing:
+        raise InputError(f"{judge} needs a variant with " + " and one with ".join(f"controller.name={c}" for c in missing)
+                         + f", and the variants ({', '.join(names)}) have none; add one or set judge=none", "judge")
+
+
 def validate_measure(cfg, scene) -> None:
     """The measure's references into the built scene (``measure.collider``), before the first step
     rather than after the whole simulation."""
@@ -263,4 +273,5 @@ def validate_measure(cfg, scene) -> None:
                              "give a time within the run, or < 0 for its last frame", "measure.time")
 
 
-__all__ = ["validate_config", "validate_judge", "validate_measure", "number", "integer", "keyframes"]
+__all__ = ["validate_config", "validate_judge", "validate_judge_controllers", "validate_measure", "number", "integer",
+           "keyframes"]
