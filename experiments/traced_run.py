@@ -33,6 +33,19 @@ def main() -> int:
         print(f"{USAGE}\ntraced_run.py: error: OUT.json {out}: cannot be written (a directory, or its folder "
               "does not exist or cannot be written)", file=sys.stderr)
         return 2
+    def record(code) -> None:
+        current, peak = tracemalloc.get_traced_memory()
+        with open(out, "w") as f:
+            json.dump({"code": code, "traced_peak": peak, "traced_end": current}, f)
+
+    # ``python -m hairexp`` ends with os._exit (hairexp/__main__.py ``exit_now``): record on that way out too
+    hard_exit = os._exit
+
+    def _exit(code):
+        record(code)
+        hard_exit(code)
+
+    os._exit = _exit
     tracemalloc.start(1)
     sys.argv = ["hairexp", *args]
     try:   # exactly as ``python -m hairexp`` (Hydra finds its config relative to the __main__ file)
@@ -40,9 +53,7 @@ def main() -> int:
         code = 0
     except SystemExit as exc:
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
-    current, peak = tracemalloc.get_traced_memory()
-    with open(out, "w") as f:
-        json.dump({"code": code, "traced_peak": peak, "traced_end": current}, f)
+    record(code)
     return code
 
 

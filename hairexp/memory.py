@@ -26,6 +26,7 @@ import ctypes
 import ctypes.util
 import os
 import sys
+import time
 
 _TRIM = None
 
@@ -44,8 +45,13 @@ def _malloc_trim():
     return _TRIM
 
 
+_LAST_RELEASE = 0.0
+
+
 def release() -> None:
     """Return the freed memory the allocators keep to the system (module docstring)."""
+    global _LAST_RELEASE
+    _LAST_RELEASE = time.monotonic()
     trim = _malloc_trim()
     if trim:
         trim(0)
@@ -55,6 +61,17 @@ def release() -> None:
             pa.default_memory_pool().release_unused()
         except Exception:   # noqa: BLE001  (an old pyarrow or another pool: nothing to give back)
             pass
+
+
+def release_every(seconds: float) -> None:
+    """``release()`` if the last one ran at least ``seconds`` ago: for the loops of a long run (its
+    steps, the end phases' passes over every frame).  glibc reuses the free chunks of its heap,
+    whose pages ``malloc_trim`` gave back, a piece at a time, so a pass over many frames touched
+    them again one by one and the resident memory crept up with the frames although what the
+    pass holds does not (measured in-process, 6 x 10 hair: the measures' pass over 12,000 frames
+    +3.3 MB against +0.3 MB over 200, its traced Python heap flat)."""
+    if time.monotonic() - _LAST_RELEASE >= seconds:
+        release()
 
 
 def use_system_arrow_pool() -> None:

@@ -50,3 +50,64 @@ def test_metrics_use_the_system_arrow_pool(tmp_path, monkeypatch):
         assert pa.default_memory_pool().backend_name == "system"
     finally:
         pa.set_memory_pool(before)
+
+
+def test_release_every_is_rate_limited(monkeypatch):
+    """``release_every(s)``: a trim only when the last one is at least s old (the steps and the
+    end phases' passes over the frames call it per flush / per block of frames)."""
+    trims = []
+    monkeypatch.setattr(memory, "_malloc_trim", lambda: (lambda pad: trims.append(pad)))
+    memory.release()
+    assert len(trims) == 1
+    memory.release_every(3600.0)             # the last release was just now
+    assert len(trims) == 1
+    memory.release_every(0.0)
+    assert len(trims) == 2
+
+
+def test_a_pass_over_many_frames_releases(tmp_path, monkeypatch):
+    """Iterating a long frame file gives the freed heap back between its blocks (at most every
+    ``RELEASE_SECONDS``), and reads the same frames."""
+    import numpy as np
+
+    from hairexp.outputs import files
+
+    a = np.arange(4000 * 12, dtype=np.float64).reshape(4000, 4, 3)
+    np.save(tmp_path / "x.npy", a)
+    calls = []
+    monkeypatch.setattr(files, "release_every", lambda s: calls.append(s))
+    frames = files.NpyFrames(tmp_path / "x.npy")
+    got = np.stack(list(frames))
+    np.testing.assert_array_equal(got, a)
+    per = files.NpyFrames.BLOCK_BYTES // (12 * 8)
+    assert len(calls) == -(-4000 // per) and set(calls) == {files.RELEASE_SECONDS}
+
+
+def test_the_command_line_runs_its_exit_handlers_before_it_ends(tmp_path):
+    """``python -m hairexp`` ends with os._exit after the atexit handlers and a flush of the
+    standard streams (hairexp/__main__.py ``exit_now``): a handler registered before the run
+    runs, text printed without a newline reaches the pipe, the exit code is the run's, and a bad
+    input still exits 2 with its message."""
+    import os
+    import subprocess
+
+    from helpers import REPO
+
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    mark, out = tmp_path / "atexit.txt", tmp_path / "run"
+    script = ("import atexit, runpy, sys\n"
+              f"atexit.register(lambda: open({str(mark)!r}, 'w').write('ran'))\n"
+              "sys.stdout.write('unflushed-tail')\n"
+              "sys.argv = ['hairexp', *sys.argv[1:]]\n"
+              "runpy.run_module('hairexp', run_name='__main__', alter_sys=True)\n")
+    p = subprocess.run([sys.executable, "-c", script, "experiment=goaling_smoke", "variants=[]", "frames=2",
+                        "logging.rerun=false", "logging.progress=false", f"hydra.run.dir={out}"],
+                       cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert mark.read_text() == "ran" and "unflushed-tail" in p.stdout
+    last = (out / "__main__.log").read_text().strip().splitlines()[-1]   # the run's closing line
+    assert "2 steps" in last and last.endswith(str(out))
+    bad = subprocess.run([sys.executable, "-m", "hairexp", "experiment=goaling_smoke", "solver.dt=-1",
+                          f"hydra.run.dir={tmp_path / 'bad'}"], cwd=REPO, env=env, capture_output=True, text=True,
+                         timeout=300)
+    assert bad.returncode == 2 and "solver.dt" in bad.stderr

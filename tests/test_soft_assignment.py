@@ -296,8 +296,12 @@ def test_soft_cli_run_writes_shares_and_a_recording(tmp_path):
     import json
 
     coh = json.loads((tmp_path / "summary.json").read_text())["cohesion"]    # every run: cohesion
-    assert coh["frames"] == frames + 1 == len(coh["clumps"]) == len(coh["widest_gap"])
-    assert coh["clumps_max"] >= 1 and coh["widest_gap_max"] > 0 and coh["threshold"] == 0.03
+    with np.load(tmp_path / "result.npz") as r:   # its per-frame series are in result.npz, not the summary
+        clumps, gap = r["cohesion_clumps"], r["cohesion_widest_gap"]
+    assert "clumps" not in coh and "widest_gap" not in coh
+    assert coh["frames"] == frames + 1 == len(clumps) == len(gap)
+    assert coh["clumps_max"] == clumps.max() >= 1 and coh["widest_gap_max"] == gap.max() > 0
+    assert coh["clumps_last"] == clumps[-1] and coh["widest_gap_last"] == gap[-1] and coh["threshold"] == 0.03
     from rerun.chunk import RrdReader
 
     paths = {str(c.entity_path) for c in RrdReader(str(tmp_path / "recording.rrd")).stream()}

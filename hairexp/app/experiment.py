@@ -183,6 +183,6 @@ def _run_variants(out: Path, names: list[str], vcfgs: list, summary: dict, measu
             summary.update(status=status, error=f"variant {name}: {exc}", wall_seconds=time.perf_counter() - t0)
             raise
         measures[name] = s["measures"]
-        coh = {k: v for k, v in (s.get("cohesion") or {}).items() if not isinstance(v, list)}   # scalars only
+        coh = s.get("cohesion") or {}
         summary["variants"][name] = {**{k: s.get(k) for k in VARIANT_FIELDS}, **facts[name], "measures": s["measures"],
                                      "cohesion": coh}

@@ -118,7 +118,7 @@ def cohesion(offsets: np.ndarray, times, positions, threshold: float = 0.03, fra
             "clumps_max": int(clumps_f.max()), "split_frames": int(np.sum(clumps_f > 1)),
             "clumps_last": int(clumps_f[-1]), "widest_gap_max": float(gap_f[g]), "widest_gap_time": float(t[g]),
             "widest_gap_last": float(gap_f[-1]),
-            "clumps": clumps_f.tolist(), "widest_gap": [round(float(v), 6) for v in gap_f]}
+            "clumps": clumps_f.tolist(), "widest_gap": gap_f.tolist()}
 
 
 def clumps(d: RunData, p) -> dict:

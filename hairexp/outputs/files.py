@@ -24,15 +24,20 @@ from pathlib import Path
 
 import numpy as np
 
+from hairexp.memory import release_every
+
 #: result.npz's arrays, in order; the per-frame ones (first axis: frames + 1) are streamed.
 RESULT_ARRAYS = ("positions", "strand_offsets", "times", "guide_positions", "masses", "guide_offsets",
                  "cluster_of_vertex", "targets", "com", "body_positions")
 #: written only when the run has them: cluster_weights (V, K), the soft assignment's shares
 #: (hairexp/control/tracking/correspondence.py; a hard run's cluster_of_vertex says it all)
-OPTIONAL_ARRAYS = ("cluster_weights",)
+#: cohesion_clumps, cohesion_widest_gap (frames + 1,): every completed run's per-frame cohesion
+#: (hairexp/evaluation/measures.py ``cohesion``; summary.json keeps its aggregates)
+OPTIONAL_ARRAYS = ("cluster_weights", "cohesion_clumps", "cohesion_widest_gap")
 PER_FRAME = ("positions", "times", "guide_positions", "targets", "com", "body_positions")
 HEADER_BYTES = 256        # fixed .npy header size of a growing file (rewritten in place)
 COPY_BYTES = 1 << 18      # block size when streaming an array into result.npz (256 kB)
+RELEASE_SECONDS = 1.0     # a pass over the frames gives the freed heap back at most this often
 
 
 def tmp_name(path: Path) -> Path:
@@ -224,6 +229,7 @@ class NpyFrames:
     def __iter__(self):
         per = max(1, self.BLOCK_BYTES // max(1, self.frame_bytes))
         for start in range(0, len(self), per):
+            release_every(RELEASE_SECONDS)   # a long pass does not creep over the freed heap (hairexp/memory.py)
             yield from self._read(start, min(per, len(self) - start))
 
 
