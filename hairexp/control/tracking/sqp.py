@@ -44,6 +44,12 @@ class SQPOptions:
     max_iterations: int = 50
     max_backtracks: int = 30
     kkt: str = "schur"           # or "reference"
+    #: the compressed edges' negative transverse stiffness in the Hessian, per strand where the
+    #: band stays positive definite (``ImplicitEulerObjective.exact_where_definite``).  Off: on
+    #: Celia's tracked run (trbdf2, 30 steps, interleaved) it removed the linear tail of single
+    #: trapezoidal-stage solves (32 -> 7, 13 -> 7 iterations) but, near-indefinite, made other
+    #: steps erratic (substeps): 33.5 SQP iterations a step against 24.3 with the clamp
+    exact_compression: bool = False
 
 
 def woodbury(solve, U: np.ndarray, step: tuple, zero_c: np.ndarray) -> tuple:
@@ -132,6 +138,10 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
             info.status = MAX_ITERATIONS
             break
         t1 = time.perf_counter()
+        if opts.exact_compression:
+            extra = obj.compression_band(x)
+            if extra is not None:
+                ev.banded, _ = obj.exact_where_definite(ev.banded, extra)
         hp = tracker.penalty_hessian(x)
         if hp is not None:
             ev.banded[0] += hp[0]    # the variance penalty's positive curvature (diagonal)
