@@ -815,3 +815,31 @@ def test_sqp_converges_faster_with_the_compressed_edges_stiffness_in_the_tail(mo
         its[exact] = (rec.iterations, len(rec.failed))
     assert its[True][0] < 0.8 * its[False][0]
     assert its[True][1] <= its[False][1]
+
+
+def test_compression_kernel_matches_the_torch_band_and_indefinite_strands_fall_back():
+    """``StrandKernels.add_compression`` (the SQP's path with kernels) adds the same band as
+    ``compression_band``; a strand whose band the addition leaves indefinite is factored from the
+    fallback band, the others from the sum."""
+    _, _, sim = build_tracked(goaling_like())
+    obj = sim.objective
+    assert obj.kernels is not None
+    st = sim.initial_state()
+    obj.begin_step(st.x, st.v, st.x, DT)
+    root = st.x[sim.scene.strands.offsets[:-1]]
+    per_strand = np.repeat(root, np.diff(sim.scene.strands.offsets), axis=0)
+    xf = sim.free_dofs(per_strand + (1 - 1e-5) * (st.x - per_strand))   # every edge compressed
+    ab = obj.evaluate(xf, need_hessian=True).banded
+    abT = ab.T.copy()
+    assert obj.kernels.add_compression(obj, xf, abT) >= len(obj.kernels.edges) - sim.scene.strands.n_strands
+    extra = obj.compression_band(xf)
+    np.testing.assert_allclose(abT.T - ab, extra, rtol=0, atol=1e-12 * np.abs(ab).max())
+    # strand 0 made indefinite: it alone falls back
+    blk = obj.kernels.blk_dof
+    bad = ab + extra
+    bad[0, blk[0]:blk[1]] -= 2 * np.abs(ab).max()
+    L = obj.kernels.factor(bad, ab)
+    assert obj.kernels.fell_back == 1
+    mixed = bad.copy()
+    mixed[:, blk[0]:blk[1]] = ab[:, blk[0]:blk[1]]
+    np.testing.assert_allclose(L, obj.kernels.factor(mixed), rtol=1e-12, atol=0)
