@@ -439,6 +439,53 @@ def tensions_along(Y, step, scale, free_slot, edges, k_l0, l0, out):
         out[e] = k_l0[e] * (ln - l0[e] + lin / ln)
 
 
+@njit(cache=True, error_model="numpy")
+def add_compression(Y, free_slot, edges, k_l0, l0, tension, use_tension, h_scale, abT):
+    """Adds to the band abT (N, bw + 1) what ``strand_derivatives``' PSD stretch Hessian leaves
+    out: h_scale x the negative transverse stiffness (T/l)(I - u u^T) of every compressed edge
+    (T < 0, the tension iterate when ``use_tension``); returns how many edges were compressed."""
+    n = 0
+    for e in range(edges.shape[0]):
+        va, vb = edges[e, 0], edges[e, 1]
+        u0 = Y[vb, 0] - Y[va, 0]
+        u1 = Y[vb, 1] - Y[va, 1]
+        u2 = Y[vb, 2] - Y[va, 2]
+        ln = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+        T = tension[e] if use_tension else k_l0[e] * (ln - l0[e])
+        if T >= 0.0:
+            continue
+        n += 1
+        il = 1.0 / ln
+        u0 *= il
+        u1 *= il
+        u2 *= il
+        cc = h_scale * T * il
+        K00 = cc * (1.0 - u0 * u0)
+        K11 = cc * (1.0 - u1 * u1)
+        K22 = cc * (1.0 - u2 * u2)
+        K10 = -cc * u1 * u0
+        K20 = -cc * u2 * u0
+        K21 = -cc * u2 * u1
+        sa, sb = free_slot[va], free_slot[vb]
+        if sa >= 0:
+            _add_diagonal_block(abT, 3 * sa, K00, K10, K20, K11, K21, K22)
+        if sb >= 0:
+            _add_diagonal_block(abT, 3 * sb, K00, K10, K20, K11, K21, K22)
+            if sa >= 0:
+                C = 3 * sa
+                D = 3 * sb - C
+                abT[C, D] -= K00
+                abT[C, D + 1] -= K10
+                abT[C, D + 2] -= K20
+                abT[C + 1, D - 1] -= K10
+                abT[C + 1, D] -= K11
+                abT[C + 1, D + 1] -= K21
+                abT[C + 2, D - 2] -= K20
+                abT[C + 2, D - 1] -= K21
+                abT[C + 2, D] -= K22
+    return n
+
+
 # -- the fused Newton direction of the free step -------------------------------------------
 #: Half-bandwidth of the fused pass's band (bending triples: 3 * 2 + 2), as ``bandchol.BW``.  The
 #: band Cholesky rows below repeat bandchol's factorisation (same operations, same order) rather

@@ -26,7 +26,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+import scipy.linalg
+
+from hairexp.physics import bandchol
 from hairexp.physics.assembly import BandedAssembler, banded_solve
+from hairexp.physics.energies import Stretch, pair_hessian
 from hairexp.physics.strand_kernels import StrandKernels
 from hairexp.physics.terms import DTYPE, Term
 
@@ -153,6 +157,57 @@ class ImplicitEulerObjective:
                 t.tension = t.tension_of(x[t.stencil_t])
                 out[t.name] = t.tension.numpy().copy()
         return out
+
+    # -- the compressed edges' transverse stiffness (tracked SQP) --------------------------
+    def compression_band(self, xf: np.ndarray) -> np.ndarray | None:
+        """Lower band (bw + 1, N) of what the PSD stretch Hessian leaves out: the negative
+        transverse stiffness T/l (I - u u^T) of every compressed edge (T < 0, T the tension the
+        model uses: the dual iterate where there is one, else the current stretch), scaled as the
+        band's Hessians by (1 - alpha_f); None when no edge is compressed.  The band plus it is the
+        exact stretch Hessian (energies.stretch_kernel clamps max(T, 0))."""
+        st = [t for t in self.terms if isinstance(t, Stretch)]
+        if not st:
+            return None
+        t = st[0]
+        x = self.eval_positions(xf)
+        with torch.no_grad():
+            xs = x[t.stencil_t]
+            e = xs[:, 1] - xs[:, 0]
+            l = torch.linalg.vector_norm(e, dim=-1)
+            T = t.k_l0 * (l - t.l0) if t.tension is None else t.tension
+            c = T.clamp_max(0.0) / l
+            if not bool((c < 0).any()):
+                return None
+            u = e / l.unsqueeze(-1)
+            K = c.view(-1, 1, 1) * (torch.eye(3, dtype=u.dtype) - u.unsqueeze(-1) * u.unsqueeze(-2))
+            H = (1.0 - self.alpha_f) * pair_hessian(K)
+        if getattr(self, "_stretch_assembler", None) is None:
+            self._stretch_assembler = BandedAssembler(self.assembler.free_slot, [t.stencil])
+        ab = self._stretch_assembler.banded([H.numpy()])
+        out = np.zeros((self.assembler.bandwidth + 1, self.n_dofs))
+        out[: ab.shape[0]] = ab
+        return out
+
+    def exact_where_definite(self, ab: np.ndarray, extra: np.ndarray) -> tuple[np.ndarray, int]:
+        """(band, blocks): ``ab + extra`` on every strand block (a run of free DOFs no element
+        couples to the next, ``StrandKernels.blk_dof``; the whole band on the torch path) where
+        that sum is positive definite, ``ab`` on the others; ``blocks``: how many kept ``ab``."""
+        full = ab + extra
+        if self.kernels is None:
+            try:
+                scipy.linalg.cholesky_banded(full, lower=True, check_finite=False)
+            except np.linalg.LinAlgError:
+                return ab, 1
+            return full, 0
+        blk = self.kernels.blk_dof
+        A = np.ascontiguousarray(full.T)
+        ok = np.ones(len(blk) - 1, dtype=np.bool_)
+        bandchol.factor_serial(A, np.empty_like(A), blk, ok)
+        if ok.all():
+            return full, 0
+        rows = np.repeat(~ok, np.diff(blk))
+        full[:, rows] = ab[:, rows]
+        return full, int((~ok).sum())
 
     def initial_guess(self) -> np.ndarray:
         return (self.x_pred if self.x_start is None else self.x_start).copy()

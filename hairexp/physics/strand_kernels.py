@@ -210,16 +210,25 @@ class StrandKernels:
         return grad, p, float(np.sqrt(s[0])), float(np.sqrt(s[1]))
 
     # -- the band ------------------------------------------------------------------------
-    def factor(self, ab: np.ndarray) -> np.ndarray:
+    def factor(self, ab: np.ndarray, fallback: np.ndarray | None = None) -> np.ndarray:
         """Cholesky factor LT (N, bw + 1) of the lower band ``ab`` ((bw + 1, N), e.g. ``abT.T``),
         with a small diagonal shift where round-off made a block indefinite; ``LT.T`` is in
-        ``scipy.linalg.cholesky_banded(lower=True)`` layout."""
+        ``scipy.linalg.cholesky_banded(lower=True)`` layout.  ``fallback`` (a band as ``ab``): the
+        blocks of ``ab`` that are not positive definite are factored from it instead (their
+        count: ``self.fell_back``)."""
         if self.parallel:
             set_threads(self.threads)
         run = bandchol.factor_parallel if self.parallel else bandchol.factor_serial
         A = np.ascontiguousarray(ab.T)
         L = np.empty_like(A)
         run(A, L, self.blk_dof, self._ok)
+        self.fell_back = 0
+        if fallback is not None and not self._ok.all():
+            self.fell_back = int((~self._ok).sum())
+            rows = np.repeat(~self._ok, np.diff(self.blk_dof))
+            A = A.copy() if np.shares_memory(A, ab) else A
+            A[rows] = fallback.T[rows]
+            run(A, L, self.blk_dof, self._ok)
         if not self._ok.all():
             A = A.copy()
             A[:, 0] += SHIFT * np.abs(A[:, 0]).max()
@@ -227,6 +236,17 @@ class StrandKernels:
             if not self._ok.all():
                 raise np.linalg.LinAlgError("the Hessian band is not positive definite")
         return L
+
+    def add_compression(self, obj, xf: np.ndarray, abT: np.ndarray) -> int:
+        """Adds the compressed edges' negative transverse stiffness to the band abT (N, bw + 1)
+        in place (``kernels.add_compression``, scaled as the band by 1 - alpha_f); the number of
+        compressed edges."""
+        Y = self._points(obj, xf)
+        T = self.stretch.tension
+        use_t = T is not None
+        tension = _np(T) if use_t else self._zero_t
+        return int(kernels.add_compression(Y, self.free_slot, self.edges, self.k_l0, self.l0, tension, use_t,
+                                           1.0 - obj.alpha_f, abT))
 
     def cho_solve(self, L: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """A^-1 rhs from the factor of ``factor``; rhs (N,) or (N, R)."""

@@ -169,20 +169,23 @@ class SchurKKT:
             self._g_ptr = np.searchsorted(g_of.ravel()[order], np.arange(len(g_rows) + 1)).astype(np.int64)
             self._dof_off = np.ascontiguousarray(self.dof_off, dtype=np.int64)
 
-    def factor(self, ab: np.ndarray) -> None:
+    def factor(self, ab: np.ndarray, fallback: np.ndarray | None = None) -> None:
         """Factor H (lower band ``ab``) and, in the exact mode (or when there is no S yet),
-        build S = A H^-1 A^T."""
+        build S = A H^-1 A^T.  ``fallback``: a band H is taken from on the strands (blocks; the
+        whole band on the LAPACK path) where ``ab`` is not positive definite."""
         self.stats["factors"] += 1
         self.fresh = False
         self._L_il = None
         self._solves = 0          # solves on this factor
         if self.kernels is not None:
-            self.LT = self.kernels.factor(ab)
+            self.LT = self.kernels.factor(ab, fallback)
             self.cb = self.LT.T        # scipy.linalg.cholesky_banded's layout
         else:
             try:
                 self.cb = scipy.linalg.cholesky_banded(ab, lower=True, check_finite=False)
             except np.linalg.LinAlgError:
+                if fallback is not None:
+                    return self.factor(fallback)
                 ab = ab.copy()
                 ab[0] += 1e-8 * np.abs(ab[0]).max()
                 self.cb = scipy.linalg.cholesky_banded(ab, lower=True, check_finite=False)

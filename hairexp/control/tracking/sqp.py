@@ -44,6 +44,16 @@ class SQPOptions:
     max_iterations: int = 50
     max_backtracks: int = 30
     kkt: str = "schur"           # or "reference"
+    #: the compressed edges' negative transverse stiffness in the Hessian (the PSD stretch
+    #: Hessian clamps it to 0), per strand where the band stays positive definite, from the
+    #: iteration after one that met the constraints (max |C| <= ctol) with a full step on
+    #: (``exact_when="tail"``), or from the start ("always").  TR-BDF2's trapezoidal stage ends
+    #: with most edges compressed on tracked runs, and with the clamp the SQP converged linearly
+    #: there.  Celia tracked (trbdf2, 48 steps, interleaved): 24.2 -> 18.5 SQP iterations a step
+    #: (max 83 -> 44), median step 0.29 -> 0.25 s, the same substeps; "always" took 33.5 (erratic
+    #: steps far from the solution), as did switching on by the gradient residual's fall alone
+    exact_compression: bool = True
+    exact_when: str = "tail"
 
 
 def woodbury(solve, U: np.ndarray, step: tuple, zero_c: np.ndarray) -> tuple:
@@ -94,6 +104,8 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
         return f + mu * float(np.abs(C[~relaxed]).sum()) + 0.5 * float(np.dot(rho[relaxed] * C[relaxed], C[relaxed]))
 
     f, C = merit_parts(x, t)
+    tail = opts.exact_compression and opts.exact_when == "always"
+    alpha = 0.0
     while True:
         ev = obj.evaluate(x, need_hessian=True)
         if obj.contact is not None:   # the contact's friction lag moved with the evaluation
@@ -132,9 +144,22 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
             info.status = MAX_ITERATIONS
             break
         t1 = time.perf_counter()
+        if opts.exact_compression and not tail:
+            tail = cmax <= opts.ctol and alpha == 1.0
         hp = tracker.penalty_hessian(x)
         if hp is not None:
             ev.banded[0] += hp[0]    # the variance penalty's positive curvature (diagonal)
+        fallback = None
+        if tail:
+            fused = opts.kkt != "reference" and obj.kernels is not None and kkt.kernels is not None
+            if fused:   # the strands whose band is not definite with it fall back in the factorisation
+                abT = ev.banded.T.copy()
+                if obj.kernels.add_compression(obj, x, abT):
+                    fallback, ev.banded = ev.banded, abT.T
+            else:
+                extra = obj.compression_band(x)
+                if extra is not None:
+                    ev.banded, _ = obj.exact_where_definite(ev.banded, extra)
 
         def solve(r_x, c, r_t=None):
             if sliding and r_t is None:
@@ -145,7 +170,7 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
 
         try:
             if opts.kkt != "reference":
-                kkt.factor(ev.banded)
+                kkt.factor(ev.banded, fallback)
             if opts.kkt == "reference" or kkt.mode == "exact":
                 dx, dt, lam_new = solve(g, C)     # for the new multiplier itself
                 shift = None
