@@ -106,6 +106,16 @@ def test_a_grid_too_large_is_refused():
         HairVolume(s, 0.01, 1.0, 0.1).apply(x, np.zeros((10, 3)), 0.04)
 
 
+def test_a_cell_too_small_for_the_hair_at_rest_is_bad_input_before_the_first_step():
+    """The grid over the hair at rest is checked when the model is built (exit 2 naming
+    collision.volume_cell), not at the first step (a simulation error, exit 3)."""
+    s, rng = _hair(10)
+    s.rest = rng.uniform(0, 0.3, (10, 3))
+    with pytest.raises(InputError, match=r"collision\.volume_cell.*cells"):
+        HairVolume(s, 1e-7, 1.0, 0.1)
+    HairVolume(s, 0.01, 1.0, 0.1)   # 33^3 cells: fine
+
+
 @pytest.mark.parametrize("key,value", [("collision.volume_cell", "0"), ("collision.volume_friction", "-1"),
                                        ("collision.volume_pressure_speed", "nan")])
 def test_bad_volume_settings_name_the_key(key, value):

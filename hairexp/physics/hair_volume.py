@@ -52,7 +52,7 @@ import math
 
 import numpy as np
 
-from hairexp.errors import SimulationError
+from hairexp.errors import InputError, SimulationError
 from hairexp.physics.kernels import njit
 
 #: The grid is refused above this many cells (the hair spread far apart against a small cell)
@@ -122,6 +122,15 @@ class HairVolume:
         self.movable = ~np.asarray(strands.kinematic, dtype=bool)
         self.cell, self.friction, self.c2 = float(cell), float(friction), float(pressure_speed) ** 2
         self.rho0: float | None = None
+        # the grid over the hair at rest, before the first step: a cell too small for it is bad
+        # input (the check in ``_grid`` stays for hair that spreads later)
+        rest = getattr(strands, "rest", None)
+        span = np.zeros(3) if rest is None or not len(rest) else np.ptp(np.asarray(rest, dtype=np.float64), axis=0)
+        cells = float(np.prod(np.floor(span / self.cell) + 3.0))
+        if cells > MAX_CELLS:
+            raise InputError(f"the hair volume grid over the hair at rest would have {cells:.3g} cells (more than "
+                             f"{MAX_CELLS:,}): the hair spans {span.round(3).tolist()} m and a cell is {self.cell:g} m; "
+                             f"use a larger cell", "collision.volume_cell")
 
     def _grid(self, x: np.ndarray):
         """(origin (3,), lower cell index (V, 3), fraction in the cell (V, 3), dims (3,), cells)."""
