@@ -167,6 +167,21 @@ def _add_diagonal_block(abT, C, K00, K10, K20, K11, K21, K22):
 
 
 @njit(cache=True, error_model="numpy")
+def _sub_offdiagonal_block(abT, C, D, K00, K10, K20, K01, K11, K21, K02, K12, K22):
+    """Subtracts the 3x3 block K (K[r, s] = K<r><s>) coupling the vertex whose first column is C
+    to the one D columns further (transposed band storage: abT[C + s, D + r - s] -= K[r, s])."""
+    abT[C, D] -= K00
+    abT[C, D + 1] -= K10
+    abT[C, D + 2] -= K20
+    abT[C + 1, D - 1] -= K01
+    abT[C + 1, D] -= K11
+    abT[C + 1, D + 1] -= K21
+    abT[C + 2, D - 2] -= K02
+    abT[C + 2, D - 1] -= K12
+    abT[C + 2, D] -= K22
+
+
+@njit(cache=True, error_model="numpy")
 def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
                        b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, off, need_hessian, W):
     """Gradient g_int (rows d0..d1 of the block's DOFs) of the energies and the lower band
@@ -227,16 +242,7 @@ def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0
                 K02 = h_scale * (kc * u0 * u2)
                 K12 = h_scale * (kc * u1 * u2)
                 C = 3 * sa - off
-                D = 3 * sb - off - C
-                abT[C, D] -= K00
-                abT[C, D + 1] -= K10
-                abT[C, D + 2] -= K20
-                abT[C + 1, D - 1] -= K01
-                abT[C + 1, D] -= K11
-                abT[C + 1, D + 1] -= K21
-                abT[C + 2, D - 2] -= K02
-                abT[C + 2, D - 1] -= K12
-                abT[C + 2, D] -= K22
+                _sub_offdiagonal_block(abT, C, 3 * sb - off - C, K00, K10, K20, K01, K11, K21, K02, K12, K22)
     J = W[84:111].reshape((3, 9))
     kb = W[111:114]
     q = W[114:123]
@@ -473,16 +479,7 @@ def add_compression(Y, free_slot, edges, k_l0, l0, tension, use_tension, h_scale
             _add_diagonal_block(abT, 3 * sb, K00, K10, K20, K11, K21, K22)
             if sa >= 0:
                 C = 3 * sa
-                D = 3 * sb - C
-                abT[C, D] -= K00
-                abT[C, D + 1] -= K10
-                abT[C, D + 2] -= K20
-                abT[C + 1, D - 1] -= K10
-                abT[C + 1, D] -= K11
-                abT[C + 1, D + 1] -= K21
-                abT[C + 2, D - 2] -= K20
-                abT[C + 2, D - 1] -= K21
-                abT[C + 2, D] -= K22
+                _sub_offdiagonal_block(abT, C, 3 * sb - C, K00, K10, K20, K10, K11, K21, K20, K21, K22)
     return n
 
 
