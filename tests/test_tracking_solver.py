@@ -843,3 +843,16 @@ def test_compression_kernel_matches_the_torch_band_and_indefinite_strands_fall_b
     mixed = bad.copy()
     mixed[:, blk[0]:blk[1]] = ab[:, blk[0]:blk[1]]
     np.testing.assert_allclose(L, obj.kernels.factor(mixed), rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("value", [True, False])
+def test_exact_compression_is_a_setting(value):
+    """``tracking.exact_compression`` reaches the SQP's options (default true; false: the PSD
+    stretch Hessian throughout, for the ablation)."""
+    from hairexp.app.assemble import assemble
+    from hairexp.app.config import compose_config
+
+    over = [] if value else ["tracking.exact_compression=false"]
+    cfg = compose_config(["experiment=goaling_smoke", "variants=[]", "controller=tracking", "frames=1",
+                          "logging.rerun=false", *over])
+    assert assemble(cfg).controller.opts.exact_compression is value
