@@ -258,9 +258,9 @@ class TrackingConfig:
     ctol_rel: float = 1e-9             # max |C_k| <= ctol_rel * mean hair length
     max_iterations: int = 50
     # the compressed edges' negative transverse stiffness in the SQP's Hessian once a solve has
-    # met its constraints with a full step (hairexp/control/tracking/sqp.py SQPOptions); false:
-    # the PSD stretch Hessian throughout (README "Tracking performance")
-    exact_compression: bool = True
+    # met its constraints with a full step (hairexp/control/tracking/sqp.py SQPOptions); false
+    # (the default, README "Tracking performance"): the PSD stretch Hessian throughout
+    exact_compression: bool = False
     # elastic mode: a step whose SQP fails while the barrier contact is on (collision.contact=barrier)
     # is solved again with the clusters it could not reach (targets inside an obstacle) relaxed to
     # penalties elastic_stiffness x cluster mass / dt^2 x |C_k|^2 / 2; the others stay exact.
