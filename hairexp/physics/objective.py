@@ -90,6 +90,7 @@ class ImplicitEulerObjective:
         # Simulator when collision.contact=barrier; None: no contact code runs
         self.contact = None
         self.x_start = None   # the contact's feasible start of this step (DOF vector), or None
+        self._stretch_assembler = None   # the stretch term's alone (``compression_band``), built on first use
 
     # -- per step -------------------------------------------------------------------------
     def begin_step(self, x_n: np.ndarray, v_n: np.ndarray, x_kinematic_next: np.ndarray, dt: float,
@@ -181,12 +182,21 @@ class ImplicitEulerObjective:
             u = e / l.unsqueeze(-1)
             K = c.view(-1, 1, 1) * (torch.eye(3, dtype=u.dtype) - u.unsqueeze(-1) * u.unsqueeze(-2))
             H = (1.0 - self.alpha_f) * pair_hessian(K)
-        if getattr(self, "_stretch_assembler", None) is None:
+        if self._stretch_assembler is None:
             self._stretch_assembler = BandedAssembler(self.assembler.free_slot, [t.stencil])
         ab = self._stretch_assembler.banded([H.numpy()])
         out = np.zeros((self.assembler.bandwidth + 1, self.n_dofs))
         out[: ab.shape[0]] = ab
         return out
+
+    def with_compression(self, xf: np.ndarray, ab: np.ndarray) -> np.ndarray | None:
+        """A new band: ``ab`` plus ``compression_band`` (the kernels' pass where there are
+        kernels, ``StrandKernels.add_compression``), or None when no edge is compressed."""
+        if self.kernels is not None:
+            abT = ab.T.copy()
+            return abT.T if self.kernels.add_compression(self, xf, abT) else None
+        extra = self.compression_band(xf)
+        return None if extra is None else ab + extra
 
     def exact_where_definite(self, ab: np.ndarray, extra: np.ndarray) -> tuple[np.ndarray, int]:
         """(band, blocks): ``ab + extra`` on every strand block (a run of free DOFs no element

@@ -181,14 +181,16 @@ class SchurKKT:
             self.LT = self.kernels.factor(ab, fallback)
             self.cb = self.LT.T        # scipy.linalg.cholesky_banded's layout
         else:
-            try:
-                self.cb = scipy.linalg.cholesky_banded(ab, lower=True, check_finite=False)
-            except np.linalg.LinAlgError:
-                if fallback is not None:
-                    return self.factor(fallback)
-                ab = ab.copy()
-                ab[0] += 1e-8 * np.abs(ab[0]).max()
-                self.cb = scipy.linalg.cholesky_banded(ab, lower=True, check_finite=False)
+            for band in (ab,) if fallback is None else (ab, fallback):
+                try:
+                    self.cb = scipy.linalg.cholesky_banded(band, lower=True, check_finite=False)
+                    break
+                except np.linalg.LinAlgError:
+                    continue
+            else:   # round-off made the last band indefinite: a small diagonal shift
+                band = band.copy()
+                band[0] += 1e-8 * np.abs(band[0]).max()
+                self.cb = scipy.linalg.cholesky_banded(band, lower=True, check_finite=False)
         if self.mode == "exact" or self.Smat is None:
             self.build_schur()
 

@@ -154,15 +154,14 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
             ev.banded[0] += hp[0]    # the variance penalty's positive curvature (diagonal)
         fallback = None
         if tail:
-            fused = opts.kkt != "reference" and obj.kernels is not None and kkt.kernels is not None
-            if fused:   # the strands whose band is not definite with it fall back in the factorisation
-                abT = ev.banded.T.copy()
-                if obj.kernels.add_compression(obj, x, abT):
-                    fallback, ev.banded = ev.banded, abT.T
-            else:
+            if opts.kkt == "reference":   # its solve takes the band as it is: the sum only where definite
                 extra = obj.compression_band(x)
                 if extra is not None:
                     ev.banded, _ = obj.exact_where_definite(ev.banded, extra)
+            else:   # the factorisation falls back to the clamped band where the sum is not definite
+                exact = obj.with_compression(x, ev.banded)
+                if exact is not None:
+                    fallback, ev.banded = ev.banded, exact
 
         def solve(r_x, c, r_t=None):
             if sliding and r_t is None:
