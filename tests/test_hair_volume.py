@@ -20,7 +20,8 @@ def _hair(V, seed=0, kinematic=None):
     rng = np.random.default_rng(seed)
     m = rng.uniform(0.5e-5, 2e-5, V)
     k = np.zeros(V, dtype=bool) if kinematic is None else kinematic
-    return SimpleNamespace(masses=m, kinematic=k), rng
+    # rest: what the model's grid check reads (the tests give their own positions to apply)
+    return SimpleNamespace(masses=m, kinematic=k, rest=np.zeros((V, 3))), rng
 
 
 def test_friction_conserves_momentum_and_never_adds_kinetic_energy():

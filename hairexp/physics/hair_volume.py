@@ -115,6 +115,13 @@ def _gather(i0, f, dims, M, P, inv_rho0_mass, inv_h, vg, pv, gp):
             gp[v, 2] += wx * wy * sz * pc
 
 
+def grid_cells(span, cell: float) -> float:
+    """Cells of the grid ``HairVolume._grid`` lays over points spanning ``span`` (3,) m: a cell of
+    margin below (origin at the minimum - cell) and cell indices up to floor(span / cell) + 1, so
+    floor(span / cell) + 3 cells an axis; a float, inf for a cell too small to count with."""
+    return float(np.prod(np.floor(np.asarray(span, dtype=np.float64) / cell) + 3.0))
+
+
 class HairVolume:
     def __init__(self, strands, cell: float, friction: float, pressure_speed: float):
         """``cell`` (m), ``friction`` (1/s), ``pressure_speed`` c (m/s); see the module doc."""
@@ -124,9 +131,8 @@ class HairVolume:
         self.rho0: float | None = None
         # the grid over the hair at rest, before the first step: a cell too small for it is bad
         # input (the check in ``_grid`` stays for hair that spreads later)
-        rest = getattr(strands, "rest", None)
-        span = np.zeros(3) if rest is None or not len(rest) else np.ptp(np.asarray(rest, dtype=np.float64), axis=0)
-        cells = float(np.prod(np.floor(span / self.cell) + 3.0))
+        span = np.ptp(np.asarray(strands.rest, dtype=np.float64), axis=0)
+        cells = grid_cells(span, self.cell)
         if cells > MAX_CELLS:
             raise InputError(f"the hair volume grid over the hair at rest would have {cells:.3g} cells (more than "
                              f"{MAX_CELLS:,}): the hair spans {span.round(3).tolist()} m and a cell is {self.cell:g} m; "
