@@ -39,7 +39,7 @@ from hairexp.errors import Interrupted, SimulationError
 from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
-from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, write_json, write_npz
+from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, save_npy, write_json, write_npz
 from hairexp.outputs.folder import STREAM, SUMMARY, claim, owner, remove_tmp
 from hairexp.memory import release, release_every
 from hairexp.outputs.metrics import MetricsTable, measure
@@ -270,8 +270,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     coh = cohesion(scene.strands.offsets, times, positions, float(cfg.measure.cohesion_threshold),
                    float(cfg.measure.cohesion_fraction))
     for name in ("clumps", "widest_gap"):   # per frame, in result.npz; summary.json keeps the aggregates
-        a = np.asarray(coh.pop(name))
-        atomic_write_bytes(out / STREAM / f"cohesion_{name}.npy", lambda f, a=a: np.save(f, a))
+        save_npy(out / STREAM / f"cohesion_{name}.npy", coh.pop(name))
     release()
     # the result files; a failure from here on removes those already written (no results beside a failed run)
     sinks.written.append(out / "result.npz")
