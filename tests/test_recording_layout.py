@@ -187,6 +187,30 @@ def test_each_recording_has_one_layout_framed_on_its_run(experiment):
         assert key_ranges_hold(rrd, key, 1)
 
 
+def test_metrics_are_one_chunk_each_whatever_the_run_length(experiment):
+    """rerun's file writer keeps an index row per chunk until the footer: the metrics go to the
+    recording at the end, one chunk per metric holding every step, and the per-cluster variance
+    ratios are one entity (a series per cluster), not one entity per cluster."""
+    from rerun.chunk import RrdReader
+
+    out, _ = experiment
+    for v in ("free", "tracked"):
+        rrd = out / v / "recording.rrd"
+        df = pd.read_parquet(out / v / "metrics.parquet")
+        chunks = [c for c in RrdReader(rrd).stream().filter(content="/metrics/**", is_static=False)]
+        entities = {c.entity_path for c in chunks}
+        numeric = {f"/metrics/{k}" for k in df.columns if k not in ("step", "frame", "time")
+                   and (pd.api.types.is_numeric_dtype(df[k]) or pd.api.types.is_bool_dtype(df[k]))}
+        assert entities == numeric and len(chunks) == len(entities)
+        assert all(c.num_rows == len(df) for c in chunks)
+        ratios = [c for c in RrdReader(rrd).stream().filter(content="/clusters/**", is_static=False)]
+        if v == "free":
+            assert ratios == []
+        else:
+            assert {c.entity_path for c in ratios} == {"/clusters/variance_ratio"}
+            assert sum(c.num_rows for c in ratios) == len(np.load(out / v / "result.npz")["times"])   # a row per frame
+
+
 def test_comparison_holds_every_variant_side_by_side(experiment):
     import pyarrow.parquet as pq
     from rerun.chunk import RrdReader

@@ -74,6 +74,12 @@ def test_signals_end_the_run_as_interrupted(tmp_path):
             assert 1 <= len(positions) <= len(df) + 1 and np.isfinite(positions).all()
             assert not [n for n in FINAL if (out / n).exists()]
             assert (out / "recording.partial.rrd").is_file()
+            # the partial recording holds the metrics of every step done, read back from the table
+            from rerun.chunk import RrdReader
+
+            rows = sum(c.num_rows for c in RrdReader(out / "recording.partial.rrd").stream()
+                       .filter(content="/metrics/iterations", is_static=False))
+            assert rows == len(df)
             assert leftovers(out) == []
     finally:
         for _, p in procs.values():

@@ -240,7 +240,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
         obs = observe(r, state)
         extra = {k: v for k, v in obs.items() if np.isscalar(v)}
         row = measure(scene, state, info, sim, step, frame, controller, extra)
-        for sink in (table, rerun_sink, progress):
+        for sink in (table, progress):
             if sink is not None:
                 sink.on_step(row, state)
         if step % r.steps_per_frame == 0:
@@ -294,7 +294,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
         sinks.written.append(out / "recording.rrd")
         sinks.rerun = None
         view = rerun_sink.close(success=True, key=key_moment(str(getattr(cfg.measure.name, "value", cfg.measure.name)),
-                                                              measures))
+                                                              measures), metrics=df)
     summary = summarize(None, plain, scene_name, controller, time.perf_counter() - t_start, "completed", agg=agg)
     summary["measures"] = measures
     summary["cohesion"] = coh
@@ -343,7 +343,7 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
         else:   # the parquet could not be written: the summary from the parts kept in stream/
             df = attempt("metrics", sinks.table.frame)
     if sinks.rerun is not None:
-        attempt("recording", lambda: sinks.rerun.close(success=False))
+        attempt("recording", lambda: sinks.rerun.close(success=False, metrics=df))
     for p in sinks.written:   # files, and result.clips/ (a folder)
         attempt(p.name, lambda p=p: shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True))
     summary = summarize(df, sinks.plain, scene_name, controller, time.perf_counter() - t_start, status, error)

@@ -2,20 +2,29 @@
 
 Entities: /world/hair (line strips), /world/body (rigid body transform and box), /world/rail
 (a dynamic body's rail),
-/world/roots (root vertices), /metrics/<name> (scalars on the ``frame``, ``sim_time`` and
-``step`` timelines).  Each recording has an explicit recording id, so parallel workers never
-share one.
+/world/roots (root vertices), /clusters/variance_ratio (one series per cluster, tracked runs),
+/metrics/<name> (scalars on the ``frame``, ``sim_time`` and ``step`` timelines).  Each recording
+has an explicit recording id, so parallel workers never share one.
 
 Its layout (``blueprint(plan)``) is sent once, when the run ends (``close``): only then are the
 bounds of every frame (grown frame by frame in ``log_frame``), the metrics with data and their
-ranges (``on_step``) and the key moment (from the measure, passed by the app) known; see
+ranges and the key moment (from the measure, passed by the app) known; see
 ``hairexp.outputs.layout`` and the README's "Looking at a run".
 
-The recording is written while the run goes to ``recording.partial.rrd`` (rerun's file sink);
-``flush()`` sends the metric scalars gathered since the last flush and waits for the writer,
-so a write failure (a full disk) raises there instead of passing silently.  ``close(True)``
-renames the file to ``recording.rrd`` once it is complete (its footer read back); a failed or
-interrupted run keeps the ``.partial.rrd`` name (a valid recording of the steps done).
+The recording is written while the run goes to ``recording.partial.rrd`` (rerun's file sink).
+rerun's file writer keeps one row of its footer's index per chunk until the file is closed
+(about 5 kB each, rerun 0.41; experiments/rrd_index_memory.py), so the sink keeps the number of
+chunks independent of the number of frames:
+- the metrics go to the recording when the run ends, read back column by column from the
+  metrics table (``close(metrics=...)``): one chunk per metric, whatever the run's length
+  (before, every send of the step's scalars was one chunk per metric, about 140 chunks);
+- the per-cluster variance ratios are one entity (a series per cluster), not one per cluster;
+- the frames are cut into chunks by rerun's batcher every FLUSH_TICK_SECONDS or 2 MiB, and
+  ``flush()`` forces a cut (waiting for the writer, so a write failure such as a full disk
+  raises there instead of passing silently) at most every FLUSH_SECONDS.
+``close(True)`` renames the file to ``recording.rrd`` once it is complete (its footer read back);
+a failed or interrupted run keeps the ``.partial.rrd`` name (a valid recording of the steps done,
+with the metrics of the steps done).
 """
 
 from __future__ import annotations
@@ -32,9 +41,10 @@ import torch
 from hairexp.guides import spline
 from hairexp.outputs import layout
 
-#: the metric scalars go to the recording at most this often (s), or every this many steps
-METRICS_SECONDS = 10.0
-METRICS_STEPS = 1000
+#: ``flush()`` waits for the file writer (and so ends a chunk of every entity) at most this often (s)
+FLUSH_SECONDS = 10.0
+#: metric rows per chunk when the metrics are sent at the end (a chunk per metric per this many steps)
+METRICS_CHUNK_ROWS = 1 << 18
 
 #: the entities a tracked run draws over the hair: shown in a 3D view of their own ("tracking")
 OVERLAYS = ("/world/clusters", "/world/com", "/world/targets", "/world/target_curves")
@@ -157,12 +167,12 @@ def partial_name(path: str) -> str:
     return f"{root}.partial{ext}"
 
 
-#: The SDK's chunk batcher flushes every 2 s (its default is 0.2 s) or at 2 MiB, whichever first.
-#: The file sink keeps one index entry per chunk until it writes the footer, so fewer, larger chunks
-#: keep a long run's memory flatter: 6 x 10 goaling_smoke, 200 -> 3,000 frames, recording on:
-#: +12.1 MB at 0.2 s against +7.0 MB at 2 s, where the same runs with the recording off (untouched by
-#: this) grew +4.1 and +5.2 MB; one machine, one hour (experiments/bench_memory.py).
-FLUSH_TICK_SECONDS = 2.0
+#: The SDK's chunk batcher flushes every FLUSH_TICK_SECONDS (its default is 0.2 s) or at 2 MiB,
+#: whichever first.  The file sink keeps one index entry per chunk until it writes the footer, so
+#: fewer, larger chunks keep a long run's memory flatter: with a chunk of each of the ~7 frame
+#: entities every 10 s, a recording holds about 3.5 kB more per second of run time (13 MB an hour),
+#: whatever the number of frames (experiments/bench_memory.py, README "Memory").
+FLUSH_TICK_SECONDS = 10.0
 
 
 class RerunSink:
@@ -180,12 +190,9 @@ class RerunSink:
         self.rec = rr.RecordingStream(application_id, recording_id=self.recording_id, batcher_config=batcher)
         # the layout is sent at the end (``close``): one blueprint per file, framed on the whole run
         self.rec.save(self.partial)
-        self.metrics_sent = time.monotonic()
+        self.flushed = time.monotonic()
         self.scene = scene
         self.offsets = scene.strands.offsets
-        self.scalars: dict[str, list] = {}   # since the last flush
-        self.named: set[str] = set()           # metric series given their name
-        self.steps, self.frames, self.times = [], [], []
         self.bounds = layout.Bounds()          # of everything drawn, over the whole run
         self.ranges: dict[str, tuple[float, float]] = {}   # metric -> (min, max) of its finite values
         self.t_end = 0.0
@@ -234,6 +241,8 @@ class RerunSink:
             rng = np.random.default_rng(7)
             self.cluster_colors = (60 + 195 * rng.random((K, 3))).astype(np.uint8)
             self.cluster_share = tracker.cluster_weights()
+            self.rec.log("/clusters/variance_ratio", rr.SeriesLines(names=[f"cluster {k}" for k in range(K)],
+                                                                    colors=self.cluster_colors), static=True)
 
     def log_frame(self, frame: int, state, obs: dict | None = None, motion=None) -> None:
         """One frame; ``motion``: the body's poses at ``state.time`` (``Simulator.motion_of``),
@@ -279,9 +288,9 @@ class RerunSink:
             tg_pts = obs["targets"].astype(np.float32)
             rec.log("/world/targets", rr.Boxes3D(centers=tg_pts, half_sizes=np.full_like(tg_pts, 3 * self.radius),
                                                  radii=0.3 * self.radius, colors=[[255, 255, 255]]))
-            for k, v in enumerate(obs.get("variance_ratios", [])):
-                if np.isfinite(v):
-                    rec.log(f"/clusters/variance_ratio/{k}", rr.Scalars(float(v)))
+            ratios = obs.get("variance_ratios")
+            if ratios is not None and len(ratios):   # one entity, a series per cluster (NaN: a gap)
+                rec.log("/clusters/variance_ratio", rr.Scalars(np.asarray(ratios, dtype=np.float64)))
             tg = tr.targets_at(state.time, motion)
             if tr.cons.soft:   # soft assignment: each cluster's curve is a blend over the guides
                 L = max(float(s[-1]) for s in tg.knots)
@@ -297,45 +306,46 @@ class RerunSink:
             rec.log("/world/target_curves", rr.LineStrips3D(curves, radii=0.6 * self.radius,
                                                             colors=self.cluster_colors[np.concatenate(tg.clusters)]))
 
-    def on_step(self, row: dict, state) -> None:
-        self.steps.append(row["step"])
-        self.frames.append(row["frame"])
-        self.times.append(row["time"])
-        for k, v in row.items():
-            if isinstance(v, (bool, np.bool_)):
-                v = float(v)
-            if isinstance(v, (int, float, np.integer, np.floating)) and k not in ("step", "frame", "time"):
-                v = float(v)
-                self.scalars.setdefault(k, []).append(v)
-                if np.isfinite(v):
-                    lo, hi = self.ranges.get(k, (v, v))
-                    self.ranges[k] = (min(lo, v), max(hi, v))
+    def send_metrics(self, metrics) -> None:
+        """The metrics table's numeric and boolean columns as scalars on the step, frame and
+        sim_time timelines, one column at a time (``metrics``: ``columns`` and ``[name]``, a
+        ``MetricColumns`` or a pandas DataFrame); each metric's finite range is kept for the layout."""
+        import pandas as pd
 
-    def _send_metrics(self) -> None:
-        """The scalars since the last call as columns on the step, frame and sim_time timelines."""
+        if metrics is None or len(metrics) == 0 or not all(c in metrics.columns for c in ("step", "frame", "time")):
+            return
+        steps = np.asarray(metrics["step"], dtype=np.int64)
+        frames = np.asarray(metrics["frame"], dtype=np.int64)
+        times = np.asarray(metrics["time"], dtype=np.float64)
         rec = self.rec
-        if self.steps:
-            idx = [rr.TimeColumn("step", sequence=self.steps), rr.TimeColumn("frame", sequence=self.frames),
-                   rr.TimeColumn("sim_time", duration=self.times)]
-            for k, vals in self.scalars.items():
-                rec.send_columns(f"/metrics/{k}", indexes=idx, columns=rr.Scalars.columns(scalars=np.asarray(vals)))
-                if k not in self.named:
-                    rec.log(f"/metrics/{k}", rr.SeriesLines(names=k), static=True)
-                    self.named.add(k)
-        self.steps, self.frames, self.times, self.scalars = [], [], [], {}
+        for k in metrics.columns:
+            if k in ("step", "frame", "time"):
+                continue
+            col = metrics[k]
+            if not (pd.api.types.is_bool_dtype(col) or pd.api.types.is_numeric_dtype(col)):
+                continue   # text (controller, status)
+            vals = np.asarray(col.astype("float64"), dtype=np.float64)
+            finite = vals[np.isfinite(vals)]
+            if len(finite):
+                self.ranges[k] = (float(finite.min()), float(finite.max()))
+            rec.log(f"/metrics/{k}", rr.SeriesLines(names=k), static=True)
+            for a in range(0, len(vals), METRICS_CHUNK_ROWS):
+                b = a + METRICS_CHUNK_ROWS
+                idx = [rr.TimeColumn("step", sequence=steps[a:b]), rr.TimeColumn("frame", sequence=frames[a:b]),
+                       rr.TimeColumn("sim_time", duration=times[a:b])]
+                rec.send_columns(f"/metrics/{k}", indexes=idx, columns=rr.Scalars.columns(scalars=vals[a:b]))
 
     def flush(self, final: bool = False) -> None:
-        """Wait until the file holds everything logged (a write failure raises OSError); the
-        pending metrics are sent at most every METRICS_SECONDS or METRICS_STEPS steps, and when
-        ``final``: each send is one chunk per metric, and the SDK keeps an index entry per chunk
-        until it writes the file's footer (memory that grew with the run's length)."""
-        if final or len(self.steps) >= METRICS_STEPS or time.monotonic() - self.metrics_sent >= METRICS_SECONDS:
-            self._send_metrics()
-            self.metrics_sent = time.monotonic()
+        """Wait until the file holds everything logged (a write failure raises OSError), at most
+        every FLUSH_SECONDS or when ``final``: each wait ends a chunk of every entity, and the
+        writer keeps an index entry per chunk until it writes the file's footer."""
+        if not final and time.monotonic() - self.flushed < FLUSH_SECONDS:
+            return
         try:
             self.rec.flush()
         except RuntimeError as exc:   # rerun's file writer stopped (e.g. no space left on the device)
             raise OSError(f"{self.partial}: the recording could not be written ({exc})") from exc
+        self.flushed = time.monotonic()
 
     def plan(self, key: tuple[float, str] | None = None) -> dict:
         """What the finished run's layout shows (``blueprint(plan)``): the bounds of every frame
@@ -347,21 +357,23 @@ class RerunSink:
                 "tracked": self.tracker is not None, "t_end": self.t_end,
                 "key": None if key is None else {"time": float(key[0]), "what": key[1]}}
 
-    def close(self, success: bool, key: tuple[float, str] | None = None) -> dict | None:
-        """Flush, finish the file and, when ``success``, send the final layout (``plan(key)``,
-        made the recording's default and active blueprint) and give the file its final name
-        (after reading its footer back: a recording that did not finish stays ``.partial.rrd``).
+    def close(self, success: bool, key: tuple[float, str] | None = None, metrics=None) -> dict | None:
+        """Send the metrics (``send_metrics(metrics)``, the run's metrics table), flush, finish
+        the file and, when ``success``, send the final layout (``plan(key)``, made the
+        recording's default and active blueprint) and give the file its final name (after
+        reading its footer back: a recording that did not finish stays ``.partial.rrd``).
         Returns the layout's facts for the summary (``view``: bounds, key moment), or None."""
         facts = None
         try:
             if success:
+                self.send_metrics(metrics)
                 self.flush(final=True)
                 plan = self.plan(key)
                 self.rec.send_blueprint(blueprint(plan), make_active=True, make_default=True)
                 facts = {"bounds": plan["bounds"], "key": plan["key"], "t_end": plan["t_end"]}
                 self.flush(final=True)
-            else:   # a partial recording: the layout without the key moment
-                self._send_metrics()
+            else:   # a partial recording: the metrics of the steps done, the layout without the key moment
+                self.send_metrics(metrics)
                 self.rec.send_blueprint(blueprint(self.plan()), make_active=True, make_default=True)
         finally:
             self.rec.disconnect()
