@@ -237,3 +237,55 @@ def test_comparison_holds_every_variant_side_by_side(experiment):
     assert key_ranges_hold(rrd, key, 2)                       # both variants at the key moment
     assert f"key moment: {summary['comparison']['key']['what']}" in blueprint_rows(
         rrd, "ContainerBlueprint:display_name")
+
+
+def test_frame_columns_send_every_frame_as_logged_in_a_few_chunks(tmp_path):
+    """The frames' columns (``FrameColumns``): rows sent in chunks of at most ``max_frames``
+    read back equal to what was logged, strips of varying counts and lengths included, and a
+    buffer once sent is not written again (rerun may still hold it)."""
+    import rerun as rr
+    from rerun.chunk import RrdReader
+
+    from hairexp.outputs.rerun_sink import FrameColumns, _Rows
+
+    rows = _Rows()
+    rows.append(np.ones((3, 2)))
+    sent = rows.take()
+    rows.append(np.zeros((5, 2)))          # a new buffer: the one sent keeps its rows
+    assert sent.shape == (3, 2) and (sent == 1).all()
+    with pytest.raises(ValueError):
+        rows.append(np.zeros((1, 3)))
+
+    rng = np.random.default_rng(3)
+    rec = rr.RecordingStream("hairexp-test", recording_id="frame-columns")
+    rec.save(str(tmp_path / "f.rrd"))
+    cols = FrameColumns(rec, max_frames=7)
+    logged = {}
+    for f in range(20):
+        cols.frame(f, 0.04 * f)
+        strips = [rng.random((int(rng.integers(2, 6)), 3)).astype(np.float32) for _ in range(int(rng.integers(1, 4)))]
+        pts = rng.random((4, 3)).astype(np.float32)
+        cols.add("/s", rr.LineStrips3D, dict(radii=0.01), strips=strips)
+        cols.add("/p", rr.Points3D, None, positions=pts)
+        logged[f] = (strips, pts)
+        cols.send_if_due()
+    cols.send()
+    rec.flush()
+    rec.disconnect()
+    r = RrdReader(str(tmp_path / "f.rrd"))
+    for path, field in (("/s", "LineStrips3D:strips"), ("/p", "Points3D:positions")):
+        chunks = list(r.stream().filter(content=path, is_static=False))
+        assert len(chunks) == 3 and max(c.num_rows for c in chunks) == 7   # 7 + 7 + 6 frames
+        got = {}
+        for c in chunks:
+            rb = c.to_record_batch()
+            for f, v in zip(rb.column("frame").to_pylist(), rb.column(field).to_pylist()):
+                got[f] = v
+        assert sorted(got) == list(range(20))
+        for f, (strips, pts) in logged.items():
+            if path == "/s":
+                assert len(got[f]) == len(strips)
+                for a, b in zip(got[f], strips):
+                    np.testing.assert_array_equal(np.array(a, np.float32), b)
+            else:
+                np.testing.assert_array_equal(np.array(got[f], np.float32), pts)

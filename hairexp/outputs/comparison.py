@@ -25,8 +25,11 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
-import rerun as rr
-import rerun.blueprint as rrb
+from hairexp.memory import configure_rerun_allocator
+
+configure_rerun_allocator()   # mimalloc's options, before rerun's library loads (hairexp/memory.py)
+import rerun as rr  # noqa: E402
+import rerun.blueprint as rrb  # noqa: E402
 from rerun.chunk import RrdReader
 
 from hairexp.outputs import layout

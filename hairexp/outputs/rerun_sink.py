@@ -14,14 +14,18 @@ ranges and the key moment (from the measure, passed by the app) known; see
 The recording is written while the run goes to ``recording.partial.rrd`` (rerun's file sink).
 rerun's file writer keeps one row of its footer's index per chunk until the file is closed
 (about 5 kB each, rerun 0.41; experiments/rrd_index_memory.py), so the sink keeps the number of
-chunks independent of the number of frames:
+chunks few, whatever the number of frames:
 - the metrics go to the recording when the run ends, read back column by column from the
   metrics table (``close(metrics=...)``): one chunk per metric, whatever the run's length
   (before, every send of the step's scalars was one chunk per metric, about 140 chunks);
 - the per-cluster variance ratios are one entity (a series per cluster), not one per cluster;
-- the frames are cut into chunks by rerun's batcher every FLUSH_TICK_SECONDS or 2 MiB, and
-  ``flush()`` forces a cut (waiting for the writer, so a write failure such as a full disk
-  raises there instead of passing silently) at most every FLUSH_SECONDS.
+- the frames are sent as columns (``FrameColumns``, held as contiguous arrays, no Python object
+  per frame): one chunk per entity every 1 MiB of frames, 250 frames or ``flush()``, which also
+  waits for the writer (so a write failure such as a full disk raises there instead of passing
+  silently) at most every FLUSH_SECONDS.
+rerun's SDK allocates from its own mimalloc heap; ``hairexp.memory.configure_rerun_allocator``
+(called before rerun is imported) makes it give freed pages back at once, so the encoded chunks'
+pages do not pile up (reports/bench_memory.md).
 ``close(True)`` renames the file to ``recording.rrd`` once it is complete (its footer read back);
 a failed or interrupted run keeps the ``.partial.rrd`` name (a valid recording of the steps done,
 with the metrics of the steps done).
@@ -32,13 +36,18 @@ from __future__ import annotations
 import os
 import time
 import uuid
+from array import array
 
 import numpy as np
-import rerun as rr
-import rerun.blueprint as rrb
+from hairexp.memory import configure_rerun_allocator
+
+configure_rerun_allocator()   # mimalloc's options, before rerun's library loads (hairexp/memory.py)
+import rerun as rr  # noqa: E402
+import rerun.blueprint as rrb  # noqa: E402
 import torch
 
 from hairexp.guides import spline
+from hairexp.memory import release
 from hairexp.outputs import layout
 
 #: ``flush()`` waits for the file writer (and so ends a chunk of every entity) at most this often (s)
@@ -167,12 +176,127 @@ def partial_name(path: str) -> str:
     return f"{root}.partial{ext}"
 
 
-#: The SDK's chunk batcher flushes every FLUSH_TICK_SECONDS (its default is 0.2 s) or at 2 MiB,
-#: whichever first.  The file sink keeps one index entry per chunk until it writes the footer, so
-#: fewer, larger chunks keep a long run's memory flatter: with a chunk of each of the ~7 frame
-#: entities every 10 s, a recording holds about 3.5 kB more per second of run time (13 MB an hour),
-#: whatever the number of frames (experiments/bench_memory.py, README "Memory").
-FLUSH_TICK_SECONDS = 10.0
+#: the frames are sent as columns, one chunk per entity, once this many bytes or frames are
+#: pending (or at a flush): a long run writes few chunks (rerun's file writer keeps an index row
+#: per chunk until it writes the footer) and holds at most about this much of them; a chunk of
+#: 1,000 frames of 6 x 10 hair (1.3 MB) left a 3,000-frame run's peak 3.4 MB above a 200-frame
+#: run's, of 250 frames 3.0 MB (noise 2.6), 40 x 20 hair (1 MiB: about 100 frames) 1.1-1.4 MB
+FRAME_CHUNK_BYTES = 1 << 20
+FRAME_CHUNK_FRAMES = 250
+
+
+class _Rows:
+    """Rows appended to one contiguous numpy array (doubling as it fills): a frame's field costs
+    its bytes, not a numpy object of its own.  ``take()`` hands the filled rows over and starts a
+    new array: rerun may still read a sent column's buffer (it wraps numpy memory without
+    copying, and writes the file on its own thread), so a buffer is never written again once sent."""
+
+    __slots__ = ("a", "n")
+
+    def __init__(self):
+        self.a, self.n = None, 0
+
+    def append(self, v: np.ndarray) -> None:
+        if self.a is None:
+            self.a = np.empty((max(16, 4 * len(v)),) + v.shape[1:], v.dtype)
+        elif v.shape[1:] != self.a.shape[1:]:
+            raise ValueError(f"rows of shape {v.shape[1:]} after rows of shape {self.a.shape[1:]}")
+        end = self.n + len(v)
+        if end > len(self.a):
+            grown = np.empty((max(end, 2 * len(self.a)),) + self.a.shape[1:], self.a.dtype)
+            grown[:self.n] = self.a[:self.n]
+            self.a = grown
+        self.a[self.n:end] = v
+        self.n = end
+
+    def take(self) -> np.ndarray:
+        out = self.a[:self.n] if self.a is not None else np.empty((0,))
+        self.a, self.n = None, 0
+        return out
+
+
+class FrameColumns:
+    """The frames' entities as columns (``RecordingStream.send_columns``): per entity, its rows
+    since the last send on the ``frame`` and ``sim_time`` timelines, sent as one chunk each.
+
+    ``add(path, archetype, constant, **fields)``: one row of ``path`` at the current ``frame``;
+    ``fields`` are the archetype's fields of that row as arrays (first axis: its instances; a
+    ``strips`` field is a list of strips), ``constant`` the fields that never change (radii,
+    colours: logged once, static).  The rows are copied into one growing array per field
+    (``_Rows``) and the indexes into typed arrays: the pending frames hold their bytes and no
+    Python object per frame (a list of small arrays held about 4 kB a frame of 6 x 10 hair, the
+    data 1.3 kB).  rerun's own per-call logging batches rows too, but holds about a kilobyte per
+    row and call until its batch is sent, and ends a chunk at every flush."""
+
+    def __init__(self, rec, max_bytes: int = FRAME_CHUNK_BYTES, max_frames: int = FRAME_CHUNK_FRAMES):
+        self.rec = rec
+        self.max_bytes, self.max_frames = max_bytes, max_frames
+        self.entities: dict[str, dict] = {}
+        self.static: set[str] = set()
+        self.bytes = 0
+        self.frames = 0
+        self.current = (0, 0.0)
+
+    def frame(self, frame: int, t: float) -> None:
+        self.current = (int(frame), float(t))
+        self.frames += 1
+
+    def add(self, path: str, archetype, constant: dict | None, **fields) -> None:
+        if constant and path not in self.static:
+            self.rec.log(path, archetype.from_fields(**constant), static=True)
+            self.static.add(path)
+        e = self.entities.get(path)
+        if e is None:
+            e = self.entities[path] = {"archetype": archetype, "frame": array("q"), "time": array("d"),
+                                       "length": array("q"), "strip_length": array("q"),
+                                       "fields": {k: _Rows() for k in fields}}
+        if set(e["fields"]) != set(fields):
+            raise ValueError(f"{path}: fields {sorted(fields)} differ from this entity's {sorted(e['fields'])}")
+        n = None
+        for k, v in fields.items():
+            if k == "strips":
+                e["strip_length"].extend(len(s) for s in v)
+                m, v = len(v), (np.concatenate(v) if len(v) else np.empty((0, 3), np.float32))
+            else:
+                v = np.asarray(v)
+                m = len(v)
+            if n is not None and m != n:
+                raise ValueError(f"{path}: field {k} has {m} instances, {n} expected")
+            n = m
+            e["fields"][k].append(v)
+            self.bytes += v.nbytes
+        e["frame"].append(self.current[0])
+        e["time"].append(self.current[1])
+        e["length"].append(n)
+        self.bytes += 24
+
+    def send_if_due(self) -> None:
+        if self.bytes >= self.max_bytes or self.frames >= self.max_frames:
+            self.send()
+
+    def send(self) -> None:
+        """Every entity's pending rows as one chunk each."""
+        for path, e in self.entities.items():
+            if not len(e["frame"]):
+                continue
+            data = {}
+            for k, rows in e["fields"].items():
+                v = rows.take()
+                if k == "strips":
+                    v = np.split(v, np.cumsum(np.frombuffer(e["strip_length"], np.int64))[:-1])
+                data[k] = v
+            self.rec.send_columns(path, indexes=[rr.TimeColumn("frame", sequence=np.frombuffer(e["frame"], np.int64)),
+                                                 rr.TimeColumn("sim_time", duration=np.frombuffer(e["time"], np.float64))],
+                                  columns=e["archetype"].columns(**data).partition(np.frombuffer(e["length"], np.int64)))
+            for k in ("frame", "time", "length", "strip_length"):
+                e[k] = array(e[k].typecode)
+        self.bytes = 0
+        self.frames = 0
+
+
+#: The SDK's chunk batcher (only the static entities and the layout go through it now) flushes
+#: every FLUSH_TICK_SECONDS (its default is 0.2 s) or at 2 MiB, whichever first.
+FLUSH_TICK_SECONDS = 2.0
 
 
 class RerunSink:
@@ -191,6 +315,7 @@ class RerunSink:
         # the layout is sent at the end (``close``): one blueprint per file, framed on the whole run
         self.rec.save(self.partial)
         self.flushed = time.monotonic()
+        self.columns = FrameColumns(self.rec)
         self.scene = scene
         self.offsets = scene.strands.offsets
         self.bounds = layout.Bounds()          # of everything drawn, over the whole run
@@ -241,25 +366,33 @@ class RerunSink:
             rng = np.random.default_rng(7)
             self.cluster_colors = (60 + 195 * rng.random((K, 3))).astype(np.uint8)
             self.cluster_share = tracker.cluster_weights()
+            if self.cluster_share is None:
+                cov = tracker.corr.cluster_of_vertex
+                vc = np.where(cov[:, None] >= 0, self.cluster_colors[np.maximum(cov, 0)], 150)
+            else:   # soft assignment: the clusters' colours mixed by the vertex's shares
+                W = self.cluster_share
+                vc = np.where(W.sum(1)[:, None] > 0, W @ self.cluster_colors, 150)
+            self.vertex_colors = vc.astype(np.uint8)
             self.rec.log("/clusters/variance_ratio", rr.SeriesLines(names=[f"cluster {k}" for k in range(K)],
                                                                     colors=self.cluster_colors), static=True)
 
     def log_frame(self, frame: int, state, obs: dict | None = None, motion=None) -> None:
         """One frame; ``motion``: the body's poses at ``state.time`` (``Simulator.motion_of``),
-        default the scene's motion."""
-        obs = obs or {}
-        rec = self.rec
-        rec.set_time("frame", sequence=frame)
-        rec.set_time("sim_time", duration=state.time)
-        strips = np.split(state.x.astype(np.float32), self.offsets[1:-1])
-        rec.log("/world/hair", rr.LineStrips3D(strips, radii=self.radius, colors=[[200, 150, 90]]))
-        roots = state.x[self.scene.strands.kinematic]
-        rec.log("/world/roots", rr.Points3D(roots.astype(np.float32), radii=1.5 * self.radius, colors=[[60, 60, 200]]))
-        R, T = (motion or self.scene.motion).pose(state.time)
+        default the scene's motion.  The frame goes to the entities' columns (``FrameColumns``),
+        sent as one chunk per entity every FRAME_CHUNK_BYTES, FRAME_CHUNK_FRAMES or FLUSH_SECONDS."""
         from scipy.spatial.transform import Rotation
 
-        q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
-        rec.log("/world/body", rr.Transform3D(translation=T, quaternion=q))
+        obs = obs or {}
+        cols = self.columns
+        cols.frame(frame, float(state.time))
+        x = state.x.astype(np.float32)
+        cols.add("/world/hair", rr.LineStrips3D, dict(radii=self.radius, colors=[[200, 150, 90]]),
+                 strips=np.split(x, self.offsets[1:-1]))
+        cols.add("/world/roots", rr.Points3D, dict(radii=1.5 * self.radius, colors=[[60, 60, 200]]),
+                 positions=x[self.scene.strands.kinematic])
+        R, T = (motion or self.scene.motion).pose(state.time)
+        cols.add("/world/body", rr.Transform3D, None, translation=np.asarray(T, np.float64)[None],
+                 quaternion=Rotation.from_matrix(R).as_quat()[None])   # x, y, z, w
         self.t_end = max(self.t_end, float(state.time))
         self.bounds.add(state.x)
         self.bounds.add_sphere(T, np.sqrt(3) * self.body_half)
@@ -267,44 +400,40 @@ class RerunSink:
             Rc, Tc = c.motion.pose(state.time)
             if np.isfinite(c.bounding_radius()):   # a plane is unbounded: it does not frame the view
                 self.bounds.add_sphere(Tc, c.bounding_radius())
-            rec.log(f"/world/colliders/{c.name}", rr.Transform3D(translation=Tc, quaternion=Rotation.from_matrix(Rc).as_quat()))
+            cols.add(f"/world/colliders/{c.name}", rr.Transform3D, None, translation=np.asarray(Tc, np.float64)[None],
+                     quaternion=Rotation.from_matrix(Rc).as_quat()[None])
         if obs.get("guides") is not None:
-            g = np.split(obs["guides"].astype(np.float32), self.guide_offsets[1:-1])
             self.bounds.add(obs["guides"])
-            rec.log("/world/guides", rr.LineStrips3D(g, radii=1.5 * self.radius, colors=[[230, 60, 60]]))
+            cols.add("/world/guides", rr.LineStrips3D, dict(radii=1.5 * self.radius, colors=[[230, 60, 60]]),
+                     strips=np.split(obs["guides"].astype(np.float32), self.guide_offsets[1:-1]))
         if getattr(self, "tracker", None) is not None and obs.get("com") is not None:
             tr = self.tracker
             # the overlays have a 3D view of their own ("tracking"): cluster colours as points on
-            # the vertices, centres of mass as solid points inside their targets' wire boxes
-            if self.cluster_share is None:
-                cov = tr.corr.cluster_of_vertex
-                cols = np.where(cov[:, None] >= 0, self.cluster_colors[np.maximum(cov, 0)], 150).astype(np.uint8)
-            else:   # soft assignment: the clusters' colours mixed by the vertex's shares
-                W = self.cluster_share
-                cols = np.where(W.sum(1)[:, None] > 0, W @ self.cluster_colors, 150).astype(np.uint8)
-            rec.log("/world/clusters", rr.Points3D(state.x.astype(np.float32), radii=self.radius, colors=cols))
-            rec.log("/world/com", rr.Points3D(obs["com"].astype(np.float32), radii=1.5 * self.radius,
-                                              colors=self.cluster_colors))
+            # the vertices (``log_static``), centres of mass as solid points inside their targets' wire boxes
+            cols.add("/world/clusters", rr.Points3D, dict(radii=self.radius, colors=self.vertex_colors), positions=x)
+            cols.add("/world/com", rr.Points3D, dict(radii=1.5 * self.radius, colors=self.cluster_colors),
+                     positions=obs["com"].astype(np.float32))
             tg_pts = obs["targets"].astype(np.float32)
-            rec.log("/world/targets", rr.Boxes3D(centers=tg_pts, half_sizes=np.full_like(tg_pts, 3 * self.radius),
-                                                 radii=0.3 * self.radius, colors=[[255, 255, 255]]))
+            cols.add("/world/targets", rr.Boxes3D, dict(radii=0.3 * self.radius, colors=[[255, 255, 255]]),
+                     centers=tg_pts, half_sizes=np.full_like(tg_pts, 3 * self.radius))
             ratios = obs.get("variance_ratios")
             if ratios is not None and len(ratios):   # one entity, a series per cluster (NaN: a gap)
-                rec.log("/clusters/variance_ratio", rr.Scalars(np.asarray(ratios, dtype=np.float64)))
+                cols.add("/clusters/variance_ratio", rr.Scalars, None, scalars=np.asarray(ratios, dtype=np.float64))
             tg = tr.targets_at(state.time, motion)
             if tr.cons.soft:   # soft assignment: each cluster's curve is a blend over the guides
                 L = max(float(s[-1]) for s in tg.knots)
                 pts = np.stack([tr.cons.target_points(tg, np.full(tr.cons.K, u)) for u in np.linspace(0.0, L, 24)], 1)
-                rec.log("/world/target_curves", rr.LineStrips3D(list(pts.astype(np.float32)), radii=0.5 * self.radius,
-                                                                colors=self.cluster_colors))
-                return
-            curves = []
-            for Q, s, ks in zip(tg.control, tg.knots, tg.clusters):
-                tt = torch.linspace(float(s[0]), float(s[-1]), 24, dtype=torch.float64)
-                for j in range(len(ks)):
-                    curves.append(spline.evaluate(Q[j:j + 1].expand(len(tt), -1, -1), s, tt).numpy().astype(np.float32))
-            rec.log("/world/target_curves", rr.LineStrips3D(curves, radii=0.6 * self.radius,
-                                                            colors=self.cluster_colors[np.concatenate(tg.clusters)]))
+                cols.add("/world/target_curves", rr.LineStrips3D, dict(radii=0.5 * self.radius),
+                         strips=list(pts.astype(np.float32)), colors=self.cluster_colors)
+            else:
+                curves = []
+                for Q, s, ks in zip(tg.control, tg.knots, tg.clusters):
+                    tt = torch.linspace(float(s[0]), float(s[-1]), 24, dtype=torch.float64)
+                    for j in range(len(ks)):
+                        curves.append(spline.evaluate(Q[j:j + 1].expand(len(tt), -1, -1), s, tt).numpy().astype(np.float32))
+                cols.add("/world/target_curves", rr.LineStrips3D, dict(radii=0.6 * self.radius),
+                         strips=curves, colors=self.cluster_colors[np.concatenate(tg.clusters)])
+        cols.send_if_due()
 
     def send_metrics(self, metrics) -> None:
         """The metrics table's numeric and boolean columns as scalars on the step, frame and
@@ -318,9 +447,12 @@ class RerunSink:
         frames = np.asarray(metrics["frame"], dtype=np.int64)
         times = np.asarray(metrics["time"], dtype=np.float64)
         rec = self.rec
-        for k in metrics.columns:
+        for n, k in enumerate(metrics.columns):
             if k in ("step", "frame", "time"):
                 continue
+            if n % 16 == 15:   # the columns sent so far written, their freed memory back to the system
+                self.flush(final=True)
+                release()
             col = metrics[k]
             if not (pd.api.types.is_bool_dtype(col) or pd.api.types.is_numeric_dtype(col)):
                 continue   # text (controller, status)
@@ -334,6 +466,8 @@ class RerunSink:
                 idx = [rr.TimeColumn("step", sequence=steps[a:b]), rr.TimeColumn("frame", sequence=frames[a:b]),
                        rr.TimeColumn("sim_time", duration=times[a:b])]
                 rec.send_columns(f"/metrics/{k}", indexes=idx, columns=rr.Scalars.columns(scalars=vals[a:b]))
+        self.flush(final=True)
+        release()
 
     def flush(self, final: bool = False) -> None:
         """Wait until the file holds everything logged (a write failure raises OSError), at most
@@ -341,6 +475,7 @@ class RerunSink:
         writer keeps an index entry per chunk until it writes the file's footer."""
         if not final and time.monotonic() - self.flushed < FLUSH_SECONDS:
             return
+        self.columns.send()
         try:
             self.rec.flush()
         except RuntimeError as exc:   # rerun's file writer stopped (e.g. no space left on the device)
@@ -373,6 +508,7 @@ class RerunSink:
                 facts = {"bounds": plan["bounds"], "key": plan["key"], "t_end": plan["t_end"]}
                 self.flush(final=True)
             else:   # a partial recording: the metrics of the steps done, the layout without the key moment
+                self.columns.send()
                 self.send_metrics(metrics)
                 self.rec.send_blueprint(blueprint(self.plan()), make_active=True, make_default=True)
         finally:
