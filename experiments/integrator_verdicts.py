@@ -4,7 +4,9 @@ that do not depend on dt"): one table from several ``experiments.paper_scenes`` 
 Each input is the JSON report that ``python -m experiments.paper_scenes --set solver.integrator=<i>
 solver.dt=<dt> logging.rerun=false`` writes (reports/paper_scenes.json; copied aside per run, e.g. under
 reports/verdicts/).  The integrator and dt of a column are read from the command recorded in the
-report, never from the file name.  Writes reports/integrator_verdicts.{md,json}.
+report, never from the file name.  Several reports of one integrator and dt are parts of one column
+(e.g. one scene re-run after it was re-authored: ``paper_scenes goaling --set ...``): a scene of the
+later report replaces the earlier one's.  Writes reports/integrator_verdicts.{md,json}.
 
 Usage: python -m experiments.integrator_verdicts reports/verdicts/*.json
 """
@@ -43,7 +45,11 @@ def column_of(report: dict, path: Path) -> tuple[str, float]:
 
 
 def load(paths: list[Path]) -> dict:
-    cols = {}
+    """{(integrator, dt): column}.  Several reports of the same integrator and dt are the parts of
+    one column: their scenes are merged, a scene in a later report (its recorded date) replacing
+    the same scene of an earlier one (e.g. a scene re-run after it was re-authored), and the
+    column lists every part's command."""
+    parts = []
     for p in paths:
         try:
             rep = json.loads(p.read_text())
@@ -51,8 +57,17 @@ def load(paths: list[Path]) -> dict:
             raise SystemExit(f"integrator_verdicts: {p}: cannot read the report: {exc}")
         if "scenes" not in rep:
             raise SystemExit(f"integrator_verdicts: {p}: not a paper_scenes report (no 'scenes')")
-        cols[column_of(rep, p)] = {"path": str(p), "command": rep["command"], "date": rep["machine"].get("date"),
-                                   "scenes": rep["scenes"]}
+        parts.append((rep["machine"].get("date") or "", str(p), column_of(rep, p), rep))
+    cols = {}
+    for date, path, key, rep in sorted(parts, key=lambda q: (q[0], q[1])):
+        c = cols.setdefault(key, {"paths": [], "commands": [], "dates": [], "scenes": {}})
+        c["paths"].append(path)
+        c["commands"].append(rep["command"])
+        c["dates"].append(rep["machine"].get("date"))
+        c["scenes"].update(rep["scenes"])
+    for c in cols.values():   # the one-report form the tables and the JSON read
+        c.update(path=", ".join(c["paths"]), command=" ; ".join(c["commands"]),
+                 date=", ".join(str(d) for d in c["dates"]))
     return dict(sorted(cols.items(), key=lambda kv: (kv[0][0], -kv[0][1])))
 
 
@@ -90,7 +105,8 @@ def markdown(cols: dict) -> str:
         md += md_row([scene, *cells])
     md += "\nCommands (each column's report, its date):\n\n"
     for (i, dt), c in cols.items():
-        md += f"- {i} dt {dt:g}: `{c['command']}` ({c['date']}; {Path(c['path']).name})\n"
+        md += f"- {i} dt {dt:g}: " + "; then ".join(
+            f"`{cmd}` ({date}; {Path(p).name})" for cmd, date, p in zip(c["commands"], c["dates"], c["paths"])) + "\n"
     return md
 
 
