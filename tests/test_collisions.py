@@ -328,11 +328,11 @@ def test_neighbour_list_is_rebuilt_when_hair_drifts_together():
 @pytest.mark.parametrize("degrees", [25.0, 60.0])
 def test_strain_limit_after_a_fast_impact(degrees):
     """A strand swung fast into a sphere: without strain limiting the collision stage leaves
-    edges stretched or crushed far beyond 10 %.  With ``strain_limit=0.1`` and a 25 degree
-    swing in one step every edge ends within 15 % (measured 12 %: a vertex held by the sphere
-    keeps its edge a little over the limit); with 60 degrees the strand
-    wraps the sphere with several vertices pinned farther apart than the limit allows, and the
-    limiter (best effort) still lowers the worst strain.  No vertex ends inside the shell."""
+    edges stretched or crushed far beyond 10 %.  With ``strain_limit=0.1`` every edge ends within
+    the limit, with a 25 degree swing in one step and with 60 degrees, where the strand wraps the
+    sphere with several vertices stopped farther apart than the limit allows (before the
+    limiter's rounds ran to convergence, issue 14's goblet fix: 10.02 % and 24.5 %, the limiter
+    then best effort).  No vertex ends inside the shell."""
     from hairexp.physics.collisions import StrainLimit, collision_stage
 
     n = 12
@@ -351,8 +351,138 @@ def test_strain_limit_after_a_fast_impact(degrees):
     limited, _, info1 = collision_stage(cc, scene, None, x0, x1.copy(), 0.0, DT, DT, StrainLimit(s, 0.1))
     assert info0.object_contacts > 0 and np.abs(strain(plain)).max() > 0.3
     assert info1.strain_limited > 0
-    if degrees < 30:   # best effort: a vertex the sphere blocks can keep its edge a little over
-        assert np.abs(strain(limited)).max() <= 0.15
-    else:
-        assert np.abs(strain(limited)).max() < 0.75 * np.abs(strain(plain)).max()
+    assert np.abs(strain(limited)).max() <= 0.1 + 1e-6
     assert scene.colliders[0].distance(limited[free], DT).min() >= -1e-9
+
+
+def _rising(c, start, end, rot0=(0.0, 0.0, 0.0), rot1=None):
+    """The collider config ``c`` moving linearly from pose (start, rot0) at t = 0 to (end, rot1) at DT."""
+    c.motion.interpolation = "linear"
+    c.motion.times = [0.0, DT]
+    c.motion.translations = [list(map(float, start)), list(map(float, end))]
+    c.motion.rotations_deg = [list(map(float, rot0)), list(map(float, rot1 or rot0))]
+    return c
+
+
+def _pressed_strand(shape: str, degrees: float):
+    """A straight strand (12 vertices, 22 cm, along +x) resting on a collider that rises 1-3 cm over
+    the step while the solve's end positions press the strand down into it (a rotation about the
+    root by ``degrees``, as a tracked guide drove Celia's ponytail into the goblet).  ``rim``: a
+    goblet-like cylinder whose top carries the strand's outer half, the tip beyond the rim.
+    ``groove``: a V of two boxes (a concave union) that rises and tilts by 20 degrees."""
+    th = 0.002
+    if shape == "rim":
+        cols = [_rising(collider("cylinder", radius=0.035, half_height=0.07, thickness=th, friction=0.3),
+                        (0.12, -0.07 - th - 1e-5, 0.0), (0.12, -0.06 - th, 0.0))]
+    else:
+        a, off = 0.1, 0.1 * np.sqrt(0.5)
+        cols = [_rising(collider("box", half_extents=[a, 0.01, 0.05], thickness=th, friction=0.3),
+                        (0.12 - off, -0.06, 0.0), (0.12 - off, -0.03, 0.0), (0.0, 0.0, -45.0), (0.0, 0.0, -25.0)),
+                _rising(collider("box", half_extents=[a, 0.01, 0.05], thickness=th, friction=0.3),
+                        (0.12 + off, -0.06, 0.0), (0.12 + off, -0.03, 0.0), (0.0, 0.0, 45.0), (0.0, 0.0, 65.0))]
+        cols[1].name = "box_2"
+    scene = make_scene(cols, None, n_strands=1, n_vertices=12, length=0.22, direction=[1.0, 0.0, 0.0], root_radius=1e-5)
+    x0 = scene.strands.rest.copy()
+    free = ~scene.strands.kinematic
+    ang = np.deg2rad(degrees)
+    R = np.array([[np.cos(ang), np.sin(ang), 0], [-np.sin(ang), np.cos(ang), 0], [0, 0, 1]])
+    x1 = x0.copy()
+    x1[free] = (x0[free] - x0[0]) @ R.T + x0[0]
+    return scene, x0, x1
+
+
+@pytest.mark.parametrize("shape, degrees", [("rim", 25.0), ("rim", 45.0), ("groove", 45.0), ("groove", 70.0)])
+def test_strain_limit_holds_on_a_rising_rim_and_groove(shape, degrees):
+    """Issue 14's goblet defect: with ``tracking.exact_compression=true`` Celia's tracked hair ended a
+    step at 58 % edge strain against ``strain_limit: 0.1``.  The solve pressed a strand into the
+    goblet's top: its vertices slid on the top face, the tip's on the side wall (the first
+    contact's normal), which tore the edge over the rim; the limiter's rounds then ended before
+    the limit held (8 rounds, and as soon as its moves hit nothing) and applied friction to its own
+    moves.  Here a strand pressed over a rising rim and into a rising, tilting V groove (two
+    boxes): after the stage every edge is within the limit and no vertex is inside a collider
+    (before the fix: 0.122 and 1.90 on the rim, 0.235 and 0.860 in the groove)."""
+    from hairexp.physics.collisions import StrainLimit, collision_stage
+
+    scene, x0, x1 = _pressed_strand(shape, degrees)
+    s = scene.strands
+    free = ~s.kinematic
+    assert min(float(c.distance(x0[free], 0.0).min()) for c in scene.colliders) >= 0.0   # a valid start
+    cc = OmegaConf.structured(CollisionConfig(objects=True, hair_hair=False, strain_limit=0.1))
+    strain = lambda x: np.abs(np.linalg.norm(x[s.edges[:, 1]] - x[s.edges[:, 0]], axis=1) / s.rest_lengths - 1)  # noqa: E731
+    plain, _, _ = collision_stage(cc, scene, None, x0, x1.copy(), 0.0, DT, DT)
+    assert strain(plain).max() > 0.3                       # the contact response alone tears the strand
+    out, v, info = collision_stage(cc, scene, None, x0, x1.copy(), 0.0, DT, DT, StrainLimit(s, 0.1))
+    assert info.object_contacts > 0 and info.strain_limited > 0
+    assert strain(out).max() <= 0.1 + 1e-6
+    for c in scene.colliders:
+        assert c.distance(out[free], DT).min() >= -1e-9
+        on = free & c.on_shell(out, DT)                      # no approaching velocity at the contacts
+        vn = np.sum((v[on] - c.surface_velocity(out[on], DT)) * c.normal(out[on], DT), axis=1)
+        assert vn.min(initial=0.0) >= -1e-9
+
+
+def _random_moving_collider(rng, shape: str, i: int):
+    """A collider config of ``shape`` near a strand along +x from the origin, translating ~1 cm and
+    turning ~5 degrees over the step."""
+    kw = dict(thickness=0.002, friction=float(rng.uniform(0.0, 0.6)))
+    if shape == "sphere":
+        kw["radius"] = float(rng.uniform(0.02, 0.06))
+    elif shape == "capsule":
+        kw.update(radius=float(rng.uniform(0.01, 0.04)), half_length=float(rng.uniform(0.02, 0.08)))
+    elif shape == "box":
+        kw["half_extents"] = [float(v) for v in rng.uniform(0.01, 0.08, 3)]
+    elif shape == "cylinder":
+        kw.update(radius=float(rng.uniform(0.02, 0.06)), half_height=float(rng.uniform(0.02, 0.08)))
+    c = collider(shape, **kw)
+    c.name = f"{shape}_{i}"
+    if shape == "plane":
+        p0, r0 = [0.0, float(rng.uniform(-0.1, -0.03)), 0.0], [0.0, 0.0, float(rng.uniform(-20, 20))]
+    else:
+        p0 = [float(rng.uniform(0.05, 0.2)), float(rng.uniform(-0.12, -0.03)), float(rng.uniform(-0.03, 0.03))]
+        r0 = [float(v) for v in rng.uniform(-60, 60, 3)]
+    return _rising(c, p0, [float(a + b) for a, b in zip(p0, rng.normal(0.0, 0.01, 3))], r0,
+                   [float(a + b) for a, b in zip(r0, rng.normal(0.0, 5.0, 3))])
+
+
+def test_strain_limit_holds_against_random_moving_colliders():
+    """The goblet fix in general: a strand swung 10-80 degrees in one step against one or two
+    moving colliders (sphere, capsule, box, cylinder, plane; two of them make concave unions) at
+    random.  After the stage no vertex is inside, and a strand with an edge over the limit has an
+    edge through a collider: the contacts are tested at vertices, so an edge can end across a
+    corner or a thin part with its two vertices outside, and the limiter cannot bring them together
+    without one crossing (its neighbours, pulled both ways, can stay outside the limit too).
+    Measured over 240 such cases (3 seeds, 80 each): 6 ended over the limit, each with such an
+    edge; before the fix 188 of the 203 cases with contacts ended over it, 160 above 10.1 %, 22 above 50 %."""
+    from hairexp.physics.collisions import StrainLimit, collision_stage
+
+    rng = np.random.default_rng(3)
+    cc = OmegaConf.structured(CollisionConfig(objects=True, hair_hair=False, strain_limit=0.1))
+    s_edge = np.linspace(0.0, 1.0, 33)
+    with_contacts = threaded = 0
+    while with_contacts < 12:
+        shapes = rng.choice(["sphere", "capsule", "box", "cylinder", "plane"], size=int(rng.integers(1, 3)))
+        cols = [_random_moving_collider(rng, str(sh), i) for i, sh in enumerate(shapes)]
+        scene = make_scene(cols, None, n_strands=1, n_vertices=12, length=0.22, direction=[1.0, 0.0, 0.0],
+                           root_radius=1e-5)
+        s = scene.strands
+        x0, free, E = s.rest.copy(), ~s.kinematic, s.edges
+        ang = np.deg2rad(rng.uniform(10.0, 80.0))
+        if (min(float(c.distance(x0, 0.0).min()) for c in scene.colliders) < 0         # a valid start,
+                or min(float(c.distance(x0[~free], DT).min()) for c in scene.colliders) < 0.003):  # roots clear
+            continue
+        R = np.array([[np.cos(ang), np.sin(ang), 0], [-np.sin(ang), np.cos(ang), 0], [0, 0, 1]])
+        x1 = x0.copy()
+        x1[free] = (x0[free] - x0[0]) @ R.T + x0[0]
+        out, _, info = collision_stage(cc, scene, None, x0, x1, 0.0, DT, DT, StrainLimit(s, 0.1))
+        if info.object_contacts == 0:
+            continue
+        with_contacts += 1
+        for c in scene.colliders:
+            assert c.distance(out[free], DT).min() >= -1e-9
+        strain = np.abs(np.linalg.norm(out[E[:, 1]] - out[E[:, 0]], axis=1) / s.rest_lengths - 1)
+        if strain.max() > 0.1 + 1e-6:
+            pts = (out[E[:, 0], None] * (1 - s_edge)[None, :, None] + out[E[:, 1], None] * s_edge[None, :, None])
+            through = [bool((c.sdf_body(c.to_body(pts.reshape(-1, 3), DT)) < 0).any()) for c in scene.colliders]
+            assert any(through), f"strain {strain.max():.3g} with no edge through a collider ({list(shapes)})"
+            threaded += 1
+    assert threaded <= 2

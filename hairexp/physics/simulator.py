@@ -88,6 +88,7 @@ def _sum_collisions(cis: list):
     c.hair_contacts = sum(ci.hair_contacts for ci in cis)
     c.penetration_max = max(ci.penetration_max for ci in cis)
     c.strain_limited = sum(ci.strain_limited for ci in cis)
+    c.limit_rounds = sum(ci.limit_rounds for ci in cis)
     c.passes = sum(ci.passes for ci in cis)
     c.seconds = sum(ci.seconds for ci in cis)
     for ci in cis:
