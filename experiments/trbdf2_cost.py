@@ -11,7 +11,10 @@ is counted separately, on the goaling scene at dt 0.04 s, free and tracked:
 3. first iterates a scheme could compute (what they do to the iterations, and how far the
    end positions move, against the scheme's x_pred): the trapezoidal stage from the constant
    acceleration x_0 + h v_0 + h^2/2 a_0 (= x_pred + tau^2 a_0), the BDF2 stage from
-   x_pred + beta^2 a_g (a_g the first stage's end acceleration), and both.
+   x_pred + beta^2 a_g (a_g the first stage's end acceleration), and both;
+4. the BDF2 stage's Newton (free) with the first stage's last Hessian (both stages have the same
+   M/h^2, gamma = 2 - sqrt 2): for its first iteration only, or for every iteration (the chord
+   method, at most ``CHORD_MAX`` iterations).
 
 Usage: python -m experiments.trbdf2_cost [--eps 0.01 0.1 0.3 1]
 """
@@ -28,6 +31,8 @@ from experiments.common import ROOT, _number, compose, md_table, time_steps
 
 STEPS = 56   # goaling: 56 frames of one 0.04 s step
 fraction = _number(float, 0.0, True, "a number >= 0")
+#: the chord method's iteration cap (section 4)
+CHORD_MAX = 50
 
 
 def _run(ctl: str, integrator: str):
@@ -90,6 +95,47 @@ class StageProbe:
         return t, dict(self.iterations)
 
 
+def reused_hessian(run, reuse: str):
+    """(its Timing, iterations by stage, steps not converged): the free ``run`` (TR-BDF2) with the
+    BDF2 stage's Newton directions from the band of the first stage's solution: "first" (its first
+    iteration, then Newton) or "all" (the chord method).  The Newton loop of
+    hairexp/physics/newton.py without the fused pass (the band must be kept)."""
+    from hairexp.physics import controller as ctl_module
+    from hairexp.physics.info import CONVERGED, SolveInfo
+    from hairexp.physics.newton import line_search, newton_solve
+
+    probe = StageProbe(run)
+    held = {}
+
+    def solve(obj, x0, opts):
+        if probe.kind != "_StageBDF2" or "band" not in held:
+            x, info = newton_solve(obj, x0, opts)
+            if probe.kind == "Trapezoidal":
+                held["band"] = obj.evaluate(x, need_hessian=True).banded.copy()
+            return x, info
+        info, x = SolveInfo(), x0.copy()
+        while True:
+            ev = obj.evaluate(x, need_hessian=reuse == "first" and info.iterations > 0)
+            if np.linalg.norm(ev.grad) <= opts.atol + opts.rtol * ev.force_scale:
+                info.status, info.tensions = CONVERGED, obj.final_tensions(x)
+                return x, info
+            if info.iterations >= (CHORD_MAX if reuse == "all" else opts.max_iterations):
+                return x, info
+            p = obj.solve(ev.banded if ev.banded is not None else held["band"], -ev.grad)
+            alpha, _, bt = line_search(obj.value, x, p, obj.value(x), float(ev.grad @ p), opts.max_backtracks,
+                                       obj.value_noise)
+            obj.update_tensions(x, alpha * p)
+            x, info.iterations = x + alpha * p, info.iterations + 1
+
+    real = ctl_module.newton_solve
+    ctl_module.newton_solve = solve
+    try:
+        t, its = probe.go()
+    finally:
+        ctl_module.newton_solve = real
+    return t, its, int((~t.column("converged").astype(bool)).sum())
+
+
 def _fmt(its: dict) -> str:
     return ", ".join(f"{k.lstrip('_')} {np.mean(v):.2f}" for k, v in its.items())
 
@@ -99,7 +145,7 @@ def main(argv=None) -> None:
     ap.add_argument("--eps", type=fraction, nargs="+", default=[0.01, 0.1, 0.3, 1.0])
     a = ap.parse_args(argv)
     t0 = time.time()
-    rows1, rows2, rows3 = [], [], []
+    rows1, rows2, rows3, rows4 = [], [], [], []
     for ctl in ("free", "tracking"):
         ie = StageProbe(_run(ctl, "implicit_euler"))
         _, its_ie = ie.go()
@@ -121,6 +167,12 @@ def main(argv=None) -> None:
             dx = float(np.abs(t.state.x - base.state.x).max())
             rows3.append([ctl, g, _fmt(its), f"{n:.2f}", f"{n - n_tr:+.2f}", f"{dx:.1e}"])
             print("guess", *rows3[-1], flush=True)
+        if ctl == "free":
+            for reuse in ("first", "all"):
+                t, its, failed = reused_hessian(_run(ctl, "trbdf2"), reuse)
+                n = sum(map(sum, its.values())) / STEPS
+                rows4.append([reuse, _fmt(its), f"{n:.2f}", str(failed), f"{np.abs(t.state.x - base.state.x).max():.1e}"])
+                print("reuse", *rows4[-1], flush=True)
     text = f"""# TR-BDF2's step cost on goaling (issue 13)
 
 Made by `python -m experiments.trbdf2_cost {' '.join(argv or [])}` ({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())},
@@ -148,7 +200,14 @@ the BDF2 stage from x_pred + beta^2 a_g; both.  Change of iterations against x_p
 largest difference of the end positions from the run started from x_pred (m; the solves'
 tolerance, not the scheme).
 
-{md_table(["controller", "first iterate", "TR-BDF2 it/stage (mean)", "it/step", "change", "max end position difference (m)"], rows3)}"""
+{md_table(["controller", "first iterate", "TR-BDF2 it/stage (mean)", "it/step", "change", "max end position difference (m)"], rows3)}
+## The first stage's Hessian in the BDF2 stage (free)
+
+first: the BDF2 stage's first Newton direction from the band of the first stage's solution (then
+Newton); all: every direction from it (the chord method, at most {CHORD_MAX} iterations a stage).
+Against the scheme's {rows1[0][3]} iterations a step.
+
+{md_table(["Hessian reused", "TR-BDF2 it/stage (mean)", "it/step", "steps not converged", "max end position difference (m)"], rows4)}"""
     out = ROOT / "reports" / "trbdf2_cost.md"
     out.write_text(text)
     print(f"wrote {out}")
