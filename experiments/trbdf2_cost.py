@@ -11,7 +11,8 @@ is counted separately, on the goaling scene at dt 0.04 s, free and tracked:
 3. first iterates a scheme could compute (what they do to the iterations, and how far the
    end positions move, against the scheme's x_pred): the trapezoidal stage from the constant
    acceleration x_0 + h v_0 + h^2/2 a_0 (= x_pred + tau^2 a_0), the BDF2 stage from
-   x_pred + beta^2 a_g (a_g the first stage's end acceleration), and both;
+   x_pred + beta^2 a_g (a_g the first stage's end acceleration), both, the trapezoidal stage
+   from x_0 + h v_0, and every stage from the positions' quadratic extrapolation;
 4. the BDF2 stage's Newton (free) with the first stage's last Hessian (both stages have the same
    M/h^2, gamma = 2 - sqrt 2): for its first iteration only, or for every iteration (the chord
    method, at most ``CHORD_MAX`` iterations).
@@ -56,10 +57,12 @@ class StageProbe:
         self.reset()
 
     def reset(self):
-        self.iterations, self.index, self.a_g = defaultdict(list), 0, None
+        self.iterations, self.index, self.a_g, self.starts = defaultdict(list), 0, None, []
 
     def stage(self, state, dt, integ, step_dt):
         self.kind = type(integ).__name__
+        self.starts.append((state.time, state.x))
+        self.t_end = state.time + dt
         new, info = self._stage(state, dt, integ, step_dt)
         self.iterations[self.kind].append(info.iterations)
         if self.guess is None:
@@ -81,6 +84,14 @@ class StageProbe:
             return sol + self.eps * (x0 - sol)
         if self.obj.x_start is not None or p is None:
             return x0
+        if g == "quadratic" and len(self.starts) >= 3:
+            # the quadratic through the last three stage starts, at the stage's end
+            (ta, xa), (tb, xb), (tc, xc) = self.starts[-3:]
+            T, t = (ta, tb, tc), self.t_end
+            w = [np.prod([(t - T[m]) / (T[j] - T[m]) for m in range(3) if m != j]) for j in range(3)]
+            return (w[0] * xa + w[1] * xb + w[2] * xc)[fv].reshape(-1)
+        if self.kind == "Trapezoidal" and g == "tr-v":
+            return (self.x_n + 2.0 * p.h * self.v_n)[fv].reshape(-1)   # x_0 + h v_0: no a_0
         if self.kind == "Trapezoidal" and g in ("tr", "both"):
             # x_pred = x_0 + 2 tau v_0 + tau^2 a_0: x_pred + tau^2 a_0 = 2 x_pred - x_0 - 2 tau v_0
             return (2.0 * p.x_pred - self.x_n - 2.0 * p.h * self.v_n)[fv].reshape(-1)
@@ -161,7 +172,7 @@ def main(argv=None) -> None:
             n = sum(map(sum, its.values())) / STEPS
             rows2.append([ctl, f"{eps:g}", _fmt(its), f"{n:.2f}", f"{(n + 2) / (n_ie + 1):.2f}"])
             print("oracle", *rows2[-1], flush=True)
-        for g in ("tr", "bdf2", "both"):
+        for g in ("tr", "bdf2", "both", "tr-v", "quadratic"):
             t, its = tr.go(g)
             n = sum(map(sum, its.values())) / STEPS
             dx = float(np.abs(t.state.x - base.state.x).max())
@@ -196,7 +207,8 @@ pass above (the multipliers and sliding parameters of a tracked stage warm-start
 ## First iterates from the scheme's own history
 
 tr: the trapezoidal stage from x_pred + tau^2 a_0 (the constant-acceleration Taylor step); bdf2:
-the BDF2 stage from x_pred + beta^2 a_g; both.  Change of iterations against x_pred, and the
+the BDF2 stage from x_pred + beta^2 a_g; both; tr-v: the trapezoidal stage from x_0 + h v_0 (no
+a_0); quadratic: every stage from the quadratic through the last three stages' starts.  Change of iterations against x_pred, and the
 largest difference of the end positions from the run started from x_pred (m; the solves'
 tolerance, not the scheme).
 
