@@ -13,7 +13,9 @@ is counted separately, on the goaling scene at dt 0.04 s, free and tracked:
    acceleration x_0 + h v_0 + h^2/2 a_0 (= x_pred + tau^2 a_0), the BDF2 stage from
    x_pred + beta^2 a_g (a_g the first stage's end acceleration), both, the trapezoidal stage
    from x_0 + h v_0, and every stage from the positions' quadratic extrapolation;
-4. the BDF2 stage's Newton (free) with the first stage's last Hessian (both stages have the same
+4. warm starts from the converged stage: the spring tensions (the primal-dual stretch Hessian's
+   iterate) and, tracked, the SQP's sliding parameters and multipliers;
+5. the BDF2 stage's Newton (free) with the first stage's last Hessian (both stages have the same
    M/h^2, gamma = 2 - sqrt 2): for its first iteration only, or for every iteration (the chord
    method, at most ``CHORD_MAX`` iterations).
 
@@ -25,6 +27,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections import defaultdict
+from dataclasses import replace
 
 import numpy as np
 
@@ -46,14 +49,15 @@ def _run(ctl: str, integrator: str):
 class StageProbe:
     """Wraps one run's Simulator and objective (instance attributes; the classes are untouched):
     counts each stage's iterations, records its converged positions, and can replace the
-    objective's first iterate (``guess``: None, "oracle", "tr", "bdf2" or "both")."""
+    objective's first iterate (``guess``: None, "oracle", "tr", "bdf2", "both", "tr-v",
+    "quadratic") or warm-start a stage from its converged tensions and tracking iterates ("warm")."""
 
     def __init__(self, run):
         self.run, sim = run, run.simulator
         self.obj = obj = sim.objective
         self._stage, self._begin, self._initial = sim._stage, obj.begin_step, obj.initial_guess
         sim._stage, obj.begin_step, obj.initial_guess = self.stage, self.begin_step, self.initial_guess
-        self.guess, self.eps, self.solutions = None, 1.0, []
+        self.guess, self.eps, self.solutions, self.converged = None, 1.0, [], []
         self.reset()
 
     def reset(self):
@@ -63,10 +67,13 @@ class StageProbe:
         self.kind = type(integ).__name__
         self.starts.append((state.time, state.x))
         self.t_end = state.time + dt
+        if self.guess == "warm" and state.control is not None:
+            state = replace(state, control=self.converged[self.index][1])
         new, info = self._stage(state, dt, integ, step_dt)
         self.iterations[self.kind].append(info.iterations)
         if self.guess is None:
             self.solutions.append(new.x)
+            self.converged.append((new.tensions, new.control))
         if self.kind == "Trapezoidal":   # its end acceleration, the BDF2 stage's first iterate
             self.a_g = (new.x - self.plan.x_pred) / self.plan.h ** 2
         self.index += 1
@@ -74,6 +81,8 @@ class StageProbe:
 
     def begin_step(self, x_n, v_n, x_kin, dt, tensions=None, plan=None):
         self.x_n, self.v_n, self.plan = x_n, v_n, plan
+        if self.guess == "warm":
+            tensions = self.converged[self.index][0]
         return self._begin(x_n, v_n, x_kin, dt, tensions, plan)
 
     def initial_guess(self):
@@ -156,7 +165,7 @@ def main(argv=None) -> None:
     ap.add_argument("--eps", type=fraction, nargs="+", default=[0.01, 0.1, 0.3, 1.0])
     a = ap.parse_args(argv)
     t0 = time.time()
-    rows1, rows2, rows3, rows4 = [], [], [], []
+    rows1, rows2, rows3, rows4, rows5 = [], [], [], [], []
     for ctl in ("free", "tracking"):
         ie = StageProbe(_run(ctl, "implicit_euler"))
         _, its_ie = ie.go()
@@ -178,6 +187,10 @@ def main(argv=None) -> None:
             dx = float(np.abs(t.state.x - base.state.x).max())
             rows3.append([ctl, g, _fmt(its), f"{n:.2f}", f"{n - n_tr:+.2f}", f"{dx:.1e}"])
             print("guess", *rows3[-1], flush=True)
+        _, its = tr.go("warm")
+        n = sum(map(sum, its.values())) / STEPS
+        rows5.append([ctl, _fmt(its), f"{n:.2f}", f"{n - n_tr:+.2f}"])
+        print("warm", *rows5[-1], flush=True)
         if ctl == "free":
             for reuse in ("first", "all"):
                 t, its, failed = reused_hessian(_run(ctl, "trbdf2"), reuse)
@@ -213,6 +226,12 @@ largest difference of the end positions from the run started from x_pred (m; the
 tolerance, not the scheme).
 
 {md_table(["controller", "first iterate", "TR-BDF2 it/stage (mean)", "it/step", "change", "max end position difference (m)"], rows3)}
+## Warm starts from the converged stage
+
+Every stage begun with the tensions (free and tracked) and the sliding parameters and
+multipliers (tracked) its own converged solve ended with, from x_pred as usual.
+
+{md_table(["controller", "TR-BDF2 it/stage (mean)", "it/step", "change"], rows5)}
 ## The first stage's Hessian in the BDF2 stage (free)
 
 first: the BDF2 stage's first Newton direction from the band of the first stage's solution (then
