@@ -19,13 +19,26 @@ def vertex_tangents(P: np.ndarray) -> np.ndarray:
     return T / np.linalg.norm(T, axis=-1, keepdims=True)
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b for (..., 3) arrays: ``np.cross``'s products and differences in its order (the same
+    values bit for bit) without its per-call axis handling, which cost most of the guide frames'
+    time (the tracking targets are re-framed at every stage of every step)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b))
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
+
+
 def transport(v: np.ndarray, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:
     """Parallel-transport vectors v (..., 3) from unit tangent t0 to t1 (..., 3): the rotation
     about t0 x t1 by the angle between them (identity when they are parallel)."""
-    b = np.cross(t0, t1)
+    b = cross(t0, t1)
     c = np.sum(t0 * t1, axis=-1, keepdims=True)
     # Rodrigues with k = b/|b|, sin = |b|, cos = c:  v c + (b x v) + b (b.v) / (1 + c)
-    return v * c + np.cross(b, v) + b * np.sum(b * v, axis=-1, keepdims=True) / (1.0 + c)
+    return v * c + cross(b, v) + b * np.sum(b * v, axis=-1, keepdims=True) / (1.0 + c)
 
 
 def parallel_transport(P: np.ndarray, n0: np.ndarray):
@@ -42,7 +55,7 @@ def parallel_transport(P: np.ndarray, n0: np.ndarray):
         v = transport(N[i - 1], T[i - 1], T[i])
         v -= np.dot(v, T[i]) * T[i]  # remove round-off drift
         N[i] = v / np.linalg.norm(v)
-    return T, N, np.cross(T, N)
+    return T, N, cross(T, N)
 
 
 def parallel_transport_batch(P: np.ndarray, n0: np.ndarray):
@@ -55,7 +68,7 @@ def parallel_transport_batch(P: np.ndarray, n0: np.ndarray):
         v = transport(N[:, i - 1], T[:, i - 1], T[:, i])
         v -= np.sum(v * T[:, i], -1, keepdims=True) * T[:, i]
         N[:, i] = v / np.linalg.norm(v, axis=-1, keepdims=True)
-    return T, N, np.cross(T, N)
+    return T, N, cross(T, N)
 
 
 class BodyCarriedFrames:
@@ -74,7 +87,19 @@ class BodyCarriedFrames:
 
     def frames(self, g: int, P: np.ndarray, R: np.ndarray):
         """(T, N, B), each (n, 3), along guide g's vertices P (n, 3) under body rotation R."""
-        T0 = vertex_tangents(P)[0]
-        n0 = transport(R @ self.n_body[g], R @ self.t_body[g], T0)  # body frame, turned onto the root tangent
-        T, N, B = parallel_transport_batch(P[None], n0[None])
-        return T[0], N[0], B[0]
+        return self.frames_all([P], R, [g])[0]
+
+    def frames_all(self, guides: list[np.ndarray], R: np.ndarray, ids=None) -> list:
+        """``frames`` of several guides (guide ids[i], default i, along guides[i]) under body
+        rotation R; the guides with the same vertex count are transported together (the same
+        values as one by one: every operation is per guide)."""
+        ids = range(len(guides)) if ids is None else ids
+        n0 = [transport(R @ self.n_body[g], R @ self.t_body[g], vertex_tangents(P)[0])  # body frame, turned onto the root tangent
+              for g, P in zip(ids, guides)]
+        out = [None] * len(guides)
+        for n in sorted({len(P) for P in guides}):
+            sel = [i for i, P in enumerate(guides) if len(P) == n]
+            T, N, B = parallel_transport_batch(np.stack([guides[i] for i in sel]), np.stack([n0[i] for i in sel]))
+            for j, i in enumerate(sel):
+                out[i] = (T[j], N[j], B[j])
+        return out

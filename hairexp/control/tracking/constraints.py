@@ -175,7 +175,7 @@ class TrackingConstraints:
     def _frames(self, shape: np.ndarray, t: float, motion=None):
         """Parallel-transported frames of every guide at time t: list of (T, N, B)."""
         R, _ = (motion or self.scene.motion).pose(t)
-        return [self.root_frames.frames(g, P, R) for g, P in enumerate(self.guides.guides(shape))]
+        return self.root_frames.frames_all(list(self.guides.guides(shape)), R)
 
     def targets(self, t: float, motion=None) -> TargetCurves:
         """The target curves at time t; ``motion``: the body's poses at t (a dynamic body's step
