@@ -19,7 +19,7 @@ larger of the two lengths'.  A growth within the noise is no growth that this ca
 
 Prints and writes reports/bench_memory.{md,json}.
 Usage:  python -m experiments.bench_memory [--frames 200 3000] [--repeats 3] [--traced]
-        [--sizes ...] [--repo PATH]
+        [--sizes ...] [--rerun off on] [--repo PATH] [--report NAME]
 (``--repo``: run another checkout's code, e.g. an older commit's worktree, for a before/after.)
 """
 
@@ -69,6 +69,7 @@ def main(argv=None):
     ap.add_argument("--repo", type=Path, default=ROOT, help="the checkout whose code runs (default: this one)")
     ap.add_argument("--sizes", nargs="+", choices=list(SIZES), default=list(SIZES))
     ap.add_argument("--rerun", nargs="+", choices=["off", "on"], default=["off", "on"], help="recording off / on")
+    ap.add_argument("--report", default="bench_memory", help="reports/<REPORT>.{md,json} (default bench_memory)")
     args = ap.parse_args(argv)
     repo = args.repo.resolve()
     if not (repo / "hairexp" / "__main__.py").is_file():
@@ -126,7 +127,7 @@ def main(argv=None):
     if args.traced:
         cols.append("Python heap peak, short / long (MB)")
     md += md_table(cols, rows)
-    path = write_report("bench_memory", md, {"repo": str(repo), "frames": args.frames, "repeats": args.repeats,
+    path = write_report(args.report, md, {"repo": str(repo), "frames": args.frames, "repeats": args.repeats,
                                              "results": results})
     print(f"wrote {path}")
 

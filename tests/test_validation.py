@@ -90,7 +90,7 @@ def test_unknown_measure_collider_before_any_step(base, monkeypatch):
     ({"scene.seed": -1}, "scene.seed"),
     ({"scene.motion.times": [0.0, 1.0, 2.0]}, "scene.motion.translations"),
     ({"scene.motion.rotations_deg": [[0.0, 0.0, 0.0]]}, "scene.motion.rotations_deg"),
-    ({"scene.motion.translations": [[0.0, 0.0]] * 6}, "scene.motion.translations[0]"),
+    ({"scene.motion.translations": [[0.0, 0.0]] * 5}, "scene.motion.translations[0]"),   # goaling: 5 keys
     ({"scene.colliders[0].motion.times": [0.0, 1.0]}, "scene.colliders[0].motion.translations"),
     ({"guides.scale_times": [0.0, 1.0]}, "guides.scale_factors"),
     ({"guides.scale_times": [1.0, 0.0], "guides.scale_factors": [1.0, 1.0]}, "guides.scale_times"),
