@@ -117,7 +117,8 @@ def barrier_d1(d, dh):
 def barrier_d2(d, dh):
     """b''(d) on (0, d_hat), 0 beyond."""
     dd = np.maximum(d, 1e-300)
-    return np.where((d < dh) & (d > 0), -2 * np.log(dd / dh) - 4 * (d - dh) / dd + (d - dh) ** 2 / dd ** 2, 0.0)
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):   # the lanes np.where drops (d <= 0)
+        return np.where((d < dh) & (d > 0), -2 * np.log(dd / dh) - 4 * (d - dh) / dd + (d - dh) ** 2 / dd ** 2, 0.0)
 
 
 def barrier_torch(d: torch.Tensor, dh) -> torch.Tensor:
