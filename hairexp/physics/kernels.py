@@ -546,41 +546,6 @@ def solve_rows(L, n, x):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def factor_rows2(L, M, n):
-    """``factor_rows`` of two blocks of the same size at once: each column's pivot waits on the
-    previous one's square root and division (a latency chain); two independent chains side by
-    side keep the core busy.  Each block's operations are those of ``factor_rows``."""
-    for j in range(max(0, n - BW)):
-        if not (_eliminate(L, j, BW) & _eliminate(M, j, BW)):
-            return False
-    for j in range(max(0, n - BW), n):
-        if not (_eliminate(L, j, n - 1 - j) & _eliminate(M, j, n - 1 - j)):
-            return False
-    return True
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def solve_rows2(L, M, n, x, y):
-    """``solve_rows`` of two blocks of the same size at once (x with L, y with M)."""
-    for j in range(n):
-        xj = x[j] * (1.0 / L[j, 0])
-        yj = y[j] * (1.0 / M[j, 0])
-        x[j] = xj
-        y[j] = yj
-        for a in range(1, min(BW, n - 1 - j) + 1):
-            x[j + a] -= L[j, a] * xj
-            y[j + a] -= M[j, a] * yj
-    for j in range(n - 1, -1, -1):
-        s = x[j]
-        t = y[j]
-        for a in range(1, min(BW, n - 1 - j) + 1):
-            s -= L[j, a] * x[j + a]
-            t -= M[j, a] * y[j + a]
-        x[j] = s * (1.0 / L[j, 0])
-        y[j] = t * (1.0 / M[j, 0])
-
-
-@njit(cache=True, error_model="numpy", inline="always")
 def direction_gradient(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
                        use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, W, band):
     """Block ``blk``'s derivatives into the block-sized ``band`` (it stays in cache), the total
@@ -617,35 +582,124 @@ def direction_block(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx,
         solve_rows(band, n, p[d0:d1])
 
 
+#: Blocks of the same size whose factorisations and solves the fused pass runs side by side: each
+#: column's pivot waits on the previous column's square root and division, and each row of the
+#: back substitution on a chain of eight subtractions (latency chains the order of the operations,
+#: kept for bit-identical results, fixes); GROUP independent chains interleaved keep the core busy.
+#: Measured at Celia scale (2026-12-03, one thread, against the pass before the inlining in the same
+#: process): 2 -> 1.25x, 4 -> 1.28x, 8 -> 1.33x (8 bands of 75 rows fill L1): a small gain; 2 was
+#: the pairs of the pass before (``factor_rows2``).
+GROUP = 4
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _eliminate_in(L, k, j, m):
+    """``_eliminate`` on block k of the stacked bands L (GROUP, n, BW + 1)."""
+    piv = L[k, j, 0]
+    if not piv > 0.0:
+        return False
+    r = math.sqrt(piv)
+    L[k, j, 0] = r
+    inv = 1.0 / r
+    for a in range(1, m + 1):
+        L[k, j, a] *= inv
+    for a in range(1, m + 1):
+        la = L[k, j, a]
+        for b in range(a, m + 1):
+            L[k, j + a, b - a] -= L[k, j, b] * la
+    return True
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def factor_group(L, g, n):
+    """``factor_rows`` of the first g blocks of L (GROUP, >= n, BW + 1), all of n rows, column by
+    column across the blocks (each block's operations are those of ``factor_rows``; the columns
+    with a full band first, their loops of constant length BW unrolled); False if a pivot of any
+    is not > 0 (then which one is not known)."""
+    for j in range(max(0, n - BW)):
+        good = True
+        for k in range(g):
+            good &= _eliminate_in(L, k, j, BW)
+        if not good:
+            return False
+    for j in range(max(0, n - BW), n):
+        good = True
+        for k in range(g):
+            good &= _eliminate_in(L, k, j, n - 1 - j)
+        if not good:
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _forward_in(L, k, j, m, x, c):
+    xj = x[c] * (1.0 / L[k, j, 0])
+    x[c] = xj
+    for a in range(1, m + 1):
+        x[c + a] -= L[k, j, a] * xj
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _backward_in(L, k, j, m, x, c):
+    s = x[c]
+    for a in range(1, m + 1):
+        s -= L[k, j, a] * x[c + a]
+    x[c] = s * (1.0 / L[k, j, 0])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def solve_group(L, g, n, x, o):
+    """``solve_rows`` of g blocks of n rows at once: block k's factor L[k], its right-hand side
+    and solution in x[o + k n : o + (k + 1) n] (in place); the rows with a full band apart (loops
+    of constant length BW)."""
+    full = max(0, n - BW)
+    for j in range(full):
+        for k in range(g):
+            _forward_in(L, k, j, BW, x, o + k * n + j)
+    for j in range(full, n):
+        for k in range(g):
+            _forward_in(L, k, j, n - 1 - j, x, o + k * n + j)
+    for j in range(n - 1, full - 1, -1):
+        for k in range(g):
+            _backward_in(L, k, j, n - 1 - j, x, o + k * n + j)
+    for j in range(full - 1, -1, -1):
+        for k in range(g):
+            _backward_in(L, k, j, BW, x, o + k * n + j)
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
-                     use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, W, band,
-                     band2, nb):
-    """Blocks ``blk`` and, if it has the same size and is below ``nb``, ``blk + 1`` of
-    ``direction_serial`` (their factorisations and solves side by side: ``factor_rows2``); returns
-    how many blocks it did.  The pair's derivatives in a loop of two (one call site: one inlined
-    copy of ``strand_derivatives``); a lone block and a pair with a failed pivot each go through
-    ``direction_block`` (the same operations)."""
+                     use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, W, bands,
+                     nb):
+    """Block ``blk`` and the next ones of the same size, up to GROUP of them and below ``nb``, of
+    ``direction_serial``: their derivatives one after the other into ``bands`` (GROUP, nmax, BW + 1),
+    then their factorisations and solves side by side (``factor_group``, ``solve_group``); returns
+    how many blocks it did.  A lone block, and a group with a failed pivot, go block by block
+    through ``direction_block`` (the same operations)."""
     d0, d1 = blk_dof[blk], blk_dof[blk + 1]
     n = d1 - d0
-    if not (blk + 1 < nb and blk_dof[blk + 2] - d1 == n):
+    g = 1
+    while g < GROUP and blk + g < nb and blk_dof[blk + g + 1] - blk_dof[blk + g] == n:
+        g += 1
+    if g == 1:
         direction_block(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
-                        use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, W, band)
+                        use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, W,
+                        bands[0])
         return 1
-    for i in range(2):
+    for i in range(g):
         direction_gradient(blk + i, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
                            tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums,
-                           W, band if i == 0 else band2)
-    if factor_rows2(band, band2, n):
-        solve_rows2(band, band2, n, p[d0:d1], p[d1:d1 + n])
-        ok[blk] = True
-        ok[blk + 1] = True
+                           W, bands[i])
+    if factor_group(bands, g, n):
+        solve_group(bands, g, n, p, d0)
+        for i in range(g):
+            ok[blk + i] = True
     else:   # which one failed: each on its own (the next pass shifts the failed one)
-        for i in range(2):
+        for i in range(g):
             direction_block(blk + i, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
                             tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums,
-                            ok, W, band)
-    return 2
+                            ok, W, bands[0])
+    return g
 
 
 @njit(cache=True, error_model="numpy")
@@ -663,13 +717,12 @@ def direction_serial(Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edg
     for blk in range(nb):
         nmax = max(nmax, blk_dof[blk + 1] - blk_dof[blk])
     W = np.zeros(SCRATCH)
-    band = np.empty((nmax, BW + 1))
-    band2 = np.empty((nmax, BW + 1))
+    bands = np.empty((GROUP, nmax, BW + 1))
     blk = 0
     while blk < nb:
         blk += direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
                                 tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p,
-                                sums, ok, W, band, band2, nb)
+                                sums, ok, W, bands, nb)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -683,11 +736,10 @@ def direction_parallel(Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, e
     size = (nb + n_chunks - 1) // n_chunks
     for c in prange(n_chunks):
         W = np.zeros(SCRATCH)
-        band = np.empty((nmax, BW + 1))
-        band2 = np.empty((nmax, BW + 1))
+        bands = np.empty((GROUP, nmax, BW + 1))
         end = min(nb, (c + 1) * size)
         blk = c * size
         while blk < end:
             blk += direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
                                     tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad,
-                                    p, sums, ok, W, band, band2, end)
+                                    p, sums, ok, W, bands, end)
