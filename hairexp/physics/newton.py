@@ -40,14 +40,16 @@ def line_search(value_fn, x: np.ndarray, p: np.ndarray, f0: float, slope: float,
     below it and a strict Armijo test would reject good Newton steps (seen as a stall at
     |grad|/F ~ 1e-7 with steps of 1e-9); a value within ``noise`` of the Armijo bound passes.
     ``alpha0``: the first trial step (the contact barrier's collision-free bound, <= 1).
-    Returns (alpha, new value, backtracks) or (0, f0, n) if no decrease was found."""
+    Returns (alpha, new value, backtracks, the accepted point x + alpha p) or (0, f0, n, x) if no
+    decrease was found."""
     alpha = alpha0
     for k in range(max_backtracks + 1):
-        f = value_fn(x + alpha * p)
+        x_new = x + alpha * p
+        f = value_fn(x_new)
         if np.isfinite(f) and f <= f0 + ARMIJO_C1 * alpha * slope + noise:
-            return alpha, f, k
+            return alpha, f, k, x_new
         alpha *= BACKTRACK
-    return 0.0, f0, max_backtracks
+    return 0.0, f0, max_backtracks, x
 
 
 def _evaluate(obj, x: np.ndarray, want_step: bool = True):
@@ -124,15 +126,15 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         if not np.isfinite(slope):
             info.status = DIVERGED
             return x, info
-        alpha, f_new, bt = line_search(obj.value, x, p, f, slope, opts.max_backtracks, obj.value_noise,
-                                       obj.max_step(x, p))
+        alpha, f_new, bt, x_new = line_search(obj.value, x, p, f, slope, opts.max_backtracks, obj.value_noise,
+                                              obj.max_step(x, p))
         info.backtracks += bt
         info.iterations += 1
         if alpha == 0.0:
             info.status = LINE_SEARCH_FAILED
             return x, info
         obj.update_tensions(x, alpha * p)
-        x = x + alpha * p
+        x = x_new   # x + alpha * p, as the line search took it
         f = f_new
         # gradient and Hessian together: a separate gradient-only check would repeat most of
         # the derivative work on every iterate that is not yet converged

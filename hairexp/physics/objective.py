@@ -147,7 +147,7 @@ class ImplicitEulerObjective:
 
     def final_tensions(self, xf: np.ndarray) -> dict:
         """Tensions of the final state (the warm start of the next step)."""
-        x = self.eval_positions(xf)
+        x = None   # the torch positions, built only for a term without kernels
         out = {}
         with torch.no_grad():
             for t in self._dual_terms:
@@ -155,6 +155,8 @@ class ImplicitEulerObjective:
                     t.tension = torch.from_numpy(self.kernels.tensions(self, xf, None))
                     out[t.name] = t.tension.numpy().copy()
                     continue
+                if x is None:
+                    x = self.eval_positions(xf)
                 t.tension = t.tension_of(x[t.stencil_t])
                 out[t.name] = t.tension.numpy().copy()
         return out
