@@ -78,11 +78,13 @@ KB_EPS = 1e-14
 
 
 @njit(cache=True, error_model="numpy")
-def eval_points(xf, x_full, x_n, free_vertices, alpha_f, Y):
+def eval_points(xf, x_full, x_n, free_vertices, fixed_vertices, alpha_f, Y):
     """Y (V, 3): the evaluation point y = (1 - alpha_f) x + alpha_f x_n, x the prescribed
-    ``x_full`` with the free rows from the DOF vector ``xf`` (as ``ImplicitEulerObjective.eval_positions``)."""
+    ``x_full`` with the free rows from the DOF vector ``xf`` (as ``ImplicitEulerObjective.eval_positions``);
+    ``fixed_vertices``: the other rows (the kinematic ones), the only ones copied from ``x_full``."""
     V = x_full.shape[0]
-    for v in range(V):
+    for i in range(fixed_vertices.shape[0]):
+        v = fixed_vertices[i]
         for c in range(3):
             Y[v, c] = x_full[v, c]
     for i in range(free_vertices.shape[0]):
