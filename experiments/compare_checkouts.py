@@ -11,7 +11,7 @@ shared machine: compare them by ratios.  Before the timed steps each worker also
 Newton pass (``ImplicitEulerObjective.evaluate_step``) at the same iterate, alternated round by
 round with the other worker.  At the end the final positions of both are compared.
 
-Usage:  python -m experiments.compare_checkouts OTHER [--steps 50] [--repeats 30]
+Usage:  python -m experiments.compare_checkouts OTHER [--steps 50] [--repeats 30] [--threads 1]
 (OTHER: the path of another checkout, e.g. a ``git worktree`` at the base commit; "this": the
 checkout this file is in.)
 """
@@ -34,13 +34,13 @@ import numpy as np
 HERE = Path(__file__).resolve().parents[1]
 
 
-def worker(steps: int) -> None:
+def worker(steps: int, threads: str) -> None:
     """Reads commands from stdin, answers one JSON line each: ``eval`` (time one fused pass at the
     iterate after the warm-up), ``step`` (one timed step), ``save PATH`` (final positions)."""
     from hairexp.app.assemble import assemble
     from experiments.common import WARMUP, celia_bench
 
-    run = assemble(celia_bench("free", steps))
+    run = assemble(celia_bench("free", steps, [f"solver.threads={threads}"]))
     sim = run.simulator
     state = run.initial_state()
     n = WARMUP + steps
@@ -82,9 +82,10 @@ def worker(steps: int) -> None:
             return
 
 
-def start(checkout: Path, steps: int) -> subprocess.Popen:
+def start(checkout: Path, steps: int, threads: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(checkout))
-    return subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--worker", "--steps", str(steps)],
+    return subprocess.Popen([sys.executable, str(Path(__file__).resolve()), "--worker", "--steps", str(steps),
+                             "--threads", threads],
                             cwd=checkout, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
 
 
@@ -106,15 +107,18 @@ def main(argv=None) -> None:
     ap.add_argument("other", nargs="?", help="path of the other checkout (the base)")
     ap.add_argument("--steps", type=int, default=50)
     ap.add_argument("--repeats", type=int, default=30, help="timed fused passes per checkout")
+    ap.add_argument("--threads", default="1", choices=("1", "2", "auto"),
+                    help="solver.threads of both runs (default 1: auto decides per process from the load, so the "
+                         "two could differ)")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        worker(args.steps)
+        worker(args.steps, args.threads)
         return
     paths = {"other": Path(args.other).resolve(), "this": HERE}
     workers = {}
     for name, path in paths.items():   # one after the other: their settle does not share the cores
-        workers[name] = start(path, args.steps)
+        workers[name] = start(path, args.steps, args.threads)
         print(name, path, ask(workers[name], None), flush=True)
         ask(workers[name], "eval")   # the first pass (untimed)
     evals = {n: [] for n in workers}
