@@ -384,10 +384,13 @@ def energies_block(blk, Y, xf, x_pred, mass_diag, g_ext, free_vertices, blk_dof,
     block ``blk`` (the line search's value); ``e_rest``/``b_rest``: elements without a free
     vertex (their energy is constant over the step but part of the value), in block 0's sums."""
     ine, st, be, ext = 0.0, 0.0, 0.0, 0.0
-    for j in range(blk_dof[blk], blk_dof[blk + 1]):
-        d = xf[j] - x_pred[j]
-        ine += 0.5 * mass_diag[j] * d * d
-        ext += g_ext[j] * Y[free_vertices[j // 3], j % 3]
+    for i in range(blk_dof[blk] // 3, blk_dof[blk + 1] // 3):   # DOF j = 3 i + c of free vertex i, j ascending
+        v = free_vertices[i]
+        for c in range(3):
+            j = 3 * i + c
+            d = xf[j] - x_pred[j]
+            ine += 0.5 * mass_diag[j] * d * d
+            ext += g_ext[j] * Y[v, c]
     for k in range(e_ptr[blk], e_ptr[blk + 1]):
         st += stretch_energy_of(Y, edges, e_idx[k], k_l0, l0)
     for k in range(b_ptr[blk], b_ptr[blk + 1]):
