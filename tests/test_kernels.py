@@ -290,27 +290,34 @@ def test_fused_pass_falls_back_where_a_block_is_indefinite():
     assert obj.kernels._ok.tolist() == [True, False, True]
 
 
-def test_paired_block_factorisation_is_the_single_one():
-    """``factor_rows2`` / ``solve_rows2`` (two blocks side by side) against ``factor_rows`` /
-    ``solve_rows`` and bandchol's factorisation: bit-identical."""
+def test_grouped_block_factorisation_is_the_single_one():
+    """``factor_group`` / ``solve_group`` (up to GROUP blocks side by side, stacked) against
+    ``factor_rows`` / ``solve_rows`` and bandchol's factorisation: bit-identical, for a group of
+    GROUP blocks and a smaller one, and blocks shorter than the band."""
     rng = np.random.default_rng(9)
-    A, off = block_banded(rng, [24, 24])
-    L1, L2 = A[:24].copy(), A[24:].copy()
-    M1, M2 = L1.copy(), L2.copy()
-    assert kernels.factor_rows2(L1, L2, 24)
-    assert kernels.factor_rows(M1, 24) and kernels.factor_rows(M2, 24)
-    np.testing.assert_array_equal(L1, M1)
-    np.testing.assert_array_equal(L2, M2)
-    L, ok = np.empty_like(A), np.ones(2, dtype=np.bool_)
-    bandchol.factor_serial(A, L, off, ok)
-    np.testing.assert_array_equal(L, np.concatenate([M1, M2]))
-    x, y = rng.normal(size=24), rng.normal(size=24)
-    x2, y2 = x.copy(), y.copy()
-    kernels.solve_rows2(L1, L2, 24, x, y)
-    kernels.solve_rows(M1, 24, x2)
-    kernels.solve_rows(M2, 24, y2)
-    np.testing.assert_array_equal(x, x2)
-    np.testing.assert_array_equal(y, y2)
+    for n, g in ((24, kernels.GROUP), (24, 3), (6, 2)):
+        A, off = block_banded(rng, [n] * g)
+        stack = np.zeros((kernels.GROUP, n + 2, kernels.BW + 1))
+        single = [A[k * n:(k + 1) * n].copy() for k in range(g)]
+        for k in range(g):
+            stack[k, :n] = single[k]
+        assert kernels.factor_group(stack, g, n)
+        for k in range(g):
+            assert kernels.factor_rows(single[k], n)
+            np.testing.assert_array_equal(stack[k, :n], single[k])
+        L, ok = np.empty_like(A), np.ones(g, dtype=np.bool_)
+        bandchol.factor_serial(A, L, off, ok)
+        np.testing.assert_array_equal(L, np.concatenate(single))
+        x = rng.normal(size=g * n + 5)
+        x2 = x.copy()
+        kernels.solve_group(stack, g, n, x, 5)
+        for k in range(g):
+            kernels.solve_rows(single[k], n, x2[5 + k * n:5 + (k + 1) * n])
+        np.testing.assert_array_equal(x, x2)
+    bad = np.zeros((kernels.GROUP, 3, kernels.BW + 1))
+    bad[:, :, 0] = 1.0
+    bad[1, 2, 0] = -1.0
+    assert not kernels.factor_group(bad, 2, 3)
     assert kernels.BW == bandchol.BW
 
 

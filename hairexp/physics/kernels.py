@@ -23,7 +23,14 @@ transposed, ``abT[j, d] = A[j + d, j]`` (``abT.T`` is what ``scipy.linalg.solveh
 so that one column's entries are contiguous.
 
 Everything is ``@njit(cache=True, error_model="numpy")``: the first run in a checkout compiles (a few seconds) and
-stores the machine code next to this file; later processes load it.
+stores the machine code next to this file; later processes load it.  The per-block and per-element
+helpers are ``inline="always"`` (numba inlines them into the loops over blocks before LLVM sees
+them): a call passes every array argument as its unpacked struct (data, shape, strides, ...), about
+a microsecond per block for ``strand_derivatives``' twenty arrays, and views made per block (a
+reshape, slices) cost a call each.  Inlined, the fused pass at Celia scale took 1.52 ms instead of
+1.82 ms and the gradient alone 0.38 instead of 0.51 (2026-12-03, interleaved, one thread), with the
+same operations in the same order: bit-identical results.  The price is compile time on a cold
+cache (the inlined loops are compiled once per kernel that contains them).
 """
 
 from __future__ import annotations
@@ -71,11 +78,13 @@ KB_EPS = 1e-14
 
 
 @njit(cache=True, error_model="numpy")
-def eval_points(xf, x_full, x_n, free_vertices, alpha_f, Y):
+def eval_points(xf, x_full, x_n, free_vertices, fixed_vertices, alpha_f, Y):
     """Y (V, 3): the evaluation point y = (1 - alpha_f) x + alpha_f x_n, x the prescribed
-    ``x_full`` with the free rows from the DOF vector ``xf`` (as ``ImplicitEulerObjective.eval_positions``)."""
+    ``x_full`` with the free rows from the DOF vector ``xf`` (as ``ImplicitEulerObjective.eval_positions``);
+    ``fixed_vertices``: the other rows (the kinematic ones), the only ones copied from ``x_full``."""
     V = x_full.shape[0]
-    for v in range(V):
+    for i in range(fixed_vertices.shape[0]):
+        v = fixed_vertices[i]
         for c in range(3):
             Y[v, c] = x_full[v, c]
     for i in range(free_vertices.shape[0]):
@@ -88,7 +97,7 @@ def eval_points(xf, x_full, x_n, free_vertices, alpha_f, Y):
                 Y[v, c] = (1.0 - alpha_f) * Y[v, c] + alpha_f * x_n[v, c]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def bend_jacobian(Y, a, b, c, J, kb, e0, e1):
     """kb (3,) and its Jacobian J (3, 9) w.r.t. (x_a, x_b, x_c), as ``energies.kb_jacobian``:
     d kb/d e0 = (-2[e1]x - kb (l1 e0/l0 + e1)^T)/chi, d kb/d e1 = (2[e0]x - kb (l0 e1/l1 + e0)^T)/chi.
@@ -154,7 +163,7 @@ def _add_block(abT, rows, cols, H, p, q, scale):
                 abT[cols + s, rows + r - cols - s] += scale * H[3 * p + r, 3 * q + s]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _add_diagonal_block(abT, C, K00, K10, K20, K11, K21, K22):
     """Adds the lower triangle of the symmetric 3x3 block K to the band's diagonal block whose
     first column is C (transposed band storage: abT[column, row - column])."""
@@ -166,7 +175,7 @@ def _add_diagonal_block(abT, C, K00, K10, K20, K11, K21, K22):
     abT[C + 2, 0] += K22
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _sub_offdiagonal_block(abT, C, D, K00, K10, K20, K01, K11, K21, K02, K12, K22):
     """Subtracts the 3x3 block K (K[r, s] = K<r><s>) coupling the vertex whose first column is C
     to the one D columns further (transposed band storage: abT[C + s, D + r - s] -= K[r, s])."""
@@ -181,7 +190,7 @@ def _sub_offdiagonal_block(abT, C, D, K00, K10, K20, K01, K11, K21, K02, K12, K2
     abT[C + 2, D] -= K22
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
                        b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, off, need_hessian, W):
     """Gradient g_int (rows d0..d1 of the block's DOFs) of the energies and the lower band
@@ -194,10 +203,10 @@ def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0
     bw = abT.shape[1] - 1
     for j in range(d0, d1):
         g_int[j] = 0.0
-    if need_hessian:   # the block's rows are contiguous: zeroed as one run, then the diagonal
-        flat = abT.reshape(abT.shape[0] * (bw + 1))
-        for i in range((d0 - off) * (bw + 1), (d1 - off) * (bw + 1)):
-            flat[i] = 0.0
+    if need_hessian:   # the block's rows zeroed (row by row: a reshape to one run costs a call per block), then the diagonal
+        for i in range(d0 - off, d1 - off):
+            for c in range(bw + 1):
+                abT[i, c] = 0.0
         for j in range(d0, d1):
             abT[j - off, 0] = mass_diag[j]
     for k in range(e_ptr[blk], e_ptr[blk + 1]):
@@ -302,7 +311,7 @@ def strand_derivatives(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0
                         abT[C + s3, R + r - C - s3] += h_scale * h
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def assemble_block(blk, Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension, use_tension,
                    b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W):
     """``strand_derivatives`` of block ``blk`` into the global band abT (N, bw + 1)."""
@@ -339,7 +348,7 @@ def assemble_serial(Y, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tensio
                        b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, abT, g_int, need_hessian, W)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def stretch_energy_of(Y, edges, e, k_l0, l0):
     va, vb = edges[e, 0], edges[e, 1]
     d = 0.0
@@ -350,7 +359,7 @@ def stretch_energy_of(Y, edges, e, k_l0, l0):
     return 0.5 * k_l0[e] * dl * dl
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def bend_energy_of(Y, bends, e, w, s_rest):
     """w (|kb|^2 - 2 s |kb| + s^2), |kb| taken only where s > 0 (``energies.bending_energy``)."""
     a, b, c = bends[e, 0], bends[e, 1], bends[e, 2]
@@ -368,17 +377,20 @@ def bend_energy_of(Y, bends, e, w, s_rest):
     return w[e] * (sq - mid + s * s)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def energies_block(blk, Y, xf, x_pred, mass_diag, g_ext, free_vertices, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
                    b_ptr, b_idx, bends, w, s_rest, e_rest, b_rest, out):
     """out[blk] = (inertia 1/2 |x - x_pred|^2_M/h^2, stretch, bending, external g_ext . y) of
     block ``blk`` (the line search's value); ``e_rest``/``b_rest``: elements without a free
     vertex (their energy is constant over the step but part of the value), in block 0's sums."""
     ine, st, be, ext = 0.0, 0.0, 0.0, 0.0
-    for j in range(blk_dof[blk], blk_dof[blk + 1]):
-        d = xf[j] - x_pred[j]
-        ine += 0.5 * mass_diag[j] * d * d
-        ext += g_ext[j] * Y[free_vertices[j // 3], j % 3]
+    for i in range(blk_dof[blk] // 3, blk_dof[blk + 1] // 3):   # DOF j = 3 i + c of free vertex i, j ascending
+        v = free_vertices[i]
+        for c in range(3):
+            j = 3 * i + c
+            d = xf[j] - x_pred[j]
+            ine += 0.5 * mass_diag[j] * d * d
+            ext += g_ext[j] * Y[v, c]
     for k in range(e_ptr[blk], e_ptr[blk + 1]):
         st += stretch_energy_of(Y, edges, e_idx[k], k_l0, l0)
     for k in range(b_ptr[blk], b_ptr[blk + 1]):
@@ -491,7 +503,7 @@ def add_compression(Y, free_slot, edges, k_l0, l0, tension, use_tension, h_scale
 BW = 8
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _eliminate(L, j, m):
     """Right-looking step at column j: scale it, subtract its outer product from the next m
     columns (``bandchol._eliminate``)."""
@@ -510,7 +522,7 @@ def _eliminate(L, j, m):
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def factor_rows(L, n):
     """Cholesky factor, in place, of the band in rows 0..n-1 of L ((>= n, BW + 1), layout
     ``abT``); False if a pivot is not > 0 (``bandchol.factor_block`` on one block)."""
@@ -523,7 +535,7 @@ def factor_rows(L, n):
     return True
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def solve_rows(L, n, x):
     """x = (L L^T)^-1 x in place with the factor of ``factor_rows`` (``bandchol.solve_block``)."""
     for j in range(n):
@@ -538,42 +550,7 @@ def solve_rows(L, n, x):
         x[j] = s * (1.0 / L[j, 0])
 
 
-@njit(cache=True, error_model="numpy")
-def factor_rows2(L, M, n):
-    """``factor_rows`` of two blocks of the same size at once: each column's pivot waits on the
-    previous one's square root and division (a latency chain); two independent chains side by
-    side keep the core busy.  Each block's operations are those of ``factor_rows``."""
-    for j in range(max(0, n - BW)):
-        if not (_eliminate(L, j, BW) & _eliminate(M, j, BW)):
-            return False
-    for j in range(max(0, n - BW), n):
-        if not (_eliminate(L, j, n - 1 - j) & _eliminate(M, j, n - 1 - j)):
-            return False
-    return True
-
-
-@njit(cache=True, error_model="numpy")
-def solve_rows2(L, M, n, x, y):
-    """``solve_rows`` of two blocks of the same size at once (x with L, y with M)."""
-    for j in range(n):
-        xj = x[j] * (1.0 / L[j, 0])
-        yj = y[j] * (1.0 / M[j, 0])
-        x[j] = xj
-        y[j] = yj
-        for a in range(1, min(BW, n - 1 - j) + 1):
-            x[j + a] -= L[j, a] * xj
-            y[j + a] -= M[j, a] * yj
-    for j in range(n - 1, -1, -1):
-        s = x[j]
-        t = y[j]
-        for a in range(1, min(BW, n - 1 - j) + 1):
-            s -= L[j, a] * x[j + a]
-            t -= M[j, a] * y[j + a]
-        x[j] = s * (1.0 / L[j, 0])
-        y[j] = t * (1.0 / M[j, 0])
-
-
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def direction_gradient(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
                        use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, W, band):
     """Block ``blk``'s derivatives into the block-sized ``band`` (it stays in cache), the total
@@ -597,42 +574,137 @@ def direction_gradient(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_i
 
 
 @njit(cache=True, error_model="numpy")
-def direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
-                     use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, W, band,
-                     band2, nb):
-    """Blocks ``blk`` and, if it has the same size and is below ``nb``, ``blk + 1`` of
-    ``direction_serial`` (their factorisations and solves side by side: ``factor_rows2``); returns
-    how many blocks it did."""
+def direction_block(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
+                    use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, W, band):
+    """One block of ``direction_serial`` on its own (a called function, not inlined: the rare
+    paths, so that the inlined pass holds one copy of the derivatives)."""
     d0, d1 = blk_dof[blk], blk_dof[blk + 1]
     n = d1 - d0
     direction_gradient(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
                        use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, W, band)
-    if blk + 1 < nb and blk_dof[blk + 2] - d1 == n:
-        direction_gradient(blk + 1, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
-                           tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums,
-                           W, band2)
-        if factor_rows2(band, band2, n):
-            solve_rows2(band, band2, n, p[d0:d1], p[d1:d1 + n])
-            ok[blk] = True
-            ok[blk + 1] = True
-        else:   # which one failed: each on its own (the next pass shifts the failed one)
-            direction_gradient(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
-                               tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p,
-                               sums, W, band)
-            ok[blk] = factor_rows(band, n)
-            if ok[blk]:
-                solve_rows(band, n, p[d0:d1])
-            direction_gradient(blk + 1, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
-                               tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p,
-                               sums, W, band2)
-            ok[blk + 1] = factor_rows(band2, n)
-            if ok[blk + 1]:
-                solve_rows(band2, n, p[d1:d1 + n])
-        return 2
     ok[blk] = factor_rows(band, n)
     if ok[blk]:
         solve_rows(band, n, p[d0:d1])
-    return 1
+
+
+#: Blocks of the same size whose factorisations and solves the fused pass runs side by side: each
+#: column's pivot waits on the previous column's square root and division, and each row of the
+#: back substitution on a chain of eight subtractions (latency chains the order of the operations,
+#: kept for bit-identical results, fixes); GROUP independent chains interleaved keep the core busy.
+#: Measured at Celia scale (2026-12-03, one thread, against the pass before the inlining in the same
+#: process): 2 -> 1.25x, 4 -> 1.28x, 8 -> 1.33x (8 bands of 75 rows fill L1): a small gain; 2 was
+#: the pairs of the pass before (``factor_rows2``).
+GROUP = 4
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _eliminate_in(L, k, j, m):
+    """``_eliminate`` on block k of the stacked bands L (GROUP, n, BW + 1)."""
+    piv = L[k, j, 0]
+    if not piv > 0.0:
+        return False
+    r = math.sqrt(piv)
+    L[k, j, 0] = r
+    inv = 1.0 / r
+    for a in range(1, m + 1):
+        L[k, j, a] *= inv
+    for a in range(1, m + 1):
+        la = L[k, j, a]
+        for b in range(a, m + 1):
+            L[k, j + a, b - a] -= L[k, j, b] * la
+    return True
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def factor_group(L, g, n):
+    """``factor_rows`` of the first g blocks of L (GROUP, >= n, BW + 1), all of n rows, column by
+    column across the blocks (each block's operations are those of ``factor_rows``; the columns
+    with a full band first, their loops of constant length BW unrolled); False if a pivot of any
+    is not > 0 (then which one is not known)."""
+    for j in range(max(0, n - BW)):
+        good = True
+        for k in range(g):
+            good &= _eliminate_in(L, k, j, BW)
+        if not good:
+            return False
+    for j in range(max(0, n - BW), n):
+        good = True
+        for k in range(g):
+            good &= _eliminate_in(L, k, j, n - 1 - j)
+        if not good:
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _forward_in(L, k, j, m, x, c):
+    xj = x[c] * (1.0 / L[k, j, 0])
+    x[c] = xj
+    for a in range(1, m + 1):
+        x[c + a] -= L[k, j, a] * xj
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _backward_in(L, k, j, m, x, c):
+    s = x[c]
+    for a in range(1, m + 1):
+        s -= L[k, j, a] * x[c + a]
+    x[c] = s * (1.0 / L[k, j, 0])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def solve_group(L, g, n, x, o):
+    """``solve_rows`` of g blocks of n rows at once: block k's factor L[k], its right-hand side
+    and solution in x[o + k n : o + (k + 1) n] (in place); the rows with a full band apart (loops
+    of constant length BW)."""
+    full = max(0, n - BW)
+    for j in range(full):
+        for k in range(g):
+            _forward_in(L, k, j, BW, x, o + k * n + j)
+    for j in range(full, n):
+        for k in range(g):
+            _forward_in(L, k, j, n - 1 - j, x, o + k * n + j)
+    for j in range(n - 1, full - 1, -1):
+        for k in range(g):
+            _backward_in(L, k, j, n - 1 - j, x, o + k * n + j)
+    for j in range(full - 1, -1, -1):
+        for k in range(g):
+            _backward_in(L, k, j, BW, x, o + k * n + j)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
+                     use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, W, bands,
+                     nb):
+    """Block ``blk`` and the next ones of the same size, up to GROUP of them and below ``nb``, of
+    ``direction_serial``: their derivatives one after the other into ``bands`` (GROUP, nmax, BW + 1),
+    then their factorisations and solves side by side (``factor_group``, ``solve_group``); returns
+    how many blocks it did.  A lone block, and a group with a failed pivot, go block by block
+    through ``direction_block`` (the same operations)."""
+    d0, d1 = blk_dof[blk], blk_dof[blk + 1]
+    n = d1 - d0
+    g = 1
+    while g < GROUP and blk + g < nb and blk_dof[blk + g + 1] - blk_dof[blk + g] == n:
+        g += 1
+    if g == 1:
+        direction_block(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0, tension,
+                        use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums, ok, W,
+                        bands[0])
+        return 1
+    for i in range(g):
+        direction_gradient(blk + i, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                           tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums,
+                           W, bands[i])
+    if factor_group(bands, g, n):
+        solve_group(bands, g, n, p, d0)
+        for i in range(g):
+            ok[blk + i] = True
+    else:   # which one failed: each on its own (the next pass shifts the failed one)
+        for i in range(g):
+            direction_block(blk + i, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
+                            tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p, sums,
+                            ok, W, bands[0])
+    return g
 
 
 @njit(cache=True, error_model="numpy")
@@ -650,13 +722,12 @@ def direction_serial(Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edg
     for blk in range(nb):
         nmax = max(nmax, blk_dof[blk + 1] - blk_dof[blk])
     W = np.zeros(SCRATCH)
-    band = np.empty((nmax, BW + 1))
-    band2 = np.empty((nmax, BW + 1))
+    bands = np.empty((GROUP, nmax, BW + 1))
     blk = 0
     while blk < nb:
         blk += direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
                                 tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p,
-                                sums, ok, W, band, band2, nb)
+                                sums, ok, W, bands, nb)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -670,11 +741,10 @@ def direction_parallel(Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, e
     size = (nb + n_chunks - 1) // n_chunks
     for c in prange(n_chunks):
         W = np.zeros(SCRATCH)
-        band = np.empty((nmax, BW + 1))
-        band2 = np.empty((nmax, BW + 1))
+        bands = np.empty((GROUP, nmax, BW + 1))
         end = min(nb, (c + 1) * size)
         blk = c * size
         while blk < end:
             blk += direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
                                     tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad,
-                                    p, sums, ok, W, band, band2, end)
+                                    p, sums, ok, W, bands, end)

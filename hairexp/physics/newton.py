@@ -40,24 +40,46 @@ def line_search(value_fn, x: np.ndarray, p: np.ndarray, f0: float, slope: float,
     below it and a strict Armijo test would reject good Newton steps (seen as a stall at
     |grad|/F ~ 1e-7 with steps of 1e-9); a value within ``noise`` of the Armijo bound passes.
     ``alpha0``: the first trial step (the contact barrier's collision-free bound, <= 1).
-    Returns (alpha, new value, backtracks) or (0, f0, n) if no decrease was found."""
+    Returns (alpha, new value, backtracks, the accepted point x + alpha p) or (0, f0, n, x) if no
+    decrease was found."""
     alpha = alpha0
     for k in range(max_backtracks + 1):
-        f = value_fn(x + alpha * p)
+        x_new = x + alpha * p
+        f = value_fn(x_new)
         if np.isfinite(f) and f <= f0 + ARMIJO_C1 * alpha * slope + noise:
-            return alpha, f, k
+            return alpha, f, k, x_new
         alpha *= BACKTRACK
-    return 0.0, f0, max_backtracks
+    return 0.0, f0, max_backtracks, x
 
 
 def _evaluate(obj, x: np.ndarray, want_step: bool = True):
     """(evaluation, Newton step or None): the objective's fused pass where it has one
     (``ImplicitEulerObjective.evaluate_step``) and the step is likely needed, else its evaluation
-    (the step solved after, if needed)."""
+    (the step solved after, if needed).  Where the step is likely not needed (the iterate is
+    predicted to converge) and the objective has the fused pass (``fuses``), the gradient alone
+    (``banded`` None, the cheaper half of the pass: no band to zero, fill and factor); the caller
+    takes the fused pass after it if the iterate did not converge (``_step_after``)."""
     step = getattr(obj, "evaluate_step", None)
-    if step is None or not want_step:
+    if step is None:
         return obj.evaluate(x, need_hessian=True), None
+    if not want_step:
+        return obj.evaluate(x, need_hessian=not getattr(obj, "fuses", False)), None
     return step(x)
+
+
+def _step_after(obj, x: np.ndarray, sec: dict) -> np.ndarray | None:
+    """The Newton step at x after a gradient-only evaluation there (``_evaluate``): the fused
+    pass's (its gradient is that evaluation's bit for bit, and so is the step evaluate + solve
+    would give), its time added to ``sec``; None if it fell back to ``evaluate`` (then the step
+    is solved from that band, as without the fused pass)."""
+    ev, p = obj.evaluate_step(x)
+    for k in ("derivatives", "assembly"):
+        sec[k] += ev.seconds[k]
+    if p is None:
+        t0 = time.perf_counter()
+        p = obj.solve(ev.banded, -ev.grad)
+        sec["solve"] += time.perf_counter() - t0
+    return p
 
 
 def _likely_converged(norms: list, alpha: float, tol: float) -> bool:
@@ -94,6 +116,8 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         if info.iterations >= opts.max_iterations:
             info.status = MAX_ITERATIONS
             return x, info
+        if p is None and ev.banded is None:   # a gradient-only evaluation, and not converged
+            p = _step_after(obj, x, sec)
         if p is None:
             t0 = time.perf_counter()
             p = obj.solve(ev.banded, -ev.grad)
@@ -102,15 +126,15 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         if not np.isfinite(slope):
             info.status = DIVERGED
             return x, info
-        alpha, f_new, bt = line_search(obj.value, x, p, f, slope, opts.max_backtracks, obj.value_noise,
-                                       obj.max_step(x, p))
+        alpha, f_new, bt, x_new = line_search(obj.value, x, p, f, slope, opts.max_backtracks, obj.value_noise,
+                                              obj.max_step(x, p))
         info.backtracks += bt
         info.iterations += 1
         if alpha == 0.0:
             info.status = LINE_SEARCH_FAILED
             return x, info
         obj.update_tensions(x, alpha * p)
-        x = x + alpha * p
+        x = x_new   # x + alpha * p, as the line search took it
         f = f_new
         # gradient and Hessian together: a separate gradient-only check would repeat most of
         # the derivative work on every iterate that is not yet converged

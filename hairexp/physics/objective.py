@@ -147,7 +147,7 @@ class ImplicitEulerObjective:
 
     def final_tensions(self, xf: np.ndarray) -> dict:
         """Tensions of the final state (the warm start of the next step)."""
-        x = self.eval_positions(xf)
+        x = None   # the torch positions, built only for a term without kernels
         out = {}
         with torch.no_grad():
             for t in self._dual_terms:
@@ -155,6 +155,8 @@ class ImplicitEulerObjective:
                     t.tension = torch.from_numpy(self.kernels.tensions(self, xf, None))
                     out[t.name] = t.tension.numpy().copy()
                     continue
+                if x is None:
+                    x = self.eval_positions(xf)
                 t.tension = t.tension_of(x[t.stencil_t])
                 out[t.name] = t.tension.numpy().copy()
         return out
@@ -290,6 +292,12 @@ class ImplicitEulerObjective:
         t2 = time.perf_counter()
         return Evaluation(grad, ab, scale, {"derivatives": t1 - t0, "assembly": t2 - t1})
 
+    @property
+    def fuses(self) -> bool:
+        """Whether ``evaluate_step`` takes the fused pass: the compiled kernels take every term, no
+        contact, ``fused`` on."""
+        return self.fused and self.kernels is not None and not self.torch_terms and self.contact is None
+
     def evaluate_step(self, xf: np.ndarray) -> tuple[Evaluation, np.ndarray | None]:
         """(evaluation, Newton step p = -A^-1 grad or None).  With the compiled kernels taking
         every term and no contact (and ``fused``), one pass per strand computes the gradient,
@@ -297,7 +305,7 @@ class ImplicitEulerObjective:
         factor and p: the gradient and step of ``evaluate`` + ``solve`` bit for bit (the force
         scale to round-off: its norms are summed per strand), timed together as "assembly".
         Otherwise ``evaluate`` and p None (the caller solves)."""
-        if not (self.fused and self.kernels is not None and not self.torch_terms and self.contact is None):
+        if not self.fuses:
             return self.evaluate(xf, need_hessian=True), None
         t0 = time.perf_counter()
         out = self.kernels.direction(self, xf)

@@ -88,6 +88,8 @@ class StrandKernels:
         self.stretch, self.bending, self.handles_gravity = stretch, bending, gravity
         self.free_slot = np.ascontiguousarray(free_slot, dtype=np.int64)
         self.free_vertices = np.ascontiguousarray(free_vertices, dtype=np.int64)
+        #: the vertices that are not free (their rows of the evaluation point come from x_full)
+        self.fixed_vertices = np.setdiff1d(np.arange(len(self.free_slot)), self.free_vertices).astype(np.int64)
         self.blk_dof = 3 * blk_vert
         self.n_dofs = int(self.blk_dof[-1])
         self.bw = int(bandwidth)
@@ -149,7 +151,8 @@ class StrandKernels:
         if self.parallel:
             set_threads(self.threads)
         kernels.eval_points(np.ascontiguousarray(xf, dtype=np.float64), obj.x_full,
-                            np.ascontiguousarray(obj.x_n, dtype=np.float64), self.free_vertices, obj.alpha_f, self._Y)
+                            np.ascontiguousarray(obj.x_n, dtype=np.float64), self.free_vertices, self.fixed_vertices,
+                            obj.alpha_f, self._Y)
         return self._Y
 
     def evaluate(self, obj, xf: np.ndarray, need_hessian: bool):
