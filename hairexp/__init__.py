@@ -15,6 +15,12 @@ _os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 # process on the two cores (a second sweep worker, a test run) a tracked step went from 0.15 s
 # to 7-60 s; passive waiting kept it at 0.14-0.9 s.  Read when torch loads, so set here first.
 _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# rerun's SDK allocates from its own mimalloc heap, which keeps a freed page resident for
+# ``purge_delay`` (10 ms): the pages of the recording's encoded chunks piled up under the next
+# ones (with the recording on, a 3,000-frame run's peak was 5.0 / 2.1 MB above a 200-frame run's,
+# 6 x 10 / 40 x 20 hair, against 3.4 / 1.1 MB with 0: reports/bench_memory.md).  0: back at once.
+# Read when rerun's library loads, so set here first.
+_os.environ.setdefault("MIMALLOC_PURGE_DELAY", "0")
 
 
 #: glibc mallopt parameters (malloc.h).

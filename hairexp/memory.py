@@ -74,23 +74,6 @@ def release_every(seconds: float) -> None:
         release()
 
 
-#: rerun's SDK allocates from its own mimalloc heap, which keeps a freed page for
-#: ``purge_delay`` (10 ms) before giving it back, and a page still kept is resident: the pages of
-#: the chunks it had encoded and written piled up under the next ones (a 3,000-frame run's peak
-#: about 5 MB above a 200-frame run's, reports/bench_memory.md).  0: back at once.
-RERUN_ALLOCATOR_ENV = {"MIMALLOC_PURGE_DELAY": "0"}
-
-
-def configure_rerun_allocator() -> None:
-    """Set RERUN_ALLOCATOR_ENV's options (those the user did not set) before rerun is imported:
-    mimalloc reads them from the environment when its library is loaded.  A no-op once rerun
-    is loaded."""
-    if "rerun_bindings" in sys.modules:
-        return
-    for k, v in RERUN_ALLOCATOR_ENV.items():
-        os.environ.setdefault(k, v)
-
-
 def use_system_arrow_pool() -> None:
     """Make pyarrow allocate from the C library's heap (module docstring); a no-op when the
     user set ``ARROW_DEFAULT_MEMORY_POOL`` or pyarrow cannot switch."""

@@ -25,11 +25,8 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
-from hairexp.memory import configure_rerun_allocator
-
-configure_rerun_allocator()   # mimalloc's options, before rerun's library loads (hairexp/memory.py)
-import rerun as rr  # noqa: E402
-import rerun.blueprint as rrb  # noqa: E402
+import rerun as rr
+import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
 from hairexp.outputs import layout

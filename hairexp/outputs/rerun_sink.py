@@ -23,8 +23,8 @@ chunks few, whatever the number of frames:
   per frame): one chunk per entity every 1 MiB of frames, 250 frames or ``flush()``, which also
   waits for the writer (so a write failure such as a full disk raises there instead of passing
   silently) at most every FLUSH_SECONDS.
-rerun's SDK allocates from its own mimalloc heap; ``hairexp.memory.configure_rerun_allocator``
-(called before rerun is imported) makes it give freed pages back at once, so the encoded chunks'
+rerun's SDK allocates from its own mimalloc heap; ``MIMALLOC_PURGE_DELAY=0`` (set in
+hairexp/__init__.py before rerun loads) makes it give freed pages back at once, so the encoded chunks'
 pages do not pile up (reports/bench_memory.md).
 ``close(True)`` renames the file to ``recording.rrd`` once it is complete (its footer read back);
 a failed or interrupted run keeps the ``.partial.rrd`` name (a valid recording of the steps done,
@@ -39,11 +39,8 @@ import uuid
 from array import array
 
 import numpy as np
-from hairexp.memory import configure_rerun_allocator
-
-configure_rerun_allocator()   # mimalloc's options, before rerun's library loads (hairexp/memory.py)
-import rerun as rr  # noqa: E402
-import rerun.blueprint as rrb  # noqa: E402
+import rerun as rr
+import rerun.blueprint as rrb
 import torch
 
 from hairexp.guides import spline
