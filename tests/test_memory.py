@@ -111,3 +111,41 @@ def test_the_command_line_runs_its_exit_handlers_before_it_ends(tmp_path):
                           f"hydra.run.dir={tmp_path / 'bad'}"], cwd=REPO, env=env, capture_output=True, text=True,
                          timeout=300)
     assert bad.returncode == 2 and "solver.dt" in bad.stderr
+
+
+def test_metric_columns_read_a_row_group_at_a_time_equal_to_pandas(tmp_path, monkeypatch):
+    """``MetricColumns`` reads one column a row group at a time, single-threaded: every column
+    and ``numeric`` (float64, booleans 0/1, nulls NaN; None for text) equal pandas' reading of
+    the whole file, over parts whose types differ (ints meeting floats, a column missing from a
+    part, a boolean column)."""
+    import numpy as np
+    import pandas as pd
+    import pyarrow.parquet as pq
+
+    from hairexp.outputs import metrics
+    from hairexp.outputs.metrics import MetricsTable
+
+    monkeypatch.setattr(metrics, "ROW_GROUP_ROWS", 10)   # a row group every two parts
+    table = MetricsTable(tmp_path / "parts")
+    rng = np.random.default_rng(3)
+    for part in range(5):
+        for i in range(7 + part):
+            row = {"step": part * 100 + i, "iters": int(rng.integers(0, 9)), "ok": bool(rng.integers(0, 2)),
+                   "status": ["converged", "substep"][int(rng.integers(0, 2))],
+                   "res": float(rng.normal()) if part != 1 else int(rng.integers(0, 4))}
+            if part >= 2:
+                row["late"] = float(rng.normal())
+            table.rows.append(row)
+        table.flush()
+    cols = table.write(tmp_path / "metrics.parquet")
+    assert pq.read_metadata(cols.path).num_row_groups == 3
+    ref = pd.read_parquet(cols.path)
+    assert cols.columns == list(ref.columns) and len(cols) == len(ref) == 45
+    for k in ref.columns:
+        pd.testing.assert_series_equal(cols[k], ref[k], check_names=True)
+        num = cols.numeric(k)
+        if k == "status":
+            assert num is None
+        else:
+            np.testing.assert_array_equal(num, ref[k].astype("float64").to_numpy())
+    assert np.isnan(cols.numeric("late")[:7 + 8]).all() and np.isfinite(cols.numeric("late")[15:]).all()

@@ -239,6 +239,35 @@ def test_comparison_holds_every_variant_side_by_side(experiment):
         rrd, "ContainerBlueprint:display_name")
 
 
+def test_frame_columns_count_each_entitys_own_rows(tmp_path):
+    """An entity is sent when its own pending rows reach ``max_bytes`` or ``max_frames``: a
+    large entity (the hair) filling its bytes does not end a chunk of a small one (the body),
+    so a long run writes fewer chunks (rerun keeps an index row per chunk until the footer);
+    ``send()`` ends a chunk of every entity."""
+    import rerun as rr
+    from rerun.chunk import RrdReader
+
+    from hairexp.outputs.rerun_sink import FrameColumns
+
+    rec = rr.RecordingStream("hairexp-test", recording_id="frame-columns-own")
+    rec.save(str(tmp_path / "f.rrd"))
+    cols = FrameColumns(rec, max_bytes=10 * (100 * 12 + 24), max_frames=25)   # the big one: 10 frames
+    for f in range(60):
+        cols.frame(f, 0.04 * f)
+        cols.add("/big", rr.Points3D, None, positions=np.full((100, 3), f, np.float32))
+        cols.add("/small", rr.Points3D, None, positions=np.full((1, 3), f, np.float32))
+        cols.send_if_due()
+        if f == 29:
+            assert cols.bytes == 5 * (12 + 24)   # /small: 5 rows since frame 25, /big: none (sent at 29)
+    cols.send()
+    rec.flush()
+    rec.disconnect()
+    r = RrdReader(str(tmp_path / "f.rrd"))
+    rows = {p: [c.num_rows for c in r.stream().filter(content=p, is_static=False)] for p in ("/big", "/small")}
+    assert rows["/big"] == [10] * 6
+    assert rows["/small"] == [25, 25, 10]
+
+
 def test_frame_columns_send_every_frame_as_logged_in_a_few_chunks(tmp_path):
     """The frames' columns (``FrameColumns``): rows sent in chunks of at most ``max_frames``
     read back equal to what was logged, strips of varying counts and lengths included, and a

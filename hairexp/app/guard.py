@@ -159,9 +159,15 @@ def check(est: Estimate, keys: str, allow_large: bool, available: float | None, 
                f"{est.settle_steps:.3g} of them settle and guide steps), more than {_duration(MAX_RUN_SECONDS)}; "
                "make it shorter or set guard.allow_large=true to run anyway")
     if est.total_steps > LONG_RUN_STEPS:
-        log.warning("long run: about %.3g steps (%.3g recorded, %.3g settle and guide steps), roughly %s "
-                    "(%s: %s of memory)", est.total_steps, est.steps, est.settle_steps, _duration(est.seconds),
-                    keys, _size(est.memory))
+        msg = (f"long run: about {est.total_steps:.3g} steps ({est.steps:.3g} recorded, {est.settle_steps:.3g} settle "
+               f"and guide steps), roughly {_duration(est.seconds)} ({keys}: {_size(est.memory)} of memory)")
+        if msg not in _ANNOUNCED:   # once per process: an experiment checks each variant before any runs, then runs it
+            _ANNOUNCED.add(msg)
+            log.warning("%s", msg)
+
+
+#: the long-run warnings already logged by this process
+_ANNOUNCED: set[str] = set()
 
 
 def _value(x):

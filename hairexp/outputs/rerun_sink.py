@@ -16,11 +16,13 @@ rerun's file writer keeps one row of its footer's index per chunk until the file
 (about 5 kB each, rerun 0.41; experiments/rrd_index_memory.py), so the sink keeps the number of
 chunks few, whatever the number of frames:
 - the metrics go to the recording when the run ends, read back column by column from the
-  metrics table (``close(metrics=...)``): one chunk per metric, whatever the run's length
-  (before, every send of the step's scalars was one chunk per metric, about 140 chunks);
+  metrics table (``close(metrics=...)``; ``MetricColumns.numeric``, a row group at a time) and
+  written every METRICS_FLUSH_BYTES: one chunk per metric, whatever the run's length (before,
+  every send of the step's scalars was one chunk per metric, about 140 chunks);
 - the per-cluster variance ratios are one entity (a series per cluster), not one per cluster;
 - the frames are sent as columns (``FrameColumns``, held as contiguous arrays, no Python object
-  per frame): one chunk per entity every 1 MiB of frames, 250 frames or ``flush()``, which also
+  per frame): a chunk of an entity every 1 MiB or 250 frames of its own rows, and of every
+  entity at ``flush()``, which also
   waits for the writer (so a write failure such as a full disk raises there instead of passing
   silently) at most every FLUSH_SECONDS.
 rerun's SDK allocates from its own mimalloc heap; ``MIMALLOC_PURGE_DELAY=0`` (set in
@@ -51,6 +53,10 @@ from hairexp.outputs import layout
 FLUSH_SECONDS = 10.0
 #: metric rows per chunk when the metrics are sent at the end (a chunk per metric per this many steps)
 METRICS_CHUNK_ROWS = 1 << 18
+#: ``send_metrics`` waits for the writer after this many bytes of sent columns, so that what rerun
+#: holds until written stays small whatever the run's length (before: every 16 columns, about
+#: 1.5 MB at 3,000 steps)
+METRICS_FLUSH_BYTES = 256 << 10
 
 #: the entities a tracked run draws over the hair: shown in a 3D view of their own ("tracking")
 OVERLAYS = ("/world/clusters", "/world/com", "/world/targets", "/world/target_curves")
@@ -173,11 +179,14 @@ def partial_name(path: str) -> str:
     return f"{root}.partial{ext}"
 
 
-#: the frames are sent as columns, one chunk per entity, once this many bytes or frames are
-#: pending (or at a flush): a long run writes few chunks (rerun's file writer keeps an index row
-#: per chunk until it writes the footer) and holds at most about this much of them; a chunk of
-#: 1,000 frames of 6 x 10 hair (1.3 MB) left a 3,000-frame run's peak 3.4 MB above a 200-frame
-#: run's, of 250 frames 3.0 MB (noise 2.6), 40 x 20 hair (1 MiB: about 100 frames) 1.1-1.4 MB
+#: the frames are sent as columns: an entity's pending rows go as one chunk once they hold this
+#: many bytes or frames (or at a flush).  rerun's file writer keeps an index row of about 5 kB per
+#: chunk until it writes the footer (experiments/rrd_index_memory.py), so the number of chunks is
+#: what grows with the run's length, and the pending rows are what the sink holds (at most about
+#: this much per entity, whatever the length).  Each entity counts its own rows: a small entity
+#: (the body, the roots) is not sent each time the hair fills its chunk.  Larger chunks cost more
+#: than their index saves: at 2 MiB or 1,000 frames the peak of 40 x 20 hair rose 1.7 MB at 200
+#: frames and 2.3 MB at 3,000 (reports/bench_memory.md has the figures of these values)
 FRAME_CHUNK_BYTES = 1 << 20
 FRAME_CHUNK_FRAMES = 250
 
@@ -230,13 +239,10 @@ class FrameColumns:
         self.max_bytes, self.max_frames = max_bytes, max_frames
         self.entities: dict[str, dict] = {}
         self.static: set[str] = set()
-        self.bytes = 0
-        self.frames = 0
         self.current = (0, 0.0)
 
     def frame(self, frame: int, t: float) -> None:
         self.current = (int(frame), float(t))
-        self.frames += 1
 
     def add(self, path: str, archetype, constant: dict | None, **fields) -> None:
         if constant and path not in self.static:
@@ -246,7 +252,7 @@ class FrameColumns:
         if e is None:
             e = self.entities[path] = {"archetype": archetype, "frame": array("q"), "time": array("d"),
                                        "length": array("q"), "strip_length": array("q"),
-                                       "fields": {k: _Rows() for k in fields}}
+                                       "fields": {k: _Rows() for k in fields}, "bytes": 0}
         if set(e["fields"]) != set(fields):
             raise ValueError(f"{path}: fields {sorted(fields)} differ from this entity's {sorted(e['fields'])}")
         n = None
@@ -261,21 +267,30 @@ class FrameColumns:
                 raise ValueError(f"{path}: field {k} has {m} instances, {n} expected")
             n = m
             e["fields"][k].append(v)
-            self.bytes += v.nbytes
+            e["bytes"] += v.nbytes
         e["frame"].append(self.current[0])
         e["time"].append(self.current[1])
         e["length"].append(n)
-        self.bytes += 24
+        e["bytes"] += 24
+
+    @property
+    def bytes(self) -> int:
+        """The bytes pending over all entities."""
+        return sum(e["bytes"] for e in self.entities.values())
 
     def send_if_due(self) -> None:
-        if self.bytes >= self.max_bytes or self.frames >= self.max_frames:
-            self.send()
+        """Send each entity whose pending rows reached ``max_bytes`` or ``max_frames``."""
+        for path, e in self.entities.items():
+            if e["bytes"] >= self.max_bytes or len(e["frame"]) >= self.max_frames:
+                self._send(path, e)
 
     def send(self) -> None:
         """Every entity's pending rows as one chunk each."""
         for path, e in self.entities.items():
-            if not len(e["frame"]):
-                continue
+            self._send(path, e)
+
+    def _send(self, path: str, e: dict) -> None:
+        if len(e["frame"]):
             data = {}
             for k, rows in e["fields"].items():
                 v = rows.take()
@@ -287,8 +302,7 @@ class FrameColumns:
                                   columns=e["archetype"].columns(**data).partition(np.frombuffer(e["length"], np.int64)))
             for k in ("frame", "time", "length", "strip_length"):
                 e[k] = array(e[k].typecode)
-        self.bytes = 0
-        self.frames = 0
+            e["bytes"] = 0
 
 
 #: The SDK's chunk batcher (only the static entities and the layout go through it now) flushes
@@ -436,24 +450,23 @@ class RerunSink:
         """The metrics table's numeric and boolean columns as scalars on the step, frame and
         sim_time timelines, one column at a time (``metrics``: ``columns`` and ``[name]``, a
         ``MetricColumns`` or a pandas DataFrame); each metric's finite range is kept for the layout."""
-        import pandas as pd
-
         if metrics is None or len(metrics) == 0 or not all(c in metrics.columns for c in ("step", "frame", "time")):
             return
         steps = np.asarray(metrics["step"], dtype=np.int64)
         frames = np.asarray(metrics["frame"], dtype=np.int64)
         times = np.asarray(metrics["time"], dtype=np.float64)
         rec = self.rec
-        for n, k in enumerate(metrics.columns):
+        pending = 0
+        for k in metrics.columns:
             if k in ("step", "frame", "time"):
                 continue
-            if n % 16 == 15:   # the columns sent so far written, their freed memory back to the system
+            if pending >= METRICS_FLUSH_BYTES:   # the columns sent so far written, their memory back to the system
                 self.flush(final=True)
                 release()
-            col = metrics[k]
-            if not (pd.api.types.is_bool_dtype(col) or pd.api.types.is_numeric_dtype(col)):
+                pending = 0
+            vals = _numeric(metrics, k)
+            if vals is None:
                 continue   # text (controller, status)
-            vals = np.asarray(col.astype("float64"), dtype=np.float64)
             finite = vals[np.isfinite(vals)]
             if len(finite):
                 self.ranges[k] = (float(finite.min()), float(finite.max()))
@@ -463,6 +476,7 @@ class RerunSink:
                 idx = [rr.TimeColumn("step", sequence=steps[a:b]), rr.TimeColumn("frame", sequence=frames[a:b]),
                        rr.TimeColumn("sim_time", duration=times[a:b])]
                 rec.send_columns(f"/metrics/{k}", indexes=idx, columns=rr.Scalars.columns(scalars=vals[a:b]))
+            pending += 32 * len(vals)   # the value and its three indexes, 8 bytes each
         self.flush(final=True)
         release()
 
@@ -514,6 +528,19 @@ class RerunSink:
             _check_complete(self.partial)
             os.replace(self.partial, self.path)
         return facts
+
+
+def _numeric(metrics, k: str):
+    """Column ``k`` of a metrics table as float64, None if it is not numeric or boolean: read a
+    row group at a time from a ``MetricColumns`` (``numeric``), or converted from a DataFrame."""
+    if hasattr(metrics, "numeric"):
+        return metrics.numeric(k)
+    import pandas as pd
+
+    col = metrics[k]
+    if not (pd.api.types.is_bool_dtype(col) or pd.api.types.is_numeric_dtype(col)):
+        return None
+    return np.asarray(col.astype("float64"), dtype=np.float64)
 
 
 #: how a complete .rrd file ends (rerun 0.41's stream footer: the magic, then a version word)
