@@ -257,6 +257,9 @@ class TrackingConfig:
     atol: float = 1e-10
     ctol_rel: float = 1e-9             # max |C_k| <= ctol_rel * mean hair length
     max_iterations: int = 50
+    # the SQP's l1 merit line search measures sufficient decrease from the largest merit of this
+    # many last iterates (non-monotone, Grippo et al. 1986; hairexp/control/tracking/sqp.py); 1: monotone
+    nonmonotone: int = 5
     # the compressed edges' negative transverse stiffness in the SQP's Hessian once a solve has
     # met its constraints with a full step (hairexp/control/tracking/sqp.py SQPOptions); false
     # (the default, README "Tracking performance"): the PSD stretch Hessian throughout

@@ -121,6 +121,7 @@ def _tracking(t) -> None:
                          "tracking.rtol")
     number(t.ctol_rel, "tracking.ctol_rel", lo=0, lo_open=True)
     integer(t.max_iterations, "tracking.max_iterations", 1)
+    integer(t.nonmonotone, "tracking.nonmonotone", 1)
     number(t.krylov_tol, "tracking.krylov_tol", lo=0, hi=1e-2, lo_open=True)   # relative residual of each KKT solve
     integer(t.krylov_max, "tracking.krylov_max", 1)
     number(t.max_guide_distance, "tracking.max_guide_distance", lo=0)

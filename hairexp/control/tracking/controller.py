@@ -58,6 +58,7 @@ class TrackingController(Controller):
         self.use_variance = self.variance.active          # k_v = 0: no penalty term at all
         self.opts = SQPOptions(rtol=tcfg.rtol, atol=tcfg.atol, ctol=tcfg.ctol_rel * self.hair_length,
                                max_iterations=tcfg.max_iterations, kkt=str(_v(tcfg.kkt)),
+                               nonmonotone=int(getattr(tcfg, "nonmonotone", 5)),
                                exact_compression=bool(getattr(tcfg, "exact_compression", False)))
         # elastic mode (paper 3.4 has none): when a step's SQP fails against an obstacle, the
         # clusters it could not reach are relaxed to penalties rho/2 |C_k|^2 and the step is solved
