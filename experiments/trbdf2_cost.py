@@ -142,10 +142,10 @@ def reused_hessian(run, reuse: str):
             if info.iterations >= (CHORD_MAX if reuse == "all" else opts.max_iterations):
                 return x, info
             p = obj.solve(ev.banded if ev.banded is not None else held["band"], -ev.grad)
-            alpha, _, bt = line_search(obj.value, x, p, obj.value(x), float(ev.grad @ p), opts.max_backtracks,
-                                       obj.value_noise)
+            alpha, _, bt, x_new = line_search(obj.value, x, p, obj.value(x), float(ev.grad @ p), opts.max_backtracks,
+                                              obj.value_noise)
             obj.update_tensions(x, alpha * p)
-            x, info.iterations = x + alpha * p, info.iterations + 1
+            x, info.iterations = x_new, info.iterations + 1
 
     real = ctl_module.newton_solve
     ctl_module.newton_solve = solve
