@@ -58,6 +58,7 @@ def raises_at(cfg, where: str, call=assemble):
     ("tracking.ctol_rel", -1.0), ("tracking.ctol_rel", 0.0), ("tracking.max_iterations", 0),
     ("tracking.rtol", -1.0), ("tracking.max_guide_distance", -0.1),
     ("tracking.krylov_tol", 0.0), ("tracking.krylov_tol", 0.5), ("tracking.krylov_max", 0),
+    ("tracking.nonmonotone", 0), ("tracking.nonmonotone", -3),
 ])
 def test_no_convergence_settings_are_refused(base, key, value):
     err = raises_at(with_(base, **{key.replace(".", "__"): value}), key, validate_config)
