@@ -7,7 +7,10 @@ the tracked controller (``variants=[] controller.name=tracking``):
 * targets: ``tracking.targets=static,sliding`` (paper 3.2);
 * variance: ``tracking.variance.stiffness=0,<on>`` (paper 3.3; on = the scene's value, or 5);
 * hessian: ``solver.stretch_hessian=primal_dual,penalty`` (how the stretch Hessian is made PSD);
-* collisions: ``collision.objects=false,true``.
+* collisions: ``collision.objects=false,true``;
+* contact: ``collision.contact=stage,barrier`` (object contact after the solve with the strain
+  limiter, or inside it as an IPC barrier, hairexp/physics/barrier.py; issue 14);
+* line search: ``tracking.nonmonotone=1,5`` (the SQP's monotone or non-monotone merit search).
 
 The table gives each run's iterations, converged fraction, step time, stretch, residual and
 the scene's measure.  Scenes default to the small ``*_smoke`` ones (a few minutes in all);
@@ -31,6 +34,8 @@ COMPARISONS = {
     "variance": ["tracking.variance.stiffness=0.0,5.0"],
     "hessian": ["solver.stretch_hessian=primal_dual,penalty"],
     "collisions": ["collision.objects=false,true"],
+    "contact": ["collision.contact=stage,barrier"],
+    "line_search": ["tracking.nonmonotone=1,5"],
 }
 SCENES = ["goaling", "splitting", "spreading", "stylization", "celia"]
 

@@ -186,7 +186,7 @@ def partial_name(path: str) -> str:
 #: this much per entity, whatever the length).  Each entity counts its own rows: a small entity
 #: (the body, the roots) is not sent each time the hair fills its chunk.  Larger chunks cost more
 #: than their index saves: at 2 MiB or 1,000 frames the peak of 40 x 20 hair rose 1.7 MB at 200
-#: frames and 2.3 MB at 3,000 (reports/bench_memory.md has the figures of these values)
+#: frames and 2.3 MB at 3,000 (README, "Benchmarks", memory against run length)
 FRAME_CHUNK_BYTES = 1 << 20
 FRAME_CHUNK_FRAMES = 250
 
