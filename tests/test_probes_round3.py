@@ -366,8 +366,12 @@ def test_a_signal_while_starting_is_one_line(sig, code):
     code_lines = ("import sys, time; sys.argv = ['/x/hairexp/__main__.py']\n"
                   "import hairexp.app\n"
                   "print('ready', flush=True); time.sleep(60)\n")
+    def default_dispositions():   # a runner started in the background (sh's `cmd &`) passes SIGINT on
+        signals.signal(signals.SIGINT, signals.SIG_DFL)   # ignored, which the command line rightly keeps
+        signals.signal(signals.SIGTERM, signals.SIG_DFL)
+
     proc = subprocess.Popen([sys.executable, "-c", code_lines], env=dict(os.environ, PYTHONPATH=str(REPO)),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_dispositions)
     assert proc.stdout.readline().strip() == "ready"
     proc.send_signal(getattr(signals, sig))
     out, err = proc.communicate(timeout=60)
