@@ -86,6 +86,35 @@ def contact_for(col, E_count, dhat_scale=0.5):
 
 
 @pytest.mark.parametrize("shape", list(SHAPES))
+def test_near_edges_culled_by_the_bounding_ball_are_the_brute_force_ones(shape):
+    """``ObjectContact._near`` first drops the edges the collider's bounding ball excludes, then
+    bounds the others with the shape's distance: the same edges, in the same order, as that
+    distance at every vertex gives, for margins from 0 (touching) to well beyond d_hat, with
+    vertices inside, on and outside the shape and edges up to 10 cm long."""
+    col = SHAPES[shape]()
+    rng = np.random.default_rng(7)
+    R, T = col.motion.pose(0.0)
+    a = T + rng.normal(size=(3000, 3)) * np.array([0.05, 0.08, 0.05])
+    b = a + rng.normal(size=(3000, 3)) * rng.choice([0.002, 0.01, 0.05], size=(3000, 1))
+    x = np.concatenate([a, b])
+    E = np.stack([np.arange(3000), np.arange(3000, 6000)], 1)
+    c = ObjectContact([col], E, np.full(3000, 0.01), np.zeros(6000, bool), np.arange(6000), np.zeros(6000, int),
+                      2e-4, 0.001, 0.5, 10.0, 1e-3)
+    c.begin(x, 0.0, 0.04, 0.04)
+    gp = c.gaps[0]
+    g = gp.vertex_gaps(x)
+    lb = gp.edge_lower_bound(x[E[:, 0]], x[E[:, 1]], g[E[:, 0]], g[E[:, 1]])
+    counts = []
+    for margin in (0.0, 0.001, 0.01, 0.05, 0.2):
+        brute = np.flatnonzero(lb < margin)
+        np.testing.assert_array_equal(c._near(x, 0, margin), brute)
+        counts.append(brute.size)
+    assert counts[0] > 0 and counts[-2] < 3000      # some inside, some culled
+    if np.isfinite(col.bounding_radius()):           # the ball bound is a lower bound of every vertex gap
+        assert np.all(np.linalg.norm(x - T, axis=1) - col.bounding_radius() - col.thickness <= g + 1e-12)
+
+
+@pytest.mark.parametrize("shape", list(SHAPES))
 def test_segment_closest_point_is_the_minimum(shape):
     col = SHAPES[shape]()
     xs = edges_near(col, 20)

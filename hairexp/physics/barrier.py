@@ -173,6 +173,8 @@ class ObjectContact:
         self.strand_of_vertex = np.asarray(strand_of_vertex)
         self.rho = float(linear_density)
         self.dhat = np.array([dhat_scale * max(c.thickness, hair_thickness) for c in self.colliders])
+        #: per collider, the radius of a ball about its body origin holding its thickness shell (inf: unbounded)
+        self._reach = [float(c.bounding_radius()) + float(c.thickness) for c in self.colliders]
         self.stiffness_scale = float(stiffness_scale)
         self.eps_v = float(friction_eps_v)
         self.use_friction = bool(friction) and any(c.friction > 0 for c in self.colliders)
@@ -217,10 +219,27 @@ class ObjectContact:
         return min(m, MAX_SUB_INTERVALS)
 
     def _near(self, x: np.ndarray, k: int, margin: float) -> np.ndarray:
-        """Edge indices whose gap to collider k can be below margin (cheap vertex bound)."""
-        g = self.gaps[k].vertex_gaps(x)
-        E = self.E
-        lb = self.gaps[k].edge_lower_bound(x[E[:, 0]], x[E[:, 1]], g[E[:, 0]], g[E[:, 1]])
+        """Edge indices whose gap to collider k can be below margin (cheap vertex bound).
+
+        A bounded shape lies in the ball of its ``bounding_radius`` about its body origin, so a
+        point's gap is at least its distance to that ball's centre minus the radius and the
+        thickness (the signed distance is 1-Lipschitz and at least the ball's own): edges that
+        bound excludes are dropped before the shape's distance is evaluated, for the few others
+        only.  The same edges as the shape's distance at every vertex gives (tests/test_barrier.py),
+        at a fraction of the cost: most edges of a groom are far from most colliders, and this runs
+        at every evaluation of the objective (about 300 times a step on celia_smoke)."""
+        gp, E = self.gaps[k], self.E
+        reach = self._reach[k]
+        if np.isfinite(reach):
+            gs = np.linalg.norm(x - gp.T, axis=1) - reach
+            cand = np.flatnonzero(gp.edge_lower_bound(x[E[:, 0]], x[E[:, 1]], gs[E[:, 0]], gs[E[:, 1]]) < margin)
+            if cand.size == 0:
+                return cand
+            Ec = E[cand]
+            xa, xb = x[Ec[:, 0]], x[Ec[:, 1]]
+            return cand[gp.edge_lower_bound(xa, xb, gp.vertex_gaps(xa), gp.vertex_gaps(xb)) < margin]
+        g = gp.vertex_gaps(x)
+        lb = gp.edge_lower_bound(x[E[:, 0]], x[E[:, 1]], g[E[:, 0]], g[E[:, 1]])
         return np.flatnonzero(lb < margin)
 
     def active(self, x: np.ndarray, normals: bool = False):
