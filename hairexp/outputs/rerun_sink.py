@@ -13,7 +13,8 @@ ranges and the key moment (from the measure, passed by the app) known; see
 
 The recording is written while the run goes to ``recording.partial.rrd`` (rerun's file sink).
 rerun's file writer keeps one row of its footer's index per chunk until the file is closed
-(about 5 kB each, rerun 0.41; experiments/rrd_index_memory.py), so the sink keeps the number of
+(about 1.3 kB each while the file is written, 3.2 kB at the close's peak, when the footer is
+built; rerun 0.41, experiments/rrd_index_memory.py), so the sink keeps the number of
 chunks few, whatever the number of frames:
 - the metrics go to the recording when the run ends, read back column by column from the
   metrics table (``close(metrics=...)``; ``MetricColumns.numeric``, a row group at a time) and
@@ -180,10 +181,10 @@ def partial_name(path: str) -> str:
 
 
 #: the frames are sent as columns: an entity's pending rows go as one chunk once they hold this
-#: many bytes or frames (or at a flush).  rerun's file writer keeps an index row of about 5 kB per
-#: chunk until it writes the footer (experiments/rrd_index_memory.py), so the number of chunks is
-#: what grows with the run's length, and the pending rows are what the sink holds (at most about
-#: this much per entity, whatever the length).  Each entity counts its own rows: a small entity
+#: many bytes or frames (or at a flush).  rerun's file writer keeps an index row of about 1.3 kB per
+#: chunk until it writes the footer (3.2 kB at that peak; experiments/rrd_index_memory.py), so the
+#: number of chunks is what grows with the run's length, and the pending rows are what the sink
+#: holds (at most about this much per entity, whatever the length).  Each entity counts its own rows: a small entity
 #: (the body, the roots) is not sent each time the hair fills its chunk.  Larger chunks cost more
 #: than their index saves: at 2 MiB or 1,000 frames the peak of 40 x 20 hair rose 1.7 MB at 200
 #: frames and 2.3 MB at 3,000 (README, "Benchmarks", memory against run length)
