@@ -58,28 +58,13 @@ def _evaluate(obj, x: np.ndarray, want_step: bool = True):
     (the step solved after, if needed).  Where the step is likely not needed (the iterate is
     predicted to converge) and the objective has the fused pass (``fuses``), the gradient alone
     (``banded`` None, the cheaper half of the pass: no band to zero, fill and factor); the caller
-    takes the fused pass after it if the iterate did not converge (``_step_after``)."""
+    takes the fused pass after it if the iterate did not converge (``newton_solve``)."""
     step = getattr(obj, "evaluate_step", None)
     if step is None:
         return obj.evaluate(x, need_hessian=True), None
     if not want_step:
         return obj.evaluate(x, need_hessian=not getattr(obj, "fuses", False)), None
     return step(x)
-
-
-def _step_after(obj, x: np.ndarray, sec: dict) -> np.ndarray | None:
-    """The Newton step at x after a gradient-only evaluation there (``_evaluate``): the fused
-    pass's (its gradient is that evaluation's bit for bit, and so is the step evaluate + solve
-    would give), its time added to ``sec``; None if it fell back to ``evaluate`` (then the step
-    is solved from that band, as without the fused pass)."""
-    ev, p = obj.evaluate_step(x)
-    for k in ("derivatives", "assembly"):
-        sec[k] += ev.seconds[k]
-    if p is None:
-        t0 = time.perf_counter()
-        p = obj.solve(ev.banded, -ev.grad)
-        sec["solve"] += time.perf_counter() - t0
-    return p
 
 
 def _likely_converged(norms: list, alpha: float, tol: float) -> bool:
@@ -116,11 +101,17 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         if info.iterations >= opts.max_iterations:
             info.status = MAX_ITERATIONS
             return x, info
-        if p is None and ev.banded is None:   # a gradient-only evaluation, and not converged
-            p = _step_after(obj, x, sec)
+        step_ev = ev   # the evaluation the step is solved from
+        if p is None and ev.banded is None:
+            # a gradient-only evaluation, and not converged: the fused pass at x (its gradient is
+            # ev's bit for bit, and so is the step evaluate + solve would give), or, where it falls
+            # back to ``evaluate`` (no step), the step solved from that evaluation's band below
+            step_ev, p = obj.evaluate_step(x)
+            for k in ("derivatives", "assembly"):
+                sec[k] += step_ev.seconds[k]
         if p is None:
             t0 = time.perf_counter()
-            p = obj.solve(ev.banded, -ev.grad)
+            p = obj.solve(step_ev.banded, -step_ev.grad)
             sec["solve"] += time.perf_counter() - t0
         slope = float(np.dot(ev.grad, p))
         if not np.isfinite(slope):
