@@ -598,24 +598,6 @@ GROUP = 4
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _eliminate_in(L, k, j, m):
-    """``_eliminate`` on block k of the stacked bands L (GROUP, n, BW + 1)."""
-    piv = L[k, j, 0]
-    if not piv > 0.0:
-        return False
-    r = math.sqrt(piv)
-    L[k, j, 0] = r
-    inv = 1.0 / r
-    for a in range(1, m + 1):
-        L[k, j, a] *= inv
-    for a in range(1, m + 1):
-        la = L[k, j, a]
-        for b in range(a, m + 1):
-            L[k, j + a, b - a] -= L[k, j, b] * la
-    return True
-
-
-@njit(cache=True, error_model="numpy", inline="always")
 def factor_group(L, g, n):
     """``factor_rows`` of the first g blocks of L (GROUP, >= n, BW + 1), all of n rows, column by
     column across the blocks (each block's operations are those of ``factor_rows``; the columns
@@ -624,13 +606,13 @@ def factor_group(L, g, n):
     for j in range(max(0, n - BW)):
         good = True
         for k in range(g):
-            good &= _eliminate_in(L, k, j, BW)
+            good &= _eliminate(L[k], j, BW)
         if not good:
             return False
     for j in range(max(0, n - BW), n):
         good = True
         for k in range(g):
-            good &= _eliminate_in(L, k, j, n - 1 - j)
+            good &= _eliminate(L[k], j, n - 1 - j)
         if not good:
             return False
     return True
