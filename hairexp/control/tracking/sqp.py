@@ -212,7 +212,7 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
         phi0 = merit(f, C)
         recent.append((f, C))
         del recent[:-max(1, opts.nonmonotone)]
-        phi_ref = max(phi0, max(merit(fi, Ci) for fi, Ci in recent))   # the current mu for every iterate
+        phi_ref = max(merit(fi, Ci) for fi, Ci in recent)   # phi0 among them; the current mu for every iterate
         if relaxed is None:
             dphi = float(np.dot(g, dx)) - mu * float(np.abs(C).sum())
         else:   # hard rows: -mu |C|_1 (the step satisfies their linearisation); relaxed: rho C . dC
