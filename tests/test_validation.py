@@ -434,3 +434,10 @@ def test_a_step_longer_than_a_frame_is_said(caplog):
     with caplog.at_level(logging.WARNING, logger="hairexp.app.assemble"):
         assemble_scene(compose_config(["experiment=goaling_smoke", "variants=[]", "frames=2", "solver.dt=0.04"]))
     assert not any("longer than a frame" in r.getMessage() for r in caplog.records)
+    # a frame that is not a whole number of steps (24 fps, dt 0.04: 2 steps of 1/48 s) is not a
+    # step longer than a frame (it used to be said, comparing dt with the step, probe of issue 12)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hairexp.app.assemble"):
+        assemble_scene(compose_config(["experiment=goaling_smoke", "variants=[]", "frames=2", "fps=24",
+                                       "solver.dt=0.04"]))
+    assert not any("longer than a frame" in r.getMessage() for r in caplog.records)

@@ -116,9 +116,10 @@ def _assemble_scene(cfg, settle: bool):
     validate_config(cfg)                                # the config's ranges (hairexp/app/validate.py)
     cfg = timed_config(cfg)
     n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)   # validated before anything is built
-    if float(cfg.solver.dt) > dt * (1 + 1e-9):
+    frame = 1.0 / float(cfg.fps)
+    if float(cfg.solver.dt) > frame * (1 + 1e-9):   # not the step: dt 0.04 at 24 fps is 2 steps of 1/48 s
         log.warning("solver.dt=%g s is longer than a frame (1/fps = %.4g s): each step is one frame, %.4g s",
-                    float(cfg.solver.dt), dt, dt)
+                    float(cfg.solver.dt), frame, dt)
     usd = str(_value(cfg.scene.builder)) == "usd"
     if not usd:   # the resource guard (hairexp/app/guard.py) before the hair is built
         check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices))
