@@ -98,6 +98,13 @@ def capsule_along_z(stage):
     UsdGeom.Capsule.Define(stage, "/Root/Colliders/pole").CreateAxisAttr("Z")
 
 
+def animate_hair_transform(stage):
+    """The hair prim's own transform moves 2 cm up over frames 0..4 (the body's does not carry it)."""
+    op = UsdGeom.Xformable(stage.GetPrimAtPath(HAIR)).AddTranslateOp()
+    op.Set((0.0, 0.0, 0.0), 0)
+    op.Set((0.0, 0.02, 0.0), 4)
+
+
 SHEAR = [[1.0, 0.1, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
 H1 = N_VERTICES           # first vertex of hair curve 1
 G1 = GUIDE_VERTICES       # first vertex of guide curve 1
@@ -133,6 +140,8 @@ CASES = {  # name: (edit, prim, message regex)
                        r"no prim at /Root/Guides \(the guides; scene.usd_guides names its path\)"),
     "missing_body": (lambda s: s.RemovePrim(BODY), None,
                      r"no prim at /Root/Body \(the rigid body; scene.usd_body names its path\)"),
+    "hair_animated_transform": (animate_hair_transform, HAIR,
+                                r"the transform of /Root/Body/Hair is animated: the hair is read at rest"),
     "body_scaled": (body_matrix_at(2, 1.5 * np.eye(3)), BODY, r"transform at time code 2 is not rigid: it scales"),
     "body_sheared": (body_matrix_at(5, SHEAR), BODY, r"transform at time code 5 is not rigid: it shears"),
     "centimetres": (lambda s: UsdGeom.SetStageMetersPerUnit(s, 0.01), None, r"metersPerUnit is 0.01"),

@@ -120,6 +120,26 @@ def apply(points: np.ndarray, M) -> np.ndarray:
     return points @ m[:3, :3] + m[3, :3]
 
 
+def check_hair_rides_body(hair, body, where: str, body_path: str) -> None:
+    """InputError if a transform between the hair and the stage root that the body does not
+    share is animated (the hair's own or a parent's that is not the body or above it): the hair
+    is read at rest and carried by the body's motion alone, so such an animation would be
+    dropped without a word (probe of issue 12)."""
+    shared = set()
+    p = body
+    while p and p.IsValid():
+        shared.add(p.GetPath())
+        p = p.GetParent()
+    p = hair
+    while p and p.IsValid() and p.GetPath() not in shared:
+        xf = UsdGeom.Xformable(p)
+        if xf and xf.TransformMightBeTimeVarying():
+            raise InputError(f"the transform of {p.GetPath()} is animated: the hair is read at rest and moves with "
+                             f"the body ({body_path}) only; animate the body's transform instead, or remove the "
+                             "animation", where)
+        p = p.GetParent()
+
+
 def build_usd_scene(cfg):
     """The Scene of ``scene.usd`` (builder ``usd``); see the module doc."""
     stage, file = open_stage(cfg.usd)
@@ -132,6 +152,7 @@ def build_usd_scene(cfg):
     pts, counts = read_curves(hair, tc, where)
     validate_polylines(pts, counts, where, min_vertices=N_ROOT_VERTICES + 1)  # before any transform
     check_extent(pts, where, counts)
+    check_hair_rides_body(hair, body, where, cfg.usd_body)
     # hair space -> body space at the rest time (identity for hair authored under the body)
     t0 = Usd.TimeCode(0) if tc.IsDefault() else tc
     rel = (UsdGeom.Xformable(hair).ComputeLocalToWorldTransform(t0)
