@@ -30,7 +30,7 @@ from hairexp.guides.animation import GuideAnimation
 from hairexp.guides.store import FrameStore
 from hairexp.model.builders import build_collider, build_material, vec3
 from hairexp.model.scene import Scene
-from hairexp.model.strands import N_ROOT_VERTICES, Strands, validate_polylines
+from hairexp.model.strands import N_ROOT_VERTICES, Strands, check_folds, validate_polylines
 
 _open: dict = {}   # path -> stage of the last read (reloaded when the file changes)
 _warned: set = set()   # the prims whose cubic type was warned about
@@ -150,8 +150,9 @@ def build_usd_scene(cfg):
     where = f"{file}:{cfg.usd_hair}"
     tc = rest_time(UsdGeom.BasisCurves(hair).GetPointsAttr())
     pts, counts = read_curves(hair, tc, where)
-    validate_polylines(pts, counts, where, min_vertices=N_ROOT_VERTICES + 1)  # before any transform
+    validate_polylines(pts, counts, where, min_vertices=N_ROOT_VERTICES + 1, folds=False)  # before any transform
     check_extent(pts, where, counts)
+    check_folds(pts, counts, where)   # after the extent: a point 1e30 away is a unit error, not a fold
     check_hair_rides_body(hair, body, where, cfg.usd_body)
     # hair space -> body space at the rest time (identity for hair authored under the body)
     t0 = Usd.TimeCode(0) if tc.IsDefault() else tc
@@ -205,8 +206,9 @@ def read_guides(cfg, scene, frames: int, fps: float):
         elif len(pts) != n0:
             raise InputError(f"time code {f} has {len(pts)} points, time code 0 has {n0}: the guide topology "
                              "must stay the same in every frame", where)
-        validate_polylines(pts, counts, f"{where} frame {f}", min_vertices=2)
+        validate_polylines(pts, counts, f"{where} frame {f}", min_vertices=2, folds=False)
         check_extent(pts, where, counts, frame=f)
+        check_folds(pts, counts, f"{where} frame {f}")
         X = apply(pts, xf.ComputeLocalToWorldTransform(Usd.TimeCode(f)))
         if frames_pos is None:
             frames_pos = FrameStore(X.shape)

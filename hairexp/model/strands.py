@@ -20,11 +20,17 @@ N_ROOT_VERTICES = 2
 MIN_EDGE_LENGTH = 1e-9
 
 
-def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_vertices: int = 2) -> tuple[np.ndarray, np.ndarray]:
+#: the largest turn between two consecutive edges of a curve that ``validate_polylines`` accepts (degrees)
+MAX_TURN_DEG = 175.0
+
+
+def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_vertices: int = 2,
+                       folds: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Check packed polylines and return them as float64 ``(V,3)`` and int64 counts.
 
     Raises InputError naming ``where`` and the offending curve index for NaN/inf,
-    wrong shapes, counts that do not add up, too few vertices, or zero-length edges.
+    wrong shapes, counts that do not add up, too few vertices, or zero-length edges, and (with
+    ``folds``) for folds (``check_folds``).
     """
     points = np.asarray(points, dtype=np.float64)
     counts = np.asarray(counts, dtype=np.int64).reshape(-1)
@@ -50,7 +56,29 @@ def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_v
         e = int(np.flatnonzero(short)[0])
         s = int(np.searchsorted(offsets, e, side="right") - 1)
         raise InputError(f"curve {s} has a zero-length edge between vertices {e - offsets[s]} and {e - offsets[s] + 1}", where)
+    if folds:
+        check_folds(points, counts, where)
     return points, counts
+
+
+def check_folds(points: np.ndarray, counts: np.ndarray, where: str) -> None:
+    """InputError naming the curve and vertex where two consecutive edges of a curve turn by more
+    than MAX_TURN_DEG: the bending energy's curvature 2 tan(turn / 2) and the guides' parallel
+    transport are singular at 180 degrees (a curve folded back on itself diverged the first step,
+    told as "try a smaller solver.dt"; probe of issue 12).  ``points`` finite, no zero-length edge."""
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    within = np.ones(len(seg), dtype=bool)
+    within[offsets[1:-1] - 1] = False
+    d = np.diff(points, axis=0) / np.maximum(seg, 1e-300)[:, None]
+    cos = (d[:-1] * d[1:]).sum(1)
+    fold = within[:-1] & within[1:] & (cos < np.cos(np.radians(MAX_TURN_DEG)))
+    if fold.any():
+        e = int(np.flatnonzero(fold)[0])
+        s = int(np.searchsorted(offsets, e, side="right") - 1)
+        turn = float(np.degrees(np.arccos(np.clip(cos[e], -1.0, 1.0))))
+        raise InputError(f"curve {s} folds back on itself at vertex {e - offsets[s] + 1} (its edges turn by {turn:.1f} "
+                         f"degrees there, more than {MAX_TURN_DEG:g})", where)
 
 
 @dataclass(frozen=True)
