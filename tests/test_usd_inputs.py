@@ -228,3 +228,31 @@ def test_cli_bad_stage_exits_2_with_one_line(stage, tmp_path, case):
     assert "Traceback" not in proc.stderr + proc.stdout
     assert not [p.name for p in out.glob("result.*")]
     assert json.loads((out / "summary.json").read_text())["status"] == "failed"
+
+
+def test_guides_that_leave_the_body_are_said_and_the_stretch_too(stage, tmp_path, caplog):
+    """Guides made with another motion of the body (its transform moved 5 cm at frames 3..5, the
+    guides left as they were) pull the hair after them: the run warns that a guide's root leaves
+    the body, naming the first such frame, and that the hair stretched beyond 20 % (both used to
+    pass in silence, exit 0; probe of issue 12)."""
+    import logging
+
+    def shift(st):
+        op = UsdGeom.Xformable(st.GetPrimAtPath(BODY)).GetOrderedXformOps()[0]
+        for tc in op.GetTimeSamples():
+            if tc >= 3:
+                m = np.array(op.Get(tc))
+                m[3, :3] += [0.0, 0.05, 0.0]
+                op.Set(Gf.Matrix4d(m.tolist()), tc)
+
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        run(usd_cfg(stage), tmp_path / "before")
+    assert not any("do not ride the body" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    edit_stage(stage, shift)
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        summary = run(usd_cfg(stage), tmp_path / "run")
+    said = [r.getMessage() for r in caplog.records]
+    assert any("from where the body carries it at frame 3" in m and "do not ride the body" in m for m in said), said
+    assert summary["stretch_max"] > 0.2   # the guides' roots 5 cm off the hair's: 206 % when written
+    assert any("the hair stretched by" in m for m in said), said

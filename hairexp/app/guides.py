@@ -138,10 +138,16 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     return anim
 
 
+#: a guide root farther than this fraction of the hair's length from where the body carries it is said
+ROOT_DRIFT = 0.01
+
+
 def warn_far_guides(scene, anim) -> None:
     """A warning when a guide's root at frame 0 is farther from every hair root than the hair is
     long: the guides are likely in another space or unit than the hair (a guide file or stage made
-    for another scene).  The run goes on (tracking.max_guide_distance > 0 makes it an error)."""
+    for another scene).  Else, with a keyframed body, a warning when a guide's root leaves the body
+    (farther than ROOT_DRIFT x the hair's length from where the body carries its frame-0 root, at
+    any frame).  The run goes on (tracking.max_guide_distance > 0 makes the first an error)."""
     import logging
 
     s = scene.strands
@@ -156,3 +162,23 @@ def warn_far_guides(scene, anim) -> None:
             "guides: guide %d's root is %.3g m from the nearest hair root at frame 0, farther than the hair is long "
             "(%.3g m; %d of %d guides): check that the guides are in the hair's space and units", g, d[g], length,
             far.size, len(d))
+        return
+    if scene.body is not None:   # a dynamic body's poses are known only as the run goes
+        return
+    # the guides' roots ride the body: where the body carries their frame-0 roots, at every frame
+    # (guides left from another animation of the body pull the hair off its roots; probe of issue 12)
+    motion, fps = scene.motion, float(anim.fps)
+    R0, T0 = motion.pose(0.0)
+    local = (guide_roots - T0) @ R0
+    tol = ROOT_DRIFT * length
+    for f in range(1, len(anim.frames)):
+        R, T = motion.pose(f / fps)
+        drift = np.linalg.norm(np.asarray(anim.frames[f])[np.asarray(anim.offsets[:-1])] - (local @ R.T + T), axis=1)
+        if drift.max() > tol:
+            g = int(np.argmax(drift))
+            logging.getLogger("hairexp").warning(
+                "guides: guide %d's root is %.3g m from where the body carries it at frame %d (t = %.4g s; more than "
+                "%g of the hair's length): the guides do not ride the body, and the tracking will pull the hair near "
+                "its roots after them; check that the guides were made with this body motion", g, drift[g], f, f / fps,
+                ROOT_DRIFT)
+            return

@@ -118,6 +118,10 @@ def metrics_summary(df) -> dict:
     return agg
 
 
+#: a run whose largest edge strain exceeds this is told so at its end (the post-solve stage's strain
+#: limiter clamps at 0.1 in the paper scenes)
+STRETCH_WARN = 0.2
+
 #: s, a step shorter than this that never converges is told so (see ``convergence_error``)
 TINY_STEP = 1e-6
 
@@ -305,6 +309,10 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
         shutil.rmtree(out / STREAM)
     except OSError as exc:
         log.warning("%s: could not remove %s: %s", out, STREAM, exc)
+    if summary.get("stretch_max", 0.0) > STRETCH_WARN:
+        log.warning("%s: the hair stretched by %.1f %% (stretch_max in summary.json; more than %g %%): forces far "
+                    "beyond the hair's (guides that leave the hair's roots, a collider dragging it, extreme gravity or "
+                    "stiffness); look at the run before using it", out, 100 * summary["stretch_max"], 100 * STRETCH_WARN)
     if not summary["converged"]:
         log.warning("%s: %d of %d steps did not converge; the results are kept and summary.json says converged: "
                     "false (on_unconverged=fail makes this an error)", out, summary["unconverged_steps"],
