@@ -476,3 +476,17 @@ def test_no_step_converged_names_a_tiny_step_length():
     assert why.startswith("no step converged") and "1e-09 s" in why and "fps" in why and "solver.dt" in why
     df["dt"] = 0.04   # an ordinary step: no word about its length
     assert "s long" not in convergence_error(df, "warn")
+
+
+def test_clusters_of_the_same_hair_are_refused_before_the_first_step(base):
+    """One strand under goaling's three guides (soft assignment): each tracking point's three
+    clusters are the same vertices, the KKT matrix singular, and every step failed as "singular"
+    (exit 3, no reason given; probe of the fourth round).  Refused when the controller is built,
+    naming two coinciding clusters and what to change."""
+    from hairexp.app.assemble import assemble
+
+    with pytest.raises(InputError, match=r"not independent \(clusters guide \d point \d and guide \d point \d are made "
+                                         r"of the same hair, cosine 1\.0+\).*scene\.n_strands") as err:
+        assemble(updated(base, controller__name="tracking", scene__n_strands=1))
+    assert err.value.where == "tracking"
+    assemble(updated(base, controller__name="tracking"))    # 6 strands: independent

@@ -33,6 +33,34 @@ class TrackingIterates:
     relaxed: np.ndarray | None = None   # (K,) bool: clusters the elastic mode relaxed in this step
 
 
+def check_independent(cons, corr) -> None:
+    """InputError unless the clusters' centre-of-mass constraints are linearly independent: with
+    fewer hairs than clusters need (one strand under three guides' clusters, say) two clusters'
+    centres are the same combination of the same vertices, the KKT matrix is singular and no step
+    can converge (it failed every step as "singular"; probe of issue 12).  A = W (x) I3, so W W^T
+    (K x K) is tested."""
+    K = cons.K
+    if K < 2:
+        return
+    W = cons.A[0::3]                                   # (K, N) rows of the x coordinate: W with every 3rd column
+    G = (W @ W.T).toarray()
+    d = np.sqrt(np.maximum(np.diag(G), 1e-300))
+    C = G / d[:, None] / d[None, :]                    # cosines between the clusters' weight vectors
+    ev = np.linalg.eigvalsh(C)
+    if ev[0] > 1e-9 * ev[-1]:
+        return
+    iu = np.triu_indices(K, 1)
+    j = int(np.argmax(C[iu]))
+    a, b = int(iu[0][j]), int(iu[1][j])
+    P = int(corr.cluster_point.max()) + 1
+    name = lambda k: f"guide {int(corr.cluster_guide[k])} point {int(corr.cluster_point[k])}"   # noqa: E731
+    raise InputError(f"the clusters' centres of mass are not independent (clusters {name(a)} and {name(b)} are made "
+                     f"of the same hair, cosine {C[a, b]:.6f}): with {int(np.unique(cons.scene.strands.strand_of_vertex).size)} "
+                     f"strand(s) for {K} clusters ({P} points per guide) no step can meet them all; use more strands "
+                     "(scene.n_strands), fewer guides or tracking points (tracking.points_per_guide), or "
+                     "tracking.assignment=hard", "tracking")
+
+
 class TrackingController(Controller):
     name = "tracking"
 
@@ -48,6 +76,7 @@ class TrackingController(Controller):
         if targets not in ("static", "sliding"):
             raise InputError(f"unknown targets {targets!r} (static|sliding)", "tracking.targets")
         self.cons = TrackingConstraints(scene, self.corr, guides, sliding=targets == "sliding")
+        check_independent(self.cons, self.corr)
         schur = str(_v(getattr(tcfg, "schur", "krylov")))
         if schur not in SCHUR_MODES:
             raise InputError(f"unknown schur {schur!r} ({'|'.join(SCHUR_MODES)})", "tracking.schur")
