@@ -375,6 +375,26 @@ def test_unconverged_steps_fail(hydra_conf, tmp_path, monkeypatch):
     assert s["status"] == "failed" and s["converged"] is False and not (tmp_path / "result.npz").exists()
 
 
+def test_a_step_that_cannot_be_solved_leaves_converged_false(hydra_conf, tmp_path, monkeypatch):
+    """A run stopped by a step that could not be solved (SimulationError from the step) is
+    ``failed`` with ``converged: false``: the failed step is not in the metrics, whose steps all
+    converged (it said ``converged: true``; probe of issue 12)."""
+    step = Simulator.step
+    count = {"n": 0}
+
+    def failing(self, state, dt):
+        count["n"] += 1
+        if count["n"] == 3:
+            raise SimulationError("step from t=0.08 s with dt=0.04 s diverged")
+        return step(self, state, dt)
+
+    monkeypatch.setattr(Simulator, "step", failing)
+    with pytest.raises(SimulationError, match="diverged"):
+        run(hydra_conf([*TINY, "frames=4"]), tmp_path)
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["status"] == "failed" and s["converged"] is False and s["steps"] == 2 and "diverged" in s["error"]
+
+
 def test_no_step_converged_fails(hydra_conf, tmp_path, monkeypatch):
     unconverged_steps(monkeypatch, lambda n: True)
     with pytest.raises(SimulationError, match="no step converged"):

@@ -355,6 +355,8 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
     for p in sinks.written:   # files, and result.clips/ (a folder)
         attempt(p.name, lambda p=p: shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True))
     summary = summarize(df, sinks.plain, scene_name, controller, time.perf_counter() - t_start, status, error)
+    if isinstance(exc, SimulationError) and "converged" in summary:
+        summary["converged"] = False   # the step that failed is not in the metrics (its steps' were)
     attempt("summary.json", lambda: write_json(out / SUMMARY, summary))
     stream = out / STREAM
     if stream.is_dir() and not any(p.is_file() for p in stream.rglob("*")):
