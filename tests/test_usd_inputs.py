@@ -256,3 +256,30 @@ def test_guides_that_leave_the_body_are_said_and_the_stretch_too(stage, tmp_path
     assert any("from where the body carries it at frame 3" in m and "do not ride the body" in m for m in said), said
     assert summary["stretch_max"] > 0.2   # the guides' roots 5 cm off the hair's: 206 % when written
     assert any("the hair stretched by" in m for m in said), said
+
+
+def test_samples_rescaled_from_a_sublayer_are_explained(stage, tmp_path):
+    """A root layer that only sublayers the scene and sets no timeCodesPerSecond: USD rescales the
+    sublayer's 25 codes a second to 24, and its whole-frame samples land between frames.  The
+    error names the sublayer, its rate and the fix (it said only "time code 0.96 is not a frame",
+    of a file with integer samples; probe of issue 12)."""
+    from pxr import Sdf
+
+    root = tmp_path / "root.usda"
+    layer = Sdf.Layer.CreateNew(str(root))
+    layer.subLayerPaths.append(str(stage))
+    layer.Save()
+    with pytest.raises(InputError, match=r"is not a frame .*the samples come from .* at 25 time codes per second, "
+                                         r"which USD rescales .*set timeCodesPerSecond = 25 on the root layer"):
+        run(usd_cfg(root, frames=3), tmp_path / "run")
+
+
+def test_a_start_time_code_that_is_not_used_is_said(stage, tmp_path, caplog):
+    """startTimeCode 2: the run starts at time code 0 all the same, and says so (it was ignored
+    without a word; probe of issue 12)."""
+    import logging
+
+    edit_stage(stage, lambda st: st.SetStartTimeCode(2))
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        run(usd_cfg(stage), tmp_path / "run")
+    assert any("startTimeCode is 2, but a run starts at time code 0" in r.getMessage() for r in caplog.records)

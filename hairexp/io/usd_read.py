@@ -166,6 +166,27 @@ def build_usd_scene(cfg):
     return Scene(cfg.name, strands, material, motion, vec3(cfg.gravity, "scene.gravity"), body_pts, colliders)
 
 
+def _rescaled_hint(attr) -> str:
+    """Why an attribute authored on whole frames can have fractional time samples: it comes from
+    a sublayer or reference whose timeCodesPerSecond differs from the root layer's (USD rescales
+    its samples; a root layer that sets none has USD's default 24)."""
+    stage = attr.GetPrim().GetStage()
+    root = stage.GetRootLayer()
+    rates = {}
+    for spec in attr.GetPropertyStack(Usd.TimeCode.Default()):
+        layer = spec.layer
+        if layer != root and layer.HasTimeCodesPerSecond():
+            rates[layer.identifier] = layer.timeCodesPerSecond
+    mine = root.timeCodesPerSecond if root.HasTimeCodesPerSecond() else None
+    other = {k: v for k, v in rates.items() if v != (mine if mine is not None else 24.0)}
+    if not other:
+        return ""
+    name, rate = next(iter(other.items()))
+    said = f"{mine:g}" if mine is not None else "none set (USD's default 24)"
+    return (f"; the samples come from {name} at {rate:g} time codes per second, which USD rescales to the root "
+            f"layer's rate ({said}): set timeCodesPerSecond = {rate:g} on the root layer")
+
+
 def guide_frames(attr, where: str) -> int:
     """Number of frames N of a guide attribute sampled at time codes 0, 1, ..., N-1."""
     samples = attr.GetTimeSamples()
@@ -173,8 +194,8 @@ def guide_frames(attr, where: str) -> int:
         raise InputError("points have no time samples: guides need one per frame at time codes 0, 1, 2, ...", where)
     for s in samples:
         if s != round(s) or s < 0:
-            raise InputError(f"time sample at time code {s:g} is not a frame (frames are time codes 0, 1, 2, ...)",
-                             where)
+            raise InputError(f"time sample at time code {s:g} is not a frame (frames are time codes 0, 1, 2, ...)"
+                             + _rescaled_hint(attr), where)
     have = {int(s) for s in samples}
     missing = next((f for f in range(max(have) + 1) if f not in have), None)
     if missing is not None:
@@ -233,6 +254,11 @@ def stage_timing(cfg):
         frames = int(math.floor(stage.GetEndTimeCode() * fps / tcps + 1e-9))
         if frames < 1:
             raise InputError(f"endTimeCode {stage.GetEndTimeCode():g} gives no frame after frame 0", file)
+    if stage.HasAuthoredTimeCodeRange() and stage.GetStartTimeCode() != 0:   # said, not silently dropped (probe of issue 12)
+        logging.getLogger("hairexp").warning(
+            "%s: startTimeCode is %g, but a run starts at time code 0 (t = 0 s: the body, colliders and guides are read "
+            "from time code 0) and runs to frame %d; shift the stage's animation to start at 0 to simulate from %g",
+            file, stage.GetStartTimeCode(), frames, stage.GetStartTimeCode())
     out = copy.deepcopy(cfg)
     OmegaConf.set_readonly(out, False)
     out.frames, out.fps = frames, fps
