@@ -283,3 +283,22 @@ def test_a_start_time_code_that_is_not_used_is_said(stage, tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="hairexp"):
         run(usd_cfg(stage), tmp_path / "run")
     assert any("startTimeCode is 2, but a run starts at time code 0" in r.getMessage() for r in caplog.records)
+
+
+def test_hair_authored_tip_to_root_is_said(stage, tmp_path, caplog):
+    """Every hair curve reversed (tip first): the guides' roots are then at the hair's tips, and the
+    warning says the curves look authored tip to root (it blamed the guides' space and units;
+    probe of issue 12)."""
+    import logging
+
+    def reverse(st):
+        curves = UsdGeom.BasisCurves.Get(st, HAIR)
+        P = np.asarray(curves.GetPointsAttr().Get(), dtype=np.float64)
+        counts = np.asarray(curves.GetCurveVertexCountsAttr().Get())
+        off = np.concatenate([[0], np.cumsum(counts)])
+        curves.GetPointsAttr().Set(vec3f(np.concatenate([P[a:b][::-1] for a, b in zip(off[:-1], off[1:])])))
+
+    edit_stage(stage, reverse)
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        run(usd_cfg(stage), tmp_path / "run")
+    assert any("the hair curves look authored tip to root" in r.getMessage() for r in caplog.records)

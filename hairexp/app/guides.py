@@ -156,6 +156,15 @@ def warn_far_guides(scene, anim) -> None:
     guide_roots = np.asarray(anim.frames[0])[np.asarray(anim.offsets[:-1])]
     d = np.linalg.norm(guide_roots[:, None, :] - hair_roots[None, :, :], axis=-1).min(axis=1)
     far = np.flatnonzero(d > length)
+    tips = scene.initial_positions()[np.asarray(s.offsets[1:]) - 1]
+    d_tip = np.linalg.norm(guide_roots[:, None, :] - tips[None, :, :], axis=-1).min(axis=1)
+    if far.size and np.all(d_tip[far] < 0.5 * d[far]):   # the guides' roots at the hair's tips: reversed curves
+        g = int(far[0])
+        logging.getLogger("hairexp").warning(
+            "guides: guide %d's root is %.3g m from the nearest hair root but %.3g m from a hair tip at frame 0 (%d of "
+            "%d guides): the hair curves look authored tip to root; a curve's first vertex is its root (on the body)",
+            g, d[g], d_tip[g], far.size, len(d))
+        return
     if far.size:
         g = int(far[0])
         logging.getLogger("hairexp").warning(
