@@ -110,7 +110,7 @@ def test_hanging_strand_edge_strains(n):
 # --------------------------------------------------------------------------------------------
 
 def _usd_strands(tmp_path):
-    from usd_helpers import N_STRANDS, N_VERTICES, edit_stage, source_cfg, usd_cfg, write_stage
+    from usd_helpers import N_STRANDS, N_VERTICES, edit_stage, source_cfg, usd_cfg, vec3f, write_stage
     from pxr import UsdGeom
 
     path = tmp_path / "scene.usda"
@@ -118,8 +118,14 @@ def _usd_strands(tmp_path):
     counts = [N_VERTICES - 5, N_VERTICES + 3, N_VERTICES, N_VERTICES - 2, N_VERTICES + 4, N_VERTICES]
     assert sum(counts) == N_STRANDS * N_VERTICES
 
-    def edit(stage):
-        UsdGeom.BasisCurves.Get(stage, "/Root/Body/Hair").GetCurveVertexCountsAttr().Set(counts)
+    def edit(stage):   # curves of these counts hanging from the old roots, slightly curved
+        curves = UsdGeom.BasisCurves.Get(stage, "/Root/Body/Hair")
+        P = np.asarray(curves.GetPointsAttr().Get(), dtype=np.float64)
+        roots = P[::N_VERTICES]
+        pts = [roots[i] + np.stack([0.002 * np.sin(np.arange(n)), -0.01 * np.arange(n), np.zeros(n)], 1)
+               for i, n in enumerate(counts)]
+        curves.GetPointsAttr().Set(vec3f(np.concatenate(pts)))
+        curves.GetCurveVertexCountsAttr().Set(counts)
     edit_stage(path, edit)
     strands = build_scene(usd_cfg(path).scene).strands
     assert strands.counts.tolist() == counts
