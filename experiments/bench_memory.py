@@ -12,7 +12,8 @@ the process itself.  Two figures per process:
 * (``--traced``) the peak of the Python heap (tracemalloc, in separate runs through
   experiments/traced_run.py: tracing costs time and memory of its own), numpy arrays included.
 
-Every (hair, recording, frames) case runs ``--repeats`` times, the cases interleaved (SHORT,
+A first, untimed run fills the checkout's compile caches.  Every (hair, recording, frames) case
+runs ``--repeats`` times, the cases interleaved (SHORT,
 LONG, SHORT, LONG, ...) so that a drift of the machine touches both lengths alike.  Growth is
 median(LONG) - median(SHORT); the noise is the spread (max - min) of the repeats of one case, the
 larger of the two lengths'.  A growth within the noise is no growth that this can see.
@@ -83,6 +84,11 @@ def main(argv=None):
                     f"logging.rerun={'true' if rerun == 'on' else 'false'}", "logging.progress=false",
                     f"hydra.run.dir={out}"]
 
+        # one untimed run first: it fills the checkout's compile caches (numba's, in __pycache__), whose
+        # first build raised that run's peak by 150 MB in a fresh worktree
+        warm = Path(tmp) / "warm-up"
+        run_child([sys.executable, "-m", "hairexp", *hairexp_args(args.sizes[0], args.rerun[-1], short, warm)], repo, env)
+        print(f"warm-up run done ({short} frames, untimed)", flush=True)
         for size in args.sizes:
             for rerun in args.rerun:
                 peaks = {short: [], long_: []}
