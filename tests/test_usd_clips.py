@@ -251,7 +251,9 @@ def test_clipped_result_reimports(tmp_path, small_clips):
     scene, pos, _, _ = frames_of()
     rng = np.random.default_rng(5)   # guides of the scene's layout (the reader checks them)
     gscene = build_scene(source_cfg(frames=N).scene)
-    guides = np.stack([gscene.strands.rest[:12] + 0.01 * rng.normal(size=(12, 3)) for _ in range(N + 1)])
+    st = gscene.strands   # each guide the first 6 vertices of a strand (not across two strands: a fold)
+    base = np.concatenate([st.rest[st.offsets[k]:st.offsets[k] + 6] for k in (0, 1)])
+    guides = np.stack([base + 0.001 * rng.normal(size=(12, 3)) for _ in range(N + 1)])
     goff = np.array([0, 6, 12])
     read = {}
     for mode in ("never", "always"):
