@@ -48,6 +48,32 @@ def leftovers(out: Path) -> list[str]:
 # Signals: SIGINT -> 130, SIGTERM -> 143, summary interrupted, partial data readable
 # ---------------------------------------------------------------------------------------------
 
+def test_pxr_is_imported_before_the_first_step(tmp_path):
+    """USD's module loader swallows an interrupt raised inside its import (a traceback, then the
+    import goes on): a SIGTERM that landed in the pxr import at the end of a run was lost and the
+    run ended "completed", exit 0 (probe of issue 12).  pxr is now imported where the run keeps a
+    signal for later, before the first step: checked in a fresh interpreter."""
+    code = (
+        "import sys, json\n"
+        "from hairexp.app.config import compose_config\n"
+        "from hairexp.app.run import run\n"
+        "from hairexp.physics.simulator import Simulator\n"
+        "seen = []\n"
+        "step = Simulator.step\n"
+        "def spy(self, state, dt):\n"
+        "    seen.append('pxr' in sys.modules)\n"
+        "    return step(self, state, dt)\n"
+        "Simulator.step = spy\n"
+        "assert 'pxr' not in sys.modules\n"
+        f"run(compose_config({TINY + ['frames=2']!r}), {str(tmp_path / 'run')!r})\n"
+        "print(json.dumps(seen))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1])))
+    assert proc.returncode == 0, proc.stderr
+    seen = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert seen and all(seen)
+
+
 def test_signals_end_the_run_as_interrupted(tmp_path):
     procs = {}
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -197,6 +197,11 @@ def run(cfg, out_dir: str | Path) -> dict:
         with signals.deferred():   # a signal meanwhile is kept for the try below: "running" is never left behind
             write_json(out / SUMMARY, summarize(None, plain, scene_name, controller, 0.0, "running"))
             sinks = _Sinks(cfg, plain, MetricsTable(out / STREAM / "metrics"))
+            # pxr (every run writes result.usd*) is imported here, where a signal is kept: USD's
+            # module loader catches the interrupt raised inside its import, prints a traceback and
+            # goes on, so a signal that landed in the import at the end of a run was lost and the
+            # run ended "completed", exit 0 (probe of issue 12)
+            import hairexp.io.usd_write  # noqa: F401
         try:
             if signals.pending is not None:
                 raise Interrupted(signals.pending)
@@ -280,7 +285,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     sinks.written.append(out / "result.npz")
     write_npz(out / "result.npz", out / STREAM)
     release()
-    from hairexp.io.usd_write import clips_dir, write_result_usd  # pxr is imported here
+    from hairexp.io.usd_write import clips_dir, write_result_usd  # pxr: imported at the start (``run``)
 
     wscene = scene
     if sim.body is not None:  # the block's recorded poses, linear between frames
