@@ -42,6 +42,10 @@ def entry() -> int:
     if bad_config is not None:
         print(bad_config, file=sys.stderr)
         return 2
+    used = cli.used_dir_error(sys.argv[1:])   # another run's folder: before Hydra writes .hydra/ into it
+    if used is not None:
+        print(used, file=sys.stderr)
+        return 2
     try:
         # outside a run (composing, between sweep jobs) too; a sweep's running jobs are stopped first
         with InterruptSignals(on_signal=cli.stop_sweep_jobs):

@@ -343,6 +343,25 @@ def test_used_folder_exits_2_with_one_line(hydra_conf, tmp_path, capsys):
     assert (used / "summary.json").read_text() == '{"status": "completed"}'   # the old run's summary is kept
 
 
+def test_used_folder_is_refused_before_hydra_writes_into_it(tmp_path):
+    """``python -m hairexp ... hydra.run.dir=<a used folder>``: exit 2, one line, and the folder's
+    ``.hydra/`` files are still the first run's (Hydra wrote the refused run's over them; probe of
+    issue 12).  With overwrite=true the second run replaces the first."""
+    out = tmp_path / "run"
+    p = cli([*TINY, "frames=2", f"hydra.run.dir={out}"], tmp_path)
+    assert p.wait(timeout=120) == 0, p.communicate()
+    before = (out / ".hydra" / "overrides.yaml").read_text()
+    p = cli([*TINY, "frames=1", f"hydra.run.dir={out}"], tmp_path)
+    _, err = p.communicate(timeout=120)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert p.returncode == 2 and len(lines) == 1 and lines[0].startswith(f"hairexp: error: {out}: the run folder is not "
+                                                                          "empty"), err
+    assert (out / ".hydra" / "overrides.yaml").read_text() == before
+    p = cli([*TINY, "frames=1", f"hydra.run.dir={out}", "overwrite=true"], tmp_path)
+    assert p.wait(timeout=120) == 0, p.communicate()
+    assert "frames=1" in (out / ".hydra" / "overrides.yaml").read_text()
+
+
 @pytest.mark.parametrize("names, bad, match", [
     (["../x", "tracked"], 0, "safe folder name"),
     (["free", ""], 1, "safe folder name"),

@@ -288,6 +288,47 @@ def override_syntax_error(argv: list[str]) -> str | None:
     return None
 
 
+def _overwrite_given(argv: list[str], parser) -> bool:
+    """``overwrite=true`` on the command line (the run's own check decides in every other case)."""
+    for arg in argv:
+        if arg.lstrip("+~").startswith("overwrite="):
+            try:
+                v = parser.parse_override(arg).value()
+            except Exception:  # noqa: BLE001  (a syntax error: the config check says so)
+                return True
+            return str(v).lower() == "true"
+    return False
+
+
+def used_dir_error(argv: list[str]) -> str | None:
+    """The error line for a command line's ``hydra.run.dir`` (a single run, a fixed path) that
+    holds another run, unless ``overwrite=true`` is given: refused before Hydra writes its
+    ``.hydra/`` files into it (they were replaced by the refused run's; probe of issue 12).  The
+    run's own ``claim`` checks it again (launches racing into one folder, a config's overwrite)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from hairexp.outputs.folder import used_refusal
+
+    if any(a in ("-m", "--multirun") or a.lstrip("+") in ("hydra.mode=MULTIRUN", "hydra.mode=multirun") for a in argv):
+        return None
+    parser = OverridesParser.create()
+    if _overwrite_given(argv, parser):
+        return None
+    for arg in argv:
+        if not arg.lstrip("+~").startswith("hydra.run.dir="):
+            continue
+        try:
+            o = parser.parse_override(arg)
+        except Exception:  # noqa: BLE001  (a syntax error: Hydra's own message)
+            return None
+        value = o.value()
+        if o.is_sweep_override() or value is None or _static_part(str(value)) != str(value):
+            return None
+        refused = used_refusal(Path(str(value)))
+        return None if refused is None else f"hairexp: error: {value}: {refused}"
+    return None
+
+
 def run_dir_error(argv: list[str]) -> str | None:
     """The error line for a run folder that cannot be written, or None: the command line's
     ``hydra.run.dir`` (with ``-m``: ``hydra.sweep.dir``), or when none is given the default of
@@ -316,6 +357,7 @@ def run_dir_error(argv: list[str]) -> str | None:
         why = None if path is None else _unusable_folder(path)
         if why is not None:
             return f"hairexp: error: {key}={o.value()}: cannot be the run folder: {why}"
+
     if not given and not any(a.startswith(("--help", "-h", "--cfg", "-c", "--info", "--hydra-help", "--version"))
                              for a in argv):
         default = _default_dir(key)

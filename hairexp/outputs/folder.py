@@ -99,6 +99,20 @@ def used_entries(folder: Path) -> list[Path]:
     return [p for p in sorted(folder.iterdir()) if not _hydras(p)]
 
 
+def used_refusal(folder: Path, used: list[Path] | None = None) -> str | None:
+    """Why a run may not be written into ``folder`` without ``overwrite`` (it holds another run's
+    files), or None (absent or empty but for Hydra's own)."""
+    folder = Path(folder)
+    used = used_entries(folder) if used is None else used
+    if not used:
+        return None
+    names = ", ".join(p.name for p in used[:6]) + (", ..." if len(used) > 6 else "")
+    state = running_state(folder)
+    held = f"; it holds {state}" if state else ""
+    return (f"the run folder is not empty ({names}){held}; a run folder belongs to one run: choose another folder "
+            "(hydra.run.dir) or set overwrite=true to replace the run in it")
+
+
 def claim(folder: Path, overwrite: bool = False) -> None:
     """Make ``folder`` this run's: create it, refuse it (InputError) when it holds another
     run's files unless ``overwrite``, and create ``summary.json`` exclusively."""
@@ -107,13 +121,8 @@ def claim(folder: Path, overwrite: bool = False) -> None:
         raise InputError("is not a folder", str(folder))
     used = used_entries(folder)
     if used:
-        names = ", ".join(p.name for p in used[:6]) + (", ..." if len(used) > 6 else "")
         if not overwrite:
-            state = running_state(folder)
-            held = f"; it holds {state}" if state else ""
-            raise InputError(f"the run folder is not empty ({names}){held}; a run folder belongs to one run: choose "
-                             "another folder (hydra.run.dir) or set overwrite=true to replace the run in it",
-                             str(folder))
+            raise InputError(used_refusal(folder, used), str(folder))
         ours, foreign = _removable(folder, top=True)
         if foreign:
             raise InputError("overwrite=true removes only what a run wrote; the folder also holds "
