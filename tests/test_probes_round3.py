@@ -490,3 +490,19 @@ def test_clusters_of_the_same_hair_are_refused_before_the_first_step(base):
         assemble(updated(base, controller__name="tracking", scene__n_strands=1))
     assert err.value.where == "tracking"
     assemble(updated(base, controller__name="tracking"))    # 6 strands: independent
+
+
+@pytest.mark.parametrize("override, match", [
+    ("experiment=celia", r"a variant cannot set 'experiment'"),
+    ("variants=[]", r"a variant cannot set 'variants'"),
+    ("controller=tracking", r"'controller' is a config group; a variant sets keys inside it"),
+])
+def test_a_variant_cannot_switch_the_experiment_or_a_group(base, override, match):
+    """``experiment=celia`` in a variant's overrides ran goaling_smoke's scene with a summary that
+    said celia (exit 0; probe of the fourth round); a group choice there is refused the same way."""
+    from hairexp.app.experiment import apply_overrides
+
+    with pytest.raises(InputError, match=match) as err:
+        apply_overrides(base, [override], "variants[0] (a)")
+    assert err.value.where == "variants[0] (a)"
+    apply_overrides(base, ["controller.name=tracking"], "variants[0] (a)")

@@ -90,9 +90,16 @@ def apply_overrides(cfg, overrides: list[str], where: str):
         if "=" not in o:
             raise InputError(f"override {o!r} is not key=value", where)
         key, val = o.split("=", 1)
-        if OmegaConf.select(out, key, default="__missing__") == "__missing__":
+        node = OmegaConf.select(out, key, default="__missing__")
+        if isinstance(node, str) and node == "__missing__":
             raise InputError(f"unknown key {key!r}", where)
+        if key in ("experiment", "variants"):   # it ran the parent's scene under the other's name (probe of issue 12)
+            raise InputError(f"{o}: a variant cannot set {key!r}: it belongs to the experiment (run the other "
+                             "experiment on its own)", where)
         value = parse_value(val)
+        if OmegaConf.is_config(node) and not isinstance(value, (dict, list)):
+            raise InputError(f"{o}: {key!r} is a config group; a variant sets keys inside it ({key}.<key>=<value>), "
+                             "not a group choice", where)
         try:
             check_bool(key, value, val)
         except InputError as exc:
