@@ -506,3 +506,19 @@ def test_a_variant_cannot_switch_the_experiment_or_a_group(base, override, match
         apply_overrides(base, [override], "variants[0] (a)")
     assert err.value.where == "variants[0] (a)"
     apply_overrides(base, ["controller.name=tracking"], "variants[0] (a)")
+
+
+@pytest.mark.parametrize("key, extra", [("scene.n_vertices", {}),
+                                         ("guides.n_vertices", {"controller__name": "tracking",
+                                                                "guides__source": "simulated"})])
+def test_edges_too_short_for_a_step_are_refused(base, key, extra):
+    """100,000 vertices on goaling's 30 cm strands (3 um edges) passed the resource guard and ran
+    for minutes without a step (4,000, 75 um edges, failed its first step; 3,000 runs): refused
+    before anything is built, naming the key and the largest count."""
+    from hairexp.app.assemble import assemble
+
+    cfg = updated(base, **{key.replace(".", "__"): 100_000}, **extra)
+    with pytest.raises(InputError, match=r"100000 vertices on 0.3 m make edges of 0.003 mm, shorter than 0.1 mm.*"
+                                         r"at most 3000 vertices") as err:
+        assemble(cfg)
+    assert err.value.where == key

@@ -107,7 +107,7 @@ def check_config(cfg) -> None:
     cfg = timed_config(cfg)
     n_sub, _ = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
     if str(_value(cfg.scene.builder)) != "usd":
-        check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices))
+        check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices), float(cfg.scene.length))
         guard_run(cfg, int(cfg.scene.n_strands) * int(cfg.scene.n_vertices), n_sub)
 
 
@@ -122,7 +122,7 @@ def _assemble_scene(cfg, settle: bool):
                     float(cfg.solver.dt), frame, dt)
     usd = str(_value(cfg.scene.builder)) == "usd"
     if not usd:   # the resource guard (hairexp/app/guard.py) before the hair is built
-        check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices))
+        check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices), float(cfg.scene.length))
         guard_run(cfg, int(cfg.scene.n_strands) * int(cfg.scene.n_vertices), n_sub, run=settle)
     scene = build_scene(cfg.scene)
     if usd:       # a stage's size is known once it is read

@@ -8,6 +8,7 @@ import copy
 
 import numpy as np
 
+from hairexp.model.builders import check_counts
 from hairexp.errors import InputError, SimulationError, check_extent, regular_file
 from hairexp.guides.animation import GuideAnimation, carried_guides, file_guides, rest_guides
 from hairexp.guides.authoring import apply_edits, keyframed_positions
@@ -94,6 +95,7 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
     (rigid, scaled, keyframed, file, usd) are not settled: they are used as given."""
     if cfg.guides.n_vertices < 3:
         raise InputError("simulated guides need >= 3 vertices (two are held by the body)", "guides.n_vertices")
+    check_counts(1, int(cfg.guides.n_vertices), float(cfg.scene.length), key="guides.n_vertices")   # as long as the hair
     motion = authoring_motion(scene.motion)
     world = motion.transform(body, 0.0)
     strands = Strands.from_polylines(world, np.diff(offsets), scene.material.linear_density, where="guides")

@@ -55,14 +55,24 @@ def line_points(n: int, radius: float) -> np.ndarray:
     return np.stack([u, np.zeros(n)], 1)
 
 
-def check_counts(n_strands: int, n_vertices: int) -> None:
-    """``scene.n_strands`` >= 1 and ``scene.n_vertices`` >= 3, or an InputError naming the key (also
-    called before the resource guard and by an experiment's check of every variant's config, so a
-    bad count fails before anything runs: -2 x -3 strands would pass the guard's size)."""
+#: m, the shortest rest edge a built strand may have (scene.length / (n_vertices - 1)): 30 cm in
+#: 4,000 vertices (75 um edges) already failed its first step, 100,000 ran for minutes without one
+MIN_REST_EDGE = 1e-4
+
+
+def check_counts(n_strands: int, n_vertices: int, length: float | None = None, key: str = "scene.n_vertices") -> None:
+    """``scene.n_strands`` >= 1 and ``scene.n_vertices`` >= 3 (and, with the strands' ``length``,
+    edges of at least MIN_REST_EDGE), or an InputError naming the key (also called before the
+    resource guard and by an experiment's check of every variant's config, so a bad count fails
+    before anything runs: -2 x -3 strands would pass the guard's size)."""
     if n_strands < 1:
         raise InputError(f"must be >= 1, got {n_strands}", "scene.n_strands")
     if n_vertices < 3:
-        raise InputError(f"must be >= 3 (two root vertices and one free), got {n_vertices}", "scene.n_vertices")
+        raise InputError(f"must be >= 3 (two root vertices and one free), got {n_vertices}", key)
+    if length is not None and np.isfinite(length) and length > 0 and length / (n_vertices - 1) < MIN_REST_EDGE:
+        raise InputError(f"{n_vertices} vertices on {length:g} m make edges of {1e3 * length / (n_vertices - 1):.3g} mm, "
+                         f"shorter than {1e3 * MIN_REST_EDGE:g} mm: the stretch springs are then too stiff for any step "
+                         f"to converge; use at most {int(length / MIN_REST_EDGE) + 1} vertices", key)
 
 
 def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius: float, center: np.ndarray,
@@ -74,7 +84,7 @@ def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius
 
     ``fan``: strand i tilts outward in proportion to its root's distance from the centre (a
     cone, rim tilt ``spread``); otherwise each strand tilts by a random angle up to ``spread``."""
-    check_counts(n_strands, n_vertices)
+    check_counts(n_strands, n_vertices, length)
     if not (length > 0 and np.isfinite(length)):
         raise InputError(f"must be a finite number > 0, got {length}", "scene.length")
     if not (root_radius >= 0 and np.isfinite(root_radius)):
