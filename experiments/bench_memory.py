@@ -72,6 +72,8 @@ def main(argv=None):
     ap.add_argument("--rerun", nargs="+", choices=["off", "on"], default=["off", "on"], help="recording off / on")
     ap.add_argument("--report", default="bench_memory", help="reports/<REPORT>.{md,json} (default bench_memory)")
     args = ap.parse_args(argv)
+    if args.frames[0] >= args.frames[1]:
+        ap.error(f"--frames {args.frames[0]} {args.frames[1]}: SHORT must be less than LONG")
     repo = args.repo.resolve()
     if not (repo / "hairexp" / "__main__.py").is_file():
         ap.error(f"--repo {repo}: not a hairexp checkout (no hairexp/__main__.py)")

@@ -522,3 +522,12 @@ def test_edges_too_short_for_a_step_are_refused(base, key, extra):
                                          r"at most 3000 vertices") as err:
         assemble(cfg)
     assert err.value.where == key
+
+
+def test_attract_stiffness_is_bounded(base):
+    """1e308 passed validation and the first step overflowed (numpy warnings, exit 3, advice to
+    use substeps, the default already; probe of the fourth round)."""
+    with pytest.raises(InputError, match=r"must be > 0 and <= 1e\+09, got 1e\+308") as err:
+        validate_config(updated(base, controller__attract_stiffness=1e308))
+    assert err.value.where == "controller.attract_stiffness"
+    validate_config(updated(base, controller__attract_stiffness=1e9))

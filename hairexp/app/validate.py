@@ -219,7 +219,8 @@ def _unused(cfg) -> None:
     dynamic block (scene.body.*).  A bad value there is refused all the same, so that a typo is
     not found only by the variant or the later run that uses it."""
     c, b = cfg.controller, cfg.scene.body
-    number(c.attract_stiffness, "controller.attract_stiffness", lo=0, lo_open=True)   # 1/s^2
+    # 1/s^2; at most 1e9 (omega 3e4 rad/s, k dt^2 = 1.6e6 at dt 0.04): 1e308 passed and the first step overflowed
+    number(c.attract_stiffness, "controller.attract_stiffness", lo=0, hi=1e9, lo_open=True)
     number(b.mass, "scene.body.mass", lo=0, lo_open=True)                             # kg
     number(b.rail_height, "scene.body.rail_height")                                   # m
     number(b.rail_end, "scene.body.rail_end")                                         # m
