@@ -531,3 +531,14 @@ def test_attract_stiffness_is_bounded(base):
         validate_config(updated(base, controller__attract_stiffness=1e308))
     assert err.value.where == "controller.attract_stiffness"
     validate_config(updated(base, controller__attract_stiffness=1e9))
+
+
+def test_an_interrupted_sweep_counts_the_jobs_it_never_started(tmp_path, monkeypatch, capsys):
+    """A sweep of 4 jobs stopped after 2 had started said "0 of 2 jobs completed" (probe of the
+    fourth round): the count is of the sweep's jobs, and those never started are said."""
+    assert cli.sweep_size(["solver.rtol=1e-4,1e-5,1e-6,1e-7", "frames=2", "scene.n_strands=3,4"]) == 8
+    assert cli.sweep_size(["frames=2"]) == 1
+    monkeypatch.setattr(cli, "SWEEP_DIR", tmp_path)
+    monkeypatch.setattr(cli, "SWEEP_TOTAL", 4)
+    assert cli.exit_code() != 0
+    assert "hairexp: sweep: 0 of 4 jobs completed (4 not started)" in capsys.readouterr().err

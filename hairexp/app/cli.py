@@ -52,6 +52,8 @@ STOP_MARK = ".hairexp-stopping"
 LAST: dict | None = None
 #: the sweep folder of a multirun started in this process (set by SweepOutcomes)
 SWEEP_DIR: Path | None = None
+#: the number of jobs the sweep was to run (``sweep_size``), None when not a sweep or not known
+SWEEP_TOTAL: int | None = None
 
 
 def outcome(out, status: str, code: int, message: str | None = None, summary: dict | None = None) -> dict:
@@ -165,8 +167,24 @@ class SweepOutcomes(Callback):
     multirun in the main process, so its jobs' outcomes can be read after Hydra returns."""
 
     def on_multirun_start(self, config, **kwargs) -> None:
-        global SWEEP_DIR
+        global SWEEP_DIR, SWEEP_TOTAL
         SWEEP_DIR = Path(str(config.hydra.sweep.dir))
+        SWEEP_TOTAL = sweep_size(list(config.hydra.overrides.task))
+
+
+def sweep_size(overrides: list[str]) -> int | None:
+    """The number of jobs of a basic sweep over ``overrides`` (the product of the swept values'
+    counts), None if it cannot be told (an override the parser cannot read)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        n = 1
+        for o in OverridesParser.create().parse_overrides(overrides):
+            if o.is_sweep_override():
+                n *= len(list(o.sweep_string_iterator()))
+        return n
+    except Exception:  # noqa: BLE001  (a range or a sweep the basic count does not cover)
+        return None
 
 
 def sweep_outcomes(sweep_dir: Path) -> list[tuple[str, str, dict]]:
@@ -200,7 +218,13 @@ def exit_code() -> int:
             msg = f": {res['message']}" if res.get("message") and res["code"] != 0 else ""
             print(f"hairexp: job {name} [{overrides}]: {res['status']}{note} (exit {res['code']}){msg} -> {res['out']}",
                   file=stream)
-        print(f"hairexp: sweep: {len(rows) - len(bad)} of {len(rows)} jobs completed -> {SWEEP_DIR}", file=stream)
+        total = max(len(rows), SWEEP_TOTAL or 0)
+        unstarted = f" ({total - len(rows)} not started)" if total > len(rows) else ""
+        if unstarted:   # an interrupted sweep: its jobs that never ran are said, not left out (probe of issue 12)
+            bad = bad or [("", "", {"code": 1})]
+            stream = sys.stderr
+        print(f"hairexp: sweep: {len(rows) - sum(1 for r in rows if r[2]['code'] != 0)} of {total} jobs completed"
+              f"{unstarted} -> {SWEEP_DIR}", file=stream)
         return bad[0][2]["code"] if bad else (0 if rows else 1)
     return 0 if LAST is None else int(LAST["code"])
 
