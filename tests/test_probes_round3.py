@@ -542,3 +542,15 @@ def test_an_interrupted_sweep_counts_the_jobs_it_never_started(tmp_path, monkeyp
     monkeypatch.setattr(cli, "SWEEP_TOTAL", 4)
     assert cli.exit_code() != 0
     assert "hairexp: sweep: 0 of 4 jobs completed (4 not started)" in capsys.readouterr().err
+
+
+def test_variant_value_errors_say_what_to_do():
+    """An unquoted key=value inside a variant's list was told to quote the whole value (which then
+    is a string, another error), and an unknown key in a variant was told 'did you mean
+    variants?' (probes of the fourth round)."""
+    msg = cli.config_error(["experiment=goaling_smoke", "variants=[{name: a, overrides: [controller.name=free]}]"])
+    assert "quote each item that holds '='" in msg and "overrides: ['controller.name=free']" in msg
+    msg = cli.config_error(["experiment=goaling_smoke", "variants=[{name: a, overrides: ['controller.name=free'], "
+                                                        "extra: 1}]"])
+    assert msg == "hairexp: error: variants: unknown key 'extra' in an item of the value (its keys are: name, overrides)"
+    assert "did you mean 'solver.dt'" in cli.config_error(["experiment=goaling_smoke", "solver.dtt=3"])

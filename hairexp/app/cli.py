@@ -302,7 +302,12 @@ def override_syntax_error(argv: list[str]) -> str | None:
         except Exception as exc:  # noqa: BLE001  (Hydra's grammar errors)
             why = " ".join(str(exc).split()).split(" See https://")[0]
             why = re.sub(r"^.*?Exception: \S.*?\^ ", "", why)
-            key = arg.split("=", 1)[0]
+            key, value = arg.split("=", 1)
+            if value.lstrip().startswith(("[", "{")) and "=" in value:
+                # quoting the whole list would make it a string (probe of issue 12)
+                return (f"hairexp: error: {arg}: not a valid override ({why}); inside a list or a dict, quote each "
+                        "item that holds '=' or other special characters, e.g. overrides: ['controller.name=free'] "
+                        "(in the shell, the whole argument in double quotes)")
             return (f"hairexp: error: {arg}: not a valid override ({why}); quote a value with spaces, "
                     f"non-ASCII characters or brackets: {key}='...' (in the shell: \"{key}='...'\")")
         if o.key_or_group in ("hydra.run.dir", "hydra.sweep.dir") and not o.is_sweep_override() and \
@@ -470,6 +475,18 @@ def _compose_error(overrides: list[str], input_errors: bool = True) -> str | Non
         if cause is not None and str(cause).strip():   # "Error merging override x=y" says why only here
             msg += ": " + str(cause).strip().splitlines()[0]
         unknown = re.match(r"Could not override '([^']+)'\.\s+To append to your config use \+", msg)
+        inner = re.search(r"Key '([^']+)' not in '(\w+)'", str(cause or ""))
+        if unknown and inner and inner.group(1) != unknown.group(1).rsplit(".", 1)[-1]:
+            # a key inside a record of the value (a variant's, an edit's, a collider's): named, with
+            # the record's fields (it said "variants: unknown key ...; did you mean 'variants'?")
+            import dataclasses
+
+            import hairexp.app.config as config_mod
+
+            t = getattr(config_mod, inner.group(2), None)
+            fields = ", ".join(f.name for f in dataclasses.fields(t)) if dataclasses.is_dataclass(t) else ""
+            return (f"{unknown.group(1)}: unknown key {inner.group(1)!r} in an item of the value"
+                    + (f" (its keys are: {fields})" if fields else ""))
         if unknown:   # Hydra advises "+key", which the schema refuses too (check_keys)
             hint = unknown_key_hint(unknown.group(1))
             return (f"{unknown.group(1)}: unknown key, not in the schema (hairexp/app/config.py)"
