@@ -35,9 +35,17 @@ TINY = ["experiment=goaling_smoke", "variants=[]", "scene.n_strands=3", "scene.n
 FINAL = ("result.npz", "result.usdc", "result.usda", "recording.rrd")
 
 
+def _default_signals():
+    # a test runner started in the background (sh's `cmd &`) passes SIGINT on ignored, which the
+    # command line keeps ignored (POSIX): the children here get the defaults, as a terminal gives
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def cli(args, cwd, **kw):
     return subprocess.Popen([sys.executable, "-m", "hairexp", *args], cwd=cwd, env=dict(os.environ, CI="1"),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_default_signals, **kw)
 
 
 def leftovers(out: Path) -> list[str]:
@@ -72,6 +80,36 @@ def test_pxr_is_imported_before_the_first_step(tmp_path):
     assert proc.returncode == 0, proc.stderr
     seen = json.loads(proc.stdout.strip().splitlines()[-1])
     assert seen and all(seen)
+
+
+def test_sigint_inherited_as_ignored_stays_ignored(tmp_path):
+    """A command a script starts with ``&`` inherits SIGINT ignored: it stays ignored for the whole
+    run (it was honoured once the run's handlers were installed, ignored before: inconsistent;
+    probe of issue 12), and SIGTERM still ends it."""
+    def ignore_sigint():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+    out = tmp_path / "run"
+    p = subprocess.Popen([sys.executable, "-m", "hairexp", *TINY, "frames=20000", f"hydra.run.dir={out}"], cwd=tmp_path,
+                         env=dict(os.environ, CI="1"), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=ignore_sigint)
+    try:
+        deadline = time.monotonic() + 60
+        while not list((out / "stream" / "metrics").glob("part-*.parquet")):   # the run's handlers are in place
+            assert p.poll() is None, p.communicate()
+            assert time.monotonic() < deadline, "no metrics part after 60 s"
+            time.sleep(0.1)
+        p.send_signal(signal.SIGINT)
+        time.sleep(1.0)
+        assert p.poll() is None   # ignored
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=60)
+        assert p.returncode == 143, err
+        assert json.loads((out / "summary.json").read_text())["error"] == "interrupted by SIGTERM"
+    finally:
+        if p.poll() is None:
+            p.kill()
 
 
 def test_signals_end_the_run_as_interrupted(tmp_path):

@@ -3,7 +3,8 @@
 Inside ``InterruptSignals()`` both signals raise ``hairexp.errors.Interrupted`` (a
 KeyboardInterrupt carrying the signal number) in the main thread, so the run can write its
 ending (partial metrics, ``summary.json`` saying ``interrupted``) and the command line exits
-128 + signal (130, 143).  While the ending is written (``deferred()``) a further signal is only
+128 + signal (130, 143).  A signal the process inherited as ignored (SIGINT of a command a script
+starts with ``&``) stays ignored throughout, as during start-up.  While the ending is written (``deferred()``) a further signal is only
 remembered (``pending``).  Outside the main thread nothing is installed.
 
 ``InterruptSignals(on_signal=f)`` calls ``f(signum)`` once before raising (a second signal
@@ -45,6 +46,8 @@ class InterruptSignals:
     def __enter__(self):
         if threading.current_thread() is threading.main_thread():
             for s in SIGNALS:
+                if signal.getsignal(s) == signal.SIG_IGN:   # inherited as ignored (a script's `cmd &`): kept so,
+                    continue                                 # as at start-up (POSIX; it was honoured only later)
                 self.old[s] = signal.signal(s, self._handler)
         return self
 
