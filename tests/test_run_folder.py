@@ -195,17 +195,43 @@ def test_disk_full_mid_run(hydra_conf, tmp_path, monkeypatch):
 
 
 def test_disk_full_hides_nothing(hydra_conf, tmp_path, monkeypatch):
-    """When the failure summary cannot be written either, the first error is still the one
-    raised; the later ones are notes on it."""
+    """When the ending's files cannot be written either, the first error is still the one
+    raised; the later ones are notes on it.  The summary, which no new file can hold then, is
+    written over the running summary's own bytes: it says failed, not running (a full disk left it
+    "running", and a later run was told the run had been killed; probe of issue 12)."""
     full_disk_after(monkeypatch, 1, everything=True)
     with pytest.raises(OSError) as e:
         run(hydra_conf([*TINY, "frames=12"]), tmp_path)
     assert str(e.value).endswith("(injected)")                      # the frames' write, not a later one
     notes = "\n".join(e.value.__notes__)
-    assert "summary.json" in notes and "metrics.parquet" in notes
+    assert "metrics.parquet" in notes and "summary.json" not in notes
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["status"] == "failed" and "injected" in summary["error"]
     assert not [n for n in FINAL if (tmp_path / n).exists()] and leftovers(tmp_path) == []
     for p in tmp_path.rglob("*.parquet"):                           # the parts on disk are complete files
         pd.read_parquet(p)
+
+
+def test_a_disk_too_full_for_the_first_summary_leaves_no_empty_file(hydra_conf, tmp_path, monkeypatch):
+    """The folder's claim (an empty summary.json) is removed when not even the running summary
+    fits (a 0-byte summary.json stayed; probe of issue 12); a run that starts holds room for its
+    ending (``folder.RESERVE``) and gives it back when it ends."""
+    import hairexp.outputs.folder as folder_mod
+
+    def no_room(path, obj):
+        raise OSError(errno.ENOSPC, "No space left on device (injected)")
+
+    with monkeypatch.context() as m:
+        m.setattr(run_mod, "write_json", no_room)
+        with pytest.raises(OSError, match="injected"):
+            run(hydra_conf([*TINY, "frames=2"]), tmp_path / "a")
+    assert not (tmp_path / "a" / "summary.json").exists()
+    held = []
+    reserve = folder_mod.reserve
+    monkeypatch.setattr(run_mod, "reserve", lambda out: (held.append((out / folder_mod.RESERVE)), reserve(out))[1])
+    run(hydra_conf([*TINY, "frames=2"]), tmp_path / "b")
+    assert held and not held[0].exists()                      # held during the run, given back at its end
+    assert folder_mod.RESERVE in folder_mod.RUN_FILES        # one left by a killed run is the run's, for overwrite
 
 
 def test_late_write_failure_leaves_no_result(hydra_conf, tmp_path, monkeypatch):

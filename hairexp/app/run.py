@@ -21,9 +21,11 @@ A failure while writing an ending is logged and noted on the original error, whi
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import logging
+import os
 import platform
 import shutil
 import time
@@ -40,7 +42,7 @@ from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
 from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, save_npy, write_json, write_npz
-from hairexp.outputs.folder import STREAM, SUMMARY, claim, owner, remove_tmp
+from hairexp.outputs.folder import STREAM, SUMMARY, claim, free_reserve, owner, remove_tmp, reserve
 from hairexp.memory import release, release_every
 from hairexp.outputs.metrics import MetricsTable, measure
 from hairexp.outputs.progress import Progress, progress_enabled
@@ -195,7 +197,13 @@ def run(cfg, out_dir: str | Path) -> dict:
     t_start = time.perf_counter()
     with InterruptSignals() as signals:
         with signals.deferred():   # a signal meanwhile is kept for the try below: "running" is never left behind
-            write_json(out / SUMMARY, summarize(None, plain, scene_name, controller, 0.0, "running"))
+            try:
+                write_json(out / SUMMARY, summarize(None, plain, scene_name, controller, 0.0, "running"))
+            except OSError:   # a full disk: not even the first summary; the empty claim goes too (probe of issue 12)
+                if (out / SUMMARY).is_file() and (out / SUMMARY).stat().st_size == 0:
+                    (out / SUMMARY).unlink()
+                raise
+            reserve(out)   # room for the ending's summary, should the disk fill meanwhile
             sinks = _Sinks(cfg, plain, MetricsTable(out / STREAM / "metrics"))
             # pxr (every run writes result.usd*) is imported here, where a signal is kept: USD's
             # module loader catches the interrupt raised inside its import, prints a traceback and
@@ -309,6 +317,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     summary["cohesion"] = coh
     if view is not None:   # the recording's framing and key moment (comparison.rrd unites the variants')
         summary["view"] = view
+    free_reserve(out)
     write_json(out / SUMMARY, summary)
     try:
         shutil.rmtree(out / STREAM)
@@ -323,6 +332,23 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
                     "false (on_unconverged=fail makes this an error)", out, summary["unconverged_steps"],
                     summary["steps"])
     return summary
+
+
+def _write_ending(path: Path, summary: dict) -> None:
+    """The ending's summary.json: atomically (a new file, renamed), or, when the disk has no room
+    for the new file, over the running summary's own bytes (truncated first, which frees them),
+    so that a full disk does not leave the summary saying "running" (probe of issue 12)."""
+    try:
+        write_json(path, summary)
+    except OSError as exc:
+        if exc.errno != errno.ENOSPC or not path.is_file():
+            raise
+        data = json.dumps(summary, indent=2, default=str, allow_nan=True).encode()
+        with open(path, "r+b") as f:
+            f.truncate(0)
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
 
 
 def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: str, controller: str,
@@ -362,7 +388,8 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
     summary = summarize(df, sinks.plain, scene_name, controller, time.perf_counter() - t_start, status, error)
     if isinstance(exc, SimulationError) and "converged" in summary:
         summary["converged"] = False   # the step that failed is not in the metrics (its steps' were)
-    attempt("summary.json", lambda: write_json(out / SUMMARY, summary))
+    free_reserve(out)   # its room is the summary's
+    attempt("summary.json", lambda: _write_ending(out / SUMMARY, summary))
     stream = out / STREAM
     if stream.is_dir() and not any(p.is_file() for p in stream.rglob("*")):
         attempt(STREAM, lambda: shutil.rmtree(stream))

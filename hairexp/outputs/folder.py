@@ -24,9 +24,14 @@ from hairexp.errors import InputError
 
 SUMMARY = "summary.json"
 STREAM = "stream"
+#: disk space a run holds from its start for its ending's summary.json (``reserve``): on a disk that
+#: fills during the run, the ending frees it and writes its summary there (a summary is ~10 kB)
+RESERVE = ".ending.reserve"
+RESERVE_BYTES = 128 << 10
 #: what a run writes into its folder (README "Run folder")
 RUN_FILES = frozenset({SUMMARY, "metrics.parquet", "result.npz", "result.usda", "result.usdc", "guides.npz",
-                       "recording.rrd", "recording.partial.rrd", "comparison.rrd", "comparison.partial.rrd"})
+                       "recording.rrd", "recording.partial.rrd", "comparison.rrd", "comparison.partial.rrd",
+                       RESERVE})
 RUN_DIRS = frozenset({STREAM, "result.clips", "result.clips.tmp"})   # the USD result's value clips (io/usd_write.py)
 
 
@@ -54,6 +59,31 @@ def _removable(folder: Path, top: bool) -> tuple[list[Path], list[Path]]:
         else:
             foreign.append(p)
     return ours, foreign
+
+
+def reserve(folder: Path) -> bool:
+    """Hold RESERVE_BYTES of the disk in ``folder`` (a file of zeros, its blocks allocated), so
+    that a run whose disk fills still has room for its ending's summary.json (it stayed "running",
+    and a later run was told the run had been killed; probe of issue 12).  False if the disk has
+    not even that much free (nothing is left behind)."""
+    path = Path(folder) / RESERVE
+    try:
+        with open(path, "wb") as f:
+            f.write(bytes(RESERVE_BYTES))
+            f.flush()
+            os.fsync(f.fileno())
+        return True
+    except OSError:
+        path.unlink(missing_ok=True)
+        return False
+
+
+def free_reserve(folder: Path) -> None:
+    """Give the space ``reserve`` held back to the disk (just before the summary is written)."""
+    try:
+        (Path(folder) / RESERVE).unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 def owner() -> dict:
