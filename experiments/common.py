@@ -55,7 +55,11 @@ def check_set(ap, overrides, base=("experiment=goaling_smoke", "variants=[]")) -
     if not overrides:
         return
     from hairexp.app.assemble import check_config
+    from hairexp.app.cli import compose_error
 
+    msg = compose_error([*base, *overrides])   # the command line's one-line message (nearest key, why)
+    if msg is not None:
+        ap.error(f"--set {' '.join(overrides)}: {msg}")
     try:
         check_config(compose([*base, *overrides]))
     except Exception as exc:   # noqa: BLE001  (Hydra's composition errors, the schema's, InputError)

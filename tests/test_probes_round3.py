@@ -322,7 +322,7 @@ def test_export_scene_help_and_usage(capsys):
     ("contact", ["--frames", "-5"], "argument --frames: '-5' is not a positive integer"),
     ("contact", ["--runs", "nope"], "argument --runs: invalid choice: 'nope'"),
     ("contact", ["--modes", "nope"], "argument --modes: invalid choice: 'nope'"),
-    ("contact", ["--set", "solver.dtt=1"], "--set solver.dtt=1: Could not override 'solver.dtt'"),
+    ("contact", ["--set", "solver.dtt=1"], "--set solver.dtt=1: solver.dtt: unknown key, not in the schema (hairexp/app/config.py); did you mean 'solver.dt'?"),
     ("fidelity", ["--vertices", "-4"], "argument --vertices: '-4' is not an integer >= 3"),
     ("fidelity_static", ["--vertices", "2"], "argument --vertices: '2' is not an integer >= 3"),
     ("integrators", ["--dts", "-0.01"], "argument --dts: '-0.01' is not a positive number"),

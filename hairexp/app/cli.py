@@ -461,7 +461,7 @@ def _hydra_arg(a: str) -> bool:
     return a.startswith(("hydra.", "hydra/", "+hydra", "~hydra"))
 
 
-def _compose_error(overrides: list[str], input_errors: bool = True) -> str | None:
+def compose_error(overrides: list[str], input_errors: bool = True) -> str | None:
     """The message (without the ``hairexp: error:`` prefix) of ``overrides`` whose config cannot
     be composed, or None; ``input_errors=False``: hairexp's own checks (``InputError``: a ``+key``
     not in the schema, a boolean given ``2``) are left to the jobs."""
@@ -546,10 +546,10 @@ def config_error(argv: list[str]) -> str | None:
         return None
     overrides = [a for a in argv if not (a.startswith("-") or _hydra_arg(a))]
     if not multirun:
-        msg = _compose_error(overrides)
+        msg = compose_error(overrides)
         return None if msg is None else f"hairexp: error: {msg}"
     for job_overrides, swept in _sweep_jobs(overrides) or []:
-        msg = _compose_error(job_overrides, input_errors=False)
+        msg = compose_error(job_overrides, input_errors=False)
         if msg is not None:
             return f"hairexp: error: sweep job [{' '.join(swept)}]: {msg}" if swept else f"hairexp: error: {msg}"
     return None
