@@ -554,3 +554,18 @@ def test_variant_value_errors_say_what_to_do():
                                                         "extra: 1}]"])
     assert msg == "hairexp: error: variants: unknown key 'extra' in an item of the value (its keys are: name, overrides)"
     assert "did you mean 'solver.dt'" in cli.config_error(["experiment=goaling_smoke", "solver.dtt=3"])
+
+
+def test_a_run_folder_on_a_nearly_full_disk_is_refused_before_hydra(tmp_path, monkeypatch):
+    """4 kB free: Hydra's own .hydra/ write failed with a traceback, exit 1 (probe of the fourth
+    round).  Checked before Hydra starts: one line, as any unusable run folder (exit 4)."""
+    class Tiny:
+        f_bavail, f_frsize = 1, 4096
+
+    real = os.statvfs
+    monkeypatch.setattr(cli.os, "statvfs", lambda p: Tiny() if str(p).startswith(str(tmp_path)) else real(p))
+    msg = cli.run_dir_error([f"hydra.run.dir={tmp_path / 'run'}"])
+    assert msg == (f"hairexp: error: hydra.run.dir={tmp_path / 'run'}: cannot be the run folder: its disk has 4 kB free, "
+                   "less than the 256 kB a run needs to start")
+    monkeypatch.setattr(cli.os, "statvfs", real)
+    assert cli.run_dir_error([f"hydra.run.dir={tmp_path / 'run'}"]) is None

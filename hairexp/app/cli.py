@@ -229,6 +229,11 @@ def exit_code() -> int:
     return 0 if LAST is None else int(LAST["code"])
 
 
+#: free disk a run folder's filesystem must have before Hydra starts: Hydra's .hydra/ files, the
+#: running summary and the room held for the ending (hairexp/outputs/folder.py RESERVE_BYTES)
+MIN_FREE_BYTES = 256 << 10
+
+
 def _unusable_folder(path: str) -> str | None:
     """Why ``path`` cannot be (or be made) a writable folder, or None.  Nothing is left behind:
     writability is tried with a temporary folder, removed at once."""
@@ -250,6 +255,10 @@ def _unusable_folder(path: str) -> str | None:
         if not probe.is_dir():
             return f"{probe} is a file" if probe == p else f"{probe} is a file, not a folder to create it in"
         tempfile.TemporaryDirectory(dir=probe, prefix=".hairexp-probe-").cleanup()
+        st = os.statvfs(probe)
+        free = st.f_bavail * st.f_frsize
+        if free < MIN_FREE_BYTES:   # Hydra's own .hydra/ writes would fail with a traceback, exit 1 (probe of issue 12)
+            return f"its disk has {free / 1024:.0f} kB free, less than the {MIN_FREE_BYTES >> 10} kB a run needs to start"
     except OSError as exc:
         why = exc.strerror or errno.errorcode.get(exc.errno or 0, type(exc).__name__)
         return f"cannot create a folder in {probe}: {why}" if probe != p else f"cannot write in {p}: {why}"
