@@ -22,6 +22,7 @@ SIGTERM.
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import json
 import logging
@@ -36,12 +37,14 @@ from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
+import hairexp.app.config as config_mod
 from hairexp.app.config import CONF_DIR, check_bool_overrides, check_keys, compose_config, unknown_key_hint
 from hairexp.app.experiment import run_experiment
 from hairexp.app.signals import child_pids, forward
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, SimulationError
 from hairexp.outputs.files import write_json
+from hairexp.outputs.folder import used_refusal
 
 log = logging.getLogger("hairexp")
 OUTCOME = Path(".hydra") / "outcome.json"
@@ -345,8 +348,6 @@ def used_dir_error(argv: list[str]) -> str | None:
     run's own ``claim`` checks it again (launches racing into one folder, a config's overwrite)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from hairexp.outputs.folder import used_refusal
-
     if any(a in ("-m", "--multirun") or a.lstrip("+") in ("hydra.mode=MULTIRUN", "hydra.mode=multirun") for a in argv):
         return None
     parser = OverridesParser.create()
@@ -488,10 +489,6 @@ def compose_error(overrides: list[str], input_errors: bool = True) -> str | None
         if unknown and inner and inner.group(1) != unknown.group(1).rsplit(".", 1)[-1]:
             # a key inside a record of the value (a variant's, an edit's, a collider's): named, with
             # the record's fields (it said "variants: unknown key ...; did you mean 'variants'?")
-            import dataclasses
-
-            import hairexp.app.config as config_mod
-
             t = getattr(config_mod, inner.group(2), None)
             fields = ", ".join(f.name for f in dataclasses.fields(t)) if dataclasses.is_dataclass(t) else ""
             return (f"{unknown.group(1)}: unknown key {inner.group(1)!r} in an item of the value"
