@@ -230,6 +230,32 @@ def test_bad_guide_files_name_the_key_and_file(base, guide_file, name, make, mat
     assert err.value.where.startswith(f"guides.file={path}"), str(err.value)
 
 
+def _far_in_frame_1(p):
+    p = p.copy()
+    p[1, 3] = [2e4, 0.0, 0.0]   # one vertex of one later frame: a unit error, not the fold it also makes
+    return p
+
+
+@pytest.mark.parametrize("name, arrays, match", [
+    ("no_fps", lambda p, o: {"guide_positions": p, "guide_offsets": o}, r"has no array 'fps' \(a guide npz holds "
+                                                                          r"guide_positions, guide_offsets and fps; this "
+                                                                          r"one has guide_positions, guide_offsets\)"),
+    ("fps_pair", lambda p, o: {"guide_positions": p, "guide_offsets": o, "fps": np.array([25.0, 25.0])},
+     r"fps must be one number, got an array of shape \(2,\)"),
+    ("far_later", lambda p, o: {"guide_positions": _far_in_frame_1(p), "guide_offsets": o, "fps": np.float64(25.0)},
+     r"frame 1, curve 0 vertex 3 is at .* more than 10000 m from the origin"),
+])
+def test_guide_file_arrays_are_named(base, guide_file, name, arrays, match):
+    """A missing array or an fps of two numbers gave numpy's KeyError / TypeError text; a far point
+    in a later frame was told as a fold (probes of the fourth round)."""
+    d, pos, off = guide_file
+    path = d / f"{name}.npz"
+    np.savez(path, **arrays(pos, off))
+    with pytest.raises(InputError, match=match) as err:
+        assemble_scene(file_cfg(base, path), settle=False)
+    assert err.value.where.startswith(f"guides.file={path}"), str(err.value)
+
+
 def test_a_valid_guide_file_still_runs(base, guide_file):
     d, pos, off = guide_file
     path = d / "ok.npz"

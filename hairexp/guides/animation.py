@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from hairexp.errors import InputError, regular_file
+from hairexp.errors import InputError, check_extent, regular_file
 from hairexp.guides.store import BLOCK_BYTES, FrameStore
 from hairexp.model.dynamic_body import authoring_motion
-from hairexp.model.strands import validate_polylines
+from hairexp.model.strands import check_folds, validate_polylines
 
 
 class GuideAnimation:
@@ -64,7 +64,9 @@ class GuideAnimation:
         if not (np.isfinite(self.fps) and self.fps > 0):
             raise InputError(f"fps must be > 0, got {self.fps}", self.where)
         for f, P in enumerate(self.frames):
-            validate_polylines(P, counts, f"{self.where} frame {f}", min_vertices=2)
+            validate_polylines(P, counts, f"{self.where} frame {f}", min_vertices=2, folds=False)
+            check_extent(P, self.where, counts, frame=f)   # a point 1e30 away: a unit error, not a fold
+            check_folds(np.asarray(P, dtype=np.float64), counts, f"{self.where} frame {f}")
         self._rest = np.array(self.frames[0])
         self._body_cache: dict[int, np.ndarray] = {}
         self.attach(motion)
@@ -196,8 +198,14 @@ def file_guides(path, motion, frames: int | None = None, fps: float | None = Non
             raise InputError(f"is a single {type(data).__name__} (.npy), not an npz with guide_positions, "
                              "guide_offsets and fps", where)
         with data:
+            missing = [k for k in ("guide_positions", "guide_offsets", "fps") if k not in data.files]
+            if missing:
+                raise InputError(f"has no array {', '.join(repr(k) for k in missing)} (a guide npz holds guide_positions, "
+                                 f"guide_offsets and fps; this one has {', '.join(data.files) or 'none'})", where)
             pos, off, gfps = data["guide_positions"], data["guide_offsets"], data["fps"]
-            gfps = float(gfps)
+            if np.size(gfps) != 1:
+                raise InputError(f"fps must be one number, got an array of shape {np.shape(gfps)}", where)
+            gfps = float(np.asarray(gfps).reshape(-1)[0])
     except InputError:
         raise
     except Exception as exc:   # a truncated, corrupt or empty file: zipfile, pickle, EOF and shape errors
