@@ -595,3 +595,18 @@ def test_a_run_folder_on_a_nearly_full_disk_is_refused_before_hydra(tmp_path, mo
                    "less than the 256 kB a run needs to start")
     monkeypatch.setattr(cli.os, "statvfs", real)
     assert cli.run_dir_error([f"hydra.run.dir={tmp_path / 'run'}"]) is None
+
+
+@pytest.mark.parametrize("collider, contact, match", [
+    ("{name: floor, shape: plane, motion: {times: [0.0], translations: [[0.0,-0.25,0.0]], rotations_deg: [[0.0,0.0,0.0]]}}",
+     "stage", r"collider 'floor': the hair starts inside it \(strand \d vertex \d by 50 mm at t = 0; 12 vertices in all\)"),
+    ("{name: ball, shape: sphere, radius: 0.05, motion: {times: [0.0], translations: [[0.0,-0.2,0.05]], "
+     "rotations_deg: [[0.0,0.0,0.0]]}}", "barrier", r"collider 'ball': the hair starts within its thickness shell"),
+])
+def test_a_collider_across_the_hair_at_rest_is_refused(collider, contact, match):
+    """A plane across the hanging hair (the stage), a ball in it (the barrier): the first step
+    diverged, told "try a smaller solver.dt" (exit 3; probes of the fourth round)."""
+    cfg = compose_config([*SMALL, f"scene.colliders=[{collider}]", f"collision.contact={contact}", "measure.name=none"])
+    with pytest.raises(InputError, match=match) as err:
+        assemble_scene(cfg, settle=False)
+    assert err.value.where == "scene.colliders[0]"

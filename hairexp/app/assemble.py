@@ -25,11 +25,14 @@ import logging
 from dataclasses import dataclass
 from typing import Iterator
 
+import numpy as np
+
 from hairexp.app.builders import build_scene
 from hairexp.app.guard import guard_run
 from hairexp.app.guides import build_guides
 from hairexp.app.validate import validate_config, validate_measure
 from hairexp.control import build_controller
+from hairexp.errors import InputError
 from hairexp.guides.animation import GuideAnimation
 from hairexp.model.builders import check_counts
 from hairexp.model.scene import Scene
@@ -128,10 +131,37 @@ def _assemble_scene(cfg, settle: bool):
     if usd:       # a stage's size is known once it is read
         guard_run(cfg, scene.strands.n_vertices, n_sub, run=settle)
     validate_measure(cfg, scene)
+    check_clear_start(scene, str(_value(cfg.collision.contact)))
     if settle:
         scene = settle_scene(scene, cfg)   # scene.settle > 0: start from the hair at rest under gravity
     guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
     return cfg, scene, guides, n_sub, dt
+
+
+def check_clear_start(scene, contact: str) -> None:
+    """InputError naming the collider when a free hair vertex starts inside it at t = 0 (with the
+    contact barrier: within its thickness shell, where the barrier is infinite).  Such a start
+    diverged in the first step ("try a smaller solver.dt", exit 3: a plane across the hanging hair,
+    any collider with the barrier; probe of issue 12).  The paper scenes start 1.4-70 cm clear."""
+    if not scene.colliders:
+        return
+    x = scene.initial_positions()
+    free = np.flatnonzero(~scene.strands.kinematic)
+    shell = contact == "barrier"
+    for i, c in enumerate(scene.colliders):
+        R, T = c.motion.pose(0.0)
+        d = c.sdf_body((x[free] - T) @ R) - (float(c.thickness) if shell else 0.0)
+        bad = np.flatnonzero(d < 0)
+        if bad.size:
+            k = int(bad[np.argmin(d[bad])])
+            v = int(free[k])
+            s_ = int(scene.strands.strand_of_vertex[v])
+            inside = "within its thickness shell" if shell else "inside it"
+            raise InputError(f"collider {c.name!r}: the hair starts {inside} (strand {s_} vertex "
+                             f"{v - int(scene.strands.offsets[s_])} by {1e3 * -float(d[k]):.3g} mm at t = 0; {bad.size} "
+                             f"vertices in all): place the collider clear of the hair at rest"
+                             + (" (the contact barrier needs a start free of contact)" if shell else ""),
+                             getattr(c, "where", None) or f"scene.colliders[{i}]")
 
 
 def assemble(cfg) -> Run:
