@@ -610,3 +610,22 @@ def test_a_collider_across_the_hair_at_rest_is_refused(collider, contact, match)
     with pytest.raises(InputError, match=match) as err:
         assemble_scene(cfg, settle=False)
     assert err.value.where == "scene.colliders[0]"
+
+
+def test_fourth_round_bounds_and_references(base):
+    """collision.max_passes=1e9 never ended a step with hair resting on a collider; block_rail on a
+    keyframed body read its motion as a block leaving a rail (exit 0); Simulator.step with dt -0.01
+    stepped time backwards and said converged (probes of the fourth round)."""
+    from hairexp.app.assemble import assemble
+
+    with pytest.raises(InputError, match=r"must be <= 1000, got 1000000000") as err:
+        validate_config(updated(base, collision__max_passes=1_000_000_000))
+    assert err.value.where == "collision.max_passes"
+    with pytest.raises(InputError, match=r"block_rail measures a dynamic block") as err:
+        assemble_scene(updated(base, measure__name="block_rail"), settle=False)
+    assert err.value.where == "measure.name"
+    run = assemble(base)
+    state = run.initial_state()
+    for dt in (-0.01, 0.0, float("nan")):
+        with pytest.raises(ValueError, match=r"dt must be a finite number > 0"):
+            run.simulator.step(state, dt)

@@ -48,6 +48,10 @@ def number(value, key: str, lo: float | None = None, hi: float | None = None, lo
     return v
 
 
+#: ``collision.max_passes`` at most this (each pass checks every vertex against every collider)
+MAX_COLLISION_PASSES = 1000
+
+
 def integer(value, key: str, lo: int) -> int:
     """``value`` as an int >= lo."""
     if isinstance(value, bool) or not isinstance(value, int):
@@ -142,6 +146,8 @@ def _collision(c) -> None:
     number(c.hair_thickness, "collision.hair_thickness", lo=0, lo_open=True)
     number(c.skin, "collision.skin", lo=0)
     integer(c.max_passes, "collision.max_passes", 1)
+    if c.max_passes > MAX_COLLISION_PASSES:   # hair resting on a surface counts in every pass: 1e9 never ended
+        raise InputError(f"must be <= {MAX_COLLISION_PASSES}, got {c.max_passes}", "collision.max_passes")
     number(c.strain_limit, "collision.strain_limit", lo=0, hi=1, hi_open=True)
     number(c.volume_cell, "collision.volume_cell", lo=0, lo_open=True)
     number(c.volume_friction, "collision.volume_friction", lo=0)
@@ -264,8 +270,12 @@ def validate_judge_controllers(cfg, names: list[str], controllers: list[str]) ->
 
 
 def validate_measure(cfg, scene) -> None:
-    """The measure's references into the built scene (``measure.collider``), before the first step
-    rather than after the whole simulation."""
+    """The measure's references into the built scene (``measure.collider``, the dynamic block of
+    ``block_rail``), before the first step rather than after the whole simulation."""
+    if str(_value(cfg.measure.name)) == "block_rail" and scene.body is None:
+        # it read a keyframed body's motion as a block leaving its rail, exit 0 (probe of issue 12)
+        raise InputError("block_rail measures a dynamic block on its rail (scene.body.dynamic=true, the stylization "
+                         "scene); this scene's body is keyframed", "measure.name")
     if str(_value(cfg.measure.name)) == "collider_contact":
         collider_named(scene, str(cfg.measure.collider))
     if str(_value(cfg.measure.name)) == "clumps":   # measured at measure.time; < 0: the last frame

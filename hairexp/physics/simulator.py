@@ -370,6 +370,10 @@ class Simulator:
 
     # -- public ---------------------------------------------------------------------------
     def step(self, state: State, dt: float) -> tuple[State, StepInfo]:
+        if not (np.isfinite(dt) and dt > 0):   # -0.01 stepped time backwards and said converged (probe of issue 12)
+            raise ValueError(f"Simulator.step: dt must be a finite number > 0 (s), got {dt!r}")
+        if not (np.isfinite(state.x).all() and np.isfinite(state.v).all()):
+            raise ValueError("Simulator.step: the state's positions or velocities are not finite")
         t0 = time.perf_counter()
         self._attempted = 0
         new, infos = self._advance(state, dt, 0)
