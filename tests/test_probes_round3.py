@@ -629,3 +629,14 @@ def test_fourth_round_bounds_and_references(base):
     for dt in (-0.01, 0.0, float("nan")):
         with pytest.raises(ValueError, match=r"dt must be a finite number > 0"):
             run.simulator.step(state, dt)
+
+
+def test_compose_config_names_an_unknown_key_and_refuses_a_string():
+    """compose_config (the Python API, export_scene) gave Hydra's "use +solver.dtt" advice, which
+    the schema refuses too, and read a single string character by character (probes of the
+    fourth round)."""
+    with pytest.raises(InputError, match=r"unknown key, not in the schema .*did you mean 'solver.dt'") as err:
+        compose_config([*SMALL, "solver.dtt=0.1"])
+    assert err.value.where == "solver.dtt"
+    with pytest.raises(TypeError, match=r"overrides must be a list of 'key=value' strings"):
+        compose_config("experiment=goaling_smoke")

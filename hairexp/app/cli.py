@@ -477,8 +477,8 @@ def compose_error(overrides: list[str], input_errors: bool = True) -> str | None
     not in the schema, a boolean given ``2``) are left to the jobs."""
     try:
         compose_config(overrides)
-    except InputError as exc:
-        return str(exc) if input_errors else None
+    except InputError as exc:   # a key not in the schema is a composition error, in a sweep's jobs too
+        return str(exc) if input_errors or "unknown key, not in the schema" in str(exc) else None
     except Exception as exc:   # Hydra's composition and override-parsing errors, OmegaConf's validation
         msg = str(exc).strip()
         cause = exc.__cause__ or exc.__context__

@@ -624,14 +624,27 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
     before and after, so it can be called any number of times.  A key not in the schema (added
     with ``+``) is an InputError naming it (``check_keys``), as is a boolean key given anything
     but true or false (``check_bool_overrides``: OmegaConf would read ``2`` as true)."""
+    import re
+
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
+    if isinstance(overrides, (str, bytes)) or not all(isinstance(o, str) for o in overrides):
+        # a single string was read character by character ("Error parsing override 'e'"; probe of issue 12)
+        raise TypeError(f"compose_config: overrides must be a list of 'key=value' strings, got {overrides!r}")
     check_bool_overrides(overrides)
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             cfg = compose(config_name="config", overrides=list(overrides))
+    except Exception as exc:   # Hydra's "use +key" for a key not in the schema, which check_keys refuses too
+        unknown = re.match(r"Could not override '([^']+)'\.\s+To append to your config use \+", str(exc))
+        inner = re.search(r"Key '([^']+)' not in", str(exc.__cause__ or exc.__context__ or ""))
+        if unknown and not (inner and inner.group(1) != unknown.group(1).rsplit(".", 1)[-1]):
+            hint = unknown_key_hint(unknown.group(1))
+            raise InputError("unknown key, not in the schema (hairexp/app/config.py)" + (f"; {hint}" if hint else ""),
+                             unknown.group(1)) from exc
+        raise
     finally:
         GlobalHydra.instance().clear()
     check_keys(cfg)
