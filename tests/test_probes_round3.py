@@ -640,3 +640,19 @@ def test_compose_config_names_an_unknown_key_and_refuses_a_string():
     assert err.value.where == "solver.dtt"
     with pytest.raises(TypeError, match=r"overrides must be a list of 'key=value' strings"):
         compose_config("experiment=goaling_smoke")
+
+
+@pytest.mark.parametrize("edit, key, match", [
+    ({"guide": 0, "kind": "rotate", "offset": [0.05, 0.0, 0.0], "times": [0.0, 0.1], "weights": [0.0, 1.0]},
+     "guides.edits[0].offset", r"is a displace edit's key"),
+    ({"guide": 0, "kind": "displace", "angle_deg": 30.0, "offset": [0.05, 0.0, 0.0], "times": [0.0, 0.1],
+      "weights": [0.0, 1.0]}, "guides.edits[0].angle_deg", r"is a rotate edit's key"),
+    ({"guide": 0, "kind": "displace", "offset": [0.05, 0.0, 0.0], "falloff": float("inf"), "times": [0.0, 0.1],
+      "weights": [0.0, 1.0]}, "guides.edits[0].falloff", r"must be a finite number > 0 .*got inf"),
+])
+def test_a_guide_edit_with_the_other_kinds_key_is_refused(base, edit, key, match):
+    """A rotate edit given an offset and no angle did nothing, exit 0; falloff inf was told 'must be
+    > 0' (probes of the fourth round)."""
+    with pytest.raises(InputError, match=match) as err:
+        assemble_scene(updated(base, guides__edits=[edit]), settle=False)
+    assert err.value.where == key

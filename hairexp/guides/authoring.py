@@ -46,6 +46,8 @@ rotation onto the first edge (paper 3.2), which is undefined at 180 degrees and 
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from scipy.interpolate import CubicHermiteSpline, CubicSpline
 from scipy.spatial.transform import Rotation
@@ -156,12 +158,22 @@ def _edit(i: int, e, G: int, offsets: np.ndarray, rest: np.ndarray):
     weight = KeyedWeight(e.times, e.weights, where)
     a, b = int(offsets[g]), int(offsets[g + 1])
     kind = _kind(e.kind)
+    # the other kind's amount set: that edit is not the one asked for (a rotate with an offset and no
+    # angle did nothing, exit 0; probe of issue 12)
+    if kind == "rotate" and np.any(np.asarray(e.offset, dtype=float) != 0):
+        raise InputError("is a displace edit's key; a rotate edit turns the guide by angle_deg about axis "
+                         "(kind: displace to move it by offset)", f"{where}.offset")
+    if kind == "displace" and float(e.angle_deg) != 0:
+        raise InputError("is a rotate edit's key; a displace edit moves the guide by offset "
+                         "(kind: rotate to turn it by angle_deg)", f"{where}.angle_deg")
     if kind == "rotate":
         axis = _vector(e.axis, f"{where}.axis", nonzero=True)
         axis /= np.linalg.norm(axis)
         angle = float(e.angle_deg)
         if not np.isfinite(angle):
             raise InputError(f"must be finite, got {angle}", f"{where}.angle_deg")
+        if angle == 0:
+            logging.getLogger("hairexp").warning("%s: angle_deg is 0: this rotate edit leaves the guide as it is", where)
 
         def rotate(P, times, R):
             w = weight(times)
@@ -174,7 +186,7 @@ def _edit(i: int, e, G: int, offsets: np.ndarray, rest: np.ndarray):
         offset = _vector(e.offset, f"{where}.offset")
         p = float(e.falloff)
         if not (np.isfinite(p) and p > 0):
-            raise InputError(f"must be > 0 (0 would move the root), got {p}", f"{where}.falloff")
+            raise InputError(f"must be a finite number > 0 (0 would move the root), got {p}", f"{where}.falloff")
         profile = rest_arclength_fraction(rest[a:b]) ** p       # 0 at the root exactly
 
         def displace(P, times, R):
