@@ -653,6 +653,11 @@ def test_compose_config_names_an_unknown_key_and_refuses_a_string():
 def test_a_guide_edit_with_the_other_kinds_key_is_refused(base, edit, key, match):
     """A rotate edit given an offset and no angle did nothing, exit 0; falloff inf was told 'must be
     > 0' (probes of the fourth round)."""
+    import json as _json
+
+    from hairexp.app.experiment import apply_overrides
+
+    cfg = apply_overrides(base, [f"guides.edits=[{_json.dumps(edit).replace('Infinity', '.inf')}]"], "test")
     with pytest.raises(InputError, match=match) as err:
-        assemble_scene(updated(base, guides__edits=[edit]), settle=False)
+        assemble_scene(cfg, settle=False)
     assert err.value.where == key
