@@ -661,3 +661,25 @@ def test_a_guide_edit_with_the_other_kinds_key_is_refused(base, edit, key, match
     with pytest.raises(InputError, match=match) as err:
         assemble_scene(cfg, settle=False)
     assert err.value.where == key
+
+
+def test_assemble_with_variants_and_a_renamed_collider_are_said(base, tmp_path, caplog):
+    """assemble() on an experiment's config built the base config without a word about its
+    variants; export_scene renamed a collider 'a/b c' to the prim a_b_c without a word
+    (probes of the fourth round)."""
+    import logging
+
+    from hairexp.app.assemble import assemble
+    from hairexp.io.export_scene import main as export_main
+
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        assemble(compose_config(["experiment=goaling_smoke", "frames=2", "logging.rerun=false"]))
+    assert any("this builds the base config without them" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    collider = ("{name: 'a/b c', shape: sphere, radius: 0.05, motion: {times: [0.0], translations: [[0.0,-0.2,0.3]], "
+                "rotations_deg: [[0.0,0.0,0.0]]}}")
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        assert export_main([str(tmp_path / "s.usda"), "experiment=goaling_smoke", "frames=2", "measure.name=none",
+                            f"scene.colliders=[{collider}]"]) == 0
+    assert any("collider 'a/b c' is written as the prim /Root/Colliders/a_b_c" in r.getMessage()
+               for r in caplog.records), [r.getMessage() for r in caplog.records]

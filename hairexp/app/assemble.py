@@ -166,6 +166,10 @@ def check_clear_start(scene, contact: str) -> None:
 
 def assemble(cfg) -> Run:
     """The run of a composed config (``compose_config`` or Hydra's), ready to step."""
+    if getattr(cfg, "variants", None):   # said: the variants are run_experiment's (probe of issue 12)
+        log.warning("assemble: the config has %d variant(s); this builds the base config without them "
+                    "(hairexp.app.experiment.run_experiment runs each variant; variants=[] silences this)",
+                    len(cfg.variants))
     cfg, scene, guides, n_sub, dt = _assemble_scene(cfg, settle=True)
     controller = build_controller(str(_value(cfg.controller.name)), cfg, scene, guides)
     sim = Simulator(scene, cfg.solver, controller, cfg.collision)

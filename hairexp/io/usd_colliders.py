@@ -14,6 +14,7 @@ Each has the custom attributes ``hairexp:thickness`` (m) and ``hairexp:friction`
 
 from __future__ import annotations
 
+import logging
 import math
 
 from pxr import Sdf, Tf, Usd, UsdGeom
@@ -114,6 +115,10 @@ def write_colliders(stage, colliders: list, pose_samples) -> list:
         while name in used:
             name += "_"
         used.add(name)
+        if name != c.name:   # a prim name is an identifier: said, since measure.collider goes by name (probe of issue 12)
+            logging.getLogger("hairexp").warning(
+                "collider %r is written as the prim %s/%s (USD prim names are identifiers); after re-import its "
+                "name is %r (measure.collider and the metrics' contacts_<name> follow it)", c.name, COLLIDERS, name, name)
         path = f"{COLLIDERS}/{name}"
         if isinstance(c, Sphere):
             g = UsdGeom.Sphere.Define(stage, path)
