@@ -22,7 +22,6 @@ SIGTERM.
 
 from __future__ import annotations
 
-import dataclasses
 import errno
 import json
 import logging
@@ -37,8 +36,7 @@ from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
-import hairexp.app.config as config_mod
-from hairexp.app.config import CONF_DIR, check_bool_overrides, check_keys, compose_config, unknown_key_hint
+from hairexp.app.config import CONF_DIR, check_bool_overrides, check_keys, compose_config
 from hairexp.app.experiment import run_experiment
 from hairexp.app.signals import child_pids, forward
 from hairexp.app.signals import exit_code as signal_exit_code
@@ -477,26 +475,13 @@ def compose_error(overrides: list[str], input_errors: bool = True) -> str | None
     not in the schema, a boolean given ``2``) are left to the jobs."""
     try:
         compose_config(overrides)
-    except InputError as exc:   # a key not in the schema is a composition error, in a sweep's jobs too
-        return str(exc) if input_errors or "unknown key, not in the schema" in str(exc) else None
+    except InputError as exc:   # a key not in the schema (or in a record of a value) is a composition
+        return str(exc) if input_errors or "unknown key" in str(exc) else None   # error, in a sweep's jobs too
     except Exception as exc:   # Hydra's composition and override-parsing errors, OmegaConf's validation
         msg = str(exc).strip()
         cause = exc.__cause__ or exc.__context__
         if cause is not None and str(cause).strip():   # "Error merging override x=y" says why only here
             msg += ": " + str(cause).strip().splitlines()[0]
-        unknown = re.match(r"Could not override '([^']+)'\.\s+To append to your config use \+", msg)
-        inner = re.search(r"Key '([^']+)' not in '(\w+)'", str(cause or ""))
-        if unknown and inner and inner.group(1) != unknown.group(1).rsplit(".", 1)[-1]:
-            # a key inside a record of the value (a variant's, an edit's, a collider's): named, with
-            # the record's fields (it said "variants: unknown key ...; did you mean 'variants'?")
-            t = getattr(config_mod, inner.group(2), None)
-            fields = ", ".join(f.name for f in dataclasses.fields(t)) if dataclasses.is_dataclass(t) else ""
-            return (f"{unknown.group(1)}: unknown key {inner.group(1)!r} in an item of the value"
-                    + (f" (its keys are: {fields})" if fields else ""))
-        if unknown:   # Hydra advises "+key", which the schema refuses too (check_keys)
-            hint = unknown_key_hint(unknown.group(1))
-            return (f"{unknown.group(1)}: unknown key, not in the schema (hairexp/app/config.py)"
-                    + (f"; {hint}" if hint else ""))
         if "incompatible with type hint 'float'" in msg:   # scene.motion.translations=[[0,0,0]]
             msg += ("; write such a number as a float (0.0, not 0): inside a list of lists OmegaConf does not "
                     "turn an integer into a float")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import re
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -624,8 +625,6 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
     before and after, so it can be called any number of times.  A key not in the schema (added
     with ``+``) is an InputError naming it (``check_keys``), as is a boolean key given anything
     but true or false (``check_bool_overrides``: OmegaConf would read ``2`` as true)."""
-    import re
-
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
@@ -639,12 +638,20 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
             cfg = compose(config_name="config", overrides=list(overrides))
     except Exception as exc:   # Hydra's "use +key" for a key not in the schema, which check_keys refuses too
         unknown = re.match(r"Could not override '([^']+)'\.\s+To append to your config use \+", str(exc))
-        inner = re.search(r"Key '([^']+)' not in", str(exc.__cause__ or exc.__context__ or ""))
-        if unknown and not (inner and inner.group(1) != unknown.group(1).rsplit(".", 1)[-1]):
-            hint = unknown_key_hint(unknown.group(1))
-            raise InputError("unknown key, not in the schema (hairexp/app/config.py)" + (f"; {hint}" if hint else ""),
-                             unknown.group(1)) from exc
-        raise
+        if not unknown:
+            raise
+        key = unknown.group(1)
+        inner = re.search(r"Key '([^']+)' not in '(\w+)'", str(exc.__cause__ or exc.__context__ or ""))
+        if inner and inner.group(1) != key.rsplit(".", 1)[-1]:
+            # a key inside a record of the value (a variant's, an edit's, a collider's), named with the
+            # record's fields (it said "variants: unknown key ...; did you mean 'variants'?")
+            t = globals().get(inner.group(2))
+            fields = ", ".join(f.name for f in dataclasses.fields(t)) if dataclasses.is_dataclass(t) else ""
+            raise InputError(f"unknown key {inner.group(1)!r} in an item of the value"
+                             + (f" (its keys are: {fields})" if fields else ""), key) from exc
+        hint = unknown_key_hint(key)
+        raise InputError("unknown key, not in the schema (hairexp/app/config.py)" + (f"; {hint}" if hint else ""),
+                         key) from exc
     finally:
         GlobalHydra.instance().clear()
     check_keys(cfg)
