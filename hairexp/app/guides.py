@@ -9,7 +9,7 @@ import copy
 import numpy as np
 
 from hairexp.model.builders import check_counts
-from hairexp.errors import InputError, SimulationError, check_extent, regular_file
+from hairexp.errors import InputError, SimulationError, regular_file
 from hairexp.guides.animation import GuideAnimation, carried_guides, file_guides, rest_guides
 from hairexp.guides.authoring import apply_edits, keyframed_positions
 from hairexp.guides.store import FrameStore
@@ -36,9 +36,7 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
             if where.startswith(str(g.file)) and not where.startswith("guides.file="):
                 raise InputError(str(exc)[len(where) + 2:], f"guides.file={where}") from exc
             raise
-        for f, X in enumerate(anim.frames):   # one frame at a time (a FrameStore)
-            check_extent(X, f"guides.file={g.file}", np.diff(anim.offsets), frame=f)
-        return anim
+        return anim   # every frame's extent checked by GuideAnimation
     if source == "usd":  # the guide prim of the stage scene.usd
         from hairexp.io.usd_read import read_guides   # pxr is imported only for USD scenes
 

@@ -64,9 +64,9 @@ class GuideAnimation:
         if not (np.isfinite(self.fps) and self.fps > 0):
             raise InputError(f"fps must be > 0, got {self.fps}", self.where)
         for f, P in enumerate(self.frames):
-            validate_polylines(P, counts, f"{self.where} frame {f}", min_vertices=2, folds=False)
+            P, _ = validate_polylines(P, counts, f"{self.where} frame {f}", min_vertices=2, folds=False)
             check_extent(P, self.where, counts, frame=f)   # a point 1e30 away: a unit error, not a fold
-            check_folds(np.asarray(P, dtype=np.float64), counts, f"{self.where} frame {f}")
+            check_folds(P, counts, f"{self.where} frame {f}")
         self._rest = np.array(self.frames[0])
         self._body_cache: dict[int, np.ndarray] = {}
         self.attach(motion)

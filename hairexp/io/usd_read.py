@@ -227,15 +227,13 @@ def read_guides(cfg, scene, frames: int, fps: float):
         elif len(pts) != n0:
             raise InputError(f"time code {f} has {len(pts)} points, time code 0 has {n0}: the guide topology "
                              "must stay the same in every frame", where)
-        validate_polylines(pts, counts, f"{where} frame {f}", min_vertices=2, folds=False)
-        check_extent(pts, where, counts, frame=f)
-        check_folds(pts, counts, f"{where} frame {f}")
+        validate_polylines(pts, counts, f"{where} frame {f}", min_vertices=2, folds=False)   # finite, to transform
         X = apply(pts, xf.ComputeLocalToWorldTransform(Usd.TimeCode(f)))
         if frames_pos is None:
             frames_pos = FrameStore(X.shape)
         frames_pos.append(X)
     offsets = np.concatenate([[0], np.cumsum(counts0)])
-    return GuideAnimation(frames_pos, offsets, tcps, where=where, motion=scene.motion)
+    return GuideAnimation(frames_pos, offsets, tcps, where=where, motion=scene.motion)   # extent, folds: checked there
 
 
 def stage_timing(cfg):
