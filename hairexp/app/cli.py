@@ -327,6 +327,12 @@ def override_syntax_error(argv: list[str]) -> str | None:
     return None
 
 
+def _multirun(argv: list[str]) -> bool:
+    """A ``-m`` sweep: ``-m``/``--multirun`` or ``hydra.mode=MULTIRUN`` on the command line."""
+    return any(a in ("-m", "--multirun") or a.lstrip("+") in ("hydra.mode=MULTIRUN", "hydra.mode=multirun")
+               for a in argv)
+
+
 def _overwrite_given(argv: list[str], parser) -> bool:
     """``overwrite=true`` on the command line (the run's own check decides in every other case)."""
     for arg in argv:
@@ -346,7 +352,7 @@ def used_dir_error(argv: list[str]) -> str | None:
     run's own ``claim`` checks it again (launches racing into one folder, a config's overwrite)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    if any(a in ("-m", "--multirun") or a.lstrip("+") in ("hydra.mode=MULTIRUN", "hydra.mode=multirun") for a in argv):
+    if _multirun(argv):
         return None
     parser = OverridesParser.create()
     if _overwrite_given(argv, parser):
@@ -375,9 +381,7 @@ def run_dir_error(argv: list[str]) -> str | None:
     last ``/`` before the interpolation; a sweep over several folders is left to Hydra."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    multirun = any(a in ("-m", "--multirun") for a in argv) or any(
-        a.lstrip("+") in ("hydra.mode=MULTIRUN", "hydra.mode=multirun") for a in argv)
-    key = "hydra.sweep.dir" if multirun else "hydra.run.dir"
+    key = "hydra.sweep.dir" if _multirun(argv) else "hydra.run.dir"
     parser = OverridesParser.create()
     given = False
     for arg in argv:
