@@ -41,7 +41,7 @@ from hairexp.errors import Interrupted, SimulationError
 from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
-from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, save_npy, write_json, write_npz
+from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, json_bytes, save_npy, write_json, write_npz
 from hairexp.outputs.folder import STREAM, SUMMARY, claim, free_reserve, owner, remove_tmp, reserve
 from hairexp.memory import release, release_every
 from hairexp.outputs.metrics import MetricsTable, measure
@@ -343,7 +343,7 @@ def _write_ending(path: Path, summary: dict) -> None:
     except OSError as exc:
         if exc.errno != errno.ENOSPC or not path.is_file():
             raise
-        data = json.dumps(summary, indent=2, default=str, allow_nan=True).encode()
+        data = json_bytes(summary)   # before the old bytes are freed: the same JSON as write_json's
         with open(path, "r+b") as f:
             f.truncate(0)
             f.write(data)

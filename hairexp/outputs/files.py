@@ -57,7 +57,8 @@ def atomic_write_bytes(path: Path, write) -> None:
         tmp.unlink(missing_ok=True)
 
 
-def write_json(path: Path, obj) -> None:
+def json_bytes(obj) -> bytes:
+    """``obj`` as the project's JSON (indented; numpy numbers and arrays as numbers and lists)."""
     def default(o):
         if isinstance(o, (np.integer,)):
             return int(o)
@@ -67,7 +68,11 @@ def write_json(path: Path, obj) -> None:
             return o.tolist()
         return str(o)
 
-    atomic_write_bytes(Path(path), lambda f: f.write(json.dumps(obj, indent=2, default=default, allow_nan=True).encode()))
+    return json.dumps(obj, indent=2, default=default, allow_nan=True).encode()
+
+
+def write_json(path: Path, obj) -> None:
+    atomic_write_bytes(Path(path), lambda f: f.write(json_bytes(obj)))
 
 
 def save_npy(path: Path, a: np.ndarray) -> None:
