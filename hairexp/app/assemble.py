@@ -28,6 +28,7 @@ from typing import Iterator
 import numpy as np
 
 from hairexp.app.builders import build_scene
+from hairexp.app.config import require_config
 from hairexp.app.guard import guard_run
 from hairexp.app.guides import build_guides
 from hairexp.app.validate import validate_config, validate_measure
@@ -78,8 +79,11 @@ class Run:
         the config's): yields (step, frame, state, info) after every step, steps and frames
         counted from 1."""
         state = self.initial_state() if state is None else state
+        frames = self.frames if frames is None else frames
+        if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 0:
+            raise TypeError(f"Run.steps: frames must be a whole number >= 0, got {frames!r}")
         step = 0
-        for frame in range(1, (self.frames if frames is None else frames) + 1):
+        for frame in range(1, int(frames) + 1):
             for _ in range(self.steps_per_frame):
                 state, info = self.simulator.step(state, self.dt)
                 step += 1
@@ -99,6 +103,7 @@ def assemble_scene(cfg, settle: bool = True) -> tuple[object, Scene, GuideAnimat
     """(config with its timing, scene, guides): the first half of ``assemble``.  ``settle=False``
     keeps the built scene unsettled (the USD export writes the elastic rest shape); the guides are
     the same either way (simulated guides settle on their own, hairexp/app/guides.py)."""
+    require_config(cfg, "assemble_scene")
     return _assemble_scene(cfg, settle)[:3]
 
 
@@ -166,6 +171,7 @@ def check_clear_start(scene, contact: str) -> None:
 
 def assemble(cfg) -> Run:
     """The run of a composed config (``compose_config`` or Hydra's), ready to step."""
+    require_config(cfg, "assemble")
     if getattr(cfg, "variants", None):   # said: the variants are run_experiment's (probe of issue 12)
         log.warning("assemble: the config has %d variant(s); this builds the base config without them "
                     "(hairexp.app.experiment.run_experiment runs each variant; variants=[] silences this)",

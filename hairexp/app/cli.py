@@ -480,15 +480,13 @@ def compose_error(overrides: list[str], input_errors: bool = True) -> str | None
     try:
         compose_config(overrides)
     except InputError as exc:   # a key not in the schema (or in a record of a value) is a composition
-        return str(exc) if input_errors or "unknown key" in str(exc) else None   # error, in a sweep's jobs too
+        composing = "unknown key" in str(exc) or "Error merging override" in str(exc.__cause__ or "")
+        return str(exc) if input_errors or composing else None   # error, in a sweep's jobs too (a wrong type too)
     except Exception as exc:   # Hydra's composition and override-parsing errors, OmegaConf's validation
         msg = str(exc).strip()
         cause = exc.__cause__ or exc.__context__
         if cause is not None and str(cause).strip():   # "Error merging override x=y" says why only here
             msg += ": " + str(cause).strip().splitlines()[0]
-        if "incompatible with type hint 'float'" in msg:   # scene.motion.translations=[[0,0,0]]
-            msg += ("; write such a number as a float (0.0, not 0): inside a list of lists OmegaConf does not "
-                    "turn an integer into a float")
         return " ".join(msg.split()).split(" Config search path:")[0]   # (Hydra's list of its search path)
     return None
 

@@ -191,7 +191,7 @@ class GuideEditKind(str, Enum):
 @dataclass
 class GuideEditConfig:
     """One authored edit layered on the guide animation (hairexp/guides/authoring.py)."""
-    guide: int = 0                     # index of the edited guide
+    guide: Optional[int] = None        # index of the edited guide (required: no edit applies to guide 0 unasked)
     kind: GuideEditKind = GuideEditKind.rotate
     times: list[float] = field(default_factory=lambda: [0.0])     # s, strictly increasing keyframes of weight
     weights: list[float] = field(default_factory=lambda: [1.0])   # multiplier of angle_deg / offset (any sign, may exceed 1)
@@ -450,6 +450,21 @@ class Config:
     on_unconverged: OnUnconverged = OnUnconverged.warn   # steps that did not converge; none converged: always failed
 
 
+def require_config(cfg, where: str) -> None:
+    """``cfg`` is a composed config with every top-level section, or a named error: the Python
+    API's entry points (``assemble``, ``run_folder``) are called with a dict, None or a path, or a
+    config with a section deleted (probe of issue 12: an AttributeError deep in validate.py)."""
+    from omegaconf import DictConfig
+
+    if not isinstance(cfg, DictConfig):
+        raise TypeError(f"{where}: cfg must be a composed config (hairexp.app.compose_config, or Hydra's), "
+                        f"got {type(cfg).__name__} {str(cfg)[:60]!r}")
+    missing = [f.name for f in dataclasses.fields(Config) if f.name not in cfg]
+    if missing:
+        raise InputError(f"missing from the config given to {where} (compose it with hairexp.app.compose_config)",
+                         ", ".join(missing))
+
+
 def register() -> None:
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=Config)
@@ -628,7 +643,8 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    if isinstance(overrides, (str, bytes)) or not all(isinstance(o, str) for o in overrides):
+    if (isinstance(overrides, (str, bytes)) or not isinstance(overrides, (list, tuple))
+            or not all(isinstance(o, str) for o in overrides)):
         # a single string was read character by character ("Error parsing override 'e'"; probe of issue 12)
         raise TypeError(f"compose_config: overrides must be a list of 'key=value' strings, got {overrides!r}")
     check_bool_overrides(overrides)
@@ -638,6 +654,19 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
             cfg = compose(config_name="config", overrides=list(overrides))
     except Exception as exc:   # Hydra's "use +key" for a key not in the schema, which check_keys refuses too
         unknown = re.match(r"Could not override '([^']+)'\.\s+To append to your config use \+", str(exc))
+        bad_value = re.match(r"Error merging override ([^=\s]+)=", str(exc))
+        if bad_value and not unknown:   # a value of the wrong type: the key (inside a record: its field) and why
+            cause, key = exc.__cause__ or exc, bad_value.group(1)
+            field_key = str(getattr(cause, "full_key", None) or "")
+            if field_key.startswith(key):
+                key = field_key
+            elif field_key:   # a field of a record in the value (an edit's kind)
+                key = f"{key} (its {field_key})"
+            reason = str(cause).split("\n")[0]
+            if "incompatible with type hint 'float'" in reason:   # scene.motion.translations=[[0,0,0]]
+                reason += ("; write such a number as a float (0.0, not 0): inside a list of lists OmegaConf does "
+                           "not turn an integer into a float")
+            raise InputError(reason, key) from exc
         if not unknown:
             raise
         key = unknown.group(1)

@@ -23,7 +23,7 @@ import yaml
 from omegaconf import OmegaConf
 
 from hairexp.app.assemble import check_config
-from hairexp.app.config import check_bool, to_plain
+from hairexp.app.config import check_bool, require_config, to_plain
 from hairexp.app.validate import validate_judge, validate_judge_controllers
 from hairexp.app.signals import InterruptSignals
 from hairexp.errors import InputError
@@ -122,6 +122,9 @@ def _variant_facts(cfg) -> dict:
 
 
 def run_experiment(cfg, out_dir) -> dict:
+    require_config(cfg, "run_folder")
+    if not isinstance(out_dir, (str, Path)) or not str(out_dir):
+        raise TypeError(f"run_folder: out_dir must be a folder path (str or pathlib.Path), got {out_dir!r}")
     out = Path(out_dir)
     if not cfg.variants:
         return run(cfg, out)

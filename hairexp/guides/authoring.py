@@ -151,6 +151,8 @@ def _edit(i: int, e, G: int, offsets: np.ndarray, rest: np.ndarray):
     """Edit ``i`` checked, as a function ``op(P, times, R)`` that edits the frames P (n, Vg, 3) at
     ``times`` (n,) under body rotations R (n, 3, 3) in place."""
     where = f"guides.edits[{i}]"
+    if getattr(e, "guide", None) is None:   # it defaulted to 0: an edit meant for all went to the first (probe of issue 12)
+        raise InputError(f"missing: the index of the edited guide (0..{G - 1}), e.g. guide: 0", f"{where}.guide")
     g = int(e.guide)
     if not 0 <= g < G:
         raise InputError(f"guide index {g} out of range: the animation has {G} guide(s) (0..{G - 1})",

@@ -127,4 +127,4 @@ def read_motion(prim, tcps: float, where: str, allow_scale: bool = False) -> tup
         rots.append(Rotation.from_matrix(R).as_rotvec())
         trans.append(T)
     secs = [0.0] if isinstance(times[0], Usd.TimeCode) else [t / tcps for t in times]
-    return RigidMotion(np.asarray(secs), np.asarray(trans), np.asarray(rots), "linear"), scale0
+    return RigidMotion(np.asarray(secs), np.asarray(trans), np.asarray(rots), "linear", where=where), scale0

@@ -232,8 +232,13 @@ def build_dynamic_body(body_cfg, motion: RigidMotion, strands, gravity: np.ndarr
     if vel.shape != (3,) or not np.isfinite(vel).all():
         raise InputError(f"expected 3 finite numbers (m/s), got {list(body_cfg.velocity)}", "scene.body.velocity")
     if len(motion.times) > 1:
-        raise InputError("a dynamic body takes only its initial pose from scene.motion: give one keyframe "
-                         f"(got {len(motion.times)})", "scene.motion.times")
+        if motion.where.startswith("scene.motion"):
+            raise InputError("a dynamic body takes only its initial pose from scene.motion: give one keyframe "
+                             f"(got {len(motion.times)})", f"{motion.where}.times")
+        # a USD stage's body prim (it named scene.motion.times, a key the user never set; probe of issue 12)
+        raise InputError(f"is animated ({len(motion.times)} time samples), but scene.body.dynamic=true moves the "
+                         "body by the hair's forces from its initial pose: remove the body's time samples, or "
+                         "leave scene.body.dynamic=false", motion.where)
     m = strands.masses
     carried = float(m[strands.kinematic].sum())
     hair = float(m[~strands.kinematic].sum())

@@ -370,8 +370,15 @@ class Simulator:
 
     # -- public ---------------------------------------------------------------------------
     def step(self, state: State, dt: float) -> tuple[State, StepInfo]:
+        if not isinstance(state, State):
+            raise TypeError(f"Simulator.step: state must be a hairexp State (Simulator.initial_state() or a step's), "
+                            f"got {type(state).__name__}")
         if not (np.isfinite(dt) and dt > 0):   # -0.01 stepped time backwards and said converged (probe of issue 12)
             raise ValueError(f"Simulator.step: dt must be a finite number > 0 (s), got {dt!r}")
+        shape = (self.scene.strands.n_vertices, 3)
+        if np.shape(state.x) != shape or np.shape(state.v) != shape:   # an IndexError deep in the step (probe of issue 12)
+            raise ValueError(f"Simulator.step: the state's positions and velocities must have the scene's shape {shape}, "
+                             f"got {np.shape(state.x)} and {np.shape(state.v)}")
         if not (np.isfinite(state.x).all() and np.isfinite(state.v).all()):
             raise ValueError("Simulator.step: the state's positions or velocities are not finite")
         t0 = time.perf_counter()
