@@ -248,7 +248,7 @@ def main(argv=None) -> int:
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="overrides applied to every case and controller after the case's own "
                          "(e.g. solver.integrator=bdf2)")
-    ap.add_argument("--report", default="stress", choices=["stress", "stress_bdf2", "stress_trbdf2"],
+    ap.add_argument("--report", default="stress", choices=["stress", "stress_bdf2", "stress_trbdf2", "stress_lmm2"],
                     help="the report's name under reports/ (default: stress)")
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/stress/ entries whose config, solver source and versions match "

@@ -20,7 +20,8 @@ from hairexp.model.strands import Strands
 from hairexp.physics import simulator as simulator_module
 from hairexp.physics.collisions import CollisionInfo
 from hairexp.physics.info import CONVERGED, MAX_ITERATIONS
-from hairexp.physics.integrators import INTEGRATORS, GeneralizedAlpha, bdf2_coefficients, make_integrator
+from hairexp.physics.integrators import (INTEGRATORS, LMM2_ALPHA, LMM2_BETA, GeneralizedAlpha, bdf2_coefficients,
+                                         make_integrator)
 from hairexp.physics.simulator import Simulator
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -112,6 +113,21 @@ def recursion(integrator: str, x0: float, n: int, dt: float = DT):
             x = x1
             xs.append(x)
             vs.append(v)
+    elif integrator == "lmm2":
+        # sum_j alpha_j x_{n+j} = dt sum_j beta_j v_{n+j}, sum_j alpha_j v_{n+j} = dt sum_j beta_j a_{n+j},
+        # a = -W^2 x; the first step is implicit Euler
+        (a0, a1, _), (b0, b1, b2) = LMM2_ALPHA, LMM2_BETA
+        x1 = xs[0] / (1 + w2 * dt * dt)
+        xs.append(x1)
+        vs.append((x1 - xs[0]) / dt)
+        for _ in range(n - 1):
+            xp, vp, xc, vc = xs[-2], vs[-2], xs[-1], vs[-1]
+            # x2 - dt b2 v2 = rx, v2 + dt b2 W^2 x2 = rv
+            rx = -a1 * xc - a0 * xp + dt * (b1 * vc + b0 * vp)
+            rv = -a1 * vc - a0 * vp - dt * w2 * (b1 * xc + b0 * xp)
+            x2 = (rx + dt * b2 * rv) / (1 + (dt * b2) ** 2 * w2)
+            xs.append(x2)
+            vs.append(rv - dt * b2 * w2 * x2)
     else:
         g = GeneralizedAlpha()
         am, af, gm, be = g.alpha_m, g.alpha_f, g.gamma, g.beta
@@ -395,7 +411,7 @@ def goaling_run(controller: str, integrator: str, frames: int = 4):
     return run, states, infos
 
 
-@pytest.mark.parametrize("integrator", ["bdf2", "trbdf2"])
+@pytest.mark.parametrize("integrator", ["bdf2", "trbdf2", "lmm2"])
 @pytest.mark.parametrize("controller", ["free", "attract", "skinned", "tracking"])
 def test_every_controller_runs_with_bdf2(controller, integrator):
     run, states, infos = goaling_run(controller, integrator)
@@ -403,6 +419,10 @@ def test_every_controller_runs_with_bdf2(controller, integrator):
     assert all(np.isfinite(s.x).all() and np.isfinite(s.v).all() for s in states)
     if integrator == "bdf2":
         assert states[-1].history is not None and states[-1].history.dt == run.dt
+    elif integrator == "lmm2":   # the previous start and both accelerations, at the run's step (no restart)
+        h = states[-1].history
+        assert h.dt == run.dt and h.x is not None and h.a is not None and h.a_prev is not None
+        assert all(i.substeps == 1 and not i.recovered for i in infos)
     else:                 # carries only the end acceleration (the next trapezoidal stage's a_0)
         h = states[-1].history
         assert h.x is None and h.a is not None and all(i.substeps == 1 and not i.recovered for i in infos)
@@ -415,7 +435,7 @@ def test_every_controller_runs_with_bdf2(controller, integrator):
         assert infos[-1].constraint_norm <= run.controller.opts.ctol
 
 
-@pytest.mark.parametrize("integrator", ["bdf2", "trbdf2"])
+@pytest.mark.parametrize("integrator", ["bdf2", "trbdf2", "lmm2"])
 def test_simulated_guides_use_the_run_integrator(integrator):
     """goaling_smoke's guides are simulated (hairexp/app/guides.py) with the run's integrator;
     the body starts moving at 0.2 s (frame 5)."""
@@ -425,7 +445,7 @@ def test_simulated_guides_use_the_run_integrator(integrator):
     assert np.isfinite(gb).all() and np.array_equal(gb[0], ge[0]) and not np.allclose(gb, ge, atol=1e-6)
 
 
-@pytest.mark.parametrize("integrator", ["bdf2", "trbdf2"])
+@pytest.mark.parametrize("integrator", ["bdf2", "trbdf2", "lmm2"])
 def test_dynamic_body_with_bdf2(integrator):
     """Hanging hair on a block on a frictionless rail stays at rest; a block sliding on a rail
     with friction decelerates at mu g with light hair on it (tests/test_dynamic_body.py)."""

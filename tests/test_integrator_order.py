@@ -79,7 +79,7 @@ def observed_orders(integrator: str) -> tuple[list[float], list[float]]:
     return errors, [math.log2(a / b) for a, b in zip(errors, errors[1:])]
 
 
-@pytest.mark.parametrize("integrator", ["bdf2", "trbdf2"])
+@pytest.mark.parametrize("integrator", ["bdf2", "trbdf2", "lmm2"])
 def test_second_order_schemes_converge_at_second_order_on_a_smooth_drive(integrator):
     errors, orders = observed_orders(integrator)
     assert min(orders) >= SECOND_ORDER_MIN, (errors, orders)

@@ -36,7 +36,7 @@ from hairexp.model.rigid import RigidMotion
 from hairexp.model.scene import Material, Scene
 from hairexp.model.strands import Strands
 from hairexp.physics.energies import Bending, Stretch
-from hairexp.physics.integrators import TRBDF2_GAMMA, GeneralizedAlpha, bdf2_coefficients
+from hairexp.physics.integrators import LMM2_ALPHA, LMM2_BETA, TRBDF2_GAMMA, GeneralizedAlpha, bdf2_coefficients
 from hairexp.physics.simulator import Simulator
 
 #: first zero of the Bessel function J_0
@@ -179,6 +179,16 @@ def linear_prediction(integrator: str, omega_dt: float) -> tuple[float, float]:
             return x1, (x1 - xref) / beta
 
         A = np.array([step(1.0, 0.0), step(0.0, 1.0)]).T
+    elif integrator == "lmm2":                   # state (x_{n+1}, x_n, v_{n+1}, v_n), dt = 1, a = -W^2 x
+        (a0, a1, _), (b0, b1, b2) = LMM2_ALPHA, LMM2_BETA
+
+        def step(x1, x0, v1, v0):
+            xref = -a1 * x1 - a0 * x0 + b1 * v1 + b0 * v0
+            vref = -a1 * v1 - a0 * v0 - W * W * (b1 * x1 + b0 * x0)
+            x2 = (xref + b2 * vref) / (1 + b2 * b2 * W * W)
+            return x2, x1, (x2 - xref) / b2, v1
+
+        A = np.array([step(*e) for e in np.eye(4)]).T
     else:
         raise ValueError(f"no linear prediction for {integrator!r}")
     ev = np.linalg.eigvals(A)
