@@ -12,7 +12,7 @@
 
 The energy, invariance and period checks of the default test suite (tests/test_analytic.py,
 tests/test_integrator.py, tests/test_invariants.py) assert these same figures with tolerances.
-Usage:  python -m experiments.fidelity [--dts 0.001 0.01 0.04] [--integrators implicit_euler bdf2 trbdf2]
+Usage:  python -m experiments.fidelity [--dts 0.001 0.01 0.04] [--integrators implicit_euler bdf2 trbdf2 lmm2]
 """
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ def plot(chain, static, integrators, path) -> bool:
         return False
     fig, (a1, a2, a3) = plt.subplots(1, 3, figsize=(16, 4.4))
     W = np.geomspace(3e-3, 1.0, 120)
-    for name, col in zip(integrators, ("tab:red", "tab:blue", "tab:green")):
+    for name, col in zip(integrators, ("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange")):
         lin = np.array([linear_prediction(name, w) for w in W])
         a1.semilogx(W, 100 * lin[:, 0], "-", color=col, label=f"{name} (linear)")
         a2.semilogx(W, 100 * lin[:, 1], "-", color=col, label=f"{name} (linear)")
@@ -94,7 +94,7 @@ def plot(chain, static, integrators, path) -> bool:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dts", type=positive_float, nargs="+", default=[0.001, 0.01, 0.04])
-    ap.add_argument("--integrators", nargs="+", default=["implicit_euler", "bdf2", "trbdf2"], choices=list(INTEGRATORS))
+    ap.add_argument("--integrators", nargs="+", default=["implicit_euler", "bdf2", "trbdf2", "lmm2"], choices=list(INTEGRATORS))
     ap.add_argument("--vertices", type=strand_vertices, nargs="+", default=[10, 20, 40, 80])
     args = ap.parse_args(argv)
     chain = chain_rows(args.integrators, args.dts)

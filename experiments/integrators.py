@@ -8,7 +8,7 @@
    integrator's runs assembled in one process and timed interleaved (``--reps`` rounds), so the
    ratios compare like with like on the same machine.
 
-Usage: python -m experiments.integrators [--dts 0.001 0.01 0.04] [--reps 3] [--cost-integrators implicit_euler bdf2 trbdf2]
+Usage: python -m experiments.integrators [--dts 0.001 0.01 0.04] [--reps 3] [--cost-integrators implicit_euler bdf2 trbdf2 lmm2]
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--dts", type=positive_float, nargs="+", default=[0.001, 0.01, 0.04])
     ap.add_argument("--reps", type=positive_int, default=7)
-    ap.add_argument("--cost-integrators", nargs="+", default=["implicit_euler", "bdf2", "trbdf2"], choices=list(INTEGRATORS))
+    ap.add_argument("--cost-integrators", nargs="+", default=["implicit_euler", "bdf2", "trbdf2", "lmm2"], choices=list(INTEGRATORS))
     ap.add_argument("--no-chain", action="store_true", help="only the cost table (reuses nothing: the chain section is left out)")
     a = ap.parse_args(argv)
     t0 = time.time()

@@ -20,8 +20,8 @@ from hairexp.model.strands import Strands
 from hairexp.physics import simulator as simulator_module
 from hairexp.physics.collisions import CollisionInfo
 from hairexp.physics.info import CONVERGED, MAX_ITERATIONS
-from hairexp.physics.integrators import (INTEGRATORS, LMM2_ALPHA, LMM2_BETA, GeneralizedAlpha, bdf2_coefficients,
-                                         make_integrator)
+from hairexp.physics.integrators import (INTEGRATORS, LMM2_ALPHA, LMM2_BETA, LMM2_CALM_STEPS, GeneralizedAlpha,
+                                         bdf2_coefficients, make_integrator)
 from hairexp.physics.simulator import Simulator
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -115,13 +115,19 @@ def recursion(integrator: str, x0: float, n: int, dt: float = DT):
             vs.append(v)
     elif integrator == "lmm2":
         # sum_j alpha_j x_{n+j} = dt sum_j beta_j v_{n+j}, sum_j alpha_j v_{n+j} = dt sum_j beta_j a_{n+j},
-        # a = -W^2 x; the first step is implicit Euler
+        # a = -W^2 x; the first step is implicit Euler, then LMM2_CALM_STEPS steps of BDF2
         (a0, a1, _), (b0, b1, b2) = LMM2_ALPHA, LMM2_BETA
         x1 = xs[0] / (1 + w2 * dt * dt)
         xs.append(x1)
         vs.append((x1 - xs[0]) / dt)
-        for _ in range(n - 1):
+        b = 2 * dt / 3
+        for k in range(n - 1):
             xp, vp, xc, vc = xs[-2], vs[-2], xs[-1], vs[-1]
+            if k < LMM2_CALM_STEPS:   # BDF2 after the (re)start
+                x2 = (4 / 3 * xc - 1 / 3 * xp + b * (4 / 3 * vc - 1 / 3 * vp)) / (1 + b * b * w2)
+                xs.append(x2)
+                vs.append((x2 - 4 / 3 * xc + 1 / 3 * xp) / b)
+                continue
             # x2 - dt b2 v2 = rx, v2 + dt b2 W^2 x2 = rv
             rx = -a1 * xc - a0 * xp + dt * (b1 * vc + b0 * vp)
             rv = -a1 * vc - a0 * vp - dt * w2 * (b1 * xc + b0 * xp)
