@@ -20,6 +20,7 @@ from omegaconf import DictConfig
 import hairexp.app.config  # noqa: F401  (registers the schema in the ConfigStore)
 from hairexp.app import cli
 from hairexp.app.signals import InterruptSignals, exit_code
+from hairexp.app.startup import ended
 from hairexp.errors import Interrupted
 
 
@@ -56,7 +57,7 @@ def entry() -> int:
         what = str(exc) if isinstance(exc, Interrupted) and str(exc) else "interrupted by SIGINT"
         print(f"hairexp: {what}", file=sys.stderr)
         cli.clear_stop_mark()   # the launcher has torn its workers down
-        cli.exit_code()   # a sweep's jobs so far
+        cli.exit_code(exc.signum if isinstance(exc, Interrupted) else 2)   # a sweep's jobs so far
         return code
     return cli.exit_code()
 
@@ -86,5 +87,11 @@ def exit_now(code: int) -> None:
     os._exit(code)
 
 
+def _main() -> None:
+    code = entry()
+    ended(code)   # a signal while the process exits keeps this code (hairexp/app/startup.py)
+    exit_now(code)
+
+
 if __name__ == "__main__":
-    exit_now(entry())
+    _main()

@@ -38,11 +38,11 @@ from hydra.experimental.callback import Callback
 
 from hairexp.app.config import CONF_DIR, check_bool_overrides, check_keys, compose_config
 from hairexp.app.experiment import run_experiment
-from hairexp.app.signals import child_pids, forward
+from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, SimulationError
 from hairexp.outputs.files import write_json
-from hairexp.outputs.folder import used_refusal
+from hairexp.outputs.folder import RESERVE, SUMMARY, note_job_logs, running_state, used_refusal
 
 log = logging.getLogger("hairexp")
 OUTCOME = Path(".hydra") / "outcome.json"
@@ -69,6 +69,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     ``overrides``: the job's command-line overrides (a boolean key given anything but true or
     false is bad input: a sweep's jobs are composed by Hydra, which would read ``2`` as true)."""
     global LAST
+    note_job_logs(Path(out))   # what its logs hold now is a previous run's (overwrite=true drops it)
     if sweep:
         stopped = _stopped_by(sweep_dir)
         if stopped is not None:
@@ -78,11 +79,19 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
             _write_outcome(out, LAST)
             return LAST
         _write_outcome(out, outcome(out, "running", 1, "the job did not finish"))
+    summary = None
     try:
         check_keys(cfg)   # a ``+key`` Hydra added without asking the schema
         check_bool_overrides(list(overrides))
         summary = run_experiment(cfg, out)
-        res = outcome(out, "completed", 0, None, summary)
+        late = take_late()   # a signal after the run had written its completed ending
+        if late is None:
+            res = outcome(out, "completed", 0, None, summary)
+        else:
+            name = signal.Signals(late).name
+            print(f"hairexp: {name} after the run had completed; its results are whole (summary.json: completed) "
+                  f"({out})", file=sys.stderr)
+            res = outcome(out, "completed", signal_exit_code(late), f"{name} after the run had completed", summary)
         _log_completed(summary, out)
     except InputError as exc:
         print(f"hairexp: error: {exc}", file=sys.stderr)
@@ -99,9 +108,15 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     except KeyboardInterrupt as exc:
         signum = exc.signum if isinstance(exc, Interrupted) else 2
         msg = str(exc) if isinstance(exc, Interrupted) else "interrupted by SIGINT"
-        print(f"hairexp: {msg} (partial results in {out})", file=sys.stderr)
-        _print_notes(exc)
-        res = outcome(out, "interrupted", signal_exit_code(signum), msg)
+        if summary is not None and summary.get("status") == "completed":   # the run had ended: nothing partial
+            name = signal.Signals(signum).name
+            print(f"hairexp: {name} after the run had completed; its results are whole (summary.json: completed) "
+                  f"({out})", file=sys.stderr)
+            res = outcome(out, "completed", signal_exit_code(signum), f"{name} after the run had completed", summary)
+        else:
+            print(f"hairexp: {msg} (partial results in {out})", file=sys.stderr)
+            _print_notes(exc)
+            res = outcome(out, "interrupted", signal_exit_code(signum), msg)
     except Exception as exc:   # noqa: BLE001  (a bug: the traceback, exit 1; the sweep's other jobs go on)
         traceback.print_exc()
         res = outcome(out, "failed", 1, f"{type(exc).__name__}: {exc}")
@@ -207,11 +222,38 @@ def sweep_outcomes(sweep_dir: Path) -> list[tuple[str, str, dict]]:
     return rows
 
 
-def exit_code() -> int:
+def _end_killed_jobs(rows: list, signum: int | None) -> None:
+    """Jobs whose outcome still says running and whose process is gone (a sweep's teardown
+    killed a worker before its job wrote its ending; probe of issue 12: the job's summary.json
+    stayed "running" with its ``.ending.reserve``): their summary and outcome are ended here as
+    ``interrupted`` (the sweep was signalled) or ``failed``, saying that the process ended."""
+    for name, _, res in rows:
+        if res.get("status") != "running":
+            continue
+        d = SWEEP_DIR / name
+        state = running_state(d)
+        if state is None or "killed" not in state:
+            continue
+        status = "interrupted" if signum is not None else "failed"
+        why = (f"the job's process ended before it wrote its ending ({state.split('(')[-1].rstrip(')')}"
+               + (f", the sweep was stopped by {signal.Signals(signum).name})" if signum is not None else ")"))
+        try:
+            summary = json.loads((d / SUMMARY).read_text())
+            summary.update(status=status, error=why)
+            write_json(d / SUMMARY, summary)
+            (d / RESERVE).unlink(missing_ok=True)
+        except (OSError, ValueError):
+            pass
+        res.update(status=status, code=signal_exit_code(signum) if signum is not None else 1, message=why)
+        _write_outcome(d, res)
+
+
+def exit_code(signum: int | None = None) -> int:
     """The process's exit code after Hydra returned: a single run's, or a sweep's (one line per
-    job printed; the first failing job's code)."""
+    job printed; the first failing job's code).  ``signum``: the signal that stopped the sweep."""
     if SWEEP_DIR is not None:
         rows = sweep_outcomes(SWEEP_DIR) if SWEEP_DIR.is_dir() else []
+        _end_killed_jobs(rows, signum)
         bad = [r for r in rows if r[2]["code"] != 0]
         stream = sys.stderr if bad else sys.stdout
         for name, overrides, res in rows:
@@ -352,9 +394,9 @@ def used_dir_error(argv: list[str]) -> str | None:
     run's own ``claim`` checks it again (launches racing into one folder, a config's overwrite)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    if _multirun(argv):
-        return None
     parser = OverridesParser.create()
+    if _multirun(argv):
+        return _used_sweep_dir_error(argv, parser)
     if _overwrite_given(argv, parser):
         return None
     for arg in argv:
@@ -369,6 +411,29 @@ def used_dir_error(argv: list[str]) -> str | None:
             return None
         refused = used_refusal(Path(str(value)))
         return None if refused is None else f"hairexp: error: {value}: {refused}"
+    return None
+
+
+def _used_sweep_dir_error(argv: list[str], parser) -> str | None:
+    """The error line for a ``-m`` sweep into a fixed ``hydra.sweep.dir`` that holds another
+    sweep (its ``multirun.yaml`` or job folders), with or without ``overwrite=true``: a sweep
+    folder is one sweep's.  A second sweep into it replaced ``multirun.yaml`` and its report
+    counted the first sweep's jobs as its own (probe of issue 12)."""
+    for arg in argv:
+        if not arg.lstrip("+~").startswith("hydra.sweep.dir="):
+            continue
+        try:
+            o = parser.parse_override(arg)
+        except Exception:  # noqa: BLE001  (a syntax error: Hydra's own message)
+            return None
+        value = o.value()
+        if o.is_sweep_override() or value is None or _static_part(str(value)) != str(value):
+            return None
+        folder = Path(str(value))
+        if folder.is_dir() and any(folder.iterdir()):
+            shown = ", ".join(sorted(p.name for p in folder.iterdir())[:6])
+            return (f"hairexp: error: {value}: the sweep folder is not empty ({shown}); a sweep folder belongs to one "
+                    "sweep: choose another hydra.sweep.dir (the default is a new dated folder) or remove this one")
     return None
 
 
@@ -522,6 +587,39 @@ def _sweep_jobs(overrides: list[str]) -> list[tuple[list[str], list[str]]] | Non
     return jobs
 
 
+def hydra_key_error(hydra_args: list[str]) -> str | None:
+    """The message of ``hydra.*`` overrides Hydra's own config refuses (a typo such as
+    ``hydra.foo=1``, ``hydra.job.chdir=maybe``), or None: composed here with Hydra's config, so
+    that the error is one line and exit 2 (Hydra: its multi-line message, exit 1; probe of
+    issue 12).  Swept values and unparsable overrides are left to the other checks."""
+    if not hydra_args:
+        return None
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(hydra_args)
+    except Exception:  # noqa: BLE001  (override_syntax_error's)
+        return None
+    plain = [a for a, o in zip(hydra_args, parsed) if not o.is_sweep_override()]
+    if not plain:
+        return None
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            compose(config_name="config", overrides=plain, return_hydra_config=True)
+    except Exception as exc:  # noqa: BLE001  (Hydra's composition / validation error of its own keys)
+        msg = " ".join(str(exc).split()).split(" Config search path:")[0]
+        cause = exc.__cause__ or exc.__context__
+        if cause is not None and str(cause).strip() and str(cause).strip().splitlines()[0] not in msg:
+            msg += ": " + str(cause).strip().splitlines()[0]
+        return msg
+    finally:
+        GlobalHydra.instance().clear()
+    return None
+
+
 def config_error(argv: list[str]) -> str | None:
     """The one-line error of a command line whose config cannot be composed (a key not in the
     schema, a wrong type, an unknown choice), or None.  The config is composed here first, as
@@ -537,6 +635,9 @@ def config_error(argv: list[str]) -> str | None:
     multirun = any(a in ("-m", "--multirun") for a in argv)
     if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
         return None
+    hydra_msg = hydra_key_error([a for a in argv if _hydra_arg(a)])
+    if hydra_msg is not None:
+        return f"hairexp: error: {hydra_msg}"
     overrides = [a for a in argv if not (a.startswith("-") or _hydra_arg(a))]
     if not multirun:
         msg = compose_error(overrides)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import copy
 import logging
 import re
+import signal
 import time
 from pathlib import Path
 
@@ -25,8 +26,8 @@ from omegaconf import OmegaConf
 from hairexp.app.assemble import check_config
 from hairexp.app.config import check_bool, require_config, to_plain
 from hairexp.app.validate import validate_judge, validate_judge_controllers
-from hairexp.app.signals import InterruptSignals
-from hairexp.errors import InputError
+from hairexp.app.signals import InterruptSignals, take_late
+from hairexp.errors import InputError, Interrupted
 from hairexp.evaluation.judges import JUDGES
 from hairexp.evaluation.measures import experiment_key_moment
 from hairexp.app.run import config_hash, run
@@ -196,3 +197,8 @@ def _run_variants(out: Path, names: list[str], vcfgs: list, summary: dict, measu
         coh = s.get("cohesion") or {}
         summary["variants"][name] = {**{k: s.get(k) for k in VARIANT_FIELDS}, **facts[name], "measures": s["measures"],
                                      "cohesion": coh}
+        late = take_late()   # a signal after this variant had completed: it stays so, the next ones do not run
+        if late is not None:
+            summary.update(status="interrupted", error=f"interrupted by {signal.Signals(late).name} after variant {name}",
+                           wall_seconds=time.perf_counter() - t0)
+            raise Interrupted(late)

@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, ValueError) as exc:
         print(f"hairexp: error: {exc}", file=sys.stderr)
         return 2
-    print(f"wrote {args[0]}: {scene.strands.n_strands} strands, {guides.n_guides} guides, {cfg.frames} frames")
+    print(f"wrote {args[0]}: {scene.strands.n_strands} strands, {guides.n_guides} guides, {guides.n_frames - 1} frames")
     return 0
 
 

@@ -44,8 +44,10 @@ DISK_BYTES_PER_VERTEX_FRAME = 72
 DISK_BYTES_PER_STEP = 200
 SECONDS_PER_STEP = 4e-3
 SECONDS_PER_VERTEX_STEP = 1e-5
-#: runs with more steps (settle phases included) are announced with a warning
+#: runs with more steps (settle phases included), or estimated to take longer (s), are announced
+#: with a warning (a run of 1M vertices and 4,000 steps, about 5.6 h, was not: probe of issue 12)
 LONG_RUN_STEPS = 100_000
+LONG_RUN_SECONDS = 600.0
 
 
 @dataclass(frozen=True)
@@ -158,7 +160,7 @@ def check(est: Estimate, keys: str, allow_large: bool, available: float | None, 
         refuse(f"the run would take roughly {_duration(est.seconds)} (about {est.total_steps:.3g} steps, "
                f"{est.settle_steps:.3g} of them settle and guide steps), more than {_duration(MAX_RUN_SECONDS)}; "
                "make it shorter or set guard.allow_large=true to run anyway")
-    if est.total_steps > LONG_RUN_STEPS:
+    if est.total_steps > LONG_RUN_STEPS or est.seconds > LONG_RUN_SECONDS:
         msg = (f"long run: about {est.total_steps:.3g} steps ({est.steps:.3g} recorded, {est.settle_steps:.3g} settle "
                f"and guide steps), roughly {_duration(est.seconds)} ({keys}: {_size(est.memory)} of memory)")
         if msg not in _ANNOUNCED:   # once per process: an experiment checks each variant before any runs, then runs it

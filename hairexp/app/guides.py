@@ -129,7 +129,15 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     (``source_guides``) with the authored edits ``guides.edits`` applied in order
     (``authoring.apply_edits``; paper 4: the artist edits a coarse best-guess guide simulation by
     keyframing; ``source=keyframed`` keys the guides directly)."""
-    anim = source_guides(cfg, scene, frames, fps)
+    try:
+        anim = source_guides(cfg, scene, frames, fps)
+    except InputError as exc:
+        if exc.where != "guides" or "from the origin" not in str(exc):
+            raise
+        # procedural guides: the keys that placed them, not only "guides" (probe of issue 12)
+        raise InputError(f"{str(exc).split(': ', 1)[1]}; these guides are built from scene.length, scene.root_center, "
+                         "scene.root_radius x guides.layout_radius and the body's motion (scene.motion): check those "
+                         "values", "guides") from exc
     if cfg.guides.edits:
         pos = apply_edits(anim.frames, anim.offsets, anim.fps, authoring_motion(scene.motion), cfg.guides.edits)
         anim = GuideAnimation(pos, anim.offsets, anim.fps, where="guides.edits", motion=scene.motion)

@@ -36,7 +36,7 @@ import numpy as np
 
 from hairexp.app.assemble import assemble
 from hairexp.app.config import to_plain
-from hairexp.app.signals import InterruptSignals
+from hairexp.app.signals import InterruptSignals, note_late
 from hairexp.errors import Interrupted, SimulationError
 from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
@@ -178,6 +178,7 @@ class _Sinks:
     rerun: object = None
     progress: Progress | None = None
     written: list = field(default_factory=list)   # final result files this run wrote
+    signals: object = None                         # the run's InterruptSignals
 
     def flush(self, final: bool = False) -> None:
         self.table.flush()
@@ -210,16 +211,22 @@ def run(cfg, out_dir: str | Path) -> dict:
             # goes on, so a signal that landed in the import at the end of a run was lost and the
             # run ended "completed", exit 0 (probe of issue 12)
             import hairexp.io.usd_write  # noqa: F401
+        sinks.signals = signals
         try:
             if signals.pending is not None:
                 raise Interrupted(signals.pending)
-            return _run(sinks, out, t_start)
+            summary = _run(sinks, out, t_start)
         except BaseException as exc:
             with signals.deferred():
                 _end_unfinished(exc, sinks, out, scene_name, controller, t_start)
             if signals.pending is not None and not isinstance(exc, KeyboardInterrupt):
                 raise Interrupted(signals.pending) from exc
             raise
+        # _run deferred the signals from its completed summary on (and its frame is gone: the
+        # recording's finaliser ran under the deferral too)
+        if signals.pending is not None:
+            note_late(signals.pending)
+        return summary
 
 
 def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
@@ -317,6 +324,11 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     summary["cohesion"] = coh
     if view is not None:   # the recording's framing and key moment (comparison.rrd unites the variants')
         summary["view"] = view
+    # the run is complete once its summary says so: a signal from the write on is kept, not
+    # raised, and leaves it completed (raised, it turned a completed run's summary into
+    # "interrupted", or was lost inside the recording's finaliser with a printed traceback;
+    # probe of issue 12): ``run`` passes it on (a failed write still ends the run as failed)
+    sinks.signals.defer = True
     free_reserve(out)
     write_json(out / SUMMARY, summary)
     try:
@@ -384,6 +396,11 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
     if sinks.rerun is not None:
         attempt("recording", lambda: sinks.rerun.close(success=False, metrics=df))
     for p in sinks.written:   # files, and result.clips/ (a folder)
+        if p.suffix == ".rrd" and p.is_file():
+            # a recording already finished keeps the name of an unfinished run's, as the README says
+            # (it was removed: a signal late in the run left no recording at all; probe of issue 12)
+            attempt(p.name, lambda p=p: os.replace(p, p.with_name(f"{p.stem}.partial{p.suffix}")))
+            continue
         attempt(p.name, lambda p=p: shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True))
     summary = summarize(df, sinks.plain, scene_name, controller, time.perf_counter() - t_start, status, error)
     if isinstance(exc, SimulationError) and "converged" in summary:

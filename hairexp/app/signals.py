@@ -24,6 +24,8 @@ from pathlib import Path
 from hairexp.errors import Interrupted
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: s, the delay before a signal that landed in a finaliser is delivered again
+REDELIVER_SECONDS = 0.01
 
 
 class InterruptSignals:
@@ -37,6 +39,16 @@ class InterruptSignals:
     def _handler(self, signum, frame):
         if self.defer:
             self.pending = signum
+            return
+        if _in_finaliser(frame):
+            # raised inside a __del__ (numba's compiler objects, rerun's recording stream), the
+            # interrupt is printed as "Exception ignored" and lost: the job ran on until a sweep's
+            # teardown killed it, its summary left "running" (probe of issue 12).  Sent again a
+            # moment later (from a timer thread: os.kill to itself here would recurse into this
+            # handler at once), it is handled here again until the finaliser has returned.
+            timer = threading.Timer(REDELIVER_SECONDS, os.kill, (os.getpid(), signum))
+            timer.daemon = True
+            timer.start()
             return
         if self.on_signal is not None and not self._signalled:
             self._signalled = True   # a second signal during on_signal raises at once
@@ -65,6 +77,33 @@ class InterruptSignals:
             yield self
         finally:
             self.defer = old
+
+
+#: signals that arrived after a run had written its completed ending (``note_late``)
+_LATE: list[int] = []
+
+
+def note_late(signum: int) -> None:
+    """A signal arrived after a run had written its completed summary: the run is whole and
+    stays completed; the caller that started it (an experiment's next variant, the command
+    line's exit code) takes it with ``take_late``."""
+    _LATE.append(int(signum))
+
+
+def take_late() -> int | None:
+    """The first signal ``note_late`` kept (and forget them all), or None."""
+    first = _LATE[0] if _LATE else None
+    _LATE.clear()
+    return first
+
+
+def _in_finaliser(frame) -> bool:
+    """Whether ``frame`` runs inside an object's ``__del__`` (where a raised exception is lost)."""
+    while frame is not None:
+        if frame.f_code.co_name == "__del__":
+            return True
+        frame = frame.f_back
+    return False
 
 
 def exit_code(signum: int) -> int:

@@ -16,13 +16,31 @@ import sys
 import threading
 
 
+#: the exit code of the command once its work has ended (``ended``); None while it starts
+_ENDED_CODE: int | None = None
+
+
+def ended(code: int) -> None:
+    """The command's work has ended with ``code``: a signal from now on (the handlers are these
+    again once the run's are removed) ends the process with 128 + signal, saying that the run
+    had ended before it.  It said "interrupted while starting; nothing was run or written" after
+    a completed run had written everything (probe of issue 12)."""
+    global _ENDED_CODE
+    _ENDED_CODE = int(code or 0)
+
+
 def _handler(signum, frame) -> None:
     name = signal.Signals(signum).name
+    code = 128 + int(signum)
     try:
-        sys.stderr.write(f"hairexp: interrupted by {name} while starting; nothing was run or written\n")
+        if _ENDED_CODE is None:
+            sys.stderr.write(f"hairexp: interrupted by {name} while starting; nothing was run or written\n")
+        else:
+            sys.stderr.write(f"hairexp: {name} while exiting, after the run had ended (exit code {_ENDED_CODE} "
+                             "before it): its run folder's summary.json says how the run ended\n")
         sys.stderr.flush()
     finally:
-        os._exit(128 + int(signum))   # no traceback from the import it landed in, no atexit work to do
+        os._exit(code)   # no traceback from the import it landed in, no atexit work to do
 
 
 def is_command_line() -> bool:

@@ -28,6 +28,10 @@ from hairexp.physics.integrators import DEFAULT_INTEGRATOR, make_integrator
 from hairexp.physics.strand_kernels import check_options
 
 
+#: collision.barrier_dhat's bound (d_hat as a multiple of the contact thickness)
+MAX_BARRIER_DHAT = 10.0
+
+
 def _value(x):
     return getattr(x, "value", x)
 
@@ -155,7 +159,9 @@ def _collision(c) -> None:
     mode = str(_value(c.contact))
     if mode not in ("barrier", "stage"):
         raise InputError(f"unknown contact {mode!r} (barrier|stage)", "collision.contact")
-    number(c.barrier_dhat, "collision.barrier_dhat", lo=0, lo_open=True)
+    # a fraction of the thickness: 1e6 made d_hat 2 km and every vertex a contact of every
+    # collider (the first step did not end in minutes; probe of issue 12)
+    number(c.barrier_dhat, "collision.barrier_dhat", lo=0, hi=MAX_BARRIER_DHAT, lo_open=True)
     number(c.barrier_stiffness, "collision.barrier_stiffness", lo=0, lo_open=True)
     number(c.friction_epsilon, "collision.friction_epsilon", lo=0, lo_open=True)
 
@@ -169,6 +175,10 @@ def _guides(cfg) -> None:
         number(f, f"guides.scale_factors[{i}]", lo=0, lo_open=True)
     if source == "file" and not str(g.file):
         raise InputError("guides.source=file needs the path of a guide npz", "guides.file")
+    if source != "simulated" and bool(g.collide):   # accepted, then did nothing (probe of issue 12)
+        raise InputError(f"is true but guides.source={source} does not simulate the guides (only simulated guides "
+                         "collide with scene.colliders): set guides.source=simulated or guides.collide=false",
+                         "guides.collide")
     if source != "file" and str(g.file):
         raise InputError(f"is set ({g.file}) but guides.source={source} does not read it: set guides.source=file "
                          "or leave guides.file empty", "guides.file")
@@ -276,6 +286,15 @@ def validate_measure(cfg, scene) -> None:
         # it read a keyframed body's motion as a block leaving its rail, exit 0 (probe of issue 12)
         raise InputError("block_rail measures a dynamic block on its rail (scene.body.dynamic=true, the stylization "
                          "scene); this scene's body is keyframed", "measure.name")
+    if str(_value(cfg.measure.name)) == "block_rail":
+        # the measure judges the body's own rail: with scene.body.rail_end=1.0 and the measure's 0.1 it
+        # said the block left its rail at 0.12 s while it was on it, exit 0 (probe of issue 12)
+        for key in ("rail_height", "rail_end"):
+            mine, body = float(cfg.measure[key]), float(cfg.scene.body[key])
+            if abs(mine - body) > 1e-12:
+                raise InputError(f"is {mine:g}, but the dynamic body's rail has scene.body.{key} = {body:g}: block_rail "
+                                 f"measures the block against its own rail; set measure.{key}={body:g} too",
+                                 f"measure.{key}")
     if str(_value(cfg.measure.name)) == "collider_contact":
         collider_named(scene, str(cfg.measure.collider))
     if str(_value(cfg.measure.name)) == "clumps":   # measured at measure.time; < 0: the last frame

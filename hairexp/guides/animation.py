@@ -31,6 +31,10 @@ from hairexp.model.dynamic_body import authoring_motion
 from hairexp.model.strands import check_folds, validate_polylines
 
 
+#: frames per second a guide animation may have (probe of issue 12)
+MIN_GUIDE_FPS, MAX_GUIDE_FPS = 0.1, 1e5
+
+
 class GuideAnimation:
     """``positions``: (F, Vg, 3) m, an array or a ``FrameStore`` (hairexp/guides/store.py: the
     frames kept in a temporary file, read a block at a time; the run's sources build one, so a
@@ -61,8 +65,10 @@ class GuideAnimation:
         counts = np.diff(self.offsets)
         if counts.size == 0 or self.offsets[0] != 0:
             raise InputError("guide offsets must start at 0 and name at least one guide", self.where)
-        if not (np.isfinite(self.fps) and self.fps > 0):
-            raise InputError(f"fps must be > 0, got {self.fps}", self.where)
+        if not (np.isfinite(self.fps) and MIN_GUIDE_FPS <= self.fps <= MAX_GUIDE_FPS):
+            # 1e-9 (a frame every 30 years) froze the guides at their first frame without a word
+            raise InputError(f"fps must be a number from {MIN_GUIDE_FPS:g} to {MAX_GUIDE_FPS:g} (frames per second), "
+                             f"got {self.fps:g}", self.where)
         for f, P in enumerate(self.frames):
             P, _ = validate_polylines(P, counts, f"{self.where} frame {f}", min_vertices=2, folds=False)
             check_extent(P, self.where, counts, frame=f)   # a point 1e30 away: a unit error, not a fold

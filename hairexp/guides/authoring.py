@@ -147,6 +147,10 @@ def rest_arclength_fraction(P: np.ndarray) -> np.ndarray:
 BLOCK_FRAMES = 256
 
 
+#: the largest rotate edit angle (degrees at weight 1)
+MAX_EDIT_DEGREES = 36000.0
+
+
 def _edit(i: int, e, G: int, offsets: np.ndarray, rest: np.ndarray):
     """Edit ``i`` checked, as a function ``op(P, times, R)`` that edits the frames P (n, Vg, 3) at
     ``times`` (n,) under body rotations R (n, 3, 3) in place."""
@@ -172,8 +176,10 @@ def _edit(i: int, e, G: int, offsets: np.ndarray, rest: np.ndarray):
         axis = _vector(e.axis, f"{where}.axis", nonzero=True)
         axis /= np.linalg.norm(axis)
         angle = float(e.angle_deg)
-        if not np.isfinite(angle):
-            raise InputError(f"must be finite, got {angle}", f"{where}.angle_deg")
+        if not (np.isfinite(angle) and abs(angle) <= MAX_EDIT_DEGREES):
+            # 1e308 reached the guides as "vertex is not finite", naming no key (probe of issue 12)
+            raise InputError(f"must be a finite number of degrees within +-{MAX_EDIT_DEGREES:g} (100 turns), got {angle}",
+                             f"{where}.angle_deg")
         if angle == 0:
             logging.getLogger("hairexp").warning("%s: angle_deg is 0: this rotate edit leaves the guide as it is", where)
 

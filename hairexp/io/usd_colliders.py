@@ -28,8 +28,22 @@ SUPPORTED = ("Sphere", "Cube", "Cylinder", "Capsule", "Plane")
 
 
 def _number(prim, name: str, where: str, positive: bool = False, default=None) -> float:
+    """The attribute's one value: its default, or its time samples when they all agree.  Time
+    samples alone read as the schema's fallback (a sphere of radius 1 m instead of the stage's
+    0.05; probe of issue 12), and a collider keeps its size: samples that differ are an error."""
     attr = prim.GetAttribute(name)
-    value = attr.Get() if attr and attr.HasAuthoredValue() else default
+    samples = attr.GetTimeSamples() if attr else []
+    if samples:
+        values = [attr.Get(t) for t in samples]
+        if attr.Get() is not None:   # an authored default beside the samples: USD reads the samples
+            values.append(attr.Get(samples[0]))
+        if any(v != values[0] for v in values):
+            raise InputError(f"{name} is animated ({values[0]!r} at time code {samples[0]:g} -> "
+                             f"{next(v for v in values if v != values[0])!r}); a collider keeps its {name} "
+                             "(author one value)", where)
+        value = values[0]
+    else:
+        value = attr.Get() if attr and attr.HasAuthoredValue() else default
     if value is None:
         value = attr.Get() if attr else None  # the schema's fallback
     try:

@@ -28,7 +28,7 @@ from hairexp.io.usd_colliders import read_colliders
 from hairexp.io.usd_layout import read_motion, time_label
 from hairexp.guides.animation import GuideAnimation
 from hairexp.guides.store import FrameStore
-from hairexp.model.builders import build_collider, build_material, vec3
+from hairexp.model.builders import build_collider, build_material, gravity
 from hairexp.model.scene import Scene
 from hairexp.model.strands import N_ROOT_VERTICES, Strands, check_folds, validate_polylines
 
@@ -76,6 +76,9 @@ def get_prim(stage, path: str, where: str, what: str, key: str, schema=None) -> 
     prim = stage.GetPrimAtPath(path) if path.startswith("/") else None
     if not prim:
         raise InputError(f"no prim at {path} ({what}; {key} names its path)", where)
+    if not prim.IsActive():   # it was simulated as if active (probe of issue 12)
+        raise InputError(f"is inactive (active = false) ({what}): activate it, or name another prim with {key}",
+                         f"{where}:{path}")
     if schema is not None and not prim.IsA(schema):
         raise InputError(f"is a {prim.GetTypeName() or 'typeless prim'}, expected {schema.__name__} ({what})",
                          f"{where}:{path}")
@@ -149,6 +152,12 @@ def build_usd_scene(cfg):
     hair = get_prim(stage, cfg.usd_hair, file, "the detail hair", "scene.usd_hair", UsdGeom.BasisCurves)
     where = f"{file}:{cfg.usd_hair}"
     tc = rest_time(UsdGeom.BasisCurves(hair).GetPointsAttr())
+    samples = UsdGeom.BasisCurves(hair).GetPointsAttr().GetTimeSamples()
+    if len(samples) > (0 if tc.IsDefault() else 1):   # ignored without a word (probe of issue 12)
+        logging.getLogger("hairexp").warning(
+            "%s: the hair's points are animated (%d time samples); the hair is read at rest (%s) and simulated: "
+            "its animation is not used (animate the body, %s, or the guides instead)", where, len(samples),
+            "the default value" if tc.IsDefault() else "time code 0", cfg.usd_body)
     pts, counts = read_curves(hair, tc, where)
     validate_polylines(pts, counts, where, min_vertices=N_ROOT_VERTICES + 1, folds=False)  # before any transform
     check_extent(pts, where, counts)
@@ -163,7 +172,7 @@ def build_usd_scene(cfg):
     strands = Strands.from_polylines(motion.transform(body_pts, 0.0), counts, material.linear_density, where=where)
     colliders = read_colliders(stage, cfg.usd_colliders, tcps, file)
     colliders += [build_collider(c, i) for i, c in enumerate(getattr(cfg, "colliders", []) or [])]
-    return Scene(cfg.name, strands, material, motion, vec3(cfg.gravity, "scene.gravity"), body_pts, colliders)
+    return Scene(cfg.name, strands, material, motion, gravity(cfg.gravity), body_pts, colliders)
 
 
 def _rescaled_hint(attr) -> str:
@@ -247,11 +256,17 @@ def stage_timing(cfg):
     fps = tcps if cfg.fps is None else float(cfg.fps)
     frames = cfg.frames
     if frames is None:
-        if not stage.HasAuthoredTimeCodeRange():
+        # the root layer's endTimeCode alone (HasAuthoredTimeCodeRange wants startTimeCode too: a stage
+        # with only endTimeCode = 3 was told it had none; probe of issue 12)
+        if not stage.GetRootLayer().HasEndTimeCode():
             raise InputError("the stage has no endTimeCode to take frames from: set frames=N", file)
-        frames = int(math.floor(stage.GetEndTimeCode() * fps / tcps + 1e-9))
+        exact = stage.GetEndTimeCode() * fps / tcps
+        frames = int(math.floor(exact + 1e-9))
         if frames < 1:
             raise InputError(f"endTimeCode {stage.GetEndTimeCode():g} gives no frame after frame 0", file)
+        if abs(exact - round(exact)) > 1e-6:   # 2.5 was cut to 2 frames without a word
+            raise InputError(f"endTimeCode {stage.GetEndTimeCode():g} is {exact:g} frames at {fps:g} fps, not a whole "
+                             f"number: end the stage on a frame, or set frames=N", file)
     if stage.HasAuthoredTimeCodeRange() and stage.GetStartTimeCode() != 0:   # said, not silently dropped (probe of issue 12)
         logging.getLogger("hairexp").warning(
             "%s: startTimeCode is %g, but a run starts at time code 0 (t = 0 s: the body, colliders and guides are read "

@@ -32,6 +32,21 @@ def vec3(v, key: str) -> np.ndarray:
     return a
 
 
+#: m/s^2, the largest gravity (about 100 g): -1e300 overflowed the first step into a numpy warning
+#: and "try solver.on_failure=substep" (probe of issue 12)
+MAX_GRAVITY = 1e3
+
+
+def gravity(v, key: str = "scene.gravity") -> np.ndarray:
+    """``scene.gravity`` (m/s^2) checked: 3 finite numbers of magnitude <= MAX_GRAVITY."""
+    g = vec3(v, key)
+    big = float(np.abs(g).max())
+    if big > MAX_GRAVITY or float(np.linalg.norm(g / big if big else g)) * big > MAX_GRAVITY:
+        raise InputError(f"is {g.tolist()}, larger than {MAX_GRAVITY:g} m/s^2 (about 100 g); gravity is in m/s^2 "
+                         "(Earth's: [0, -9.81, 0])", key)
+    return g
+
+
 def _unit(v, key) -> np.ndarray:
     a = vec3(v, key)
     n = np.linalg.norm(a)
@@ -173,7 +188,7 @@ def build_procedural_scene(cfg) -> Scene:
     counts = np.full(cfg.n_strands, cfg.n_vertices)
     strands = Strands.from_polylines(world, counts, material.linear_density, where=f"scene {cfg.name}")
     colliders = [build_collider(c, i) for i, c in enumerate(getattr(cfg, "colliders", []) or [])]
-    return Scene(cfg.name, strands, material, motion, vec3(cfg.gravity, "scene.gravity"), body_pts, colliders)
+    return Scene(cfg.name, strands, material, motion, gravity(cfg.gravity), body_pts, colliders)
 
 
 def with_dynamic_body(cfg, scene: Scene) -> Scene:

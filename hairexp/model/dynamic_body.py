@@ -247,4 +247,9 @@ def build_dynamic_body(body_cfg, motion: RigidMotion, strands, gravity: np.ndarr
                          f"hair it carries ({hair:.4g} kg): the staggered hair-block coupling amplifies a disturbance "
                          "by about m_hair / m_block per step", "scene.body.mass")
     R, T = motion.pose(0.0)
+    if T[0] <= rail_end and T[1] < rail_height - 1e-6:
+        # under its own rail, the block fell from the first step without a word (probe of issue 12)
+        raise InputError(f"is {rail_height:g} m, but the block starts at y = {T[1]:g} m (its initial pose), "
+                         f"{rail_height - T[1]:g} m below its rail: set scene.body.rail_height to the block's start "
+                         "height (or lift the block)", "scene.body.rail_height")
     return DynamicBody(R, T, vel, mass, carried, gravity, rail_height, rail_end, mu)

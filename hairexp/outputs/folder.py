@@ -143,6 +143,37 @@ def used_refusal(folder: Path, used: list[Path] | None = None) -> str | None:
             "(hydra.run.dir) or set overwrite=true to replace the run in it")
 
 
+#: bytes of each job log (``*.log`` in a run folder) written before this process's job began:
+#: a previous run's lines, which ``claim(overwrite=True)`` removes (``note_job_logs``)
+_PREVIOUS_LOG_BYTES: dict[Path, int] = {}
+
+
+def note_job_logs(folder: Path) -> None:
+    """Record the size of ``folder``'s job logs as the job starts (the command line calls it
+    first thing): what they hold then is a previous run's.  ``overwrite=true`` replaced the
+    previous run's files but left its lines in ``__main__.log``, so the new run's log showed
+    warnings the new run never raised (probe of issue 12)."""
+    folder = Path(folder)
+    if folder.is_dir():
+        for p in folder.glob("*.log"):
+            if p.is_file():
+                _PREVIOUS_LOG_BYTES[p.resolve()] = p.stat().st_size
+
+
+def _drop_previous_log_lines(folder: Path) -> None:
+    """Remove the previous run's lines from the front of ``folder``'s job logs, in place (the
+    job's log handler appends: its next line goes after what is kept)."""
+    for p in Path(folder).glob("*.log"):
+        n = _PREVIOUS_LOG_BYTES.pop(p.resolve(), 0)
+        if n and p.is_file():
+            with open(p, "r+b") as f:
+                f.seek(n)
+                ours = f.read()
+                f.seek(0)
+                f.write(ours)
+                f.truncate()
+
+
 def claim(folder: Path, overwrite: bool = False) -> None:
     """Make ``folder`` this run's: create it, refuse it (InputError) when it holds another
     run's files unless ``overwrite``, and create ``summary.json`` exclusively."""
@@ -159,6 +190,7 @@ def claim(folder: Path, overwrite: bool = False) -> None:
                              + ", ".join(str(p.relative_to(folder)) for p in foreign[:6]), str(folder))
         for p in ours:
             shutil.rmtree(p) if p.is_dir() else p.unlink()
+        _drop_previous_log_lines(folder)
     folder.mkdir(parents=True, exist_ok=True)
     try:
         os.close(os.open(folder / SUMMARY, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))

@@ -373,8 +373,11 @@ class Simulator:
         if not isinstance(state, State):
             raise TypeError(f"Simulator.step: state must be a hairexp State (Simulator.initial_state() or a step's), "
                             f"got {type(state).__name__}")
-        if not (np.isfinite(dt) and dt > 0):   # -0.01 stepped time backwards and said converged (probe of issue 12)
+        if (isinstance(dt, (bool, np.bool_)) or not isinstance(dt, (int, float, np.integer, np.floating))
+                or not (np.isfinite(dt) and dt > 0)):   # -0.01 stepped time backwards and said converged (probe of issue 12)
             raise ValueError(f"Simulator.step: dt must be a finite number > 0 (s), got {dt!r}")
+        if not isinstance(state.time, (int, float, np.integer, np.floating)) or not np.isfinite(state.time):
+            raise ValueError(f"Simulator.step: the state's time must be a finite number (s), got {state.time!r}")
         shape = (self.scene.strands.n_vertices, 3)
         if np.shape(state.x) != shape or np.shape(state.v) != shape:   # an IndexError deep in the step (probe of issue 12)
             raise ValueError(f"Simulator.step: the state's positions and velocities must have the scene's shape {shape}, "
