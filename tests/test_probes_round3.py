@@ -31,15 +31,14 @@ input:
 
 from __future__ import annotations
 
-import copy
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
+from probe_helpers import REPO, SMALL, run_cli, updated
 
 from hairexp.app import cli
 from hairexp.app.assemble import assemble_scene
@@ -47,20 +46,11 @@ from hairexp.app.config import compose_config
 from hairexp.app.validate import validate_config
 from hairexp.errors import MAX_COORDINATE, InputError
 
-SMALL = ["experiment=goaling_smoke", "variants=[]", "frames=2", "logging.rerun=false"]
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def base():
     return compose_config(SMALL)
-
-
-def updated(cfg, **kv):
-    out = copy.deepcopy(cfg)
-    for k, v in kv.items():
-        OmegaConf.update(out, k.replace("__", "."), v, merge=False)
-    return out
 
 
 # 1. config values
@@ -310,12 +300,6 @@ def test_unknown_experiment_in_a_sweep_is_short():
     msg = cli.config_error(["-m", "experiment=goaling_smoke,goalng", "variants=[]"])
     assert "sweep job [experiment=goalng]" in msg and "Could not find 'experiment/goalng'" in msg, msg
     assert "search path" not in msg
-
-
-def run_cli(args, cwd, timeout=120):
-    env = dict(os.environ, CI="1", PYTHONPATH=str(REPO))
-    return subprocess.run([sys.executable, "-m", "hairexp", *args], cwd=cwd, env=env, capture_output=True, text=True,
-                          timeout=timeout)
 
 
 def test_cli_non_ascii_run_dir_and_empty_run_dir_exit_2(tmp_path):

@@ -20,7 +20,6 @@ or a few each, checking the exit code or the error's ``where`` and the message n
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
 import logging
@@ -33,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from omegaconf import OmegaConf
+from probe_helpers import SMALL, run_cli, updated
 
 from hairexp.app import cli
 from hairexp.app.assemble import assemble, assemble_scene
@@ -41,26 +40,11 @@ from hairexp.app.config import compose_config
 from hairexp.app.signals import InterruptSignals, take_late
 from hairexp.errors import Interrupted, InputError
 
-SMALL = ["experiment=goaling_smoke", "variants=[]", "frames=2", "logging.rerun=false"]
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def base():
     return compose_config(SMALL)
-
-
-def updated(cfg, **kv):
-    out = copy.deepcopy(cfg)
-    for k, v in kv.items():
-        OmegaConf.update(out, k.replace("__", "."), v, merge=False)
-    return out
-
-
-def run_cli(args, cwd, timeout=120):
-    env = dict(os.environ, CI="1", PYTHONPATH=str(REPO))
-    return subprocess.run([sys.executable, "-m", "hairexp", *args], cwd=cwd, env=env, capture_output=True, text=True,
-                          timeout=timeout)
 
 
 # 1. USD

@@ -399,8 +399,16 @@ def used_dir_error(argv: list[str]) -> str | None:
         return _used_sweep_dir_error(argv, parser)
     if _overwrite_given(argv, parser):
         return None
+    folder = _fixed_folder(argv, "hydra.run.dir", parser)
+    refused = None if folder is None else used_refusal(folder)
+    return None if refused is None else f"hairexp: error: {folder}: {refused}"
+
+
+def _fixed_folder(argv: list[str], key: str, parser) -> Path | None:
+    """The folder the command line's ``key`` (``hydra.run.dir``, ``hydra.sweep.dir``) names, when
+    it is one fixed path (not a sweep, not an interpolation such as ``${now:...}``), or None."""
     for arg in argv:
-        if not arg.lstrip("+~").startswith("hydra.run.dir="):
+        if not arg.lstrip("+~").startswith(key + "="):
             continue
         try:
             o = parser.parse_override(arg)
@@ -409,8 +417,7 @@ def used_dir_error(argv: list[str]) -> str | None:
         value = o.value()
         if o.is_sweep_override() or value is None or _static_part(str(value)) != str(value):
             return None
-        refused = used_refusal(Path(str(value)))
-        return None if refused is None else f"hairexp: error: {value}: {refused}"
+        return Path(str(value))
     return None
 
 
@@ -419,21 +426,11 @@ def _used_sweep_dir_error(argv: list[str], parser) -> str | None:
     sweep (its ``multirun.yaml`` or job folders), with or without ``overwrite=true``: a sweep
     folder is one sweep's.  A second sweep into it replaced ``multirun.yaml`` and its report
     counted the first sweep's jobs as its own (probe of issue 12)."""
-    for arg in argv:
-        if not arg.lstrip("+~").startswith("hydra.sweep.dir="):
-            continue
-        try:
-            o = parser.parse_override(arg)
-        except Exception:  # noqa: BLE001  (a syntax error: Hydra's own message)
-            return None
-        value = o.value()
-        if o.is_sweep_override() or value is None or _static_part(str(value)) != str(value):
-            return None
-        folder = Path(str(value))
-        if folder.is_dir() and any(folder.iterdir()):
-            shown = ", ".join(sorted(p.name for p in folder.iterdir())[:6])
-            return (f"hairexp: error: {value}: the sweep folder is not empty ({shown}); a sweep folder belongs to one "
-                    "sweep: choose another hydra.sweep.dir (the default is a new dated folder) or remove this one")
+    folder = _fixed_folder(argv, "hydra.sweep.dir", parser)
+    if folder is not None and folder.is_dir() and any(folder.iterdir()):
+        shown = ", ".join(sorted(p.name for p in folder.iterdir())[:6])
+        return (f"hairexp: error: {folder}: the sweep folder is not empty ({shown}); a sweep folder belongs to one "
+                "sweep: choose another hydra.sweep.dir (the default is a new dated folder) or remove this one")
     return None
 
 
