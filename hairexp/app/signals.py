@@ -7,6 +7,12 @@ ending (partial metrics, ``summary.json`` saying ``interrupted``) and the comman
 starts with ``&``) stays ignored throughout, as during start-up.  While the ending is written (``deferred()``) a further signal is only
 remembered (``pending``).  Outside the main thread nothing is installed.
 
+A signal that lands inside an object's ``__del__`` (where a raised exception is printed and
+lost) is delivered again a moment later, until the finaliser has returned.  Once a run has
+written its completed summary, a signal is only kept (``note_late``): the run stays completed,
+and its caller takes the signal (``take_late``: an experiment stops before its next variant, the
+command line exits 128 + signal saying the run's results are whole).
+
 ``InterruptSignals(on_signal=f)`` calls ``f(signum)`` once before raising (a second signal
 meanwhile raises at once): the main process of a ``-m`` sweep forwards SIGTERM to its worker
 processes there and waits a bounded time for their jobs to write their ``interrupted`` ending
