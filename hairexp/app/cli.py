@@ -85,13 +85,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         check_bool_overrides(list(overrides))
         summary = run_experiment(cfg, out)
         late = take_late()   # a signal after the run had written its completed ending
-        if late is None:
-            res = outcome(out, "completed", 0, None, summary)
-        else:
-            name = signal.Signals(late).name
-            print(f"hairexp: {name} after the run had completed; its results are whole (summary.json: completed) "
-                  f"({out})", file=sys.stderr)
-            res = outcome(out, "completed", signal_exit_code(late), f"{name} after the run had completed", summary)
+        res = outcome(out, "completed", 0, None, summary) if late is None else _signalled_after(out, late, summary)
         _log_completed(summary, out)
     except InputError as exc:
         print(f"hairexp: error: {exc}", file=sys.stderr)
@@ -109,10 +103,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         signum = exc.signum if isinstance(exc, Interrupted) else 2
         msg = str(exc) if isinstance(exc, Interrupted) else "interrupted by SIGINT"
         if summary is not None and summary.get("status") == "completed":   # the run had ended: nothing partial
-            name = signal.Signals(signum).name
-            print(f"hairexp: {name} after the run had completed; its results are whole (summary.json: completed) "
-                  f"({out})", file=sys.stderr)
-            res = outcome(out, "completed", signal_exit_code(signum), f"{name} after the run had completed", summary)
+            res = _signalled_after(out, signum, summary)
         else:
             print(f"hairexp: {msg} (partial results in {out})", file=sys.stderr)
             _print_notes(exc)
@@ -124,6 +115,15 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     if sweep:
         _write_outcome(out, res)
     return res
+
+
+def _signalled_after(out, signum: int, summary: dict) -> dict:
+    """The outcome of a run that completed before ``signum`` arrived: completed, exit 128 +
+    signal, said on stderr."""
+    name = signal.Signals(signum).name
+    print(f"hairexp: {name} after the run had completed; its results are whole (summary.json: completed) ({out})",
+          file=sys.stderr)
+    return outcome(out, "completed", signal_exit_code(signum), f"{name} after the run had completed", summary)
 
 
 def _stopped_by(sweep_dir) -> str | None:
