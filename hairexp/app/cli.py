@@ -426,6 +426,12 @@ def _used_sweep_dir_error(argv: list[str], parser) -> str | None:
     sweep (its ``multirun.yaml`` or job folders), with or without ``overwrite=true``: a sweep
     folder is one sweep's.  A second sweep into it replaced ``multirun.yaml`` and its report
     counted the first sweep's jobs as its own (probe of issue 12)."""
+    subdir = _fixed_folder(argv, "hydra.sweep.subdir", parser)
+    if subdir is not None and (sweep_size([a for a in argv if not a.startswith("-") and not _hydra_arg(a)]) or 2) > 1:
+        # every job in one folder: the second was refused and the report named the wrong job (probe of issue 12)
+        return (f"hairexp: error: hydra.sweep.subdir={subdir}: every job of the sweep would write into the same "
+                "folder; a job's folder must differ per job: keep the default (${hydra.job.num}) or include "
+                "${hydra.job.num} or ${hydra.job.override_dirname} in it")
     folder = _fixed_folder(argv, "hydra.sweep.dir", parser)
     if folder is not None and folder.is_dir() and any(folder.iterdir()):
         shown = ", ".join(sorted(p.name for p in folder.iterdir())[:6])

@@ -27,25 +27,28 @@ from hairexp.model.colliders import Box, Capsule, Cylinder, Plane, Sphere
 SUPPORTED = ("Sphere", "Cube", "Cylinder", "Capsule", "Plane")
 
 
-def _number(prim, name: str, where: str, positive: bool = False, default=None) -> float:
-    """The attribute's one value: its default, or its time samples when they all agree.  Time
-    samples alone read as the schema's fallback (a sphere of radius 1 m instead of the stage's
-    0.05; probe of issue 12), and a collider keeps its size: samples that differ are an error."""
+def _one_value(prim, name: str, where: str, default=None):
+    """The attribute's one value: its default, or its time samples when they all agree (else
+    ``default``, else the schema's fallback).  Time samples alone read as the schema's fallback
+    (a sphere of radius 1 m instead of the stage's 0.05; probe of issue 12), and a collider keeps
+    its size and spin: samples that differ are an error."""
     attr = prim.GetAttribute(name)
     samples = attr.GetTimeSamples() if attr else []
     if samples:
         values = [attr.Get(t) for t in samples]
-        if attr.Get() is not None:   # an authored default beside the samples: USD reads the samples
-            values.append(attr.Get(samples[0]))
         if any(v != values[0] for v in values):
             raise InputError(f"{name} is animated ({values[0]!r} at time code {samples[0]:g} -> "
                              f"{next(v for v in values if v != values[0])!r}); a collider keeps its {name} "
                              "(author one value)", where)
-        value = values[0]
-    else:
-        value = attr.Get() if attr and attr.HasAuthoredValue() else default
+        return values[0]
+    value = attr.Get() if attr and attr.HasAuthoredValue() else default
     if value is None:
         value = attr.Get() if attr else None  # the schema's fallback
+    return value
+
+
+def _number(prim, name: str, where: str, positive: bool = False, default=None) -> float:
+    value = _one_value(prim, name, where, default)
     try:
         value = float(value)
     except (TypeError, ValueError):
@@ -56,8 +59,7 @@ def _number(prim, name: str, where: str, positive: bool = False, default=None) -
 
 
 def _spin(prim, where: str) -> float:
-    attr = prim.GetAttribute(SPIN)
-    value = attr.Get() if attr and attr.HasAuthoredValue() else COLLIDER_DEFAULTS[SPIN]
+    value = _one_value(prim, SPIN, where, COLLIDER_DEFAULTS[SPIN])
     if not isinstance(value, (int, float)) or not math.isfinite(value):
         raise InputError(f"{SPIN} must be a finite number (rad/s), got {value!r}", where)
     return float(value)

@@ -60,6 +60,13 @@ def open_stage(path: str) -> tuple[Usd.Stage, str]:
         raise InputError(f"cannot read the USD stage: {_message(exc)}", where) from exc
     if not stage:
         raise InputError("cannot read the USD stage", where)
+    errors = stage.GetCompositionErrors()
+    if errors:
+        # a missing sublayer or reference: USD skips it with a warning on stderr and the run went on
+        # without what it held (probe of issue 12)
+        _open.pop(path, None)
+        raise InputError(f"the stage does not compose: {' '.join(str(errors[0]).split())}"
+                         + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""), where)
     _open.clear()
     _open[path] = stage
     if UsdGeom.StageHasAuthoredMetersPerUnit(stage) and abs(UsdGeom.GetStageMetersPerUnit(stage) - 1.0) > 1e-12:

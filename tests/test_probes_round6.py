@@ -1,0 +1,89 @@
+"""Findings of the sixth independent probe round (after the fifth's fixes), one test each:
+
+1. USD: ``hairexp:spin`` authored as agreeing time samples is read (it was refused, "got None");
+   a stage whose sublayer is missing is refused (USD skipped it with a C++ warning and the run
+   went on without what it held, exit 0).
+2. sweeps: a constant ``hydra.sweep.subdir`` (every job in one folder) is refused before Hydra starts.
+3. signals: a frame goes to the run's sinks whole: a signal inside the send of a chunk of frames
+   is kept until the frame is logged (it dropped 250 frames of an entity from the partial recording).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+
+import numpy as np
+import pytest
+from probe_helpers import SMALL
+
+from hairexp.app import cli
+from hairexp.app.config import compose_config
+from hairexp.errors import InputError
+
+
+@pytest.fixture()
+def stage(tmp_path):
+    from usd_helpers import COLLIDERS, source_cfg, write_stage
+
+    path = tmp_path / "scene.usda"
+    write_stage(path, source_cfg(colliders=COLLIDERS[2:3]))   # the wheel: a cylinder with a spin
+    return path
+
+
+def test_a_spin_authored_as_agreeing_time_samples_is_read(stage):
+    from usd_helpers import edit_stage, usd_cfg
+
+    from hairexp.app.builders import build_scene
+
+    def sampled(st):
+        a = st.GetPrimAtPath("/Root/Colliders/wheel").GetAttribute("hairexp:spin")
+        a.Clear()
+        a.Set(5.0, 0.0)
+        a.Set(5.0, 3.0)
+
+    edit_stage(stage, sampled)
+    assert build_scene(usd_cfg(stage).scene).colliders[0].spin == pytest.approx(5.0)
+
+
+def test_a_stage_with_a_missing_sublayer_is_refused(stage, tmp_path):
+    from pxr import Sdf
+    from usd_helpers import usd_cfg
+
+    from hairexp.app.builders import build_scene
+
+    root = Sdf.Layer.CreateNew(str(tmp_path / "root.usda"))
+    root.subLayerPaths.append("missing.usda")
+    root.subLayerPaths.append(stage.name)
+    root.Save()
+    with pytest.raises(InputError, match=r"the stage does not compose: .*missing.usda") as err:
+        build_scene(usd_cfg(tmp_path / "root.usda").scene)
+    assert err.value.where.startswith("scene.usd=")
+
+
+def test_a_sweep_with_one_folder_for_every_job_is_refused(tmp_path):
+    argv = ["-m", *SMALL, "solver.dt=0.04,0.02", f"hydra.sweep.dir={tmp_path / 's'}", "hydra.sweep.subdir=same"]
+    msg = cli.used_dir_error(argv)
+    assert msg is not None and "every job of the sweep would write into the same folder" in msg, msg
+    ok = ["-m", *SMALL, "solver.dt=0.04,0.02", f"hydra.sweep.dir={tmp_path / 's'}", "hydra.sweep.subdir=${hydra.job.num}_x"]
+    assert cli.used_dir_error(ok) is None
+
+
+def test_a_signal_inside_a_frames_logging_is_kept_until_the_frame_is_whole(tmp_path, monkeypatch):
+    from hairexp.outputs.files import ResultRecorder
+
+    real = ResultRecorder.log_frame
+
+    def log_then_signal(self, frame, *a, **k):
+        if frame == 3:
+            os.kill(os.getpid(), signal.SIGTERM)   # lands inside the frame's logging
+        real(self, frame, *a, **k)
+
+    monkeypatch.setattr(ResultRecorder, "log_frame", log_then_signal)
+    out = tmp_path / "run"
+    res = cli.job(compose_config([*SMALL[:2], "frames=6", "logging.rerun=false", "logging.progress=false"]), str(out))
+    assert res["status"] == "interrupted" and res["code"] == 143, res
+    assert json.loads((out / "summary.json").read_text())["status"] == "interrupted"
+    times = np.load(out / "stream" / "times.npy")
+    assert len(times) == 4, times   # frames 0..3: the signalled frame was logged whole before the interrupt
