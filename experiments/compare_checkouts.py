@@ -34,6 +34,18 @@ import numpy as np
 HERE = Path(__file__).resolve().parents[1]
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1 (local: the worker runs in the other checkout, whose
+    experiments package may predate experiments.common's)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive integer")
+    return v
+
+
 def worker(steps: int, threads: str) -> None:
     """Reads commands from stdin, answers one JSON line each: ``eval`` (time one fused pass at the
     iterate after the warm-up), ``step`` (one timed step), ``save PATH`` (final positions)."""
@@ -105,8 +117,8 @@ def ask(p: subprocess.Popen, cmd: str | None) -> dict:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("other", nargs="?", help="path of the other checkout (the base)")
-    ap.add_argument("--steps", type=int, default=50)
-    ap.add_argument("--repeats", type=int, default=30, help="timed fused passes per checkout")
+    ap.add_argument("--steps", type=positive_int, default=50)
+    ap.add_argument("--repeats", type=positive_int, default=30, help="timed fused passes per checkout")
     ap.add_argument("--threads", default="1", choices=("1", "2", "auto"),
                     help="solver.threads of both runs (default 1: auto decides per process from the load, so the "
                          "two could differ)")
@@ -115,6 +127,10 @@ def main(argv=None) -> None:
     if args.worker:
         worker(args.steps, args.threads)
         return
+    if args.other is None:
+        ap.error("the path of the other checkout is required")
+    if not (Path(args.other) / "hairexp" / "__init__.py").is_file():   # a traceback before (probe of issue 12)
+        ap.error(f"{args.other}: not a hairexp checkout (no hairexp/__init__.py)")
     paths = {"other": Path(args.other).resolve(), "this": HERE}
     workers = {}
     for name, path in paths.items():   # one after the other: their settle does not share the cores

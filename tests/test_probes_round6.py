@@ -6,6 +6,12 @@
 2. sweeps: a constant ``hydra.sweep.subdir`` (every job in one folder) is refused before Hydra starts.
 3. signals: a frame goes to the run's sinks whole: a signal inside the send of a chunk of frames
    is kept until the frame is logged (it dropped 250 frames of an entity from the partial recording).
+4. run folders: ``overwrite=true`` over a run that is still running is refused (it deleted the
+   live run's files under it and the folder mixed two runs).
+5. checked before anything runs: a tiny ``fps`` (1e-3 failed after the guide simulation, naming
+   "guides: fps"), a later variant's guide file (read only when that variant started), a
+   ``scene.usd_colliders`` that names one collider instead of their parent (it ran with none);
+   ``experiments.compare_checkouts`` with a path that is not a checkout is a usage error.
 """
 
 from __future__ import annotations
@@ -87,3 +93,63 @@ def test_a_signal_inside_a_frames_logging_is_kept_until_the_frame_is_whole(tmp_p
     assert json.loads((out / "summary.json").read_text())["status"] == "interrupted"
     times = np.load(out / "stream" / "times.npy")
     assert len(times) == 4, times   # frames 0..3: the signalled frame was logged whole before the interrupt
+
+
+def test_overwrite_refuses_a_folder_whose_run_is_still_running(tmp_path):
+    """overwrite=true deleted a live run's files under it; the live run then failed and the folder
+    mixed the two runs' files."""
+    from hairexp.outputs.folder import claim, owner
+
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / "summary.json").write_text(json.dumps({"status": "running", **owner()}))   # this process: alive
+    (folder / "metrics.parquet").write_bytes(b"x")
+    with pytest.raises(InputError, match=r"holds a run still running \(pid \d+\): overwrite=true replaces a finished"):
+        claim(folder, overwrite=True)
+    assert (folder / "metrics.parquet").exists()   # nothing deleted
+    msg = cli.used_dir_error([*SMALL, "overwrite=true", f"hydra.run.dir={folder}"])
+    assert msg is not None and "still running" in msg, msg   # before Hydra writes .hydra/ into it
+
+
+def test_a_tiny_fps_names_fps_before_anything_runs(tmp_path):
+    from hairexp.app.assemble import check_config
+
+    with pytest.raises(InputError, match=r"must be a finite number from 0.1 to 100000 .*got 0.001") as err:
+        check_config(compose_config([*SMALL, "fps=1e-3", "frames=1"]))
+    assert err.value.where == "fps"
+
+
+def test_a_collider_prim_named_instead_of_their_parent_is_refused(tmp_path):
+    from usd_helpers import COLLIDERS, source_cfg, usd_cfg, write_stage
+
+    from hairexp.app.builders import build_scene
+
+    path = tmp_path / "scene.usda"
+    write_stage(path, source_cfg(colliders=COLLIDERS[:1]))
+    with pytest.raises(InputError, match=r"is a Sphere: scene.usd_colliders names the parent of the colliders"):
+        build_scene(usd_cfg(path, **{"scene.usd_colliders": "/Root/Colliders/ball"}).scene)
+
+
+def test_a_later_variants_guide_file_is_read_before_any_variant_runs(tmp_path):
+    from hairexp.app.experiment import run_experiment
+
+    pts = np.zeros((4, 30, 3))
+    pts[:, :, 1] = -np.tile(np.linspace(0, 0.3, 10), 3)
+    pts[2, 5, 1] = np.nan
+    bad = tmp_path / "nan.npz"
+    np.savez(bad, guide_positions=pts, guide_offsets=np.array([0, 10, 20, 30]), fps=np.float64(25))
+    variants = ("variants=[{name: a, overrides: ['controller.name=free']}, {name: b, overrides: "
+                f"['controller.name=tracking', 'guides.source=file', 'guides.file={bad}', 'guides.edits=[]']}}]")
+    cfg = compose_config(["experiment=goaling_smoke", "frames=3", "logging.rerun=false", "judge=none", variants])
+    out = tmp_path / "exp"
+    with pytest.raises(InputError, match=r"vertex 5 is not finite.*variants\[1\] b, checked before any variant runs"):
+        run_experiment(cfg, out)
+    assert not (out / "a").exists()   # the first variant did not run
+
+
+def test_compare_checkouts_refuses_a_path_that_is_not_a_checkout(capsys):
+    from experiments.compare_checkouts import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["/nonexistent"])
+    assert exc.value.code == 2 and "not a hairexp checkout" in capsys.readouterr().err

@@ -34,7 +34,7 @@ from hairexp.app.guides import build_guides
 from hairexp.app.validate import validate_config, validate_measure
 from hairexp.control import build_controller
 from hairexp.errors import InputError
-from hairexp.guides.animation import GuideAnimation
+from hairexp.guides.animation import GuideAnimation, file_guides
 from hairexp.model.builders import check_counts
 from hairexp.model.scene import Scene
 from hairexp.physics.controller import Controller
@@ -114,6 +114,8 @@ def check_config(cfg) -> None:
     validate_config(cfg)
     cfg = timed_config(cfg)
     n_sub, _ = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
+    if str(_value(cfg.guides.source)) == "file":   # read now: a later variant's bad file failed after the others ran
+        file_guides(str(cfg.guides.file), None, int(cfg.frames), float(cfg.fps))
     if str(_value(cfg.scene.builder)) != "usd":
         check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices), float(cfg.scene.length))
         guard_run(cfg, int(cfg.scene.n_strands) * int(cfg.scene.n_vertices), n_sub)

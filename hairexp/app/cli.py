@@ -397,10 +397,14 @@ def used_dir_error(argv: list[str]) -> str | None:
     parser = OverridesParser.create()
     if _multirun(argv):
         return _used_sweep_dir_error(argv, parser)
-    if _overwrite_given(argv, parser):
-        return None
     folder = _fixed_folder(argv, "hydra.run.dir", parser)
-    refused = None if folder is None else used_refusal(folder)
+    if folder is None:
+        return None
+    if _overwrite_given(argv, parser):   # a finished run is replaced; a live one is not (nor its .hydra/)
+        live = running_state(folder)
+        return (f"hairexp: error: {folder}: holds {live}: overwrite=true replaces a finished run only; wait for it "
+                "to end or stop it first") if live is not None and "still running" in live else None
+    refused = used_refusal(folder)
     return None if refused is None else f"hairexp: error: {folder}: {refused}"
 
 

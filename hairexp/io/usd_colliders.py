@@ -82,6 +82,9 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
             return []
         raise InputError(f"no prim at {path} (the colliders; scene.usd_colliders names its path: an absolute prim "
                          f"path, or {COLLIDERS} for a stage without colliders)", file)
+    if root.GetTypeName() in SUPPORTED:   # one collider named instead of their parent: it ran with none
+        raise InputError(f"is a {root.GetTypeName()}: scene.usd_colliders names the parent of the colliders (a Scope "
+                         f"or Xform), each collider a child prim of it ({path}/<name>)", f"{file}:{path}")
     out = []
     for prim in root.GetChildren():
         where = f"{file}:{prim.GetPath()}"

@@ -184,6 +184,12 @@ def claim(folder: Path, overwrite: bool = False) -> None:
     if used:
         if not overwrite:
             raise InputError(used_refusal(folder, used), str(folder))
+        live = running_state(folder)
+        if live is not None and "still running" in live:
+            # overwrite=true deleted a live run's files under it, which then failed, and the folder
+            # mixed the two runs' files (probe of issue 12)
+            raise InputError(f"holds {live}: overwrite=true replaces a finished run only; wait for it to end or stop "
+                             "it first", str(folder))
         ours, foreign = _removable(folder, top=True)
         if foreign:
             raise InputError("overwrite=true removes only what a run wrote; the folder also holds "

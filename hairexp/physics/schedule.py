@@ -7,10 +7,16 @@ import math
 from hairexp.errors import InputError
 
 
+#: frames per second a run (and a guide animation, hairexp/guides/animation.py) may have: 1e-3
+#: passed this check and failed after the guide simulation, naming "guides: fps" (probe of issue 12)
+MIN_FPS, MAX_FPS = 0.1, 1e5
+
+
 def step_schedule(fps: float, dt: float, frames: int) -> tuple[int, float]:
     """Steps per frame and the step size that divides the frame interval evenly."""
-    if not (fps > 0 and math.isfinite(fps)):
-        raise InputError(f"must be a finite number > 0, got {fps}", "fps")
+    if not (math.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):
+        raise InputError(f"must be a finite number from {MIN_FPS:g} to {MAX_FPS:g} (frames per second), got {fps}",
+                         "fps")
     if not (dt > 0 and math.isfinite(dt)):
         raise InputError(f"must be a finite number > 0, got {dt}", "solver.dt")
     if frames < 1:
