@@ -153,3 +153,21 @@ def test_compare_checkouts_refuses_a_path_that_is_not_a_checkout(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["/nonexistent"])
     assert exc.value.code == 2 and "not a hairexp checkout" in capsys.readouterr().err
+
+
+def test_a_run_folder_from_an_environment_variable_is_checked(tmp_path, monkeypatch):
+    """``hydra.run.dir=${oc.env:RUNDIR}`` naming a file gave Hydra's traceback, exit 1; the
+    variable is now resolved before the folder checks (a file: exit 4; a used folder: exit 2)."""
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    monkeypatch.setenv("RUNDIR", str(afile))
+    msg = cli.run_dir_error([*SMALL, "hydra.run.dir=${oc.env:RUNDIR}"])
+    assert msg is not None and f"cannot be the run folder: {afile} is a file" in msg, msg
+    used = tmp_path / "used"
+    used.mkdir()
+    (used / "result.npz").write_bytes(b"x")
+    monkeypatch.setenv("RUNDIR", str(used))
+    msg = cli.used_dir_error([*SMALL, "hydra.run.dir=${oc.env:RUNDIR}"])
+    assert msg is not None and "the run folder is not empty" in msg, msg
+    monkeypatch.setenv("RUNDIR", str(tmp_path / "new"))
+    assert cli.run_dir_error([*SMALL, "hydra.run.dir=${oc.env:RUNDIR}"]) is None

@@ -321,9 +321,23 @@ def _default_dir(key: str) -> str | None:
     return str(node) if isinstance(node, str) else None
 
 
+#: ``${oc.env:NAME}`` / ``${oc.env:NAME,default}`` in a folder path (resolved before the checks)
+_ENV_INTERPOLATION = re.compile(r"\$\{oc\.env:([A-Za-z_][A-Za-z0-9_]*)(?:,([^}]*))?\}")
+
+
+def _resolve_env(path: str) -> str:
+    """``path`` with its ``${oc.env:NAME[,default]}`` replaced from the environment (left as it
+    is when NAME is unset and no default is given)."""
+    return _ENV_INTERPOLATION.sub(lambda m: os.environ.get(m.group(1), m.group(0) if m.group(2) is None
+                                                           else m.group(2).strip().strip("'\"")), path)
+
+
 def _static_part(path: str) -> str | None:
     """The part of ``path`` before its first interpolation (``${...}``), up to its last ``/``;
-    None when the path starts with one."""
+    None when the path starts with one.  ``${oc.env:NAME}`` is resolved first, from the
+    environment (a run folder given as an environment variable that names a file gave Hydra's
+    traceback, exit 1; probe of issue 12)."""
+    path = _resolve_env(path)
     if "${" not in path:
         return path
     static = path[:path.index("${")]
@@ -418,10 +432,10 @@ def _fixed_folder(argv: list[str], key: str, parser) -> Path | None:
             o = parser.parse_override(arg)
         except Exception:  # noqa: BLE001  (a syntax error: Hydra's own message)
             return None
-        value = o.value()
-        if o.is_sweep_override() or value is None or _static_part(str(value)) != str(value):
+        value = None if o.value() is None else _resolve_env(str(o.value()))
+        if o.is_sweep_override() or value is None or _static_part(value) != value:
             return None
-        return Path(str(value))
+        return Path(value)
     return None
 
 
