@@ -257,19 +257,13 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
         if rerun_sink:
             rerun_sink.log_frame(frame, state, obs, motion)
 
+    # a frame and a flush go to the sinks whole (``signals.whole``): a signal inside rerun's send
+    # of a chunk (after its rows were taken, before they were sent) dropped 250 frames of an
+    # entity from the partial recording (probe of issue 12)
     signals = sinks.signals
-
-    def log_frame_whole(frame, state, obs):
-        # a frame goes to the sinks whole: a signal inside rerun's send of a chunk (after its rows
-        # were taken, before they were sent) dropped 250 frames of an entity from the partial
-        # recording (probe of issue 12); it is kept until the frame is logged
-        with signals.deferred():
-            log_frame(frame, state, obs)
-        if signals.pending is not None:
-            raise Interrupted(signals.pending)
-
     state = r.initial_state()
-    log_frame_whole(0, state, observe(r, state))
+    with signals.whole():
+        log_frame(0, state, observe(r, state))
     last_flush, frames_since = time.monotonic(), 0
     for step, frame, state, info in r.steps(state):
         obs = observe(r, state)
@@ -279,19 +273,16 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
             if sink is not None:
                 sink.on_step(row, state)
         if step % r.steps_per_frame == 0:
-            log_frame_whole(frame, state, obs)
+            with signals.whole():
+                log_frame(frame, state, obs)
             frames_since += 1
             if (frames_since >= FLUSH_FRAMES or time.monotonic() - last_flush >= FLUSH_SECONDS
                     or recorder.pending_bytes() >= FLUSH_BYTES):
-                with signals.deferred():   # a flush is whole too (then the signal is raised)
+                with signals.whole():
                     sinks.flush()
-                if signals.pending is not None:
-                    raise Interrupted(signals.pending)
                 last_flush, frames_since = time.monotonic(), 0
-    with signals.deferred():
+    with signals.whole():
         sinks.flush(final=True)
-    if signals.pending is not None:
-        raise Interrupted(signals.pending)
     progress.close()
     # metrics.parquet first (a failed run keeps it too), then read back column by column: the
     # end of a run holds one column or one block of frames at a time, whatever its length

@@ -84,6 +84,15 @@ class InterruptSignals:
         finally:
             self.defer = old
 
+    @contextmanager
+    def whole(self):
+        """The block runs to its end: a signal meanwhile is raised after it (unless signals are
+        deferred around it)."""
+        with self.deferred():
+            yield self
+        if self.pending is not None and not self.defer:
+            raise Interrupted(self.pending)
+
 
 #: signals that arrived after a run had written its completed ending (``note_late``)
 _LATE: list[int] = []
