@@ -31,8 +31,9 @@ from hairexp.model.dynamic_body import authoring_motion
 from hairexp.model.strands import check_folds, validate_polylines
 
 
-#: frames per second a guide animation may have (probe of issue 12)
-MIN_GUIDE_FPS, MAX_GUIDE_FPS = 0.1, 1e5
+#: frames per second a guide animation and a run (hairexp/physics/schedule.py) may have: a guide
+#: file at 1e-9 froze the guides, fps=1e-3 failed after the guide simulation (probes of issue 12)
+MIN_FPS, MAX_FPS = 0.1, 1e5
 
 
 class GuideAnimation:
@@ -65,9 +66,9 @@ class GuideAnimation:
         counts = np.diff(self.offsets)
         if counts.size == 0 or self.offsets[0] != 0:
             raise InputError("guide offsets must start at 0 and name at least one guide", self.where)
-        if not (np.isfinite(self.fps) and MIN_GUIDE_FPS <= self.fps <= MAX_GUIDE_FPS):
+        if not (np.isfinite(self.fps) and MIN_FPS <= self.fps <= MAX_FPS):
             # 1e-9 (a frame every 30 years) froze the guides at their first frame without a word
-            raise InputError(f"fps must be a number from {MIN_GUIDE_FPS:g} to {MAX_GUIDE_FPS:g} (frames per second), "
+            raise InputError(f"fps must be a number from {MIN_FPS:g} to {MAX_FPS:g} (frames per second), "
                              f"got {self.fps:g}", self.where)
         for f, P in enumerate(self.frames):
             P, _ = validate_polylines(P, counts, f"{self.where} frame {f}", min_vertices=2, folds=False)

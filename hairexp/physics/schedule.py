@@ -5,11 +5,7 @@ from __future__ import annotations
 import math
 
 from hairexp.errors import InputError
-
-
-#: frames per second a run (and a guide animation, hairexp/guides/animation.py) may have: 1e-3
-#: passed this check and failed after the guide simulation, naming "guides: fps" (probe of issue 12)
-MIN_FPS, MAX_FPS = 0.1, 1e5
+from hairexp.guides.animation import MAX_FPS, MIN_FPS
 
 
 def step_schedule(fps: float, dt: float, frames: int) -> tuple[int, float]:
