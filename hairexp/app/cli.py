@@ -569,12 +569,18 @@ def compose_error(overrides: list[str], input_errors: bool = True) -> str | None
         composing = "unknown key" in str(exc) or "Error merging override" in str(exc.__cause__ or "")
         return str(exc) if input_errors or composing else None   # error, in a sweep's jobs too (a wrong type too)
     except Exception as exc:   # Hydra's composition and override-parsing errors, OmegaConf's validation
-        msg = str(exc).strip()
-        cause = exc.__cause__ or exc.__context__
-        if cause is not None and str(cause).strip():   # "Error merging override x=y" says why only here
-            msg += ": " + str(cause).strip().splitlines()[0]
-        return " ".join(msg.split()).split(" Config search path:")[0]   # (Hydra's list of its search path)
+        return _one_line(exc)
     return None
+
+
+def _one_line(exc: BaseException) -> str:
+    """A Hydra or OmegaConf error as one line: its message and its cause's first line ("Error
+    merging override x=y" says why only there), without Hydra's list of its search path."""
+    msg = str(exc).strip()
+    cause = exc.__cause__ or exc.__context__
+    if cause is not None and str(cause).strip():
+        msg += ": " + str(cause).strip().splitlines()[0]
+    return " ".join(msg.split()).split(" Config search path:")[0]
 
 
 def _sweep_jobs(overrides: list[str]) -> list[tuple[list[str], list[str]]] | None:
@@ -631,11 +637,7 @@ def hydra_key_error(hydra_args: list[str]) -> str | None:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             compose(config_name="config", overrides=plain, return_hydra_config=True)
     except Exception as exc:  # noqa: BLE001  (Hydra's composition / validation error of its own keys)
-        msg = " ".join(str(exc).split()).split(" Config search path:")[0]
-        cause = exc.__cause__ or exc.__context__
-        if cause is not None and str(cause).strip() and str(cause).strip().splitlines()[0] not in msg:
-            msg += ": " + str(cause).strip().splitlines()[0]
-        return msg
+        return _one_line(exc)
     finally:
         GlobalHydra.instance().clear()
     return None
