@@ -42,7 +42,7 @@ from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, SimulationError
 from hairexp.outputs.files import write_json
-from hairexp.outputs.folder import RESERVE, SUMMARY, note_job_logs, running_state, used_refusal
+from hairexp.outputs.folder import RESERVE, SUMMARY, live_refusal, note_job_logs, running_run, used_refusal
 
 log = logging.getLogger("hairexp")
 OUTCOME = Path(".hydra") / "outcome.json"
@@ -231,18 +231,18 @@ def _end_killed_jobs(rows: list, signum: int | None) -> None:
         if res.get("status") != "running":
             continue
         d = SWEEP_DIR / name
-        state = running_state(d)
-        if state is None or "killed" not in state:
+        found = running_run(d)
+        if found is None or found[0] != "killed":
             continue
+        summary = found[1]
         status = "interrupted" if signum is not None else "failed"
-        why = (f"the job's process ended before it wrote its ending ({state.split('(')[-1].rstrip(')')}"
+        why = (f"the job's process ended before it wrote its ending (pid {summary['pid']}"
                + (f", the sweep was stopped by {signal.Signals(signum).name})" if signum is not None else ")"))
         try:
-            summary = json.loads((d / SUMMARY).read_text())
             summary.update(status=status, error=why)
             write_json(d / SUMMARY, summary)
             (d / RESERVE).unlink(missing_ok=True)
-        except (OSError, ValueError):
+        except OSError:
             pass
         res.update(status=status, code=signal_exit_code(signum) if signum is not None else 1, message=why)
         _write_outcome(d, res)
@@ -415,9 +415,8 @@ def used_dir_error(argv: list[str]) -> str | None:
     if folder is None:
         return None
     if _overwrite_given(argv, parser):   # a finished run is replaced; a live one is not (nor its .hydra/)
-        live = running_state(folder)
-        return (f"hairexp: error: {folder}: holds {live}: overwrite=true replaces a finished run only; wait for it "
-                "to end or stop it first") if live is not None and "still running" in live else None
+        live = live_refusal(folder)
+        return None if live is None else f"hairexp: error: {folder}: {live}"
     refused = used_refusal(folder)
     return None if refused is None else f"hairexp: error: {folder}: {refused}"
 

@@ -101,12 +101,12 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def running_state(folder: Path) -> str | None:
-    """What the ``summary.json`` of ``folder`` says of a run that never wrote its ending (status
-    ``running``): ``"a run killed while running (pid N)"`` when its process no longer exists on
-    this host (SIGKILL, a power cut), ``"a run still running (pid N on HOST)"`` otherwise; None
-    when the summary says anything else or cannot be read.  A pid reused since by another
-    process reads as still running."""
+def running_run(folder: Path) -> tuple[str, dict] | None:
+    """(kind, summary) of a ``summary.json`` of ``folder`` that says ``running`` (a run that never
+    wrote its ending), None when it says anything else or cannot be read.  kind: ``"killed"``
+    (its process no longer exists on this host: SIGKILL, a power cut), ``"live"`` (it does; a pid
+    reused since by another process reads as live), ``"elsewhere"`` (another host's), ``"unknown"``
+    (no process id recorded)."""
     try:
         s = json.loads((Path(folder) / SUMMARY).read_text())
     except (OSError, ValueError):
@@ -115,11 +115,34 @@ def running_state(folder: Path) -> str | None:
         return None
     pid, host = s.get("pid"), s.get("host")
     if not isinstance(pid, int):
-        return "a run that never wrote its ending (status running, no process id recorded)"
-    if host == socket.gethostname() and not _alive(pid):
-        return f"a run killed while running (pid {pid})"
-    return f"a run still running or killed (pid {pid} on {host})" if host != socket.gethostname() \
-        else f"a run still running (pid {pid})"
+        return "unknown", s
+    if host != socket.gethostname():
+        return "elsewhere", s
+    return ("live" if _alive(pid) else "killed"), s
+
+
+def running_state(folder: Path) -> str | None:
+    """What the ``summary.json`` of ``folder`` says of a run that never wrote its ending
+    (``running_run``): ``"a run killed while running (pid N)"``, ``"a run still running (pid N)"``,
+    ``"a run still running or killed (pid N on HOST)"``; None when it is not such a run."""
+    found = running_run(folder)
+    if found is None:
+        return None
+    kind, s = found
+    return {"unknown": "a run that never wrote its ending (status running, no process id recorded)",
+            "killed": f"a run killed while running (pid {s.get('pid')})",
+            "live": f"a run still running (pid {s.get('pid')})",
+            "elsewhere": f"a run still running or killed (pid {s.get('pid')} on {s.get('host')})"}[kind]
+
+
+def live_refusal(folder: Path) -> str | None:
+    """Why ``overwrite=true`` cannot replace the run in ``folder`` (one still running, here or on
+    another host), or None: it deleted a live run's files under it, which then failed, and the
+    folder mixed the two runs' files (probe of issue 12)."""
+    found = running_run(folder)
+    if found is None or found[0] not in ("live", "elsewhere"):
+        return None
+    return f"holds {running_state(folder)}: overwrite=true replaces a finished run only; wait for it to end or stop it first"
 
 
 def used_entries(folder: Path) -> list[Path]:
@@ -184,12 +207,9 @@ def claim(folder: Path, overwrite: bool = False) -> None:
     if used:
         if not overwrite:
             raise InputError(used_refusal(folder, used), str(folder))
-        live = running_state(folder)
-        if live is not None and "still running" in live:
-            # overwrite=true deleted a live run's files under it, which then failed, and the folder
-            # mixed the two runs' files (probe of issue 12)
-            raise InputError(f"holds {live}: overwrite=true replaces a finished run only; wait for it to end or stop "
-                             "it first", str(folder))
+        live = live_refusal(folder)
+        if live is not None:
+            raise InputError(live, str(folder))
         ours, foreign = _removable(folder, top=True)
         if foreign:
             raise InputError("overwrite=true removes only what a run wrote; the folder also holds "
