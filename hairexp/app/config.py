@@ -329,6 +329,11 @@ class CollisionConfig:
     barrier_stiffness: float = 10.0   # kappa = this x linear density / dt^2 (N/m^2)
     friction: bool = True             # barrier: lagged smoothed Coulomb friction with each collider's coefficient
     friction_epsilon: float = 1e-3    # m/s, barrier friction: slip speeds below this are static friction (IPC eps_v)
+    # a step in which a collider sweeps over hair it can reach by more than this fraction of its
+    # thinnest half size (sphere/capsule radius, box half extent, cylinder min(radius, half height))
+    # is split into equal substeps (fast colliders; 0: never); at most max_travel_substeps of them
+    max_travel: float = 0.5
+    max_travel_substeps: int = 64
     hair_hair: bool = False           # hair against hair
     hair_thickness: float = 0.001     # m, edge-edge distance kept by repulsion
     skin: float = 0.003               # m, hair-hair neighbour-list skin: the list is reused while no vertex moves skin/2

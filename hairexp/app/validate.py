@@ -82,6 +82,8 @@ def keyframes(times, key_times: str, values: dict) -> None:
 #: solver.max_substep_levels at most: 2^10 substeps of a failing step (beyond, a run whose steps
 #: all fail retries each of them for hours before it reports)
 MAX_SUBSTEP_LEVELS = 10
+#: collision.max_travel_substeps at most (substeps of one step for a fast collider)
+MAX_TRAVEL_SUBSTEPS = 1024
 
 
 def _solver(s) -> None:
@@ -153,6 +155,10 @@ def _collision(c) -> None:
     if c.max_passes > MAX_COLLISION_PASSES:   # hair resting on a surface counts in every pass: 1e9 never ended
         raise InputError(f"must be <= {MAX_COLLISION_PASSES}, got {c.max_passes}", "collision.max_passes")
     number(c.strain_limit, "collision.strain_limit", lo=0, hi=1, hi_open=True)
+    number(c.max_travel, "collision.max_travel", lo=0)
+    integer(c.max_travel_substeps, "collision.max_travel_substeps", 1)
+    if c.max_travel_substeps > MAX_TRAVEL_SUBSTEPS:   # each substep is a whole step's solve
+        raise InputError(f"must be <= {MAX_TRAVEL_SUBSTEPS}, got {c.max_travel_substeps}", "collision.max_travel_substeps")
     number(c.volume_cell, "collision.volume_cell", lo=0, lo_open=True)
     number(c.volume_friction, "collision.volume_friction", lo=0)
     number(c.volume_pressure_speed, "collision.volume_pressure_speed", lo=0)

@@ -23,6 +23,10 @@ the default TR-BDF2, runs phases 1-4 once per stage, ``Simulator._attempt``):
    steps from the same State (``solver.on_failure=substep``, recursively), kept and flagged
    (``warn``), or stops the run (``fail``).  A non-finite state is never returned.
 
+A step in which a collider sweeps over the hair it can reach by more than ``collision.max_travel``
+of its thinnest half size is first split into equal substeps (``sweep_substeps`` in
+hairexp/physics/barrier.py, at most ``collision.max_travel_substeps``), each run through 1-5.
+
 The Simulator never names a controller: it is given one (``Controller``; None: the free step).
 """
 
@@ -38,7 +42,7 @@ import torch
 from hairexp import tune_runtime
 from hairexp.errors import InputError, SimulationError
 from hairexp.model.scene import Scene
-from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact
+from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact, sweep_substeps
 from hairexp.physics.collisions import CollisionInfo, HairHair, StrainLimit, collision_stage, contact_velocities
 from hairexp.physics.controller import Controller
 from hairexp.physics.hair_volume import HairVolume
@@ -158,6 +162,12 @@ class Simulator:
         if self.contact is not None:
             self.objective.contact = self.contact
             self.collide_objects = False
+        # a step in which a collider sweeps over hair by more than max_travel of its thinnest size
+        # is split into equal substeps (``sweep_substeps``), in either contact mode
+        self.sweep_colliders = list(scene.colliders) if (self.contact is not None or self.collide_objects) else []
+        self.max_travel = float(getattr(cc, "max_travel", 0.0)) if cc is not None else 0.0
+        self.max_travel_substeps = int(getattr(cc, "max_travel_substeps", 1)) if cc is not None else 1
+        self._free_mask = ~s.kinematic
         self.hair_hair = self.limiter = None
         if (self.collide_objects or (cc is not None and cc.hair_hair)) and cc.strain_limit > 0:
             self.limiter = StrainLimit(s, cc.strain_limit)
@@ -386,7 +396,15 @@ class Simulator:
             raise ValueError("Simulator.step: the state's positions or velocities are not finite")
         t0 = time.perf_counter()
         self._attempted = 0
-        new, infos = self._advance(state, dt, 0)
+        n = sweep_substeps(self.sweep_colliders, state.x, self._free_mask, float(state.time), float(dt),
+                           self.max_travel, self.max_travel_substeps) if self.sweep_colliders else 1
+        if n == 1:
+            new, infos = self._advance(state, dt, 0)
+        else:   # a fast collider: n equal substeps, each with its own recovery
+            new, infos = state, []
+            for _ in range(n):
+                new, part = self._advance(new, dt / n, 0)
+                infos += part
         total = time.perf_counter() - t0
         last = infos[-1]
         worst = next((i for i in infos if not i.converged), last)
@@ -396,13 +414,13 @@ class Simulator:
         info = StepInfo(time=new.time, dt=dt, status=worst.status, iterations=sum(i.iterations for i in infos),
                         backtracks=sum(i.backtracks for i in infos), substeps=len(infos),
                         grad_norm=last.grad_norm, force_scale=last.force_scale, constraint_norm=last.constraint_norm,
-                        recovered=len(infos) > 1 and all(i.converged for i in infos), seconds=sec,
+                        recovered=len(infos) > n and all(i.converged for i in infos), seconds=sec,
                         iterations_attempted=self._attempted)
         c = _sum_collisions([i.collision for i in infos if i.collision is not None])
         if c is not None:
             info.object_contacts, info.hair_contacts = c.object_contacts, c.hair_contacts
             info.penetration_max = c.penetration_max
             info.collider_contacts.update(c.per_collider)
-        if len(infos) > 1 and info.recovered:
+        if info.recovered or (n > 1 and all(i.converged for i in infos)):
             info.status = CONVERGED
         return new, info
