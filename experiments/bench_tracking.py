@@ -135,4 +135,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    from experiments.common import run_script
+
+    run_script(main)

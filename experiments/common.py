@@ -10,6 +10,7 @@ The scripts are modules of this package, run from the repository root as
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 from itertools import islice
 from pathlib import Path
@@ -254,3 +255,19 @@ def experiment_names(ap, names, default) -> list[str]:
     if unknown:
         ap.error(f"unknown experiment(s) {', '.join(unknown)} (conf/experiment/ has {', '.join(sorted(available))})")
     return list(names) if names else [n for n in default if n in available]
+
+
+def run_script(main) -> None:
+    """A script's entry point: ``main()``'s return code, and an interrupted run (SIGINT, SIGTERM:
+    hairexp's ``Interrupted``) as one line and exit 128 + signal instead of a traceback from deep
+    inside the run (probe of issue 12).  What the script wrote before stays."""
+    try:
+        code = main()
+    except KeyboardInterrupt as exc:   # hairexp.errors.Interrupted is one
+        import signal as _signal
+
+        signum = int(getattr(exc, "signum", _signal.SIGINT))
+        name = _signal.Signals(signum).name
+        print(f"{Path(sys.argv[0]).stem}: interrupted by {name}; the runs finished before it are kept", file=sys.stderr)
+        sys.exit(128 + signum)
+    sys.exit(code if isinstance(code, int) and not isinstance(code, bool) else 0)

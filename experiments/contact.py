@@ -217,4 +217,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from experiments.common import run_script
+
+    run_script(main)

@@ -106,4 +106,6 @@ dt 0.04 s: >= 90 % amplitude per period and the period within 1 %.
 
 
 if __name__ == "__main__":
-    main()
+    from experiments.common import run_script
+
+    run_script(main)

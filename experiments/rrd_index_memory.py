@@ -24,6 +24,8 @@ import resource
 import subprocess
 import sys
 
+from experiments.common import positive_int
+
 
 def anon_mb() -> float:
     with open("/proc/self/smaps_rollup") as f:
@@ -62,8 +64,8 @@ def worker(frames: int, flush: int, footer: bool, path: str) -> dict:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, nargs="+", default=[2000, 20000])
-    ap.add_argument("--flush", type=int, default=1, help="flush the recording every this many frames")
+    ap.add_argument("--frames", type=positive_int, nargs="+", default=[2000, 20000])
+    ap.add_argument("--flush", type=positive_int, default=1, help="flush the recording every this many frames")
     ap.add_argument("--worker", nargs=3, metavar=("FRAMES", "FOOTER", "PATH"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
@@ -93,4 +95,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    from experiments.common import run_script
+
+    run_script(main)

@@ -153,6 +153,13 @@ def render_key_moment(folder: str | Path, png: str | Path, dpi: int = 110) -> di
     return {"key": key, "frame": f, "time": float(times[f]), "variants": names, "axis": "xyz"[ax_h]}
 
 
+def _status(folder: Path) -> str:
+    try:
+        return str(json.loads((folder / "summary.json").read_text()).get("status"))
+    except (OSError, ValueError, AttributeError):
+        return "unreadable"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("folder")
@@ -163,9 +170,14 @@ def main(argv=None):
     out = Path(args.png).resolve().parent
     if not out.is_dir() or not os.access(out, os.W_OK) or Path(args.png).is_dir():
         ap.error(f"{args.png}: cannot be written (a directory, or its folder does not exist or cannot be written)")
+    status = _status(Path(args.folder))
+    if status != "completed":   # no result.npz: a FileNotFoundError traceback (probe of issue 12)
+        ap.error(f"{args.folder}: the run is {status} (summary.json), not completed: it has no results to draw")
     info = render_key_moment(args.folder, args.png)
     print(f"wrote {args.png}: {info}")
 
 
 if __name__ == "__main__":
-    main()
+    from experiments.common import run_script
+
+    run_script(main)

@@ -245,4 +245,6 @@ Against the scheme's {rows1[0][3]} iterations a step.
 
 
 if __name__ == "__main__":
-    main()
+    from experiments.common import run_script
+
+    run_script(main)

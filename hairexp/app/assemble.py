@@ -82,6 +82,13 @@ class Run:
         frames = self.frames if frames is None else frames
         if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 0:
             raise TypeError(f"Run.steps: frames must be a whole number >= 0, got {frames!r}")
+        fps = float(self.cfg.fps)
+        end, last = float(state.time) + int(frames) / fps, (self.guides.n_frames - 1) / self.guides.fps
+        if self.controller_name != "free" and end > last + 0.5 / fps:
+            # past the animation the guides froze at their last frame, and the run said converged (probe of issue 12)
+            raise ValueError(f"Run.steps: {int(frames)} frames from t = {float(state.time):g} s end at {end:g} s, past the "
+                             f"guide animation's end ({last:g} s, frames 0..{self.guides.n_frames - 1}); the "
+                             f"{self.controller_name} controller follows the guides: assemble the run with enough frames")
         step = 0
         for frame in range(1, int(frames) + 1):
             for _ in range(self.steps_per_frame):

@@ -36,13 +36,15 @@ from pathlib import Path
 
 from hydra.experimental.callback import Callback
 
+from hairexp.app.assemble import check_config
 from hairexp.app.config import CONF_DIR, check_bool_overrides, check_keys, compose_config
 from hairexp.app.experiment import run_experiment
 from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, SimulationError
 from hairexp.outputs.files import write_json
-from hairexp.outputs.folder import RESERVE, SUMMARY, live_refusal, note_job_logs, running_run, used_refusal
+from hairexp.outputs.folder import (RESERVE, SUMMARY, note_job_logs, overwrite_refusal, running_run, used_entries,
+                                    used_refusal)
 
 log = logging.getLogger("hairexp")
 OUTCOME = Path(".hydra") / "outcome.json"
@@ -91,8 +93,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         print(f"hairexp: error: {exc}", file=sys.stderr)
         res = outcome(out, "failed", 2, str(exc))
     except SimulationError as exc:
-        kept = "partial metrics" if any(Path(out).rglob("metrics.parquet")) else "no step of the hair ran; summary.json"
-        print(f"hairexp: simulation failed: {exc} ({kept} in {out})", file=sys.stderr)
+        print(f"hairexp: simulation failed: {exc} ({_kept(out, 'partial metrics')})", file=sys.stderr)
         _print_notes(exc)
         res = outcome(out, "failed", 3, str(exc))
     except OSError as exc:   # the run folder could not be written (a full disk, a blocked path)
@@ -105,7 +106,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         if summary is not None and summary.get("status") == "completed":   # the run had ended: nothing partial
             res = _signalled_after(out, signum, summary)
         else:
-            print(f"hairexp: {msg} (partial results in {out})", file=sys.stderr)
+            print(f"hairexp: {msg} ({_kept(out, 'partial results')})", file=sys.stderr)
             _print_notes(exc)
             res = outcome(out, "interrupted", signal_exit_code(signum), msg)
     except Exception as exc:   # noqa: BLE001  (a bug: the traceback, exit 1; the sweep's other jobs go on)
@@ -115,6 +116,15 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     if sweep:
         _write_outcome(out, res)
     return res
+
+
+def _kept(out, what: str) -> str:
+    """Where a failed or interrupted run's data are: ``what`` in the folder when a step's metrics
+    were kept (metrics.parquet, here or in a variant's folder), else that no step ran (it said
+    "partial results" when nothing but the summary was there; probe of issue 12)."""
+    if any(Path(out).rglob("metrics.parquet")):
+        return f"{what} in {out}"
+    return f"no step of the hair ran; summary.json in {out} says so"
 
 
 def _signalled_after(out, signum: int, summary: dict) -> dict:
@@ -414,11 +424,28 @@ def used_dir_error(argv: list[str]) -> str | None:
     folder = _fixed_folder(argv, "hydra.run.dir", parser)
     if folder is None:
         return None
-    if _overwrite_given(argv, parser):   # a finished run is replaced; a live one is not (nor its .hydra/)
-        live = live_refusal(folder)
-        return None if live is None else f"hairexp: error: {folder}: {live}"
+    if _overwrite_given(argv, parser):   # a finished run is replaced; a live one is not, nor foreign files (nor its .hydra/)
+        refused = overwrite_refusal(folder)
+        if refused is not None:
+            return f"hairexp: error: {folder}: {refused}"
+        return _overwrite_config_error(argv) if used_entries(folder) else None
     refused = used_refusal(folder)
     return None if refused is None else f"hairexp: error: {folder}: {refused}"
+
+
+def _overwrite_config_error(argv: list[str]) -> str | None:
+    """The error line of a single run's settings (``check_config``) when ``overwrite=true`` is to
+    replace a finished run: checked before Hydra replaces that run's ``.hydra/`` record and before
+    its files go (a bad value deleted the run it was to replace and then was refused; probe of
+    issue 12).  Composition errors are ``config_error``'s; a run checks its config again."""
+    overrides = [a for a in argv if not (a.startswith("-") or _hydra_arg(a))]
+    try:
+        check_config(compose_config(overrides))
+    except InputError as exc:
+        return f"hairexp: error: {exc}"
+    except Exception:  # noqa: BLE001  (not composable: config_error's message, after this)
+        return None
+    return None
 
 
 def _fixed_folder(argv: list[str], key: str, parser) -> Path | None:
@@ -449,11 +476,41 @@ def _used_sweep_dir_error(argv: list[str], parser) -> str | None:
         return (f"hairexp: error: hydra.sweep.subdir={subdir}: every job of the sweep would write into the same "
                 "folder; a job's folder must differ per job: keep the default (${hydra.job.num}) or include "
                 "${hydra.job.num} or ${hydra.job.override_dirname} in it")
+    dup = _duplicate_sweep_value(argv, parser)
+    if dup is not None:
+        return dup
     folder = _fixed_folder(argv, "hydra.sweep.dir", parser)
     if folder is not None and folder.is_dir() and any(folder.iterdir()):
         shown = ", ".join(sorted(p.name for p in folder.iterdir())[:6])
         return (f"hairexp: error: {folder}: the sweep folder is not empty ({shown}); a sweep folder belongs to one "
                 "sweep: choose another hydra.sweep.dir (the default is a new dated folder) or remove this one")
+    return None
+
+
+def _duplicate_sweep_value(argv: list[str], parser) -> str | None:
+    """The error line for a swept key given one value twice when ``hydra.sweep.subdir`` is a
+    template without ``${hydra.job.num}`` (such as ``${hydra.job.override_dirname}``): the two
+    jobs would share a folder.  The second was refused as a used folder, had no job line, and
+    the sweep said "(1 not started)" and exited 1 (probe of issue 12).  With the default subdir
+    (the job's number) a repeated value is two runs in two folders, which is allowed."""
+    sub = next((a.split("=", 1)[1] for a in argv if a.lstrip("+~").startswith("hydra.sweep.subdir=")), None)
+    if sub is None or "hydra.job.num" in sub:
+        return None
+    for arg in argv:
+        if arg.startswith("-") or _hydra_arg(arg) or "=" not in arg:
+            continue
+        try:
+            o = parser.parse_override(arg)
+            vals = list(o.sweep_string_iterator()) if o.is_sweep_override() else []
+        except Exception:  # noqa: BLE001  (a syntax error or a sweep Hydra expands: Hydra's to handle)
+            continue
+        seen = set()
+        for v in vals:
+            if v in seen:
+                return (f"hairexp: error: {arg}: the value {v} is swept twice, and with hydra.sweep.subdir={sub} "
+                        "the two jobs would write into one folder; give each value once, or include "
+                        "${hydra.job.num} in hydra.sweep.subdir")
+            seen.add(v)
     return None
 
 

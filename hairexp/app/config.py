@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 from hydra.core.config_store import ConfigStore
+from omegaconf import OmegaConf
 
 from hairexp.control import REGISTRY as CONTROLLERS
 from hairexp.errors import InputError
@@ -689,4 +690,30 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
     finally:
         GlobalHydra.instance().clear()
     check_keys(cfg)
+    plus = [o for o in overrides if o.startswith("+") and not o.startswith("++") and "=" in o
+            and not o.startswith("+hydra")]
+    if plus:
+        check_plus_overrides(compose_config([o for o in overrides if o not in plus]), plus)
     return cfg
+
+
+def check_plus_overrides(base, plus: list[str]) -> None:
+    """``+key=value`` adds a value where the config has none: refused (InputError naming the key)
+    when ``base`` (the config composed without these overrides) already gives ``key`` a value.
+    Hydra let ``+scene.colliders=[...]`` replace goaling's wheel without a word, and a user reading
+    ``+`` as "add" lost it (probe of issue 12); for a plain key such as ``+solver.dt`` Hydra
+    refuses too ("Could not append to config")."""
+    for o in plus:
+        key = o[1:].split("=", 1)[0]
+        try:
+            have = OmegaConf.select(base, key, default=None, throw_on_missing=False)
+        except Exception:   # noqa: BLE001  (a path OmegaConf cannot select: the composition decides)
+            continue
+        if have is None or (OmegaConf.is_config(have) and len(have) == 0) or have == "":
+            continue
+        shown = OmegaConf.to_yaml(have).strip() if OmegaConf.is_config(have) else repr(have)
+        if len(shown) > 120:
+            shown = shown[:117] + "..."
+        raise InputError(f"already has a value in the config ({shown.splitlines()[0] if OmegaConf.is_config(have) else shown}"
+                         f"{' ...' if OmegaConf.is_config(have) and len(shown.splitlines()) > 1 else ''}); '+' adds a value where "
+                         f"there is none: write {key}=... to replace it (a list: give every item to keep)", key)

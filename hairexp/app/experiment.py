@@ -44,6 +44,10 @@ SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 RESERVED_NAMES = {"stream", "summary", "metrics", "result", "recording", "guides", "comparison"}
 
 
+#: a variant's name at most (bytes): a folder name, with room for the files a run writes beside it
+MAX_NAME_BYTES = 100
+
+
 def check_variant_names(variants) -> list[str]:
     """The variants' names, each a safe folder name and unique (InputError naming ``variants[i].name``)."""
     names: list[str] = []
@@ -53,6 +57,9 @@ def check_variant_names(variants) -> list[str]:
         if not SAFE_NAME.match(name):
             raise InputError(f"{name!r} is not a safe folder name (letters, digits, '_', '.' and '-', starting with "
                              "a letter or digit)", where)
+        if len(name.encode()) > MAX_NAME_BYTES:   # the folder's creation failed late (exit 4, ENAMETOOLONG; probe of issue 12)
+            raise InputError(f"is {len(name.encode())} bytes long; a variant's name is a folder name of at most "
+                             f"{MAX_NAME_BYTES} bytes", where)
         if name.split(".")[0].lower() in RESERVED_NAMES:
             raise InputError(f"{name!r} is reserved (the experiment folder's own entries: "
                              f"{', '.join(sorted(RESERVED_NAMES))})", where)

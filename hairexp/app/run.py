@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hairexp.app.assemble import assemble
+from hairexp.app.assemble import assemble, check_config
 from hairexp.app.config import to_plain
 from hairexp.app.signals import InterruptSignals, note_late
 from hairexp.errors import Interrupted, SimulationError
@@ -42,7 +42,7 @@ from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
 from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, json_bytes, save_npy, write_json, write_npz
-from hairexp.outputs.folder import STREAM, SUMMARY, claim, free_reserve, owner, remove_tmp, reserve
+from hairexp.outputs.folder import STREAM, SUMMARY, claim, free_reserve, owner, remove_tmp, reserve, used_entries
 from hairexp.memory import release, release_every
 from hairexp.outputs.metrics import MetricsTable, measure
 from hairexp.outputs.progress import Progress, progress_enabled
@@ -192,6 +192,8 @@ class _Sinks:
 def run(cfg, out_dir: str | Path) -> dict:
     out = Path(out_dir)
     plain = to_plain(cfg)
+    if bool(cfg.overwrite) and used_entries(out):   # the settings first: a bad value removed the run it was to replace
+        check_config(cfg)
     claim(out, overwrite=bool(cfg.overwrite))   # InputError (exit 2) for a used folder; nothing written
     controller = plain["controller"]["name"]
     scene_name = plain["scene"]["name"]

@@ -14,7 +14,7 @@ and its caller takes the signal (``take_late``: an experiment stops before its n
 command line exits 128 + signal saying the run's results are whole).
 
 ``InterruptSignals(on_signal=f)`` calls ``f(signum)`` once before raising (a second signal
-meanwhile raises at once): the main process of a ``-m`` sweep forwards SIGTERM to its worker
+meanwhile is noted and does not cut it short): the main process of a ``-m`` sweep forwards SIGTERM to its worker
 processes there and waits a bounded time for their jobs to write their ``interrupted`` ending
 (``hairexp.app.cli.stop_sweep_jobs``), before the launcher tears the workers down.
 """
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import threading
 from contextlib import contextmanager
 from pathlib import Path
@@ -41,6 +42,8 @@ class InterruptSignals:
         self.pending: int | None = None
         self.on_signal = on_signal   # called once with the first signal's number, before raising
         self._signalled = False
+        self._stopping = False   # on_signal is running: a further signal waits with it
+        self._told = False
 
     def _handler(self, signum, frame):
         if self.defer:
@@ -56,9 +59,20 @@ class InterruptSignals:
             timer.daemon = True
             timer.start()
             return
+        if self._stopping:
+            # a second Ctrl-C while on_signal waits for a sweep's jobs: raised, it ended the main
+            # process at once and the workers died before writing their endings (probe of issue 12)
+            if not self._told:
+                self._told = True
+                print("hairexp: still stopping: waiting for the jobs to write their endings (SIGKILL ends at once)",
+                      file=sys.stderr)
+            return
         if self.on_signal is not None and not self._signalled:
-            self._signalled = True   # a second signal during on_signal raises at once
-            self.on_signal(signum)
+            self._signalled = self._stopping = True
+            try:
+                self.on_signal(signum)
+            finally:
+                self._stopping = False
         raise Interrupted(signum)
 
     def __enter__(self):

@@ -26,7 +26,7 @@ from pxr import Usd, UsdGeom
 from hairexp.errors import InputError, check_extent, regular_file
 from hairexp.io.usd_colliders import read_colliders
 from hairexp.io.usd_layout import read_motion, time_label
-from hairexp.guides.animation import GuideAnimation
+from hairexp.guides.animation import MAX_FPS, MIN_FPS, GuideAnimation
 from hairexp.guides.store import FrameStore
 from hairexp.model.builders import build_collider, build_material, gravity
 from hairexp.model.scene import Scene
@@ -261,6 +261,9 @@ def stage_timing(cfg):
     stage, file = open_stage(cfg.scene.usd)
     tcps = stage_rate(stage, file)
     fps = tcps if cfg.fps is None else float(cfg.fps)
+    if cfg.fps is None and not MIN_FPS <= tcps <= MAX_FPS:   # it was reported as ``fps``, a key the user never set
+        raise InputError(f"timeCodesPerSecond is {tcps:g}; with fps null (the stage's rate) it is the run's frame rate, "
+                         f"which must be from {MIN_FPS:g} to {MAX_FPS:g}: fix the stage's rate or set fps", file)
     frames = cfg.frames
     if frames is None:
         # the root layer's endTimeCode alone (HasAuthoredTimeCodeRange wants startTimeCode too: a stage

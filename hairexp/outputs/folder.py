@@ -145,6 +145,24 @@ def live_refusal(folder: Path) -> str | None:
     return f"holds {running_state(folder)}: overwrite=true replaces a finished run only; wait for it to end or stop it first"
 
 
+def overwrite_refusal(folder: Path) -> str | None:
+    """Why ``overwrite=true`` cannot replace what ``folder`` holds (a live run, or files no run
+    wrote, which it never deletes), or None.  The command line asks before Hydra writes its
+    ``.hydra/`` files: asked only in ``claim``, a refused overwrite had already replaced the
+    previous run's config record with its own (probe of issue 12)."""
+    folder = Path(folder)
+    if not used_entries(folder):
+        return None
+    live = live_refusal(folder)
+    if live is not None:
+        return live
+    _, foreign = _removable(folder, top=True)
+    if foreign:
+        return ("overwrite=true removes only what a run wrote; the folder also holds "
+                + ", ".join(str(p.relative_to(folder)) for p in foreign[:6]))
+    return None
+
+
 def used_entries(folder: Path) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
@@ -207,13 +225,10 @@ def claim(folder: Path, overwrite: bool = False) -> None:
     if used:
         if not overwrite:
             raise InputError(used_refusal(folder, used), str(folder))
-        live = live_refusal(folder)
-        if live is not None:
-            raise InputError(live, str(folder))
-        ours, foreign = _removable(folder, top=True)
-        if foreign:
-            raise InputError("overwrite=true removes only what a run wrote; the folder also holds "
-                             + ", ".join(str(p.relative_to(folder)) for p in foreign[:6]), str(folder))
+        refused = overwrite_refusal(folder)
+        if refused is not None:
+            raise InputError(refused, str(folder))
+        ours, _ = _removable(folder, top=True)
         for p in ours:
             shutil.rmtree(p) if p.is_dir() else p.unlink()
         _drop_previous_log_lines(folder)
