@@ -17,6 +17,11 @@ class InputError(HairexpError, ValueError):
         super().__init__(f"{where}: {message}" if where else message)
 
 
+class ExtentError(InputError):
+    """A point of an input lies farther from the origin than MAX_COORDINATE (``check_extent``):
+    its own type, so a caller can add what placed the points without reading the message."""
+
+
 class SimulationError(HairexpError, RuntimeError):
     """The solver could not produce a finite state, even after the configured recovery."""
 
@@ -61,7 +66,7 @@ def check_extent(points, where: str, counts=None, frame: int | None = None) -> N
         at = f"curve {c} vertex {i - (int(ends[c - 1]) if c else 0)}"
     if frame is not None:
         at = f"frame {frame}, {at}"
-    raise InputError(f"{at} is at {P[i].tolist()}, more than {MAX_COORDINATE:g} m from the origin: hairexp reads "
+    raise ExtentError(f"{at} is at {P[i].tolist()}, more than {MAX_COORDINATE:g} m from the origin: hairexp reads "
                      "metres (check the units of the input)", where)
 
 

@@ -9,7 +9,7 @@ import copy
 import numpy as np
 
 from hairexp.model.builders import check_counts
-from hairexp.errors import InputError, SimulationError, regular_file
+from hairexp.errors import ExtentError, InputError, SimulationError, regular_file
 from hairexp.guides.animation import GuideAnimation, carried_guides, file_guides, rest_guides
 from hairexp.guides.authoring import apply_edits, keyframed_positions
 from hairexp.guides.store import FrameStore
@@ -131,8 +131,8 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     keyframing; ``source=keyframed`` keys the guides directly)."""
     try:
         anim = source_guides(cfg, scene, frames, fps)
-    except InputError as exc:
-        if exc.where != "guides" or "from the origin" not in str(exc):
+    except ExtentError as exc:
+        if exc.where != "guides":
             raise
         # procedural guides: the keys that placed them, not only "guides" (probe of issue 12)
         raise InputError(f"{str(exc).split(': ', 1)[1]}; these guides are built from scene.length, scene.root_center, "
