@@ -83,10 +83,11 @@ class Run:
         if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 0:
             raise TypeError(f"Run.steps: frames must be a whole number >= 0, got {frames!r}")
         fps = float(self.cfg.fps)
-        end, last = float(state.time) + int(frames) / fps, (self.guides.n_frames - 1) / self.guides.fps
+        t0 = float(state.time) if isinstance(state, State) and np.isfinite(state.time) else 0.0   # else: step's error
+        end, last = t0 + int(frames) / fps, (self.guides.n_frames - 1) / self.guides.fps
         if self.controller_name != "free" and end > last + 0.5 / fps:
             # past the animation the guides froze at their last frame, and the run said converged (probe of issue 12)
-            raise ValueError(f"Run.steps: {int(frames)} frames from t = {float(state.time):g} s end at {end:g} s, past the "
+            raise ValueError(f"Run.steps: {int(frames)} frames from t = {t0:g} s end at {end:g} s, past the "
                              f"guide animation's end ({last:g} s, frames 0..{self.guides.n_frames - 1}); the "
                              f"{self.controller_name} controller follows the guides: assemble the run with enough frames")
         step = 0
