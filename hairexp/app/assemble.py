@@ -83,7 +83,11 @@ class Run:
         if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 0:
             raise TypeError(f"Run.steps: frames must be a whole number >= 0, got {frames!r}")
         fps = float(self.cfg.fps)
-        t0 = float(state.time) if isinstance(state, State) and np.isfinite(state.time) else 0.0   # else: step's error
+        try:   # a state that is not a State, or a time that is not a number: Simulator.step names it
+            t0 = float(state.time) if isinstance(state, State) else 0.0
+        except (TypeError, ValueError):
+            t0 = 0.0
+        t0 = t0 if np.isfinite(t0) else 0.0
         end, last = t0 + int(frames) / fps, (self.guides.n_frames - 1) / self.guides.fps
         if self.controller_name != "free" and end > last + 0.5 / fps:
             # past the animation the guides froze at their last frame, and the run said converged (probe of issue 12)
