@@ -892,3 +892,30 @@ def test_nonmonotone_merit_search_cuts_the_contact_steps_iterations(monkeypatch)
     assert ia[contact].max() >= 60 and ib[contact].max() <= 25, (ia[contact], ib[contact])
     assert ib.sum() < 0.8 * ia.sum()
     assert np.abs(xa[:22] - xb[:22]).max() <= 1e-6 * L
+
+
+def test_sqp_trace_records_every_iteration_of_every_solve():
+    """SQPOptions.trace (experiments/sqp_trace.py): one list per solve, one record per iteration;
+    the iterations recorded over a step are the step's iterations, and recording changes nothing."""
+    cfg = goaling_like("sliding")
+    runs = []
+    for record in (False, True):
+        scene, _, sim = build_tracked(cfg)
+        trace = [] if record else None
+        sim.controller.opts.trace = trace
+        state, steps = sim.initial_state(), []
+        for _ in range(8):
+            n0 = len(trace) if record else 0
+            state, info = sim.step(state, DT)
+            steps.append((info.iterations, state.x.copy(), trace[n0:] if record else None))
+        runs.append(steps)
+    recorded = 0
+    for (it0, x0, _), (it1, x1, solves) in zip(*runs):
+        assert it0 == it1 and np.array_equal(x0, x1)
+        assert sum(len(s) for s in solves) == it1
+        for s in solves:
+            for r in s:
+                assert set(r) == {"alpha", "grad", "grad_tol", "constraint", "constraint_tol", "t_residual", "backtracks"}
+                assert 0.0 < r["alpha"] <= 1.0 and r["grad"] >= 0.0 and r["grad_tol"] > 0.0
+            recorded += len(s)
+    assert recorded > 8    # the constraints did work: more than one iteration a step somewhere

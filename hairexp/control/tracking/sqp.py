@@ -69,6 +69,9 @@ class SQPOptions:
     #: (0.10-0.11 off), the solves' own strain 2e-4 (README "Tracking performance")
     exact_compression: bool = False
     exact_when: str = "tail"
+    #: a list to record the iterations in (experiments/sqp_trace.py): each solve appends a list,
+    #: and each iteration a dict of its step length, residuals and tolerances; None: no record
+    trace: list | None = None
 
 
 def woodbury(solve, U: np.ndarray, step: tuple, zero_c: np.ndarray) -> tuple:
@@ -119,6 +122,10 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
         return f + mu * float(np.abs(C[~relaxed]).sum()) + 0.5 * float(np.dot(rho[relaxed] * C[relaxed], C[relaxed]))
 
     f, C = merit_parts(x, t)
+    record = None
+    if opts.trace is not None:
+        record = []
+        opts.trace.append(record)
     recent: list[tuple[float, np.ndarray]] = []   # (f, C) of the last iterates: the non-monotone reference
     tail = opts.exact_compression and opts.exact_when == "always"
     alpha = 0.0
@@ -239,6 +246,11 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
             alpha *= BACKTRACK
         info.backtracks += bt
         info.iterations += 1
+        if record is not None:
+            record.append({"alpha": alpha, "grad": gnorm, "grad_tol": opts.atol + opts.rtol * info.force_scale,
+                           "constraint": cmax, "constraint_tol": opts.ctol,
+                           "t_residual": float(np.abs(r_t).max(initial=0.0)) if sliding else 0.0,
+                           "backtracks": bt})
         if alpha == 0.0:
             info.status = LINE_SEARCH_FAILED
             break
