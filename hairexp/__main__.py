@@ -35,6 +35,10 @@ def main(cfg: DictConfig) -> float | None:
 
 def entry() -> int:
     logging.raiseExceptions = False   # a log file on a full disk is not worth a traceback per line
+    bad_value = cli.run_dir_value_error(sys.argv[1:])   # an interpolation Hydra could not resolve
+    if bad_value is not None:
+        print(bad_value, file=sys.stderr)
+        return 2
     bad_dir = cli.run_dir_error(sys.argv[1:])   # before Hydra creates it (its traceback, exit 1)
     if bad_dir is not None:
         print(bad_dir, file=sys.stderr)

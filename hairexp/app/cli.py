@@ -514,6 +514,53 @@ def _duplicate_sweep_value(argv: list[str], parser) -> str | None:
     return None
 
 
+#: resolvers a run folder's path may use besides OmegaConf's registered ones (Hydra registers these
+#: when it starts)
+_HYDRA_RESOLVERS = ("now", "hydra", "python_version")
+_RESOLVER = re.compile(r"\$\{([A-Za-z_][\w.]*):")
+
+
+def run_dir_value_error(argv: list[str]) -> str | None:
+    """The error line for a command line's ``hydra.run.dir`` / ``hydra.sweep.dir`` whose
+    interpolation cannot be resolved, or None: ``${oc.env:NAME}`` with NAME unset and no default,
+    or a resolver that does not exist (``${foo:bar}``).  Hydra would resolve it after it started
+    and fail with its traceback (probe of issue 12); this is a bad value (exit 2)."""
+    from omegaconf import OmegaConf
+
+    for arg in argv:
+        key, eq, value = arg.lstrip("+~").partition("=")
+        if not eq or key not in ("hydra.run.dir", "hydra.sweep.dir"):
+            continue
+        for m in _ENV_INTERPOLATION.finditer(value):
+            if m.group(2) is None and m.group(1) not in os.environ:
+                return (f"hairexp: error: {key}={value}: the environment variable {m.group(1)} is not set (set it, "
+                        f"or give a default: ${{oc.env:{m.group(1)},/some/folder}})")
+        for name in _RESOLVER.findall(value):
+            if name not in _HYDRA_RESOLVERS and not OmegaConf.has_resolver(name):
+                return (f"hairexp: error: {key}={value}: unknown resolver '{name}' in the folder's path (it may use "
+                        "${now:...}, ${oc.env:NAME} and the config's keys)")
+        refs = [r for r in _NODE_REF.findall(value) if not r.startswith("hydra.")]
+        if refs:
+            try:   # a config that cannot be composed is config_error's to report
+                from hydra.core.override_parser.overrides_parser import OverridesParser
+
+                parser = OverridesParser.create()
+                plain = [a for a in argv if not (a.startswith("-") or _hydra_arg(a))]
+                cfg = compose_config([a for a in plain if not parser.parse_override(a).is_sweep_override()])
+            except Exception:  # noqa: BLE001
+                return None
+            for r in refs:
+                if OmegaConf.select(cfg, r, default=_NO_KEY) is _NO_KEY:
+                    return (f"hairexp: error: {key}={value}: the folder's path refers to ${{{r}}}, which is not a "
+                            "key of the config")
+    return None
+
+
+#: ``${key.path}`` (a node of the config) in a folder's path
+_NODE_REF = re.compile(r"\$\{([A-Za-z_][\w.]*)\}")
+_NO_KEY = object()
+
+
 def run_dir_error(argv: list[str]) -> str | None:
     """The error line for a run folder that cannot be written, or None: the command line's
     ``hydra.run.dir`` (with ``-m``: ``hydra.sweep.dir``), or when none is given the default of

@@ -1,0 +1,41 @@
+"""Findings of the ninth independent probe round, one test each:
+
+1. a run folder (``hydra.run.dir`` / ``hydra.sweep.dir``) whose interpolation cannot be
+   resolved: an unset ``${oc.env:NAME}`` without a default, an unknown resolver, a ``${key}``
+   that is not in the config.  Hydra resolved them after it started and failed with its
+   traceback (exit 1); now one line, exit 2, nothing created.
+"""
+
+from __future__ import annotations
+
+import pytest
+from probe_helpers import SMALL, run_cli
+
+from hairexp.app import cli
+
+
+@pytest.mark.parametrize("value,says", [
+    ("${oc.env:HAIREXP_PROBE_UNSET}/x", "environment variable HAIREXP_PROBE_UNSET is not set"),
+    ("{tmp}/${foo:bar}", "unknown resolver 'foo'"),
+    ("{tmp}/${scene.nme}", "${scene.nme}, which is not a key of the config"),
+])
+def test_run_folder_interpolation_that_cannot_be_resolved_is_one_line(tmp_path, monkeypatch, value, says):
+    monkeypatch.delenv("HAIREXP_PROBE_UNSET", raising=False)
+    value = value.replace("{tmp}", str(tmp_path / "runs"))
+    line = cli.run_dir_value_error([*SMALL, f"hydra.run.dir={value}"])
+    assert line is not None and line.startswith("hairexp: error: hydra.run.dir=") and says in line
+    sweep = cli.run_dir_value_error(["-m", *SMALL, "solver.dt=0.04,0.02", f"hydra.sweep.dir={value}"])
+    assert sweep is not None and sweep.startswith("hairexp: error: hydra.sweep.dir=") and says in sweep
+    p = run_cli([*SMALL, f"hydra.run.dir={value}"], tmp_path)
+    assert p.returncode == 2 and "Traceback" not in p.stderr and says in p.stderr
+    assert not (tmp_path / "runs").exists()
+
+
+def test_run_folder_interpolations_that_resolve_are_left_alone(tmp_path, monkeypatch):
+    monkeypatch.setenv("HAIREXP_PROBE_SET", str(tmp_path))
+    for value in ("${oc.env:HAIREXP_PROBE_SET}/a", "${oc.env:HAIREXP_PROBE_UNSET2," + str(tmp_path) + "}/b",
+                  str(tmp_path) + "/${now:%H%M%S}", str(tmp_path) + "/${scene.name}_${hydra.job.name}"):
+        assert cli.run_dir_value_error([*SMALL, f"hydra.run.dir={value}"]) is None, value
+    p = run_cli([*SMALL, f"hydra.run.dir={tmp_path}/${{scene.name}}_r"], tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert (tmp_path / "goaling_r" / "summary.json").exists()
