@@ -4,6 +4,10 @@
    resolved: an unset ``${oc.env:NAME}`` without a default, an unknown resolver, a ``${key}``
    that is not in the config.  Hydra resolved them after it started and failed with its
    traceback (exit 1); now one line, exit 2, nothing created.
+2. sweeps: a ``hydra.sweep.subdir`` outside the sweep folder (``../x_${hydra.job.num}``, an
+   absolute path) is refused before Hydra starts (the jobs ran outside it and the sweep's report
+   said "0 of 2 jobs completed (2 not started)", exit 1); a nested one (``a/${hydra.job.num}``)
+   is allowed and its jobs are reported (they were called not started).
 """
 
 from __future__ import annotations
@@ -39,3 +43,23 @@ def test_run_folder_interpolations_that_resolve_are_left_alone(tmp_path, monkeyp
     p = run_cli([*SMALL, f"hydra.run.dir={tmp_path}/${{scene.name}}_r"], tmp_path)
     assert p.returncode == 0, p.stderr[-2000:]
     assert (tmp_path / "goaling_r" / "summary.json").exists()
+
+
+@pytest.mark.parametrize("subdir", ["../escape_${hydra.job.num}", "{tmp}/abs_${hydra.job.num}"])
+def test_sweep_subdir_outside_the_sweep_folder_is_refused(tmp_path, subdir):
+    subdir = subdir.replace("{tmp}", str(tmp_path))
+    p = run_cli(["-m", *SMALL, "solver.dt=0.04,0.02", f"hydra.sweep.dir={tmp_path}/sw", f"hydra.sweep.subdir={subdir}"],
+                tmp_path)
+    assert p.returncode == 2 and "must lie inside the sweep folder" in p.stderr and "Traceback" not in p.stderr
+    assert not (tmp_path / "sw").exists() and not list(tmp_path.glob("escape_*")) and not list(tmp_path.glob("abs_*"))
+
+
+def test_sweep_with_nested_job_folders_reports_every_job(tmp_path):
+    p = run_cli(["-m", *SMALL, "solver.dt=0.04,0.02", f"hydra.sweep.dir={tmp_path}/sw",
+                 "hydra.sweep.subdir=a/${hydra.job.num}"], tmp_path)
+    assert p.returncode == 0, p.stderr[-2000:]
+    out = p.stdout + p.stderr
+    assert "hairexp: job a/0 [" in out and "hairexp: job a/1 [" in out
+    assert "hairexp: sweep: 2 of 2 jobs completed ->" in out and "not started" not in out
+    rows = cli.sweep_outcomes(tmp_path / "sw")
+    assert [r[0] for r in rows] == ["a/0", "a/1"] and all(r[2]["status"] == "completed" for r in rows)

@@ -216,8 +216,15 @@ def sweep_size(overrides: list[str]) -> int | None:
 def sweep_outcomes(sweep_dir: Path) -> list[tuple[str, str, dict]]:
     """(job folder name, its overrides, outcome) of every job folder of a sweep, in job order."""
     rows = []
-    dirs = [d for d in Path(sweep_dir).iterdir() if d.is_dir() and (d / ".hydra").is_dir()]
-    for d in sorted(dirs, key=lambda d: (not d.name.isdigit(), int(d.name) if d.name.isdigit() else 0, d.name)):
+    root = Path(sweep_dir)
+    # a job folder at any depth: hydra.sweep.subdir may nest (``a/${hydra.job.num}``; the report
+    # looked one level down only and called such jobs not started, probe of issue 12, round 9)
+    dirs = sorted({h.parent for h in root.rglob(".hydra") if h.is_dir() and h.parent != root})
+
+    def order(d):
+        return tuple((not p.isdigit(), int(p) if p.isdigit() else 0, p) for p in d.relative_to(root).parts)
+
+    for d in sorted(dirs, key=order):
         try:
             res = json.loads((d / OUTCOME).read_text())
         except (OSError, ValueError):
@@ -228,7 +235,7 @@ def sweep_outcomes(sweep_dir: Path) -> list[tuple[str, str, dict]]:
             overrides = " ".join(yaml.safe_load((d / ".hydra" / "overrides.yaml").read_text()) or [])
         except (OSError, ValueError, TypeError):
             overrides = ""
-        rows.append((d.name, overrides, res))
+        rows.append((d.relative_to(root).as_posix(), overrides, res))
     return rows
 
 
@@ -476,6 +483,12 @@ def _used_sweep_dir_error(argv: list[str], parser) -> str | None:
         return (f"hairexp: error: hydra.sweep.subdir={subdir}: every job of the sweep would write into the same "
                 "folder; a job's folder must differ per job: keep the default (${hydra.job.num}) or include "
                 "${hydra.job.num} or ${hydra.job.override_dirname} in it")
+    sub = next((a.split("=", 1)[1] for a in argv if a.lstrip("+~").startswith("hydra.sweep.subdir=")), None)
+    if sub is not None and (sub.startswith(("/", "~")) or ".." in Path(sub.replace("${", "").replace("}", "")).parts):
+        # the jobs ran outside the sweep folder, and the sweep's report counted them as not
+        # started (probe of issue 12, round 9)
+        return (f"hairexp: error: hydra.sweep.subdir={sub}: a job's folder must lie inside the sweep folder "
+                "(hydra.sweep.dir): a relative path without '..'; move the sweep with hydra.sweep.dir instead")
     dup = _duplicate_sweep_value(argv, parser)
     if dup is not None:
         return dup
@@ -608,8 +621,8 @@ SIGINT_GRACE_SECONDS = 2.0
 def _running_jobs(sweep_dir: Path) -> list[Path]:
     """Job folders of a sweep whose outcome still says ``running``."""
     running = []
-    try:
-        dirs = [d for d in sweep_dir.iterdir() if d.is_dir()]
+    try:   # at any depth, as sweep_outcomes
+        dirs = sorted({h.parent.parent for h in Path(sweep_dir).rglob(str(OUTCOME))})
     except OSError:
         return []
     for d in dirs:
