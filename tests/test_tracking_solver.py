@@ -919,3 +919,35 @@ def test_sqp_trace_records_every_iteration_of_every_solve():
                 assert 0.0 < r["alpha"] <= 1.0 and r["grad"] >= 0.0 and r["grad_tol"] > 0.0
             recorded += len(s)
     assert recorded > 8    # the constraints did work: more than one iteration a step somewhere
+
+
+def test_last_attempt_with_more_iterations_is_the_run_with_that_budget():
+    """solver.last_attempt_iterations: a step whose deepest attempt ran out of the SQP's
+    iterations is tried once more with that many times the iterations.  With max_iterations 1
+    and a last attempt of 6 x, every step is the step of a run with max_iterations 6 (the same
+    start, the same deterministic solve): the same positions bit for bit, the same iterations;
+    the steps that needed more than 1 are ``recovered`` and their first attempt's iteration is
+    in ``iterations_attempted``."""
+    def run(max_it, last):
+        cfg = goaling_like("sliding")
+        cfg.tracking.max_iterations = max_it
+        cfg.solver.max_substep_levels = 0
+        cfg.solver.last_attempt_iterations = last
+        _, _, sim = build_tracked(cfg)
+        state, out = sim.initial_state(), []
+        for _ in range(12):
+            state, info = sim.step(state, DT)
+            out.append((state.x.copy(), info))
+        return out
+
+    budget, last = run(6, 1), run(1, 6)
+    assert all(i.converged for _, i in budget)
+    extra = 0
+    for (xb, ib), (xl, il) in zip(budget, last):
+        assert np.array_equal(xb, xl) and il.converged and il.iterations == ib.iterations
+        assert il.recovered == (ib.iterations > 1)
+        assert il.iterations_attempted == ib.iterations + (1 if ib.iterations > 1 else 0)
+        extra += il.recovered
+    assert extra >= 2   # the budget mattered (steps 6 and 11 take 4 iterations)
+    without = run(1, 1)
+    assert any(not i.converged for _, i in without)   # and without the last attempt those steps fail

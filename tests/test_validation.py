@@ -55,6 +55,7 @@ def raises_at(cfg, where: str, call=assemble):
 @pytest.mark.parametrize("key,value", [
     ("solver.max_iterations", 0), ("solver.rtol", -1.0), ("solver.atol", -1.0), ("solver.atol", NAN),
     ("solver.max_backtracks", -1), ("solver.max_substep_levels", -1),
+    ("solver.last_attempt_iterations", 0), ("solver.last_attempt_iterations", 65),
     ("tracking.ctol_rel", -1.0), ("tracking.ctol_rel", 0.0), ("tracking.max_iterations", 0),
     ("tracking.rtol", -1.0), ("tracking.max_guide_distance", -0.1),
     ("tracking.krylov_tol", 0.0), ("tracking.krylov_tol", 0.5), ("tracking.krylov_max", 0),

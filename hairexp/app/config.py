@@ -294,6 +294,10 @@ class SolverConfig:
     compile: Compile = Compile.auto   # torch.compile of the closed forms (first step pays ~10-20 s)
     on_failure: OnFailure = OnFailure.substep
     max_substep_levels: int = 4       # a failing step is split into at most 2^levels substeps
+    # a (sub)step at the deepest level that ran out of iterations (Newton's or the SQP's
+    # max_iterations, converging but slowly) is tried once more with this many times the
+    # iterations before it is kept unconverged; 1: no such attempt (on_failure=substep only)
+    last_attempt_iterations: int = 4
     # trbdf2 (the default) | implicit_euler (paper eq. 5) | bdf2 | generalized_alpha (experimental),
     # hairexp/physics/integrators.py.
     # A string, not an Enum, checked by validate_config: an unknown name is an InputError naming

@@ -79,6 +79,8 @@ def keyframes(times, key_times: str, values: dict) -> None:
             number(x, f"{key}[{i}]")
 
 
+#: solver.last_attempt_iterations at most (a step's last attempt with this many times the iterations)
+MAX_LAST_ATTEMPT = 64
 #: solver.max_substep_levels at most: 2^10 substeps of a failing step (beyond, a run whose steps
 #: all fail retries each of them for hours before it reports)
 MAX_SUBSTEP_LEVELS = 10
@@ -95,6 +97,9 @@ def _solver(s) -> None:
         raise InputError("solver.rtol and solver.atol are both 0: no step can converge; give one > 0", "solver.rtol")
     integer(s.max_iterations, "solver.max_iterations", 1)
     integer(s.max_backtracks, "solver.max_backtracks", 0)
+    if integer(getattr(s, "last_attempt_iterations", 1), "solver.last_attempt_iterations", 1) > MAX_LAST_ATTEMPT:
+        raise InputError(f"must be at most {MAX_LAST_ATTEMPT} (times the iterations of a solve), got "
+                         f"{s.last_attempt_iterations}", "solver.last_attempt_iterations")
     if integer(s.max_substep_levels, "solver.max_substep_levels", 0) > MAX_SUBSTEP_LEVELS:
         raise InputError(f"must be <= {MAX_SUBSTEP_LEVELS} (a failing step is retried as up to 2^levels substeps, "
                          f"{2 ** MAX_SUBSTEP_LEVELS} at {MAX_SUBSTEP_LEVELS}), got {s.max_substep_levels}",

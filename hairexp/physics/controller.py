@@ -22,9 +22,19 @@ This base class is the free controller: no terms, no constraints, Newton on eq. 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from hairexp.physics.newton import newton_solve
+
+
+def scaled_iterations(opts, sim):
+    """``opts`` (a solver's options with ``max_iterations``) with the simulator's iteration budget
+    applied: ``sim.iteration_scale`` times the iterations during a step's last attempt
+    (``solver.last_attempt_iterations``), ``opts`` itself otherwise."""
+    scale = int(getattr(sim, "iteration_scale", 1))
+    return opts if scale <= 1 else replace(opts, max_iterations=scale * opts.max_iterations)
 
 
 class Controller:
@@ -45,7 +55,7 @@ class Controller:
 
     def solve(self, sim, state, dt: float, t_next: float, motion):
         """Newton on the objective begun for this step (paper eq. 5, no constraints)."""
-        xf, info = newton_solve(sim.objective, sim.objective.initial_guess(), sim.newton)
+        xf, info = newton_solve(sim.objective, sim.objective.initial_guess(), scaled_iterations(sim.newton, sim))
         return sim.objective.positions(xf).numpy(), None, info
 
     def observe(self, sim, state, motion) -> dict:

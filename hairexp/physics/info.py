@@ -56,7 +56,7 @@ class StepInfo:
     grad_norm: float
     force_scale: float
     constraint_norm: float = 0.0
-    recovered: bool = False          # a failed attempt was replaced by substeps
+    recovered: bool = False          # a failed attempt was replaced by substeps or by a last attempt with more iterations
     object_contacts: int = 0         # collision stage: vertices corrected against colliders
     hair_contacts: int = 0           # collision stage: edge pairs given impulses
     penetration_max: float = 0.0     # m, after the collision stage

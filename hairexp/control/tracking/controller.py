@@ -16,7 +16,7 @@ from hairexp.control.tracking.kkt import SCHUR_MODES, SchurKKT
 from hairexp.control.tracking.sqp import SQPOptions, sqp_solve
 from hairexp.control.tracking.variance import VarianceControl
 from hairexp.guides.animation import GuideAnimation
-from hairexp.physics.controller import Controller
+from hairexp.physics.controller import Controller, scaled_iterations
 
 
 def _v(x):
@@ -123,12 +123,13 @@ class TrackingController(Controller):
         obj = sim.objective
         it = state.control
         x0 = obj.initial_guess()
-        xf, tk, lam, info = sqp_solve(obj, self, x0, it.t, it.lam, self.opts)
+        opts = scaled_iterations(self.opts, sim)
+        xf, tk, lam, info = sqp_solve(obj, self, x0, it.t, it.lam, opts)
         relaxed = None
         if not info.converged and self.elastic and getattr(sim, "contact", None) is not None and np.isfinite(xf).all():
             relaxed = self.unreachable(xf, tk, lam)
             rho = np.repeat(np.where(relaxed, self.elastic_stiffness * self.cluster_mass / dt ** 2, 0.0), 3)
-            xe, te, le, ie = sqp_solve(obj, self, x0, it.t, it.lam, self.opts, rho=rho)
+            xe, te, le, ie = sqp_solve(obj, self, x0, it.t, it.lam, opts, rho=rho)
             if ie.converged:
                 first = info.iterations
                 xf, tk, lam, info = xe, te, le, ie
