@@ -144,7 +144,7 @@ class Simulator:
         #: the solves' iteration budget, as a multiple of their max_iterations (the controllers
         #: read it); above 1 only during a step's last attempt (``solver.last_attempt_iterations``)
         self.iteration_scale = 1
-        self._last_attempts = 0
+        self._last_attempts, self._last_failed = 0, False
         self.body = scene.body
         if self.body is not None:
             hair = float(s.masses[~s.kinematic].sum())
@@ -373,7 +373,7 @@ class Simulator:
             end, b = self._advance(mid, 0.5 * dt, level + 1)
             return end, a + b
         scale = int(getattr(self.cfg, "last_attempt_iterations", 1))
-        if self.on_failure == "substep" and info.status == MAX_ITERATIONS and scale > 1:
+        if self.on_failure == "substep" and info.status == MAX_ITERATIONS and scale > 1 and not self._last_failed:
             # the deepest level ran out of iterations: once more with ``scale`` times the solves'
             # iterations (the controllers read ``iteration_scale``).  On Celia's tracked run the
             # SQP converges linearly on compressed strands (README "Tracking performance"), and one
@@ -387,6 +387,7 @@ class Simulator:
             if info2.converged:
                 self._last_attempts += 1
                 return again, [info2]
+            self._last_failed = True   # one failed last attempt a step: its cost stays bounded
         if info.status == DIVERGED:
             raise SimulationError(
                 f"step from t={state.time:.6g} s with dt={dt:.3g} s diverged (non-finite state) "
@@ -415,7 +416,7 @@ class Simulator:
             raise ValueError("Simulator.step: the state's positions or velocities are not finite")
         t0 = time.perf_counter()
         self._attempted = 0
-        self._last_attempts = 0
+        self._last_attempts, self._last_failed = 0, False
         n = sweep_substeps(self.sweep_colliders, state.x, self._free_mask, float(state.time), float(dt),
                            self.max_travel, self.max_travel_substeps) if self.sweep_colliders else 1
         if n == 1:
