@@ -8,6 +8,10 @@
    absolute path) is refused before Hydra starts (the jobs ran outside it and the sweep's report
    said "0 of 2 jobs completed (2 not started)", exit 1); a nested one (``a/${hydra.job.num}``)
    is allowed and its jobs are reported (they were called not started).
+3. a run on a disk that filled up hung for good in rerun's flush (its file writer had stopped
+   without waking the flush; SIGTERM could not end it): a flush now waits at most
+   FLUSH_TIMEOUT_SECONDS, then the recording is an OSError and the stream is given up without the
+   calls that would wait for the same writer.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import pytest
 from probe_helpers import SMALL, run_cli
 
 from hairexp.app import cli
+from hairexp.outputs import rerun_sink
 
 
 @pytest.mark.parametrize("value,says", [
@@ -63,3 +68,35 @@ def test_sweep_with_nested_job_folders_reports_every_job(tmp_path):
     assert "hairexp: sweep: 2 of 2 jobs completed ->" in out and "not started" not in out
     rows = cli.sweep_outcomes(tmp_path / "sw")
     assert [r[0] for r in rows] == ["a/0", "a/1"] and all(r[2]["status"] == "completed" for r in rows)
+
+
+def test_a_stuck_recording_writer_is_an_error_not_a_hang(tmp_path, monkeypatch):
+    """A writer that never finishes: the recording file is a FIFO whose reader never reads, so
+    rerun's writer blocks once the pipe's buffer is full (as the disk-full race left it)."""
+    import atexit
+    import os
+    import time
+
+    import numpy as np
+    import rerun as rr
+
+    fifo = tmp_path / "recording.partial.rrd"
+    os.mkfifo(fifo)
+    reader = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)   # a reader that never reads
+    monkeypatch.setattr(rerun_sink, "FLUSH_TIMEOUT_SECONDS", 1.0)
+    rec = rr.RecordingStream("hairexp-test", recording_id="stuck")
+    try:
+        rec.save(str(fifo))
+        for f in range(40):   # about 1 MB: far more than a pipe holds
+            rec.set_time("frame", sequence=f)
+            rec.log("/a", rr.Points3D(np.random.default_rng(f).random((2000, 3))))
+        t0 = time.monotonic()
+        with pytest.raises(OSError, match="did not finish within 1 s"):
+            rerun_sink.flush_recording(rec, str(fifo))
+        assert time.monotonic() - t0 < 20
+        assert rerun_sink.abandoned(rec)
+        with pytest.raises(OSError, match="writer is stuck"):   # at once, no second wait
+            rerun_sink.flush_recording(rec, str(fifo))
+    finally:
+        os.close(reader)   # the writer's next write fails (broken pipe) and its thread ends
+        atexit.register(rr.rerun_shutdown)   # flush_recording unregistered rerun's exit handler

@@ -30,8 +30,8 @@ import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
 from hairexp.outputs import layout
-from hairexp.outputs.rerun_sink import (OVERLAYS, _check_complete, framing, key_view, partial_name, plot_views,
-                                        time_panel)
+from hairexp.outputs.rerun_sink import (OVERLAYS, _check_complete, abandoned, flush_recording, framing, key_view,
+                                        partial_name, plot_views, time_panel)
 
 NAME = "comparison.rrd"
 #: the shared plots, one series per variant
@@ -122,9 +122,10 @@ def write_comparison(out: Path, variants: list[str], key: tuple[float, str] | No
         plan = {"bounds": None if bounds.empty else bounds.to_json(), "t_end": t_end,
                 "key": None if key is None else {"time": float(key[0]), "what": key[1]}}
         rec.send_blueprint(comparison_blueprint(variants, plots, ranges, plan), make_active=True, make_default=True)
-        rec.flush()
+        flush_recording(rec, str(partial))
     finally:
-        rec.disconnect()
+        if not abandoned(rec):   # a stuck writer: disconnect would wait for it forever
+            rec.disconnect()
     _check_complete(str(partial))
     os.replace(partial, path)
     return path

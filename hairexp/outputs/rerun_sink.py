@@ -52,6 +52,38 @@ from hairexp.outputs import layout
 
 #: ``flush()`` waits for the file writer (and so ends a chunk of every entity) at most this often (s)
 FLUSH_SECONDS = 10.0
+#: s, the longest a flush waits for rerun's file writer.  On a disk that filled up, the writer
+#: thread sometimes stopped without waking the flush that waited for it, and the run hung in
+#: ``flush`` (SIGTERM could not end it: the main thread waited in rerun's code; probe of issue 12,
+#: round 9).  Past this, the recording is given up as unwritable (OSError), and the stream is
+#: abandoned without ``disconnect`` or rerun's exit handler, which would wait for the same writer.
+FLUSH_TIMEOUT_SECONDS = 60.0
+#: recording streams given up on (their writer stuck): kept alive so that no finaliser waits for it
+_ABANDONED: list = []
+
+
+def abandoned(rec) -> bool:
+    """``rec`` was given up by ``flush_recording`` (its file writer did not finish)."""
+    return any(r is rec for r in _ABANDONED)
+
+
+def flush_recording(rec, partial: str) -> None:
+    """Wait (at most FLUSH_TIMEOUT_SECONDS) until rerun's file writer holds everything sent to
+    ``rec``; OSError naming the file ``partial`` when it cannot: the writer stopped (a full disk)
+    or did not finish in time.  On a time-out the stream is given up (``abandoned``): neither
+    ``disconnect`` nor rerun's exit handler (``rerun_shutdown``) runs for it, since both would
+    wait for the same writer; the caller then skips ``disconnect``."""
+    if abandoned(rec):
+        raise OSError(f"{partial}: the recording could not be written (rerun's file writer is stuck)")
+    try:
+        rec.flush(timeout_sec=FLUSH_TIMEOUT_SECONDS)
+    except RuntimeError as exc:   # rerun's file writer stopped (e.g. no space left on the device)
+        if "timed out" in str(exc).lower():
+            _ABANDONED.append(rec)
+            rr.unregister_shutdown()
+            raise OSError(f"{partial}: the recording could not be written (rerun's file writer did not finish "
+                          f"within {FLUSH_TIMEOUT_SECONDS:g} s: {exc})") from exc
+        raise OSError(f"{partial}: the recording could not be written ({exc})") from exc
 #: metric rows per chunk when the metrics are sent at the end (a chunk per metric per this many steps)
 METRICS_CHUNK_ROWS = 1 << 18
 #: ``send_metrics`` waits for the writer after this many bytes of sent columns, so that what rerun
@@ -488,11 +520,13 @@ class RerunSink:
         if not final and time.monotonic() - self.flushed < FLUSH_SECONDS:
             return
         self.columns.send()
-        try:
-            self.rec.flush()
-        except RuntimeError as exc:   # rerun's file writer stopped (e.g. no space left on the device)
-            raise OSError(f"{self.partial}: the recording could not be written ({exc})") from exc
+        flush_recording(self.rec, self.partial)
         self.flushed = time.monotonic()
+
+    @property
+    def stuck(self) -> bool:
+        """The file writer did not finish a flush in time: the stream was given up."""
+        return abandoned(self.rec)
 
     def plan(self, key: tuple[float, str] | None = None) -> dict:
         """What the finished run's layout shows (``blueprint(plan)``): the bounds of every frame
@@ -524,7 +558,8 @@ class RerunSink:
                 self.send_metrics(metrics)
                 self.rec.send_blueprint(blueprint(self.plan()), make_active=True, make_default=True)
         finally:
-            self.rec.disconnect()
+            if not self.stuck:
+                self.rec.disconnect()
         if success:
             _check_complete(self.partial)
             os.replace(self.partial, self.path)
