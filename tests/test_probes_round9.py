@@ -12,6 +12,10 @@
    without waking the flush; SIGTERM could not end it): a flush now waits at most
    FLUSH_TIMEOUT_SECONDS, then the recording is an OSError and the stream is given up without the
    calls that would wait for the same writer.
+4. every variant's tracking.points_per_guide and tracking.variance.* are checked before the first
+   variant runs (the free variant ran to the end and wrote its files, then the tracked one
+   stopped with exit 2); an empty ``hydra.sweep.subdir`` is one line, exit 2 (it was exit 1,
+   "the sweep folder is not empty (multirun.yaml)").
 """
 
 from __future__ import annotations
@@ -100,3 +104,36 @@ def test_a_stuck_recording_writer_is_an_error_not_a_hang(tmp_path, monkeypatch):
     finally:
         os.close(reader)   # the writer's next write fails (broken pipe) and its thread ends
         atexit.register(rr.rerun_shutdown)   # flush_recording unregistered rerun's exit handler
+
+
+@pytest.mark.parametrize("bad,key", [
+    (["tracking.points_per_guide=0"], "tracking.points_per_guide"),
+    (["tracking.variance.stiffness=-1"], "tracking.variance.stiffness"),
+    (["tracking.variance.times=[0.0,1.0]"], "tracking.variance.stiffness_scale"),
+    (["tracking.variance.times=[1.0,0.0]", "tracking.variance.stiffness_scale=[1.0,1.0]",
+      "tracking.variance.target_scale=[1.0,1.0]"], "tracking.variance.stiffness_scale"),
+])
+def test_tracking_keys_are_checked_before_any_variant_runs(tmp_path, bad, key):
+    """goaling_smoke runs its free variant first: it must not run with a tracked variant's bad value."""
+    out = tmp_path / "run"
+    p = run_cli(["experiment=goaling_smoke", "frames=2", "logging.rerun=false", *bad, f"hydra.run.dir={out}"], tmp_path)
+    assert p.returncode == 2, p.stderr[-2000:]
+    assert f"hairexp: error: {key}:" in p.stderr and "checked before any variant runs" in p.stderr
+    assert not (out / "free").exists() and not (out / "tracked").exists()
+
+
+def test_a_tracked_variants_own_bad_value_is_named_before_the_free_variant_runs(tmp_path):
+    out = tmp_path / "run"
+    p = run_cli(["experiment=goaling_smoke", "frames=2", "logging.rerun=false", f"hydra.run.dir={out}",
+                 "variants=[{name: free, overrides: ['controller.name=free']}, "
+                 "{name: tracked, overrides: ['controller.name=tracking', 'tracking.points_per_guide=0']}]"], tmp_path)
+    assert p.returncode == 2 and "(variants[1] tracked, checked before any variant runs)" in p.stderr
+    assert not (out / "free").exists()
+
+
+def test_an_empty_sweep_subdir_is_one_line(tmp_path):
+    for values in ("0.04", "0.04,0.02"):
+        p = run_cli(["-m", *SMALL, f"solver.dt={values}", f"hydra.sweep.dir={tmp_path}/sw{len(values)}",
+                     "hydra.sweep.subdir="], tmp_path)
+        assert p.returncode == 2 and "hairexp: error: hydra.sweep.subdir: is empty" in p.stderr
+        assert not (tmp_path / f"sw{len(values)}").exists()

@@ -397,6 +397,12 @@ def override_syntax_error(argv: list[str]) -> str | None:
                 str(o.value() if o.value() is not None else "").strip() == "":
             return (f"hairexp: error: {o.key_or_group}: is empty; give the run folder's path "
                     "(an empty one would put the run's files in the working folder)")
+        if o.key_or_group == "hydra.sweep.subdir" and not o.is_sweep_override() and \
+                str(o.value() if o.value() is not None else "").strip() == "":
+            # every job would write into the sweep folder itself (probe of issue 12, round 9: exit 1,
+            # "the folder is not empty (multirun.yaml)")
+            return ("hairexp: error: hydra.sweep.subdir: is empty; a job's folder lies inside the sweep folder: keep "
+                    "the default (${hydra.job.num}) or give a relative path that differs per job")
     return None
 
 

@@ -12,6 +12,10 @@ hairexp/guides/, tracking.points_per_guide and tracking.variance.* in hairexp/co
 controller.attract_stiffness hairexp/control/attract.py).  The rest are checked here, and so are
 the ranges of controller.attract_stiffness and scene.body.* whether or not their layer reads
 them (``_unused``: a free run never builds the attract controller, a keyframed body no block).
+The tracking layer's own checks of tracking.points_per_guide (and the point placement and
+assignment) and tracking.variance.* are called here too (``check_correspondence_options``,
+``check_variance_config``): an experiment checks every variant's config before the first runs,
+and a free variant never builds the tracking controller (probe of issue 12, round 9).
 ``solver.integrator`` is checked by hairexp/physics/integrators.py ``make_integrator`` (and
 ``solver.kernels`` / ``solver.threads`` by hairexp/physics/strand_kernels.py ``check_options``), called
 here too so that a bad name fails before the settle phase and the guides are simulated.
@@ -22,6 +26,8 @@ from __future__ import annotations
 import math
 
 from hairexp.errors import InputError, finite_number
+from hairexp.control.tracking.correspondence import check_correspondence_options
+from hairexp.control.tracking.variance import check_variance_config
 from hairexp.evaluation.judges import JUDGE_MEASURES, missing_controllers
 from hairexp.evaluation.measures import collider_named
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR, make_integrator
@@ -142,7 +148,9 @@ def _tracking(t) -> None:
     number(t.max_guide_distance, "tracking.max_guide_distance", lo=0)
     number(t.elastic_stiffness, "tracking.elastic_stiffness", lo=0, lo_open=True)
     number(t.blend_width, "tracking.blend_width", lo=0, lo_open=True)   # m
-    n = t.points_per_guide   # >= 1: hairexp/control/tracking/correspondence.py
+    n = t.points_per_guide   # >= 1: hairexp/control/tracking/correspondence.py, checked here too
+    check_correspondence_options(n, str(_value(t.point_placement)), str(_value(t.assignment)))
+    check_variance_config(t.variance)   # hairexp/control/tracking/variance.py
     if isinstance(n, int) and n > MAX_POINTS_PER_GUIDE:
         raise InputError(f"must be <= {MAX_POINTS_PER_GUIDE} (the paper uses 8; each point is a cluster with 3 "
                          "constraints per guide, and the correspondence holds a vertices x points distance table), "

@@ -144,6 +144,17 @@ def soft_guide_weights(dist: np.ndarray, counts: np.ndarray, blend_width: float)
     return w / w.sum(axis=1, keepdims=True)
 
 
+def check_correspondence_options(points_per_guide, placement: str, assignment: str) -> None:
+    """InputError naming the key for a tracking option the correspondence cannot use (also
+    called by hairexp/app/validate.py: an experiment checks every variant before the first runs)."""
+    if placement not in PLACEMENTS:
+        raise InputError(f"unknown placement {placement!r} (hair_mass|arc_length)", "tracking.point_placement")
+    if assignment not in ASSIGNMENTS:
+        raise InputError(f"unknown assignment {assignment!r} (hard|soft)", "tracking.assignment")
+    if isinstance(points_per_guide, bool) or not isinstance(points_per_guide, (int, np.integer)) or points_per_guide < 1:
+        raise InputError(f"must be >= 1, got {points_per_guide}", "tracking.points_per_guide")
+
+
 def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.ndarray,
                          guides_rest: list[np.ndarray], points_per_guide: int,
                          max_distance: float = 0.0, assignment: str = "hard",
@@ -154,12 +165,7 @@ def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.
     ``assignment``: ``hard`` (paper 3.1) or ``soft`` with ``blend_width`` b in metres (module
     docstring).  ``placement``: ``hair_mass`` or ``arc_length`` (step 2); ``masses`` (V,)
     the vertex masses it weighs (None: all equal)."""
-    if placement not in PLACEMENTS:
-        raise InputError(f"unknown placement {placement!r} (hair_mass|arc_length)", "tracking.point_placement")
-    if assignment not in ASSIGNMENTS:
-        raise InputError(f"unknown assignment {assignment!r} (hard|soft)", "tracking.assignment")
-    if points_per_guide < 1:
-        raise InputError(f"must be >= 1, got {points_per_guide}", "tracking.points_per_guide")
+    check_correspondence_options(points_per_guide, placement, assignment)
     if not guides_rest:
         raise InputError("a tracked run needs at least one guide", "guides")
     G = len(guides_rest)

@@ -40,18 +40,27 @@ def variance(xf: torch.Tensor, cluster: torch.Tensor, w: torch.Tensor, idx: torc
     return torch.zeros(K, dtype=x.dtype).index_add_(0, cluster, sq if share is None else share * sq)
 
 
+def check_variance_config(cfg) -> tuple[tuple, tuple]:
+    """The checks of ``tracking.variance`` (keyframes, scales >= 0, stiffness >= 0) that need no
+    scene: InputError naming the key.  Returns the two keyframe series ((t, stiffness scale),
+    (t, target scale)).  Also called by hairexp/app/validate.py, so that an experiment refuses a
+    bad value before its first variant runs, whatever that variant's controller."""
+    ks = _keys(cfg.times, cfg.stiffness_scale, "tracking.variance.stiffness_scale")
+    vs = _keys(cfg.times, cfg.target_scale, "tracking.variance.target_scale")
+    for key, (_, v) in (("stiffness_scale", ks), ("target_scale", vs)):
+        if (v < 0).any():
+            raise InputError(f"must be >= 0 at every keyframe (a scale of the rest variance or of "
+                             f"tracking.variance.stiffness), got {v.tolist()}", f"tracking.variance.{key}")
+    if isinstance(cfg.stiffness, bool) or not (cfg.stiffness >= 0 and np.isfinite(cfg.stiffness)):
+        raise InputError(f"must be >= 0, got {cfg.stiffness}", "tracking.variance.stiffness")
+    return ks, vs
+
+
 class VarianceControl:
     def __init__(self, cfg, cons, rest_free: np.ndarray):
         self.cons = cons
         self.K = cons.K
-        self.t_k, self.k_scale = _keys(cfg.times, cfg.stiffness_scale, "tracking.variance.stiffness_scale")
-        self.t_v, self.v_scale = _keys(cfg.times, cfg.target_scale, "tracking.variance.target_scale")
-        for key, v in (("stiffness_scale", self.k_scale), ("target_scale", self.v_scale)):
-            if (v < 0).any():
-                raise InputError(f"must be >= 0 at every keyframe (a scale of the rest variance or of "
-                                 f"tracking.variance.stiffness), got {v.tolist()}", f"tracking.variance.{key}")
-        if not (cfg.stiffness >= 0 and np.isfinite(cfg.stiffness)):
-            raise InputError(f"must be >= 0, got {cfg.stiffness}", "tracking.variance.stiffness")
+        (self.t_k, self.k_scale), (self.t_v, self.v_scale) = check_variance_config(cfg)
         self.stiffness = float(cfg.stiffness)
         pts = list(cfg.points)
         self.mask = np.isin(cons.corr.cluster_point, pts) if pts else np.ones(self.K, dtype=bool)
