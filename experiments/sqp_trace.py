@@ -21,11 +21,13 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 
 import numpy as np
 
 from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
+from hairexp.errors import InputError
 
 from experiments.common import celia_bench, describe_run, md_table, positive_int
 
@@ -42,7 +44,7 @@ CASES = {
 
 def parse_case(text: str) -> tuple[str, list[str]]:
     name, _, rest = text.partition("=")
-    if not name or not rest and name not in CASES:
+    if not name or (not rest and name not in CASES):
         raise argparse.ArgumentTypeError(f"{text!r}: a case is NAME=key=value[,key=value...] or one of {', '.join(CASES)}")
     return name, (CASES[name] if not rest else [o for o in rest.split(",") if o])
 
@@ -83,7 +85,11 @@ def main() -> int:
     args = ap.parse_args()
     res = {}
     for name, overrides in args.cases:
-        r = trace_case(overrides, args.steps)
+        try:
+            r = trace_case(overrides, args.steps)
+        except InputError as exc:   # a bad value in a case's overrides: one line, as hairexp's own
+            print(f"sqp_trace.py: error: case {name}: {exc}", file=sys.stderr)
+            return 2
         res[name] = {"overrides": overrides, **r}
         print(f"{name}: {r['iterations_mean']:.2f} SQP iterations a step (max {r['iterations_max']}), "
               f"{r['slow_solves']} of {r['solves']} solves over {SLOW} iterations, contraction "
