@@ -213,18 +213,21 @@ def sweep_size(overrides: list[str]) -> int | None:
         return None
 
 
+def _job_folders(root: Path) -> list[Path]:
+    """The job folders of the sweep folder ``root`` (a ``.hydra/`` of their own), at any depth:
+    hydra.sweep.subdir may nest (``a/${hydra.job.num}``; the report looked one level down only and
+    called such jobs not started, probe of issue 12, round 9), in job order."""
+    def order(d):
+        return tuple((not p.isdigit(), int(p) if p.isdigit() else 0, p) for p in d.relative_to(root).parts)
+
+    return sorted({h.parent for h in root.rglob(".hydra") if h.is_dir() and h.parent != root}, key=order)
+
+
 def sweep_outcomes(sweep_dir: Path) -> list[tuple[str, str, dict]]:
     """(job folder name, its overrides, outcome) of every job folder of a sweep, in job order."""
     rows = []
     root = Path(sweep_dir)
-    # a job folder at any depth: hydra.sweep.subdir may nest (``a/${hydra.job.num}``; the report
-    # looked one level down only and called such jobs not started, probe of issue 12, round 9)
-    dirs = sorted({h.parent for h in root.rglob(".hydra") if h.is_dir() and h.parent != root})
-
-    def order(d):
-        return tuple((not p.isdigit(), int(p) if p.isdigit() else 0, p) for p in d.relative_to(root).parts)
-
-    for d in sorted(dirs, key=order):
+    for d in _job_folders(root):
         try:
             res = json.loads((d / OUTCOME).read_text())
         except (OSError, ValueError):
@@ -393,12 +396,11 @@ def override_syntax_error(argv: list[str]) -> str | None:
                         "(in the shell, the whole argument in double quotes)")
             return (f"hairexp: error: {arg}: not a valid override ({why}); quote a value with spaces, "
                     f"non-ASCII characters or brackets: {key}='...' (in the shell: \"{key}='...'\")")
-        if o.key_or_group in ("hydra.run.dir", "hydra.sweep.dir") and not o.is_sweep_override() and \
-                str(o.value() if o.value() is not None else "").strip() == "":
+        empty = not o.is_sweep_override() and str(o.value() if o.value() is not None else "").strip() == ""
+        if empty and o.key_or_group in ("hydra.run.dir", "hydra.sweep.dir"):
             return (f"hairexp: error: {o.key_or_group}: is empty; give the run folder's path "
                     "(an empty one would put the run's files in the working folder)")
-        if o.key_or_group == "hydra.sweep.subdir" and not o.is_sweep_override() and \
-                str(o.value() if o.value() is not None else "").strip() == "":
+        if empty and o.key_or_group == "hydra.sweep.subdir":
             # every job would write into the sweep folder itself (probe of issue 12, round 9: exit 1,
             # "the folder is not empty (multirun.yaml)")
             return ("hairexp: error: hydra.sweep.subdir: is empty; a job's folder lies inside the sweep folder: keep "
@@ -451,7 +453,7 @@ def _overwrite_config_error(argv: list[str]) -> str | None:
     replace a finished run: checked before Hydra replaces that run's ``.hydra/`` record and before
     its files go (a bad value deleted the run it was to replace and then was refused; probe of
     issue 12).  Composition errors are ``config_error``'s; a run checks its config again."""
-    overrides = [a for a in argv if not (a.startswith("-") or _hydra_arg(a))]
+    overrides = _plain_overrides(argv)
     try:
         check_config(compose_config(overrides))
     except InputError as exc:
@@ -478,18 +480,23 @@ def _fixed_folder(argv: list[str], key: str, parser) -> Path | None:
     return None
 
 
+def _given(argv: list[str], key: str) -> str | None:
+    """The text after ``key=`` of the command line's first ``key=...`` (with or without ``+``/``~``)."""
+    return next((a.split("=", 1)[1] for a in argv if a.lstrip("+~").startswith(key + "=")), None)
+
+
 def _used_sweep_dir_error(argv: list[str], parser) -> str | None:
     """The error line for a ``-m`` sweep into a fixed ``hydra.sweep.dir`` that holds another
     sweep (its ``multirun.yaml`` or job folders), with or without ``overwrite=true``: a sweep
     folder is one sweep's.  A second sweep into it replaced ``multirun.yaml`` and its report
     counted the first sweep's jobs as its own (probe of issue 12)."""
     subdir = _fixed_folder(argv, "hydra.sweep.subdir", parser)
-    if subdir is not None and (sweep_size([a for a in argv if not a.startswith("-") and not _hydra_arg(a)]) or 2) > 1:
+    if subdir is not None and (sweep_size(_plain_overrides(argv)) or 2) > 1:
         # every job in one folder: the second was refused and the report named the wrong job (probe of issue 12)
         return (f"hairexp: error: hydra.sweep.subdir={subdir}: every job of the sweep would write into the same "
                 "folder; a job's folder must differ per job: keep the default (${hydra.job.num}) or include "
                 "${hydra.job.num} or ${hydra.job.override_dirname} in it")
-    sub = next((a.split("=", 1)[1] for a in argv if a.lstrip("+~").startswith("hydra.sweep.subdir=")), None)
+    sub = _given(argv, "hydra.sweep.subdir")
     if sub is not None and (sub.startswith(("/", "~")) or ".." in Path(sub.replace("${", "").replace("}", "")).parts):
         # the jobs ran outside the sweep folder, and the sweep's report counted them as not
         # started (probe of issue 12, round 9)
@@ -512,7 +519,7 @@ def _duplicate_sweep_value(argv: list[str], parser) -> str | None:
     jobs would share a folder.  The second was refused as a used folder, had no job line, and
     the sweep said "(1 not started)" and exited 1 (probe of issue 12).  With the default subdir
     (the job's number) a repeated value is two runs in two folders, which is allowed."""
-    sub = next((a.split("=", 1)[1] for a in argv if a.lstrip("+~").startswith("hydra.sweep.subdir=")), None)
+    sub = _given(argv, "hydra.sweep.subdir")
     if sub is None or "hydra.job.num" in sub:
         return None
     for arg in argv:
@@ -564,8 +571,8 @@ def run_dir_value_error(argv: list[str]) -> str | None:
                 from hydra.core.override_parser.overrides_parser import OverridesParser
 
                 parser = OverridesParser.create()
-                plain = [a for a in argv if not (a.startswith("-") or _hydra_arg(a))]
-                cfg = compose_config([a for a in plain if not parser.parse_override(a).is_sweep_override()])
+                single = [a for a in _plain_overrides(argv) if not parser.parse_override(a).is_sweep_override()]
+                cfg = compose_config(single)
             except Exception:  # noqa: BLE001
                 return None
             for r in refs:
@@ -627,8 +634,8 @@ SIGINT_GRACE_SECONDS = 2.0
 def _running_jobs(sweep_dir: Path) -> list[Path]:
     """Job folders of a sweep whose outcome still says ``running``."""
     running = []
-    try:   # at any depth, as sweep_outcomes
-        dirs = sorted({h.parent.parent for h in Path(sweep_dir).rglob(str(OUTCOME))})
+    try:
+        dirs = _job_folders(Path(sweep_dir))
     except OSError:
         return []
     for d in dirs:
@@ -679,6 +686,11 @@ def stop_sweep_jobs(signum: int) -> None:
 
 def _hydra_arg(a: str) -> bool:
     return a.startswith(("hydra.", "hydra/", "+hydra", "~hydra"))
+
+
+def _plain_overrides(argv: list[str]) -> list[str]:
+    """The command line's config overrides: neither a flag nor one of Hydra's own keys."""
+    return [a for a in argv if not (a.startswith("-") or _hydra_arg(a))]
 
 
 def compose_error(overrides: list[str], input_errors: bool = True) -> str | None:
@@ -783,7 +795,7 @@ def config_error(argv: list[str]) -> str | None:
     hydra_msg = hydra_key_error([a for a in argv if _hydra_arg(a)])
     if hydra_msg is not None:
         return f"hairexp: error: {hydra_msg}"
-    overrides = [a for a in argv if not (a.startswith("-") or _hydra_arg(a))]
+    overrides = _plain_overrides(argv)
     if not multirun:
         msg = compose_error(overrides)
         return None if msg is None else f"hairexp: error: {msg}"

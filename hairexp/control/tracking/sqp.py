@@ -161,7 +161,8 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
             info.status = DIVERGED
             break
         t_ok = True if not sliding else bool(np.all(np.abs(r_t) <= opts.rtol * t_scale + opts.atol))
-        if gnorm <= opts.atol + opts.rtol * info.force_scale and cmax <= opts.ctol and t_ok:
+        gtol = opts.atol + opts.rtol * info.force_scale
+        if gnorm <= gtol and cmax <= opts.ctol and t_ok:
             info.status = CONVERGED
             break
         if info.iterations >= opts.max_iterations:
@@ -247,7 +248,7 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
         info.backtracks += bt
         info.iterations += 1
         if record is not None:
-            record.append({"alpha": alpha, "grad": gnorm, "grad_tol": opts.atol + opts.rtol * info.force_scale,
+            record.append({"alpha": alpha, "grad": gnorm, "grad_tol": gtol,
                            "constraint": cmax, "constraint_tol": opts.ctol,
                            "t_residual": float(np.abs(r_t).max(initial=0.0)) if sliding else 0.0,
                            "backtracks": bt})
