@@ -86,6 +86,11 @@ class SchurSolve(str, Enum):
     krylov = "krylov"   # GMRES preconditioned by the last S built; S rebuilt only when it needs > krylov_max iterations
 
 
+class GuideInterpolation(str, Enum):
+    catmull_rom = "catmull_rom"   # C1 in time between frames (hairexp/guides/animation.py)
+    linear = "linear"             # the chord between frames (the velocity jumps at each frame)
+
+
 class GuideSource(str, Enum):
     rigid = "rigid"     # rest guides carried by the rigid body
     scaled = "scaled"   # rest guides scaled about their roots by keyframed factors, carried by the body
@@ -222,6 +227,8 @@ class GuidesConfig:
     edits: list[GuideEditConfig] = field(default_factory=list)           # applied in order on top of any source
     collide: bool = False              # source=simulated: the guide simulation collides with scene.colliders
     file: str = ""                     # source=file
+    # between frames (a step shorter than a frame, trbdf2's trapezoidal stage): catmull_rom | linear
+    interpolation: GuideInterpolation = GuideInterpolation.catmull_rom
 
 
 @dataclass

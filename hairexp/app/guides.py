@@ -141,6 +141,7 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     if cfg.guides.edits:
         pos = apply_edits(anim.frames, anim.offsets, anim.fps, authoring_motion(scene.motion), cfg.guides.edits)
         anim = GuideAnimation(pos, anim.offsets, anim.fps, where="guides.edits", motion=scene.motion)
+    anim.interpolation = str(getattr(cfg.guides.interpolation, "value", cfg.guides.interpolation))
     if str(getattr(cfg.controller.name, "value", cfg.controller.name)) != "free":
         warn_far_guides(scene, anim)
     return anim

@@ -1,7 +1,8 @@
 """Guide animations: G guide polylines with one shape per frame, rooted on the rigid body.
 
-``GuideAnimation.shape_at(t)`` interpolates linearly between frames when the time step is
-smaller than the frame interval, and holds the first/last frame outside the animation.
+``GuideAnimation.shape_at(t)`` interpolates between frames when the time step is smaller than
+the frame interval (``guides.interpolation``: ``catmull_rom``, the default, C1 in time; or
+``linear``), and holds the first/last frame outside the animation.
 Sources (``guides.source``): ``rigid`` (rest guides carried by the body), ``scaled`` (rest
 guides scaled about their roots by keyframed factors, then carried by the body: the paper's
 Fig. 2 shrinking guide), ``file`` (an npz with ``guide_positions`` (F, Vg, 3),
@@ -34,6 +35,8 @@ from hairexp.model.strands import check_folds, validate_polylines
 #: frames per second a guide animation and a run (hairexp/physics/schedule.py) may have: a guide
 #: file at 1e-9 froze the guides, fps=1e-3 failed after the guide simulation (probes of issue 12)
 MIN_FPS, MAX_FPS = 0.1, 1e5
+#: how ``shape_at`` interpolates between frames (``guides.interpolation``)
+INTERPOLATIONS = ("catmull_rom", "linear")
 
 
 class GuideAnimation:
@@ -44,6 +47,16 @@ class GuideAnimation:
     ``frames`` is what was given (read frame by frame: ``frames[f]``, iteration);
     ``positions`` is every frame as one array (loaded from a store on each access: for small
     animations and tests)."""
+
+    #: between frames: "catmull_rom" (uniform Catmull-Rom in time: the cubic Hermite segment
+    #: through frames f and f + 1 with the tangents (P_{f+1} - P_{f-1}) / 2 and (P_{f+2} - P_f) / 2,
+    #: the first and last frames' missing neighbours reflected, P_{-1} = 2 P_0 - P_1; it passes
+    #: through every frame and its velocity is continuous) or "linear" (the chord: the velocity jumps
+    #: at every frame).  A tracked step that ends between frames (the trapezoidal stage of
+    #: ``trbdf2``, substeps) takes its targets from it; with the chord, the trapezoidal stage's velocity
+    #: 2 (x_g - x_n) / tau - v_n doubled each jump of the targets' velocity and the hair rang between
+    #: the stages (README "Tracking performance")
+    interpolation: str = "catmull_rom"
 
     def __init__(self, positions, offsets, fps: float, where: str = "guides", motion=None):
         self.where, self.fps = where, fps
@@ -88,7 +101,7 @@ class GuideAnimation:
         hair roots do (a linear blend of world positions would cut corners when it turns).
         A dynamic body: the positions are in its ``reference`` pose (authoring), ``shape_at``
         maps them with the live block.  A frame's body-frame shape is computed when it is
-        first needed (two frames are kept)."""
+        first needed (four frames are kept: a Catmull-Rom segment's)."""
         self.motion = motion
         self._ref = None if motion is None else authoring_motion(motion)
         self._body_cache = {}
@@ -98,7 +111,7 @@ class GuideAnimation:
         B = self._body_cache.get(f)
         if B is None:
             B = self._ref.to_body(self.frames[f], f / self.fps)
-            if len(self._body_cache) >= 2:
+            if len(self._body_cache) >= 4:
                 self._body_cache.pop(next(iter(self._body_cache)))
             self._body_cache[f] = B
         return B
@@ -119,17 +132,21 @@ class GuideAnimation:
         return [P[a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:])]
 
     def shape_at(self, t: float, motion=None) -> np.ndarray:
-        """(Vg, 3) guide vertices at time t (linear in time between frames); ``motion``: the
-        body's poses at t when they are not those the animation was attached to (a dynamic
+        """(Vg, 3) guide vertices at time t (between frames as ``interpolation`` says); ``motion``:
+        the body's poses at t when they are not those the animation was attached to (a dynamic
         body's step window, hairexp/model/dynamic_body.py)."""
         u = float(np.clip(t * self.fps, 0.0, self.n_frames - 1))
         f = min(int(np.floor(u)), self.n_frames - 2) if self.n_frames > 1 else 0
         src = (lambda k: self.frames[k]) if self.motion is None else self._body
+        a = u - f
         if self.n_frames == 1:
             B = src(0)
-        else:
-            a = u - f
+        elif a == 0.0:
+            B = np.array(src(f))
+        elif self.interpolation == "linear" or self.n_frames == 2:
             B = (1 - a) * src(f) + a * src(f + 1)
+        else:
+            B = catmull_rom(src, f, a, self.n_frames)
         return B if self.motion is None else (motion or self.motion).transform(B, t)
 
     def save(self, f) -> None:
@@ -148,6 +165,19 @@ class GuideAnimation:
             for name, a in (("guide_offsets", self.offsets), ("fps", np.asarray(self.fps))):
                 with zf.open(f"{name}.npy", "w", force_zip64=True) as dst:
                     np.lib.format.write_array(dst, np.asanyarray(a), allow_pickle=False)
+
+
+def catmull_rom(src, f: int, a: float, n: int) -> np.ndarray:
+    """The uniform Catmull-Rom segment between frames f and f + 1 at 0 < a < 1 (cubic Hermite,
+    tangents from the neighbouring frames; a missing neighbour at either end reflected:
+    P_{-1} = 2 P_0 - P_1, P_n = 2 P_{n-1} - P_{n-2}).  ``src(k)``: frame k; n frames, n >= 3."""
+    P1, P2 = src(f), src(f + 1)
+    P0 = src(f - 1) if f > 0 else 2.0 * P1 - P2
+    P3 = src(f + 2) if f + 2 < n else 2.0 * P2 - P1
+    a2 = a * a
+    a3 = a2 * a
+    return ((2.0 * a3 - 3.0 * a2 + 1.0) * P1 + (-2.0 * a3 + 3.0 * a2) * P2
+            + 0.5 * (a3 - 2.0 * a2 + a) * (P2 - P0) + 0.5 * (a3 - a2) * (P3 - P1))
 
 
 def rest_guides(scene_cfg, count: int, n_vertices: int, layout_radius: float) -> np.ndarray:
