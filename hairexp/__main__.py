@@ -48,6 +48,8 @@ def entry() -> int:
         print(bad_config, file=sys.stderr)
         return 2
     used = cli.used_dir_error(sys.argv[1:])   # another run's folder: before Hydra writes .hydra/ into it
+    if used is None:
+        used = cli.hold_folder_error(sys.argv[1:])   # a launch into the same folder that has not ended
     if used is not None:
         print(used, file=sys.stderr)
         return 2

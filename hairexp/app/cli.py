@@ -43,8 +43,8 @@ from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, SimulationError
 from hairexp.outputs.files import write_json
-from hairexp.outputs.folder import (RESERVE, SUMMARY, note_job_logs, overwrite_refusal, running_run, used_entries,
-                                    used_refusal)
+from hairexp.outputs.folder import (LOCK, RESERVE, SUMMARY, hold, note_job_logs, overwrite_refusal, running_run,
+                                    used_entries, used_refusal)
 
 log = logging.getLogger("hairexp")
 OUTCOME = Path(".hydra") / "outcome.json"
@@ -115,6 +115,16 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     LAST = res
     if sweep:
         _write_outcome(out, res)
+        if res["status"] == "interrupted" and SWEEP_DIR is not None:
+            # the launcher runs the jobs in this process (hydra/launcher=basic): the signal ended this
+            # job only, and the launcher went on to start the next ones (probe of issue 12, round
+            # 10); raised, it ends the sweep here, its later jobs said as not started
+            signum = res["code"] - 128 if res["code"] > 128 else int(signal.SIGTERM)
+            try:
+                (SWEEP_DIR / STOP_MARK).write_text(signal.Signals(signum).name + "\n")
+            except (OSError, ValueError):
+                pass
+            raise Interrupted(signum)
     return res
 
 
@@ -144,7 +154,7 @@ def _stopped_by(sweep_dir) -> str | None:
         name = (Path(sweep_dir) / STOP_MARK).read_text().strip()
     except OSError:
         return None
-    return name if name in ("SIGTERM", "SIGINT") else "SIGTERM"
+    return name if name in ("SIGTERM", "SIGINT", "SIGHUP") else "SIGTERM"
 
 
 def _signum(name: str) -> int:
@@ -448,6 +458,29 @@ def used_dir_error(argv: list[str]) -> str | None:
     return None if refused is None else f"hairexp: error: {folder}: {refused}"
 
 
+def hold_folder_error(argv: list[str]) -> str | None:
+    """Take the launch lock (``folder.hold``) of the command line's fixed ``hydra.run.dir`` (a
+    ``-m`` sweep: ``hydra.sweep.dir``) before Hydra writes into it; the error line when another
+    launch holds it.  Called after ``used_dir_error``: two launches that both found the folder
+    empty are told apart here, and the second never reaches Hydra (it rewrote the first one's
+    ``.hydra/`` record; probe of issue 12, round 10).  A folder that cannot be created is left to
+    ``run_dir_error`` and the run."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    key = "hydra.sweep.dir" if _multirun(argv) else "hydra.run.dir"
+    folder = _fixed_folder(argv, key, OverridesParser.create())
+    if folder is None:
+        return None
+    try:
+        if hold(folder):
+            return None
+    except OSError:
+        return None
+    what = "sweep" if key == "hydra.sweep.dir" else "run"
+    return (f"hairexp: error: {folder}: another launch is using this {what} folder now; a {what} folder belongs "
+            f"to one {what}: choose another {key}")
+
+
 def _overwrite_config_error(argv: list[str]) -> str | None:
     """The error line of a single run's settings (``check_config``) when ``overwrite=true`` is to
     replace a finished run: checked before Hydra replaces that run's ``.hydra/`` record and before
@@ -502,14 +535,65 @@ def _used_sweep_dir_error(argv: list[str], parser) -> str | None:
         # started (probe of issue 12, round 9)
         return (f"hairexp: error: hydra.sweep.subdir={sub}: a job's folder must lie inside the sweep folder "
                 "(hydra.sweep.dir): a relative path without '..'; move the sweep with hydra.sweep.dir instead")
+    escape = _escaping_job_folder(argv, sub)
+    if escape is not None:
+        return escape
     dup = _duplicate_sweep_value(argv, parser)
     if dup is not None:
         return dup
     folder = _fixed_folder(argv, "hydra.sweep.dir", parser)
-    if folder is not None and folder.is_dir() and any(folder.iterdir()):
-        shown = ", ".join(sorted(p.name for p in folder.iterdir())[:6])
+    entries = [] if folder is None or not folder.is_dir() else [p for p in folder.iterdir() if p.name != LOCK]
+    if entries:   # its .lock alone: a launch's, told by hold_folder_error
+        shown = ", ".join(sorted(p.name for p in entries)[:6])
         return (f"hairexp: error: {folder}: the sweep folder is not empty ({shown}); a sweep folder belongs to one "
                 "sweep: choose another hydra.sweep.dir (the default is a new dated folder) or remove this one")
+    return None
+
+
+_INTERPOLATION = re.compile(r"\$\{([^{}]*)\}")
+
+
+def _escaping_job_folder(argv: list[str], sub: str | None) -> str | None:
+    """The error line for a ``hydra.sweep.subdir`` template that puts a job's folder outside the
+    sweep folder once the job's values are in it: ``${hydra.job.override_dirname}`` with a value
+    such as ``../../x`` or ``/../../tmp/x`` (Hydra joins the job's sorted ``key=value`` overrides
+    with ','), or a config key whose value climbs out.  Such a job ran and wrote a whole run beside
+    the sweep folder, and the sweep's report called it not started (probe of issue 12, round 10).
+    Every value of every swept key is tried (``_sweep_jobs``); an interpolation that cannot be
+    resolved here is taken as one plain folder name (the job's own check, ``job``, refuses the rest)."""
+    if sub is None or "${" not in sub:
+        return None
+    overrides = _plain_overrides(argv)
+    jobs = _sweep_jobs(overrides) or [(overrides, [])]
+    for num, (job_overrides, swept) in enumerate(jobs):
+        cfg = None
+
+        def value(m):
+            nonlocal cfg
+            key = m.group(1).strip()
+            if key == "hydra.job.override_dirname":
+                return ",".join(sorted(job_overrides))
+            if key in ("hydra.job.num", "hydra.job.id"):
+                return str(num)
+            if key.startswith("hydra.") or ":" in key:
+                return "x"
+            if cfg is None:
+                try:
+                    cfg = compose_config(job_overrides)
+                except Exception:  # noqa: BLE001  (config_error's to say)
+                    cfg = False
+            from omegaconf import OmegaConf
+
+            v = OmegaConf.select(cfg, key, default=None) if cfg is not False else None
+            return "x" if v is None else str(getattr(v, "value", v))
+
+        path = _INTERPOLATION.sub(value, sub)
+        norm = os.path.normpath(path)
+        if os.path.isabs(path) or norm == ".." or norm.startswith("../"):
+            what = " ".join(swept) if swept else " ".join(job_overrides)
+            return (f"hairexp: error: hydra.sweep.subdir={sub}: the job [{what}] would write into {path}, outside "
+                    "the sweep folder (hydra.sweep.dir): a value with '..' or a leading '/' climbs out through "
+                    "the template; use the default subdir (${hydra.job.num}) or values without path parts")
     return None
 
 

@@ -14,6 +14,7 @@ and the error propagates.  Variant names are folder names: safe identifiers (let
 from __future__ import annotations
 
 import copy
+import json
 import logging
 import re
 import signal
@@ -197,7 +198,15 @@ def _run_variants(out: Path, names: list[str], vcfgs: list, summary: dict, measu
             s = run(vcfg, out / name)
         except BaseException as exc:
             status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
-            summary["variants"][name] = {"status": status, "error": str(exc) or type(exc).__name__}
+            # the figures of the steps it ran, from its own ending summary, as for the other variants
+            # (it had only status and error; probe of issue 12, round 10)
+            try:
+                own = json.loads((out / name / SUMMARY).read_text())
+            except (OSError, ValueError):
+                own = {}
+            own = own if isinstance(own, dict) else {}
+            summary["variants"][name] = {**{k: own.get(k) for k in VARIANT_FIELDS}, **facts.get(name, {}),
+                                         "status": status, "error": str(exc) or type(exc).__name__}
             summary.update(status=status, error=f"variant {name}: {exc}", wall_seconds=time.perf_counter() - t0)
             raise
         measures[name] = s["measures"]

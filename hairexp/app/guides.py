@@ -121,7 +121,15 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
             raise SimulationError(f"the guide simulation (guides.source=simulated), frame {f + 1} of {frames}: "
                                   f"{exc}") from exc
         out.append(state.x)
-    return GuideAnimation(out, offsets, fps, motion=scene.motion)
+    try:
+        return GuideAnimation(out, offsets, fps, motion=scene.motion)
+    except ExtentError:   # guides placed far off by the config's values (build_guides names those keys)
+        raise
+    except InputError as exc:   # a guide the simulation folded or stretched out of shape: the simulation's failure
+        # (it was called bad input, exit 2, without a word that the guides were simulated; probe of issue 12, round 10)
+        raise SimulationError(f"the guide simulation (guides.source=simulated) produced guides that cannot be tracked: "
+                              f"{exc}; the guides are simulated with the hair's solver.* settings (try a smaller "
+                              "solver.dt, more solver.max_iterations, or another guides.source)") from exc
 
 
 def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:

@@ -414,7 +414,14 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
         attempt(p.name, lambda p=p: shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True))
     summary = summarize(df, sinks.plain, scene_name, controller, time.perf_counter() - t_start, status, error)
     if isinstance(exc, SimulationError) and "converged" in summary:
-        summary["converged"] = False   # the step that failed is not in the metrics (its steps' were)
+        # the step that failed is not in the metrics (the steps before it are): counted here, so that
+        # the aggregates agree with "converged: false" (they said converged_fraction 1.0 and 0
+        # unconverged steps; probe of issue 12, round 10)
+        n = int(summary.get("steps", 0))
+        summary["converged"] = False
+        summary["unconverged_steps"] = int(summary.get("unconverged_steps", 0)) + 1
+        summary["converged_fraction"] = float(summary.get("converged_fraction", 1.0)) * n / (n + 1)
+        summary["failed_step"] = n + 1   # 1-based: the step after the last one in metrics.parquet
     free_reserve(out)   # its room is the summary's
     attempt("summary.json", lambda: _write_ending(out / SUMMARY, summary))
     stream = out / STREAM

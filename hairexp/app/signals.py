@@ -30,7 +30,9 @@ from pathlib import Path
 
 from hairexp.errors import Interrupted
 
-SIGNALS = (signal.SIGINT, signal.SIGTERM)
+#: SIGHUP (the terminal closed) ends a run as SIGTERM does (exit 129); it killed the process and
+#: left its summary "running" (probe of issue 12, round 10)
+SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 #: s, the delay before a signal that landed in a finaliser is delivered again
 REDELIVER_SECONDS = 0.01
 

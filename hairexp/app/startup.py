@@ -56,7 +56,7 @@ def install(force: bool = False) -> bool:
     if not (force or is_command_line()) or threading.current_thread() is not threading.main_thread():
         return False
     installed = False
-    for s in (signal.SIGINT, signal.SIGTERM):
+    for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         if signal.getsignal(s) in (signal.default_int_handler, signal.SIG_DFL):
             signal.signal(s, _handler)
             installed = True

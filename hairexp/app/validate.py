@@ -29,6 +29,7 @@ from hairexp.errors import InputError, finite_number
 from hairexp.control.tracking.correspondence import check_correspondence_options
 from hairexp.control.tracking.variance import check_variance_config
 from hairexp.evaluation.judges import JUDGE_MEASURES, missing_controllers
+from hairexp.guides.authoring import check_edits
 from hairexp.evaluation.measures import collider_named
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR, make_integrator
 from hairexp.physics.strand_kernels import check_options
@@ -198,6 +199,8 @@ def _guides(cfg) -> None:
         raise InputError(f"is true but guides.source={source} does not simulate the guides (only simulated guides "
                          "collide with scene.colliders): set guides.source=simulated or guides.collide=false",
                          "guides.collide")
+    count = int(g.count) if source in ("rigid", "scaled", "simulated", "keyframed") else None
+    check_edits(g.edits, count)
     if source != "file" and str(g.file):
         raise InputError(f"is set ({g.file}) but guides.source={source} does not read it: set guides.source=file "
                          "or leave guides.file empty", "guides.file")

@@ -206,6 +206,8 @@ def rest_guides(scene_cfg, count: int, n_vertices: int, layout_radius: float) ->
 
 #: how the files np.load reads begin: an npz is a zip archive, a .npy has its own magic
 ZIP_MAGIC, NPY_MAGIC = b"PK\x03\x04", b"\x93NUMPY"
+#: a zip archive with no member begins with its end-of-central-directory record
+ZIP_EMPTY = b"PK\x05\x06"
 
 
 def npz_kind(path: Path, where: str) -> None:
@@ -216,6 +218,9 @@ def npz_kind(path: Path, where: str) -> None:
         head = f.read(8)
     if not head:
         raise InputError("is empty (0 bytes), not a guide npz", where)
+    if head.startswith(ZIP_EMPTY):
+        raise InputError("is an empty zip archive: it holds no arrays (a guide npz holds guide_positions, "
+                         "guide_offsets and fps)", where)
     if not (head.startswith(ZIP_MAGIC) or head.startswith(NPY_MAGIC)):
         raise InputError(f"is not an npz file (a zip archive of .npy arrays, as np.savez writes): it begins "
                          f"with {head!r}", where)

@@ -205,6 +205,28 @@ def _edit(i: int, e, G: int, offsets: np.ndarray, rest: np.ndarray):
     raise InputError(f"unknown edit kind {kind!r} (rotate|displace)", f"{where}.kind")
 
 
+def check_edits(edits, count: int | None) -> None:
+    """Every edit of ``guides.edits`` checked as ``apply_edits`` checks it, before any run (a
+    guide index out of range was found only when the variant that tracks the guides started,
+    after the free variant had run; probe of issue 12, round 10).  ``count``: the number of
+    guides when the config fixes it; None (a file or a stage) checks all but the index's upper
+    bound, which ``apply_edits`` checks once the guides are read."""
+    if not edits:
+        return
+    given = [int(e.guide) for e in edits if getattr(e, "guide", None) is not None]
+    G = int(count) if count is not None else max(given + [0]) + 1
+    offsets = np.arange(G + 1) * 3
+    rest = np.zeros((3 * G, 3))
+    rest[:, 1] = -np.tile([0.0, 0.5, 1.0], G)   # straight 3-vertex stand-ins: only the keys are checked here
+    log = logging.getLogger("hairexp")
+    quiet, log.disabled = log.disabled, True   # its warnings are said once, when the edits apply
+    try:
+        for i, e in enumerate(edits):
+            _edit(i, e, G, offsets, rest)
+    finally:
+        log.disabled = quiet
+
+
 def apply_edits(positions, offsets: np.ndarray, fps: float, motion, edits):
     """Apply ``guides.edits`` (a list of GuideEditConfig) in order to world guide positions
     (F, Vg, 3) whose frame f is at time f / fps; returns new positions (the input is kept):

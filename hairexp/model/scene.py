@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, finite_number
 from hairexp.model.dynamic_body import DynamicBody
 from hairexp.model.rigid import RigidMotion
 from hairexp.model.strands import Strands
@@ -20,6 +20,16 @@ class Material:
     bending_stiffness: float     # EI, N m^2
     edge_damping: float = 0.0    # N s
     air_drag: float = 0.0        # 1/s
+
+    def __post_init__(self):
+        """Finite values in range, named (the Python API took NaN or negative values that the
+        command line refuses and failed later as a diverged step; probe of issue 12, round 10)."""
+        for key, lo, strict in (("linear_density", 0.0, True), ("stretch_stiffness", 0.0, True),
+                                ("bending_stiffness", 0.0, False), ("edge_damping", 0.0, False),
+                                ("air_drag", 0.0, False)):
+            v = finite_number(getattr(self, key), f"Material.{key}", "> 0" if strict else ">= 0")
+            if v < lo or (strict and v == lo):
+                raise InputError(f"must be a finite number {'> 0' if strict else '>= 0'}, got {v}", f"Material.{key}")
 
 
 @dataclass(frozen=True)
@@ -45,6 +55,29 @@ class Scene:
     initial: np.ndarray | None = None
 
     def __post_init__(self):
+        if not isinstance(self.strands, Strands):
+            raise InputError(f"must be a Strands (hairexp.model.strands), got {type(self.strands).__name__}",
+                             "Scene.strands")
+        if not isinstance(self.material, Material):
+            raise InputError(f"must be a Material, got {type(self.material).__name__}", "Scene.material")
+        V = self.strands.n_vertices
+        for key, shape in (("gravity", (3,)), ("root_body", (V, 3)), ("initial", (V, 3))):
+            a = getattr(self, key)
+            if a is None and key == "initial":
+                continue
+            try:
+                arr = np.asarray(a, dtype=np.float64)
+            except (TypeError, ValueError) as exc:
+                raise InputError(f"must be real numbers of shape {shape}: {exc}", f"Scene.{key}") from exc
+            if arr.shape != shape:
+                raise InputError(f"must have shape {shape} (the strands have {V} vertices), got {arr.shape}",
+                                 f"Scene.{key}")
+            if not np.isfinite(arr).all():
+                bad = np.argwhere(~np.isfinite(arr))[0].tolist()
+                raise InputError(f"must be finite, got {arr[tuple(bad)]} at index {bad}", f"Scene.{key}")
+        for c in self.colliders:
+            if not hasattr(c, "name") or isinstance(c, str):
+                raise InputError(f"must be collider objects (hairexp.model.colliders), got {c!r}", "Scene.colliders")
         names = [getattr(c, "name", None) for c in self.colliders]
         twice = sorted({n for n in names if names.count(n) > 1})
         if twice:   # metrics columns, the recording, the USD prims and measure.collider are by name

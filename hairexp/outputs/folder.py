@@ -35,8 +35,40 @@ RUN_FILES = frozenset({SUMMARY, "metrics.parquet", "result.npz", "result.usda", 
 RUN_DIRS = frozenset({STREAM, "result.clips", "result.clips.tmp"})   # the USD result's value clips (io/usd_write.py)
 
 
+#: the lock a launch holds on a fixed run or sweep folder from before Hydra starts until the process
+#: ends (``hold``): a second launch into the folder meanwhile is refused before Hydra rewrites the
+#: first one's ``.hydra/`` record
+LOCK = ".lock"
+_HELD: list[int] = []
+
+
 def _hydras(p: Path) -> bool:
-    return p.name == ".hydra" or (p.is_file() and p.suffix == ".log")
+    """Hydra's own entries (``.hydra/``, the job's ``*.log``) and the launch's ``.lock``."""
+    return p.name in (".hydra", LOCK) or (p.is_file() and not p.is_symlink() and p.suffix == ".log")
+
+
+def hold(folder: Path) -> bool:
+    """Take the launch lock of ``folder`` (creating it and its ``.lock``): an exclusive ``flock``
+    kept until this process ends (the kernel drops it then, also after SIGKILL).  False when
+    another process holds it (a launch into the same folder that has not ended).  Where the
+    filesystem cannot lock, True (the run's ``claim`` still refuses a folder in use).  Two
+    launches into one new folder used to pass the empty-folder check together: the refused one
+    had already rewritten the running one's ``.hydra/config.yaml`` (probe of issue 12, round 10)."""
+    import fcntl
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    fd = os.open(folder / LOCK, os.O_CREAT | os.O_RDWR, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return False
+    except OSError:   # no locks on this filesystem
+        os.close(fd)
+        return True
+    _HELD.append(fd)
+    return True
 
 
 def _is_tmp(p: Path) -> bool:
@@ -49,7 +81,9 @@ def _removable(folder: Path, top: bool) -> tuple[list[Path], list[Path]]:
     for p in sorted(folder.iterdir()):
         if top and _hydras(p):
             continue
-        if (p.name in RUN_FILES or _is_tmp(p)) and not p.is_dir():
+        if p.is_symlink():   # a run writes no links: one is never followed nor removed (probe of issue 12, round 10)
+            foreign.append(p)
+        elif (p.name in RUN_FILES or _is_tmp(p)) and not p.is_dir():
             ours.append(p)
         elif p.name in RUN_DIRS and p.is_dir():
             ours.append(p)
@@ -229,8 +263,10 @@ def claim(folder: Path, overwrite: bool = False) -> None:
         if refused is not None:
             raise InputError(refused, str(folder))
         ours, _ = _removable(folder, top=True)
-        for p in ours:
-            shutil.rmtree(p) if p.is_dir() else p.unlink()
+        # the previous run's summary first: if a removal fails below, no summary is left saying
+        # "completed" beside results that are gone (probe of issue 12, round 10)
+        for p in sorted(ours, key=lambda q: q.name != SUMMARY):
+            shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
         _drop_previous_log_lines(folder)
     folder.mkdir(parents=True, exist_ok=True)
     try:

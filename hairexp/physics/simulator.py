@@ -110,6 +110,10 @@ class _NoColliders:
         self.strands, self.colliders, self.motion = scene.strands, [], scene.motion
 
 
+#: s, the shortest step ``Simulator.step`` takes
+MIN_STEP_DT = 1e-9
+
+
 class Simulator:
     def __init__(self, scene: Scene, solver_cfg, controller: Controller | None = None, collision_cfg=None,
                  integrator: str | None = None):
@@ -406,6 +410,9 @@ class Simulator:
         if (isinstance(dt, (bool, np.bool_)) or not isinstance(dt, (int, float, np.integer, np.floating))
                 or not (np.isfinite(dt) and dt > 0)):   # -0.01 stepped time backwards and said converged (probe of issue 12)
             raise ValueError(f"Simulator.step: dt must be a finite number > 0 (s), got {dt!r}")
+        if dt < MIN_STEP_DT:   # 1e-300: the inertia M/dt^2 overflowed and the step "diverged" (probe of issue 12)
+            raise ValueError(f"Simulator.step: dt={dt!r} s is below {MIN_STEP_DT:g} s: the inertia term M/dt^2 then "
+                             "swamps every force in double precision (or overflows)")
         if not isinstance(state.time, (int, float, np.integer, np.floating)) or not np.isfinite(state.time):
             raise ValueError(f"Simulator.step: the state's time must be a finite number (s), got {state.time!r}")
         shape = (self.scene.strands.n_vertices, 3)

@@ -169,6 +169,21 @@ def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.
     if not guides_rest:
         raise InputError("a tracked run needs at least one guide", "guides")
     G = len(guides_rest)
+    detail_rest = np.asarray(detail_rest, dtype=np.float64)
+    if detail_rest.ndim != 2 or detail_rest.shape[1] != 3 or not np.isfinite(detail_rest).all():
+        raise InputError(f"the detail hair must be finite points of shape (V, 3), got shape {detail_rest.shape}",
+                         "build_correspondence detail_rest")
+    for g, P in enumerate(guides_rest):   # named here: they came out as "non-finite distance" (probe of issue 12)
+        P = np.asarray(P, dtype=np.float64)
+        if P.ndim != 2 or P.shape[1] != 3 or len(P) < 2:
+            raise InputError(f"guide {g} must be a polyline of >= 2 points of shape (n, 3), got shape {P.shape}",
+                             "guides")
+        if not np.isfinite(P).all():
+            raise InputError(f"guide {g} has a non-finite point", "guides")
+        short = np.flatnonzero(np.linalg.norm(np.diff(P, axis=0), axis=1) <= 0.0)
+        if short.size:
+            raise InputError(f"guide {g} has a zero-length edge (points {int(short[0])} and {int(short[0]) + 1} "
+                             "coincide)", "guides")
     # 1. eq. (1): integrated squared distance of each strand to each guide
     dist = strand_guide_distances(detail_rest, offsets, guides_rest)
     strand = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
@@ -228,9 +243,12 @@ def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.
                 best[v], raw[v] = w, k
     counts = np.bincount(mraw, minlength=G * points_per_guide)
     kept = np.flatnonzero(counts > 0)
-    for k in np.flatnonzero(counts == 0):
-        log.warning("cluster of guide %d, tracking point %d is empty (no free detail vertex is closest to it); "
-                    "dropped", k // points_per_guide, k % points_per_guide)
+    empty = np.flatnonzero(counts == 0)
+    if empty.size:   # one line, however many (it was a line each: ~1,000 with 256 points a guide; probe of issue 12)
+        shown = ", ".join(f"guide {k // points_per_guide} point {k % points_per_guide}" for k in empty[:8])
+        more = f" and {empty.size - 8} more" if empty.size > 8 else ""
+        log.warning("%d of %d clusters are empty (no free detail vertex is closest to their tracking point) and are "
+                    "dropped: %s%s", empty.size, counts.size, shown, more)
     if kept.size == 0:
         raise InputError("every cluster is empty: no free detail vertex is near a tracking point", "tracking")
     remap = np.full(G * points_per_guide, -1)
