@@ -20,8 +20,8 @@ import math
 from pxr import Sdf, Tf, Usd, UsdGeom
 
 from hairexp.errors import InputError
-from hairexp.io.usd_layout import (COLLIDER_DEFAULTS, COLLIDERS, FRICTION, PLANE_SIZE, SPIN, THICKNESS,
-                                   read_motion, set_transform)
+from hairexp.io.usd_layout import (COLLIDER_DEFAULTS, COLLIDERS, FRICTION, NUMBER_TYPES, PLANE_SIZE, SPIN, THICKNESS,
+                                   TOKEN_TYPES, check_type, read_motion, set_transform)
 from hairexp.model.colliders import Box, Capsule, Cylinder, Plane, Sphere
 
 SUPPORTED = ("Sphere", "Cube", "Cylinder", "Capsule", "Plane")
@@ -31,8 +31,10 @@ def _one_value(prim, name: str, where: str, default=None):
     """The attribute's one value: its default, or its time samples when they all agree (else
     ``default``, else the schema's fallback).  Time samples alone read as the schema's fallback
     (a sphere of radius 1 m instead of the stage's 0.05; probe of issue 12), and a collider keeps
-    its size and spin: samples that differ are an error."""
+    its size and spin: samples that differ are an error.  An attribute declared with another type
+    than a number (``string radius = "0.05"``, ``bool``, ``double[]``) is an error too."""
     attr = prim.GetAttribute(name)
+    check_type(attr, NUMBER_TYPES, where)
     samples = attr.GetTimeSamples() if attr else []
     if samples:
         values = [attr.Get(t) for t in samples]
@@ -66,6 +68,7 @@ def _spin(prim, where: str) -> float:
 
 
 def _axis_y(prim, where: str) -> None:
+    check_type(prim.GetAttribute("axis"), TOKEN_TYPES, where)
     axis = prim.GetAttribute("axis").Get()
     if axis != UsdGeom.Tokens.y:
         raise InputError(f"axis is {axis}; hairexp's {prim.GetTypeName()} colliders lie along Y "

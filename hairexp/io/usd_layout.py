@@ -22,8 +22,10 @@ hairexp's poses are column-vector ``x = R X + T``.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
-from pxr import Gf, Usd, UsdGeom
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom
 from scipy.spatial.transform import Rotation
 
 from hairexp.errors import InputError
@@ -47,6 +49,94 @@ PLANE_SIZE = 2.0      # m, display width and length of a Plane collider (it is i
 
 #: Largest |R^T R - I| entry (and |scale - 1|) accepted as a rigid transform.
 RIGID_TOL = 1e-6
+
+
+def tf_message(exc: Exception) -> str:
+    """The first quoted reason in a Tf error (``... : 'reason'``), else the text."""
+    found = re.findall(r" : '(.*)'\s*$", str(exc), flags=re.M)
+    return found[0] if found else " ".join(str(exc).split())
+
+
+def _kind(label: str, *names: str) -> tuple[str, frozenset]:
+    """(what to say, the value types) of the attributes a reader accepts: the types of the
+    ``Sdf.ValueTypeNames`` ``names`` whatever their role (point3f[], vector3f[], normal3f[] and
+    float3[] hold the same values)."""
+    return label, frozenset(getattr(Sdf.ValueTypeNames, n).type for n in names)
+
+
+#: The declared types an attribute read by hairexp may have (``check_type``).
+POINTS_TYPES = _kind("point3f[] (an array of 3-vectors: point3f[], float3[], double3[], half3[], vector3f[], ...)",
+                     "Float3Array", "Double3Array", "Half3Array")
+COUNTS_TYPES = _kind("int[] (an array of integers)", "IntArray", "UIntArray", "Int64Array", "UInt64Array")
+NUMBER_TYPES = _kind("a number (double, float, half or int)",
+                     "Double", "Float", "Half", "Int", "UInt", "Int64", "UInt64")
+TOKEN_TYPES = _kind("token", "Token", "String")
+_OP_ORDER_TYPES = _kind("token[] (the names of the transform ops, in order)", "TokenArray")
+_OP_VEC3 = _kind("double3 (or float3 or half3)", "Double3", "Float3", "Half3")
+_OP_SCALAR = _kind("double (or float or half)", "Double", "Float", "Half")
+#: xformOp:<type> -> the value types USD computes a transform from (UsdGeomXformOp)
+_OP_TYPES = {"transform": _kind("matrix4d", "Matrix4d"),
+             "orient": _kind("quatd (or quatf or quath)", "Quatd", "Quatf", "Quath"),
+             **{op: _OP_VEC3 for op in ("translate", "scale", "rotateXYZ", "rotateXZY", "rotateYXZ", "rotateYZX",
+                                        "rotateZXY", "rotateZYX")},
+             **{op + axis: _OP_SCALAR for op in ("rotate", "translate", "scale") for axis in "XYZ"}}
+
+
+def check_type(attr, kind: tuple[str, frozenset], where: str, owner: str = "") -> None:
+    """InputError naming the attribute (prefixed by ``owner``, e.g. ``/Root.``, when it is not on
+    the prim ``where`` names) when its declared type is not one of ``kind``'s: a string where
+    points are read, an int where an int[] is (a ValueError or TypeError deep in numpy, a Tf
+    error out of USD: a traceback instead of this error).  The types are those the layers author
+    (a schema's attribute reports the schema's type whatever a layer declares, and its value is
+    the layer's).  An attribute that does not exist is left to the caller."""
+    if not attr:
+        return
+    label, types = kind
+    declared = [spec.typeName for spec in attr.GetPropertyStack(Usd.TimeCode.Default())] + [attr.GetTypeName()]
+    bad = next((t for t in declared if t.type not in types), None)
+    if bad is not None:
+        raise InputError(f"{owner}{attr.GetName()} has type {str(bad) or 'unknown'}, expected {label}", where)
+
+
+def check_transform_types(prim, where: str) -> None:
+    """InputError when a transform op of ``prim`` or of an ancestor it inherits from has a value
+    type USD cannot compute a transform from (``string xformOp:transform``: a Tf error out of
+    ComputeLocalToWorldTransform), ``xformOpOrder`` is not a token[] (USD ignores it: the prim
+    did not move) or names an op the prim does not have (USD skips it with a warning)."""
+    p = prim
+    while p and p.IsValid() and not p.IsPseudoRoot():
+        if p.IsA(UsdGeom.Xformable):
+            owner = "" if p == prim else f"{p.GetPath()}."   # the property's path: on another prim
+            order = p.GetAttribute("xformOpOrder")
+            if order and order.HasAuthoredValue():
+                check_type(order, _OP_ORDER_TYPES, where, owner)
+                names = [str(n) for n in order.Get()]
+                for name in names:
+                    if name == "!resetXformStack!":
+                        continue
+                    attr_name = name.removeprefix("!invert!")
+                    parts = attr_name.split(":")
+                    if len(parts) < 2 or parts[0] != "xformOp" or parts[1] not in _OP_TYPES:
+                        raise InputError(f"{owner}xformOpOrder names {name}, which is not a transform op "
+                                         "(xformOp:<translate, scale, rotateXYZ, ..., orient or transform>[:<suffix>])",
+                                         where)
+                    attr = p.GetAttribute(attr_name)
+                    if not attr:
+                        raise InputError(f"{owner}xformOpOrder names {name}, but the prim has no attribute "
+                                         f"{attr_name} (USD would skip the op)", where)
+                    check_type(attr, _OP_TYPES[parts[1]], where, owner)
+                if "!resetXformStack!" in names:   # the ancestors' transforms do not apply
+                    return
+        p = p.GetParent()
+
+
+def world_transform(xformable, tc, where: str) -> Gf.Matrix4d:
+    """``ComputeLocalToWorldTransform(tc)``, with a Tf error (a value USD cannot compute a
+    transform from: see ``check_transform_types``) an InputError naming ``where`` and the time."""
+    try:
+        return xformable.ComputeLocalToWorldTransform(tc)
+    except Tf.ErrorException as exc:
+        raise InputError(f"cannot compute the transform at {time_label(tc)}: {tf_message(exc)}", where) from None
 
 
 def time_label(tc) -> str:
@@ -114,11 +204,12 @@ def transform_times(prim) -> list[float]:
 def read_motion(prim, tcps: float, where: str, allow_scale: bool = False) -> tuple[RigidMotion, np.ndarray]:
     """The prim's world transform as a linear ``RigidMotion`` (keyframes at its time samples)
     and its scale (which must not change over time)."""
+    check_transform_types(prim, where)
     xf = UsdGeom.Xformable(prim)
     times = transform_times(prim) or [Usd.TimeCode.Default()]
     rots, trans, scale0 = [], [], None
     for tc in times:
-        R, T, scale = pose_from_matrix(xf.ComputeLocalToWorldTransform(tc), where, tc, allow_scale)
+        R, T, scale = pose_from_matrix(world_transform(xf, tc, where), where, tc, allow_scale)
         if scale0 is None:
             scale0 = scale
         elif np.abs(scale - scale0).max() > 1e-9 * scale0.max():

@@ -16,16 +16,17 @@ from __future__ import annotations
 import copy
 import logging
 import math
-import re
 from pathlib import Path
 
 import numpy as np
 from omegaconf import OmegaConf
-from pxr import Usd, UsdGeom
+from pxr import Tf, Usd, UsdGeom
 
 from hairexp.errors import InputError, check_extent, regular_file
 from hairexp.io.usd_colliders import read_colliders
-from hairexp.io.usd_layout import read_motion, time_label
+from hairexp.io.usd_layout import (COUNTS_TYPES, POINTS_TYPES, TOKEN_TYPES, check_transform_types, check_type,
+                                   read_motion, time_label, world_transform)
+from hairexp.io.usd_layout import tf_message as _message
 from hairexp.guides.animation import MAX_FPS, MIN_FPS, GuideAnimation
 from hairexp.guides.store import FrameStore
 from hairexp.model.builders import build_collider, build_material, gravity
@@ -35,12 +36,6 @@ from hairexp.model.strands import N_ROOT_VERTICES, Strands, check_folds, validat
 _open: dict = {}   # path -> stage of the last read (reloaded when the file changes)
 _warned: set = set()   # the prims whose cubic type was warned about
 log = logging.getLogger(__name__)
-
-
-def _message(exc: Exception) -> str:
-    """The first quoted reason in a Tf error (``... : 'reason'``), else the text."""
-    found = re.findall(r" : '(.*)'\s*$", str(exc), flags=re.M)
-    return found[0] if found else " ".join(str(exc).split())
 
 
 def open_stage(path: str) -> tuple[Usd.Stage, str]:
@@ -92,9 +87,43 @@ def get_prim(stage, path: str, where: str, what: str, key: str, schema=None) -> 
     return prim
 
 
+def check_curve_types(prim, where: str) -> None:
+    """InputError naming the attribute when one that ``read_curves`` reads is declared with a
+    type it cannot read (``string points``, ``int curveVertexCounts = 60``: a ValueError or
+    TypeError out of numpy), or when a transform op of the prim or of an
+    ancestor has a type USD cannot compute a transform from."""
+    curves = UsdGeom.BasisCurves(prim)
+    check_type(curves.GetPointsAttr(), POINTS_TYPES, where)
+    check_type(curves.GetCurveVertexCountsAttr(), COUNTS_TYPES, where)
+    check_type(curves.GetWrapAttr(), TOKEN_TYPES, where)
+    check_type(curves.GetTypeAttr(), TOKEN_TYPES, where)
+    check_transform_types(prim, where)
+
+
+def _array(attr, tc, where: str, dtype, columns: int = 0) -> np.ndarray | None:
+    """The attribute's value at ``tc`` as an array of ``dtype`` ((n, columns) with ``columns``),
+    None when it has none; a value that is not such an array (past ``check_curve_types``: a
+    value whose type differs from the declared one, from another layer) is an InputError."""
+    name = attr.GetName()
+    try:
+        value = attr.Get(tc)
+        if value is None:
+            return None
+        out = np.asarray(value, dtype=dtype)
+    except (TypeError, ValueError, Tf.ErrorException) as exc:
+        raise InputError(f"{name} at {time_label(tc)} cannot be read as numbers ({_message(exc)})", where) from None
+    if out.size == 0:
+        return out.reshape((0, columns) if columns else (0,))
+    if out.ndim != (2 if columns else 1) or (columns and out.shape[1] != columns):
+        raise InputError(f"{name} at {time_label(tc)} has the shape {list(out.shape)}, expected "
+                         + (f"an array of {columns}-vectors" if columns else "an array of numbers"), where)
+    return out
+
+
 def read_curves(prim, tc, where: str) -> tuple[np.ndarray, np.ndarray]:
     """(points (V, 3) float64 in the prim's space, counts (S,)) of a BasisCurves at ``tc``.  A
-    ``cubic`` curve is read as its control polygon, with a warning (once per prim and file)."""
+    ``cubic`` curve is read as its control polygon, with a warning (once per prim and file).
+    The callers check the attributes' types first (``check_curve_types``)."""
     curves = UsdGeom.BasisCurves(prim)
     if curves.GetWrapAttr().Get() not in (None, UsdGeom.Tokens.nonperiodic):
         raise InputError(f"wrap is {curves.GetWrapAttr().Get()}; hair curves are open (nonperiodic)", where)
@@ -104,12 +133,13 @@ def read_curves(prim, tc, where: str) -> tuple[np.ndarray, np.ndarray]:
         log.warning("%s: type is %s (basis %s): hairexp simulates the points as the vertices of a polyline, not as "
                     "the curve they control; author type = \"linear\" so that viewers draw what is simulated",
                     where, kind, curves.GetBasisAttr().Get())
-    pts, counts = curves.GetPointsAttr().Get(tc), curves.GetCurveVertexCountsAttr().Get(tc)
+    pts = _array(curves.GetPointsAttr(), tc, where, np.float64, columns=3)
+    counts = _array(curves.GetCurveVertexCountsAttr(), tc, where, np.int64)
     if pts is None or len(pts) == 0:
         raise InputError(f"has no points at {time_label(tc)}", where)
     if counts is None or len(counts) == 0:
         raise InputError(f"has no curveVertexCounts at {time_label(tc)}", where)
-    return np.asarray(pts, dtype=np.float64).reshape(-1, 3), np.asarray(counts, dtype=np.int64)
+    return pts, counts
 
 
 def rest_time(attr) -> Usd.TimeCode:
@@ -158,6 +188,7 @@ def build_usd_scene(cfg):
     motion, _ = read_motion(body, tcps, f"{file}:{cfg.usd_body}")
     hair = get_prim(stage, cfg.usd_hair, file, "the detail hair", "scene.usd_hair", UsdGeom.BasisCurves)
     where = f"{file}:{cfg.usd_hair}"
+    check_curve_types(hair, where)   # before the samples are counted and the rest time chosen
     tc = rest_time(UsdGeom.BasisCurves(hair).GetPointsAttr())
     samples = UsdGeom.BasisCurves(hair).GetPointsAttr().GetTimeSamples()
     if len(samples) > (0 if tc.IsDefault() else 1):   # ignored without a word (probe of issue 12)
@@ -172,8 +203,8 @@ def build_usd_scene(cfg):
     check_hair_rides_body(hair, body, where, cfg.usd_body)
     # hair space -> body space at the rest time (identity for hair authored under the body)
     t0 = Usd.TimeCode(0) if tc.IsDefault() else tc
-    rel = (UsdGeom.Xformable(hair).ComputeLocalToWorldTransform(t0)
-           * UsdGeom.Xformable(body).ComputeLocalToWorldTransform(t0).GetInverse())
+    rel = (world_transform(UsdGeom.Xformable(hair), t0, where)
+           * world_transform(UsdGeom.Xformable(body), t0, f"{file}:{cfg.usd_body}").GetInverse())
     body_pts = pts if np.allclose(np.array(rel), np.eye(4), rtol=0, atol=1e-12) else apply(pts, rel)
     material = build_material(cfg.hair)
     strands = Strands.from_polylines(motion.transform(body_pts, 0.0), counts, material.linear_density, where=where)
@@ -225,6 +256,7 @@ def read_guides(cfg, scene, frames: int, fps: float):
     path = cfg.scene.usd_guides
     prim = get_prim(stage, path, file, "the guides", "scene.usd_guides", UsdGeom.BasisCurves)
     where = f"{file}:{path}"
+    check_curve_types(prim, where)   # before the time samples are checked
     curves = UsdGeom.BasisCurves(prim)
     n = guide_frames(curves.GetPointsAttr(), where)
     tcps = stage_rate(stage, file)
@@ -244,7 +276,7 @@ def read_guides(cfg, scene, frames: int, fps: float):
             raise InputError(f"time code {f} has {len(pts)} points, time code 0 has {n0}: the guide topology "
                              "must stay the same in every frame", where)
         validate_polylines(pts, counts, f"{where} frame {f}", min_vertices=2, folds=False)   # finite, to transform
-        X = apply(pts, xf.ComputeLocalToWorldTransform(Usd.TimeCode(f)))
+        X = apply(pts, world_transform(xf, Usd.TimeCode(f), where))
         if frames_pos is None:
             frames_pos = FrameStore(X.shape)
         frames_pos.append(X)
