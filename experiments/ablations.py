@@ -27,7 +27,7 @@ import sys
 import time
 from pathlib import Path
 
-from experiments.common import ROOT, fmt, md_row, md_table, ROOT
+from experiments.common import ROOT, check_reports, fail, fmt, md_row, md_table
 
 COMPARISONS = {
     "targets": ["tracking.targets=static,sliding"],
@@ -102,6 +102,8 @@ def main(argv=None):
     ap.add_argument("--launcher", default=None, choices=LAUNCHERS,
                     help="a Hydra launcher (default: conf/hydra/launcher/parallel.yaml, joblib with 2 jobs)")
     args = ap.parse_args(argv)
+    report = "ablations_full" if args.full else "ablations"
+    check_reports(ap, report)
     from hairexp.app.report import header, write_report
 
     base = ROOT / "multirun" / "ablations" / time.strftime("%Y-%m-%d_%H-%M-%S")
@@ -115,6 +117,10 @@ def main(argv=None):
             print(f"{name} {comp}: " + "; ".join(f"{x['value']}: {x['status']}, its {fmt(x.get('iterations_mean'))}, "
                                                     f"stretch {fmt(x.get('stretch_max'))}" for x in r)
                   + f" ({time.perf_counter() - t0:.0f} s)", flush=True)
+    failed = [f"{r['scene']} {r['comparison']} {r['value']} ({r['status']})" for r in rows if r.get("status") != "completed"]
+    if rows and len(failed) == len(rows):   # nothing to compare: the committed report stays as it was
+        return fail(f"no run completed ({len(failed)} failed, the first: {failed[0]}: {rows[0].get('error')}); "
+                    f"reports/{report}.md/.json left as they were")
     md = header("Ablations (Hydra sweeps, tracked controller)")
     md += (f"Scenes: {'full' if args.full else 'smoke'} versions; launcher: {args.launcher or 'joblib (2 jobs)'}; each row is "
            "one run of the sweep `python -m hairexp -m experiment=<scene> variants=[] controller.name=tracking "
@@ -129,8 +135,11 @@ def main(argv=None):
                       fmt(r.get("step_seconds_median")), fmt(r.get("stretch_max")), fmt(r.get("residual_rel_max")),
                       f"{key}={fmt(m[key])}" if key else "-"])
     md += findings(rows)
-    path = write_report("ablations_full" if args.full else "ablations", md, {"rows": rows, "full": args.full, "launcher": args.launcher})
+    path = write_report(report, md, {"rows": rows, "full": args.full, "launcher": args.launcher})
     print(f"wrote {path}")
+    if failed:
+        return fail(f"{len(failed)} of {len(rows)} runs did not complete: {', '.join(failed)} (recorded in the report)")
+    return 0
 
 
 if __name__ == "__main__":

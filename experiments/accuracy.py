@@ -36,7 +36,7 @@ from hairexp.app.report_cache import cached, describe
 from hairexp.app.run import config_hash, run
 from hairexp.physics.integrators import INTEGRATORS
 
-from experiments.common import ROOT, check_set, compose, fmt, md_row, md_table, positive_float, positive_int
+from experiments.common import ROOT, check_reports, check_set, compose, fmt, md_row, md_table, positive_float, positive_int
 
 DTS = [0.005, 0.01, 0.02, 0.04]
 RTOLS = [1e-3, 1e-5, 1e-7]
@@ -111,6 +111,7 @@ def main(argv=None):
                     help="reuse reports/cache/accuracy/ entries (same config, solver source and versions)")
     args = ap.parse_args(argv)
     check_set(ap, args.set)   # before anything runs (a bad key would fail every run)
+    check_reports(ap, args.report)
     from hairexp.app.report import header, write_report
 
     base = ROOT / "outputs" / args.report

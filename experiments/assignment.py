@@ -24,7 +24,7 @@ from hairexp.app.config import VariantConfig
 from hairexp.app.experiment import run_experiment
 from hairexp.app.report import header, write_report
 
-from experiments.common import ROOT, check_set, compose, experiment_names, fmt, md_row, md_table
+from experiments.common import ROOT, check_reports, check_set, compose, experiment_names, fmt, md_row, md_table
 
 SCENES = ["goaling", "splitting", "celia"]
 
@@ -83,6 +83,7 @@ def main(argv=None):
     ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="hydra overrides on every scene")
     args = ap.parse_args(argv)
     check_set(ap, args.set)   # before anything runs (a bad key would fail every run)
+    check_reports(ap, "assignment")
     names = experiment_names(ap, args.scenes, SCENES)
     md = header("Hard and soft hair-to-guide assignment")
     md += ("Each scene's variants run as `python -m hairexp experiment=<name>` runs them, every tracked variant "

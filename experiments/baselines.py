@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import tempfile
 import time
 import traceback
@@ -46,7 +47,7 @@ from hairexp.evaluation.judges import RUN_RULES
 from hairexp.evaluation.measures import RunData, compute
 from hairexp.model.dynamic_body import POSITION
 
-from experiments.common import compose, md_row, md_table, positive_int
+from experiments.common import check_reports, compose, fail, md_row, md_table, positive_int, writable_dir
 
 EXPERIMENTS = ("goaling", "splitting", "spreading", "stylization", "celia")
 STIFFNESSES = (10.0, 100.0, 1000.0)
@@ -243,8 +244,12 @@ def run_scene(experiment: str, frames: int | None, root: Path, only: list[str] |
             cfg = controller_cfg(base, vover, ov, f"{experiment} {name}")
             run(cfg, out)
             r = analyse(cfg, scene, tracker, out)
-        except InputError as exc:      # the controller cannot drive this scene (e.g. skinning a dynamic body)
-            r = {"status": "not applicable", "error": str(exc)}
+        except InputError as exc:
+            if str(exc.where or "").startswith("controller."):   # it cannot drive this scene (skinning a dynamic body)
+                r = {"status": "not applicable", "error": str(exc)}
+            else:                      # any other bad input (a run folder that cannot be made, ...) fails the run
+                r = {"status": "failed", "error": f"{type(exc).__name__}: {exc}"}
+                print(f"[{experiment}] {name}: {exc}", file=sys.stderr, flush=True)
         except Exception as exc:       # a failed run: recorded, the others go on
             r = {"status": "failed", "error": f"{type(exc).__name__}: {exc}"}
             traceback.print_exc()
@@ -452,15 +457,43 @@ DEFINITIONS = """
 """
 
 
-def main(argv=None):
+def failures(scenes: list[dict]) -> tuple[list[str], int]:
+    """(the runs that failed, as "scene/controller", the number of runs): a controller that
+    cannot drive a scene ("not applicable") is no failure."""
+    runs = [(s["experiment"], n, r) for s in scenes for n, r in s["results"].items()]
+    return [f"{e}/{n}" for e, n, r in runs if r["status"] == "failed"], len(runs)
+
+
+def check_scenes(ap, experiments, frames: int | None) -> None:
+    """Every scene's tracked configuration (with ``--frames``) passes the checks ``assemble`` makes
+    before it builds anything (``hairexp.app.assemble.check_config``: ranges, the step schedule, the
+    resource guard), else a usage error naming the scene (exit 2) before the first run."""
+    from hairexp.app.assemble import check_config
+
+    extra = [] if frames is None else [f"frames={frames}"]
+    for e in experiments:
+        try:
+            base = compose([f"experiment={e}", "logging=off", *extra])
+            _, vover = representative_variant(base)
+            check_config(controller_cfg(base, vover, ["controller.name=tracking"], f"{e} tracked"))
+        except Exception as exc:   # noqa: BLE001  (InputError, Hydra's composition errors)
+            ap.error(f"experiment {e}" + (f" with --frames {frames}" if frames is not None else "")
+                     + f": {' '.join(str(exc).split())}")
+
+
+def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--experiments", nargs="+", default=list(EXPERIMENTS), choices=list(EXPERIMENTS))
     ap.add_argument("--frames", type=positive_int, default=None, help="override every scene's frame count (quick checks)")
-    ap.add_argument("--out", default=None, help="keep the run folders here (default: a temporary folder)")
+    ap.add_argument("--out", type=writable_dir, default=None,
+                    help="keep the run folders here (default: a temporary folder)")
     ap.add_argument("--no-report", action="store_true")
     args = ap.parse_args(argv)
     if args.frames is not None and args.frames <= WINDOW:
         ap.error(f"--frames must be > {WINDOW} (the tip high-frequency window is {WINDOW} frames)")
+    check_scenes(ap, args.experiments, args.frames)
+    if not args.no_report:
+        check_reports(ap, "baselines")
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="baselines_"))
     t0 = time.perf_counter()
     scenes = []
@@ -471,14 +504,25 @@ def main(argv=None):
         print(f"[{e}] done in {scenes[-1]['wall_seconds']:.0f} s", flush=True)
     wall = time.perf_counter() - t0
     print(f"total wall {wall:.0f} s", flush=True)
-    if args.no_report:
-        return scenes
-    path = write_report("baselines", report(scenes, wall),
-                        {"experiments": args.experiments, "frames_override": args.frames,
-                         "stiffnesses": list(STIFFNESSES), "window_frames": WINDOW, "wall_seconds": wall,
-                         "scenes": scenes})
-    print(f"wrote {path}")
-    return scenes
+    failed, total = failures(scenes)
+    completed = sum(r["status"] == "completed" for s in scenes for r in s["results"].values())
+    if completed == 0:   # nothing to compare: the committed report stays as it was
+        first = next((f"{s['experiment']}/{n}: {r['error']}" for s in scenes for n, r in s["results"].items()
+                      if r["status"] == "failed"), "-")
+        rest = "" if len(failed) == total else ", the rest not applicable"
+        return fail(f"no run completed ({len(failed)} of {total} failed{rest}; the first: "
+                    f"{' '.join(first.split())[:300]})"
+                    + ("" if args.no_report else "; reports/baselines.md/.json left as they were"))
+    if not args.no_report:
+        path = write_report("baselines", report(scenes, wall),
+                            {"experiments": args.experiments, "frames_override": args.frames,
+                             "stiffnesses": list(STIFFNESSES), "window_frames": WINDOW, "wall_seconds": wall,
+                             "scenes": scenes})
+        print(f"wrote {path}")
+    if failed:
+        return fail(f"{len(failed)} of {total} runs failed: {', '.join(failed)}"
+                    + ("" if args.no_report else " (recorded as failed in the report)"))
+    return 0
 
 
 if __name__ == "__main__":

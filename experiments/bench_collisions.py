@@ -21,7 +21,7 @@ import numpy as np
 from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 
-from experiments.common import (positive_int, WARMUP, celia_bench, describe_run, jerk, jerk_start, md_table, motion_record,
+from experiments.common import (check_reports, positive_int, WARMUP, celia_bench, describe_run, jerk, jerk_start, md_table, motion_record,
                                 time_steps)
 
 #: case -> (collision group, overrides)
@@ -86,6 +86,7 @@ def main(argv=None):
     ap.add_argument("--trade-steps", type=positive_int, default=20,
                     help="steps of the crossing study (implicit Euler, not timed)")
     args = ap.parse_args(argv)
+    check_reports(ap, "bench_collisions")
     t0 = time.perf_counter()
     res = {}
     for name, (collision, over) in CASES.items():

@@ -31,7 +31,7 @@ from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 from hairexp.physics.simulator import TIME_KEYS
 
-from experiments.common import (WARMUP, Timing, celia_bench, describe_run, md_table, pct, stretch_max, time_steps,
+from experiments.common import (check_reports, WARMUP, Timing, celia_bench, describe_run, md_table, pct, stretch_max, time_steps,
                                 positive_int)
 
 AUTOGRAD_STEPS = 15   # the autograd row: the first (violent) steps only
@@ -112,6 +112,7 @@ def main(argv=None):
     ap.add_argument("--steps", type=positive_int, default=50)
     ap.add_argument("--quick", action="store_true", help="skip the slow autograd ablation")
     args = ap.parse_args(argv)
+    check_reports(ap, "bench_free")
     t0 = time.perf_counter()
     built = [build_case(name, ov, args.steps, fused) for name, ov, fused in CASES]
     timings = time_interleaved([b[0] for b in built], args.steps, WARMUP, observe=stretch_max)

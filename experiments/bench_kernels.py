@@ -38,7 +38,7 @@ from hairexp.physics.objective import ImplicitEulerObjective
 from hairexp.physics.simulator import TIME_KEYS
 
 from experiments.bench_free import time_interleaved
-from experiments.common import WARMUP, celia_bench, describe_run, md_table, pct, positive_int
+from experiments.common import check_reports, WARMUP, celia_bench, describe_run, md_table, pct, positive_int
 
 PHASES = ("evaluate", "solve", "value", "tensions")
 PHASE_NAMES = {"evaluate": "derivatives + assembly", "solve": "factor + solve", "value": "line-search energy",
@@ -189,6 +189,7 @@ def main(argv=None):
     ap.add_argument("--steps", type=positive_int, default=30)
     ap.add_argument("--repeats", type=positive_int, default=30)
     args = ap.parse_args(argv)
+    check_reports(ap, "bench_kernels")
     t_start = time.perf_counter()
     load0 = os.getloadavg()
     # 3. whole steps (first: the runs give the states the micro-benchmarks start from)

@@ -38,7 +38,7 @@ from pathlib import Path
 
 from hairexp.app.report import header, write_report
 
-from experiments.common import ROOT, md_table, positive_int
+from experiments.common import ROOT, check_reports, md_table, positive_int, report_name
 
 SIZES = {"6 x 10 vertices": ["scene.n_strands=6", "scene.n_vertices=10"],
          "40 x 20 vertices": ["scene.n_strands=40", "scene.n_vertices=20"]}
@@ -70,13 +70,15 @@ def main(argv=None):
     ap.add_argument("--repo", type=Path, default=ROOT, help="the checkout whose code runs (default: this one)")
     ap.add_argument("--sizes", nargs="+", choices=list(SIZES), default=list(SIZES))
     ap.add_argument("--rerun", nargs="+", choices=["off", "on"], default=["off", "on"], help="recording off / on")
-    ap.add_argument("--report", default="bench_memory", help="reports/<REPORT>.{md,json} (default bench_memory)")
+    ap.add_argument("--report", type=report_name, default="bench_memory",
+                    help="reports/<REPORT>.{md,json} (a plain name; default bench_memory)")
     args = ap.parse_args(argv)
     if args.frames[0] >= args.frames[1]:
         ap.error(f"--frames {args.frames[0]} {args.frames[1]}: SHORT must be less than LONG")
     repo = args.repo.resolve()
     if not (repo / "hairexp" / "__main__.py").is_file():
         ap.error(f"--repo {repo}: not a hairexp checkout (no hairexp/__main__.py)")
+    check_reports(ap, args.report)
     env = dict(os.environ, PYTHONPATH=str(repo))
     short, long_ = args.frames
     rows, results = [], []

@@ -28,7 +28,8 @@ import sys
 
 import numpy as np
 
-from experiments.common import ROOT, compose, frames_for, md_table, motion_overrides, time_steps, positive_int
+from experiments.common import (ROOT, check_reports, compose, fail, frames_for, md_table, motion_overrides, positive_int,
+                                strand_count, time_steps)
 
 WARMUP = 2
 MOTION = motion_overrides([0.0, 0.2, 0.3, 10.0], [[0, 0, 0], [0, 0, 0], [0, 0.12, 0], [0, 0.12, 0]])
@@ -55,21 +56,39 @@ def one(n: int, controller: str, steps: int) -> dict:
             "rss_before_mb": rss0, "rss_peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
 
 
+def check_sizes(ap, sizes, steps: int) -> None:
+    """Every size's run config passes the checks ``assemble`` makes before it builds anything
+    (``hairexp.app.assemble.check_config``: the resource guard refuses a run that cannot fit in the
+    machine's memory), else a usage error naming the size (exit 2) before the first run."""
+    from hairexp.app.assemble import check_config
+
+    for n in sorted(set(sizes), reverse=True):   # the largest first: the one the guard refuses
+        for controller in ("free", "tracking"):
+            try:
+                check_config(config(n, controller, steps))
+            except Exception as exc:   # noqa: BLE001  (InputError of the guard or the counts)
+                ap.error(f"argument --sizes: {n} strands ({controller}): {' '.join(str(exc).split())}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sizes", type=positive_int, nargs="*", default=[301, 1000, 3000, 10000])
+    ap.add_argument("--sizes", type=strand_count, nargs="*", default=[301, 1000, 3000, 10000])
     ap.add_argument("--steps", type=positive_int, default=10)
     ap.add_argument("--one", nargs=2, metavar=("STRANDS", "CONTROLLER"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.one:
         try:
-            strands = positive_int(args.one[0])
+            strands = strand_count(args.one[0])
         except argparse.ArgumentTypeError as exc:
             ap.error(f"argument --one STRANDS: {exc}")
         if args.one[1] not in ("free", "tracking"):
             ap.error(f"argument --one CONTROLLER: {args.one[1]!r} is not free or tracking")
         print(json.dumps(one(strands, args.one[1], args.steps)))
         return
+    if not args.sizes:
+        ap.error("argument --sizes: give at least one size")
+    check_sizes(ap, args.sizes, args.steps)
+    check_reports(ap, "bench_scale")
     from hairexp.app.report import header, write_report
 
     res = []
@@ -79,7 +98,8 @@ def main(argv=None):
                                    "--steps", str(args.steps)], capture_output=True, text=True, cwd=ROOT)
             if proc.returncode != 0:
                 print(proc.stderr[-2000:], file=sys.stderr)
-                raise SystemExit(f"{controller} {n} strands failed")
+                return fail(f"the {controller} run of {n} strands failed (exit {proc.returncode}); "
+                            "reports/bench_scale.md left as it was")
             r = json.loads(proc.stdout.strip().splitlines()[-1])
             res.append(r)
             print(f"{controller:>8} {n:5d} strands ({r['constraints']} constraints): median {1e3 * r['median_s']:8.1f} "

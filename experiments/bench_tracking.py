@@ -23,7 +23,7 @@ import numpy as np
 from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 
-from experiments.common import (TIME_KEYS, WARMUP, Timing, celia_bench, describe_run, fmt, md_table, pct, positive_int,
+from experiments.common import (check_reports, TIME_KEYS, WARMUP, Timing, celia_bench, describe_run, fmt, md_table, pct, positive_int,
                                 stretch_max)
 
 
@@ -69,6 +69,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=positive_int, default=50)
     args = ap.parse_args(argv)
+    check_reports(ap, "bench_tracking")
     runs, assemble_s = {}, {}
     for name, controller, typed in (("free", "free", ()), ("tracked", "tracking", ()),
                                     ("tracked_exact", "tracking", ("tracking.schur=exact",))):

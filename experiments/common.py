@@ -9,8 +9,12 @@ The scripts are modules of this package, run from the repository root as
 
 from __future__ import annotations
 
+import argparse
+import errno
 import math
+import os
 import sys
+import tempfile
 from dataclasses import dataclass
 from itertools import islice
 from pathlib import Path
@@ -28,8 +32,6 @@ TIME_KEYS = ("derivatives", "assembly", "solve", "collision", "other")
 def _number(kind, low: float, inclusive: bool, what: str):
     """An argparse ``type``: ``kind`` (int or float), finite, above ``low`` (or at it when
     ``inclusive``); anything else is a usage error naming the value (exit 2)."""
-    import argparse
-
     def parse(text: str):
         try:
             v = kind(text)
@@ -44,9 +46,148 @@ def _number(kind, low: float, inclusive: bool, what: str):
 
 
 positive_int = _number(int, 1, True, "a positive integer")
-strand_vertices = _number(int, 3, True, "an integer >= 3 (a strand's vertices: two clamped, one free)")
 nonnegative_int = _number(int, 0, True, "an integer >= 0")
 positive_float = _number(float, 0.0, False, "a positive number")
+
+#: the most strands (and vertices of one strand) a script's size argument takes: far above what fits
+#: (reports/bench_scale.md: 10,000 strands x 26 vertices peak at about 3 GB), refused before anything runs
+MAX_STRANDS = 1_000_000
+MAX_STRAND_VERTICES = 10_000
+
+
+def _bounded_int(low: int, high: int, what: str, too_many: str):
+    """An argparse ``type``: an integer in [low, high]: below ``low`` or not an integer is ``what``'s
+    usage error, above ``high`` says ``too_many`` (exit 2)."""
+    base = _number(int, low, True, what)
+
+    def parse(text: str) -> int:
+        v = base(text)
+        if v > high:
+            raise argparse.ArgumentTypeError(f"{text!r} is more than {high:,} {too_many}")
+        return v
+
+    parse.__name__ = what
+    return parse
+
+
+strand_count = _bounded_int(1, MAX_STRANDS, "a positive integer",
+                            "strands: a run that large cannot fit in memory (6 kB a vertex, hairexp/app/guard.py)")
+strand_vertices = _bounded_int(3, MAX_STRAND_VERTICES, "an integer >= 3 (a strand's vertices: two clamped, one free)",
+                               "vertices in a strand: its edges would be shorter than 0.1 mm on any hair up to "
+                               "1 m long, too short for a step to converge (hairexp/model/builders.py MIN_REST_EDGE)")
+
+
+# -- output paths: checked before a script runs anything (a bad one failed only at the end) ------
+def _probe(folder: Path) -> str | None:
+    """None when a file can be created (and removed) in the existing ``folder``, else why not.  Not
+    ``os.access`` alone: root may "write" anywhere by the permission bits, yet /proc, /sys or a
+    read-only mount refuse a new file."""
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return f"{folder} is not writable (permission denied)"
+    try:
+        fd, name = tempfile.mkstemp(prefix=".write_probe_", dir=folder)
+    except OSError as exc:
+        why = "no files can be created there" if exc.errno == errno.ENOENT else (exc.strerror or str(exc)).lower()
+        return f"{folder} is not writable ({why})"
+    os.close(fd)
+    try:
+        os.unlink(name)
+    except OSError:
+        pass
+    return None
+
+
+def folder_problem(folder, probe: bool = True) -> str | None:
+    """None when ``folder`` is a writable directory or can be created as one (its nearest existing
+    ancestor is a writable directory), else a short reason.  ``probe``: also create and remove a
+    file there (see ``_probe``); without it, ``os.access`` only."""
+    p = Path(os.path.abspath(folder))
+    anc = p
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        return f"{anc} is a file, not a folder"
+    if not probe:
+        return None if os.access(anc, os.W_OK | os.X_OK) else f"{anc} is not writable (permission denied)"
+    return _probe(anc)
+
+
+def _path_error(text: str, msg: str):
+    return argparse.ArgumentTypeError(f"{text!r}: {msg}")
+
+
+def writable_dir(text: str) -> Path:
+    """An argparse ``type``: a folder to write into, existing or not yet (then its nearest existing
+    ancestor must be a writable directory: the script creates it); else a usage error naming why."""
+    if not text or not text.strip():
+        raise _path_error(text, "an empty path")
+    p = Path(text)
+    if p.exists() and not p.is_dir():
+        raise _path_error(text, "exists and is not a directory")
+    problem = folder_problem(p)
+    if problem is not None:
+        raise _path_error(text, f"cannot be written: {problem}")
+    return p
+
+
+def writable_file(text: str) -> Path:
+    """An argparse ``type``: a file to write, new or to replace: not a directory, and its folder
+    exists or can be created and can be written; else a usage error naming why."""
+    if not text or not text.strip():
+        raise _path_error(text, "an empty path")
+    p = Path(text)
+    if text.endswith(("/", os.sep)) or p.is_dir() or p.name in ("", ".", ".."):
+        raise _path_error(text, "is a directory, not a file")
+    if p.exists() and not os.access(p, os.W_OK):
+        raise _path_error(text, "exists and cannot be written (permission denied)")
+    problem = folder_problem(p.parent)
+    if problem is not None:
+        raise _path_error(text, f"cannot be written: {problem}")
+    return p
+
+
+def report_name(text: str) -> str:
+    """An argparse ``type``: a report's name, the stem of reports/<name>.{md,json}: not empty, no
+    path parts ('/', '\\\\', '..'), no leading '.', no control characters, short enough for a file
+    name; else a usage error.  (A name with path parts wrote the report outside reports/.)"""
+    why = None
+    if not text or not text.strip():
+        why = "an empty name"
+    elif "/" in text or "\\" in text or ".." in text:
+        why = "has path parts ('/', '\\', '..'): give a plain name, the report goes to reports/<name>.md"
+    elif text.startswith("."):
+        why = "starts with '.'"
+    elif any(ord(c) < 32 or c == "\x7f" for c in text):
+        why = "has control characters"
+    elif len(text.encode()) > 200:
+        why = "is longer than 200 bytes"
+    if why is not None:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a report name: {why}")
+    return text
+
+
+def check_reports(ap, *names: str) -> None:
+    """reports/ (where ``hairexp.app.report.write_report`` and the scripts' pictures go) and the
+    reports ``names`` (stems) can be written, else a usage error (``ap.error``: exit 2) before the
+    script runs anything, not a traceback after its runs."""
+    reports = ROOT / "reports"
+    problem = folder_problem(reports, probe=False)
+    if problem is None:
+        for name in names:
+            for suffix in (".md", ".json"):
+                f = reports / f"{name}{suffix}"
+                if f.is_dir() or (f.exists() and not os.access(f, os.W_OK)):
+                    problem = f"{f} is {'a directory' if f.is_dir() else 'not writable'}"
+                    break
+    if problem is not None:
+        ap.error(f"the reports cannot be written to {reports}: {problem}")
+
+
+def fail(message: str, code: int = 1) -> int:
+    """Say ``message`` as one line ``<script>: error: <message>`` on stderr (its whitespace and line
+    breaks folded) and return ``code`` for ``run_script`` (1: runs failed; 2 is a usage error)."""
+    print(f"{Path(sys.argv[0]).name}: error: {' '.join(str(message).split())}", file=sys.stderr, flush=True)
+    return code
 
 
 def check_set(ap, overrides, base=("experiment=goaling_smoke", "variants=[]")) -> None:

@@ -28,13 +28,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from experiments.common import ROOT, check_set, compose, fmt, md_table, positive_int
+from experiments.common import ROOT, check_set, compose, fail, fmt, md_table, positive_int, writable_dir, writable_file
 
 EDGE_SAMPLES = 16
 #: stress cases: the stress matrix's scene (experiments/stress.py BASE) with a fast collider
@@ -144,6 +145,14 @@ def measure(name: str, mode: str, frames: int | None, work: Path, extra: list | 
     return row
 
 
+def rows_of(path: Path) -> list:
+    """The rows of a result file (a JSON list of row objects), or ValueError."""
+    rows = json.loads(path.read_text())
+    if not isinstance(rows, list) or not all(isinstance(r, dict) for r in rows):
+        raise ValueError("not a list of rows (a contact result file: a JSON list of objects)")
+    return rows
+
+
 def code_version() -> str:
     import subprocess
 
@@ -173,28 +182,44 @@ def table_row(r: dict) -> list[str]:
             fmt(r.get("unconverged"), "d"), fmt(r.get("wall"), ".0f"), str(r.get("code", "-"))]
 
 
+def report_stem(text: str) -> Path:
+    """argparse ``type`` of ``--out``: the stem of the report's two files, <OUT>.md and <OUT>.json,
+    both writable (``common.writable_file``), checked before any run."""
+    if not text or not text.strip() or text.endswith(("/", os.sep)):
+        raise argparse.ArgumentTypeError(f"{text!r}: not a file stem (the report is written to <OUT>.md and "
+                                         "<OUT>.json)")
+    for suffix in (".md", ".json"):
+        writable_file(str(Path(text).with_suffix(suffix)))
+    return Path(text)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", nargs="*", default=list(RUNS), choices=list(RUNS))
     ap.add_argument("--modes", nargs="*", default=list(MODES), choices=list(MODES))
     ap.add_argument("--frames", type=positive_int, default=None)
-    ap.add_argument("--work", default=str(ROOT / "outputs" / "contact"))
-    ap.add_argument("--out", default=str(ROOT / "reports" / "contact"))
+    ap.add_argument("--work", type=writable_dir, default=str(ROOT / "outputs" / "contact"), help="the runs' folders go here")
+    ap.add_argument("--out", type=report_stem, default=str(ROOT / "reports" / "contact"),
+                    help="the report: <OUT>.md and <OUT>.json (default reports/contact)")
     ap.add_argument("--keep", action="store_true", help="keep the existing report's rows and analysis")
     ap.add_argument("--extra", nargs="*", default=[], help="result files whose rows to add")
     ap.add_argument("--set", nargs="*", default=[], help="config overrides of every run (a variant; named in the mode column)")
     args = ap.parse_args(argv)
     check_set(ap, args.set)   # before any run (a bad key would fail every run and replace the report)
-    work = Path(args.work)
-    work.mkdir(parents=True, exist_ok=True)
-    out = Path(args.out)
+    work, out = Path(args.work), Path(args.out)
     rows, notes = [], ""
-    if args.keep and out.with_suffix(".json").is_file():
-        rows += json.loads(out.with_suffix(".json").read_text())
-        md_old = out.with_suffix(".md").read_text() if out.with_suffix(".md").is_file() else ""
-        notes = md_old[md_old.index("\n## ") + 1:] if "\n## " in md_old else ""
-    for f in args.extra:
-        rows += json.loads(Path(f).read_text())
+    try:   # the inputs read before any run: an unreadable one is a usage error, not a traceback
+        if args.keep and out.with_suffix(".json").is_file():
+            what = f"--keep: {out.with_suffix('.json')}"
+            rows += rows_of(out.with_suffix(".json"))
+            md_old = out.with_suffix(".md").read_text() if out.with_suffix(".md").is_file() else ""
+            notes = md_old[md_old.index("\n## ") + 1:] if "\n## " in md_old else ""
+        for f in args.extra:
+            what = f"argument --extra: {f}"
+            rows += rows_of(Path(f))
+    except (OSError, ValueError) as exc:
+        ap.error(f"{what}: cannot be read: {exc}")
+    work.mkdir(parents=True, exist_ok=True)
     code = code_version()
     t0 = time.perf_counter()
     for name in args.runs:
@@ -208,12 +233,18 @@ def main(argv=None):
         print(f"contact.py: error: no run completed ({new[0].get('outcome')}); {out}.md/.json left as they were",
               file=sys.stderr)
         return 3
+    out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(rows, indent=1, default=str))
     md = ["# Contact inside the optimisation: barrier vs post-solve stage", "",
           "Command: `python -m experiments.contact " + " ".join(argv if argv is not None else sys.argv[1:]) + "`", "",
           __doc__.split("Usage:")[0], "", md_table(COLUMNS, [table_row(r) for r in rows]), "",
           f"Total wall time {time.perf_counter() - t0:.0f} s.", "", notes]
     out.with_suffix(".md").write_text("\n".join(md))
+    failed = [f"{r['run']} {r['mode']}" for r in new if r.get("outcome") != "completed"]
+    if failed:
+        return fail(f"{len(failed)} of {len(new)} runs failed: {', '.join(failed)} (recorded as failed in "
+                    f"{out}.md/.json)")
+    return 0
 
 
 if __name__ == "__main__":

@@ -16,13 +16,14 @@ import argparse
 from hairexp.app.report import header, write_report
 from hairexp.evaluation import fidelity_static as fs
 
-from experiments.common import md_table, strand_vertices
+from experiments.common import check_reports, md_table, strand_vertices
 
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--vertices", type=strand_vertices, nargs="+", default=[10, 20, 40, 80])
     args = ap.parse_args(argv)
+    check_reports(ap, "fidelity_static")
     ns = args.vertices
     rows = {c: fs.table(ns, clamp=c) for c in fs.CLAMPS}
     order = {c: fs.observed_order(ns, [r["sag_ratio_elastica"] - 1.0 for r in rows[c]]) for c in fs.CLAMPS}

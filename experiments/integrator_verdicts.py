@@ -21,7 +21,7 @@ from pathlib import Path
 from hairexp.app.report import header, write_report
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR
 
-from experiments.common import fmt, md_row, md_table
+from experiments.common import check_reports, fmt, md_row, md_table
 
 #: scene -> the variant figures shown beside the verdict (variant, measure key)
 KEY_FIGURES = {
@@ -118,6 +118,7 @@ def main(argv=None) -> int:
         cols = load(a.reports)
     except SystemExit as exc:   # an unreadable or foreign report: a usage error (exit 2), before anything is written
         ap.error(str(exc).removeprefix("integrator_verdicts: "))
+    check_reports(ap, "integrator_verdicts")
     md = markdown(cols)
     path = write_report("integrator_verdicts", md, {"columns": [
         {"integrator": i, "dt": dt, "report": c["path"], "command": c["command"],

@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from experiments.common import ROOT, compose, md_table, positive_float, positive_int, time_steps
+from experiments.common import ROOT, check_reports, compose, md_table, positive_float, positive_int, time_steps
 from hairexp.evaluation.fidelity_chain import linear_prediction, measure_chain
 from hairexp.physics.integrators import INTEGRATORS
 
@@ -82,6 +82,7 @@ def main(argv=None) -> None:
     ap.add_argument("--cost-integrators", nargs="+", default=["implicit_euler", "bdf2", "trbdf2", "lmm2"], choices=list(INTEGRATORS))
     ap.add_argument("--no-chain", action="store_true", help="only the cost table (reuses nothing: the chain section is left out)")
     a = ap.parse_args(argv)
+    check_reports(ap, "integrators")
     t0 = time.time()
     chain = "(not run: --no-chain)\n" if a.no_chain else chain_table(a.dts)
     cost = cost_table(a.cost_integrators, a.reps)

@@ -25,7 +25,7 @@ from hairexp.app.experiment import run_experiment
 from hairexp.app.report import header, write_report
 from hairexp.app.report_cache import cached, describe
 
-from experiments.common import ROOT, compose, experiment_names, fmt, md_row, md_table
+from experiments.common import ROOT, check_reports, compose, experiment_names, fail, fmt, md_row, md_table
 from experiments.scene_pictures import render_key_moment
 
 SCENES = ["goaling", "splitting", "spreading", "stylization", "celia", "fanning"]
@@ -46,6 +46,7 @@ def main(argv=None):
                     help="hydra overrides applied to every scene (e.g. frames=10)")
     args = ap.parse_args(argv)
     names = experiment_names(ap, args.names, SCENES)
+    check_reports(ap, "paper_scenes")
     md = header("The paper's scenes, judged")
     md += ("Each experiment runs its variants as `python -m hairexp experiment=<name>` does; `success` is the "
            "judge's verdict on the scene's measure (README, \"Paper scenes\").  Every scene and variant states the "
@@ -119,10 +120,14 @@ def main(argv=None):
                    f"{'Picture of the run above' if not info['hit'] else 'Picture of an earlier fresh run'}: "
                    "the variants at the key moment, from `result.npz` (`experiments/scene_pictures.py`); "
                    f"the variants side by side in rerun: `outputs/paper_scenes/{name}/comparison.rrd`.\n\n")
+    if names and len(failed) == len(names):   # nothing to report: the committed report stays as it was
+        return fail(f"every scene failed ({', '.join(failed)}: see above); reports/paper_scenes.md/.json left as "
+                    "they were")
     path = write_report("paper_scenes", md, {"scenes": data})
     print(f"wrote {path}")
     if failed:
-        raise SystemExit(f"paper_scenes: {len(failed)} of {len(names)} scenes failed: {', '.join(failed)}")
+        return fail(f"{len(failed)} of {len(names)} scenes failed: {', '.join(failed)} (recorded as failed in the report)")
+    return 0
 
 
 if __name__ == "__main__":

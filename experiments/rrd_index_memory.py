@@ -24,7 +24,7 @@ import resource
 import subprocess
 import sys
 
-from experiments.common import positive_int
+from experiments.common import positive_int, writable_file
 
 
 def anon_mb() -> float:
@@ -70,6 +70,10 @@ def main(argv=None):
     args = ap.parse_args(argv)
     if args.worker:
         frames, footer, path = args.worker
+        try:   # the parent's arguments (hidden): checked all the same, before the recording is made
+            positive_int(frames), writable_file(path)
+        except argparse.ArgumentTypeError as exc:
+            ap.error(f"argument --worker: {exc}")
         print(json.dumps(worker(int(frames), args.flush, footer == "1", path)))
         return
     import tempfile

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import zipfile
 from pathlib import Path
 
@@ -29,6 +28,8 @@ from scipy.spatial import ConvexHull
 
 from hairexp.evaluation.measures import experiment_key_moment, key_moment
 from hairexp.model.builders import build_collider
+
+from experiments.common import writable_file
 
 HAIR = "#b8732e"
 GUIDE = "#d62728"
@@ -163,16 +164,24 @@ def _status(folder: Path) -> str:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("folder")
-    ap.add_argument("png")
+    ap.add_argument("png", type=writable_file, help="the picture to write (its format from the suffix: .png, .pdf, .svg, ...)")
     args = ap.parse_args(argv)
     if not (Path(args.folder) / "summary.json").is_file():
         ap.error(f"{args.folder}: not a run folder (no summary.json)")
-    out = Path(args.png).resolve().parent
-    if not out.is_dir() or not os.access(out, os.W_OK) or Path(args.png).is_dir():
-        ap.error(f"{args.png}: cannot be written (a directory, or its folder does not exist or cannot be written)")
+    try:
+        from matplotlib.backend_bases import FigureCanvasBase
+    except ImportError:
+        ap.error("matplotlib is not installed (a dev dependency: pip install -e .[dev]): no pictures")
+    suffix = args.png.suffix.lower().lstrip(".")
+    if suffix:
+        formats = FigureCanvasBase.get_supported_filetypes()
+        if suffix not in formats:
+            ap.error(f"argument png: {str(args.png)!r}: matplotlib cannot write .{suffix} (it writes "
+                     f"{', '.join('.' + f for f in sorted(formats))})")
     status = _status(Path(args.folder))
     if status != "completed":   # no result.npz: a FileNotFoundError traceback (probe of issue 12)
         ap.error(f"{args.folder}: the run is {status} (summary.json), not completed: it has no results to draw")
+    args.png.parent.mkdir(parents=True, exist_ok=True)
     info = render_key_moment(args.folder, args.png)
     print(f"wrote {args.png}: {info}")
 

@@ -29,7 +29,7 @@ from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 from hairexp.errors import InputError
 
-from experiments.common import celia_bench, describe_run, md_table, positive_int
+from experiments.common import check_reports, celia_bench, describe_run, md_table, positive_int
 
 #: a solve with more iterations than this counts as slow
 SLOW = 20
@@ -83,6 +83,7 @@ def main() -> int:
     ap.add_argument("--cases", type=parse_case, nargs="+", default=[(n, o) for n, o in CASES.items()],
                     help="cases as NAME=key=value,key=value (default: " + ", ".join(CASES) + ")")
     args = ap.parse_args()
+    check_reports(ap, "sqp_trace")
     res = {}
     for name, overrides in args.cases:
         try:

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import check_set, compose, fmt, md_table, positive_int
+from experiments.common import check_reports, check_set, compose, fmt, md_table, positive_int
 
 BASE = ["experiment=goaling", "variants=[]", "scene.n_strands=12", "scene.n_vertices=12", "frames=30",
         "logging.rerun=false", "logging.progress=false", "solver.compile=off", "measure.name=none"]
@@ -254,6 +254,8 @@ def main(argv=None) -> int:
                          "(default: run every case fresh, refreshing the cache)")
     a = ap.parse_args(argv)
     check_set(ap, a.set)   # before anything runs (a bad key would fail every run)
+    if not a.no_report:
+        check_reports(ap, a.report)
     import torch
 
     torch.set_num_threads(1)

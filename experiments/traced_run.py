@@ -15,6 +15,12 @@ import os
 import runpy
 import sys
 import tracemalloc
+from argparse import ArgumentTypeError
+
+try:
+    from experiments.common import writable_file
+except ImportError:   # bench_memory --repo runs this file with an older checkout's experiments package
+    writable_file = None
 
 
 USAGE = "usage: python -m experiments.traced_run OUT.json [hairexp arguments ...]"
@@ -28,10 +34,16 @@ def main() -> int:
         print(f"{USAGE}\ntraced_run.py: error: the first argument is the OUT.json to write", file=sys.stderr)
         return 2
     out, args = sys.argv[1], sys.argv[2:]
+    try:   # before the run: a bad OUT.json failed only when the run had ended (probe: /proc/out.json)
+        if writable_file is not None:
+            writable_file(out)
+    except ArgumentTypeError as exc:
+        print(f"{USAGE}\ntraced_run.py: error: argument OUT.json: {exc}", file=sys.stderr)
+        return 2
     folder = os.path.dirname(os.path.abspath(out))
-    if os.path.isdir(out) or not os.path.isdir(folder) or not os.access(folder, os.W_OK):
-        print(f"{USAGE}\ntraced_run.py: error: OUT.json {out}: cannot be written (a directory, or its folder "
-              "does not exist or cannot be written)", file=sys.stderr)
+    if not os.path.isdir(folder):
+        print(f"{USAGE}\ntraced_run.py: error: argument OUT.json: {out!r}: cannot be written: its folder {folder} "
+              "does not exist", file=sys.stderr)
         return 2
     def record(code) -> None:
         current, peak = tracemalloc.get_traced_memory()

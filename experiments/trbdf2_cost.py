@@ -31,7 +31,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from experiments.common import ROOT, _number, compose, md_table, time_steps
+from experiments.common import ROOT, check_reports, _number, compose, md_table, time_steps
 
 STEPS = 56   # goaling: 56 frames of one 0.04 s step
 fraction = _number(float, 0.0, True, "a number >= 0")
@@ -164,6 +164,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--eps", type=fraction, nargs="+", default=[0.01, 0.1, 0.3, 1.0])
     a = ap.parse_args(argv)
+    check_reports(ap, "trbdf2_cost")
     t0 = time.time()
     rows1, rows2, rows3, rows4, rows5 = [], [], [], [], []
     for ctl in ("free", "tracking"):
