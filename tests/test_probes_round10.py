@@ -324,3 +324,32 @@ def test_a_step_too_short_for_double_precision_is_refused():
                                  "scene.settle=0"]))
     with pytest.raises(ValueError, match="below 1e-09 s"):
         r.simulator.step(r.initial_state(), 1e-300)
+
+
+@pytest.mark.parametrize("change, says", [({"rtol": float("nan")}, "solver.rtol"), ({"max_iterations": 0}, "solver.max_iterations"),
+                                          ({"dt": -0.01}, "solver.dt"), ({"max_substep_levels": 99}, "solver.max_substep_levels")])
+def test_the_simulator_checks_its_solver_settings(change, says):
+    """The Python API refuses the solver settings the command line refuses."""
+    import dataclasses
+
+    from hairexp.app.config import SolverConfig
+    from hairexp.model.scene import Scene
+    from hairexp.physics.simulator import Simulator
+
+    s, m, motion, line = _scene_parts()
+    scene = Scene("api", s, m, motion, np.array([0.0, -9.81, 0.0]), line)
+    with pytest.raises(InputError, match=says):
+        Simulator(scene, dataclasses.replace(SolverConfig(), **change))
+
+
+@pytest.mark.parametrize("args, says", [(("dict",), "solver"), (("cfg", "tracking"), "Simulator controller")])
+def test_the_simulator_names_wrong_argument_types(args, says):
+    from hairexp.app.config import SolverConfig
+    from hairexp.model.scene import Scene
+    from hairexp.physics.simulator import Simulator
+
+    s, m, motion, line = _scene_parts()
+    scene = Scene("api", s, m, motion, np.array([0.0, -9.81, 0.0]), line)
+    given = [{"dt": 0.01} if a == "dict" else SolverConfig() if a == "cfg" else a for a in args]
+    with pytest.raises(InputError, match=says):
+        Simulator(scene, *given)

@@ -32,6 +32,7 @@ from hairexp.evaluation.judges import JUDGE_MEASURES, missing_controllers
 from hairexp.guides.authoring import check_edits
 from hairexp.evaluation.measures import collider_named
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR, make_integrator
+from hairexp.physics.simulator import MAX_LAST_ATTEMPT, MAX_SUBSTEP_LEVELS, check_solver_config  # noqa: F401
 from hairexp.physics.strand_kernels import check_options
 
 
@@ -86,31 +87,12 @@ def keyframes(times, key_times: str, values: dict) -> None:
             number(x, f"{key}[{i}]")
 
 
-#: solver.last_attempt_iterations at most (a step's last attempt with this many times the iterations)
-MAX_LAST_ATTEMPT = 64
-#: solver.max_substep_levels at most: 2^10 substeps of a failing step (beyond, a run whose steps
-#: all fail retries each of them for hours before it reports)
-MAX_SUBSTEP_LEVELS = 10
 #: collision.max_travel_substeps at most (substeps of one step for a fast collider)
 MAX_TRAVEL_SUBSTEPS = 1024
 
 
 def _solver(s) -> None:
-    make_integrator(getattr(s, "integrator", DEFAULT_INTEGRATOR))   # InputError naming solver.integrator
-    check_options(getattr(s, "kernels", "numba"), getattr(s, "threads", "auto"))   # solver.kernels, solver.threads
-    rtol = number(s.rtol, "solver.rtol", lo=0)
-    atol = number(s.atol, "solver.atol", lo=0)
-    if rtol == 0 and atol == 0:
-        raise InputError("solver.rtol and solver.atol are both 0: no step can converge; give one > 0", "solver.rtol")
-    integer(s.max_iterations, "solver.max_iterations", 1)
-    integer(s.max_backtracks, "solver.max_backtracks", 0)
-    if integer(getattr(s, "last_attempt_iterations", 1), "solver.last_attempt_iterations", 1) > MAX_LAST_ATTEMPT:
-        raise InputError(f"must be at most {MAX_LAST_ATTEMPT} (times the iterations of a solve), got "
-                         f"{s.last_attempt_iterations}", "solver.last_attempt_iterations")
-    if integer(s.max_substep_levels, "solver.max_substep_levels", 0) > MAX_SUBSTEP_LEVELS:
-        raise InputError(f"must be <= {MAX_SUBSTEP_LEVELS} (a failing step is retried as up to 2^levels substeps, "
-                         f"{2 ** MAX_SUBSTEP_LEVELS} at {MAX_SUBSTEP_LEVELS}), got {s.max_substep_levels}",
-                         "solver.max_substep_levels")
+    check_solver_config(s)   # hairexp/physics/simulator.py: the Simulator checks the same when built directly
 
 
 #: tracking.points_per_guide at most: beyond, most clusters are empty (a warning each) and the

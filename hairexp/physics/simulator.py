@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from hairexp import tune_runtime
-from hairexp.errors import InputError, SimulationError
+from hairexp.errors import InputError, SimulationError, finite_number
 from hairexp.model.scene import Scene
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact, sweep_substeps
 from hairexp.physics.collisions import CollisionInfo, HairHair, StrainLimit, collision_stage, contact_velocities
@@ -112,6 +112,53 @@ class _NoColliders:
 
 #: s, the shortest step ``Simulator.step`` takes
 MIN_STEP_DT = 1e-9
+#: solver.last_attempt_iterations at most (a step's last attempt with this many times the iterations)
+MAX_LAST_ATTEMPT = 64
+#: solver.max_substep_levels at most: 2^10 substeps of a failing step (beyond, a run whose steps
+#: all fail retries each of them for hours before it reports)
+MAX_SUBSTEP_LEVELS = 10
+
+
+def _integer(value, key: str, lo: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise InputError(f"must be an integer >= {lo}, got {value!r}", key)
+    if value < lo:
+        raise InputError(f"must be >= {lo}, got {value}", key)
+    return int(value)
+
+
+def check_solver_config(s) -> None:
+    """The solver settings (``solver.*``: hairexp/app/config.py SolverConfig, or any object with
+    its attributes) a step can run with, or an InputError naming the key: checked by the config's
+    validation and by ``Simulator`` itself, so that the Python API refuses what the command line
+    does (``SolverConfig(rtol=nan)`` and ``max_iterations=0`` ran and failed later; probe of
+    issue 12, round 10).  Attributes the object lacks are left out (their defaults apply)."""
+    if isinstance(s, dict) or not hasattr(s, "rtol"):
+        raise InputError(f"must be a solver config (hairexp.app.config.SolverConfig, or an object with its attributes: "
+                         f"dt, rtol, atol, max_iterations, ...), got {type(s).__name__}", "solver")
+    make_integrator(getattr(s, "integrator", DEFAULT_INTEGRATOR))   # InputError naming solver.integrator
+    check_options(getattr(s, "kernels", "numba"), getattr(s, "threads", "auto"))   # solver.kernels, solver.threads
+    rtol = finite_number(s.rtol, "solver.rtol", ">= 0")
+    atol = finite_number(getattr(s, "atol", 0.0), "solver.atol", ">= 0")
+    for v, key in ((rtol, "solver.rtol"), (atol, "solver.atol")):
+        if v < 0:
+            raise InputError(f"must be >= 0, got {v:g}", key)
+    if rtol == 0 and atol == 0:
+        raise InputError("solver.rtol and solver.atol are both 0: no step can converge; give one > 0", "solver.rtol")
+    if hasattr(s, "dt"):
+        dt = finite_number(s.dt, "solver.dt", "> 0")
+        if dt <= 0:
+            raise InputError(f"must be a finite number > 0, got {dt:g}", "solver.dt")
+    for key, lo in (("max_iterations", 1), ("max_backtracks", 0)):
+        if hasattr(s, key):
+            _integer(getattr(s, key), f"solver.{key}", lo)
+    if _integer(getattr(s, "last_attempt_iterations", 1), "solver.last_attempt_iterations", 1) > MAX_LAST_ATTEMPT:
+        raise InputError(f"must be at most {MAX_LAST_ATTEMPT} (times the iterations of a solve), got "
+                         f"{s.last_attempt_iterations}", "solver.last_attempt_iterations")
+    if _integer(getattr(s, "max_substep_levels", 0), "solver.max_substep_levels", 0) > MAX_SUBSTEP_LEVELS:
+        raise InputError(f"must be <= {MAX_SUBSTEP_LEVELS} (a failing step is retried as up to 2^levels substeps, "
+                         f"{2 ** MAX_SUBSTEP_LEVELS} at {MAX_SUBSTEP_LEVELS}), got {s.max_substep_levels}",
+                         "solver.max_substep_levels")
 
 
 class Simulator:
@@ -121,6 +168,12 @@ class Simulator:
         free step.  ``collision_cfg``: the collision stage's settings, None for no stage.
         ``integrator``: overrides ``solver.integrator`` (the settle phase uses implicit Euler)."""
         tune_runtime()
+        if not isinstance(scene, Scene):
+            raise InputError(f"must be a Scene (hairexp.model.scene), got {type(scene).__name__}", "Simulator scene")
+        check_solver_config(solver_cfg)
+        if controller is not None and not isinstance(controller, Controller):
+            raise InputError(f"must be a Controller (hairexp.physics.controller; e.g. the app's build_controller), got "
+                             f"{type(controller).__name__}", "Simulator controller")
         self.scene = scene
         self.cfg = solver_cfg
         if integrator is None:
