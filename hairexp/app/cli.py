@@ -37,13 +37,13 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 
 from hairexp.app.assemble import check_config
-from hairexp.app.config import CONF_DIR, check_bool_overrides, check_keys, compose_config
+from hairexp.app.config import CONF_DIR, check_bool_overrides, check_interpolations, check_keys, compose_config
 from hairexp.app.experiment import run_experiment
 from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, SimulationError
 from hairexp.outputs.files import write_json
-from hairexp.outputs.folder import (LOCK, RESERVE, SUMMARY, hold, note_job_logs, overwrite_refusal, running_run,
+from hairexp.outputs.folder import (LOCK, RESERVE, SUMMARY, held_elsewhere, hold, note_job_logs, overwrite_refusal, running_run,
                                     used_entries, used_refusal)
 
 log = logging.getLogger("hairexp")
@@ -84,6 +84,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     summary = None
     try:
         check_keys(cfg)   # a ``+key`` Hydra added without asking the schema
+        check_interpolations(cfg)   # a ${...} that cannot be resolved (a sweep job Hydra composed)
         check_bool_overrides(list(overrides))
         summary = run_experiment(cfg, out)
         late = take_late()   # a signal after the run had written its completed ending
@@ -318,6 +319,8 @@ def _unusable_folder(path: str) -> str | None:
                 os.stat(probe)
                 break
             except FileNotFoundError:
+                if os.path.islink(probe):   # mkdir then failed with FileExistsError's traceback (probe of issue 12)
+                    return f"{probe} is a symbolic link to {os.readlink(probe)}, which does not exist"
                 if probe.parent == probe:
                     return f"{probe} does not exist"
                 probe = probe.parent
@@ -471,12 +474,18 @@ def hold_folder_error(argv: list[str]) -> str | None:
     folder = _fixed_folder(argv, key, OverridesParser.create())
     if folder is None:
         return None
+    what = "sweep" if key == "hydra.sweep.dir" else "run"
+    for parent in Path(os.path.abspath(folder)).parents:   # inside a live launch's folder (a sweep's job folder)
+        if held_elsewhere(parent):
+            return (f"hairexp: error: {folder}: lies inside {parent}, a folder another launch is using now; choose "
+                    f"a {key} outside it")
     try:
         if hold(folder):
             return None
+    except InputError as exc:
+        return f"hairexp: error: {exc}"
     except OSError:
         return None
-    what = "sweep" if key == "hydra.sweep.dir" else "run"
     return (f"hairexp: error: {folder}: another launch is using this {what} folder now; a {what} folder belongs "
             f"to one {what}: choose another {key}")
 
@@ -535,12 +544,12 @@ def _used_sweep_dir_error(argv: list[str], parser) -> str | None:
         # started (probe of issue 12, round 9)
         return (f"hairexp: error: hydra.sweep.subdir={sub}: a job's folder must lie inside the sweep folder "
                 "(hydra.sweep.dir): a relative path without '..'; move the sweep with hydra.sweep.dir instead")
+    dup = _duplicate_sweep_value(argv, parser)   # the plainer case first: its message names the repeated value
+    if dup is not None:
+        return dup
     escape = _escaping_job_folder(argv, sub)
     if escape is not None:
         return escape
-    dup = _duplicate_sweep_value(argv, parser)
-    if dup is not None:
-        return dup
     folder = _fixed_folder(argv, "hydra.sweep.dir", parser)
     entries = [] if folder is None or not folder.is_dir() else [p for p in folder.iterdir() if p.name != LOCK]
     if entries:   # its .lock alone: a launch's, told by hold_folder_error
@@ -554,17 +563,19 @@ _INTERPOLATION = re.compile(r"\$\{([^{}]*)\}")
 
 
 def _escaping_job_folder(argv: list[str], sub: str | None) -> str | None:
-    """The error line for a ``hydra.sweep.subdir`` template that puts a job's folder outside the
-    sweep folder once the job's values are in it: ``${hydra.job.override_dirname}`` with a value
-    such as ``../../x`` or ``/../../tmp/x`` (Hydra joins the job's sorted ``key=value`` overrides
-    with ','), or a config key whose value climbs out.  Such a job ran and wrote a whole run beside
-    the sweep folder, and the sweep's report called it not started (probe of issue 12, round 10).
-    Every value of every swept key is tried (``_sweep_jobs``); an interpolation that cannot be
-    resolved here is taken as one plain folder name (the job's own check, ``job``, refuses the rest)."""
+    """The error line for a ``hydra.sweep.subdir`` template that, once a job's values are in it,
+    puts the job's folder outside the sweep folder (``${hydra.job.override_dirname}`` with a value
+    such as ``../../x``, ``${oc.env:X}`` set to one, ``${hydra:runtime.cwd}``, a config key whose
+    value climbs out), or two jobs into one folder (``j${frames}`` with frames=3,03).  Such jobs ran
+    outside the sweep folder, or into one another's, and the sweep's report called them not
+    started (probes of issue 12, rounds 10 and 11).  Every job is tried when the sweep has at most
+    SUBDIR_JOBS_CHECKED jobs, else every value of every swept key once (``_sweep_jobs``); an
+    interpolation that cannot be resolved here is taken as one plain folder name."""
     if sub is None or "${" not in sub:
         return None
     overrides = _plain_overrides(argv)
-    jobs = _sweep_jobs(overrides) or [(overrides, [])]
+    jobs = _all_sweep_jobs(overrides) or _sweep_jobs(overrides) or [(overrides, [])]
+    seen: dict[str, str] = {}
     for num, (job_overrides, swept) in enumerate(jobs):
         cfg = None
 
@@ -575,7 +586,12 @@ def _escaping_job_folder(argv: list[str], sub: str | None) -> str | None:
                 return ",".join(sorted(job_overrides))
             if key in ("hydra.job.num", "hydra.job.id"):
                 return str(num)
-            if key.startswith("hydra.") or ":" in key:
+            if key.startswith("oc.env:"):
+                name, _, default = key[len("oc.env:"):].partition(",")
+                return os.environ.get(name.strip(), default.strip().strip("'\"") if default else "x")
+            if key.replace(":", ".").startswith(("hydra.runtime.cwd", "hydra.runtime.output_dir")):
+                return os.getcwd()   # absolute: outside the sweep folder
+            if key.startswith("hydra") or ":" in key:
                 return "x"
             if cfg is None:
                 try:
@@ -584,17 +600,62 @@ def _escaping_job_folder(argv: list[str], sub: str | None) -> str | None:
                     cfg = False
             from omegaconf import OmegaConf
 
-            v = OmegaConf.select(cfg, key, default=None) if cfg is not False else None
+            try:
+                v = OmegaConf.select(cfg, key, default=None) if cfg is not False else None
+            except Exception:  # noqa: BLE001
+                v = None
             return "x" if v is None else str(getattr(v, "value", v))
 
         path = _INTERPOLATION.sub(value, sub)
         norm = os.path.normpath(path)
+        what = " ".join(swept) if swept else " ".join(job_overrides)
         if os.path.isabs(path) or norm == ".." or norm.startswith("../"):
-            what = " ".join(swept) if swept else " ".join(job_overrides)
             return (f"hairexp: error: hydra.sweep.subdir={sub}: the job [{what}] would write into {path}, outside "
                     "the sweep folder (hydra.sweep.dir): a value with '..' or a leading '/' climbs out through "
                     "the template; use the default subdir (${hydra.job.num}) or values without path parts")
+        if norm in seen and "hydra.job.num" not in sub:
+            return (f"hairexp: error: hydra.sweep.subdir={sub}: the jobs [{seen[norm]}] and [{what}] would both write "
+                    f"into {norm}; a job's folder must differ per job: include ${{hydra.job.num}} in the template")
+        seen[norm] = what
     return None
+
+
+#: a sweep of at most this many jobs has every job's subdir tried (``_escaping_job_folder``)
+SUBDIR_JOBS_CHECKED = 64
+
+
+def _all_sweep_jobs(overrides: list[str]) -> list[tuple[list[str], list[str]]] | None:
+    """Every job of a basic sweep over ``overrides`` (the product of the swept values) as
+    (overrides, swept ``key=value``s), or None when there are more than SUBDIR_JOBS_CHECKED or they
+    cannot be listed here."""
+    import itertools
+
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(overrides)
+        values = [list(o.sweep_string_iterator()) if o.is_sweep_override() else None for o in parsed]
+    except Exception:  # noqa: BLE001
+        return None
+    n = 1
+    for v in values:
+        n *= len(v) if v else 1
+    if n > SUBDIR_JOBS_CHECKED:
+        return None
+    jobs = []
+    swept_idx = [i for i, v in enumerate(values) if v]
+    for combo in itertools.product(*[values[i] for i in swept_idx]):
+        chosen = dict(zip(swept_idx, combo))
+        args, swept = [], []
+        for i, (arg, o) in enumerate(zip(overrides, parsed)):
+            if i in chosen:
+                kv = f"{o.get_key_element()}={chosen[i]}"
+                args.append(kv)
+                swept.append(kv)
+            else:
+                args.append(arg)
+        jobs.append((args, swept))
+    return jobs
 
 
 def _duplicate_sweep_value(argv: list[str], parser) -> str | None:

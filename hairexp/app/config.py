@@ -701,11 +701,32 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
     finally:
         GlobalHydra.instance().clear()
     check_keys(cfg)
+    check_interpolations(cfg)
     plus = [o for o in overrides if o.startswith("+") and not o.startswith("++") and "=" in o
             and not o.startswith("+hydra")]
     if plus:
         check_plus_overrides(compose_config([o for o in overrides if o not in plus]), plus)
     return cfg
+
+
+def check_interpolations(cfg) -> None:
+    """InputError naming the key whose ``${...}`` cannot be resolved (an unset ``${oc.env:X}``, a
+    ``${key}`` not in the config, an unknown resolver): OmegaConf resolves a value only when it
+    is read, and such a value ended the run with its traceback, exit 1 (probe of issue 12, round
+    11).  Hydra's own node (``hydra.*``) is not looked at."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    for key in list(cfg.keys()) if OmegaConf.is_dict(cfg) else []:
+        if key == "hydra":
+            continue
+        try:
+            node = cfg[key]
+            if OmegaConf.is_config(node):
+                OmegaConf.to_container(node, resolve=True)
+        except OmegaConfBaseException as exc:
+            where = str(getattr(exc, "full_key", None) or key)
+            msg = str(getattr(exc, "msg", None) or exc).split("\n")[0]
+            raise InputError(f"cannot resolve its value: {msg}", where) from None
 
 
 def check_plus_overrides(base, plus: list[str]) -> None:

@@ -294,7 +294,9 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     release()
     why = convergence_error(df, str(getattr(cfg.on_unconverged, "value", cfg.on_unconverged)))
     if why:
-        raise SimulationError(why)
+        exc = SimulationError(why)
+        exc.every_step_ran = True   # a policy on the steps in metrics.parquet, not a step that failed
+        raise exc
     agg = metrics_summary(df)   # here, before the heap is given back: the summary reads no column at the end
     release()
     tracker = r.controller if r.controller.cluster_of_vertex() is not None else None
@@ -413,7 +415,9 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
             continue
         attempt(p.name, lambda p=p: shutil.rmtree(p) if p.is_dir() else p.unlink(missing_ok=True))
     summary = summarize(df, sinks.plain, scene_name, controller, time.perf_counter() - t_start, status, error)
-    if isinstance(exc, SimulationError) and "converged" in summary:
+    if isinstance(exc, SimulationError) and "converged" in summary and getattr(exc, "every_step_ran", False):
+        summary["converged"] = False   # on_unconverged=fail: the metrics hold every step, the aggregates are theirs
+    elif isinstance(exc, SimulationError) and "converged" in summary:
         # the step that failed is not in the metrics (the steps before it are): counted here, so that
         # the aggregates agree with "converged: false" (they said converged_fraction 1.0 and 0
         # unconverged steps; probe of issue 12, round 10)

@@ -182,6 +182,8 @@ def _guides(cfg) -> None:
                          "collide with scene.colliders): set guides.source=simulated or guides.collide=false",
                          "guides.collide")
     count = int(g.count) if source in ("rigid", "scaled", "simulated", "keyframed") else None
+    if count is not None:   # before the edits, whose index check would name them instead (probe of issue 12)
+        integer(g.count, "guides.count", 1)
     check_edits(g.edits, count)
     if source != "file" and str(g.file):
         raise InputError(f"is set ({g.file}) but guides.source={source} does not read it: set guides.source=file "

@@ -42,6 +42,30 @@ LOCK = ".lock"
 _HELD: list[int] = []
 
 
+def held_elsewhere(folder: Path) -> bool:
+    """Whether another process holds the launch lock (``hold``) of ``folder``; the lock is not
+    taken (a lock that can be taken is released at once)."""
+    import fcntl
+
+    lock = Path(folder) / LOCK
+    if lock.is_symlink() or not lock.is_file():
+        return False
+    try:
+        fd = os.open(lock, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+
+
 def _hydras(p: Path) -> bool:
     """Hydra's own entries (``.hydra/``, the job's ``*.log``) and the launch's ``.lock``."""
     return p.name in (".hydra", LOCK) or (p.is_file() and not p.is_symlink() and p.suffix == ".log")
@@ -58,7 +82,12 @@ def hold(folder: Path) -> bool:
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    fd = os.open(folder / LOCK, os.O_CREAT | os.O_RDWR, 0o644)
+    try:   # a link planted as .lock is not followed (it made a file outside the folder; probe of issue 12)
+        fd = os.open(folder / LOCK, os.O_CREAT | os.O_RDWR | getattr(os, "O_NOFOLLOW", 0), 0o644)
+    except OSError as exc:
+        if os.path.islink(folder / LOCK):
+            raise InputError(f"{LOCK} is a symbolic link; a run folder's {LOCK} is the launch's own file", str(folder)) from exc
+        raise
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -86,13 +115,38 @@ def _removable(folder: Path, top: bool) -> tuple[list[Path], list[Path]]:
         elif (p.name in RUN_FILES or _is_tmp(p)) and not p.is_dir():
             ours.append(p)
         elif p.name in RUN_DIRS and p.is_dir():
-            ours.append(p)
+            strays = _strays(p)   # a user's file inside a run's folder is never deleted (probe of issue 12, round 11)
+            (foreign.extend(strays) if strays else ours.append(p))
         elif p.is_dir() and (p / SUMMARY).is_file():   # a variant's run folder
             sub_ours, sub_foreign = _removable(p, top=False)
             (foreign.extend(sub_foreign) if sub_foreign else ours.append(p))
         else:
             foreign.append(p)
     return ours, foreign
+
+
+def _strays(d: Path) -> list[Path]:
+    """The entries of a run's own folder ``d`` (``stream/``, ``result.clips/``) that a run does not
+    write there: ``stream/``: ``<array>.npy`` and ``metrics/part-NNNNN.parquet``; the clips: ``*.usdc``
+    (and temporary files, ``*.tmp*``); symbolic links never."""
+    out = []
+    for q in d.rglob("*"):
+        rel = q.relative_to(d)
+        if q.is_symlink():
+            out.append(q)
+        elif q.is_dir():
+            if not (d.name == STREAM and rel.as_posix() == "metrics"):
+                out.append(q)
+        elif _is_tmp(q):
+            continue
+        elif d.name == STREAM:
+            ok = (len(rel.parts) == 1 and q.suffix == ".npy") or (
+                len(rel.parts) == 2 and rel.parts[0] == "metrics" and q.suffix == ".parquet")
+            if not ok:
+                out.append(q)
+        elif len(rel.parts) != 1 or q.suffix != ".usdc":
+            out.append(q)
+    return sorted(out)
 
 
 def reserve(folder: Path) -> bool:

@@ -43,6 +43,8 @@ the direct solves (round-off; tests/test_tracking_solver.py).
 from __future__ import annotations
 
 import numpy as np
+
+from hairexp.errors import InputError
 import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -59,6 +61,11 @@ KRYLOV_TOL = 1e-12
 #: Krylov mode: iterations (solves with H) before S is built again for the current factor (at
 #: Celia's size an iteration costs about a twentieth of building S)
 KRYLOV_MAX = 16
+
+
+#: bytes the per-strand Schur blocks may take (``SchurKKT``): Celia's 301 strands x 54 columns
+#: take about 20 MB
+MAX_SCHUR_BYTES = 4 << 30
 
 
 class SchurKKT:
@@ -106,6 +113,14 @@ class SchurKKT:
         rank = np.cumsum(on, axis=1) - 1                            # rank of guide g among the strand's guides
         nr = int(on.sum(1).max())
         self.R = 3 * P * nr
+        need = S * self.R * (2 * self.R + 3 * nmax) * 8   # AT, the (R, R) products and their scatter indices
+        if need > MAX_SCHUR_BYTES:
+            # 4 guides x 256 points: 13.8 GB of indices for 200 strands, then the machine's memory ran
+            # out with the run unable to stop (probe of issue 12, round 11)
+            raise InputError(f"the tracked step's per-strand Schur blocks would take {need / 2 ** 30:.1f} GiB "
+                             f"({S} strands, each sharing {self.R // 3} tracking points of {nr} guides; "
+                             f"at most {MAX_SCHUR_BYTES / 2 ** 30:g} GiB): use fewer tracking.points_per_guide "
+                             "or guides, or tracking.assignment=hard", "tracking.points_per_guide")
         AT = np.zeros((S, nmax, self.R))
         fv = cons.free_in_cluster                                  # free-vertex index per membership
         k = cons.member_cluster
