@@ -145,6 +145,27 @@ def test_a_tracking_set_up_too_large_to_build_is_refused_before_allocating():
     cfg = compose_config(["experiment=goaling_smoke", "variants=[]", "controller=tracking",
                           "tracking.points_per_guide=256", "guides.count=4", "scene.n_strands=200",
                           "scene.n_vertices=40", "frames=3", "logging.rerun=false", "scene.settle=0"])
-    with pytest.raises(InputError, match="Schur blocks would take") as e:
+    with pytest.raises(InputError, match="Schur blocks (would|could) take") as e:
         assemble(cfg)
     assert e.value.where == "tracking.points_per_guide"
+
+
+def test_the_schur_estimate_is_checked_before_any_variant_runs(tmp_path):
+    """The experiment's tracked variant would be refused: nothing runs, not even the free variant."""
+    from hairexp.app.config import compose_config
+    from hairexp.app.experiment import run_experiment
+
+    cfg = compose_config(["experiment=goaling_smoke", "tracking.points_per_guide=256", "guides.count=4",
+                          "scene.n_strands=200", "scene.n_vertices=40", "frames=3", "logging.rerun=false"])
+    with pytest.raises(InputError, match="could take .* GiB"):
+        run_experiment(cfg, tmp_path / "exp")
+    assert not (tmp_path / "exp" / "free").exists()
+
+
+def test_the_schur_estimate_lets_the_paper_scenes_and_10000_strands_through():
+    from hairexp.app.assemble import check_config
+    from hairexp.app.config import compose_config
+
+    for over in (["experiment=celia"], ["experiment=celia", "scene.n_strands=10000", "controller.name=tracking"],
+                 ["experiment=goaling"], ["experiment=splitting"], ["experiment=spreading"]):
+        check_config(compose_config(over))

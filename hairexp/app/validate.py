@@ -27,6 +27,7 @@ import math
 
 from hairexp.errors import InputError, finite_number
 from hairexp.control.tracking.correspondence import check_correspondence_options
+from hairexp.control.tracking.kkt import MAX_SCHUR_BYTES, schur_bytes
 from hairexp.control.tracking.variance import check_variance_config
 from hairexp.evaluation.judges import JUDGE_MEASURES, missing_controllers
 from hairexp.guides.authoring import check_edits
@@ -115,6 +116,18 @@ def _clusters(cfg) -> None:
         raise InputError(f"x tracking.points_per_guide = {g} x {n} = {g * n} clusters, more than {MAX_CLUSTERS}: "
                          "each is 3 tracking constraints in a dense Schur complement factored at every SQP "
                          "iteration (the paper's Celia has 24)", "guides.count")
+    builder = str(_value(cfg.scene.builder))
+    if builder != "usd" and isinstance(g, int) and isinstance(n, int) and g >= 1 and n >= 1:
+        # the per-strand Schur blocks, at most (soft assignment: a strand may share every guide's
+        # points), checked here before any variant runs; SchurKKT checks the real size
+        shared = 1 if str(_value(cfg.tracking.assignment)) == "hard" else g
+        need = schur_bytes(int(cfg.scene.n_strands), 3 * n * shared, 3 * int(cfg.scene.n_vertices))
+        if need > MAX_SCHUR_BYTES:
+            raise InputError(f"with guides.count={g}, {cfg.scene.n_strands} strands of {cfg.scene.n_vertices} "
+                             f"vertices and tracking.assignment={_value(cfg.tracking.assignment)}, the tracked step's "
+                             f"per-strand Schur blocks could take {need / 2 ** 30:.1f} GiB (at most "
+                             f"{MAX_SCHUR_BYTES / 2 ** 30:g} GiB): use fewer points, guides or strands, or "
+                             "tracking.assignment=hard", "tracking.points_per_guide")
 
 
 def _tracking(t) -> None:

@@ -68,6 +68,12 @@ KRYLOV_MAX = 16
 MAX_SCHUR_BYTES = 4 << 30
 
 
+def schur_bytes(strands: int, columns: int, dofs: int) -> int:
+    """Bytes of ``SchurKKT``'s per-strand blocks: A^T's (strands, dofs, columns), the (columns,
+    columns) products and their scatter indices, for ``columns`` right-hand sides a strand."""
+    return int(strands) * int(columns) * (2 * int(columns) + 3 * int(dofs)) * 8
+
+
 class SchurKKT:
     def __init__(self, strands, cons, bandwidth: int, kernels=None, schur: str = "exact",
                  krylov_tol: float = KRYLOV_TOL, krylov_max: int = KRYLOV_MAX):
@@ -113,7 +119,7 @@ class SchurKKT:
         rank = np.cumsum(on, axis=1) - 1                            # rank of guide g among the strand's guides
         nr = int(on.sum(1).max())
         self.R = 3 * P * nr
-        need = S * self.R * (2 * self.R + 3 * nmax) * 8   # AT, the (R, R) products and their scatter indices
+        need = schur_bytes(S, self.R, nmax)
         if need > MAX_SCHUR_BYTES:
             # 4 guides x 256 points: 13.8 GB of indices for 200 strands, then the machine's memory ran
             # out with the run unable to stop (probe of issue 12, round 11)
