@@ -103,3 +103,30 @@ def regular_file(path, where: str, what: str = "file"):
     if not os.access(path, os.R_OK):
         raise InputError("cannot be read: permission denied", where)
     return path
+
+
+def number(value, key: str, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
+           hi_open: bool = False) -> float:
+    """``value`` as a finite float within [lo, hi] (``lo_open``/``hi_open``: the bound excluded).
+    Every error names ``key`` and the whole allowed range (``must be a finite number > 0, got nan``)."""
+    parts = []
+    if lo is not None:
+        parts.append(f"{'>' if lo_open else '>='} {lo:g}")
+    if hi is not None:
+        parts.append(f"{'<' if hi_open else '<='} {hi:g}")
+    allowed = " and ".join(parts)
+    v = finite_number(value, key, allowed)
+    if (lo is not None and (v < lo or (lo_open and v == lo))) or (hi is not None and (v > hi or (hi_open and v == hi))):
+        raise InputError(f"must be {allowed}, got {v:g}", key)
+    return v
+
+
+def integer(value, key: str, lo: int) -> int:
+    """``value`` as an int >= lo (a bool is not one; a numpy integer is), or an InputError naming ``key``."""
+    import numbers
+
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise InputError(f"must be an integer >= {lo}, got {value!r}", key)
+    if value < lo:
+        raise InputError(f"must be >= {lo}, got {value}", key)
+    return int(value)

@@ -25,6 +25,7 @@ from __future__ import annotations
 import errno
 import json
 import logging
+import math
 import os
 import re
 import signal
@@ -574,7 +575,7 @@ def _escaping_job_folder(argv: list[str], sub: str | None) -> str | None:
     if sub is None or "${" not in sub:
         return None
     overrides = _plain_overrides(argv)
-    jobs = _all_sweep_jobs(overrides) or _sweep_jobs(overrides) or [(overrides, [])]
+    jobs = _sweep_jobs(overrides, every=SUBDIR_JOBS_CHECKED) or _sweep_jobs(overrides) or [(overrides, [])]
     seen: dict[str, str] = {}
     for num, (job_overrides, swept) in enumerate(jobs):
         cfg = None
@@ -622,40 +623,6 @@ def _escaping_job_folder(argv: list[str], sub: str | None) -> str | None:
 
 #: a sweep of at most this many jobs has every job's subdir tried (``_escaping_job_folder``)
 SUBDIR_JOBS_CHECKED = 64
-
-
-def _all_sweep_jobs(overrides: list[str]) -> list[tuple[list[str], list[str]]] | None:
-    """Every job of a basic sweep over ``overrides`` (the product of the swept values) as
-    (overrides, swept ``key=value``s), or None when there are more than SUBDIR_JOBS_CHECKED or they
-    cannot be listed here."""
-    import itertools
-
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    try:
-        parsed = OverridesParser.create().parse_overrides(overrides)
-        values = [list(o.sweep_string_iterator()) if o.is_sweep_override() else None for o in parsed]
-    except Exception:  # noqa: BLE001
-        return None
-    n = 1
-    for v in values:
-        n *= len(v) if v else 1
-    if n > SUBDIR_JOBS_CHECKED:
-        return None
-    jobs = []
-    swept_idx = [i for i, v in enumerate(values) if v]
-    for combo in itertools.product(*[values[i] for i in swept_idx]):
-        chosen = dict(zip(swept_idx, combo))
-        args, swept = [], []
-        for i, (arg, o) in enumerate(zip(overrides, parsed)):
-            if i in chosen:
-                kv = f"{o.get_key_element()}={chosen[i]}"
-                args.append(kv)
-                swept.append(kv)
-            else:
-                args.append(arg)
-        jobs.append((args, swept))
-    return jobs
 
 
 def _duplicate_sweep_value(argv: list[str], parser) -> str | None:
@@ -862,11 +829,14 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(msg.split()).split(" Config search path:")[0]
 
 
-def _sweep_jobs(overrides: list[str]) -> list[tuple[list[str], list[str]]] | None:
+def _sweep_jobs(overrides: list[str], every: int | None = None) -> list[tuple[list[str], list[str]]] | None:
     """For a ``-m`` command line: (the overrides of a job, its swept ``key=value``s) for the first
     job and, for each swept key, one job per other value (the other keys at their first value):
     every value of every sweep is composed once, in 1 + sum(values - 1) jobs.  None when a sweep
-    cannot be listed here (``glob``, an interval): then Hydra composes it."""
+    cannot be listed here (``glob``, an interval): then Hydra composes it.  ``every``: all the
+    sweep's jobs (the product of the swept values) instead, or None when there are more than that."""
+    import itertools
+
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     try:
@@ -886,6 +856,12 @@ def _sweep_jobs(overrides: list[str]) -> list[tuple[list[str], list[str]]] | Non
             swept.append(kv)
         return args, swept
 
+    if every is not None:
+        swept = [(o, vals) for o, vals in zip(parsed, values) if vals]
+        if math.prod(len(vals) for _, vals in swept) > every:
+            return None
+        return [job({id(o): i for (o, _), i in zip(swept, combo)})
+                for combo in itertools.product(*[range(len(vals)) for _, vals in swept])]
     jobs = [job({})]
     for o, vals in zip(parsed, values):
         for i in range(1, len(vals or [])):

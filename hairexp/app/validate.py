@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 
-from hairexp.errors import InputError, finite_number
+from hairexp.errors import InputError, integer, number
 from hairexp.control.tracking.correspondence import check_correspondence_options
 from hairexp.control.tracking.kkt import MAX_SCHUR_BYTES, schur_bytes
 from hairexp.control.tracking.variance import check_variance_config
@@ -45,33 +45,8 @@ def _value(x):
     return getattr(x, "value", x)
 
 
-def number(value, key: str, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
-           hi_open: bool = False) -> float:
-    """``value`` as a finite float within [lo, hi] (``lo_open``/``hi_open``: the bound excluded).
-    Every error names ``key`` and the whole allowed range (``must be a finite number > 0, got nan``)."""
-    parts = []
-    if lo is not None:
-        parts.append(f"{'>' if lo_open else '>='} {lo:g}")
-    if hi is not None:
-        parts.append(f"{'<' if hi_open else '<='} {hi:g}")
-    allowed = " and ".join(parts)
-    v = finite_number(value, key, allowed)
-    if (lo is not None and (v < lo or (lo_open and v == lo))) or (hi is not None and (v > hi or (hi_open and v == hi))):
-        raise InputError(f"must be {allowed}, got {v:g}", key)
-    return v
-
-
 #: ``collision.max_passes`` at most this (each pass checks every vertex against every collider)
 MAX_COLLISION_PASSES = 1000
-
-
-def integer(value, key: str, lo: int) -> int:
-    """``value`` as an int >= lo."""
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise InputError(f"must be an integer >= {lo}, got {value!r}", key)
-    if value < lo:
-        raise InputError(f"must be >= {lo}, got {value}", key)
-    return int(value)
 
 
 def keyframes(times, key_times: str, values: dict) -> None:

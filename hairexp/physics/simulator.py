@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from hairexp import tune_runtime
-from hairexp.errors import InputError, SimulationError, finite_number
+from hairexp.errors import InputError, SimulationError, finite_number, integer, number
 from hairexp.model.scene import Scene
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact, sweep_substeps
 from hairexp.physics.collisions import CollisionInfo, HairHair, StrainLimit, collision_stage, contact_velocities
@@ -119,14 +119,6 @@ MAX_LAST_ATTEMPT = 64
 MAX_SUBSTEP_LEVELS = 10
 
 
-def _integer(value, key: str, lo: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise InputError(f"must be an integer >= {lo}, got {value!r}", key)
-    if value < lo:
-        raise InputError(f"must be >= {lo}, got {value}", key)
-    return int(value)
-
-
 def check_solver_config(s) -> None:
     """The solver settings (``solver.*``: hairexp/app/config.py SolverConfig, or any object with
     its attributes) a step can run with, or an InputError naming the key: checked by the config's
@@ -138,24 +130,21 @@ def check_solver_config(s) -> None:
                          f"dt, rtol, atol, max_iterations, ...), got {type(s).__name__}", "solver")
     make_integrator(getattr(s, "integrator", DEFAULT_INTEGRATOR))   # InputError naming solver.integrator
     check_options(getattr(s, "kernels", "numba"), getattr(s, "threads", "auto"))   # solver.kernels, solver.threads
-    rtol = finite_number(s.rtol, "solver.rtol", ">= 0")
-    atol = finite_number(getattr(s, "atol", 0.0), "solver.atol", ">= 0")
-    for v, key in ((rtol, "solver.rtol"), (atol, "solver.atol")):
-        if v < 0:
-            raise InputError(f"must be >= 0, got {v:g}", key)
+    rtol = number(s.rtol, "solver.rtol", lo=0)
+    atol = number(getattr(s, "atol", 0.0), "solver.atol", lo=0)
     if rtol == 0 and atol == 0:
         raise InputError("solver.rtol and solver.atol are both 0: no step can converge; give one > 0", "solver.rtol")
-    if hasattr(s, "dt"):
+    if hasattr(s, "dt"):   # worded as the step schedule words it (hairexp/physics/schedule.py)
         dt = finite_number(s.dt, "solver.dt", "> 0")
         if dt <= 0:
             raise InputError(f"must be a finite number > 0, got {dt:g}", "solver.dt")
     for key, lo in (("max_iterations", 1), ("max_backtracks", 0)):
         if hasattr(s, key):
-            _integer(getattr(s, key), f"solver.{key}", lo)
-    if _integer(getattr(s, "last_attempt_iterations", 1), "solver.last_attempt_iterations", 1) > MAX_LAST_ATTEMPT:
+            integer(getattr(s, key), f"solver.{key}", lo)
+    if integer(getattr(s, "last_attempt_iterations", 1), "solver.last_attempt_iterations", 1) > MAX_LAST_ATTEMPT:
         raise InputError(f"must be at most {MAX_LAST_ATTEMPT} (times the iterations of a solve), got "
                          f"{s.last_attempt_iterations}", "solver.last_attempt_iterations")
-    if _integer(getattr(s, "max_substep_levels", 0), "solver.max_substep_levels", 0) > MAX_SUBSTEP_LEVELS:
+    if integer(getattr(s, "max_substep_levels", 0), "solver.max_substep_levels", 0) > MAX_SUBSTEP_LEVELS:
         raise InputError(f"must be <= {MAX_SUBSTEP_LEVELS} (a failing step is retried as up to 2^levels substeps, "
                          f"{2 ** MAX_SUBSTEP_LEVELS} at {MAX_SUBSTEP_LEVELS}), got {s.max_substep_levels}",
                          "solver.max_substep_levels")
