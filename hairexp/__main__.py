@@ -29,7 +29,7 @@ def main(cfg: DictConfig) -> float | None:
     hc = HydraConfig.get()
     sweep = str(getattr(hc.mode, "name", hc.mode)) == "MULTIRUN"
     res = cli.job(cfg, hc.runtime.output_dir, sweep=sweep, sweep_dir=str(hc.sweep.dir) if sweep else None,
-                  overrides=list(hc.overrides.task))
+                  overrides=list(hc.overrides.task), cwd=str(hc.runtime.cwd))
     return res["code"]
 
 

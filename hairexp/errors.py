@@ -130,3 +130,43 @@ def integer(value, key: str, lo: int) -> int:
     if value < lo:
         raise InputError(f"must be >= {lo}, got {value}", key)
     return int(value)
+
+
+def real(value, key: str, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
+         hi_open: bool = False) -> float:
+    """``number`` for the Python API: ``value`` must already be a real number (an int, a float, a
+    numpy scalar), not a string, None or a bool, which ``float()`` would take or turn into 1.0."""
+    import numbers
+
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise InputError(f"must be a real number, got {type(value).__name__} {value!r}", key)
+    return number(value, key, lo, hi, lo_open, hi_open)
+
+
+def real_array(value, key: str):
+    """``value`` as a float64 numpy array, or an InputError naming ``key`` when it is not made of
+    real numbers (strings, None, complex or ragged lists: numpy's own messages name neither the
+    input nor its place)."""
+    import numpy as np
+
+    if isinstance(value, (str, bytes)) or value is None:
+        raise InputError(f"must be an array of real numbers, got {type(value).__name__} {value!r:.60}", key)
+    try:
+        raw = value if isinstance(value, np.ndarray) else np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"must be an array of real numbers: {exc}", key) from None
+    if raw.dtype.kind not in "biuf":
+        raise InputError(f"must be an array of real numbers, got {raw.dtype} values", key)
+    return np.asarray(raw, dtype=np.float64)
+
+
+def whole_array(value, key: str):
+    """``value`` as an int64 numpy array of whole numbers (floats allowed when whole), or an
+    InputError naming ``key`` (a count of 10.7 was truncated to 10 without a word)."""
+    import numpy as np
+
+    raw = real_array(value, key)
+    if not (np.isfinite(raw).all() and np.array_equal(raw, np.round(raw))):
+        bad = raw.ravel()[~(np.isfinite(raw.ravel()) & (raw.ravel() == np.round(raw.ravel())))][:4].tolist()
+        raise InputError(f"must be whole numbers, got {bad}", key)
+    return raw.astype(np.int64)

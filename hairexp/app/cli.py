@@ -65,12 +65,40 @@ def outcome(out, status: str, code: int, message: str | None = None, summary: di
             "converged": None if summary is None else summary.get("converged")}
 
 
-def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overrides=()) -> dict:
+#: the config's input file paths: read relative to the directory hairexp was started in
+INPUT_PATH_KEYS = ("scene.usd", "guides.file")
+
+
+def absolute_inputs(cfg, cwd: str | None) -> None:
+    """Make the relative input paths of ``cfg`` (INPUT_PATH_KEYS) absolute against ``cwd``, the
+    directory hairexp was started in: with ``hydra.job.chdir=true`` a job runs inside its run
+    folder, where ``scene.usd=scene.usda`` was not found (probe of issue 12, round 11)."""
+    if not cwd:
+        return
+    from omegaconf import OmegaConf, open_dict
+
+    for key in INPUT_PATH_KEYS:
+        value = OmegaConf.select(cfg, key, default=None)
+        if isinstance(value, str) and value and not os.path.isabs(value):
+            with open_dict(cfg):
+                OmegaConf.update(cfg, key, os.path.join(cwd, value), merge=False)
+    for v in OmegaConf.select(cfg, "variants", default=None) or []:   # a variant's own ``guides.file=...``
+        ovr = v.get("overrides") if hasattr(v, "get") else None
+        for i, o in enumerate(ovr or []):
+            key, eq, value = str(o).partition("=")
+            if eq and key.strip() in INPUT_PATH_KEYS and value.strip() and not os.path.isabs(value.strip()):
+                ovr[i] = f"{key.strip()}={os.path.join(cwd, value.strip())}"
+
+
+def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overrides=(),
+        cwd: str | None = None) -> dict:
     """Run the experiment of ``cfg`` into ``out``; returns its outcome (never raises for a
     failing run, never exits).  A sweep job that starts after the sweep was stopped
     (``<sweep_dir>/STOP_MARK``, ``stop_sweep_jobs``) ends as interrupted without running.
     ``overrides``: the job's command-line overrides (a boolean key given anything but true or
-    false is bad input: a sweep's jobs are composed by Hydra, which would read ``2`` as true)."""
+    false is bad input: a sweep's jobs are composed by Hydra, which would read ``2`` as true).
+    ``cwd``: the directory hairexp was started in, which relative input paths are read from
+    (``absolute_inputs``)."""
     global LAST
     note_job_logs(Path(out))   # what its logs hold now is a previous run's (overwrite=true drops it)
     if sweep:
@@ -87,6 +115,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         check_keys(cfg)   # a ``+key`` Hydra added without asking the schema
         check_interpolations(cfg)   # a ${...} that cannot be resolved (a sweep job Hydra composed)
         check_bool_overrides(list(overrides))
+        absolute_inputs(cfg, cwd)
         summary = run_experiment(cfg, out)
         late = take_late()   # a signal after the run had written its completed ending
         res = outcome(out, "completed", 0, None, summary) if late is None else _signalled_after(out, late, summary)

@@ -22,11 +22,13 @@ the body-frame guide with the live block: world = block pose at t x body-frame g
 
 from __future__ import annotations
 
+import math
+import numbers
 from pathlib import Path
 
 import numpy as np
 
-from hairexp.errors import InputError, check_extent, regular_file
+from hairexp.errors import InputError, check_extent, real_array, regular_file
 from hairexp.guides.store import BLOCK_BYTES, FrameStore
 from hairexp.model.dynamic_body import authoring_motion
 from hairexp.model.strands import check_folds, validate_polylines
@@ -65,8 +67,8 @@ class GuideAnimation:
                 raise InputError(f"guide positions must be float64, got {positions.dtype}", where)
             self.frames = positions
         else:
-            self.frames = np.asarray(positions, dtype=np.float64)
-        raw = np.asarray(offsets)
+            self.frames = real_array(positions, f"{where} positions")
+        raw = real_array(offsets, f"{where} offsets") if not isinstance(offsets, np.ndarray) else offsets
         if raw.ndim != 1 or raw.dtype.kind not in "iuf" or (raw.dtype.kind == "f" and not (
                 np.isfinite(raw).all() and np.array_equal(raw, np.round(raw)))):
             raise InputError(f"guide offsets must be integers (G + 1,), got {raw.dtype} {raw.shape}: "
@@ -79,10 +81,12 @@ class GuideAnimation:
         counts = np.diff(self.offsets)
         if counts.size == 0 or self.offsets[0] != 0:
             raise InputError("guide offsets must start at 0 and name at least one guide", self.where)
-        if not (np.isfinite(self.fps) and MIN_FPS <= self.fps <= MAX_FPS):
+        if isinstance(self.fps, bool) or not isinstance(self.fps, numbers.Real) or not (
+                np.isfinite(self.fps) and MIN_FPS <= self.fps <= MAX_FPS):
             # 1e-9 (a frame every 30 years) froze the guides at their first frame without a word
             raise InputError(f"fps must be a number from {MIN_FPS:g} to {MAX_FPS:g} (frames per second), "
-                             f"got {self.fps:g}", self.where)
+                             f"got {self.fps!r}", self.where)
+        self.fps = float(self.fps)
         for f, P in enumerate(self.frames):
             P, _ = validate_polylines(P, counts, f"{self.where} frame {f}", min_vertices=2, folds=False)
             check_extent(P, self.where, counts, frame=f)   # a point 1e30 away: a unit error, not a fold
@@ -135,7 +139,13 @@ class GuideAnimation:
         """(Vg, 3) guide vertices at time t (between frames as ``interpolation`` says); ``motion``:
         the body's poses at t when they are not those the animation was attached to (a dynamic
         body's step window, hairexp/model/dynamic_body.py)."""
-        u = float(np.clip(t * self.fps, 0.0, self.n_frames - 1))
+        try:
+            tf = math.nan if isinstance(t, (str, bytes)) else float(t)
+        except (TypeError, ValueError):
+            tf = math.nan
+        if not math.isfinite(tf):
+            raise InputError(f"shape_at's time must be a finite number of seconds, got {t!r}", self.where)
+        u = float(np.clip(tf * self.fps, 0.0, self.n_frames - 1))
         f = min(int(np.floor(u)), self.n_frames - 2) if self.n_frames > 1 else 0
         src = (lambda k: self.frames[k]) if self.motion is None else self._body
         a = u - f

@@ -98,6 +98,21 @@ def check_type(attr, kind: tuple[str, frozenset], where: str, owner: str = "") -
         raise InputError(f"{owner}{attr.GetName()} has type {str(bad) or 'unknown'}, expected {label}", where)
 
 
+def check_quaternions(attr, where: str, owner: str = "") -> None:
+    """InputError when a value of the orient op ``attr`` (its default and every time sample) is not
+    a finite quaternion of non-zero length: USD turned a zero quaternion into no rotation without a
+    word (probe of issue 12, round 11).  Lengths other than 1 are normalised, as USD does."""
+    times = [Usd.TimeCode.Default()] + [Usd.TimeCode(t) for t in attr.GetTimeSamples()]
+    for tc in times:
+        q = attr.Get(tc)
+        if q is None:
+            continue
+        v = np.array([q.GetReal(), *q.GetImaginary()], dtype=np.float64)
+        if not np.isfinite(v).all() or np.linalg.norm(v) < 1e-12:
+            raise InputError(f"{owner}{attr.GetName()} at {time_label(tc)} is {v.tolist()}, not a rotation "
+                             "(a quaternion must be finite and of non-zero length)", where)
+
+
 def check_transform_types(prim, where: str) -> None:
     """InputError when a transform op of ``prim`` or of an ancestor it inherits from has a value
     type USD cannot compute a transform from (``string xformOp:transform``: a Tf error out of
@@ -125,6 +140,8 @@ def check_transform_types(prim, where: str) -> None:
                         raise InputError(f"{owner}xformOpOrder names {name}, but the prim has no attribute "
                                          f"{attr_name} (USD would skip the op)", where)
                     check_type(attr, _OP_TYPES[parts[1]], where, owner)
+                    if parts[1] == "orient":
+                        check_quaternions(attr, where, owner)
                 if "!resetXformStack!" in names:   # the ancestors' transforms do not apply
                     return
         p = p.GetParent()

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, Slerp
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, real_array
 
 
 def left_jacobian(r: np.ndarray) -> np.ndarray:
@@ -42,10 +42,10 @@ class RigidMotion:
     where: str = "motion"      # the input the keyframes came from (errors name it)
 
     def __post_init__(self) -> None:
-        self.times = np.asarray(self.times, dtype=np.float64).reshape(-1)
+        self.times = real_array(self.times, f"{self.where}.times").reshape(-1)
         K = self.times.size
         for name in ("translations", "rotvecs"):
-            a = np.asarray(getattr(self, name), dtype=np.float64)
+            a = real_array(getattr(self, name), f"{self.where}.{name}")
             if a.size != 3 * K:
                 raise InputError(f"{name} must be {K} x 3 numbers (one per keyframe time), got shape {a.shape}",
                                  self.where)

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hairexp.errors import InputError, finite_number
+from hairexp.errors import InputError, real
 from hairexp.model.dynamic_body import DynamicBody
 from hairexp.model.rigid import RigidMotion
 from hairexp.model.strands import Strands
@@ -27,9 +27,7 @@ class Material:
         for key, lo, strict in (("linear_density", 0.0, True), ("stretch_stiffness", 0.0, True),
                                 ("bending_stiffness", 0.0, False), ("edge_damping", 0.0, False),
                                 ("air_drag", 0.0, False)):
-            v = finite_number(getattr(self, key), f"Material.{key}", "> 0" if strict else ">= 0")
-            if v < lo or (strict and v == lo):
-                raise InputError(f"must be a finite number {'> 0' if strict else '>= 0'}, got {v}", f"Material.{key}")
+            real(getattr(self, key), f"Material.{key}", lo=lo, lo_open=strict)
 
 
 @dataclass(frozen=True)
@@ -55,6 +53,14 @@ class Scene:
     initial: np.ndarray | None = None
 
     def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise InputError(f"must be a non-empty string, got {self.name!r}", "Scene.name")
+        if not isinstance(self.motion, (RigidMotion, DynamicBody)):
+            raise InputError(f"must be a RigidMotion (hairexp.model.rigid; RigidMotion.static() for a body at rest) "
+                             f"or a DynamicBody, got {type(self.motion).__name__}", "Scene.motion")
+        if not isinstance(self.colliders, (list, tuple)):
+            raise InputError(f"must be a list of collider objects (hairexp.model.colliders), got "
+                             f"{type(self.colliders).__name__}", "Scene.colliders")
         if not isinstance(self.strands, Strands):
             raise InputError(f"must be a Strands (hairexp.model.strands), got {type(self.strands).__name__}",
                              "Scene.strands")

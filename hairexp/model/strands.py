@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, real, real_array, whole_array
 
 #: Vertices per strand held kinematically by the root rigid body.
 N_ROOT_VERTICES = 2
@@ -32,8 +32,8 @@ def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_v
     wrong shapes, counts that do not add up, too few vertices, or zero-length edges, and (with
     ``folds``) for folds (``check_folds``).
     """
-    points = np.asarray(points, dtype=np.float64)
-    counts = np.asarray(counts, dtype=np.int64).reshape(-1)
+    points = real_array(points, f"{where} points")
+    counts = whole_array(counts, f"{where} vertex counts").reshape(-1)
     if points.ndim != 2 or points.shape[1] != 3:
         raise InputError(f"points must have shape (V, 3), got {points.shape}", where)
     if counts.size == 0:
@@ -139,8 +139,7 @@ class Strands:
     def from_polylines(points: np.ndarray, counts: np.ndarray, linear_density: float, where: str = "strands") -> "Strands":
         """Build strands from packed rest polylines.  ``linear_density`` in kg/m."""
         points, counts = validate_polylines(points, counts, where, min_vertices=N_ROOT_VERTICES + 1)
-        if not (np.isfinite(linear_density) and linear_density > 0):
-            raise InputError(f"linear density must be positive, got {linear_density}", where)
+        real(linear_density, f"{where} linear density (kg/m)", lo=0.0, lo_open=True)
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         V = points.shape[0]
         first = offsets[:-1]

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, real_array, whole_array
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +152,7 @@ def check_correspondence_options(points_per_guide, placement: str, assignment: s
     if assignment not in ASSIGNMENTS:
         raise InputError(f"unknown assignment {assignment!r} (hard|soft)", "tracking.assignment")
     if isinstance(points_per_guide, bool) or not isinstance(points_per_guide, (int, np.integer)) or points_per_guide < 1:
-        raise InputError(f"must be >= 1, got {points_per_guide}", "tracking.points_per_guide")
+        raise InputError(f"must be an integer >= 1, got {points_per_guide!r}", "tracking.points_per_guide")
 
 
 def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.ndarray,
@@ -169,12 +169,29 @@ def build_correspondence(detail_rest: np.ndarray, offsets: np.ndarray, free: np.
     if not guides_rest:
         raise InputError("a tracked run needs at least one guide", "guides")
     G = len(guides_rest)
-    detail_rest = np.asarray(detail_rest, dtype=np.float64)
+    detail_rest = real_array(detail_rest, "build_correspondence detail_rest")
     if detail_rest.ndim != 2 or detail_rest.shape[1] != 3 or not np.isfinite(detail_rest).all():
         raise InputError(f"the detail hair must be finite points of shape (V, 3), got shape {detail_rest.shape}",
                          "build_correspondence detail_rest")
+    V = len(detail_rest)
+    offsets = whole_array(offsets, "build_correspondence offsets").reshape(-1)
+    if offsets.size < 2 or offsets[0] != 0 or offsets[-1] != V or np.any(np.diff(offsets) < 1):
+        raise InputError(f"must start at 0, increase strictly and end at the {V} detail vertices, got "
+                         f"{offsets[:6].tolist()}{' ...' if offsets.size > 6 else ''} (length {offsets.size})",
+                         "build_correspondence offsets")
+    free = np.asarray(free)
+    if free.shape != (V,) or free.dtype != bool:
+        raise InputError(f"must be a boolean mask of shape ({V},), got {free.dtype} {free.shape}",
+                         "build_correspondence free")
+    if masses is not None:
+        masses = real_array(masses, "build_correspondence masses")
+        if masses.shape != (V,) or not (np.isfinite(masses).all() and (masses >= 0).all()):
+            raise InputError(f"must be {V} finite numbers >= 0 (kg), got shape {masses.shape}"
+                             + ("" if masses.shape != (V,) else f", min {masses.min():g}"), "build_correspondence masses")
+    if not (np.isfinite(max_distance) and max_distance >= 0):
+        raise InputError(f"must be a finite number >= 0 (m), got {max_distance}", "tracking.max_guide_distance")
     for g, P in enumerate(guides_rest):   # named here: they came out as "non-finite distance" (probe of issue 12)
-        P = np.asarray(P, dtype=np.float64)
+        P = real_array(P, f"guides: guide {g}")
         if P.ndim != 2 or P.shape[1] != 3 or len(P) < 2:
             raise InputError(f"guide {g} must be a polyline of >= 2 points of shape (n, 3), got shape {P.shape}",
                              "guides")
