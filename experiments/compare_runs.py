@@ -6,8 +6,8 @@ then
 
     python -m experiments.compare_runs <before tree> <after tree>
 
-Prints one line per file and ``N files compared, K differ``; exits 1 if any differ or none
-were found."""
+Prints one line per file and ``N files compared, K differ``; a file in only one of the trees
+differs.  Exits 1 if any differ, 2 if none were found."""
 
 from __future__ import annotations
 
@@ -38,13 +38,17 @@ def _differences(fa: Path, fb: Path) -> list[str]:
 
 
 def compare(a: Path, b: Path) -> tuple[int, int]:
+    """(files compared, files that differ) over the run files of either tree: a file only one tree
+    holds is a difference (``MISSING in <tree>``; a run only the after tree held was not seen)."""
     bad = n = 0
-    for fa in sorted(a.rglob("result.npz")) + sorted(a.rglob("metrics.parquet")):
-        rel = fa.relative_to(a)
-        fb = b / rel
+    rels = sorted({f.relative_to(t) for t in (a, b) for name in ("result.npz", "metrics.parquet")
+                   for f in t.rglob(name)}, key=lambda r: (r.name != "result.npz", str(r)))
+    for rel in rels:
+        fa, fb = a / rel, b / rel
         n += 1
-        if not fb.exists():
-            print("MISSING", rel)
+        missing = [t for t, f in ((a, fa), (b, fb)) if not f.exists()]
+        if missing:
+            print(f"MISSING in {missing[0]}:", rel)
             bad += 1
             continue
         try:

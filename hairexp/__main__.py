@@ -47,9 +47,14 @@ def entry() -> int:
     if bad_config is not None:
         print(bad_config, file=sys.stderr)
         return 2
-    used = cli.used_dir_error(sys.argv[1:])   # another run's folder: before Hydra writes .hydra/ into it
+    # a launch into (or inside) the folder of one that has not ended first: that is the reason to
+    # name, not the folder's files (probe of issue 12, round 12); then another run's folder, before
+    # Hydra writes .hydra/ into it; then the launch lock (two launches that both found it empty)
+    used = cli.live_folder_error(sys.argv[1:])
     if used is None:
-        used = cli.hold_folder_error(sys.argv[1:])   # a launch into the same folder that has not ended
+        used = cli.used_dir_error(sys.argv[1:])
+    if used is None:
+        used = cli.hold_folder_error(sys.argv[1:])
     if used is not None:
         print(used, file=sys.stderr)
         return 2

@@ -39,3 +39,15 @@ def test_a_corrupt_file_is_a_named_difference(tmp_path, capsys):
     (tmp_path / "b" / "run" / "result.npz").write_bytes(b"PK\x03\x04 not a zip")
     assert compare(tmp_path / "a", tmp_path / "b") == (2, 1)
     assert "UNREADABLE run/result.npz" in capsys.readouterr().out
+
+
+def test_a_run_only_the_after_tree_holds_is_a_difference(tmp_path, capsys):
+    """The comparison went over the before tree's files only: a run added in the after tree
+    compared equal (probe of issue 12, round 12)."""
+    x = np.arange(6.0).reshape(1, 2, 3)
+    tree(tmp_path / "a", x, [1e-10, 2e-10], [0.1, 0.2])
+    tree(tmp_path / "b", x, [1e-10, 2e-10], [0.1, 0.2])
+    tree(tmp_path / "b" / "extra", x, [1e-10, 2e-10], [0.1, 0.2])
+    assert compare(tmp_path / "a", tmp_path / "b") == (4, 2)
+    assert f"MISSING in {tmp_path / 'a'}: extra/run/result.npz" in capsys.readouterr().out
+    assert compare(tmp_path / "b", tmp_path / "a") == (4, 2)

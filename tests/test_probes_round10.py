@@ -27,8 +27,8 @@ def finished_run(folder: Path) -> None:
     """A folder as a completed run leaves it (the files only)."""
     folder.mkdir(parents=True)
     (folder / ".hydra").mkdir()
-    for name in ("metrics.parquet", "result.npz", "guides.npz"):
-        (folder / name).write_bytes(b"x")
+    for name, head in (("metrics.parquet", b"PAR1"), ("result.npz", b"PK\x03\x04"), ("guides.npz", b"PK\x03\x04")):
+        (folder / name).write_bytes(head + b"x")   # the format's first bytes: a run's files
     (folder / "summary.json").write_text(json.dumps({"status": "completed"}))
 
 

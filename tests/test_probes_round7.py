@@ -32,7 +32,7 @@ from hairexp.errors import InputError, Interrupted
 def _completed_run(folder: Path) -> None:
     folder.mkdir(parents=True)
     (folder / "summary.json").write_text(json.dumps({"status": "completed"}))
-    (folder / "result.npz").write_bytes(b"results")
+    (folder / "result.npz").write_bytes(b"PK\x03\x04results")   # a zip's first bytes: a run's file
     (folder / ".hydra").mkdir()
     (folder / ".hydra" / "config.yaml").write_text("old: record\n")
 
@@ -57,7 +57,7 @@ def test_overwrite_with_a_bad_value_keeps_the_previous_run(tmp_path):
     cfg = compose_config([*SMALL, "overwrite=true", "solver.dt=-1"])
     with pytest.raises(InputError):
         run(cfg, folder)
-    assert (folder / "result.npz").read_bytes() == b"results"
+    assert (folder / "result.npz").read_bytes() == b"PK\x03\x04results"
     assert json.loads((folder / "summary.json").read_text())["status"] == "completed"
     # the command line says so before Hydra replaces the run's .hydra/ record
     msg = cli.used_dir_error([*SMALL, "overwrite=true", "solver.dt=-1", f"hydra.run.dir={folder}"])

@@ -3,8 +3,31 @@ hairexp/model/builders.py, or a USD stage, hairexp/io/usd_read.py), then the dyn
 
 from __future__ import annotations
 
+import logging
+
+from hairexp.app.config import SceneConfig
 from hairexp.model.builders import build_procedural_scene, with_dynamic_body
 from hairexp.model.scene import Scene
+
+#: the keys that shape the hair a procedural builder makes (not read for a USD stage's hair)
+PROCEDURAL_KEYS = ("n_strands", "n_vertices", "length", "root_radius", "root_layout", "root_center", "direction",
+                   "spread", "seed")
+
+
+def unused_procedural_keys(cfg) -> list[str]:
+    """The procedural keys of ``cfg`` (``scene``) set to other than the schema's default: a USD
+    stage's hair does not use them (``scene.n_strands=3`` with a stage was ignored without a word;
+    probe of issue 12, round 12)."""
+    from omegaconf import OmegaConf
+
+    default = SceneConfig()
+    out = []
+    for key in PROCEDURAL_KEYS:
+        v, d = cfg[key], getattr(default, key)
+        v = OmegaConf.to_container(v) if OmegaConf.is_config(v) else getattr(v, "value", v)
+        if v != getattr(d, "value", d):
+            out.append(f"scene.{key}={v}")
+    return out
 
 
 def build_scene(cfg) -> Scene:
@@ -13,5 +36,10 @@ def build_scene(cfg) -> Scene:
     if builder == "usd":  # a user's USD stage (pxr is imported only then)
         from hairexp.io.usd_read import build_usd_scene
 
+        unused = unused_procedural_keys(cfg)
+        if unused:
+            logging.getLogger("hairexp").warning(
+                "%s not used: the hair comes from the stage scene.usd (these keys shape the hair of the procedural "
+                "builders, scene.builder=wisp or ponytail)", ", ".join(unused) + (" is" if len(unused) == 1 else " are"))
         return with_dynamic_body(cfg, build_usd_scene(cfg))
     return with_dynamic_body(cfg, build_procedural_scene(cfg))

@@ -491,13 +491,11 @@ def used_dir_error(argv: list[str]) -> str | None:
     return None if refused is None else f"hairexp: error: {folder}: {refused}"
 
 
-def hold_folder_error(argv: list[str]) -> str | None:
-    """Take the launch lock (``folder.hold``) of the command line's fixed ``hydra.run.dir`` (a
-    ``-m`` sweep: ``hydra.sweep.dir``) before Hydra writes into it; the error line when another
-    launch holds it.  Called after ``used_dir_error``: two launches that both found the folder
-    empty are told apart here, and the second never reaches Hydra (it rewrote the first one's
-    ``.hydra/`` record; probe of issue 12, round 10).  A folder that cannot be created is left to
-    ``run_dir_error`` and the run."""
+def live_folder_error(argv: list[str]) -> str | None:
+    """The error line when the command line's fixed run (sweep) folder is, or lies inside, a
+    folder another launch holds now (``held_elsewhere``), or None; nothing is taken or created.
+    Checked before ``used_dir_error``: that launch is the reason to name, not the files it has
+    written so far (probe of issue 12, round 12)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     key = "hydra.sweep.dir" if _multirun(argv) else "hydra.run.dir"
@@ -509,6 +507,32 @@ def hold_folder_error(argv: list[str]) -> str | None:
         if held_elsewhere(parent):
             return (f"hairexp: error: {folder}: lies inside {parent}, a folder another launch is using now; choose "
                     f"a {key} outside it")
+    try:
+        if held_elsewhere(Path(folder)):
+            return (f"hairexp: error: {folder}: another launch is using this {what} folder now; a {what} folder "
+                    f"belongs to one {what}: choose another {key}")
+    except OSError:
+        return None
+    return None
+
+
+def hold_folder_error(argv: list[str]) -> str | None:
+    """Take the launch lock (``folder.hold``) of the command line's fixed ``hydra.run.dir`` (a
+    ``-m`` sweep: ``hydra.sweep.dir``) before Hydra writes into it; the error line when another
+    launch holds it.  Called after ``used_dir_error`` (``live_folder_error`` before it): two
+    launches that both found the folder empty are told apart here, and the second never reaches
+    Hydra (it rewrote the first one's ``.hydra/`` record; probe of issue 12, round 10).  A folder
+    that cannot be created is left to ``run_dir_error`` and the run."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    key = "hydra.sweep.dir" if _multirun(argv) else "hydra.run.dir"
+    folder = _fixed_folder(argv, key, OverridesParser.create())
+    if folder is None:
+        return None
+    what = "sweep" if key == "hydra.sweep.dir" else "run"
+    live = live_folder_error(argv)
+    if live is not None:
+        return live
     try:
         if hold(folder):
             return None

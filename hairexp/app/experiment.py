@@ -105,6 +105,9 @@ def apply_overrides(cfg, overrides: list[str], where: str):
         if key in ("experiment", "variants"):   # it ran the parent's scene under the other's name (probe of issue 12)
             raise InputError(f"{o}: a variant cannot set {key!r}: it belongs to the experiment (run the other "
                              "experiment on its own)", where)
+        if key == "overwrite":   # taken silently, and meaningless: the experiment's folder is claimed once (probe, round 12)
+            raise InputError(f"{o}: a variant cannot set 'overwrite': it belongs to the launch (the experiment's "
+                             "run folder is replaced or not as a whole; set overwrite=true on the command line)", where)
         value = parse_value(val)
         if OmegaConf.is_config(node) and not isinstance(value, (dict, list)):
             raise InputError(f"{o}: {key!r} is a config group; a variant sets keys inside it ({key}.<key>=<value>), "

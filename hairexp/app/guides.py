@@ -5,9 +5,11 @@ and the ``usd`` stage's guide prim), then the artist's edits (hairexp/guides/aut
 from __future__ import annotations
 
 import copy
+import logging
 
 import numpy as np
 
+from hairexp.app.config import GuidesConfig
 from hairexp.model.builders import check_counts
 from hairexp.errors import ExtentError, InputError, SimulationError, regular_file
 from hairexp.guides.animation import GuideAnimation, carried_guides, file_guides, rest_guides
@@ -36,11 +38,14 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
             if where.startswith(str(g.file)) and not where.startswith("guides.file="):
                 raise InputError(str(exc)[len(where) + 2:], f"guides.file={where}") from exc
             raise
+        unused_shape_keys(g, anim, "guides.file")
         return anim   # every frame's extent checked by GuideAnimation
     if source == "usd":  # the guide prim of the stage scene.usd
         from hairexp.io.usd_read import read_guides   # pxr is imported only for USD scenes
 
-        return read_guides(cfg, scene, frames, fps)
+        anim = read_guides(cfg, scene, frames, fps)
+        unused_shape_keys(g, anim, "the stage's guide prim")
+        return anim
     body = rest_guides(cfg.scene, g.count, g.n_vertices, g.layout_radius)
     offsets = np.arange(g.count + 1) * g.n_vertices
     if source == "simulated":
@@ -50,6 +55,21 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
         return GuideAnimation(pos, offsets, fps, where="guides.keyframes", motion=scene.motion)
     pos = carried_guides(g, body, offsets, motion, frames, fps, scaled=source == "scaled")
     return GuideAnimation(pos, offsets, fps, motion=scene.motion)
+
+
+def unused_shape_keys(g, anim: GuideAnimation, source: str) -> None:
+    """A warning when ``guides.count`` or ``guides.n_vertices``, set to other than the schema's
+    default, differ from the guides a file or stage holds: they shape built guides only, and were ignored without a word (probe of issue 12,
+    round 12)."""
+    counts = np.diff(anim.offsets)
+    held = {"count": len(counts), "n_vertices": int(counts[0]) if len(set(counts.tolist())) == 1 else None}
+    for key, n in held.items():
+        # a value left at the schema's default was not chosen: no warning for every stage or file
+        if n is not None and int(getattr(g, key)) != n and int(getattr(g, key)) != getattr(GuidesConfig, key):
+            logging.getLogger("hairexp").warning(
+                "guides.%s=%s is not used: the guides come from %s, which holds %s (guides.count and "
+                "guides.n_vertices shape the guides hairexp builds)", key, getattr(g, key), source,
+                f"{n} guides" if key == "count" else f"guides of {n} vertices")
 
 
 #: dtype kinds of a guide npz's arrays (numpy's ``dtype.kind``): real numbers, integer offsets

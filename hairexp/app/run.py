@@ -189,6 +189,19 @@ class _Sinks:
         release_every(RELEASE_SECONDS)
 
 
+def own_result(sinks, p: Path) -> None:
+    """Note ``p`` as a result file this run is about to write (a failure removes it again), or an
+    OSError when something is already there: the folder was this run's alone at its start
+    (``claim``), so that is another process's, made while the run went on, and it is left as it
+    is (a folder made at ``result.usdc`` mid-run was deleted with its contents; probe of issue
+    12, round 12)."""
+    if p.exists() or p.is_symlink():
+        kind = "folder" if p.is_dir() and not p.is_symlink() else "file"
+        raise OSError(f"{p}: a {kind} of that name appeared in the run folder while the run went on (not this "
+                      "run's; left as it is), so the result cannot take its name")
+    sinks.written.append(p)
+
+
 def run(cfg, out_dir: str | Path) -> dict:
     out = Path(out_dir)
     plain = to_plain(cfg)
@@ -309,7 +322,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
         save_npy(out / STREAM / f"cohesion_{name}.npy", coh.pop(name))
     release()
     # the result files; a failure from here on removes those already written (no results beside a failed run)
-    sinks.written.append(out / "result.npz")
+    own_result(sinks, out / "result.npz")
     write_npz(out / "result.npz", out / STREAM)
     release()
     from hairexp.io.usd_write import clips_dir, write_result_usd  # pxr: imported at the start (``run``)
@@ -320,14 +333,15 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
         rv = np.repeat(sim.body.rotvecs, len(P), axis=0)
         wscene = replace(scene, motion=RigidMotion(np.array(times), P, rv, "linear"))
     usd = out / f"result.{getattr(cfg.output.usd_format, 'value', cfg.output.usd_format)}"
-    sinks.written += [usd, clips_dir(usd)]   # the clips folder (if any) goes with the stage
+    for p in (usd, clips_dir(usd)):   # the clips folder (if any) goes with the stage
+        own_result(sinks, p)
     write_result_usd(usd, wscene, positions, recorder.frames_of("guide_positions"), guides.offsets, cfg.fps,
                      clips=str(getattr(cfg.output.usd_clips, "value", cfg.output.usd_clips)))
     recorder.close()
     release()
     view = None
     if rerun_sink is not None:
-        sinks.written.append(out / "recording.rrd")
+        own_result(sinks, out / "recording.rrd")
         sinks.rerun = None
         view = rerun_sink.close(success=True, key=key_moment(str(getattr(cfg.measure.name, "value", cfg.measure.name)),
                                                               measures), metrics=df)

@@ -17,7 +17,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hairexp.errors import InputError
+from hairexp.errors import MAX_COORDINATE, InputError
 from hairexp.model.colliders import SHAPES
 from hairexp.model.dynamic_body import build_dynamic_body
 from hairexp.model.rigid import RigidMotion
@@ -107,6 +107,9 @@ def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius
     if fan and spread > 0 and root_radius == 0:
         raise InputError("must be > 0 for a ponytail with scene.spread > 0 (the rim strands tilt by spread)",
                          "scene.root_radius")
+    if n_strands > 1 and root_radius == 0 and spread == 0:   # accepted silently (probe of issue 12, round 12)
+        raise InputError(f"must be > 0 for {n_strands} strands without scene.spread: every strand would lie on the "
+                         "same line", "scene.root_radius")
     max_spread = np.pi / 2 if fan else np.pi   # a cone's rim tilts by tan(spread)
     if not (0 <= spread < max_spread if fan else 0 <= spread <= max_spread):
         raise InputError(f"must be in [0, {max_spread:.4g}{')' if fan else ']'} rad, got {spread}", "scene.spread")
@@ -176,6 +179,9 @@ def build_procedural_scene(cfg) -> Scene:
     builder = str(getattr(cfg.builder, "value", cfg.builder))
     direction = _unit(cfg.direction, "scene.direction")
     center = vec3(cfg.root_center, "scene.root_center")
+    if np.abs(center).max() > MAX_COORDINATE:   # it ended as a diverged guide simulation, exit 3 (probe, round 12)
+        raise InputError(f"{center.tolist()} is more than {MAX_COORDINATE:g} m from the origin: hairexp reads metres "
+                         "(check the units)", "scene.root_center")
     if builder in ("wisp", "ponytail"):
         body_pts = straight_strands(cfg.n_strands, cfg.n_vertices, cfg.length, cfg.root_radius, center,
                                     direction, cfg.spread, cfg.seed, fan=builder == "ponytail",

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, Slerp
 
-from hairexp.errors import InputError, real_array
+from hairexp.errors import MAX_COORDINATE, InputError, real_array
 
 
 def left_jacobian(r: np.ndarray) -> np.ndarray:
@@ -55,6 +55,12 @@ class RigidMotion:
             raise InputError("a rigid motion needs at least one keyframe", f"{self.where}.times")
         if not (np.isfinite(self.times).all() and np.isfinite(self.translations).all() and np.isfinite(self.rotvecs).all()):
             raise InputError("keyframes contain NaN or inf", self.where)
+        far = np.flatnonzero(np.abs(self.translations).max(axis=1) > MAX_COORDINATE)
+        if far.size:   # a body 1e20 m away at one time code ran to the end with unconverged steps (probe, round 12)
+            k = int(far[0])
+            raise InputError(f"the translation at keyframe {k} (t = {self.times[k]:g} s) is {self.translations[k].tolist()}, "
+                             f"more than {MAX_COORDINATE:g} m from the origin: hairexp reads metres (check the units "
+                             "of the input)", f"{self.where}.translations")
         if K > 1 and np.any(np.diff(self.times) <= 0):
             raise InputError(f"keyframe times must increase strictly, got {self.times.tolist()}", f"{self.where}.times")
         if self.interpolation not in ("cubic", "linear"):

@@ -112,8 +112,12 @@ def _removable(folder: Path, top: bool) -> tuple[list[Path], list[Path]]:
             continue
         if p.is_symlink():   # a run writes no links: one is never followed nor removed (probe of issue 12, round 10)
             foreign.append(p)
-        elif (p.name in RUN_FILES or _is_tmp(p)) and not p.is_dir():
+        elif _is_tmp(p) and not p.is_dir():
             ours.append(p)
+        elif p.name in RUN_FILES and not p.is_dir():
+            # a file that only has a run file's name is not a run's (a user's notes saved as
+            # summary.json were deleted by overwrite=true; probe of issue 12, round 12)
+            (ours if _run_file(p) else foreign).append(p)
         elif p.name in RUN_DIRS and p.is_dir():
             strays = _strays(p)   # a user's file inside a run's folder is never deleted (probe of issue 12, round 11)
             (foreign.extend(strays) if strays else ours.append(p))
@@ -123,6 +127,36 @@ def _removable(folder: Path, top: bool) -> tuple[list[Path], list[Path]]:
         else:
             foreign.append(p)
     return ours, foreign
+
+
+#: how each kind of run file begins (``_run_file``)
+_MAGIC = {".parquet": (b"PAR1",), ".npz": (b"PK\x03\x04", b"PK\x05\x06"), ".rrd": (b"RRF",),
+          ".usda": (b"#usda",), ".usdc": (b"PXR-USDC",)}
+
+
+def _run_file(p: Path) -> bool:
+    """Whether the file ``p`` (named as a run file) holds what a run writes under that name: a
+    ``summary.json`` a JSON object with a ``status`` (or empty: a run stopped as it began), the
+    other files their format's first bytes (an empty partial recording: a run stopped as it began);
+    the disk reserve anything."""
+    if p.name == RESERVE:
+        return True
+    try:
+        if p.name == SUMMARY:
+            text = p.read_text(errors="replace")
+            if not text:
+                return True
+            try:
+                return isinstance(d := json.loads(text), dict) and "status" in d
+            except ValueError:
+                return False
+        with open(p, "rb") as f:
+            head = f.read(8)
+    except OSError:
+        return False
+    if not head:
+        return p.name.endswith(".partial.rrd")
+    return any(head.startswith(m) for m in _MAGIC.get(p.suffix, ()))
 
 
 def _strays(d: Path) -> list[Path]:

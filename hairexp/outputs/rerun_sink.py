@@ -36,7 +36,9 @@ with the metrics of the steps done).
 
 from __future__ import annotations
 
+import errno
 import os
+import shutil
 import time
 import uuid
 from array import array
@@ -75,15 +77,44 @@ def flush_recording(rec, partial: str) -> None:
     wait for the same writer; the caller then skips ``disconnect``."""
     if abandoned(rec):
         raise OSError(f"{partial}: the recording could not be written (rerun's file writer is stuck)")
-    try:
-        rec.flush(timeout_sec=FLUSH_TIMEOUT_SECONDS)
-    except RuntimeError as exc:   # rerun's file writer stopped (e.g. no space left on the device)
-        if "timed out" in str(exc).lower():
+    waited = 0.0
+    while True:   # in slices: a full disk is told at once, not after the whole time-out
+        wait = min(FLUSH_SLICE_SECONDS, FLUSH_TIMEOUT_SECONDS - waited)
+        try:
+            rec.flush(timeout_sec=wait)
+            return
+        except RuntimeError as exc:   # rerun's file writer stopped, or not done yet
+            free = _free_bytes(partial)
+            full = free is not None and free < DISK_FULL_BYTES
+            if "timed out" not in str(exc).lower():
+                if full:
+                    raise OSError(errno.ENOSPC, f"{partial}: the recording could not be written: no space left on "
+                                                f"the device ({free} bytes free; rerun: {exc})") from exc
+                raise OSError(f"{partial}: the recording could not be written ({exc})") from exc
+            waited += wait
+            if not full and waited < FLUSH_TIMEOUT_SECONDS:
+                continue
             _ABANDONED.append(rec)
             rr.unregister_shutdown()
+            if full:   # rerun's writer only logs its ENOSPC; the disk is what the run's error names (probe, round 12)
+                raise OSError(errno.ENOSPC, f"{partial}: the recording could not be written: no space left on the "
+                                            f"device ({free} bytes free; rerun: {exc})") from exc
             raise OSError(f"{partial}: the recording could not be written (rerun's file writer did not finish "
                           f"within {FLUSH_TIMEOUT_SECONDS:g} s: {exc})") from exc
-        raise OSError(f"{partial}: the recording could not be written ({exc})") from exc
+
+
+#: ``flush_recording`` waits in slices this long, looking at the disk between them (s)
+FLUSH_SLICE_SECONDS = 2.0
+#: fewer free bytes than this on the recording's disk while its writer is not done: the disk is full
+DISK_FULL_BYTES = 64 << 10
+
+
+def _free_bytes(path: str) -> int | None:
+    """Bytes free to this process on the disk holding ``path`` (None if it cannot be told)."""
+    try:
+        return shutil.disk_usage(os.path.dirname(os.path.abspath(path))).free
+    except OSError:
+        return None
 #: metric rows per chunk when the metrics are sent at the end (a chunk per metric per this many steps)
 METRICS_CHUNK_ROWS = 1 << 18
 #: ``send_metrics`` waits for the writer after this many bytes of sent columns, so that what rerun

@@ -1,0 +1,164 @@
+"""Findings of issue 12's twelfth probe round, one test each."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from hairexp.errors import InputError
+
+SMOKE = ["experiment=goaling_smoke", "variants=[]", "frames=3", "logging.rerun=false", "logging.progress=false"]
+
+
+@pytest.mark.parametrize("name", ["result.usdc", "recording.rrd"])
+def test_a_folder_made_at_a_result_name_during_the_run_is_left_alone(tmp_path, monkeypatch, name):
+    """Another process made a folder (with a file in it) at a result file's name while the run
+    went on: the run fails (its results cannot take their names), and the folder and its file are
+    left as they were (they were deleted with the run's own partial results)."""
+    import hairexp.app.run as run_module
+    from hairexp.app.config import compose_config
+
+    out = tmp_path / "r"
+    real = run_module.write_npz
+
+    def write_then_intrude(*args, **kwargs):
+        real(*args, **kwargs)
+        (out / name).mkdir()
+        (out / name / "keep.txt").write_text("someone else's")
+
+    monkeypatch.setattr(run_module, "write_npz", write_then_intrude)
+    overrides = SMOKE if name != "recording.rrd" else [o for o in SMOKE if o != "logging.rerun=false"]
+    with pytest.raises(OSError, match=f"{name}: a folder of that name appeared in the run folder while the run went on"):
+        run_module.run(compose_config(overrides), out)
+    assert (out / name / "keep.txt").read_text() == "someone else's"
+    s = json.loads((out / "summary.json").read_text())
+    assert s["status"] == "failed" and "appeared in the run folder" in s["error"]
+    assert not (out / "result.npz").exists()   # the run's own results go, as for any late failure
+
+
+def test_a_body_keyed_far_from_the_origin_is_refused():
+    """A USD body translated 1e20 m at one time code ran to the end (exit 0, 7 of 10 steps
+    unconverged): a motion's translations are checked like the curves' points."""
+    from hairexp.model import RigidMotion
+
+    with pytest.raises(InputError, match=r"motion.translations: the translation at keyframe 1 \(t = 0.1 s\) is "
+                                         r"\[1e\+20, 0.0, 0.0\], more than 10000 m from the origin"):
+        RigidMotion(np.array([0.0, 0.1]), np.array([[0.0, 0.0, 0.0], [1e20, 0.0, 0.0]]), np.zeros((2, 3)))
+    RigidMotion(np.array([0.0, 0.1]), np.array([[0.0, 0.0, 0.0], [9e3, 0.0, 0.0]]), np.zeros((2, 3)))
+
+
+def test_coincident_strands_are_refused():
+    from hairexp.model.builders import straight_strands
+
+    with pytest.raises(InputError, match="scene.root_radius: must be > 0 for 3 strands without scene.spread"):
+        straight_strands(3, 8, 0.2, 0.0, np.zeros(3), np.array([0.0, -1.0, 0.0]), spread=0.0, seed=0)
+    straight_strands(1, 8, 0.2, 0.0, np.zeros(3), np.array([0.0, -1.0, 0.0]), spread=0.0, seed=0)   # one strand: fine
+
+
+def test_a_root_centre_far_from_the_origin_is_refused():
+    from hairexp.app.assemble import assemble
+    from hairexp.app.config import compose_config
+
+    with pytest.raises(InputError, match=r"scene.root_center: \[1e\+20, 0.0, 0.0\] is more than 10000 m"):
+        assemble(compose_config(SMOKE + ["scene.root_center=[1e20,0.0,0.0]"]))
+
+
+@pytest.mark.parametrize("name, content", [("summary.json", "my notes"), ("summary.json", '{"a": 1}'),
+                                           ("metrics.parquet", "a,b\n1,2\n"), ("result.npz", "")])
+def test_overwrite_keeps_a_file_that_only_has_a_run_files_name(tmp_path, name, content):
+    """overwrite=true deleted a user's text saved as summary.json or metrics.parquet."""
+    from hairexp.outputs.folder import claim
+
+    out = tmp_path / "r"
+    out.mkdir()
+    (out / name).write_text(content)
+    with pytest.raises(InputError, match=f"overwrite=true removes only what a run wrote; the folder also holds {name}"):
+        claim(out, overwrite=True)
+    assert (out / name).read_text() == content
+
+
+def test_overwrite_still_replaces_a_run(tmp_path):
+    from hairexp.app.config import compose_config
+    from hairexp.app.run import run
+
+    run(compose_config(SMOKE), tmp_path / "r")
+    run(compose_config(SMOKE + ["overwrite=true", "frames=2"]), tmp_path / "r")
+    assert json.loads((tmp_path / "r" / "summary.json").read_text())["status"] == "completed"
+    with np.load(tmp_path / "r" / "result.npz") as r:
+        assert len(r["times"]) == 3   # frames 0..2: the new run's, not the replaced one's 0..3
+
+
+def test_a_variant_cannot_set_overwrite():
+    from hairexp.app.config import compose_config
+    from hairexp.app.experiment import apply_overrides
+
+    with pytest.raises(InputError, match="a variant cannot set 'overwrite': it belongs to the launch"):
+        apply_overrides(compose_config(SMOKE), ["overwrite=true"], "variants[0] (free)")
+
+
+def test_a_full_disk_under_the_recording_is_named(monkeypatch):
+    """rerun's writer only logs its ENOSPC; the run's error said 'did not finish within 60 s'."""
+    import errno
+
+    import hairexp.outputs.rerun_sink as rs
+
+    class Stuck:
+        def flush(self, timeout_sec):
+            raise RuntimeError("Flush timed out - not all log messages were sent")
+
+    monkeypatch.setattr(rs, "_free_bytes", lambda path: 0)
+    monkeypatch.setattr(rs.rr, "unregister_shutdown", lambda: None)
+    rec = Stuck()
+    with pytest.raises(OSError, match=r"no space left on the device \(0 bytes free") as info:
+        rs.flush_recording(rec, "/x/recording.partial.rrd")
+    assert info.value.errno == errno.ENOSPC
+    rs._ABANDONED.remove(rec)
+
+
+def test_guide_shape_keys_a_file_does_not_use_are_warned(tmp_path, caplog):
+    from hairexp.app.config import compose_config
+    from hairexp.app.guides import unused_shape_keys
+    from hairexp.guides.animation import GuideAnimation
+
+    frames = np.zeros((2, 6, 3)) + np.arange(3)[None, :, None].repeat(2, 0).reshape(1, 6, 1) * [0.0, -0.1, 0.0]
+    anim = GuideAnimation(frames, np.array([0, 3, 6]), 25.0)
+    cfg = compose_config(SMOKE + ["guides.count=5"])
+    with caplog.at_level("WARNING", logger="hairexp"):
+        unused_shape_keys(cfg.guides, anim, "guides.file")
+    assert "guides.count=5 is not used: the guides come from guides.file, which holds 2 guides" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="hairexp"):
+        unused_shape_keys(compose_config(SMOKE + ["guides.count=1", "guides.n_vertices=8"]).guides, anim, "x")
+    assert caplog.text == ""   # the schema's defaults were not chosen: no warning
+
+
+def test_procedural_keys_a_stage_does_not_use_are_named():
+    from hairexp.app.builders import unused_procedural_keys
+    from hairexp.app.config import compose_config
+
+    cfg = compose_config(["experiment=from_usd", "scene.usd=x.usda", "scene.n_strands=3", "scene.direction=[0,1,0]"])
+    assert unused_procedural_keys(cfg.scene) == ["scene.n_strands=3", "scene.direction=[0.0, 1.0, 0.0]"]
+    assert unused_procedural_keys(compose_config(["experiment=from_usd", "scene.usd=x.usda"]).scene) == []
+
+
+def test_a_launch_inside_a_live_runs_folder_is_told_so_before_its_files(tmp_path):
+    """``hydra.run.dir=<live run>/stream``: the error said the folder was not empty (set
+    overwrite=true) instead of naming the live launch; nothing is taken or created."""
+    from hairexp.app.cli import live_folder_error, used_dir_error
+    from hairexp.outputs.folder import hold
+
+    live = tmp_path / "runA"
+    assert hold(live)   # this process plays the live run: another open of its lock is another launch
+    (live / "stream").mkdir()
+    (live / "stream" / "positions.npy").write_bytes(b"x")
+    argv = [*SMOKE, f"hydra.run.dir={live / 'stream'}"]
+    assert "not empty" in (used_dir_error(argv) or "")
+    msg = live_folder_error(argv)
+    assert msg is not None and "lies inside" in msg and str(live) in msg
+    assert not (live / "stream" / ".lock").exists()
+    msg = live_folder_error([*SMOKE, f"hydra.run.dir={live}"])
+    assert msg is not None and "another launch is using this run folder now" in msg
+    assert live_folder_error([*SMOKE, f"hydra.run.dir={tmp_path / 'other'}"]) is None
+    assert not (tmp_path / "other").exists()
