@@ -162,3 +162,36 @@ def test_a_launch_inside_a_live_runs_folder_is_told_so_before_its_files(tmp_path
     assert msg is not None and "another launch is using this run folder now" in msg
     assert live_folder_error([*SMOKE, f"hydra.run.dir={tmp_path / 'other'}"]) is None
     assert not (tmp_path / "other").exists()
+
+
+def test_a_size_the_collider_shape_does_not_read_is_refused():
+    from hairexp.app.config import compose_config
+    from hairexp.app.validate import validate_config
+
+    ball = "scene.colliders=[{name: b, shape: sphere, radius: 0.05, half_height: 0.3}]"
+    with pytest.raises(InputError, match=r"scene.colliders\[0\].half_height: is 0.3, but a sphere does not read it "
+                                         r"\(it reads radius\)"):
+        validate_config(compose_config(SMOKE + [ball]))
+    validate_config(compose_config(SMOKE + ["scene.colliders=[{name: b, shape: sphere, radius: 0.05}]"]))
+    validate_config(compose_config(["experiment=goaling", "variants=[]"]))   # a cylinder's half_height: read
+
+
+@pytest.mark.parametrize("key", ["solver.max_iterations", "tracking.max_iterations"])
+def test_an_iteration_budget_no_solve_needs_is_refused(key):
+    """1e8 iterations with an unreachable tolerance ran with no step for minutes (no estimate)."""
+    from hairexp.app.config import compose_config
+    from hairexp.app.validate import validate_config
+
+    with pytest.raises(InputError, match=f"{key}: must be at most 10000"):
+        validate_config(compose_config(SMOKE + [f"{key}=100000000"]))
+    validate_config(compose_config(SMOKE + [f"{key}=10000"]))
+
+
+def test_no_step_converged_names_the_statuses_as_counts():
+    import pandas as pd
+
+    from hairexp.app.run import convergence_error
+
+    why = convergence_error(pd.DataFrame({"converged": [False] * 3, "status": ["max_iterations"] * 3,
+                                          "dt": [0.04] * 3, "time": [0.04, 0.08, 0.12]}), "warn")
+    assert why == "no step converged (3 steps: 3 with status max_iterations)"

@@ -137,9 +137,10 @@ def convergence_error(df, policy: str) -> str | None:
     k = int(bad.sum())
     if not k:
         return None
-    statuses = ", ".join(f"{s}: {c}" for s, c in df["status"][bad].value_counts().items())
+    # "3 with status max_iterations", not "max_iterations: 3" (read as the setting; probe, round 12)
+    statuses = ", ".join(f"{c} with status {s}" for s, c in df["status"][bad].value_counts().items())
     if k == n:
-        why = f"no step converged ({n} steps; {statuses})"
+        why = f"no step converged ({n} steps: {statuses})"
         dt = float(df["dt"].min()) if "dt" in df else float("nan")
         if dt < TINY_STEP:   # measured on goaling_smoke: steps of 1e-6 s converge, of 1e-7 s none does
             why += (f"; its steps are {dt:.3g} s long (solver.dt, or a frame of 1/fps when fps is higher than "

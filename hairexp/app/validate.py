@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 
+from hairexp.app.config import ColliderConfig
 from hairexp.errors import InputError, integer, number
 from hairexp.control.tracking.correspondence import check_correspondence_options
 from hairexp.control.tracking.kkt import MAX_SCHUR_BYTES, schur_bytes
@@ -33,7 +34,7 @@ from hairexp.evaluation.judges import JUDGE_MEASURES, missing_controllers
 from hairexp.guides.authoring import check_edits
 from hairexp.evaluation.measures import collider_named
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR, make_integrator
-from hairexp.physics.simulator import MAX_LAST_ATTEMPT, MAX_SUBSTEP_LEVELS, check_solver_config  # noqa: F401
+from hairexp.physics.simulator import MAX_ITERATION_BUDGET, MAX_LAST_ATTEMPT, MAX_SUBSTEP_LEVELS, check_solver_config  # noqa: F401
 from hairexp.physics.strand_kernels import check_options
 
 
@@ -112,7 +113,10 @@ def _tracking(t) -> None:
         raise InputError("tracking.rtol and tracking.atol are both 0: no step can converge; give one > 0",
                          "tracking.rtol")
     number(t.ctol_rel, "tracking.ctol_rel", lo=0, lo_open=True)
-    integer(t.max_iterations, "tracking.max_iterations", 1)
+    if integer(t.max_iterations, "tracking.max_iterations", 1) > MAX_ITERATION_BUDGET:
+        raise InputError(f"must be at most {MAX_ITERATION_BUDGET} (an SQP solve takes 2-60 iterations; one that has "
+                         f"not converged in {MAX_ITERATION_BUDGET} will not), got {t.max_iterations}",
+                         "tracking.max_iterations")
     integer(t.nonmonotone, "tracking.nonmonotone", 1)
     number(t.krylov_tol, "tracking.krylov_tol", lo=0, hi=1e-2, lo_open=True)   # relative residual of each KKT solve
     integer(t.krylov_max, "tracking.krylov_max", 1)
@@ -242,9 +246,35 @@ def _unused(cfg) -> None:
         number(v, f"scene.body.velocity[{i}]")
 
 
+#: the size keys each collider shape reads (hairexp/model/builders.py build_collider)
+SHAPE_SIZES = {"sphere": ("radius",), "capsule": ("radius", "half_length"), "box": ("half_extents",),
+               "cylinder": ("radius", "half_height"), "plane": ()}
+
+
+def _collider_sizes(cfg) -> None:
+    """A size key a collider's shape does not read, set to other than the schema's default, is
+    an error (a sphere's ``half_height=0.3`` was ignored without a word while its ``spin`` was
+    refused; probe of issue 12, round 12)."""
+    default = ColliderConfig()
+    for i, c in enumerate(cfg.scene.colliders):
+        shape = str(_value(c.shape))
+        if shape != "cylinder" and c.spin != 0:   # the builder's own check, first: the shape's other key
+            raise InputError(f"is {c.spin} but only a cylinder spins (shape {shape})", f"scene.colliders[{i}].spin")
+        for k in ("radius", "half_length", "half_height", "half_extents"):
+            if k in SHAPE_SIZES.get(shape, ()):
+                continue
+            v, d = getattr(c, k), getattr(default, k)
+            v = list(v) if k == "half_extents" else v
+            if v != d:
+                uses = ", ".join(SHAPE_SIZES.get(shape, ())) or "no size"
+                raise InputError(f"is {v}, but a {shape} does not read it (it reads {uses})",
+                                 f"scene.colliders[{i}].{k}")
+
+
 def validate_config(cfg) -> None:
     """Every config key the layers below do not check where they read it (see module doc)."""
     _scene(cfg)
+    _collider_sizes(cfg)
     _unused(cfg)
     _guides(cfg)
     _solver(cfg.solver)

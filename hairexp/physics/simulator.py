@@ -117,6 +117,10 @@ MAX_LAST_ATTEMPT = 64
 #: solver.max_substep_levels at most: 2^10 substeps of a failing step (beyond, a run whose steps
 #: all fail retries each of them for hours before it reports)
 MAX_SUBSTEP_LEVELS = 10
+#: solver.max_iterations and tracking.max_iterations at most this (not MAX_ITERATIONS: that is a status): a solve that has not converged in
+#: it will not (a step takes 2-25 here); 1e8 with an unreachable tolerance ran for hours without
+#: a step (probe of issue 12, round 12)
+MAX_ITERATION_BUDGET = 10_000
 
 
 def check_solver_config(s) -> None:
@@ -141,6 +145,10 @@ def check_solver_config(s) -> None:
     for key, lo in (("max_iterations", 1), ("max_backtracks", 0)):
         if hasattr(s, key):
             integer(getattr(s, key), f"solver.{key}", lo)
+    if getattr(s, "max_iterations", 1) > MAX_ITERATION_BUDGET:
+        raise InputError(f"must be at most {MAX_ITERATION_BUDGET} (a Newton solve takes 2-25 iterations; one that has "
+                         f"not converged in {MAX_ITERATION_BUDGET} will not), got {s.max_iterations}",
+                         "solver.max_iterations")
     if integer(getattr(s, "last_attempt_iterations", 1), "solver.last_attempt_iterations", 1) > MAX_LAST_ATTEMPT:
         raise InputError(f"must be at most {MAX_LAST_ATTEMPT} (times the iterations of a solve), got "
                          f"{s.last_attempt_iterations}", "solver.last_attempt_iterations")

@@ -202,6 +202,8 @@ class TrackingController(Controller):
         return {"residual_max": float(r[hard].max(initial=0.0)), "residual_rms": float(np.sqrt(np.mean(r[hard] ** 2))),
                 "residual_rel_max": float(r[hard].max(initial=0.0) / self.hair_length),
                 "relaxed_clusters": int(0 if rel is None else rel.sum()), "relaxed_slack_rel_max": slack,
-                "variance_ratio_mean": float(np.nanmean(ratio)), "variance_ratios": ratio,
+                # NaN when no cluster has a target spread (target_scale 0): without numpy's empty-slice warning
+                "variance_ratio_mean": float(np.nanmean(ratio)) if np.isfinite(ratio).any() else float("nan"),
+                "variance_ratios": ratio,
                 "constraint_force": force, "constraint_force_rel": force / self.m_g_norm,
                 "targets": self.cons.target_points(tg, tk), "com": self.cons.com(xf), "guides": tg.guide_shape}

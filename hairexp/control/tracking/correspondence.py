@@ -56,6 +56,8 @@ PLACEMENTS = ("hair_mass", "arc_length")
 
 def closest_points_on_polyline(X: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Closest points on polyline P (n, 3) to points X (m, 3): (points (m, 3), arc length (m,))."""
+    if len(P) < 2:   # numpy's "argmin of an empty sequence" named nothing (probe of issue 12, round 12)
+        raise InputError(f"the polyline needs >= 2 points, got {len(P)}", "closest_points_on_polyline")
     a, b = P[:-1], P[1:]
     ab = b - a                                        # (n-1, 3)
     L = np.einsum("ij,ij->i", ab, ab)
@@ -96,6 +98,9 @@ class Correspondence:
 
 def sample_tracking_points(P: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
     """``count`` points equidistant in arc length at the centres of equal intervals."""
+    check_correspondence_options(count, "arc_length", "hard")   # -1 or 2.5 gave points without a word
+    if len(P) < 2:
+        raise InputError(f"the polyline needs >= 2 points, got {len(P)}", "sample_tracking_points")
     seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     targets = (np.arange(count) + 0.5) / count * s[-1]
