@@ -195,3 +195,66 @@ def test_no_step_converged_names_the_statuses_as_counts():
     why = convergence_error(pd.DataFrame({"converged": [False] * 3, "status": ["max_iterations"] * 3,
                                           "dt": [0.04] * 3, "time": [0.04, 0.08, 0.12]}), "warn")
     assert why == "no step converged (3 steps: 3 with status max_iterations)"
+
+
+def test_guides_far_off_the_body_are_refused():
+    """Guides made on goaling's moving body reused on a still one (roots 0.47 m off the body), or
+    a guide file 2-5 m off the roots: "completed" at 515-1,395 % stretch with only a warning."""
+    from hairexp.app.assemble import assemble
+    from hairexp.app.config import compose_config
+    from hairexp.app.guides import warn_far_guides
+    from hairexp.guides.animation import GuideAnimation
+
+    run = assemble(compose_config(SMOKE + ["controller=tracking"]))
+    scene, g = run.scene, run.guides
+    P = np.array(g.positions)
+    moved = P.copy()
+    moved[2:] += [0.2, 0.0, 0.0]   # from frame 2 on, the whole guide 0.2 m (2/3 of the 0.3 m wisp) aside
+    with pytest.raises(InputError, match=r"guides: guide 0's root is 0.2 m from where the body carries it at frame 2 "
+                                         r".*more than 0.5 of the hair's length"):
+        warn_far_guides(scene, GuideAnimation(moved, g.offsets, g.fps))
+    far = P + [2.0, 0.0, 0.0]
+    with pytest.raises(InputError, match=r"guides: guide 0.s root is 1.98 m from the nearest hair root at frame 0, "
+                                         r"farther than the hair is long"):
+        warn_far_guides(scene, GuideAnimation(far, g.offsets, g.fps))
+    warn_far_guides(scene, g)   # its own guides: fine
+
+
+def test_a_dynamic_block_launched_at_1e9_m_per_s_is_refused():
+    from hairexp.app.config import compose_config
+    from hairexp.app.validate import validate_config
+
+    with pytest.raises(InputError, match=r"scene.body.velocity\[0\]: must be >= -1000 and <= 1000, got 1e\+09"):
+        validate_config(compose_config(["experiment=stylization_smoke", "variants=[]", "scene.body.velocity=[1e9,0.0,0.0]"]))
+
+
+def test_a_variant_that_did_not_solve_its_steps_gets_no_verdict():
+    from hairexp.app.experiment import unjudgeable
+
+    ok = {"free": {"converged_fraction": 1.0, "stretch_max": 0.01, "steps": 30, "unconverged_steps": 0},
+          "tracked": {"converged_fraction": 29 / 30, "stretch_max": 0.1, "steps": 30, "unconverged_steps": 1}}
+    assert unjudgeable(ok) is None
+    bad = {**ok, "tracked": {"converged_fraction": 4 / 30, "stretch_max": 5.81, "steps": 30, "unconverged_steps": 26}}
+    why = unjudgeable(bad)
+    assert "tracked: 26 of 30 steps did not converge" in why and "tracked: its hair stretched by 581 %" in why
+
+
+def test_reserved_names_and_links_in_hydras_record_are_refused(tmp_path):
+    from hairexp.app.cli import reserved_part, run_dir_error, used_dir_error
+
+    assert "keeps for Hydra" in run_dir_error([*SMOKE, f"hydra.run.dir={tmp_path}/a/.hydra"])
+    assert "keeps for the launch lock" in run_dir_error(["-m", *SMOKE, f"hydra.sweep.dir={tmp_path}/.lock/s"])
+    msg = used_dir_error(["-m", *SMOKE, "frames=2,3", f"hydra.sweep.dir={tmp_path}/sw",
+                          "hydra.sweep.subdir=.hydra/${hydra.job.num}"])
+    assert msg is not None and "cannot be a job folder" in msg
+    assert reserved_part("a/.hydrated/b") is None
+    victim = tmp_path / "victim.yaml"
+    victim.write_text("precious")
+    (tmp_path / "r" / ".hydra").mkdir(parents=True)
+    (tmp_path / "r" / ".hydra" / "config.yaml").symlink_to(victim)
+    msg = used_dir_error([*SMOKE, f"hydra.run.dir={tmp_path / 'r'}"])
+    assert msg is not None and "holds symbolic links (config.yaml)" in msg
+    (tmp_path / "s").mkdir()
+    (tmp_path / "s" / ".hydra").symlink_to(tmp_path)
+    assert "is a symbolic link" in used_dir_error([*SMOKE, f"hydra.run.dir={tmp_path / 's'}"])
+    assert victim.read_text() == "precious"

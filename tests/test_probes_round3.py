@@ -167,8 +167,9 @@ def test_usd_cubic_hair_is_warned_about(stage, caplog):
     assert any(f"{stage}:/Root/Body/Hair: type is cubic (basis bezier)" in r.getMessage() for r in caplog.records)
 
 
-def test_guides_far_from_the_hair_are_warned_about(stage, caplog):
-    """Guides 100 m from the hair (another space or unit) ran without a word; now a warning."""
+def test_guides_far_from_the_hair_are_refused(stage, caplog):
+    """Guides 100 m from the hair (another space or unit) ran without a word; then a warning, and
+    since round 12 (the run "completed" at 515 % stretch) an error."""
     import logging
 
     from usd_helpers import edit_stage, usd_cfg, vec3f
@@ -183,9 +184,8 @@ def test_guides_far_from_the_hair_are_warned_about(stage, caplog):
         assemble_scene(usd_cfg(stage), settle=False)
     assert not any("from the nearest hair root" in r.getMessage() for r in caplog.records)
     edit_stage(stage, shift)
-    with caplog.at_level(logging.WARNING, logger="hairexp"):
+    with pytest.raises(InputError, match="guides: guide 0's root is 100 m from the nearest hair root"):
         assemble_scene(usd_cfg(stage), settle=False)
-    assert any("guides: guide 0's root is 100 m from the nearest hair root" in r.getMessage() for r in caplog.records)
 
 
 # 3. guide files

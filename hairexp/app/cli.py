@@ -44,8 +44,8 @@ from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, SimulationError
 from hairexp.outputs.files import write_json
-from hairexp.outputs.folder import (LOCK, RESERVE, SUMMARY, held_elsewhere, hold, note_job_logs, overwrite_refusal, running_run,
-                                    used_entries, used_refusal)
+from hairexp.outputs.folder import (LOCK, RESERVE, SUMMARY, held_elsewhere, hold, hydra_link_refusal, note_job_logs,
+                                    overwrite_refusal, running_run, used_entries, used_refusal)
 
 log = logging.getLogger("hairexp")
 OUTCOME = Path(".hydra") / "outcome.json"
@@ -338,10 +338,28 @@ def exit_code(signum: int | None = None) -> int:
 MIN_FREE_BYTES = 256 << 10
 
 
+#: names a run folder keeps for Hydra's record and the launch lock (hairexp/outputs/folder.py)
+RESERVED_NAMES = (".hydra", ".lock")
+
+
+def reserved_part(path: str) -> str | None:
+    """Why ``path`` cannot be a run, sweep or job folder when one of its parts is a name a run
+    folder keeps for itself (``.hydra``, ``.lock``), or None: a run in ``<dir>/.hydra`` was taken
+    for Hydra's record of ``<dir>``, which a later run then found empty and wrote into (probe of
+    issue 12, round 12)."""
+    bad = next((part for part in Path(path).parts if part in RESERVED_NAMES), None)
+    if bad is None:
+        return None
+    return f"its part {bad} is a name a run folder keeps for {'Hydra' if bad == '.hydra' else 'the launch lock'}"
+
+
 def _unusable_folder(path: str) -> str | None:
     """Why ``path`` cannot be (or be made) a writable folder, or None.  Nothing is left behind:
     writability is tried with a temporary folder, removed at once."""
     p = Path(os.path.abspath(path))
+    reserved = reserved_part(path)
+    if reserved is not None:
+        return reserved
     probe = p
     try:
         while True:   # the deepest part of the path that exists
@@ -482,6 +500,9 @@ def used_dir_error(argv: list[str]) -> str | None:
     folder = _fixed_folder(argv, "hydra.run.dir", parser)
     if folder is None:
         return None
+    linked = hydra_link_refusal(folder)
+    if linked is not None:
+        return f"hairexp: error: {folder}: {linked}"
     if _overwrite_given(argv, parser):   # a finished run is replaced; a live one is not, nor foreign files (nor its .hydra/)
         refused = overwrite_refusal(folder)
         if refused is not None:
@@ -605,6 +626,9 @@ def _used_sweep_dir_error(argv: list[str], parser) -> str | None:
     if escape is not None:
         return escape
     folder = _fixed_folder(argv, "hydra.sweep.dir", parser)
+    linked = None if folder is None else hydra_link_refusal(folder)
+    if linked is not None:
+        return f"hairexp: error: {folder}: {linked}"
     entries = [] if folder is None or not folder.is_dir() else [p for p in folder.iterdir() if p.name != LOCK]
     if entries:   # its .lock alone: a launch's, told by hold_folder_error
         shown = ", ".join(sorted(p.name for p in entries)[:6])
@@ -625,6 +649,8 @@ def _escaping_job_folder(argv: list[str], sub: str | None) -> str | None:
     started (probes of issue 12, rounds 10 and 11).  Every job is tried when the sweep has at most
     SUBDIR_JOBS_CHECKED jobs, else every value of every swept key once (``_sweep_jobs``); an
     interpolation that cannot be resolved here is taken as one plain folder name."""
+    if sub is not None and reserved_part(sub) is not None:
+        return f"hairexp: error: hydra.sweep.subdir={sub}: cannot be a job folder: {reserved_part(sub)}"
     if sub is None or "${" not in sub:
         return None
     overrides = _plain_overrides(argv)
@@ -667,6 +693,9 @@ def _escaping_job_folder(argv: list[str], sub: str | None) -> str | None:
             return (f"hairexp: error: hydra.sweep.subdir={sub}: the job [{what}] would write into {path}, outside "
                     "the sweep folder (hydra.sweep.dir): a value with '..' or a leading '/' climbs out through "
                     "the template; use the default subdir (${hydra.job.num}) or values without path parts")
+        if reserved_part(norm) is not None:
+            return (f"hairexp: error: hydra.sweep.subdir={sub}: the job [{what}] would write into {path}: "
+                    f"{reserved_part(norm)}")
         if norm in seen and "hydra.job.num" not in sub:
             return (f"hairexp: error: hydra.sweep.subdir={sub}: the jobs [{seen[norm]}] and [{what}] would both write "
                     f"into {norm}; a job's folder must differ per job: include ${{hydra.job.num}} in the template")

@@ -177,14 +177,17 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
 
 #: a guide root farther than this fraction of the hair's length from where the body carries it is said
 ROOT_DRIFT = 0.01
+#: ... and farther than this fraction is an error (the stress matrix's teleported guides jump 0.33 of it)
+MAX_ROOT_DRIFT = 0.5
 
 
 def warn_far_guides(scene, anim) -> None:
-    """A warning when a guide's root at frame 0 is farther from every hair root than the hair is
-    long: the guides are likely in another space or unit than the hair (a guide file or stage made
-    for another scene).  Else, with a keyframed body, a warning when a guide's root leaves the body
-    (farther than ROOT_DRIFT x the hair's length from where the body carries its frame-0 root, at
-    any frame).  The run goes on (tracking.max_guide_distance > 0 makes the first an error)."""
+    """An InputError when a guide's root at frame 0 is farther from every hair root than the hair
+    is long: the guides are likely in another space or unit than the hair (a guide file or stage
+    made for another scene; it was a warning, and the run ended "completed" at 515 % stretch;
+    a warning when they look authored tip to root).  Else, with a keyframed body, a warning when
+    a guide's root leaves the body (farther than ROOT_DRIFT x the hair's length from where the
+    body carries its frame-0 root, at any frame), an InputError beyond MAX_ROOT_DRIFT x it."""
     import logging
 
     s = scene.strands
@@ -202,13 +205,11 @@ def warn_far_guides(scene, anim) -> None:
             "%d guides): the hair curves look authored tip to root; a curve's first vertex is its root (on the body)",
             g, d[g], d_tip[g], far.size, len(d))
         return
-    if far.size:
+    if far.size:   # an error since round 12 of issue 12's probe: the run "completed" with the hair at 515 % stretch
         g = int(far[0])
-        logging.getLogger("hairexp").warning(
-            "guides: guide %d's root is %.3g m from the nearest hair root at frame 0, farther than the hair is long "
-            "(%.3g m; %d of %d guides): check that the guides are in the hair's space and units", g, d[g], length,
-            far.size, len(d))
-        return
+        raise InputError(f"guide {g}'s root is {d[g]:.3g} m from the nearest hair root at frame 0, farther than the "
+                         f"hair is long ({length:.3g} m; {far.size} of {len(d)} guides): the tracking would tear the "
+                         "hair off its roots; check that the guides are in the hair's space and units", "guides")
     if scene.body is not None:   # a dynamic body's poses are known only as the run goes
         return
     # the guides' roots ride the body: where the body carries their frame-0 roots, at every frame
@@ -220,6 +221,12 @@ def warn_far_guides(scene, anim) -> None:
     for f in range(1, len(anim.frames)):
         R, T = motion.pose(f / fps)
         drift = np.linalg.norm(np.asarray(anim.frames[f])[np.asarray(anim.offsets[:-1])] - (local @ R.T + T), axis=1)
+        if drift.max() > MAX_ROOT_DRIFT * length:   # guides made on another body motion (probe, round 12)
+            g = int(np.argmax(drift))
+            raise InputError(f"guide {g}'s root is {drift[g]:.3g} m from where the body carries it at frame {f} "
+                             f"(t = {f / fps:.4g} s), more than {MAX_ROOT_DRIFT:g} of the hair's length: the guides do "
+                             "not ride this body, and the tracking would tear the hair off its roots; make the guides "
+                             "with this body motion", "guides")
         if drift.max() > tol:
             g = int(np.argmax(drift))
             logging.getLogger("hairexp").warning(

@@ -376,11 +376,13 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
 def _write_ending(path: Path, summary: dict) -> None:
     """The ending's summary.json: atomically (a new file, renamed), or, when the disk has no room
     for the new file, over the running summary's own bytes (truncated first, which frees them),
-    so that a full disk does not leave the summary saying "running" (probe of issue 12)."""
+    so that a full disk does not leave the summary saying "running" (probe of issue 12); the same
+    when the folder stopped taking new files (made read-only or immutable while the run went on:
+    permission denied for the new file, while the summary itself can still be written; round 12)."""
     try:
         write_json(path, summary)
     except OSError as exc:
-        if exc.errno != errno.ENOSPC or not path.is_file():
+        if exc.errno not in (errno.ENOSPC, errno.EACCES, errno.EPERM) or not path.is_file():
             raise
         data = json_bytes(summary)   # before the old bytes are freed: the same JSON as write_json's
         with open(path, "r+b") as f:

@@ -38,6 +38,9 @@ from hairexp.physics.simulator import MAX_ITERATION_BUDGET, MAX_LAST_ATTEMPT, MA
 from hairexp.physics.strand_kernels import check_options
 
 
+#: m/s, the dynamic block's initial speed at most this (3 x the speed of sound; hair is simulated
+#: in metres and seconds, where faster is a unit error)
+MAX_BODY_SPEED = 1e3
 #: collision.barrier_dhat's bound (d_hat as a multiple of the contact thickness)
 MAX_BARRIER_DHAT = 10.0
 
@@ -242,8 +245,8 @@ def _unused(cfg) -> None:
     vel = list(b.velocity)
     if len(vel) != 3:
         raise InputError(f"expected 3 finite numbers (m/s), got {vel}", "scene.body.velocity")
-    for i, v in enumerate(vel):
-        number(v, f"scene.body.velocity[{i}]")
+    for i, v in enumerate(vel):   # 1e9 m/s ran "completed", the hair 1.2e8 m away (probe of issue 12, round 12)
+        number(v, f"scene.body.velocity[{i}]", lo=-MAX_BODY_SPEED, hi=MAX_BODY_SPEED)
 
 
 #: the size keys each collider shape reads (hairexp/model/builders.py build_collider)

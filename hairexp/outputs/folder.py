@@ -66,6 +66,24 @@ def held_elsewhere(folder: Path) -> bool:
         os.close(fd)
 
 
+def hydra_link_refusal(folder: Path) -> str | None:
+    """Why Hydra may not write its record into ``folder`` when its ``.hydra`` is a symbolic link
+    or holds one: Hydra writes through them, so a file (or a folder) outside the run folder was
+    overwritten or filled (probe of issue 12, round 12).  None when there is no such link."""
+    h = Path(folder) / ".hydra"
+    if h.is_symlink():
+        return f"{h} is a symbolic link (to {os.readlink(h)}): Hydra would write its record through it"
+    if h.is_dir():
+        try:
+            links = sorted(q.name for q in h.iterdir() if q.is_symlink())
+        except OSError:
+            return None
+        if links:
+            return (f"{h} holds symbolic links ({', '.join(links[:4])}): Hydra would write its record through "
+                    "them")
+    return None
+
+
 def _hydras(p: Path) -> bool:
     """Hydra's own entries (``.hydra/``, the job's ``*.log``) and the launch's ``.lock``."""
     return p.name in (".hydra", LOCK) or (p.is_file() and not p.is_symlink() and p.suffix == ".log")
@@ -343,6 +361,9 @@ def claim(folder: Path, overwrite: bool = False) -> None:
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise InputError("is not a folder", str(folder))
+    linked = hydra_link_refusal(folder)
+    if linked is not None:
+        raise InputError(linked, str(folder))
     used = used_entries(folder)
     if used:
         if not overwrite:
