@@ -11,7 +11,9 @@ non-zero exit; the codes are decided after Hydra returns (hairexp/app/cli.py): 2
 from __future__ import annotations
 
 import logging
+import os
 import sys
+from concurrent.futures.process import BrokenProcessPool
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
@@ -58,10 +60,22 @@ def entry() -> int:
     if used is not None:
         print(used, file=sys.stderr)
         return 2
+    if any(a in ("-m", "--multirun") for a in sys.argv[1:]):
+        # Hydra then lets the launcher's exceptions through instead of printing them and exiting 1
+        # itself: a sweep worker that was killed is said below in one line
+        os.environ.setdefault("HYDRA_FULL_ERROR", "1")
     try:
         # outside a run (composing, between sweep jobs) too; a sweep's running jobs are stopped first
         with InterruptSignals(on_signal=cli.stop_sweep_jobs):
             main()
+    except BrokenProcessPool as exc:
+        # a sweep worker killed (SIGKILL, the out-of-memory killer): joblib's traceback, exit 1, and its
+        # job's summary left "running" (probe of issue 12, round 12); its job is ended as failed below
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        print(f"hairexp: a sweep worker process ended abruptly (killed: out of memory, or a SIGKILL); the jobs it "
+              f"ran are failed ({type(exc).__name__}: {first})", file=sys.stderr)
+        code = cli.exit_code()
+        return code if code else 1
     except KeyboardInterrupt as exc:
         code = exit_code(exc.signum) if isinstance(exc, Interrupted) else 130
         # outside a run (a run prints its own line): while the config was composed, or between sweep jobs

@@ -258,3 +258,45 @@ def test_reserved_names_and_links_in_hydras_record_are_refused(tmp_path):
     (tmp_path / "s" / ".hydra").symlink_to(tmp_path)
     assert "is a symbolic link" in used_dir_error([*SMOKE, f"hydra.run.dir={tmp_path / 's'}"])
     assert victim.read_text() == "precious"
+
+
+def test_overwrite_refuses_a_run_whose_input_is_in_the_folder(tmp_path):
+    """guides.file=<dir>/guides.npz with overwrite=true into <dir>: the previous run was deleted,
+    then the new one failed with 'no such file' (both lost)."""
+    from hairexp.app.cli import used_dir_error
+    from hairexp.app.config import compose_config
+    from hairexp.app.run import inputs_inside, run
+
+    d = tmp_path / "r"
+    run(compose_config(SMOKE), d)
+    again = SMOKE + ["guides.source=file", "guides.edits=[]", f"guides.file={d / 'guides.npz'}", "overwrite=true"]
+    with pytest.raises(InputError, match="guides.file=.*guides.npz lies inside the run folder that overwrite=true"):
+        run(compose_config(again), d)
+    assert (d / "guides.npz").is_file() and (d / "result.npz").is_file()   # the previous run kept
+    msg = used_dir_error([*again, f"hydra.run.dir={d}"])
+    assert msg is not None and "lies inside the run folder" in msg
+    assert inputs_inside(compose_config(SMOKE + ["scene.usd=/elsewhere/s.usda"]), d) is None
+
+
+def test_a_killed_sweep_worker_is_one_line_not_a_traceback(monkeypatch, capsys, tmp_path):
+    """joblib's TerminatedWorkerError (a worker killed by SIGKILL or the out-of-memory killer) went
+    through Hydra's traceback, exit 1, and the jobs' summaries stayed running; now one line, and
+    the jobs are reported (``cli.exit_code``, which ends a dead job's summary as failed)."""
+    import sys
+
+    import hairexp.__main__ as entry_module
+    from joblib.externals.loky.process_executor import TerminatedWorkerError
+
+    def killed():
+        raise TerminatedWorkerError("A worker process managed by the executor was unexpectedly terminated.")
+
+    monkeypatch.setattr(entry_module, "main", killed)
+    monkeypatch.setattr(entry_module.cli, "exit_code", lambda *a: 1)
+    monkeypatch.setattr(sys, "argv", ["hairexp", "-m", *SMOKE, "frames=2,3", f"hydra.sweep.dir={tmp_path / 'sw'}"])
+    monkeypatch.setenv("HYDRA_FULL_ERROR", "placeholder")   # recorded: restored (unset) after the test
+    monkeypatch.delenv("HYDRA_FULL_ERROR")
+    assert entry_module.entry() == 1
+    err = capsys.readouterr().err
+    assert "hairexp: a sweep worker process ended abruptly" in err and "Traceback" not in err
+    import os
+    assert os.environ.get("HYDRA_FULL_ERROR") == "1"   # so that Hydra lets the launcher's error through

@@ -40,6 +40,7 @@ from hydra.experimental.callback import Callback
 from hairexp.app.assemble import check_config
 from hairexp.app.config import CONF_DIR, check_bool_overrides, check_interpolations, check_keys, compose_config
 from hairexp.app.experiment import run_experiment
+from hairexp.app.run import inputs_inside
 from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, SimulationError
@@ -570,9 +571,16 @@ def _overwrite_config_error(argv: list[str]) -> str | None:
     replace a finished run: checked before Hydra replaces that run's ``.hydra/`` record and before
     its files go (a bad value deleted the run it was to replace and then was refused; probe of
     issue 12).  Composition errors are ``config_error``'s; a run checks its config again."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
     overrides = _plain_overrides(argv)
     try:
-        check_config(compose_config(overrides))
+        cfg = compose_config(overrides)
+        folder = _fixed_folder(argv, "hydra.run.dir", OverridesParser.create())
+        inside = None if folder is None else inputs_inside(cfg, folder)
+        if inside is not None:
+            return f"hairexp: error: {folder}: {inside}"
+        check_config(cfg)
     except InputError as exc:
         return f"hairexp: error: {exc}"
     except Exception:  # noqa: BLE001  (not composable: config_error's message, after this)

@@ -31,7 +31,7 @@ from hairexp.app.signals import InterruptSignals, take_late
 from hairexp.errors import InputError, Interrupted
 from hairexp.evaluation.judges import JUDGES
 from hairexp.evaluation.measures import experiment_key_moment
-from hairexp.app.run import config_hash, run
+from hairexp.app.run import config_hash, inputs_inside, run
 from hairexp.outputs.files import write_json
 from hairexp.outputs.folder import SUMMARY, claim, owner
 
@@ -153,6 +153,10 @@ def run_experiment(cfg, out_dir) -> dict:
             raise InputError(f"{exc} (variants[{i}] {name}, checked before any variant runs)") from exc
     validate_judge_controllers(cfg, names, [_variant_facts(v)["controller"] for v in vcfgs])
     plain = to_plain(cfg)
+    if bool(cfg.overwrite):
+        inside = inputs_inside(cfg, out)
+        if inside is not None:
+            raise InputError(inside, str(out))
     claim(out, overwrite=bool(cfg.overwrite))
     t0 = time.perf_counter()
     summary = {"experiment": plain.get("experiment"), "status": "running", **owner(), "success": None,

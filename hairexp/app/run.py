@@ -37,7 +37,7 @@ import numpy as np
 from hairexp.app.assemble import assemble, check_config
 from hairexp.app.config import to_plain
 from hairexp.app.signals import InterruptSignals, note_late
-from hairexp.errors import Interrupted, SimulationError
+from hairexp.errors import InputError, Interrupted, SimulationError
 from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
@@ -203,10 +203,36 @@ def own_result(sinks, p: Path) -> None:
     sinks.written.append(p)
 
 
+#: the config's input files (a run reads them; ``inputs_inside``)
+INPUT_KEYS = ("scene.usd", "guides.file")
+
+
+def inputs_inside(cfg, folder: Path) -> str | None:
+    """Why ``overwrite=true`` may not replace the run in ``folder``: an input file of ``cfg``
+    (``scene.usd``, ``guides.file``) lies inside it, such as the previous run's own
+    ``guides.npz`` or ``result.usdc``.  The previous run was deleted first and the new one then
+    failed with "no such file": both runs lost (probe of issue 12, round 12).  None otherwise."""
+    from omegaconf import OmegaConf
+
+    root = Path(os.path.realpath(folder))
+    for key in INPUT_KEYS:
+        value = OmegaConf.select(cfg, key, default=None)
+        if not isinstance(value, str) or not value:
+            continue
+        p = Path(os.path.realpath(value))
+        if p == root or root in p.parents:
+            return (f"{key}={value} lies inside the run folder that overwrite=true would empty first; copy it "
+                    "elsewhere, or write the new run into another folder")
+    return None
+
+
 def run(cfg, out_dir: str | Path) -> dict:
     out = Path(out_dir)
     plain = to_plain(cfg)
     if bool(cfg.overwrite) and used_entries(out):   # the settings first: a bad value removed the run it was to replace
+        inside = inputs_inside(cfg, out)
+        if inside is not None:
+            raise InputError(inside, str(out))
         check_config(cfg)
     claim(out, overwrite=bool(cfg.overwrite))   # InputError (exit 2) for a used folder; nothing written
     controller = plain["controller"]["name"]
