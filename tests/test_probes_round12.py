@@ -300,3 +300,57 @@ def test_a_killed_sweep_worker_is_one_line_not_a_traceback(monkeypatch, capsys, 
     assert "hairexp: a sweep worker process ended abruptly" in err and "Traceback" not in err
     import os
     assert os.environ.get("HYDRA_FULL_ERROR") == "1"   # so that Hydra lets the launcher's error through
+
+
+def test_a_run_inside_another_runs_folder_is_refused(tmp_path):
+    from hairexp.app.cli import used_dir_error
+
+    (tmp_path / "done").mkdir()
+    (tmp_path / "done" / "summary.json").write_text('{"status": "completed"}')
+    msg = used_dir_error([*SMOKE, f"hydra.run.dir={tmp_path / 'done' / 'nested'}"])
+    assert msg is not None and "lies inside" in msg and "another run's folder" in msg
+    msg = used_dir_error(["-m", *SMOKE, "frames=2,3", f"hydra.sweep.dir={tmp_path / 'done' / 'sw'}"])
+    assert msg is not None and "another run's folder" in msg
+    assert used_dir_error([*SMOKE, f"hydra.run.dir={tmp_path / 'fresh' / 'a'}"]) is None
+
+
+@pytest.mark.parametrize("override, match", [
+    ("scene.motion.rotations_deg=[[1e9,0.0,0.0]]", r"scene.motion.rotations_deg\[0\]: must be within \+-36000 degrees"),
+    ("guides.scale_factors=[1e9]", r"guides.scale_factors\[0\]: must be > 0 and <= 1000"),
+])
+def test_key_values_beyond_any_use_are_named(override, match):
+    from hairexp.app.assemble import assemble
+    from hairexp.app.config import compose_config
+
+    with pytest.raises(InputError, match=match):
+        assemble(compose_config(SMOKE + ["scene.motion.times=[0.0]", "scene.motion.translations=[[0.0,0.0,0.0]]",
+                                         "scene.motion.rotations_deg=[[0.0,0.0,0.0]]", override]))
+
+
+def test_an_unknown_experiment_is_an_input_error():
+    from hairexp.app.config import compose_config
+
+    with pytest.raises(InputError, match=r"experiment: no such option 'nosuch' of the config group experiment "
+                                         r"\(options: celia, "):
+        compose_config(["experiment=nosuch"])
+
+
+def test_inactive_usd_prims_are_named(tmp_path, caplog):
+    from pxr import Usd
+    from usd_helpers import COLLIDERS, source_cfg, usd_cfg, write_stage
+
+    from hairexp.io.usd_read import build_usd_scene, read_guides
+
+    base = tmp_path / "base.usda"
+    write_stage(base, source_cfg(colliders=COLLIDERS))
+    st = Usd.Stage.Open(str(base))
+    st.GetPrimAtPath("/Root/Colliders/wheel").SetActive(False)
+    st.GetRootLayer().Export(str(tmp_path / "off.usda"))
+    with caplog.at_level("WARNING", logger="hairexp"):
+        scene = build_usd_scene(usd_cfg(tmp_path / "off.usda").scene)
+    assert "inactive collider prim(s) not used: /Root/Colliders/wheel" in caplog.text
+    assert "wheel" not in [c.name for c in scene.colliders]
+    st.GetPrimAtPath("/Root").SetActive(False)
+    st.GetRootLayer().Export(str(tmp_path / "root_off.usda"))
+    with pytest.raises(InputError, match=r":/Root: is inactive \(active = false\), so /Root/Body"):
+        build_usd_scene(usd_cfg(tmp_path / "root_off.usda").scene)

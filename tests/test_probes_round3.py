@@ -298,7 +298,7 @@ def test_sweep_values_checked_by_the_jobs_pass(sweep):
 
 def test_unknown_experiment_in_a_sweep_is_short():
     msg = cli.config_error(["-m", "experiment=goaling_smoke,goalng", "variants=[]"])
-    assert "sweep job [experiment=goalng]" in msg and "Could not find 'experiment/goalng'" in msg, msg
+    assert "sweep job [experiment=goalng]" in msg and "no such option 'goalng' of the config group experiment" in msg, msg
     assert "search path" not in msg
 
 

@@ -504,6 +504,9 @@ def used_dir_error(argv: list[str]) -> str | None:
     linked = hydra_link_refusal(folder)
     if linked is not None:
         return f"hairexp: error: {folder}: {linked}"
+    inside = inside_run_error(folder, "hydra.run.dir")
+    if inside is not None:
+        return inside
     if _overwrite_given(argv, parser):   # a finished run is replaced; a live one is not, nor foreign files (nor its .hydra/)
         refused = overwrite_refusal(folder)
         if refused is not None:
@@ -511,6 +514,16 @@ def used_dir_error(argv: list[str]) -> str | None:
         return _overwrite_config_error(argv) if used_entries(folder) else None
     refused = used_refusal(folder)
     return None if refused is None else f"hairexp: error: {folder}: {refused}"
+
+
+def inside_run_error(folder: Path, key: str) -> str | None:
+    """The error line when ``folder`` lies inside another run's folder (a parent holds a run's
+    ``summary.json``): that folder then mixed two runs (probe of issue 12, round 12), or None."""
+    for parent in Path(os.path.abspath(folder)).parents:
+        if (parent / SUMMARY).is_file():
+            return (f"hairexp: error: {folder}: lies inside {parent}, another run's folder (its {SUMMARY}); a run "
+                    f"folder belongs to one run: choose a {key} outside it")
+    return None
 
 
 def live_folder_error(argv: list[str]) -> str | None:
@@ -637,6 +650,9 @@ def _used_sweep_dir_error(argv: list[str], parser) -> str | None:
     linked = None if folder is None else hydra_link_refusal(folder)
     if linked is not None:
         return f"hairexp: error: {folder}: {linked}"
+    inside = None if folder is None else inside_run_error(folder, "hydra.sweep.dir")
+    if inside is not None:
+        return inside
     entries = [] if folder is None or not folder.is_dir() else [p for p in folder.iterdir() if p.name != LOCK]
     if entries:   # its .lock alone: a launch's, told by hold_folder_error
         shown = ", ".join(sorted(p.name for p in entries)[:6])
@@ -902,7 +918,8 @@ def compose_error(overrides: list[str], input_errors: bool = True) -> str | None
     try:
         compose_config(overrides)
     except InputError as exc:   # a key not in the schema (or in a record of a value) is a composition
-        composing = "unknown key" in str(exc) or "Error merging override" in str(exc.__cause__ or "")
+        composing = ("unknown key" in str(exc) or "Error merging override" in str(exc.__cause__ or "")
+                     or "of the config group" in str(exc))
         return str(exc) if input_errors or composing else None   # error, in a sweep's jobs too (a wrong type too)
     except Exception as exc:   # Hydra's composition and override-parsing errors, OmegaConf's validation
         return _one_line(exc)

@@ -684,6 +684,11 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
                 reason += ("; write such a number as a float (0.0, not 0): inside a list of lists OmegaConf does "
                            "not turn an integer into a float")
             raise InputError(reason, key) from exc
+        missing = re.search(r"Could not find '([^'/]+)/([^']+)'", str(exc))
+        if missing and not unknown:   # Hydra's MissingConfigException, for the Python API too (probe, round 12)
+            options = re.findall(r"^\t(\S+)$", str(exc), flags=re.M)
+            raise InputError(f"no such option {missing.group(2)!r} of the config group {missing.group(1)}"
+                             + (f" (options: {', '.join(options)})" if options else ""), missing.group(1)) from exc
         if not unknown:
             raise
         key = unknown.group(1)

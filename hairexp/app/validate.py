@@ -38,6 +38,8 @@ from hairexp.physics.simulator import MAX_ITERATION_BUDGET, MAX_LAST_ATTEMPT, MA
 from hairexp.physics.strand_kernels import check_options
 
 
+#: guides.scale_factors at most this (a guide 1,000 times its length)
+MAX_SCALE_FACTOR = 1e3
 #: m/s, the dynamic block's initial speed at most this (3 x the speed of sound; hair is simulated
 #: in metres and seconds, where faster is a unit error)
 MAX_BODY_SPEED = 1e3
@@ -168,8 +170,8 @@ def _guides(cfg) -> None:
     source = str(_value(g.source))
     number(g.layout_radius, "guides.layout_radius", lo=0)
     keyframes(g.scale_times, "guides.scale_times", {"guides.scale_factors": g.scale_factors})
-    for i, f in enumerate(g.scale_factors):
-        number(f, f"guides.scale_factors[{i}]", lo=0, lo_open=True)
+    for i, f in enumerate(g.scale_factors):   # 1e9 was blamed on scene.length and the body (probe, round 12)
+        number(f, f"guides.scale_factors[{i}]", lo=0, hi=MAX_SCALE_FACTOR, lo_open=True)
     if source == "file" and not str(g.file):
         raise InputError("guides.source=file needs the path of a guide npz", "guides.file")
     if source != "simulated" and bool(g.collide):   # accepted, then did nothing (probe of issue 12)

@@ -89,6 +89,9 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
         raise InputError(f"is a {root.GetTypeName()}: scene.usd_colliders names the parent of the colliders (a Scope "
                          f"or Xform), each collider a child prim of it ({path}/<name>)", f"{file}:{path}")
     out = []
+    off = [str(c.GetPath()) for c in root.GetAllChildren() if not c.IsActive()]
+    if off:   # USD's way to switch a prim off; it was dropped without a word (probe of issue 12, round 12)
+        logging.getLogger("hairexp").warning("%s: inactive collider prim(s) not used: %s", file, ", ".join(off))
     for prim in root.GetChildren():
         where = f"{file}:{prim.GetPath()}"
         kind = prim.GetTypeName()

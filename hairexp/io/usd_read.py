@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from omegaconf import OmegaConf
-from pxr import Tf, Usd, UsdGeom
+from pxr import Sdf, Tf, Usd, UsdGeom
 
 from hairexp.errors import InputError, check_extent, regular_file
 from hairexp.io.usd_colliders import read_colliders
@@ -77,6 +77,12 @@ def get_prim(stage, path: str, where: str, what: str, key: str, schema=None) -> 
     """The prim at ``path`` (the value of config key ``key``), of type ``schema``."""
     prim = stage.GetPrimAtPath(path) if path.startswith("/") else None
     if not prim:
+        if path.startswith("/"):   # a prim under an inactive one is not on the stage: say which (probe, round 12)
+            for anc in Sdf.Path(path).GetAncestorsRange():
+                a = stage.GetPrimAtPath(anc)
+                if a and not a.IsActive():
+                    raise InputError(f"is inactive (active = false), so {path} ({what}) is not on the stage: activate "
+                                     f"it, or name another prim with {key}", f"{where}:{anc}")
         raise InputError(f"no prim at {path} ({what}; {key} names its path)", where)
     if not prim.IsActive():   # it was simulated as if active (probe of issue 12)
         raise InputError(f"is inactive (active = false) ({what}): activate it, or name another prim with {key}",

@@ -140,6 +140,10 @@ def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius
     return np.concatenate(pts)
 
 
+#: degrees, a keyframed rotation's angles at most this (as a guide edit's angle_deg)
+MAX_KEY_DEGREES = 36000.0
+
+
 def build_motion(cfg, where: str = "scene.motion") -> RigidMotion:
     """The keyframed motion of a ``MotionConfig`` (``where``: its key): one translation and one
     rotation (3 numbers each) per time."""
@@ -150,7 +154,10 @@ def build_motion(cfg, where: str = "scene.motion") -> RigidMotion:
             raise InputError(f"has {len(keys)} keyframes but {where}.times has {len(times)}: one per time",
                              f"{where}.{key}")
         for i, k in enumerate(keys):
-            vec3(k, f"{where}.{key}[{i}]")
+            v = vec3(k, f"{where}.{key}[{i}]")
+            if key == "rotations_deg" and np.abs(v).max() > MAX_KEY_DEGREES:   # 1e9 was taken modulo 360 (probe, round 12)
+                raise InputError(f"must be within +-{MAX_KEY_DEGREES:g} degrees (100 turns), got {v.tolist()}",
+                                 f"{where}.{key}[{i}]")
     rot = np.deg2rad(np.asarray(cfg.rotations_deg, dtype=np.float64).reshape(-1, 3))
     return RigidMotion(np.asarray(cfg.times, dtype=np.float64), np.asarray(cfg.translations, dtype=np.float64),
                        rot, str(getattr(cfg.interpolation, "value", cfg.interpolation)), where=where)
