@@ -36,7 +36,7 @@ from hairexp.app.report_cache import cached, describe
 from hairexp.app.run import config_hash, run
 from hairexp.physics.integrators import INTEGRATORS
 
-from experiments.common import ROOT, check_reports, check_set, compose, fmt, md_row, md_table, positive_float, positive_int
+from experiments.common import ROOT, check_reports, check_set, compose, fmt, key_value, md_row, md_table, positive_float, positive_int
 
 DTS = [0.005, 0.01, 0.02, 0.04]
 RTOLS = [1e-3, 1e-5, 1e-7]
@@ -102,7 +102,7 @@ def main(argv=None):
     ap.add_argument("--ref-integrator", default="bdf2", choices=list(INTEGRATORS),
                     help="solver.integrator of the reference run (second order: bdf2)")
     ap.add_argument("--controllers", nargs="+", default=["free", "tracking"], choices=["free", "tracking"])
-    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+    ap.add_argument("--set", nargs="*", default=[], type=key_value, metavar="KEY=VALUE",
                     help="overrides applied to every run, the reference's included (e.g. "
                          "scene.motion.interpolation=cubic): a variant of the study, written with --report")
     ap.add_argument("--report", default="accuracy", choices=["accuracy", "accuracy_variant"],

@@ -24,7 +24,7 @@ from hairexp.app.config import VariantConfig
 from hairexp.app.experiment import run_experiment
 from hairexp.app.report import header, write_report
 
-from experiments.common import ROOT, check_reports, check_set, compose, experiment_names, fmt, md_row, md_table
+from experiments.common import ROOT, check_reports, check_set, compose, experiment_names, fmt, key_value, md_row, md_table
 
 SCENES = ["goaling", "splitting", "celia"]
 
@@ -80,7 +80,7 @@ def iteration_ratios(rows: dict) -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenes", nargs="*", default=None)
-    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="hydra overrides on every scene")
+    ap.add_argument("--set", nargs="*", default=[], type=key_value, metavar="KEY=VALUE", help="hydra overrides on every scene")
     args = ap.parse_args(argv)
     check_set(ap, args.set)   # before anything runs (a bad key would fail every run)
     check_reports(ap, "assignment")

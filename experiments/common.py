@@ -190,6 +190,16 @@ def fail(message: str, code: int = 1) -> int:
     return code
 
 
+def key_value(word: str) -> str:
+    """argparse ``type`` of ``--set``'s words: a ``KEY=VALUE`` override.  A name after ``--set``
+    (``--set solver.dt=-1 goaling_smoke``) was taken as an override and failed in Hydra's parser
+    ("missing EQUAL at '<EOF>'"; probe of issue 12, round 12)."""
+    if "=" not in word:
+        raise argparse.ArgumentTypeError(f"{word!r} is not KEY=VALUE; --set takes every word after it, so give the "
+                                         "names (scenes, cases) before --set")
+    return word
+
+
 def check_set(ap, overrides, base=("experiment=goaling_smoke", "variants=[]")) -> None:
     """``--set KEY=VALUE ...`` overrides that compose and pass the config's checks on ``base``
     (``hairexp.app.assemble.check_config``: keys, types, ranges, the step schedule), else a usage

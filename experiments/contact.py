@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import ROOT, check_set, compose, fail, fmt, md_table, positive_int, writable_dir, writable_file
+from experiments.common import ROOT, check_set, compose, fail, fmt, key_value, md_table, positive_int, writable_dir, writable_file
 
 EDGE_SAMPLES = 16
 #: stress cases: the stress matrix's scene (experiments/stress.py BASE) with a fast collider
@@ -203,7 +203,7 @@ def main(argv=None):
                     help="the report: <OUT>.md and <OUT>.json (default reports/contact)")
     ap.add_argument("--keep", action="store_true", help="keep the existing report's rows and analysis")
     ap.add_argument("--extra", nargs="*", default=[], help="result files whose rows to add")
-    ap.add_argument("--set", nargs="*", default=[], help="config overrides of every run (a variant; named in the mode column)")
+    ap.add_argument("--set", nargs="*", default=[], type=key_value, help="config overrides of every run (a variant; named in the mode column)")
     args = ap.parse_args(argv)
     check_set(ap, args.set)   # before any run (a bad key would fail every run and replace the report)
     work, out = Path(args.work), Path(args.out)

@@ -25,7 +25,7 @@ from hairexp.app.experiment import run_experiment
 from hairexp.app.report import header, write_report
 from hairexp.app.report_cache import cached, describe
 
-from experiments.common import ROOT, check_reports, compose, experiment_names, fail, fmt, md_row, md_table
+from experiments.common import ROOT, check_reports, compose, experiment_names, fail, fmt, key_value, md_row, md_table
 from experiments.scene_pictures import render_key_moment
 
 SCENES = ["goaling", "splitting", "spreading", "stylization", "celia", "fanning"]
@@ -42,7 +42,7 @@ def main(argv=None):
     ap.add_argument("names", nargs="*", default=None)
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/paper_scenes/ entries with the same config, solver source and versions")
-    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+    ap.add_argument("--set", nargs="*", default=[], type=key_value, metavar="KEY=VALUE",
                     help="hydra overrides applied to every scene (e.g. frames=10)")
     args = ap.parse_args(argv)
     names = experiment_names(ap, args.names, SCENES)

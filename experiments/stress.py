@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import check_reports, check_set, compose, fmt, md_table, positive_int
+from experiments.common import check_reports, check_set, compose, fmt, key_value, md_table, positive_int
 
 BASE = ["experiment=goaling", "variants=[]", "scene.n_strands=12", "scene.n_vertices=12", "frames=30",
         "logging.rerun=false", "logging.progress=false", "solver.compile=off", "measure.name=none"]
@@ -244,7 +244,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", nargs="*", default=list(CASES), choices=list(CASES))
     ap.add_argument("--frames", type=positive_int, default=None, help="override every case's frames (quick look)")
     ap.add_argument("--no-report", action="store_true")
-    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+    ap.add_argument("--set", nargs="*", default=[], type=key_value, metavar="KEY=VALUE",
                     help="overrides applied to every case and controller after the case's own "
                          "(e.g. solver.integrator=bdf2)")
     ap.add_argument("--report", default="stress", choices=["stress", "stress_bdf2", "stress_trbdf2", "stress_lmm2"],

@@ -354,3 +354,21 @@ def test_inactive_usd_prims_are_named(tmp_path, caplog):
     st.GetRootLayer().Export(str(tmp_path / "root_off.usda"))
     with pytest.raises(InputError, match=r":/Root: is inactive \(active = false\), so /Root/Body"):
         build_usd_scene(usd_cfg(tmp_path / "root_off.usda").scene)
+
+
+def test_a_dotdot_after_an_interpolation_in_the_run_folder_is_refused(tmp_path):
+    from hairexp.app.cli import run_dir_error
+
+    msg = run_dir_error([*SMOKE, f"hydra.run.dir={tmp_path}/runs/${{now:%Y}}/../na4"])
+    assert msg is not None and "a '..' after an interpolation" in msg
+    assert not (tmp_path / "runs").exists()
+    assert run_dir_error([*SMOKE, f"hydra.run.dir={tmp_path}/runs/${{now:%Y}}/na4"]) is None
+
+
+def test_a_name_after_set_is_a_usage_error(capsys):
+    from experiments import paper_scenes
+
+    with pytest.raises(SystemExit) as info:
+        paper_scenes.main(["--set", "solver.dt=0.02", "goaling_smoke"])
+    assert info.value.code == 2
+    assert "'goaling_smoke' is not KEY=VALUE" in capsys.readouterr().err

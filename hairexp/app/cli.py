@@ -827,7 +827,12 @@ def run_dir_error(argv: list[str]) -> str | None:
             return None
         if o.is_sweep_override() or o.key_or_group != key or o.value() is None:
             continue
-        path = _static_part(str(o.value()))
+        value = str(o.value())
+        if "${" in value and ".." in Path(value[value.index("${"):]).parts:
+            # mkdir made the interpolated folder on the way and left it empty (probe of issue 12, round 12)
+            return (f"hairexp: error: {key}={value}: a '..' after an interpolation makes the interpolated folder "
+                    "on the way and leaves it empty; write the path without '..'")
+        path = _static_part(value)
         why = None if path is None else _unusable_folder(path)
         if why is not None:
             return f"hairexp: error: {key}={o.value()}: cannot be the run folder: {why}"
