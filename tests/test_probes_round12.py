@@ -372,3 +372,19 @@ def test_a_name_after_set_is_a_usage_error(capsys):
         paper_scenes.main(["--set", "solver.dt=0.02", "goaling_smoke"])
     assert info.value.code == 2
     assert "'goaling_smoke' is not KEY=VALUE" in capsys.readouterr().err
+
+
+def test_usd_colliders_are_named_by_their_prim(tmp_path):
+    from usd_helpers import COLLIDERS, source_cfg, usd_cfg, write_stage
+
+    from hairexp.io.usd_read import build_usd_scene
+    from hairexp.model import Scene
+
+    write_stage(tmp_path / "s.usda", source_cfg(colliders=COLLIDERS))
+    scene = build_usd_scene(usd_cfg(tmp_path / "s.usda").scene)
+    wheel = next(c for c in scene.colliders if c.name == "wheel")
+    assert wheel.where == f"scene.usd={tmp_path / 's.usda'}:/Root/Colliders/wheel"
+    with pytest.raises(InputError, match=r"'wheel' is used more than once \('wheel' from scene.usd=.*/Root/Colliders/"
+                                         r"wheel; 'wheel' from scene.usd="):
+        Scene(scene.name, scene.strands, scene.material, scene.motion, scene.gravity, scene.strands.rest,
+              colliders=[wheel, wheel])

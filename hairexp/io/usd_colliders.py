@@ -98,7 +98,7 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
         if kind not in SUPPORTED:
             raise InputError(f"unsupported collider type {kind or '(typeless)'}; use {', '.join(SUPPORTED)}", where)
         motion, scale = read_motion(prim, tcps, where, allow_scale=kind == "Cube")
-        common = dict(name=prim.GetName(), motion=motion,
+        common = dict(name=prim.GetName(), motion=motion, where=where,
                       thickness=_number(prim, THICKNESS, where, default=COLLIDER_DEFAULTS[THICKNESS]),
                       friction=_number(prim, FRICTION, where, default=COLLIDER_DEFAULTS[FRICTION]))
         if kind != "Cylinder" and prim.GetAttribute(SPIN).HasAuthoredValue():

@@ -87,8 +87,10 @@ class Scene:
         names = [getattr(c, "name", None) for c in self.colliders]
         twice = sorted({n for n in names if names.count(n) > 1})
         if twice:   # metrics columns, the recording, the USD prims and measure.collider are by name
+            where = [f"{getattr(c, 'name', None)!r} from {getattr(c, 'where', '') or 'scene.colliders'}"
+                     for c in self.colliders if getattr(c, "name", None) in twice]
             raise InputError(f"collider names must be unique; {', '.join(map(repr, twice))} is used more than once "
-                             f"(colliders: {names})", "scene.colliders")
+                             f"({'; '.join(where)})", "scene.colliders")
 
     def initial_positions(self) -> np.ndarray:
         """(V, 3) world positions at t = 0 the run starts from and the tracking registers on."""
