@@ -46,7 +46,7 @@ def test_a_body_keyed_far_from_the_origin_is_refused():
     with pytest.raises(InputError, match=r"motion.translations: the translation at keyframe 1 \(t = 0.1 s\) is "
                                          r"\[1e\+20, 0.0, 0.0\], more than 10000 m from the origin"):
         RigidMotion(np.array([0.0, 0.1]), np.array([[0.0, 0.0, 0.0], [1e20, 0.0, 0.0]]), np.zeros((2, 3)))
-    RigidMotion(np.array([0.0, 0.1]), np.array([[0.0, 0.0, 0.0], [9e3, 0.0, 0.0]]), np.zeros((2, 3)))
+    RigidMotion(np.array([0.0, 100.0]), np.array([[0.0, 0.0, 0.0], [9e3, 0.0, 0.0]]), np.zeros((2, 3)))   # 90 m/s
 
 
 def test_coincident_strands_are_refused():
@@ -388,3 +388,13 @@ def test_usd_colliders_are_named_by_their_prim(tmp_path):
                                          r"wheel; 'wheel' from scene.usd="):
         Scene(scene.name, scene.strands, scene.material, scene.motion, scene.gravity, scene.strands.rest,
               colliders=[wheel, wheel])
+
+
+def test_a_keyframed_jump_faster_than_sound_is_refused():
+    """A USD body jumping 100 m between two samples ran "completed" at 299,900 % stretch."""
+    from hairexp.model import RigidMotion
+
+    with pytest.raises(InputError, match=r"motion.translations: moves 2500 m/s between keyframes 1 and 2 "
+                                         r"\(t = 0.04 and 0.08 s\), more than 1000 m/s"):
+        RigidMotion(np.array([0.0, 0.04, 0.08]), np.array([[0.0, 0, 0], [0.0, 0, 0], [100.0, 0, 0]]), np.zeros((3, 3)))
+    RigidMotion(np.array([0.0, 0.04]), np.array([[0.0, 0, 0], [0.4, 0, 0]]), np.zeros((2, 3)))   # 10 m/s: fine

@@ -33,6 +33,11 @@ def left_jacobian(r: np.ndarray) -> np.ndarray:
     return np.eye(3) + (1 - np.cos(th)) / th ** 2 * K + (th - np.sin(th)) / th ** 3 * K @ K
 
 
+#: m/s, a keyframed body or collider moves at most this fast between two keyframes (3 x the speed
+#: of sound; the stress matrix's fastest collider: 10 m/s)
+MAX_KEY_SPEED = 1e3
+
+
 @dataclass
 class RigidMotion:
     times: np.ndarray          # (K,) s, strictly increasing
@@ -61,6 +66,13 @@ class RigidMotion:
             raise InputError(f"the translation at keyframe {k} (t = {self.times[k]:g} s) is {self.translations[k].tolist()}, "
                              f"more than {MAX_COORDINATE:g} m from the origin: hairexp reads metres (check the units "
                              "of the input)", f"{self.where}.translations")
+        if K > 1 and np.all(np.diff(self.times) > 0):
+            speed = np.linalg.norm(np.diff(self.translations, axis=0), axis=1) / np.diff(self.times)
+            if speed.max() > MAX_KEY_SPEED:   # a 100 m jump between two USD samples "completed" at 299,900 % stretch
+                k = int(np.argmax(speed))
+                raise InputError(f"moves {speed[k]:.4g} m/s between keyframes {k} and {k + 1} (t = {self.times[k]:g} "
+                                 f"and {self.times[k + 1]:g} s), more than {MAX_KEY_SPEED:g} m/s: a jump, or a unit "
+                                 "error (hairexp reads metres and seconds)", f"{self.where}.translations")
         if K > 1 and np.any(np.diff(self.times) <= 0):
             raise InputError(f"keyframe times must increase strictly, got {self.times.tolist()}", f"{self.where}.times")
         if self.interpolation not in ("cubic", "linear"):
