@@ -372,6 +372,12 @@ def test_interleaved_substitution_is_the_banded_solve(case):
         np.testing.assert_allclose(Sv, kkt.Smat @ v, rtol=0, atol=1e-11 * np.abs(kkt.Smat @ v).max())
         want = kkt.hinv(kkt.AT_sparse @ v)
         np.testing.assert_allclose(x.reshape(-1)[kkt._il_of_dof], want, rtol=0, atol=1e-12 * np.abs(want).max())
+        # the per-vertex lists (the Krylov solve's product) give the same sums in the same order
+        assert kkt._v_rows is not None
+        x2, Sv2 = np.empty_like(x), np.empty_like(Sv)
+        kkt._product(v, x2, Sv2)
+        np.testing.assert_allclose(Sv2, Sv, rtol=1e-14, atol=0)
+        np.testing.assert_allclose(x2, x, rtol=1e-14, atol=1e-300)
 
 
 def test_krylov_schur_needs_a_known_mode():

@@ -175,7 +175,24 @@ class SchurKKT:
         self._m_wts[pos_of, slot] = ATc.data
         self._m_rows = self._m_rows.reshape(nmax, S, cmax)
         self._m_wts = self._m_wts.reshape(nmax, S, cmax)
+        # the same lists per vertex (``schur_product_vertex``): a DOF's rows are its vertex's clusters'
+        # rows at the DOF's coordinate, with the vertex's weights (A = W (x) I3), so (nmax / 3, S, cmax)
+        # cluster indices (int32) and weights: a sixth of the bytes the product streams per call
+        # (at 10,000 strands 33 MB -> 9 MB), the same sums in the same order
+        self._v_rows = self._v_wts = None
+        if nmax % 3 == 0:
+            r3 = self._m_rows.reshape(nmax // 3, 3, S, cmax)
+            w3 = self._m_wts.reshape(nmax // 3, 3, S, cmax)
+            k0 = r3[:, 0] // 3
+            pad = w3[:, 0] == 0.0
+            same = all(np.array_equal(w3[:, c], w3[:, 0]) and np.array_equal(np.where(pad, 0, r3[:, c]),
+                                                                               np.where(pad, 0, 3 * k0 + c))
+                       for c in range(3))
+            if same and 3 * K < np.iinfo(np.int32).max:
+                self._v_rows = np.ascontiguousarray(np.where(pad, 0, k0), dtype=np.int32)
+                self._v_wts = np.ascontiguousarray(w3[:, 0])
         self._uniform = bool(np.all(n == nmax))
+        self._W_buf = None                    # the Krylov products' rows (``_krylov``), kept between solves
         jj, aa = np.meshgrid(np.arange(nmax), np.arange(bandwidth + 1), indexing="ij")
         self._il_cut = (jj + aa >= nmax) & (aa > 0)                                   # (nmax, bw + 1)
         self.kernels = None
@@ -268,13 +285,23 @@ class SchurKKT:
         if self._L_il is None:
             LT = self.LT if self.kernels is not None else np.ascontiguousarray(self.cb.T)
             bw1 = LT.shape[1]
-            if self._uniform and bw1 == self._il_cut.shape[1]:    # every strand nmax DOFs: a transpose, and the band cut at each strand's end
-                self._L_il = np.ascontiguousarray(LT.reshape(self.S, self.nmax, bw1).transpose(1, 2, 0))
+            # one strand-blocked pass (``interleave_factor``) for equal and unequal strands alike: a plain
+            # transpose reads each strand's rows with a stride of nmax (bw + 1) doubles, one TLB miss an
+            # element from about 2,000 strands (10,000 strands: 38 ms a factor, 5 times the per-strand cost
+            # at 1,000); the buffers are reused from factor to factor (at 10,000 strands 49 MB, above
+            # malloc's mmap threshold: fresh zeroed pages every time otherwise)
+            buf = getattr(self, "_il_buf", None)
+            if buf is None or buf[0].shape != (self.nmax, bw1, self.S):
+                buf = self._il_buf = (np.empty((self.nmax, bw1, self.S)), np.empty((self.nmax, self.S)))
+            self._L_il, self._inv_il = buf
+            if HAVE_NUMBA:
+                interleave_factor(LT, np.ascontiguousarray(self.dof_off, dtype=np.int64), self.nmax, self._L_il,
+                                  self._inv_il)
+            elif self._uniform and bw1 == self._il_cut.shape[1]:    # every strand nmax DOFs: a transpose, and the band cut at each strand's end
+                self._L_il[...] = LT.reshape(self.S, self.nmax, bw1).transpose(1, 2, 0)
                 self._L_il[self._il_cut] = 0.0
-                self._inv_il = 1.0 / self._L_il[:, 0, :]
+                self._inv_il[...] = 1.0 / self._L_il[:, 0, :]
             else:
-                self._L_il = np.empty((self.nmax, bw1, self.S))
-                self._inv_il = np.empty((self.nmax, self.S))
                 interleave_factor(LT, np.ascontiguousarray(self.dof_off, dtype=np.int64), self.nmax, self._L_il,
                                   self._inv_il)
 
@@ -335,6 +362,14 @@ class SchurKKT:
             return M
         return np.block([[M, -Bmat], [Bmat.T, np.diag(D)]])
 
+    def _product(self, v: np.ndarray, x: np.ndarray, Av: np.ndarray) -> None:
+        """x = H^-1 A^T v (strand-interleaved, (nmax, S)) and Av = A x with the interleaved factor
+        (``schur_product_vertex`` with the per-vertex lists, else ``schur_product``)."""
+        if self._v_rows is not None:
+            schur_product_vertex(self._v_rows, self._v_wts, v, self._L_il, self._inv_il, x, Av)
+        else:
+            schur_product(self._m_rows, self._m_wts, v, self._L_il, self._inv_il, x, Av)
+
     def _small(self, P, r, z, tol, scales) -> bool:
         """The error estimate P^-1 r of z = (lam, dt) (r = b - M z, P the preconditioner's LU)
         within tol (|lam| + scale) and tol (|dt| + scale), block by block: their units differ, and
@@ -365,7 +400,11 @@ class SchurKKT:
                   0.0 if Bmat is None else bnorm / max(float(np.abs(Bmat).max()), 1e-300))
         V = np.empty((kmax + 1, n))       # rows: the orthonormal basis
         Z = np.empty((kmax, n))           # rows: the preconditioned basis
-        W = np.empty((kmax, self._A_il.shape[1]))   # rows: H^-1 A^T Z[j, :m], strand-interleaved
+        # rows: H^-1 A^T Z[j, :m], strand-interleaved; kept between solves (at 10,000 strands 92 MB: above
+        # malloc's mmap threshold, a fresh allocation page-faults every row it writes)
+        if self._W_buf is None or self._W_buf.shape != (kmax, self._A_il.shape[1]):
+            self._W_buf = np.empty((kmax, self._A_il.shape[1]))
+        W = self._W_buf
         Hh = np.zeros((kmax + 1, kmax))   # the Arnoldi relation M Z = V Hh
         R = np.zeros((kmax + 1, kmax))    # Hh rotated to upper triangular (Givens)
         cs, sn = np.zeros(kmax), np.zeros(kmax)
@@ -380,8 +419,7 @@ class SchurKKT:
             w = M0 @ z
             if HAVE_NUMBA:     # W[j] = H^-1 A^T z_lam and A W[j] in one pass
                 Av = np.empty(m)
-                schur_product(self._m_rows, self._m_wts, np.ascontiguousarray(z[:m]), self._L_il, self._inv_il,
-                              W[j].reshape(self.nmax, self.S), Av)
+                self._product(np.ascontiguousarray(z[:m]), W[j].reshape(self.nmax, self.S), Av)
                 w[:m] += Av
             else:
                 W[j] = self._hinv_il(self._AT_il @ z[:m])
@@ -427,6 +465,10 @@ class SchurKKT:
         return None
 
 
+#: strands a block of ``interleave_factor``
+IL_BLOCK = 64
+
+
 @njit(cache=True, error_model="numpy")
 def interleave_factor(LT, dof_off, nmax, out, inv):
     """The factor ``LT`` (N, bw + 1) (bandchol's layout: LT[j, a] = L[j + a, j]) strand-interleaved:
@@ -435,16 +477,19 @@ def interleave_factor(LT, dof_off, nmax, out, inv):
     (nmax, S) array, so one substitution runs over all strands at once (``solve_interleaved``)."""
     S = dof_off.shape[0] - 1
     bw1 = LT.shape[1]
-    for j in range(nmax):
-        for s in range(S):
-            d0 = dof_off[s]
-            n = dof_off[s + 1] - d0
-            inv[j, s] = 1.0 / LT[d0 + j, 0] if j < n else 1.0
-        for a in range(1, bw1):
-            for s in range(S):
+    for s0 in range(0, S, IL_BLOCK):    # strands in blocks: the block's rows of LT stay in cache (and TLB)
+        s1 = min(S, s0 + IL_BLOCK)
+        for j in range(nmax):
+            for s in range(s0, s1):
                 d0 = dof_off[s]
                 n = dof_off[s + 1] - d0
-                out[j, a, s] = LT[d0 + j, a] if j + a < n else 0.0
+                inv[j, s] = 1.0 / LT[d0 + j, 0] if j < n else 1.0
+            out[j, 0, s0:s1] = 0.0       # not read (the diagonal is ``inv``)
+            for a in range(1, bw1):
+                for s in range(s0, s1):
+                    d0 = dof_off[s]
+                    n = dof_off[s + 1] - d0
+                    out[j, a, s] = LT[d0 + j, a] if j + a < n else 0.0
 
 
 @njit(cache=True, error_model="numpy", fastmath=True)
@@ -496,6 +541,48 @@ def schur_product(rows, wts, v, L, inv, x, Av):
             xv = x[j, s]
             for q in range(c):
                 Av[rows[j, s, q]] += wts[j, s, q] * xv
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def schur_product_vertex(rows, wts, v, L, inv, x, Av):
+    """``schur_product`` with A^T's rows per vertex: DOF 3 i + c of every strand has the rows
+    3 rows[i, s, q] + c with weights wts[i, s, q] (A = W (x) I3; padding: weight 0), so the
+    lists are a sixth of the bytes (int32 clusters, one weight for the vertex's three DOFs: at
+    10,000 strands 9 MB instead of 33 MB streamed twice a product).  Every entry of x and Av
+    gets the same operations in the same order as in ``schur_product`` (Av's sums run over
+    (DOF, strand, membership))."""
+    nv, S, c = rows.shape
+    for i in range(nv):
+        x0 = x[3 * i]
+        x1 = x[3 * i + 1]
+        x2 = x[3 * i + 2]
+        for s in range(S):
+            a0 = 0.0
+            a1 = 0.0
+            a2 = 0.0
+            for q in range(c):
+                w = wts[i, s, q]
+                r = 3 * rows[i, s, q]
+                a0 += w * v[r]
+                a1 += w * v[r + 1]
+                a2 += w * v[r + 2]
+            x0[s] = a0
+            x1[s] = a1
+            x2[s] = a2
+    solve_interleaved(L, inv, x)
+    for k in range(Av.shape[0]):
+        Av[k] = 0.0
+    for i in range(nv):
+        x0 = x[3 * i]
+        x1 = x[3 * i + 1]
+        x2 = x[3 * i + 2]
+        for s in range(S):
+            for q in range(c):
+                w = wts[i, s, q]
+                r = 3 * rows[i, s, q]
+                Av[r] += w * x0[s]
+                Av[r + 1] += w * x1[s]
+                Av[r + 2] += w * x2[s]
 
 
 def distinct_columns(AT: np.ndarray):
