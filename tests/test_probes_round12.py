@@ -213,6 +213,11 @@ def test_guides_far_off_the_body_are_refused():
     with pytest.raises(InputError, match=r"guides: guide 0's root is 0.2 m from where the body carries it at frame 2 "
                                          r".*more than 0.5 of the hair's length"):
         warn_far_guides(scene, GuideAnimation(moved, g.offsets, g.fps))
+    creeping = P.copy()
+    creeping[1:] += [0.005, 0.0, 0.0]   # a warning's drift first (it stopped the check there), the error's later
+    creeping[3:] += [0.2, 0.0, 0.0]
+    with pytest.raises(InputError, match=r"guide 0's root is 0.205 m from where the body carries it at frame 3"):
+        warn_far_guides(scene, GuideAnimation(creeping, g.offsets, g.fps))
     far = P + [2.0, 0.0, 0.0]
     with pytest.raises(InputError, match=r"guides: guide 0.s root is 1.98 m from the nearest hair root at frame 0, "
                                          r"farther than the hair is long"):

@@ -218,6 +218,7 @@ def warn_far_guides(scene, anim) -> None:
     R0, T0 = motion.pose(0.0)
     local = (guide_roots - T0) @ R0
     tol = ROOT_DRIFT * length
+    warned = False
     for f in range(1, len(anim.frames)):
         R, T = motion.pose(f / fps)
         drift = np.linalg.norm(np.asarray(anim.frames[f])[np.asarray(anim.offsets[:-1])] - (local @ R.T + T), axis=1)
@@ -227,11 +228,11 @@ def warn_far_guides(scene, anim) -> None:
                              f"(t = {f / fps:.4g} s), more than {MAX_ROOT_DRIFT:g} of the hair's length: the guides do "
                              "not ride this body, and the tracking would tear the hair off its roots; make the guides "
                              "with this body motion", "guides")
-        if drift.max() > tol:
+        if drift.max() > tol and not warned:   # said once; the later frames are still checked for the error
+            warned = True
             g = int(np.argmax(drift))
             logging.getLogger("hairexp").warning(
                 "guides: guide %d's root is %.3g m from where the body carries it at frame %d (t = %.4g s; more than "
                 "%g of the hair's length): the guides do not ride the body, and the tracking will pull the hair near "
                 "its roots after them; check that the guides were made with this body motion", g, drift[g], f, f / fps,
                 ROOT_DRIFT)
-            return
