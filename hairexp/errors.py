@@ -47,6 +47,12 @@ def finite_number(value, key: str, allowed: str = "") -> float:
 MAX_COORDINATE = 1e4
 
 
+#: m/s: a keyframed body or collider moving faster than this between keyframes, or a dynamic block
+#: launched faster, is refused as a jump or a unit error (3 x the speed of sound; the stress
+#: matrix's fastest collider moves at 10 m/s)
+MAX_SPEED = 1e3
+
+
 def check_extent(points, where: str, counts=None, frame: int | None = None) -> None:
     """InputError naming ``where`` (and the curve and vertex, with ``counts``: vertices per curve;
     ``frame`` when given) when a point of ``points`` (N, 3) lies farther than MAX_COORDINATE from

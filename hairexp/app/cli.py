@@ -40,7 +40,7 @@ from hydra.experimental.callback import Callback
 from hairexp.app.assemble import check_config
 from hairexp.app.config import CONF_DIR, check_bool_overrides, check_interpolations, check_keys, compose_config
 from hairexp.app.experiment import run_experiment
-from hairexp.app.run import inputs_inside
+from hairexp.app.run import INPUT_KEYS, inputs_inside
 from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, SimulationError
@@ -66,19 +66,15 @@ def outcome(out, status: str, code: int, message: str | None = None, summary: di
             "converged": None if summary is None else summary.get("converged")}
 
 
-#: the config's input file paths: read relative to the directory hairexp was started in
-INPUT_PATH_KEYS = ("scene.usd", "guides.file")
-
-
 def absolute_inputs(cfg, cwd: str | None) -> None:
-    """Make the relative input paths of ``cfg`` (INPUT_PATH_KEYS) absolute against ``cwd``, the
+    """Make the relative input paths of ``cfg`` (``run.INPUT_KEYS``) absolute against ``cwd``, the
     directory hairexp was started in: with ``hydra.job.chdir=true`` a job runs inside its run
     folder, where ``scene.usd=scene.usda`` was not found (probe of issue 12, round 11)."""
     if not cwd:
         return
     from omegaconf import OmegaConf, open_dict
 
-    for key in INPUT_PATH_KEYS:
+    for key in INPUT_KEYS:
         value = OmegaConf.select(cfg, key, default=None)
         if isinstance(value, str) and value and not os.path.isabs(value):
             with open_dict(cfg):
@@ -87,7 +83,7 @@ def absolute_inputs(cfg, cwd: str | None) -> None:
         ovr = v.get("overrides") if hasattr(v, "get") else None
         for i, o in enumerate(ovr or []):
             key, eq, value = str(o).partition("=")
-            if eq and key.strip() in INPUT_PATH_KEYS and value.strip() and not os.path.isabs(value.strip()):
+            if eq and key.strip() in INPUT_KEYS and value.strip() and not os.path.isabs(value.strip()):
                 ovr[i] = f"{key.strip()}={os.path.join(cwd, value.strip())}"
 
 

@@ -59,8 +59,8 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
 
 def unused_shape_keys(g, anim: GuideAnimation, source: str) -> None:
     """A warning when ``guides.count`` or ``guides.n_vertices``, set to other than the schema's
-    default, differ from the guides a file or stage holds: they shape built guides only, and were ignored without a word (probe of issue 12,
-    round 12)."""
+    default, differ from the guides a file or stage holds: they shape built guides only, and were
+    ignored without a word (probe of issue 12, round 12)."""
     counts = np.diff(anim.offsets)
     held = {"count": len(counts), "n_vertices": int(counts[0]) if len(set(counts.tolist())) == 1 else None}
     for key, n in held.items():
@@ -188,8 +188,6 @@ def warn_far_guides(scene, anim) -> None:
     a warning when they look authored tip to root).  Else, with a keyframed body, a warning when
     a guide's root leaves the body (farther than ROOT_DRIFT x the hair's length from where the
     body carries its frame-0 root, at any frame), an InputError beyond MAX_ROOT_DRIFT x it."""
-    import logging
-
     s = scene.strands
     hair_roots = scene.initial_positions()[np.asarray(s.offsets[:-1])]
     length = float(np.sum(s.rest_lengths)) / max(1, len(s.offsets) - 1)

@@ -26,12 +26,13 @@ from __future__ import annotations
 import math
 
 from hairexp.app.config import ColliderConfig
-from hairexp.errors import InputError, integer, number
+from hairexp.errors import MAX_SPEED, InputError, integer, number
 from hairexp.control.tracking.correspondence import check_correspondence_options
 from hairexp.control.tracking.kkt import MAX_SCHUR_BYTES, schur_bytes
 from hairexp.control.tracking.variance import check_variance_config
 from hairexp.evaluation.judges import JUDGE_MEASURES, missing_controllers
 from hairexp.guides.authoring import check_edits
+from hairexp.model.builders import check_spin
 from hairexp.evaluation.measures import collider_named
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR, make_integrator
 from hairexp.physics.simulator import MAX_ITERATION_BUDGET, MAX_LAST_ATTEMPT, MAX_SUBSTEP_LEVELS, check_solver_config  # noqa: F401
@@ -40,9 +41,6 @@ from hairexp.physics.strand_kernels import check_options
 
 #: guides.scale_factors at most this (a guide 1,000 times its length)
 MAX_SCALE_FACTOR = 1e3
-#: m/s, the dynamic block's initial speed at most this (3 x the speed of sound; hair is simulated
-#: in metres and seconds, where faster is a unit error)
-MAX_BODY_SPEED = 1e3
 #: collision.barrier_dhat's bound (d_hat as a multiple of the contact thickness)
 MAX_BARRIER_DHAT = 10.0
 
@@ -248,7 +246,7 @@ def _unused(cfg) -> None:
     if len(vel) != 3:
         raise InputError(f"expected 3 finite numbers (m/s), got {vel}", "scene.body.velocity")
     for i, v in enumerate(vel):   # 1e9 m/s ran "completed", the hair 1.2e8 m away (probe of issue 12, round 12)
-        number(v, f"scene.body.velocity[{i}]", lo=-MAX_BODY_SPEED, hi=MAX_BODY_SPEED)
+        number(v, f"scene.body.velocity[{i}]", lo=-MAX_SPEED, hi=MAX_SPEED)
 
 
 #: the size keys each collider shape reads (hairexp/model/builders.py build_collider)
@@ -263,8 +261,7 @@ def _collider_sizes(cfg) -> None:
     default = ColliderConfig()
     for i, c in enumerate(cfg.scene.colliders):
         shape = str(_value(c.shape))
-        if shape != "cylinder" and c.spin != 0:   # the builder's own check, first: the shape's other key
-            raise InputError(f"is {c.spin} but only a cylinder spins (shape {shape})", f"scene.colliders[{i}].spin")
+        check_spin(shape, c.spin, f"scene.colliders[{i}]")   # the builder's own check, first: the shape's other key
         for k in ("radius", "half_length", "half_height", "half_extents"):
             if k in SHAPE_SIZES.get(shape, ()):
                 continue

@@ -54,6 +54,7 @@ from scipy.spatial.transform import Rotation
 
 from hairexp.errors import InputError
 from hairexp.guides.store import FrameStore
+from hairexp.model.builders import MAX_KEY_DEGREES
 from hairexp.model.strands import validate_polylines
 
 #: Largest turn (degrees) of a guide's first edge away from its rest direction, in the body frame.
@@ -147,8 +148,8 @@ def rest_arclength_fraction(P: np.ndarray) -> np.ndarray:
 BLOCK_FRAMES = 256
 
 
-#: the largest rotate edit angle (degrees at weight 1)
-MAX_EDIT_DEGREES = 36000.0
+#: the largest rotate edit angle (degrees at weight 1): a keyframed rotation's bound (100 turns)
+MAX_EDIT_DEGREES = MAX_KEY_DEGREES
 
 
 def _edit(i: int, e, G: int, offsets: np.ndarray, rest: np.ndarray):

@@ -140,7 +140,7 @@ def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius
     return np.concatenate(pts)
 
 
-#: degrees, a keyframed rotation's angles at most this (as a guide edit's angle_deg)
+#: degrees, a keyframed rotation's angles at most this (also a guide edit's angle_deg bound, 100 turns)
 MAX_KEY_DEGREES = 36000.0
 
 
@@ -213,6 +213,12 @@ def with_dynamic_body(cfg, scene: Scene) -> Scene:
     return replace(scene, motion=build_dynamic_body(body, scene.motion, scene.strands, scene.gravity))
 
 
+def check_spin(shape: str, spin, key: str) -> None:
+    """InputError for a spin on a collider other than a cylinder (``key``: the collider's)."""
+    if shape != "cylinder" and spin != 0:
+        raise InputError(f"is {spin} but only a cylinder spins (shape {shape})", f"{key}.spin")
+
+
 def build_collider(c, i: int):
     shape = str(getattr(c.shape, "value", c.shape))
     key = f"scene.colliders[{i}]"
@@ -221,8 +227,7 @@ def build_collider(c, i: int):
     for k in ("radius", "half_length", "half_height"):
         if not (getattr(c, k) > 0 and np.isfinite(getattr(c, k))):
             raise InputError(f"must be a finite number > 0 (m), got {getattr(c, k)}", f"{key}.{k}")
-    if shape != "cylinder" and c.spin != 0:
-        raise InputError(f"is {c.spin} but only a cylinder spins (shape {shape})", f"{key}.spin")
+    check_spin(shape, c.spin, key)
     if shape == "sphere":
         return SHAPES[shape](radius=c.radius, **common)
     if shape == "capsule":

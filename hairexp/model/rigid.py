@@ -21,7 +21,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, Slerp
 
-from hairexp.errors import MAX_COORDINATE, InputError, real_array
+from hairexp.errors import MAX_COORDINATE, MAX_SPEED, InputError, real_array
 
 
 def left_jacobian(r: np.ndarray) -> np.ndarray:
@@ -31,11 +31,6 @@ def left_jacobian(r: np.ndarray) -> np.ndarray:
     if th < 1e-6:
         return np.eye(3) + 0.5 * K + K @ K / 6.0
     return np.eye(3) + (1 - np.cos(th)) / th ** 2 * K + (th - np.sin(th)) / th ** 3 * K @ K
-
-
-#: m/s, a keyframed body or collider moves at most this fast between two keyframes (3 x the speed
-#: of sound; the stress matrix's fastest collider: 10 m/s)
-MAX_KEY_SPEED = 1e3
 
 
 @dataclass
@@ -68,10 +63,10 @@ class RigidMotion:
                              "of the input)", f"{self.where}.translations")
         if K > 1 and np.all(np.diff(self.times) > 0):
             speed = np.linalg.norm(np.diff(self.translations, axis=0), axis=1) / np.diff(self.times)
-            if speed.max() > MAX_KEY_SPEED:   # a 100 m jump between two USD samples "completed" at 299,900 % stretch
+            if speed.max() > MAX_SPEED:   # a 100 m jump between two USD samples "completed" at 299,900 % stretch
                 k = int(np.argmax(speed))
                 raise InputError(f"moves {speed[k]:.4g} m/s between keyframes {k} and {k + 1} (t = {self.times[k]:g} "
-                                 f"and {self.times[k + 1]:g} s), more than {MAX_KEY_SPEED:g} m/s: a jump, or a unit "
+                                 f"and {self.times[k + 1]:g} s), more than {MAX_SPEED:g} m/s: a jump, or a unit "
                                  "error (hairexp reads metres and seconds)", f"{self.where}.translations")
         if K > 1 and np.any(np.diff(self.times) <= 0):
             raise InputError(f"keyframe times must increase strictly, got {self.times.tolist()}", f"{self.where}.times")
