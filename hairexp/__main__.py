@@ -22,7 +22,7 @@ from omegaconf import DictConfig
 import hairexp.app.config  # noqa: F401  (registers the schema in the ConfigStore)
 from hairexp.app import cli
 from hairexp.app.signals import InterruptSignals, exit_code
-from hairexp.app.startup import ended
+from hairexp.app.startup import begun, ended
 from hairexp.errors import Interrupted
 
 
@@ -37,6 +37,10 @@ def main(cfg: DictConfig) -> float | None:
 
 def entry() -> int:
     logging.raiseExceptions = False   # a log file on a full disk is not worth a traceback per line
+    bad_flag = cli.flag_error(sys.argv[1:])   # before any folder is made (Hydra's argparse would say it later)
+    if bad_flag is not None:
+        print(bad_flag, file=sys.stderr)
+        return 2
     bad_value = cli.run_dir_value_error(sys.argv[1:])   # an interpolation Hydra could not resolve
     if bad_value is not None:
         print(bad_value, file=sys.stderr)
@@ -52,10 +56,11 @@ def entry() -> int:
     # a launch into (or inside) the folder of one that has not ended first: that is the reason to
     # name, not the folder's files (probe of issue 12, round 12); then another run's folder, before
     # Hydra writes .hydra/ into it; then the launch lock (two launches that both found it empty)
-    used = cli.live_folder_error(sys.argv[1:])
-    if used is None:
+    # (none of this when Hydra only prints: --cfg, --info, --help run nothing and make no folder)
+    used = None if cli.prints_only(sys.argv[1:]) else cli.live_folder_error(sys.argv[1:])
+    if used is None and not cli.prints_only(sys.argv[1:]):
         used = cli.used_dir_error(sys.argv[1:])
-    if used is None:
+    if used is None and not cli.prints_only(sys.argv[1:]):
         used = cli.hold_folder_error(sys.argv[1:])
     if used is not None:
         print(used, file=sys.stderr)
@@ -64,6 +69,7 @@ def entry() -> int:
         # Hydra then lets the launcher's exceptions through instead of printing them and exiting 1
         # itself: a sweep worker that was killed is said below in one line
         os.environ.setdefault("HYDRA_FULL_ERROR", "1")
+    begun()   # from here a signal is the run's (its handlers), then one while the command ends
     try:
         # outside a run (composing, between sweep jobs) too; a sweep's running jobs are stopped first
         with InterruptSignals(on_signal=cli.stop_sweep_jobs):

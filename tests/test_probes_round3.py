@@ -697,9 +697,11 @@ def test_python_api_entry_points_name_a_wrong_argument(base, tmp_path):
 
     run = assemble(base)
     s0 = run.initial_state()
-    for frames in (1.5, -1, True):
+    for frames in (1.5, True):
         with pytest.raises(TypeError, match=r"Run.steps: frames must be a whole number >= 0"):
             next(run.steps(s0, frames))
+    with pytest.raises(InputError, match=r"Run.steps: frames: must be a whole number >= 0"):   # a value (round 13)
+        next(run.steps(s0, -1))
     with pytest.raises(TypeError, match=r"state must be a hairexp State .* got str"):
         next(run.steps("state"))
     short = s0.copy()

@@ -31,7 +31,7 @@ from hairexp.app.builders import build_scene
 from hairexp.app.config import require_config
 from hairexp.app.guard import guard_run
 from hairexp.app.guides import build_guides
-from hairexp.app.validate import validate_config, validate_measure
+from hairexp.app.validate import late_keys, validate_config, validate_measure
 from hairexp.control import build_controller
 from hairexp.errors import InputError
 from hairexp.guides.animation import GuideAnimation, file_guides
@@ -80,8 +80,10 @@ class Run:
         counted from 1."""
         state = self.initial_state() if state is None else state
         frames = self.frames if frames is None else frames
-        if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 0:
+        if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)):
             raise TypeError(f"Run.steps: frames must be a whole number >= 0, got {frames!r}")
+        if frames < 0:   # a value error (an InputError), not a type error (probe of issue 12, round 13)
+            raise InputError(f"must be a whole number >= 0, got {frames}", "Run.steps: frames")
         fps = float(self.cfg.fps)
         try:   # a state that is not a State, or a time that is not a number: Simulator.step names it
             t0 = float(state.time) if isinstance(state, State) else 0.0
@@ -138,6 +140,7 @@ def _assemble_scene(cfg, settle: bool):
     validate_config(cfg)                                # the config's ranges (hairexp/app/validate.py)
     cfg = timed_config(cfg)
     n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)   # validated before anything is built
+    late_keys(cfg)
     frame = 1.0 / float(cfg.fps)
     if float(cfg.solver.dt) > frame * (1 + 1e-9):   # not the step: dt 0.04 at 24 fps is 2 steps of 1/48 s
         log.warning("solver.dt=%g s is longer than a frame (1/fps = %.4g s): each step is one frame, %.4g s",

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 
-from hairexp.app.config import SceneConfig
+from hairexp.app.config import SceneConfig, changed_keys
 from hairexp.model.builders import build_procedural_scene, with_dynamic_body
 from hairexp.model.scene import Scene
 
@@ -18,16 +18,7 @@ def unused_procedural_keys(cfg) -> list[str]:
     """The procedural keys of ``cfg`` (``scene``) set to other than the schema's default: a USD
     stage's hair does not use them (``scene.n_strands=3`` with a stage was ignored without a word;
     probe of issue 12, round 12)."""
-    from omegaconf import OmegaConf
-
-    default = SceneConfig()
-    out = []
-    for key in PROCEDURAL_KEYS:
-        v, d = cfg[key], getattr(default, key)
-        v = OmegaConf.to_container(v) if OmegaConf.is_config(v) else getattr(v, "value", v)
-        if v != getattr(d, "value", d):
-            out.append(f"scene.{key}={v}")
-    return out
+    return [f"scene.{k}={v}" for k, v in changed_keys(cfg, SceneConfig(), PROCEDURAL_KEYS).items()]
 
 
 def build_scene(cfg) -> Scene:

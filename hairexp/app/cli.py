@@ -429,6 +429,36 @@ _FLAGS_WITH_VALUE = ("--cfg", "-c", "--package", "-p", "--config-path", "-cp", "
                      "--config-dir", "-cd", "--info", "-i", "--experimental-rerun")
 
 
+#: Hydra's command-line flags (hydra 1.3's argparse parser)
+_FLAGS = frozenset(_FLAGS_WITH_VALUE + ("-h", "--help", "--hydra-help", "--version", "-r", "--resolve", "-m", "--multirun",
+                                        "-sc", "--shell-completion"))
+#: the flags with which Hydra prints something and runs nothing
+_NO_RUN_FLAGS = frozenset({"-h", "--help", "--hydra-help", "--version", "-c", "--cfg", "-i", "--info", "-sc",
+                           "--shell-completion"})
+
+
+def _flag(arg: str) -> str:
+    return arg.split("=", 1)[0] if arg.startswith("--") else arg
+
+
+def flag_error(argv: list[str]) -> str | None:
+    """The error line for a command-line flag Hydra does not have (``--bogus-flag``), before any
+    folder is made: Hydra's argparse refused it (exit 2) after hairexp had taken the run folder's
+    launch lock, leaving an empty folder (probe of issue 12, round 13)."""
+    for i, arg in enumerate(argv):
+        if arg.startswith("-") and _flag(arg) not in _FLAGS and not (i and argv[i - 1] in _FLAGS_WITH_VALUE):
+            return (f"hairexp: error: unknown option {arg}; the options are Hydra's ({', '.join(sorted(_FLAGS))}), "
+                    "the rest key=value overrides (python -m hairexp --help)")
+    return None
+
+
+def prints_only(argv: list[str]) -> bool:
+    """Whether Hydra only prints something for ``argv`` (``--help``, ``--cfg``, ``--info``, ...):
+    nothing runs, so no run folder is checked, locked or made (``--cfg job`` left an empty
+    folder holding a ``.lock``; probe of issue 12, round 13)."""
+    return any(_flag(a) in _NO_RUN_FLAGS for i, a in enumerate(argv) if not (i and argv[i - 1] in _FLAGS_WITH_VALUE))
+
+
 def override_syntax_error(argv: list[str]) -> str | None:
     """The error line for a ``key=value`` argument that Hydra's override grammar cannot parse (a
     value with non-ASCII characters or an unbalanced bracket, unquoted), or for an empty run folder

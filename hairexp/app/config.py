@@ -482,7 +482,16 @@ def require_config(cfg, where: str) -> None:
                          ", ".join(missing))
 
 
+def _or_run(name) -> str:
+    """The ``or_run`` resolver of conf/config.yaml's default run folders: the experiment's name, or
+    ``run`` for a run without one (``oc.select`` keeps a null: ``outputs/None/...``; probe of
+    issue 12, round 13)."""
+    return "run" if name is None or str(name) in ("", "None") else str(name)
+
+
 def register() -> None:
+    if not OmegaConf.has_resolver("or_run"):
+        OmegaConf.register_new_resolver("or_run", _or_run)
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=Config)
     cs.store(group="scene", name="base_scene", node=SceneConfig)
@@ -680,9 +689,11 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
             elif field_key:   # a field of a record in the value (an edit's kind)
                 key = f"{key} (its {field_key})"
             reason = str(cause).split("\n")[0]
-            if "incompatible with type hint 'float'" in reason:   # scene.motion.translations=[[0,0,0]]
+            if "incompatible with type hint 'float'" in reason and "(int)" in reason:   # translations=[[0,0,0]]
                 reason += ("; write such a number as a float (0.0, not 0): inside a list of lists OmegaConf does "
                            "not turn an integer into a float")
+            elif "incompatible with type hint 'float'" in reason:   # '.nan' in a list of lists (probe, round 13)
+                reason += "; a finite number is needed here, written as a float (0.0)"
             raise InputError(reason, key) from exc
         missing = re.search(r"Could not find '([^'/]+)/([^']+)'", str(exc))
         if missing and not unknown:   # Hydra's MissingConfigException, for the Python API too (probe, round 12)
@@ -754,3 +765,17 @@ def check_plus_overrides(base, plus: list[str]) -> None:
         raise InputError(f"already has a value in the config ({shown.splitlines()[0] if OmegaConf.is_config(have) else shown}"
                          f"{' ...' if OmegaConf.is_config(have) and len(shown.splitlines()) > 1 else ''}); '+' adds a value where "
                          f"there is none: write {key}=... to replace it (a list: give every item to keep)", key)
+
+
+def changed_keys(node, default, keys) -> dict:
+    """``{key: value}`` of the ``keys`` of ``node`` (a config node) whose value differs from the
+    schema's ``default`` (a dataclass instance): the keys a user set.  Values are plain Python
+    (lists for sequences, an enum's value)."""
+    out = {}
+    for key in keys:
+        v, d = node[key], getattr(default, key)
+        v = OmegaConf.to_container(v) if OmegaConf.is_config(v) else getattr(v, "value", v)
+        d = list(d) if isinstance(d, (list, tuple)) else getattr(d, "value", d)
+        if v != d:
+            out[key] = v
+    return out

@@ -1,11 +1,15 @@
 """Export a config's scene as a USD stage in the input layout (README "USD scenes").
 
     python -m hairexp.io.export_scene scene.usda experiment=goaling controller=tracking guides.count=3
+    python -m hairexp.io.export_scene --force scene.usda ...   (replace an existing file)
 
 The overrides compose as for ``python -m hairexp`` (conf/); the stage holds the body motion,
 the detail hair at rest, the guide animation of frames 0..frames at fps (``guides.*``) and the
 colliders.  ``python -m hairexp experiment=from_usd scene.usd=scene.usda`` runs it.
-Exit codes: 0 written (or ``--help``), 2 bad input or arguments (``hairexp: error: ...``).
+An existing file is never replaced without ``--force`` (``-f``).
+Exit codes: 0 written (or ``--help``), 2 bad input or arguments, or an existing file without
+``--force`` (``hairexp: error: ...``), 4 a path that cannot be written (its folder missing, a file,
+or not writable), as for a run folder of ``python -m hairexp``.
 """
 
 from __future__ import annotations
@@ -25,11 +29,16 @@ from hairexp.model.dynamic_body import authoring_motion
 log = logging.getLogger(__name__)
 
 
-def export_scene(cfg, path) -> tuple:
+class DestinationError(InputError):
+    """The stage's path cannot be written (exit 4 on the command line)."""
+
+
+def export_scene(cfg, path, overwrite: bool = False) -> tuple:
     """Build ``cfg``'s scene and guides (``assemble_scene``, the run's assembly path, without the
     settle phase: the stage holds the elastic rest shape) and write them to ``path``; (scene, guides).
-    An unwritable ``path`` is an InputError naming it, before anything is built."""
-    check_writable(path)
+    An unwritable ``path`` (a DestinationError), or an existing file without ``overwrite``, is an
+    InputError naming it, before anything is built."""
+    check_writable(path, overwrite)
     cfg, scene, guides = assemble_scene(cfg, settle=False)
     ref = authoring_motion(scene.motion)
     if ref is not scene.motion:  # a dynamic block (scene.body): its motion is not known before a run
@@ -40,31 +49,42 @@ def export_scene(cfg, path) -> tuple:
     try:
         write_scene_usd(path, scene, guides, cfg.fps, cfg.frames)
     except (OSError, RuntimeError) as exc:   # pxr's Tf errors are RuntimeErrors
-        raise InputError(f"cannot write the USD stage: {' '.join(str(exc).split())}", str(path)) from exc
+        raise DestinationError(f"cannot write the USD stage: {' '.join(str(exc).split())}", str(path)) from exc
     return scene, guides
 
 
-def check_writable(path) -> None:
-    """``path`` can be written: its directory exists and is writable, and it is not a directory."""
+def check_writable(path, overwrite: bool = False) -> None:
+    """``path`` can be written: its folder exists and is writable, and it is not a folder; an
+    existing file is refused unless ``overwrite`` (the command line's ``--force``)."""
     p = Path(path)
     parent = p.parent if str(p.parent) else Path(".")
     if p.is_dir():
-        raise InputError("is a directory: give the path of a .usda/.usdc/.usd file", str(path))
+        raise DestinationError("is a directory: give the path of a .usda/.usdc/.usd file", str(path))
     if not parent.is_dir():
-        raise InputError(f"cannot write the USD stage: no such directory {parent}", str(path))
+        above = parent
+        while not above.exists() and above != above.parent:   # the nearest part that exists
+            above = above.parent
+        why = (f"{above} is a file, not a folder" if above.exists() and not above.is_dir()
+               else f"no such directory {parent}")
+        raise DestinationError(f"cannot write the USD stage: {why}", str(path))
     if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
-        raise InputError("cannot write the USD stage: permission denied", str(path))
+        raise DestinationError("cannot write the USD stage: permission denied", str(path))
+    if (p.exists() or p.is_symlink()) and not overwrite:
+        raise InputError("the file exists; give --force to replace it, or another path", str(path))
 
 
 def main(argv: list[str] | None = None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
-    usage = "usage: python -m hairexp.io.export_scene OUT.usda|OUT.usdc|OUT.usd [key=value ...]"
-    if args and args[0] in ("-h", "--help"):
+    usage = "usage: python -m hairexp.io.export_scene [--force] OUT.usda|OUT.usdc|OUT.usd [key=value ...]"
+    if any(a in ("-h", "--help") for a in args):
         print(usage + "\n\n" + __doc__.strip())
         return 0
-    if not args or "=" in args[0] or args[0].startswith("-"):
-        why = ("the path of the stage to write is required" if not args or "=" in args[0]
-               else f"unknown option {args[0]}")
+    force = any(a in ("-f", "--force") for a in args)
+    args = [a for a in args if a not in ("-f", "--force")]
+    flag = next((a for a in args if a.startswith("-") and "=" not in a), None)
+    if not args or "=" in args[0] or flag is not None:
+        why = ("the path of the stage to write is required" if flag is None
+               else f"unknown option {flag} (the options are --force and --help)")
         print(f"{usage}\nhairexp: error: {why}", file=sys.stderr)
         return 2
     try:
@@ -73,10 +93,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"hairexp: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     try:
-        scene, guides = export_scene(cfg, args[0])
+        scene, guides = export_scene(cfg, args[0], overwrite=force)
     except (InputError, ValueError) as exc:
         print(f"hairexp: error: {exc}", file=sys.stderr)
-        return 2
+        return 4 if isinstance(exc, DestinationError) else 2
     print(f"wrote {args[0]}: {scene.strands.n_strands} strands, {guides.n_guides} guides, {guides.n_frames - 1} frames")
     return 0
 

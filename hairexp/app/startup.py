@@ -18,6 +18,17 @@ import threading
 
 #: the exit code of the command once its work has ended (``ended``); None while it starts
 _ENDED_CODE: int | None = None
+#: whether the command's work has begun (``begun``): its own handlers were installed around it
+_BEGUN = False
+
+
+def begun() -> None:
+    """The command's work begins (its handlers go in place around it): a signal after they are
+    removed and before ``ended`` is not one "while starting".  After a run ended as interrupted
+    a third quick signal in that window said "interrupted while starting; nothing was run or
+    written" below the run's own line (probe of issue 12, round 13)."""
+    global _BEGUN
+    _BEGUN = True
 
 
 def ended(code: int) -> None:
@@ -33,8 +44,11 @@ def _handler(signum, frame) -> None:
     name = signal.Signals(signum).name
     code = 128 + int(signum)
     try:
-        if _ENDED_CODE is None:
+        if _ENDED_CODE is None and not _BEGUN:
             sys.stderr.write(f"hairexp: interrupted by {name} while starting; nothing was run or written\n")
+        elif _ENDED_CODE is None:
+            sys.stderr.write(f"hairexp: {name} while the command was ending: its run folder's summary.json says how "
+                             "the run ended\n")
         else:
             sys.stderr.write(f"hairexp: {name} while exiting, after the run had ended (exit code {_ENDED_CODE} "
                              "before it): its run folder's summary.json says how the run ended\n")

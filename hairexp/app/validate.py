@@ -23,9 +23,10 @@ here too so that a bad name fails before the settle phase and the guides are sim
 
 from __future__ import annotations
 
+import logging
 import math
 
-from hairexp.app.config import ColliderConfig
+from hairexp.app.config import ColliderConfig, MeasureConfig, changed_keys
 from hairexp.errors import MAX_SPEED, InputError, integer, number
 from hairexp.control.tracking.correspondence import check_correspondence_options
 from hairexp.control.tracking.kkt import MAX_SCHUR_BYTES, schur_bytes
@@ -33,7 +34,7 @@ from hairexp.control.tracking.variance import check_variance_config
 from hairexp.evaluation.judges import JUDGE_MEASURES, missing_controllers
 from hairexp.guides.authoring import check_edits
 from hairexp.model.builders import check_spin
-from hairexp.evaluation.measures import collider_named
+from hairexp.evaluation.measures import MEASURE_KEYS, collider_named
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR, make_integrator
 from hairexp.physics.simulator import MAX_ITERATION_BUDGET, MAX_LAST_ATTEMPT, MAX_SUBSTEP_LEVELS, check_solver_config  # noqa: F401
 from hairexp.physics.strand_kernels import check_options
@@ -43,6 +44,9 @@ from hairexp.physics.strand_kernels import check_options
 MAX_SCALE_FACTOR = 1e3
 #: collision.barrier_dhat's bound (d_hat as a multiple of the contact thickness)
 MAX_BARRIER_DHAT = 10.0
+
+
+log = logging.getLogger("hairexp")
 
 
 def _value(x):
@@ -137,6 +141,9 @@ def _tracking(t) -> None:
         if integer(p, f"tracking.variance.points[{i}]", 0) >= max(int(n), 1):
             raise InputError(f"is {p}, but tracking points are numbered 0..{int(n) - 1} along each guide "
                              f"(tracking.points_per_guide={n})", f"tracking.variance.points[{i}]")
+        if p in list(t.variance.points)[:i]:   # accepted without a word (probe of issue 12, round 13)
+            raise InputError(f"is {p}, given twice (at [{list(t.variance.points).index(p)}] too): list each tracking "
+                             "point once", f"tracking.variance.points[{i}]")
 
 
 def _collision(c) -> None:
@@ -183,6 +190,25 @@ def _guides(cfg) -> None:
     if source != "file" and str(g.file):
         raise InputError(f"is set ({g.file}) but guides.source={source} does not read it: set guides.source=file "
                          "or leave guides.file empty", "guides.file")
+    if source != "keyframed" and len(g.keyframes):   # ignored without a word, and unchecked (probe, round 13)
+        raise InputError(f"holds {len(g.keyframes)} keyframe(s) but guides.source={source} does not read them: set "
+                         "guides.source=keyframed or leave guides.keyframes empty", "guides.keyframes")
+
+
+def late_keys(cfg) -> None:
+    """A warning for ``guides.edits`` keyed after the run's end (``cfg`` timed: frames and fps
+    known, also a stage's): the keys past it are never reached, and an edit keyed only there is
+    held at its first weight for the whole run (it was silent; probe of issue 12, round 13)."""
+    if not (_positive(cfg.frames) and _positive(cfg.fps)):
+        return
+    end = int(cfg.frames) / float(cfg.fps)
+    for i, e in enumerate(cfg.guides.edits or ()):
+        late = [float(t) for t in e.times if float(t) > end + 1e-9]
+        if late:
+            held = " (every key is: the edit is held at its first weight, the whole run)" if len(late) == len(e.times) else ""
+            log.warning("guides.edits[%d].times: the key%s at %s s lie%s after the run's end at %.6g s (frames / fps) "
+                        "and %s never reached%s", i, "s" if len(late) > 1 else "", ", ".join(f"{t:g}" for t in late),
+                        "" if len(late) > 1 else "s", end, "are" if len(late) > 1 else "is", held)
 
 
 def _scene(cfg) -> None:
@@ -258,19 +284,27 @@ def _collider_sizes(cfg) -> None:
     """A size key a collider's shape does not read, set to other than the schema's default, is
     an error (a sphere's ``half_height=0.3`` was ignored without a word while its ``spin`` was
     refused; probe of issue 12, round 12)."""
-    default = ColliderConfig()
     for i, c in enumerate(cfg.scene.colliders):
         shape = str(_value(c.shape))
         check_spin(shape, c.spin, f"scene.colliders[{i}]")   # the builder's own check, first: the shape's other key
-        for k in ("radius", "half_length", "half_height", "half_extents"):
-            if k in SHAPE_SIZES.get(shape, ()):
-                continue
-            v, d = getattr(c, k), getattr(default, k)
-            v = list(v) if k == "half_extents" else v
-            if v != d:
-                uses = ", ".join(SHAPE_SIZES.get(shape, ())) or "no size"
-                raise InputError(f"is {v}, but a {shape} does not read it (it reads {uses})",
-                                 f"scene.colliders[{i}].{k}")
+        unread = [k for k in ("radius", "half_length", "half_height", "half_extents") if k not in SHAPE_SIZES.get(shape, ())]
+        for k, v in changed_keys(c, ColliderConfig(), unread).items():
+            uses = ", ".join(SHAPE_SIZES.get(shape, ())) or "no size"
+            raise InputError(f"is {v}, but a {shape} does not read it (it reads {uses})", f"scene.colliders[{i}].{k}")
+
+
+def _unused_measure_keys(cfg) -> None:
+    """A warning for the ``measure.*`` keys, set to other than the schema's default, that the
+    chosen measure does not read (``measure.time`` with collider_contact was accepted without a
+    word; probe of issue 12, round 13)."""
+    name = str(_value(cfg.measure.name))
+    reads = MEASURE_KEYS.get(name, ())
+    unread = [k for keys in MEASURE_KEYS.values() for k in keys if k not in reads]
+    unused = changed_keys(cfg.measure, MeasureConfig(), list(dict.fromkeys(unread)))
+    if unused:
+        log.warning("%s not used: measure.name=%s reads %s", ", ".join(f"measure.{k}={v}" for k, v in unused.items())
+                    + (" is" if len(unused) == 1 else " are"), name,
+                    ", ".join(f"measure.{k}" for k in reads) if reads else "no measure keys")
 
 
 def validate_config(cfg) -> None:
@@ -284,6 +318,7 @@ def validate_config(cfg) -> None:
     _clusters(cfg)
     _collision(cfg.collision)
     _measure(cfg)
+    _unused_measure_keys(cfg)
 
 
 def validate_judge(cfg, measure_cfg) -> None:
@@ -330,5 +365,5 @@ def validate_measure(cfg, scene) -> None:
                              "give a time within the run, or < 0 for its last frame", "measure.time")
 
 
-__all__ = ["validate_config", "validate_judge", "validate_judge_controllers", "validate_measure", "number", "integer",
+__all__ = ["validate_config", "late_keys", "validate_judge", "validate_judge_controllers", "validate_measure", "number", "integer",
            "keyframes"]

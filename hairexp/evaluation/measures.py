@@ -209,6 +209,12 @@ def fan(d: RunData, p) -> dict:
 MEASURES = {"collider_contact": collider_contact, "clumps": clumps, "tip_variance": tip_variance,
             "block_rail": block_rail, "fan": fan}
 
+#: the ``measure.*`` keys each measure reads (beyond ``name``; cohesion_* are read by every run)
+MEASURE_KEYS = {"none": (), "collider_contact": ("collider", "tolerance"),
+                "clumps": ("time", "threshold", "strand_fraction", "min_share"),
+                "tip_variance": ("axis", "apex_from", "apex_until"), "block_rail": ("rail_height", "rail_end"),
+                "fan": ("axis", "time", "strand_fraction", "threshold", "min_share")}
+
 
 #: per measure: (the measure key holding the time of the scene's event, its name; the key
 #: holding a time to fall back on when the event did not happen, its name)

@@ -187,8 +187,11 @@ def pose_from_matrix(M, where: str, tc, allow_scale: bool = False) -> tuple[np.n
         raise InputError(f"transform at {at} is degenerate (scale {scale.tolist()})", where)
     R = A / scale
     dev = float(np.abs(R.T @ R - np.eye(3)).max())
-    if dev > RIGID_TOL or np.linalg.det(R) < 0:
-        raise InputError(f"transform at {at} is not rigid: it shears or mirrors (|R^T R - I| = {dev:.1e})", where)
+    if dev > RIGID_TOL:
+        raise InputError(f"transform at {at} is not rigid: it shears (|R^T R - I| = {dev:.1e})", where)
+    if np.linalg.det(R) < 0:   # the message said "shears or mirrors (|R^T R - I| = 0)" (probe, round 13)
+        raise InputError(f"transform at {at} is not rigid: it mirrors (a negative scale, determinant "
+                         f"{np.linalg.det(A):.3g}); hair and colliders cannot be mirrored", where)
     if not allow_scale and np.abs(scale - 1.0).max() > RIGID_TOL:
         raise InputError(f"transform at {at} is not rigid: it scales by {scale.tolist()} "
                          "(bodies and colliders move rigidly; put sizes in the shape's attributes)", where)

@@ -15,6 +15,7 @@ Outside the keyed range the first/last pose is held with zero velocity.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,9 +96,13 @@ class RigidMotion:
     def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Rotation matrix (3, 3) and translation (3,) at time t (the last few are cached:
         a step asks for the same few times many times)."""
+        if isinstance(t, (str, bytes, bool)):   # float() took "0.1" (probe of issue 12, round 13)
+            raise InputError(f"must be a real number of seconds, got {type(t).__name__} {t!r}", "RigidMotion.pose: t")
         key = float(t)
         hit = self._cache.get(key)
         if hit is None:
+            if not math.isfinite(key):   # NaN gave NaN poses without a word
+                raise InputError(f"must be a finite number of seconds, got {key}", "RigidMotion.pose: t")
             hit = self._pose(key)
             if len(self._cache) >= 16:
                 self._cache.pop(next(iter(self._cache)))

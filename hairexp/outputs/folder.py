@@ -299,8 +299,28 @@ def overwrite_refusal(folder: Path) -> str | None:
     _, foreign = _removable(folder, top=True)
     if foreign:
         return ("overwrite=true removes only what a run wrote; the folder also holds "
-                + ", ".join(str(p.relative_to(folder)) for p in foreign[:6]))
+                + ", ".join(_foreign_label(p, folder) for p in foreign[:6]))
     return None
+
+
+def _foreign_label(p: Path, folder: Path) -> str:
+    """``p`` (an entry no run wrote) as the refusal names it: one with a run file's name says why
+    it is not that run file (a garbage summary.json was named as if it were any other file; probe
+    of issue 12, round 13)."""
+    name = str(p.relative_to(folder))
+    if p.is_symlink():
+        return f"{name} (a symbolic link)"
+    if p.name not in RUN_FILES and p.name not in RUN_DIRS:
+        return name
+    if p.is_dir() and p.name in RUN_FILES:
+        return f"{name} (a folder, where a run writes a file)"
+    if p.name in RUN_DIRS:
+        return f"{name} (a file, where a run writes a folder)" if not p.is_dir() else name
+    if not os.access(p, os.R_OK):
+        return f"{name} (unreadable)"
+    what = ("not a run's summary: not a JSON object with a status" if p.name == SUMMARY
+            else f"not a {p.suffix[1:]} file: it does not begin as one")
+    return f"{name} ({what})"
 
 
 def used_entries(folder: Path) -> list[Path]:
