@@ -216,3 +216,16 @@ def test_rigid_motion_pose_refuses_a_time_that_is_not_a_number(t, why):
         m.pose(t)
     R, T = m.pose(np.float64(0.5))
     assert np.allclose(R, np.eye(3)) and np.allclose(T, 0.0)
+
+
+def test_allow_large_does_not_run_what_exceeds_the_machines_memory_and_swap():
+    """guard.allow_large=true with 1e8 strands ran into the out-of-memory killer (exit 137, the
+    summary left running); more than memory + swap is refused even with the override."""
+    from hairexp.app import guard
+
+    est = guard.estimate(10 ** 9, 30, 1)
+    with pytest.raises(InputError, match="more than the machine has .* guard.allow_large=true cannot make it fit"):
+        guard.check(est, "scene.n_strands", allow_large=True, available=1e9, total=2e10)
+    guard.check(guard.estimate(10 ** 6, 30, 1), "k", allow_large=True, available=1e9, total=2e10)   # warned only
+    total = guard.total_memory()
+    assert total is None or total > 1e8

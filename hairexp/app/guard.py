@@ -92,6 +92,30 @@ def available_memory() -> float | None:
         return None
 
 
+def total_memory() -> float | None:
+    """Bytes of memory and swap the process could ever have: MemTotal + SwapTotal of
+    /proc/meminfo, at most a cgroup's memory limit (cgroup v2 memory.max, v1
+    memory.limit_in_bytes); None when unknown."""
+    total = None
+    try:
+        with open("/proc/meminfo") as f:
+            fields = {line.split(":")[0]: float(line.split()[1]) * 1024.0 for line in f if ":" in line}
+        if "MemTotal" in fields:
+            total = fields["MemTotal"] + fields.get("SwapTotal", 0.0)
+    except (OSError, ValueError, IndexError):
+        pass
+    for limit in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            with open(limit) as f:
+                value = f.read().strip()
+            if value.isdigit() and int(value) < (1 << 60):
+                total = float(value) if total is None else min(total, float(value))
+                break
+        except OSError:
+            continue
+    return total
+
+
 def available_disk(folder) -> float | None:
     """Free bytes of the disk holding ``folder`` (its nearest existing ancestor), or None."""
     import shutil
@@ -138,14 +162,21 @@ MAX_RUN_SECONDS = 7 * 86400.0
 
 
 def check(est: Estimate, keys: str, allow_large: bool, available: float | None, disk_free: float | None = None,
-          folder: str | None = None) -> None:
+          folder: str | None = None, total: float | None = None) -> None:
     """Refuse ``est`` when it needs more than ``available`` bytes of memory or ``disk_free`` bytes
     of the disk of ``folder`` (an InputError naming ``keys``, the config keys that size the run),
-    unless ``allow_large``; warn about a long run."""
+    unless ``allow_large``; warn about a long run.  More than ``total`` bytes (the machine's memory
+    and swap, ``total_memory``) is refused even with ``allow_large``: such a run can only end
+    killed by the out-of-memory killer, its summary left running (probe of issue 12, round 13)."""
     def refuse(msg: str) -> None:   # an InputError, or with allow_large a warning
         if not allow_large:
             raise InputError(msg, keys)
         log.warning("%s: %s (guard.allow_large=true: running anyway)", keys, msg)
+
+    if allow_large and total is not None and est.memory > total:
+        raise InputError(f"the run would need about {_size(est.memory)} of memory, more than the machine has "
+                         f"({_size(total)} of memory and swap): guard.allow_large=true cannot make it fit; make it smaller",
+                         keys)
 
     if available is not None and est.memory > available:
         refuse(f"the run would need about {_size(est.memory)} of memory ({est.steps:.3g} steps, "
@@ -192,5 +223,5 @@ def guard_run(cfg, n_vertices: int, steps_per_frame: int, run: bool = True) -> E
     keys += ", frames, solver.dt" + (", scene.settle" if hair_settle else "")
     folder = run_folder() if run else None
     check(est, keys, bool(getattr(getattr(cfg, "guard", None), "allow_large", False)), available_memory(),
-          None if folder is None else available_disk(folder), folder)
+          None if folder is None else available_disk(folder), folder, total_memory())
     return est
