@@ -57,11 +57,9 @@ def entry() -> int:
     # name, not the folder's files (probe of issue 12, round 12); then another run's folder, before
     # Hydra writes .hydra/ into it; then the launch lock (two launches that both found it empty)
     # (none of this when Hydra only prints: --cfg, --info, --help run nothing and make no folder)
-    used = None if cli.prints_only(sys.argv[1:]) else cli.live_folder_error(sys.argv[1:])
-    if used is None and not cli.prints_only(sys.argv[1:]):
-        used = cli.used_dir_error(sys.argv[1:])
-    if used is None and not cli.prints_only(sys.argv[1:]):
-        used = cli.hold_folder_error(sys.argv[1:])
+    argv = sys.argv[1:]
+    used = None if cli.prints_only(argv) else (
+        cli.live_folder_error(argv) or cli.used_dir_error(argv) or cli.hold_folder_error(argv))
     if used is not None:
         print(used, file=sys.stderr)
         return 2

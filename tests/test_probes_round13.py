@@ -229,3 +229,10 @@ def test_allow_large_does_not_run_what_exceeds_the_machines_memory_and_swap():
     guard.check(guard.estimate(10 ** 6, 30, 1), "k", allow_large=True, available=1e9, total=2e10)   # warned only
     total = guard.total_memory()
     assert total is None or total > 1e8
+
+
+def test_an_abbreviated_flag_is_named_with_its_full_form():
+    from hairexp.app.cli import flag_error
+
+    assert flag_error(["--multi", "frames=2,3"]) == "hairexp: error: --multi: write the option in full: --multirun"
+    assert flag_error(["-m", "--cfg", "job", "-p", "solver", "--info", "config", "frames=2,3"]) is None

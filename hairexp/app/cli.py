@@ -430,23 +430,29 @@ _FLAGS_WITH_VALUE = ("--cfg", "-c", "--package", "-p", "--config-path", "-cp", "
 
 
 #: Hydra's command-line flags (hydra 1.3's argparse parser)
-_FLAGS = frozenset(_FLAGS_WITH_VALUE + ("-h", "--help", "--hydra-help", "--version", "-r", "--resolve", "-m", "--multirun",
-                                        "-sc", "--shell-completion"))
+_FLAGS = frozenset(_FLAGS_WITH_VALUE + ("-h", "--help", "--hydra-help", "--version", "-r", "--run", "--resolve", "-m",
+                                        "--multirun", "-sc", "--shell-completion"))
 #: the flags with which Hydra prints something and runs nothing
 _NO_RUN_FLAGS = frozenset({"-h", "--help", "--hydra-help", "--version", "-c", "--cfg", "-i", "--info", "-sc",
                            "--shell-completion"})
 
 
 def _flag(arg: str) -> str:
+    """The flag ``arg`` names (``--cfg=job`` is ``--cfg``)."""
     return arg.split("=", 1)[0] if arg.startswith("--") else arg
 
 
 def flag_error(argv: list[str]) -> str | None:
     """The error line for a command-line flag Hydra does not have (``--bogus-flag``), before any
     folder is made: Hydra's argparse refused it (exit 2) after hairexp had taken the run folder's
-    launch lock, leaving an empty folder (probe of issue 12, round 13)."""
+    launch lock, leaving an empty folder (probe of issue 12, round 13).  An abbreviation that
+    argparse would take (``--multi``) is refused too, naming the flag: hairexp's own checks of
+    the run or sweep folder read the flags written in full."""
     for i, arg in enumerate(argv):
         if arg.startswith("-") and _flag(arg) not in _FLAGS and not (i and argv[i - 1] in _FLAGS_WITH_VALUE):
+            longer = sorted(f for f in _FLAGS if f.startswith("--") and f.startswith(_flag(arg)))
+            if arg.startswith("--") and len(longer) == 1:
+                return f"hairexp: error: {arg}: write the option in full: {longer[0]}"
             return (f"hairexp: error: unknown option {arg}; the options are Hydra's ({', '.join(sorted(_FLAGS))}), "
                     "the rest key=value overrides (python -m hairexp --help)")
     return None
