@@ -28,7 +28,8 @@ class FrameStore:
         self.per_block = max(1, block_bytes // max(1, self.frame_bytes))
         self._file = tempfile.TemporaryFile(prefix="hairexp-frames-")
         self._written = 0              # frames in the file
-        self._pending: list[np.ndarray] = []
+        self._pending: np.ndarray | None = None   # the block being filled (made at its first frame)
+        self._n_pending = 0
         self._cache: tuple[int, np.ndarray] | None = None   # (first frame, block)
 
     @classmethod
@@ -47,21 +48,24 @@ class FrameStore:
         a = np.asarray(frame)
         if a.shape != self.frame_shape:
             raise ValueError(f"frame of shape {a.shape}, expected {self.frame_shape}")
-        self._pending.append(np.array(a, dtype=self.dtype, order="C"))
-        if len(self._pending) >= self.per_block:
+        if self._pending is None:   # frames go into one block array, written as it is (no copies to join)
+            self._pending = np.empty((self.per_block, *self.frame_shape), self.dtype)
+        self._pending[self._n_pending] = a
+        self._n_pending += 1
+        if self._n_pending >= self.per_block:
             self._flush()
 
     def _flush(self) -> None:
-        if not self._pending:
+        if not self._n_pending:
             return
-        data = b"".join(p.tobytes() for p in self._pending)
-        os.pwrite(self._file.fileno(), data, self._written * self.frame_bytes)
-        self._written += len(self._pending)
-        self._pending = []
+        k = self._n_pending
+        os.pwrite(self._file.fileno(), self._pending[:k], self._written * self.frame_bytes)
+        self._written += k
+        self._pending, self._n_pending = None, 0
 
     # -- reading ---------------------------------------------------------------------------------
     def __len__(self) -> int:
-        return self._written + len(self._pending)
+        return self._written + self._n_pending
 
     @property
     def shape(self) -> tuple:
@@ -76,10 +80,18 @@ class FrameStore:
         n = max(0, stop - start)
         if n == 0:
             return np.zeros((0, *self.frame_shape), self.dtype)
-        data = os.pread(self._file.fileno(), n * self.frame_bytes, start * self.frame_bytes)
-        if len(data) != n * self.frame_bytes:
-            raise OSError(f"frame store: read {len(data)} of {n * self.frame_bytes} bytes")
-        return np.frombuffer(data, dtype=self.dtype).reshape(n, *self.frame_shape).copy()
+        out = np.empty((n, *self.frame_shape), self.dtype)
+        want = n * self.frame_bytes
+        if hasattr(os, "preadv"):   # straight into the array: no bytes object and copy beside it
+            got = os.preadv(self._file.fileno(), [out], start * self.frame_bytes)
+        else:
+            data = os.pread(self._file.fileno(), want, start * self.frame_bytes)
+            got = len(data)
+            if got == want:
+                out.reshape(-1)[:] = np.frombuffer(data, dtype=self.dtype)
+        if got != want:
+            raise OSError(f"frame store: read {got} of {want} bytes")
+        return out
 
     def __getitem__(self, i):
         if isinstance(i, slice):
@@ -95,6 +107,7 @@ class FrameStore:
                 raise IndexError(f"frame {i} of {len(self)}")
             c = self._cache
             if c is None or not c[0] <= i < c[0] + len(c[1]):
+                c = self._cache = None   # the old block freed before the next is read: one block held, not two
                 b0 = i // self.per_block * self.per_block
                 c = self._cache = (b0, self.block(b0, b0 + self.per_block))
             return c[1][i - c[0]].copy()
