@@ -236,3 +236,117 @@ def test_an_abbreviated_flag_is_named_with_its_full_form():
 
     assert flag_error(["--multi", "frames=2,3"]) == "hairexp: error: --multi: write the option in full: --multirun"
     assert flag_error(["-m", "--cfg", "job", "-p", "solver", "--info", "config", "frames=2,3"]) is None
+
+
+# round 14's probe (and a sweep of 1e300 over every unbounded number): bounds, and memory errors named
+
+@pytest.mark.parametrize("override, key", [
+    ("tracking.krylov_max=1000000000", "tracking.krylov_max"),   # a 536 GiB GMRES basis: a traceback
+    ("collision.skin=1e300", "collision.skin"),                  # the neighbour grid overflowed
+    ("tracking.blend_width=1e300", "tracking.blend_width"),      # OverflowError
+    ("collision.hair_thickness=1e300", "collision.hair_thickness"),   # LinAlgError with hair-hair
+    ("collision.volume_cell=1e300", "collision.volume_cell"),
+    ("collision.volume_pressure_speed=1e300", "collision.volume_pressure_speed"),
+    ("guides.layout_radius=1e300", "guides.layout_radius"),      # the guide simulation diverged, exit 3
+    ("tracking.rtol=1", "tracking.rtol"), ("solver.rtol=5", "solver.rtol"),   # accept the first iterate
+    ("solver.atol=1", "solver.atol"), ("tracking.atol=1", "tracking.atol"),
+    ("tracking.ctol_rel=1e300", "tracking.ctol_rel"), ("tracking.nonmonotone=1000000000", "tracking.nonmonotone"),
+    ("tracking.elastic_stiffness=1e300", "tracking.elastic_stiffness"),
+    ("collision.barrier_stiffness=1e300", "collision.barrier_stiffness"),
+    ("collision.friction_epsilon=1e300", "collision.friction_epsilon"),
+    ("collision.volume_friction=1e300", "collision.volume_friction"),
+    ("scene.hair.air_drag=1e300", "scene.hair.air_drag"),
+])
+def test_values_beyond_any_use_are_refused(override, key):
+    from hairexp.app.assemble import check_config
+    from hairexp.app.config import compose_config
+
+    with pytest.raises(InputError) as e:
+        check_config(compose_config(SMOKE + ["controller=tracking", override]))
+        from hairexp.app.assemble import assemble   # the material is checked where it is built
+        assemble(compose_config(SMOKE + [override]))
+    assert e.value.where == key
+
+
+def test_an_allocation_that_fails_is_one_line_and_exit_3(tmp_path, monkeypatch, capsys):
+    """A size no check foresaw (numpy's ArrayMemoryError) gave a traceback and exit 1."""
+    import hairexp.app.cli as cli
+    from hairexp.app.config import compose_config
+
+    def no_memory(cfg, out):
+        raise MemoryError("Unable to allocate 536. GiB for an array with shape (1000000001, 72000)")
+
+    monkeypatch.setattr(cli, "run_experiment", no_memory)
+    res = cli.job(compose_config(SMOKE), str(tmp_path / "r"), overrides=[])
+    err = capsys.readouterr().err
+    assert res["code"] == 3 and res["status"] == "failed" and "Traceback" not in err
+    assert err.startswith("hairexp: out of memory: Unable to allocate 536. GiB")
+
+
+def test_a_missing_sublayer_is_one_line_without_usds_own_warning(tmp_path, capfd):
+    """USD printed 'Warning: in _ReportErrors at line ... -- Could not load sublayer ...' on the
+    process's stderr before hairexp's error line that said the same."""
+    from hairexp.io.usd_read import open_stage
+
+    stage = tmp_path / "s.usda"
+    stage.write_text('#usda 1.0\n(\n    subLayers = [@./nope.usda@]\n)\n\ndef Xform "Root"\n{\n}\n')
+    with pytest.raises(InputError, match="the stage does not compose: Could not load sublayer"):
+        open_stage(str(stage))
+    assert "_ReportErrors" not in capfd.readouterr().err
+
+
+def test_a_bracketed_list_index_in_a_key_is_named_with_its_dotted_form():
+    """``scene.colliders[0].radius=0.1`` was told to quote its value, which did not help."""
+    from hairexp.app.cli import override_syntax_error
+
+    msg = override_syntax_error(["scene.colliders[0].radius=0.1"])
+    assert msg == ("hairexp: error: scene.colliders[0].radius=0.1: a list item is named with dots in a key, not "
+                   "brackets: scene.colliders.0.radius=0.1")
+    assert "quote a value" in override_syntax_error(["scene.usd=/tmp/a[1].usda"])   # a value's brackets: quote it
+
+
+def test_a_dotted_index_past_the_lists_end_is_named():
+    from hairexp.app.config import compose_config
+
+    with pytest.raises(InputError, match=r"scene.colliders has no item 5: a dotted index sets a key of an item the "
+                                         r"list already has") as e:
+        compose_config(SMOKE + ["scene.colliders.5.radius=0.1"])
+    assert e.value.where == "scene.colliders.5.radius"
+
+
+def test_a_run_folder_climbing_out_of_a_folder_it_would_make_is_refused(tmp_path):
+    """``hydra.run.dir=<dir>/b//../../z`` ran into z and left an empty folder b."""
+    from hairexp.app.cli import run_dir_error
+
+    msg = run_dir_error([*SMOKE, f"hydra.run.dir={tmp_path}/b//../../z"])
+    assert msg is not None and f"the '..' after {tmp_path}/b, a folder that does not exist" in msg
+    assert not (tmp_path / "b").exists()
+    (tmp_path / "b").mkdir()
+    assert run_dir_error([*SMOKE, f"hydra.run.dir={tmp_path}/b/../z"]) is None   # b exists: nothing is made on the way
+
+
+def test_the_python_api_bounds_what_the_command_line_bounds():
+    """The API took what the command line refuses: a rotation of 1e6 rad, gravity 1e9 m/s^2, a
+    material constant of 1e300 (which then failed as a diverged step), and pose(None)."""
+    from hairexp.model import RigidMotion
+    from hairexp.model.scene import Material
+
+    with pytest.raises(InputError, match=r"rotvecs: the rotation at keyframe 0 turns 1e\+06 rad, more than 36000"):
+        RigidMotion(np.array([0.0]), np.zeros((1, 3)), np.array([[1e6, 0.0, 0.0]]))
+    with pytest.raises(InputError, match="RigidMotion.pose: t: must be a real number of seconds, got NoneType"):
+        RigidMotion(np.array([0.0]), np.zeros((1, 3)), np.zeros((1, 3))).pose(None)
+    for key in ("stretch_stiffness", "bending_stiffness", "air_drag", "edge_damping"):
+        kw = dict(linear_density=1e-4, stretch_stiffness=10.0, bending_stiffness=1e-6)
+        kw[key] = 1e300
+        with pytest.raises(InputError, match=f"Material.{key}"):
+            Material(**kw)
+
+
+def test_scene_gravity_is_bounded_in_the_api():
+    from hairexp.app.assemble import assemble
+    from hairexp.app.config import compose_config
+    from dataclasses import replace
+
+    scene = assemble(compose_config(SMOKE)).scene
+    with pytest.raises(InputError, match=r"Scene.gravity: is \[0.0, -1000000000.0, 0.0\], larger than 1000 m/s\^2"):
+        replace(scene, gravity=np.array([0.0, -1e9, 0.0]))

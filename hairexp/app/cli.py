@@ -137,6 +137,12 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
             print(f"hairexp: {msg} ({_kept(out, 'partial results')})", file=sys.stderr)
             _print_notes(exc)
             res = outcome(out, "interrupted", signal_exit_code(signum), msg)
+    except MemoryError as exc:   # numpy's ArrayMemoryError too: a size the checks did not foresee (probe, round 14)
+        why = " ".join(str(exc).split()) or "an allocation failed"
+        print(f"hairexp: out of memory: {why} ({_kept(out, 'partial metrics')}); make the run smaller (scene.n_strands, "
+              "scene.n_vertices, guides.count, tracking.points_per_guide) or lower the setting that sized it",
+              file=sys.stderr)
+        res = outcome(out, "failed", 3, f"out of memory: {why}")
     except Exception as exc:   # noqa: BLE001  (a bug: the traceback, exit 1; the sweep's other jobs go on)
         traceback.print_exc()
         res = outcome(out, "failed", 1, f"{type(exc).__name__}: {exc}")
@@ -465,6 +471,16 @@ def prints_only(argv: list[str]) -> bool:
     return any(_flag(a) in _NO_RUN_FLAGS for i, a in enumerate(argv) if not (i and argv[i - 1] in _FLAGS_WITH_VALUE))
 
 
+def _made_on_the_way(path: str) -> str | None:
+    """The first folder of ``path`` that does not exist and is followed by a '..' (``os.makedirs``
+    makes it, then climbs out of it), or None."""
+    parts = Path(path).parts
+    for i, part in enumerate(parts[:-1]):
+        if parts[i + 1] == ".." and part not in ("..", "/") and not Path(*parts[:i + 1]).exists():
+            return str(Path(*parts[:i + 1]))
+    return None
+
+
 def override_syntax_error(argv: list[str]) -> str | None:
     """The error line for a ``key=value`` argument that Hydra's override grammar cannot parse (a
     value with non-ASCII characters or an unbalanced bracket, unquoted), or for an empty run folder
@@ -483,6 +499,9 @@ def override_syntax_error(argv: list[str]) -> str | None:
             why = " ".join(str(exc).split()).split(" See https://")[0]
             why = re.sub(r"^.*?Exception: \S.*?\^ ", "", why)
             key, value = arg.split("=", 1)
+            dotted = re.sub(r"\[(\d+)\]", r".\1", key)
+            if dotted != key:   # the key's syntax, not the value's: quoting the value did not help (probe, round 14)
+                return f"hairexp: error: {arg}: a list item is named with dots in a key, not brackets: {dotted}={value}"
             if value.lstrip().startswith(("[", "{")) and "=" in value:
                 # quoting the whole list would make it a string (probe of issue 12)
                 return (f"hairexp: error: {arg}: not a valid override ({why}); inside a list or a dict, quote each "
@@ -864,6 +883,11 @@ def run_dir_error(argv: list[str]) -> str | None:
             # mkdir made the interpolated folder on the way and left it empty (probe of issue 12, round 12)
             return (f"hairexp: error: {key}={value}: a '..' after an interpolation makes the interpolated folder "
                     "on the way and leaves it empty; write the path without '..'")
+        missing = _made_on_the_way(value if "${" not in value else value[:value.index("${")])
+        if missing is not None:   # 'b//../../z': b made and left empty (probe of issue 12, round 14)
+            return (f"hairexp: error: {key}={value}: the '..' after {missing}, a folder that does not exist, would make "
+                    f"{missing} on the way and leave it empty; write the path without '..' "
+                    f"({os.path.normpath(value) if '${' not in value else 'normalised'})")
         path = _static_part(value)
         why = None if path is None else _unusable_folder(path)
         if why is not None:

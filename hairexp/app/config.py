@@ -689,6 +689,12 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
             elif field_key:   # a field of a record in the value (an edit's kind)
                 key = f"{key} (its {field_key})"
             reason = str(cause).split("\n")[0]
+            item = re.fullmatch(r"(.+)\[(\d+)\]", field_key)
+            if item and "is not a subclass of" in reason and "value: {}" in reason:
+                # an index past the list's end: OmegaConf made an empty item (probe of issue 12, round 14)
+                raise InputError(f"{item.group(1)} has no item {item.group(2)}: a dotted index sets a key of an item the "
+                                 f"list already has; to add items give the whole list ({item.group(1)}=[...], "
+                                 "every item to keep)", bad_value.group(1)) from exc
             if "incompatible with type hint 'float'" in reason and "(int)" in reason:   # translations=[[0,0,0]]
                 reason += ("; write such a number as a float (0.0, not 0): inside a list of lists OmegaConf does "
                            "not turn an integer into a float")

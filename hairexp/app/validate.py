@@ -55,6 +55,15 @@ def _value(x):
 
 #: ``collision.max_passes`` at most this (each pass checks every vertex against every collider)
 MAX_COLLISION_PASSES = 1000
+#: ``collision.skin`` at most this (m): the hair-hair neighbour list holds every edge pair closer
+#: than hair_thickness + skin; beyond a metre it is every pair of a head of hair
+MAX_SKIN = 1.0
+#: ``tracking.krylov_max`` at most this: a KKT solve's GMRES keeps krylov_max basis rows as long
+#: as the hair's vertex coordinates (Celia: 188 kB a row); the default is 16
+MAX_KRYLOV = 1000
+#: ``solver.atol`` / ``tracking.atol`` at most this (N): an absolute tolerance on the gradient that
+#: hair's forces (mN) always meet accepts the first iterate of every step
+MAX_ATOL = 1e-3
 
 
 def keyframes(times, key_times: str, values: dict) -> None:
@@ -114,22 +123,25 @@ def _clusters(cfg) -> None:
 
 
 def _tracking(t) -> None:
-    rtol = number(t.rtol, "tracking.rtol", lo=0)
-    atol = number(t.atol, "tracking.atol", lo=0)
+    rtol = number(t.rtol, "tracking.rtol", lo=0, hi=1, hi_open=True)   # >= 1 accepts the first iterate (round 14)
+    atol = number(t.atol, "tracking.atol", lo=0, hi=MAX_ATOL)
     if rtol == 0 and atol == 0:
         raise InputError("tracking.rtol and tracking.atol are both 0: no step can converge; give one > 0",
                          "tracking.rtol")
-    number(t.ctol_rel, "tracking.ctol_rel", lo=0, lo_open=True)
+    number(t.ctol_rel, "tracking.ctol_rel", lo=0, hi=0.1, lo_open=True)   # of the hair length: 1e300 met nothing
     if integer(t.max_iterations, "tracking.max_iterations", 1) > MAX_ITERATION_BUDGET:
         raise InputError(f"must be at most {MAX_ITERATION_BUDGET} (an SQP solve takes 2-60 iterations; one that has "
                          f"not converged in {MAX_ITERATION_BUDGET} will not), got {t.max_iterations}",
                          "tracking.max_iterations")
-    integer(t.nonmonotone, "tracking.nonmonotone", 1)
+    if integer(t.nonmonotone, "tracking.nonmonotone", 1) > MAX_ITERATION_BUDGET:   # a window of past merits
+        raise InputError(f"must be <= {MAX_ITERATION_BUDGET}, got {t.nonmonotone}", "tracking.nonmonotone")
     number(t.krylov_tol, "tracking.krylov_tol", lo=0, hi=1e-2, lo_open=True)   # relative residual of each KKT solve
-    integer(t.krylov_max, "tracking.krylov_max", 1)
+    if integer(t.krylov_max, "tracking.krylov_max", 1) > MAX_KRYLOV:   # 1e9: a 536 GiB basis (probe, round 14)
+        raise InputError(f"must be <= {MAX_KRYLOV} (GMRES iterations of one KKT solve before the Schur complement is "
+                         f"rebuilt; each keeps a basis row of every hair vertex), got {t.krylov_max}", "tracking.krylov_max")
     number(t.max_guide_distance, "tracking.max_guide_distance", lo=0)
-    number(t.elastic_stiffness, "tracking.elastic_stiffness", lo=0, lo_open=True)
-    number(t.blend_width, "tracking.blend_width", lo=0, lo_open=True)   # m
+    number(t.elastic_stiffness, "tracking.elastic_stiffness", lo=0, hi=1e9, lo_open=True)
+    number(t.blend_width, "tracking.blend_width", lo=0, hi=10.0, lo_open=True)   # m; 1e300 overflowed (round 14)
     n = t.points_per_guide   # >= 1: hairexp/control/tracking/correspondence.py, checked here too
     check_correspondence_options(n, str(_value(t.point_placement)), str(_value(t.assignment)))
     check_variance_config(t.variance)   # hairexp/control/tracking/variance.py
@@ -147,8 +159,8 @@ def _tracking(t) -> None:
 
 
 def _collision(c) -> None:
-    number(c.hair_thickness, "collision.hair_thickness", lo=0, lo_open=True)
-    number(c.skin, "collision.skin", lo=0)
+    number(c.hair_thickness, "collision.hair_thickness", lo=0, hi=0.1, lo_open=True)   # m; 1e300: a traceback (round 14)
+    number(c.skin, "collision.skin", lo=0, hi=MAX_SKIN)   # 1e300 overflowed the neighbour grid (probe, round 14)
     integer(c.max_passes, "collision.max_passes", 1)
     if c.max_passes > MAX_COLLISION_PASSES:   # hair resting on a surface counts in every pass: 1e9 never ended
         raise InputError(f"must be <= {MAX_COLLISION_PASSES}, got {c.max_passes}", "collision.max_passes")
@@ -157,23 +169,23 @@ def _collision(c) -> None:
     integer(c.max_travel_substeps, "collision.max_travel_substeps", 1)
     if c.max_travel_substeps > MAX_TRAVEL_SUBSTEPS:   # each substep is a whole step's solve
         raise InputError(f"must be <= {MAX_TRAVEL_SUBSTEPS}, got {c.max_travel_substeps}", "collision.max_travel_substeps")
-    number(c.volume_cell, "collision.volume_cell", lo=0, lo_open=True)
-    number(c.volume_friction, "collision.volume_friction", lo=0)
-    number(c.volume_pressure_speed, "collision.volume_pressure_speed", lo=0)
+    number(c.volume_cell, "collision.volume_cell", lo=0, hi=1.0, lo_open=True)   # m: a cell of a metre holds a head of hair
+    number(c.volume_friction, "collision.volume_friction", lo=0, hi=1e6)   # 1/s
+    number(c.volume_pressure_speed, "collision.volume_pressure_speed", lo=0, hi=100.0)   # m/s; 1e300 overflowed
     mode = str(_value(c.contact))
     if mode not in ("barrier", "stage"):
         raise InputError(f"unknown contact {mode!r} (barrier|stage)", "collision.contact")
     # a fraction of the thickness: 1e6 made d_hat 2 km and every vertex a contact of every
     # collider (the first step did not end in minutes; probe of issue 12)
     number(c.barrier_dhat, "collision.barrier_dhat", lo=0, hi=MAX_BARRIER_DHAT, lo_open=True)
-    number(c.barrier_stiffness, "collision.barrier_stiffness", lo=0, lo_open=True)
-    number(c.friction_epsilon, "collision.friction_epsilon", lo=0, lo_open=True)
+    number(c.barrier_stiffness, "collision.barrier_stiffness", lo=0, hi=1e9, lo_open=True)
+    number(c.friction_epsilon, "collision.friction_epsilon", lo=0, hi=10.0, lo_open=True)   # m/s
 
 
 def _guides(cfg) -> None:
     g = cfg.guides
     source = str(_value(g.source))
-    number(g.layout_radius, "guides.layout_radius", lo=0)
+    number(g.layout_radius, "guides.layout_radius", lo=0, hi=10.0)   # of the root radius; 1e300 diverged (round 14)
     keyframes(g.scale_times, "guides.scale_times", {"guides.scale_factors": g.scale_factors})
     for i, f in enumerate(g.scale_factors):   # 1e9 was blamed on scene.length and the body (probe, round 12)
         number(f, f"guides.scale_factors[{i}]", lo=0, hi=MAX_SCALE_FACTOR, lo_open=True)

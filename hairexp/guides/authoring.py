@@ -54,7 +54,7 @@ from scipy.spatial.transform import Rotation
 
 from hairexp.errors import InputError
 from hairexp.guides.store import FrameStore
-from hairexp.model.builders import MAX_KEY_DEGREES
+from hairexp.model.rigid import MAX_KEY_DEGREES
 from hairexp.model.strands import validate_polylines
 
 #: Largest turn (degrees) of a guide's first edge away from its rest direction, in the body frame.

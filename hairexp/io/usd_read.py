@@ -45,14 +45,15 @@ def open_stage(path: str) -> tuple[Usd.Stage, str]:
                          "scene.usd")
     where = f"scene.usd={path}"
     regular_file(path, where, "USD stage")
-    try:
-        stage = _open.get(path)
-        if stage is None:
-            stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
-        stage.Reload()  # a stage kept from an earlier read: pick up edits of the file
-    except Exception as exc:  # pxr.Tf.ErrorException: not a USD file, syntax error, ...
-        _open.pop(path, None)
-        raise InputError(f"cannot read the USD stage: {_message(exc)}", where) from exc
+    with _usd_stderr() as said:   # USD's own warnings, said below as one line each (or by the error)
+        try:
+            stage = _open.get(path)
+            if stage is None:
+                stage = Usd.Stage.Open(str(path), Usd.Stage.LoadAll)
+            stage.Reload()  # a stage kept from an earlier read: pick up edits of the file
+        except Exception as exc:  # pxr.Tf.ErrorException: not a USD file, syntax error, ...
+            _open.pop(path, None)
+            raise InputError(f"cannot read the USD stage: {_message(exc)}", where) from exc
     if not stage:
         raise InputError("cannot read the USD stage", where)
     errors = stage.GetCompositionErrors()
@@ -62,6 +63,8 @@ def open_stage(path: str) -> tuple[Usd.Stage, str]:
         _open.pop(path, None)
         raise InputError(f"the stage does not compose: {' '.join(str(errors[0]).split())}"
                          + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""), where)
+    for line in said:
+        log.warning("%s: USD: %s", where, line)
     _open.clear()
     _open[path] = stage
     if UsdGeom.StageHasAuthoredMetersPerUnit(stage) and abs(UsdGeom.GetStageMetersPerUnit(stage) - 1.0) > 1e-12:
@@ -71,6 +74,46 @@ def open_stage(path: str) -> tuple[Usd.Stage, str]:
         raise InputError(f"upAxis is {UsdGeom.GetStageUpAxis(stage)}; hairexp scenes are Y up "
                          "(scene.gravity points along -Y)", where)
     return stage, where
+
+
+class _usd_stderr:
+    """USD's C++ diagnostics (``Warning: in _ReportErrors at line ... -- Could not load sublayer
+    ...``) written to the process's stderr while a stage opens, caught (file descriptor 2 points
+    at a temporary file meanwhile) and kept as a list of one-line messages: printed before the
+    error line that says the same, they made two lines of one error (probe of issue 12, round 14)."""
+
+    def __enter__(self) -> list:
+        import os
+        import sys
+        import tempfile
+
+        self.lines: list[str] = []
+        try:
+            sys.stderr.flush()
+            self._tmp = tempfile.TemporaryFile()
+            self._saved = os.dup(2)
+            os.dup2(self._tmp.fileno(), 2)
+        except (OSError, ValueError, AttributeError):   # no descriptor 2 to redirect: USD's lines go where they go
+            self._saved = None
+        return self.lines
+
+    def __exit__(self, *exc) -> bool:
+        import os
+
+        if self._saved is None:
+            return False
+        os.dup2(self._saved, 2)
+        os.close(self._saved)
+        self._tmp.seek(0)
+        text = self._tmp.read().decode(errors="replace")
+        self._tmp.close()
+        for raw in text.split("Warning: ")[1:] if "Warning: " in text else text.splitlines():
+            line = " ".join(raw.split())
+            if " -- " in line:   # "in _ReportErrors at line 3326 of .../stage.cpp -- <what>"
+                line = line.split(" -- ", 1)[1]
+            if line:
+                self.lines.append(line)
+        return False
 
 
 def get_prim(stage, path: str, where: str, what: str, key: str, schema=None) -> Usd.Prim:

@@ -20,8 +20,8 @@ from scipy.spatial.transform import Rotation
 from hairexp.errors import MAX_COORDINATE, InputError
 from hairexp.model.colliders import SHAPES
 from hairexp.model.dynamic_body import build_dynamic_body
-from hairexp.model.rigid import RigidMotion
-from hairexp.model.scene import Material, Scene
+from hairexp.model.rigid import MAX_KEY_DEGREES, RigidMotion
+from hairexp.model.scene import MATERIAL_MAX, MAX_GRAVITY, Material, Scene
 from hairexp.model.strands import Strands
 
 
@@ -30,11 +30,6 @@ def vec3(v, key: str) -> np.ndarray:
     if a.shape != (3,) or not np.isfinite(a).all():
         raise InputError(f"expected 3 finite numbers, got {list(v)}", key)
     return a
-
-
-#: m/s^2, the largest gravity (about 100 g): -1e300 overflowed the first step into a numpy warning
-#: and "try solver.on_failure=substep" (probe of issue 12)
-MAX_GRAVITY = 1e3
 
 
 def gravity(v, key: str = "scene.gravity") -> np.ndarray:
@@ -140,10 +135,6 @@ def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius
     return np.concatenate(pts)
 
 
-#: degrees, a keyframed rotation's angles at most this (also a guide edit's angle_deg bound, 100 turns)
-MAX_KEY_DEGREES = 36000.0
-
-
 def build_motion(cfg, where: str = "scene.motion") -> RigidMotion:
     """The keyframed motion of a ``MotionConfig`` (``where``: its key): one translation and one
     rotation (3 numbers each) per time."""
@@ -163,9 +154,6 @@ def build_motion(cfg, where: str = "scene.motion") -> RigidMotion:
                        rot, str(getattr(cfg.interpolation, "value", cfg.interpolation)), where=where)
 
 
-#: the largest material constant accepted (SI units)
-MATERIAL_MAX = 1e9
-
 
 def build_material(h) -> Material:
     """The hair material of ``scene.hair``, validated."""
@@ -178,6 +166,9 @@ def build_material(h) -> Material:
     for key in ("edge_damping", "air_drag"):
         if not (getattr(h, key) >= 0 and np.isfinite(getattr(h, key))):
             raise InputError(f"must be a finite number >= 0, got {getattr(h, key)}", f"scene.hair.{key}")
+        if getattr(h, key) > MATERIAL_MAX:   # air_drag=1e300 diverged at the first step (probe of issue 12, round 14)
+            raise InputError(f"is {getattr(h, key):g}, beyond {MATERIAL_MAX:g}: the step's Newton system (damping "
+                             "against mass / dt) is then beyond double precision", f"scene.hair.{key}")
     return Material(h.linear_density, h.stretch_stiffness, h.bending_stiffness, h.edge_damping, h.air_drag)
 
 

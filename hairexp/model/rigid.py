@@ -34,6 +34,10 @@ def left_jacobian(r: np.ndarray) -> np.ndarray:
     return np.eye(3) + (1 - np.cos(th)) / th ** 2 * K + (th - np.sin(th)) / th ** 3 * K @ K
 
 
+#: degrees, a keyframed rotation's angles at most this (also a guide edit's angle_deg bound, 100 turns)
+MAX_KEY_DEGREES = 36000.0
+
+
 @dataclass
 class RigidMotion:
     times: np.ndarray          # (K,) s, strictly increasing
@@ -73,6 +77,11 @@ class RigidMotion:
             raise InputError(f"keyframe times must increase strictly, got {self.times.tolist()}", f"{self.where}.times")
         if self.interpolation not in ("cubic", "linear"):
             raise InputError(f"unknown interpolation {self.interpolation!r} (cubic|linear)", f"{self.where}.interpolation")
+        turn = np.linalg.norm(self.rotvecs, axis=1) if K else np.zeros(0)
+        if turn.size and turn.max() > np.radians(MAX_KEY_DEGREES):   # 1e6 rad was taken (probe of issue 12, round 14)
+            k = int(np.argmax(turn))
+            raise InputError(f"the rotation at keyframe {k} turns {turn[k]:.6g} rad, more than {MAX_KEY_DEGREES:g} degrees "
+                             "(100 turns): a unit error (hairexp reads radians in rotation vectors)", f"{self.where}.rotvecs")
         rots = Rotation.from_rotvec(self.rotvecs)
         if K == 1:
             self._pos = self._rot = None
@@ -96,9 +105,13 @@ class RigidMotion:
     def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Rotation matrix (3, 3) and translation (3,) at time t (the last few are cached:
         a step asks for the same few times many times)."""
-        if isinstance(t, (str, bytes, bool)):   # float() took "0.1" (probe of issue 12, round 13)
-            raise InputError(f"must be a real number of seconds, got {type(t).__name__} {t!r}", "RigidMotion.pose: t")
-        key = float(t)
+        try:
+            if isinstance(t, (str, bytes, bool)):   # float() took "0.1" (probe of issue 12, round 13)
+                raise TypeError
+            key = float(t)
+        except (TypeError, ValueError):   # None: float()'s own TypeError (round 14)
+            raise InputError(f"must be a real number of seconds, got {type(t).__name__} {t!r:.40}",
+                             "RigidMotion.pose: t") from None
         hit = self._cache.get(key)
         if hit is None:
             if not math.isfinite(key):   # NaN gave NaN poses without a word

@@ -13,6 +13,14 @@ from hairexp.model.rigid import RigidMotion
 from hairexp.model.strands import Strands
 
 
+#: the largest material constant accepted (SI units): beyond, the step's Newton system (stiffness
+#: against mass / dt^2) is beyond double precision
+MATERIAL_MAX = 1e9
+#: m/s^2, the largest gravity (about 100 g): -1e300 overflowed the first step into a numpy warning
+#: and "try solver.on_failure=substep" (probe of issue 12)
+MAX_GRAVITY = 1e3
+
+
 @dataclass(frozen=True)
 class Material:
     linear_density: float        # kg/m
@@ -27,7 +35,8 @@ class Material:
         for key, lo, strict in (("linear_density", 0.0, True), ("stretch_stiffness", 0.0, True),
                                 ("bending_stiffness", 0.0, False), ("edge_damping", 0.0, False),
                                 ("air_drag", 0.0, False)):
-            real(getattr(self, key), f"Material.{key}", lo=lo, lo_open=strict)
+            # at most MATERIAL_MAX, as for scene.hair.*: 1e300 diverged at the first step (probe of issue 12, round 14)
+            real(getattr(self, key), f"Material.{key}", lo=lo, hi=MATERIAL_MAX, lo_open=strict)
 
 
 @dataclass(frozen=True)
@@ -81,6 +90,8 @@ class Scene:
             if not np.isfinite(arr).all():
                 bad = np.argwhere(~np.isfinite(arr))[0].tolist()
                 raise InputError(f"must be finite, got {arr[tuple(bad)]} at index {bad}", f"Scene.{key}")
+            if key == "gravity" and float(np.linalg.norm(arr)) > MAX_GRAVITY:   # as scene.gravity (round 14)
+                raise InputError(f"is {arr.tolist()}, larger than {MAX_GRAVITY:g} m/s^2 (about 100 g)", "Scene.gravity")
         for c in self.colliders:
             if not hasattr(c, "name") or isinstance(c, str):
                 raise InputError(f"must be collider objects (hairexp.model.colliders), got {c!r}", "Scene.colliders")

@@ -134,8 +134,9 @@ def check_solver_config(s) -> None:
                          f"dt, rtol, atol, max_iterations, ...), got {type(s).__name__}", "solver")
     make_integrator(getattr(s, "integrator", DEFAULT_INTEGRATOR))   # InputError naming solver.integrator
     check_options(getattr(s, "kernels", "numba"), getattr(s, "threads", "auto"))   # solver.kernels, solver.threads
-    rtol = number(s.rtol, "solver.rtol", lo=0)
-    atol = number(getattr(s, "atol", 0.0), "solver.atol", lo=0)
+    # >= 1, or an absolute tolerance above hair's forces (mN), accepts the first iterate (probe of issue 12, round 14)
+    rtol = number(s.rtol, "solver.rtol", lo=0, hi=1, hi_open=True)
+    atol = number(getattr(s, "atol", 0.0), "solver.atol", lo=0, hi=1e-3)
     if rtol == 0 and atol == 0:
         raise InputError("solver.rtol and solver.atol are both 0: no step can converge; give one > 0", "solver.rtol")
     if hasattr(s, "dt"):   # worded as the step schedule words it (hairexp/physics/schedule.py)
