@@ -350,3 +350,16 @@ def test_scene_gravity_is_bounded_in_the_api():
     scene = assemble(compose_config(SMOKE)).scene
     with pytest.raises(InputError, match=r"Scene.gravity: is \[0.0, -1000000000.0, 0.0\], larger than 1000 m/s\^2"):
         replace(scene, gravity=np.array([0.0, -1e9, 0.0]))
+
+
+@pytest.mark.parametrize("override, key", [("scene.length=1e300", "scene.length"),
+                                           ("scene.root_radius=1e300", "scene.root_radius"),
+                                           ("scene.hair.linear_density=1e-300", "scene.hair.linear_density"),
+                                           ("tracking.variance.stiffness=1e300", "tracking.variance.stiffness")])
+def test_sizes_and_stiffnesses_that_diverged_at_the_first_step_are_refused(override, key):
+    from hairexp.app.assemble import assemble
+    from hairexp.app.config import compose_config
+
+    with pytest.raises(InputError) as e:
+        assemble(compose_config(SMOKE + ["controller=tracking", override]))
+    assert e.value.where == key

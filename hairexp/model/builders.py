@@ -21,7 +21,7 @@ from hairexp.errors import MAX_COORDINATE, InputError
 from hairexp.model.colliders import SHAPES
 from hairexp.model.dynamic_body import build_dynamic_body
 from hairexp.model.rigid import MAX_KEY_DEGREES, RigidMotion
-from hairexp.model.scene import MATERIAL_MAX, MAX_GRAVITY, Material, Scene
+from hairexp.model.scene import MATERIAL_MAX, MAX_GRAVITY, MIN_LINEAR_DENSITY, Material, Scene
 from hairexp.model.strands import Strands
 
 
@@ -65,6 +65,8 @@ def line_points(n: int, radius: float) -> np.ndarray:
     return np.stack([u, np.zeros(n)], 1)
 
 
+#: m, the longest hair and the widest root disk a procedural builder makes (hair is metres long at most)
+MAX_HAIR_SIZE = 100.0
 #: m, the shortest rest edge a built strand may have (scene.length / (n_vertices - 1)): 30 cm in
 #: 4,000 vertices (75 um edges) already failed its first step, 100,000 ran for minutes without one
 MIN_REST_EDGE = 1e-4
@@ -95,10 +97,12 @@ def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius
     ``fan``: strand i tilts outward in proportion to its root's distance from the centre (a
     cone, rim tilt ``spread``); otherwise each strand tilts by a random angle up to ``spread``."""
     check_counts(n_strands, n_vertices, length)
-    if not (length > 0 and np.isfinite(length)):
-        raise InputError(f"must be a finite number > 0, got {length}", "scene.length")
-    if not (root_radius >= 0 and np.isfinite(root_radius)):
-        raise InputError(f"must be a finite number >= 0 (m), got {root_radius}", "scene.root_radius")
+    # at most MAX_HAIR_SIZE: 1e300 made a guide simulation that diverged at its first step (probe, round 14)
+    if not (0 < length <= MAX_HAIR_SIZE):
+        raise InputError(f"must be a finite number > 0 and <= {MAX_HAIR_SIZE:g} (m), got {length}", "scene.length")
+    if not (0 <= root_radius <= MAX_HAIR_SIZE):
+        raise InputError(f"must be a finite number >= 0 and <= {MAX_HAIR_SIZE:g} (m), got {root_radius}",
+                         "scene.root_radius")
     if fan and spread > 0 and root_radius == 0:
         raise InputError("must be > 0 for a ponytail with scene.spread > 0 (the rim strands tilt by spread)",
                          "scene.root_radius")
@@ -160,6 +164,10 @@ def build_material(h) -> Material:
     for key in ("linear_density", "stretch_stiffness", "bending_stiffness"):
         if not (getattr(h, key) > 0 and np.isfinite(getattr(h, key))):
             raise InputError(f"must be a finite number > 0, got {getattr(h, key)}", f"scene.hair.{key}")
+        if key == "linear_density" and getattr(h, key) < MIN_LINEAR_DENSITY:   # 1e-300 "converged" in 0 iterations
+            raise InputError(f"is {getattr(h, key):g} kg/m, below {MIN_LINEAR_DENSITY:g}: massless hair (human hair is "
+                             "about 1e-5 to 1e-4 kg/m; a step's inertia against its stiffness is then beyond double "
+                             "precision)", f"scene.hair.{key}")
         if getattr(h, key) > MATERIAL_MAX:   # hair: EA ~ 1-100 N, EI ~ 1e-9-1e-5 N m^2, 1e-5-1e-3 kg/m
             raise InputError(f"is {getattr(h, key):g}, beyond {MATERIAL_MAX:g}: the step's Newton system (stiffness "
                              "against mass / dt^2) is then beyond double precision", f"scene.hair.{key}")

@@ -16,6 +16,8 @@ from hairexp.model.strands import Strands
 #: the largest material constant accepted (SI units): beyond, the step's Newton system (stiffness
 #: against mass / dt^2) is beyond double precision
 MATERIAL_MAX = 1e9
+#: kg/m, the lightest hair accepted: 1e-300 (massless) "converged" in 0 iterations (probe of issue 12, round 14)
+MIN_LINEAR_DENSITY = 1e-9
 #: m/s^2, the largest gravity (about 100 g): -1e300 overflowed the first step into a numpy warning
 #: and "try solver.on_failure=substep" (probe of issue 12)
 MAX_GRAVITY = 1e3
@@ -36,7 +38,8 @@ class Material:
                                 ("bending_stiffness", 0.0, False), ("edge_damping", 0.0, False),
                                 ("air_drag", 0.0, False)):
             # at most MATERIAL_MAX, as for scene.hair.*: 1e300 diverged at the first step (probe of issue 12, round 14)
-            real(getattr(self, key), f"Material.{key}", lo=lo, hi=MATERIAL_MAX, lo_open=strict)
+            real(getattr(self, key), f"Material.{key}", lo=MIN_LINEAR_DENSITY if key == "linear_density" else lo,
+                 hi=MATERIAL_MAX, lo_open=strict and key != "linear_density")
 
 
 @dataclass(frozen=True)

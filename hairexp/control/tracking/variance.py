@@ -40,6 +40,11 @@ def variance(xf: torch.Tensor, cluster: torch.Tensor, w: torch.Tensor, idx: torc
     return torch.zeros(K, dtype=x.dtype).index_add_(0, cluster, sq if share is None else share * sq)
 
 
+#: tracking.variance.stiffness at most this (as the material constants: beyond, the penalty's Hessian
+#: against mass / dt^2 is beyond double precision)
+MAX_VARIANCE_STIFFNESS = 1e9
+
+
 def check_variance_config(cfg) -> tuple[tuple, tuple]:
     """The checks of ``tracking.variance`` (keyframes, scales >= 0, stiffness >= 0) that need no
     scene: InputError naming the key.  Returns the two keyframe series ((t, stiffness scale),
@@ -53,6 +58,8 @@ def check_variance_config(cfg) -> tuple[tuple, tuple]:
                              f"tracking.variance.stiffness), got {v.tolist()}", f"tracking.variance.{key}")
     if isinstance(cfg.stiffness, bool) or not (cfg.stiffness >= 0 and np.isfinite(cfg.stiffness)):
         raise InputError(f"must be >= 0, got {cfg.stiffness}", "tracking.variance.stiffness")
+    if cfg.stiffness > MAX_VARIANCE_STIFFNESS:   # 1e300 diverged at the first step (probe of issue 12, round 14)
+        raise InputError(f"must be <= {MAX_VARIANCE_STIFFNESS:g}, got {cfg.stiffness}", "tracking.variance.stiffness")
     return ks, vs
 
 
