@@ -4,6 +4,7 @@ existing file; the rest weak)."""
 from __future__ import annotations
 
 import json
+import re
 import logging
 import os
 import signal
@@ -363,3 +364,76 @@ def test_sizes_and_stiffnesses_that_diverged_at_the_first_step_are_refused(overr
     with pytest.raises(InputError) as e:
         assemble(compose_config(SMOKE + ["controller=tracking", override]))
     assert e.value.where == key
+
+
+def test_a_run_whose_hair_stretched_beyond_1000_percent_exits_3(tmp_path, monkeypatch, capsys):
+    """collision.hair_thickness=1e6 with hair-hair threw the hair 1,182 km (4.5e9 % stretch):
+    "completed", exit 0, with a warning only."""
+    import hairexp.app.cli as cli
+    from hairexp.app.config import compose_config
+    from hairexp.app.run import implausible
+
+    assert implausible({"stretch_max": 0.5}) is None and implausible({"stretch_max": 10.0}) is None
+    assert "tracked: 4.5e+09 %" in implausible({"variants": {"free": {"stretch_max": 0.1},
+                                                              "tracked": {"stretch_max": 4.5e7}}})
+    monkeypatch.setattr(cli, "run_experiment", lambda cfg, out: {"scene": "s", "controller": "free", "steps": 3,
+                                                                "iterations_mean": 2.0, "step_seconds_median": 1e-3,
+                                                                "stretch_max": 4.5e7, "status": "completed"})
+    res = cli.job(compose_config(SMOKE), str(tmp_path / "r"), overrides=[])
+    assert res["code"] == 3 and res["status"] == "completed"
+    assert "hairexp: the hair stretched beyond 1000 % (4.5e+09 %" in capsys.readouterr().err
+
+
+def _point_sets():
+    rng = np.random.default_rng(7)
+    Q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    grid = np.stack(np.meshgrid(*[np.arange(6)] * 3), -1).reshape(-1, 3) * 0.01   # degenerate (cospherical) points
+    return {"3d": rng.normal(size=(400, 3)), "plane": np.c_[rng.normal(size=(400, 2)), np.zeros(400)] @ Q,
+            "line": np.outer(rng.normal(size=300), [1.0, 2.0, 3.0]), "repeated": np.repeat(rng.normal(size=(150, 3)), 3, 0),
+            "grid": grid, "two": rng.normal(size=(2, 3)), "one_point_thrice": np.tile([1.0, 2.0, 3.0], (3, 1))}
+
+
+@pytest.mark.parametrize("name", list(_point_sets()))
+def test_the_delaunay_spanning_tree_agrees_with_single_linkage(name, monkeypatch):
+    """100,000 strands asked single linkage's distance table for 37 GiB after the whole run had
+    been simulated (cohesion, every run): above LINKAGE_MAX strands the merge heights come from
+    the Euclidean minimum spanning tree of a Delaunay triangulation, and clumps from a k-d tree's
+    pairs.  Both agree with scipy's single linkage exactly."""
+    from scipy.cluster.hierarchy import fcluster, linkage
+
+    import hairexp.evaluation.measures as measures
+
+    X = _point_sets()[name]
+    ref = linkage(X, method="single")
+    np.testing.assert_allclose(np.sort(measures.emst_lengths(X)), ref[:, 2], rtol=0, atol=1e-12)
+    monkeypatch.setattr(measures, "LINKAGE_MAX", 1)
+    np.testing.assert_allclose(measures.merge_heights(X), ref[:, 2], rtol=0, atol=1e-12)
+    h = np.unique(ref[:, 2])
+    k = len(h) // 2
+    t = float(h[k]) if len(h) == 1 else 0.5 * float(h[k - 1] + h[k])   # between two heights: no tie to round
+    want = fcluster(ref, t=t, criterion="distance")
+    got = measures.single_linkage_labels(X, t)
+    pairs = {(a, b) for a, b in zip(want, got)}   # the same partition: a one-to-one map of labels
+    assert len(pairs) == len(set(want)) == len(set(got))
+
+
+@pytest.mark.parametrize("override, said", [("hydra.run.dir=/tmp/x", "a variant cannot set Hydra's keys (hydra.run.dir)"),
+                                            ("judge=none", "a variant cannot set 'judge': it belongs to the experiment")])
+def test_a_variant_cannot_set_the_launchs_or_the_experiments_keys(override, said):
+    """hydra.run.dir in a variant was called an unknown key; judge=none in one variant was taken
+    and did nothing (the experiment's judge judged all variants)."""
+    from hairexp.app.config import compose_config
+    from hairexp.app.experiment import apply_overrides
+
+    with pytest.raises(InputError, match=re.escape(said)):
+        apply_overrides(compose_config(["experiment=goaling_smoke"]), [override], "variants[0] (a)")
+
+
+def test_an_input_error_found_when_a_variant_starts_names_the_variant(tmp_path):
+    from hairexp.app.config import compose_config
+    from hairexp.app.experiment import run_experiment
+
+    cfg = compose_config(["experiment=goaling_smoke", "frames=3", "logging.rerun=false", "logging.progress=false",
+                          "judge=none", "variants=[{name: a, overrides: ['measure.name=clumps', 'measure.time=99']}]"])
+    with pytest.raises(InputError, match=r"measure.time: is 99.0 s, after the run's end .* \(variant a: "):
+        run_experiment(cfg, tmp_path / "r")

@@ -40,7 +40,7 @@ from hydra.experimental.callback import Callback
 from hairexp.app.assemble import check_config
 from hairexp.app.config import CONF_DIR, check_bool_overrides, check_interpolations, check_keys, compose_config
 from hairexp.app.experiment import run_experiment
-from hairexp.app.run import INPUT_KEYS, inputs_inside
+from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside
 from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, SimulationError
@@ -115,7 +115,11 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         absolute_inputs(cfg, cwd)
         summary = run_experiment(cfg, out)
         late = take_late()   # a signal after the run had written its completed ending
-        res = outcome(out, "completed", 0, None, summary) if late is None else _signalled_after(out, late, summary)
+        wild = implausible(summary)
+        if wild is not None and late is None:
+            print(f"hairexp: {wild}", file=sys.stderr)
+        res = (outcome(out, "completed", 0 if wild is None else 3, wild, summary) if late is None
+               else _signalled_after(out, late, summary))
         _log_completed(summary, out)
     except InputError as exc:
         print(f"hairexp: error: {exc}", file=sys.stderr)

@@ -99,9 +99,15 @@ def apply_overrides(cfg, overrides: list[str], where: str):
         if "=" not in o:
             raise InputError(f"override {o!r} is not key=value", where)
         key, val = o.split("=", 1)
+        if key.lstrip("+~").split(".")[0] == "hydra":   # called an unknown key (probe of issue 12, round 14)
+            raise InputError(f"{o}: a variant cannot set Hydra's keys ({key}): the launch's settings, given on the "
+                             "command line (a variant's run folder is <the run folder>/<variant name>)", where)
         node = OmegaConf.select(out, key, default="__missing__")
         if isinstance(node, str) and node == "__missing__":
             raise InputError(f"unknown key {key!r}", where)
+        if key in ("judge", "judge_tolerance"):   # the experiment's verdict over all variants (probe, round 14)
+            raise InputError(f"{o}: a variant cannot set {key!r}: it belongs to the experiment, which judges all its "
+                             "variants together (set it on the command line)", where)
         if key in ("experiment", "variants"):   # it ran the parent's scene under the other's name (probe of issue 12)
             raise InputError(f"{o}: a variant cannot set {key!r}: it belongs to the experiment (run the other "
                              "experiment on its own)", where)
@@ -242,6 +248,8 @@ def _run_variants(out: Path, names: list[str], vcfgs: list, summary: dict, measu
             summary["variants"][name] = {**{k: own.get(k) for k in VARIANT_FIELDS}, **facts.get(name, {}),
                                          "status": status, "error": str(exc) or type(exc).__name__}
             summary.update(status=status, error=f"variant {name}: {exc}", wall_seconds=time.perf_counter() - t0)
+            if type(exc) is InputError:   # a key checked once the variant's scene is built: said to be the variant's
+                raise InputError(f"{exc} (variant {name}: {out / name})") from exc   # (probe of issue 12, round 14)
             raise
         measures[name] = s["measures"]
         coh = s.get("cohesion") or {}

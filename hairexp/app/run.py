@@ -123,6 +123,24 @@ def metrics_summary(df) -> dict:
 #: a run whose largest edge strain exceeds this is told so at its end (the post-solve stage's strain
 #: limiter clamps at 0.1 in the paper scenes)
 STRETCH_WARN = 0.2
+#: a run whose largest edge strain exceeds this (an edge 11 times its rest length; hair breaks
+#: below 1) is no hair any more: the command line says so and exits 3, the results kept for a look
+#: (collision.hair_thickness=1e6 threw the hair 1,182 km, "completed", exit 0; probe of issue 12, round 14)
+STRETCH_FAIL = 10.0
+
+
+def implausible(summary: dict) -> str | None:
+    """Why ``summary`` (a run's, or an experiment's with its variants) is no hair any more: the
+    largest edge strain of a run beyond STRETCH_FAIL; None otherwise."""
+    runs = summary.get("variants") or {None: summary}
+    wild = [(name, v["stretch_max"]) for name, v in runs.items()
+            if isinstance(v, dict) and (v.get("stretch_max") or 0.0) > STRETCH_FAIL]
+    if not wild:
+        return None
+    said = ", ".join(f"{name + ': ' if name else ''}{100 * s:.3g} %" for name, s in wild)
+    return (f"the hair stretched beyond {100 * STRETCH_FAIL:.0f} % ({said}; stretch_max in summary.json): the run "
+            "completed but its hair is not hair any more (forces far beyond the hair's: a collider dragging it, guides "
+            "off its roots, extreme sizes or stiffness); its files are kept for a look")
 
 #: s, a step shorter than this that never converges is told so (see ``convergence_error``)
 TINY_STEP = 1e-6

@@ -95,12 +95,56 @@ def lower_part_features(offsets: np.ndarray, x: np.ndarray, fraction: float) -> 
     return np.add.reduceat(x[idx], np.concatenate([[0], np.cumsum(cnt)[:-1]]), axis=0) / cnt[:, None]
 
 
+#: strands up to which single linkage runs on the full distance table (S^2 / 2 doubles: 64 MB at
+#: 4,000); above, the Euclidean minimum spanning tree of a Delaunay triangulation, in O(S log S)
+#: memory (100,000 strands asked the table for 37 GiB after the whole run had been simulated;
+#: probe of issue 12, round 14)
+LINKAGE_MAX = 4000
+
+
 def merge_heights(X: np.ndarray) -> np.ndarray:
     """(S - 1,) single-linkage merge distances of the points X (S, 3), ascending: the edge
     lengths of their Euclidean minimum spanning tree."""
+    X = np.asarray(X, dtype=np.float64)
     if len(X) < 2:
         return np.zeros(0)
-    return linkage(X, method="single")[:, 2]
+    if len(X) <= LINKAGE_MAX:
+        return linkage(X, method="single")[:, 2]
+    return np.sort(emst_lengths(X))
+
+
+def emst_lengths(X: np.ndarray) -> np.ndarray:
+    """(S - 1,) the edge lengths of the Euclidean minimum spanning tree of the points X (S, d),
+    unsorted: the tree is a subgraph of the Delaunay triangulation (Preparata and Shamos), so the
+    minimum spanning tree of the triangulation's edges is it.  Repeated points join at 0; points
+    on a plane or a line are triangulated in that subspace (Qhull refuses flat input)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import minimum_spanning_tree
+    from scipy.spatial import Delaunay, QhullError
+
+    U = np.unique(X, axis=0)
+    repeated = np.zeros(len(X) - len(U))
+    if len(U) < 2:
+        return repeated
+    c = U - U.mean(axis=0)
+    _, sv, Vt = np.linalg.svd(c, full_matrices=False)
+    rank = int(np.sum(sv > 1e-9 * max(sv[0], 1e-300)))
+    if rank <= 1 or len(U) <= rank + 1:   # on a line (or too few points to triangulate): the sorted gaps
+        t = c @ Vt[0]
+        return np.concatenate([repeated, np.sort(np.abs(np.diff(np.sort(t))))])
+    P = c @ Vt[:rank].T   # distances kept: the points lie in this subspace
+    try:
+        simplices = Delaunay(P).simplices
+    except QhullError:   # nearly flat: joggled triangulation (the lengths below are the points' own)
+        simplices = Delaunay(P, qhull_options="QJ").simplices
+    k = simplices.shape[1]
+    i, j = np.triu_indices(k, 1)
+    a, b = simplices[:, i].ravel(), simplices[:, j].ravel()
+    e = np.unique(np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1), axis=0)   # each edge once (csr sums repeats)
+    w = np.linalg.norm(U[e[:, 0]] - U[e[:, 1]], axis=1)
+    graph = coo_matrix((w, (e[:, 0], e[:, 1])), shape=(len(U), len(U))).tocsr()
+    tree = minimum_spanning_tree(graph)
+    return np.concatenate([repeated, tree.data])
 
 
 def cohesion(offsets: np.ndarray, times, positions, threshold: float = 0.03, fraction: float = 0.5) -> dict:
@@ -121,11 +165,27 @@ def cohesion(offsets: np.ndarray, times, positions, threshold: float = 0.03, fra
             "clumps": clumps_f.tolist(), "widest_gap": gap_f.tolist()}
 
 
+def single_linkage_labels(X: np.ndarray, threshold: float) -> np.ndarray:
+    """(S,) labels 0.. of the single-linkage clusters of the points X cut at ``threshold``: the
+    connected components of the points closer than it (the full distance table up to LINKAGE_MAX
+    points, a k-d tree's pairs above)."""
+    if len(X) <= LINKAGE_MAX:
+        if len(X) < 2:
+            return np.zeros(len(X), dtype=np.int64)
+        return fcluster(linkage(X, method="single"), t=threshold, criterion="distance") - 1
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(X).query_pairs(threshold, output_type="ndarray")
+    from scipy.sparse import coo_matrix
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(X), len(X)))
+    return connected_components(graph, directed=False)[1]
+
+
 def clumps(d: RunData, p) -> dict:
     f = _frame_at(d, p.time)
     X = lower_part_features(d.scene.strands.offsets, d.positions[f], p.strand_fraction)
-    labels = fcluster(linkage(X, method="single"), t=p.threshold, criterion="distance")
-    sizes = np.bincount(labels)[1:]
+    sizes = np.bincount(single_linkage_labels(X, p.threshold))
     big = sizes[sizes >= max(1, int(np.ceil(p.min_share * len(X))))]
     return {"clumps": int(len(big)), "clump_sizes": sorted(big.tolist(), reverse=True), "clusters_all": int(len(sizes)),
             "threshold": p.threshold, "time": float(d.times[f])}
