@@ -58,7 +58,7 @@ CASES = {
     "density_none": (lambda: Strands.from_polylines(LINE, np.array([10]), None), "must be a real number, got NoneType"),
     "material_bool": (lambda: Material(True, 10.0, 1e-7), "Material.linear_density: must be a real number, got bool"),
     "material_string": (lambda: Material(1e-4, "10", 1e-7), "Material.stretch_stiffness: must be a real number"),
-    "material_negative": (lambda: Material(1e-4, 10.0, -1e-7), "Material.bending_stiffness: must be >= 0, got -1e-07"),
+    "material_negative": (lambda: Material(1e-4, 10.0, -1e-7), r"Material.bending_stiffness: must be >= 0 and <= 1e\+09, got -1e-07"),
     "scene_motion_none": (lambda: scene(motion=None), "Scene.motion: must be a RigidMotion"),
     "scene_motion_string": (lambda: scene(motion="still"), "Scene.motion: must be a RigidMotion"),
     "scene_name_int": (lambda: scene(name=5), "Scene.name: must be a non-empty string, got 5"),

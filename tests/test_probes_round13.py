@@ -437,3 +437,46 @@ def test_an_input_error_found_when_a_variant_starts_names_the_variant(tmp_path):
                           "judge=none", "variants=[{name: a, overrides: ['measure.name=clumps', 'measure.time=99']}]"])
     with pytest.raises(InputError, match=r"measure.time: is 99.0 s, after the run's end .* \(variant a: "):
         run_experiment(cfg, tmp_path / "r")
+
+
+@pytest.mark.parametrize("override, key", [
+    ("scene.settle_dt=1e300", "scene.settle_dt"),   # OverflowError traceback with scene.settle
+    ("tracking.variance.target_scale=[1e300]", "tracking.variance.target_scale"),   # diverged, exit 3
+    ("guides.edits=[{guide: 0, kind: displace, offset: [1e300, 0.0, 0.0], times: [0.0, 0.1], weights: [0.0, 1.0]}]",
+     "guides.edits[0].offset"),
+    ("guides.edits=[{guide: 0, kind: rotate, angle_deg: 30.0, times: [0.0, 0.1], weights: [0.0, 1e300]}]",
+     "guides.edits[0].weights"),
+])
+def test_more_values_beyond_any_use_are_refused(override, key):
+    from hairexp.app.assemble import assemble
+    from hairexp.app.config import compose_config
+
+    with pytest.raises(InputError) as e:
+        assemble(compose_config(SMOKE + ["controller=tracking", "scene.settle=0.1", override]))
+    assert e.value.where == key
+
+
+def test_keys_a_stage_replaces_are_said_not_used(tmp_path, caplog):
+    """scene.motion.* with a USD scene was ignored without a word; so were the exporter's
+    hydra.run.dir, overwrite=true and scene.settle."""
+    from hairexp.app.builders import build_scene
+    from hairexp.app.config import compose_config
+    from hairexp.app.export_scene import main as export_main
+
+    stage = tmp_path / "s.usda"
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        assert export_main([str(stage), "experiment=goaling_smoke", "frames=3", "scene.settle=0.5", "overwrite=true",
+                            f"hydra.run.dir={tmp_path / 'zz'}"]) == 0
+    said = _warnings(caplog)
+    assert "overwrite=true, hydra.run.dir=" in said and "not used: the exporter writes one stage" in said
+    assert "scene.settle=0.5 not used: the stage holds the hair at its elastic rest shape" in said
+    assert not (tmp_path / "zz").exists()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        build_scene(compose_config(["experiment=from_usd", f"scene.usd={stage}"]).scene)
+    assert "not used" not in _warnings(caplog)
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        build_scene(compose_config(["experiment=from_usd", f"scene.usd={stage}", "scene.motion.times=[0.0,1.0]",
+                                    "scene.motion.translations=[[0.0,0.0,0.0],[1.0,0.0,0.0]]",
+                                    "scene.motion.rotations_deg=[[0.0,0.0,0.0],[0.0,0.0,0.0]]"]).scene)
+    assert "scene.motion is not used: the body's motion and the colliders come from the stage" in _warnings(caplog)

@@ -56,8 +56,8 @@ def base():
 # 1. config values
 
 @pytest.mark.parametrize("key, value, allowed", [
-    ("solver__rtol", float("nan"), "a finite number >= 0"),
-    ("tracking__ctol_rel", float("inf"), "a finite number > 0"),
+    ("solver__rtol", float("nan"), "a finite number >= 0 and < 1"),
+    ("tracking__ctol_rel", float("inf"), "a finite number > 0 and <= 0.1"),
     ("collision__strain_limit", float("nan"), "a finite number >= 0 and < 1"),
     ("measure__min_share", float("nan"), "a finite number >= 0 and <= 1"),
 ])

@@ -780,8 +780,11 @@ def changed_keys(node, default, keys) -> dict:
     out = {}
     for key in keys:
         v, d = node[key], getattr(default, key)
-        v = OmegaConf.to_container(v) if OmegaConf.is_config(v) else getattr(v, "value", v)
-        d = list(d) if isinstance(d, (list, tuple)) else getattr(d, "value", d)
+        if OmegaConf.is_config(v):   # a record or a list (of records): both sides as plain containers
+            v = OmegaConf.to_container(v, enum_to_str=True)
+            d = OmegaConf.to_container(OmegaConf.create({"d": d}), enum_to_str=True)["d"]
+        else:
+            v, d = getattr(v, "value", v), list(d) if isinstance(d, (list, tuple)) else getattr(d, "value", d)
         if v != d:
             out[key] = v
     return out

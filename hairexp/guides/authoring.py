@@ -52,7 +52,7 @@ import numpy as np
 from scipy.interpolate import CubicHermiteSpline, CubicSpline
 from scipy.spatial.transform import Rotation
 
-from hairexp.errors import InputError
+from hairexp.errors import MAX_COORDINATE, InputError
 from hairexp.guides.store import FrameStore
 from hairexp.model.rigid import MAX_KEY_DEGREES
 from hairexp.model.strands import validate_polylines
@@ -93,6 +93,10 @@ def _increasing_times(times, where: str) -> np.ndarray:
     return t
 
 
+#: a keyed edit weight at most this in magnitude (1 is the whole edit)
+MAX_EDIT_WEIGHT = 1e3
+
+
 class KeyedWeight:
     """A scalar keyed in time: w(t_k) = w_k, C1, held constant outside [t_0, t_last].
 
@@ -112,6 +116,8 @@ class KeyedWeight:
                              f"{where}.weights")
         if not np.isfinite(w).all():
             raise InputError(f"must be finite, got {w.tolist()}", f"{where}.weights")
+        if np.abs(w).max() > MAX_EDIT_WEIGHT:   # 1e300 made the guide NaN (probe of issue 12, round 14)
+            raise InputError(f"must be within +-{MAX_EDIT_WEIGHT:g} (1: the whole edit), got {w.tolist()}", f"{where}.weights")
         self.weights = w
         self._curve = None
         if w.size > 1:
@@ -193,6 +199,8 @@ def _edit(i: int, e, G: int, offsets: np.ndarray, rest: np.ndarray):
         return rotate
     if kind == "displace":
         offset = _vector(e.offset, f"{where}.offset")
+        if float(np.abs(offset).max()) > MAX_COORDINATE:   # 1e300 overflowed into numpy warnings (probe, round 14)
+            raise InputError(f"is {offset.tolist()}, more than {MAX_COORDINATE:g} m: hairexp reads metres", f"{where}.offset")
         p = float(e.falloff)
         if not (np.isfinite(p) and p > 0):
             raise InputError(f"must be a finite number > 0 (0 would move the root), got {p}", f"{where}.falloff")

@@ -43,6 +43,8 @@ def variance(xf: torch.Tensor, cluster: torch.Tensor, w: torch.Tensor, idx: torc
 #: tracking.variance.stiffness at most this (as the material constants: beyond, the penalty's Hessian
 #: against mass / dt^2 is beyond double precision)
 MAX_VARIANCE_STIFFNESS = 1e9
+#: tracking.variance.target_scale / stiffness_scale keys at most this (the paper's spreading asks 10)
+MAX_VARIANCE_SCALE = 1e6
 
 
 def check_variance_config(cfg) -> tuple[tuple, tuple]:
@@ -53,9 +55,9 @@ def check_variance_config(cfg) -> tuple[tuple, tuple]:
     ks = _keys(cfg.times, cfg.stiffness_scale, "tracking.variance.stiffness_scale")
     vs = _keys(cfg.times, cfg.target_scale, "tracking.variance.target_scale")
     for key, (_, v) in (("stiffness_scale", ks), ("target_scale", vs)):
-        if (v < 0).any():
-            raise InputError(f"must be >= 0 at every keyframe (a scale of the rest variance or of "
-                             f"tracking.variance.stiffness), got {v.tolist()}", f"tracking.variance.{key}")
+        if (v < 0).any() or (v > MAX_VARIANCE_SCALE).any():   # 1e300 diverged at the first step (round 14)
+            raise InputError(f"must be >= 0 and <= {MAX_VARIANCE_SCALE:g} at every keyframe (a scale of the rest "
+                             f"variance or of tracking.variance.stiffness), got {v.tolist()}", f"tracking.variance.{key}")
     if isinstance(cfg.stiffness, bool) or not (cfg.stiffness >= 0 and np.isfinite(cfg.stiffness)):
         raise InputError(f"must be >= 0, got {cfg.stiffness}", "tracking.variance.stiffness")
     if cfg.stiffness > MAX_VARIANCE_STIFFNESS:   # 1e300 diverged at the first step (probe of issue 12, round 14)
