@@ -480,3 +480,29 @@ def test_keys_a_stage_replaces_are_said_not_used(tmp_path, caplog):
                                     "scene.motion.translations=[[0.0,0.0,0.0],[1.0,0.0,0.0]]",
                                     "scene.motion.rotations_deg=[[0.0,0.0,0.0],[0.0,0.0,0.0]]"]).scene)
     assert "scene.motion is not used: the body's motion and the colliders come from the stage" in _warnings(caplog)
+
+
+def test_group_errors_name_the_key_and_only_real_options():
+    from hairexp.app.config import compose_config
+
+    with pytest.raises(InputError) as e:
+        compose_config(["scene=nosuch"])
+    assert "(options: ponytail, wisp)" in str(e.value)   # not the schema's base_scene
+    with pytest.raises(InputError, match="experiment: a config group needs an option's name, got NoneType"):
+        compose_config(["experiment=null"])
+
+
+def test_an_empty_scene_name_is_named_as_its_key():
+    from hairexp.app.config import compose_config
+    from hairexp.app.validate import validate_config
+
+    with pytest.raises(InputError, match="scene.name: must be a non-empty name"):
+        validate_config(compose_config(SMOKE + ["scene.name="]))
+
+
+def test_the_exporter_says_it_writes_an_experiments_base_scene(tmp_path, caplog):
+    from hairexp.app.export_scene import main as export_main
+
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        assert export_main([str(tmp_path / "s.usda"), "experiment=goaling_smoke", "frames=3"]) == 0
+    assert "the config has 2 variant(s) (free, tracked); the stage holds its base scene" in _warnings(caplog)

@@ -703,9 +703,16 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
             raise InputError(reason, key) from exc
         missing = re.search(r"Could not find '([^'/]+)/([^']+)'", str(exc))
         if missing and not unknown:   # Hydra's MissingConfigException, for the Python API too (probe, round 12)
-            options = re.findall(r"^\t(\S+)$", str(exc), flags=re.M)
+            # the schema's own nodes (base_scene, ...) are not options a user picks (probe of issue 12, round 14)
+            options = [o for o in re.findall(r"^\t(\S+)$", str(exc), flags=re.M) if not o.startswith("base_")]
             raise InputError(f"no such option {missing.group(2)!r} of the config group {missing.group(1)}"
                              + (f" (options: {', '.join(options)})" if options else ""), missing.group(1)) from exc
+        group = re.search(r"Config group override must be a string or a list. Got (\w+)", str(exc))
+        if group and not unknown:   # experiment=null: Hydra's message named no key (probe, round 14)
+            key = next((o.split("=", 1)[0].lstrip("+~") for o in overrides if re.fullmatch(r"[+~]{0,2}[\w/]+=(null|~)?", o)),
+                       "a config group")
+            raise InputError(f"a config group needs an option's name, got {group.group(1)} (leave the key out for no "
+                             "experiment)", key) from exc
         if not unknown:
             raise
         key = unknown.group(1)

@@ -39,6 +39,9 @@ def export_scene(cfg, path, overwrite: bool = False) -> tuple:
     An unwritable ``path`` (a DestinationError), or an existing file without ``overwrite``, is an
     InputError naming it, before anything is built."""
     check_writable(path, overwrite)
+    if cfg.get("variants"):   # an experiment's base config, said as assemble says it (probe of issue 12, round 14)
+        log.warning("the config has %d variant(s) (%s); the stage holds its base scene, without any variant's "
+                    "overrides (variants=[] silences this)", len(cfg.variants), ", ".join(str(v.name) for v in cfg.variants))
     if float(cfg.scene.settle or 0) > 0:   # dropped without a word (probe of issue 12, round 14)
         log.warning("scene.settle=%g not used: the stage holds the hair at its elastic rest shape, unsettled; give "
                     "scene.settle to the run that reads the stage (experiment=from_usd scene.usd=%s scene.settle=%g)",

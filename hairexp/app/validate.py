@@ -225,6 +225,8 @@ def late_keys(cfg) -> None:
 
 def _scene(cfg) -> None:
     s = cfg.scene
+    if not str(s.name or "").strip():   # named as the API's Scene.name (probe of issue 12, round 14)
+        raise InputError(f"must be a non-empty name, got {s.name!r}", "scene.name")
     builder = str(_value(s.builder))
     if str(s.usd) and builder != "usd" and str(_value(cfg.guides.source)) != "usd":
         # an error, not a warning: the run would simulate another scene than the stage named, with exit 0
