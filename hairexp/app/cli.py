@@ -304,8 +304,10 @@ def _end_killed_jobs(rows: list, signum: int | None) -> None:
             continue
         summary = found[1]
         status = "interrupted" if signum is not None else "failed"
+        # a healthy job's worker is torn down with the others when one worker is killed (loky): said so (round 14)
         why = (f"the job's process ended before it wrote its ending (pid {summary['pid']}"
-               + (f", the sweep was stopped by {signal.Signals(signum).name})" if signum is not None else ")"))
+               + (f", the sweep was stopped by {signal.Signals(signum).name})" if signum is not None
+                  else ": killed, or stopped with the sweep's other workers when one of them was killed)"))
         try:
             summary.update(status=status, error=why)
             write_json(d / SUMMARY, summary)
