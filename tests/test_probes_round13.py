@@ -506,3 +506,53 @@ def test_the_exporter_says_it_writes_an_experiments_base_scene(tmp_path, caplog)
     with caplog.at_level(logging.WARNING, logger="hairexp"):
         assert export_main([str(tmp_path / "s.usda"), "experiment=goaling_smoke", "frames=3"]) == 0
     assert "the config has 2 variant(s) (free, tracked); the stage holds its base scene" in _warnings(caplog)
+
+
+def test_a_short_or_failed_write_of_the_frame_store_is_named(monkeypatch):
+    """Under ``ulimit -f`` the store's write failed short and was found later as a short read
+    ("frame store: read 8192 of 22320 bytes"); or it said only "File too large"."""
+    import errno as errno_module
+
+    import hairexp.guides.store as store
+
+    s = store.FrameStore((4, 3))
+    monkeypatch.setattr(store.os, "pwrite", lambda fd, data, at: 0)
+    with pytest.raises(OSError, match=r"the guide frame store \(a temporary file in .*\): wrote 0 of 96 bytes"):
+        s.append(np.zeros((4, 3)))
+        s.block(0, 1)
+
+    def too_large(fd, data, at):
+        raise OSError(errno_module.EFBIG, "File too large")
+
+    s = store.FrameStore((4, 3))
+    monkeypatch.setattr(store.os, "pwrite", too_large)
+    with pytest.raises(OSError, match="the guide frame store .*: File too large after 0 bytes"):
+        s.append(np.zeros((4, 3)))
+        s.block(0, 1)
+
+
+@pytest.mark.parametrize("overrides, key", [(["solver.dt"], "solver.dt"), (["frames=3", "solver.dt=[1,"], "solver.dt=[1,")])
+def test_an_override_the_grammar_refuses_is_an_input_error_in_the_api(overrides, key):
+    from hairexp.app.config import compose_config
+
+    with pytest.raises(InputError, match="not a valid override") as e:
+        compose_config(overrides)
+    assert e.value.where == key and "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("override, key, match", [
+    ("scene.colliders.0.thickness=1e300", "scene.colliders[0].thickness", "thickness must be a finite number >= 0 and <= 1"),
+    ("scene.colliders.0.friction=1e300", "scene.colliders[0].friction", "friction must be a finite number >= 0 and <= 100"),
+    ("guides.layout_radius=0", "guides.layout_radius", "the 3 guides would all be rooted at the disk's centre"),
+    ("tracking.variance.times=[1.0,0.5]", "tracking.variance.times", "keyframe times must be finite and increase"),
+])
+def test_the_key_at_fault_is_named(override, key, match):
+    from hairexp.app.assemble import assemble
+    from hairexp.app.config import compose_config
+
+    with pytest.raises(InputError, match=match) as e:
+        assemble(compose_config(SMOKE + ["controller=tracking", "guides.count=3", override,
+                                         "tracking.variance.stiffness_scale=[1.0,1.0]",
+                                         "tracking.variance.target_scale=[1.0,1.0]"]
+                                if "variance.times" in override else SMOKE + ["controller=tracking", override]))
+    assert e.value.where == key

@@ -174,8 +174,10 @@ def test_a_guide_file_fps_is_bounded(base, tmp_path):
 
 
 def test_far_procedural_guides_name_the_keys_that_placed_them(base):
+    # (scene.length itself is at most 100 m since round 14 of the probe: guides scaled 200 times reach 20 km)
     with pytest.raises(InputError, match=r"more than 10000 m from the origin.*built from scene.length"):
-        assemble_scene(updated(base, scene__length=1e5, scene__n_vertices=10), settle=False)
+        assemble_scene(updated(base, scene__length=100.0, scene__n_vertices=10, guides__source="scaled",
+                               guides__scale_factors=[200.0], guides__scale_times=[0.0]), settle=False)
 
 
 def test_a_long_run_is_announced_by_its_estimated_time(caplog):

@@ -418,7 +418,7 @@ def test_non_finite_values_are_called_non_finite(key, value):
     from hairexp.app.config import compose_config
 
     cfg = compose_config(["experiment=goaling_smoke", "variants=[]", "frames=2", "logging.rerun=false", f"{key}={value}"])
-    with pytest.raises(InputError, match=rf"must be a finite number (>=? 0|from \S+ to \S+ \(frames per second\)), got {value}") as err:
+    with pytest.raises(InputError, match=rf"must be a finite number (>=? 0( and <= 100 \(m\))?|from \S+ to \S+ \(frames per second\)), got {value}") as err:
         assemble_scene(cfg, settle=False)
     assert err.value.where == key
 

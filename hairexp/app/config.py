@@ -707,6 +707,21 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
             options = [o for o in re.findall(r"^\t(\S+)$", str(exc), flags=re.M) if not o.startswith("base_")]
             raise InputError(f"no such option {missing.group(2)!r} of the config group {missing.group(1)}"
                              + (f" (options: {', '.join(options)})" if options else ""), missing.group(1)) from exc
+        if type(exc).__name__ == "OverrideParseException" and not unknown:
+            # Hydra's multi-line grammar error, for the Python API (probe of issue 12, round 14): the override named
+            from hydra.core.override_parser.overrides_parser import OverridesParser
+
+            parser, bad = OverridesParser.create(), None
+            for o in overrides:
+                try:
+                    parser.parse_override(o)
+                except Exception:  # noqa: BLE001  (the grammar's errors)
+                    bad = o
+                    break
+            why = [line for line in str(exc).splitlines() if line and not line.startswith(("See ", "Error parsing"))]
+            hint = " (an override is key=value)" if bad is not None and "=" not in bad else ""
+            raise InputError(f"not a valid override: {(why or ['a syntax error'])[0].strip()}{hint}",
+                             bad if bad is not None else "overrides") from exc
         group = re.search(r"Config group override must be a string or a list. Got (\w+)", str(exc))
         if group and not unknown:   # experiment=null: Hydra's message named no key (probe, round 14)
             key = next((o.split("=", 1)[0].lstrip("+~") for o in overrides if re.fullmatch(r"[+~]{0,2}[\w/]+=(null|~)?", o)),

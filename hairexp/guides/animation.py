@@ -209,6 +209,10 @@ def rest_guides(scene_cfg, count: int, n_vertices: int, layout_radius: float) ->
     else:
         phi = 2 * np.pi * np.arange(count) / count
         r = layout_radius * scene_cfg.root_radius
+        if not r > 0:   # every guide on one line: its clusters coincide (probe of issue 12, round 14)
+            raise InputError(f"is {layout_radius} with scene.root_radius={scene_cfg.root_radius}: the {count} guides would "
+                             "all be rooted at the disk's centre, on one line; give both > 0 (or guides.count=1)",
+                             "guides.layout_radius")
         roots = center + r * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * w)
     s = np.linspace(0.0, scene_cfg.length, n_vertices)
     return np.concatenate([r0 + s[:, None] * d for r0 in roots])

@@ -11,6 +11,7 @@ the store.  Values are stored bit for bit.
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 
@@ -59,7 +60,18 @@ class FrameStore:
         if not self._n_pending:
             return
         k = self._n_pending
-        os.pwrite(self._file.fileno(), self._pending[:k], self._written * self.frame_bytes)
+        data, at = memoryview(self._pending[:k]).cast("B"), self._written * self.frame_bytes
+        done = 0
+        where = f"the guide frame store (a temporary file in {tempfile.gettempdir()})"
+        while done < len(data):   # a short write (a file-size limit, a full disk) was found only as a short read
+            try:
+                n = os.pwrite(self._file.fileno(), data[done:], at + done)
+            except OSError as exc:   # EFBIG, ENOSPC: named (it said only "File too large"; probe of issue 12, round 14)
+                raise OSError(exc.errno, f"{where}: {exc.strerror} after {at + done} bytes") from exc
+            if n <= 0:
+                raise OSError(errno.ENOSPC, f"{where}: wrote {done} of {len(data)} bytes (a full disk or a file-size "
+                              "limit, ulimit -f)")
+            done += n
         self._written += k
         self._pending, self._n_pending = None, 0
 

@@ -24,6 +24,12 @@ def _unit(v):
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), EPS)
 
 
+#: m, a collider's contact shell at most this thick (hair's contact is millimetres)
+MAX_THICKNESS = 1.0
+#: a Coulomb friction coefficient at most this (rubber on rubber is about 1-2)
+MAX_FRICTION = 100.0
+
+
 @dataclass
 class Collider:
     name: str
@@ -36,10 +42,13 @@ class Collider:
         return f"{self.where}.{field}" if self.where else f"colliders.{self.name}"
 
     def __post_init__(self):
-        if not (self.thickness >= 0 and np.isfinite(self.thickness)):
-            raise InputError(f"thickness must be a finite number >= 0, got {self.thickness}", self._key("thickness"))
-        if not (self.friction >= 0 and np.isfinite(self.friction)):
-            raise InputError(f"friction must be a finite number >= 0, got {self.friction}", self._key("friction"))
+        # at most MAX_THICKNESS m and MAX_FRICTION: 1e300 diverged, "try a smaller solver.dt" (probe of issue 12, round 14)
+        if not (0 <= self.thickness <= MAX_THICKNESS):
+            raise InputError(f"thickness must be a finite number >= 0 and <= {MAX_THICKNESS:g} (m), got {self.thickness}",
+                             self._key("thickness"))
+        if not (0 <= self.friction <= MAX_FRICTION):
+            raise InputError(f"friction must be a finite number >= 0 and <= {MAX_FRICTION:g}, got {self.friction}",
+                             self._key("friction"))
 
     # shape interface (body frame) ------------------------------------------------------
     def sdf_body(self, X: np.ndarray) -> np.ndarray:

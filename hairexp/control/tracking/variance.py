@@ -25,8 +25,10 @@ def _keys(times, values, key: str) -> tuple[np.ndarray, np.ndarray]:
     v = np.asarray(list(values), dtype=np.float64)
     if t.size != v.size or t.size == 0:
         raise InputError(f"needs as many keyframe values as times (got {v.size} and {t.size})", key)
-    if np.any(np.diff(t) <= 0) or not (np.isfinite(t).all() and np.isfinite(v).all()):
-        raise InputError("keyframe times must increase and values be finite", key)
+    if np.any(np.diff(t) <= 0) or not np.isfinite(t).all():   # the times' fault, named so (probe, round 14)
+        raise InputError(f"keyframe times must be finite and increase strictly, got {t.tolist()}", "tracking.variance.times")
+    if not np.isfinite(v).all():
+        raise InputError(f"keyframe values must be finite, got {v.tolist()}", key)
     return t, v
 
 
