@@ -556,3 +556,32 @@ def test_the_key_at_fault_is_named(override, key, match):
                                          "tracking.variance.target_scale=[1.0,1.0]"]
                                 if "variance.times" in override else SMOKE + ["controller=tracking", override]))
     assert e.value.where == key
+
+
+def test_a_hit_between_frames_has_a_time():
+    """A fast sphere touching the hair between two frames: the measure said hit: true with
+    hit_frames 0 and first_hit_time null; the time is now its step's, from the metrics."""
+    import pandas as pd
+
+    from hairexp.app.assemble import assemble
+    from hairexp.app.config import compose_config
+    from hairexp.evaluation.measures import RunData, collider_contact
+
+    scene = assemble(compose_config(SMOKE)).scene
+    x = np.asarray(scene.strands.rest)
+    metrics = pd.DataFrame({"time": [0.01, 0.02, 0.03], "contacts_wheel": [0, 3, 0]})
+    m = collider_contact(RunData(scene, np.array([0.0, 0.04]), np.stack([x, x]), metrics=metrics),
+                         type("P", (), {"collider": "wheel", "tolerance": 0.002})())
+    assert m["hit"] and m["hit_frames"] == 0 and m["contacts"] == 3 and m["first_hit_time"] == 0.02
+
+
+def test_hair_inside_a_collider_with_the_barrier_is_said_to_be_inside_it():
+    """With collision.contact=barrier a plane 5 cm above the hair's tips was said to hold the
+    hair "within its thickness shell by 52 mm"; it is inside the plane by about 5 cm."""
+    from hairexp.app.assemble import assemble
+    from hairexp.app.config import compose_config
+
+    plane = ("scene.colliders=[{name: floor, shape: plane, thickness: 0.002, motion: {times: [0.0], "
+             "translations: [[0.0, -0.25, 0.0]], rotations_deg: [[0.0, 0.0, 0.0]]}}]")
+    with pytest.raises(InputError, match=r"collider 'floor': the hair starts inside it \(strand .* by (4\d|5\d)(\.\d+)? mm"):
+        assemble(compose_config(SMOKE + ["collision.contact=barrier", plane, "measure.name=none", "judge=none"]))

@@ -74,6 +74,11 @@ def collider_contact(d: RunData, p) -> dict:
     first = float(d.times[np.argmax(hit)]) if hit.any() else None
     col_name = f"contacts_{p.collider}"
     contacts = int(d.metrics[col_name].fillna(0).sum()) if d.metrics is not None and col_name in d.metrics else 0
+    if first is None and contacts > 0 and "time" in d.metrics:
+        # a hit between frames only (a fast collider): its step's time, so the measure does not say "hit" with no
+        # time of it (probe of issue 12, round 14); min_distance stays the frames' (the hair as recorded)
+        touched = d.metrics[col_name].fillna(0).to_numpy() > 0
+        first = float(d.metrics["time"].to_numpy()[np.argmax(touched)])
     return {"min_distance": float(dist.min()), "min_distance_time": float(d.times[int(np.argmin(dist))]),
             "hit_frames": int(hit.sum()), "hit": bool(hit.any() or contacts > 0), "contacts": contacts,
             "first_hit_time": first, "thickness": col.thickness, "tolerance": p.tolerance}
