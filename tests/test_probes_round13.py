@@ -585,3 +585,20 @@ def test_hair_inside_a_collider_with_the_barrier_is_said_to_be_inside_it():
              "translations: [[0.0, -0.25, 0.0]], rotations_deg: [[0.0, 0.0, 0.0]]}}]")
     with pytest.raises(InputError, match=r"collider 'floor': the hair starts inside it \(strand .* by (4\d|5\d)(\.\d+)? mm"):
         assemble(compose_config(SMOKE + ["collision.contact=barrier", plane, "measure.name=none", "judge=none"]))
+
+
+def test_a_recording_at_the_file_size_limit_is_named(tmp_path, monkeypatch):
+    """Under ``ulimit -f`` the recording's writer stopped and the run waited out the 60 s flush
+    time-out, naming neither the limit nor the cause."""
+    import resource
+
+    from hairexp.outputs.rerun_sink import _size_capped
+
+    f = tmp_path / "recording.partial.rrd"
+    f.write_bytes(b"x" * 1000)
+    monkeypatch.setattr(resource, "getrlimit", lambda what: (1 << 20, resource.RLIM_INFINITY))
+    assert _size_capped(str(f)) is None   # 1 kB against a 1 MB limit
+    f.write_bytes(b"x" * ((1 << 20) - 1000))
+    assert _size_capped(str(f)) == 1 << 20
+    monkeypatch.setattr(resource, "getrlimit", lambda what: (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
+    assert _size_capped(str(f)) is None

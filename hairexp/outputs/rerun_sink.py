@@ -85,6 +85,12 @@ def flush_recording(rec, partial: str) -> None:
             return
         except RuntimeError as exc:   # rerun's file writer stopped, or not done yet
             free = _free_bytes(partial)
+            capped = _size_capped(partial)
+            if capped is not None:   # ulimit -f: rerun's writer only logs its EFBIG (probe of issue 12, round 14)
+                _ABANDONED.append(rec)
+                rr.unregister_shutdown()
+                raise OSError(errno.EFBIG, f"{partial}: the recording could not be written: it reached the process's "
+                                           f"file-size limit ({capped} bytes, ulimit -f; rerun: {exc})") from exc
             full = free is not None and free < DISK_FULL_BYTES
             if "timed out" not in str(exc).lower():
                 if full:
@@ -107,6 +113,19 @@ def flush_recording(rec, partial: str) -> None:
 FLUSH_SLICE_SECONDS = 2.0
 #: fewer free bytes than this on the recording's disk while its writer is not done: the disk is full
 DISK_FULL_BYTES = 64 << 10
+
+
+def _size_capped(path: str) -> int | None:
+    """The file-size limit (RLIMIT_FSIZE, bytes) when the file ``path`` has reached it, else None."""
+    import resource
+
+    try:
+        soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+        if soft == resource.RLIM_INFINITY or soft <= 0:
+            return None
+        return int(soft) if os.path.getsize(path) >= soft - (64 << 10) else None
+    except (OSError, ValueError):
+        return None
 
 
 def _free_bytes(path: str) -> int | None:
