@@ -4,6 +4,7 @@ existing file; the rest weak)."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import re
 import logging
 import os
@@ -602,3 +603,25 @@ def test_a_recording_at_the_file_size_limit_is_named(tmp_path, monkeypatch):
     assert _size_capped(str(f)) == 1 << 20
     monkeypatch.setattr(resource, "getrlimit", lambda what: (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
     assert _size_capped(str(f)) is None
+
+
+def test_a_run_folder_moved_away_mid_run_is_one_line(tmp_path, monkeypatch, capsys):
+    """``mv`` of the run folder during a run gave an errno line per ending file (five lines)."""
+    import shutil
+
+    import hairexp.app.cli as cli
+    from hairexp.app.config import compose_config
+
+    out = tmp_path / "r"
+
+    def moved(cfg, folder):
+        folder.mkdir()
+        shutil.move(str(folder), str(tmp_path / "r2"))
+        err = FileNotFoundError(2, "No such file or directory", str(folder / "summary.json.tmp"))
+        err.add_note("also: while writing the failed ending (metrics): FileNotFoundError")
+        raise err
+
+    monkeypatch.setattr(cli, "run_experiment", lambda cfg, folder: moved(cfg, Path(folder)))
+    res = cli.job(compose_config(SMOKE), str(out), overrides=[])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert res["code"] == 4 and len(err) == 1 and "was moved or deleted while the run went on" in err[0]

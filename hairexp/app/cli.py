@@ -129,8 +129,13 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         _print_notes(exc)
         res = outcome(out, "failed", 3, str(exc))
     except OSError as exc:   # the run folder could not be written (a full disk, a blocked path)
-        print(f"hairexp: cannot write the run folder {out}: {exc}", file=sys.stderr)
-        _print_notes(exc)
+        if not Path(out).is_dir():   # moved or deleted mid-run: one line, not an errno line per ending file (round 14)
+            print(f"hairexp: the run folder {out} was moved or deleted while the run went on, so its ending could "
+                  f"not be written (the folder's summary.json, wherever it is now, still says running): {exc}",
+                  file=sys.stderr)
+        else:
+            print(f"hairexp: cannot write the run folder {out}: {exc}", file=sys.stderr)
+            _print_notes(exc)
         res = outcome(out, "failed", 4, str(exc))
     except KeyboardInterrupt as exc:
         signum = exc.signum if isinstance(exc, Interrupted) else 2
