@@ -121,7 +121,7 @@ os._exit(0)   # as hairexp's entry point ends (hairexp/__main__.py exit_now): no
     (["tracking.variance.stiffness=-1"], "tracking.variance.stiffness"),
     (["tracking.variance.times=[0.0,1.0]"], "tracking.variance.stiffness_scale"),
     (["tracking.variance.times=[1.0,0.0]", "tracking.variance.stiffness_scale=[1.0,1.0]",
-      "tracking.variance.target_scale=[1.0,1.0]"], "tracking.variance.stiffness_scale"),
+      "tracking.variance.target_scale=[1.0,1.0]"], "tracking.variance.times"),   # the times' fault (round 14)
 ])
 def test_tracking_keys_are_checked_before_any_variant_runs(tmp_path, bad, key):
     """goaling_smoke runs its free variant first: it must not run with a tracked variant's bad value."""
