@@ -37,10 +37,11 @@ def main(cfg: DictConfig) -> float | None:
 
 def entry() -> int:
     logging.raiseExceptions = False   # a log file on a full disk is not worth a traceback per line
-    bad_flag = cli.flag_error(sys.argv[1:])   # before any folder is made (Hydra's argparse would say it later)
+    bad_flag = cli.flag_error(sys.argv[1:]) or cli.duplicate_key_error(sys.argv[1:])   # before any folder is made
     if bad_flag is not None:
         print(bad_flag, file=sys.stderr)
         return 2
+    sys.argv[1:] = cli.flags_first(sys.argv[1:])   # argparse takes no flag after the overrides
     bad_value = cli.run_dir_value_error(sys.argv[1:])   # an interpolation Hydra could not resolve
     if bad_value is not None:
         print(bad_value, file=sys.stderr)

@@ -625,3 +625,64 @@ def test_a_run_folder_moved_away_mid_run_is_one_line(tmp_path, monkeypatch, caps
     res = cli.job(compose_config(SMOKE), str(out), overrides=[])
     err = capsys.readouterr().err.strip().splitlines()
     assert res["code"] == 4 and len(err) == 1 and "was moved or deleted while the run went on" in err[0]
+
+
+# round 15's probe
+
+def test_a_key_given_twice_on_the_command_line_is_refused():
+    """hydra.run.dir twice: hairexp locked the first folder and Hydra ran in the second."""
+    from hairexp.app.cli import duplicate_key_error
+
+    msg = duplicate_key_error(["experiment=goaling_smoke", "hydra.run.dir=a", "frames=3", "hydra.run.dir=b"])
+    assert msg == ("hairexp: error: hydra.run.dir: given twice on the command line (hydra.run.dir=a and "
+                   "hydra.run.dir=b); give it once")
+    assert duplicate_key_error(["-m", "frames=2,3", "--cfg", "job", "solver.dt=0.01"]) is None
+
+
+def test_hydras_flags_may_follow_the_overrides():
+    """``key=value --cfg job`` gave argparse's 8-line usage and 'unrecognized arguments'."""
+    from hairexp.app.cli import flags_first
+
+    assert flags_first(["frames=3", "--cfg", "job", "solver.dt=0.01", "-m"]) == ["--cfg", "job", "-m", "frames=3",
+                                                                                   "solver.dt=0.01"]
+    assert flags_first(["frames=3", "--info", "config"]) == ["--info", "config", "frames=3"]
+    assert flags_first(["--info", "frames=3"]) == ["--info", "frames=3"]   # --info's value is optional
+
+
+@pytest.mark.parametrize("overrides, said", [
+    (["tracking.rtol=1e-3"], "tracking.rtol (read with controller.name=tracking)"),
+    (["controller.attract_stiffness=5"], "controller.attract_stiffness (read with controller.name=attract)"),
+    (["collision.volume_cell=0.5"], "collision.volume_cell (read with collision.hair_hair=true with"),
+    (["collision.barrier_dhat=0.9"], "collision.barrier_dhat (read with collision.contact=barrier"),
+    (["scene.body.mass=5"], "scene.body.mass (read with scene.body.dynamic=true)"),
+    (["collision.objects=false", "collision.contact=barrier"], "collision.contact (read with collision.objects=true)"),
+    (["controller=skinned", "collision.hair_hair=true"], "collision.hair_hair (read with a controller that simulates"),
+    (["controller=tracking", "tracking.variance.stiffness=0", "tracking.variance.target_scale=[5.0]"],
+     "tracking.variance.target_scale (read with controller.name=tracking with tracking.variance.stiffness > 0)"),
+    (["controller=tracking", "tracking.assignment=hard", "tracking.blend_width=0.5"],
+     "tracking.blend_width (read with controller.name=tracking with tracking.assignment=soft)"),
+])
+def test_a_command_line_key_no_run_reads_is_said(tmp_path, monkeypatch, caplog, overrides, said):
+    import hairexp.app.cli as cli
+    from hairexp.app.config import compose_config
+
+    monkeypatch.setattr(cli, "run_experiment", lambda cfg, out: {"scene": "s", "controller": "c", "steps": 1,
+                                                                "iterations_mean": 1.0, "step_seconds_median": 1e-3,
+                                                                "stretch_max": 0.0, "status": "completed"})
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        cli.job(compose_config(SMOKE + overrides), str(tmp_path / "r"), overrides=SMOKE + overrides)
+    assert said in _warnings(caplog) and "not used by this run" in _warnings(caplog)
+
+
+def test_a_key_read_by_some_variant_is_not_said(tmp_path, monkeypatch, caplog):
+    import hairexp.app.cli as cli
+    from hairexp.app.config import compose_config
+
+    monkeypatch.setattr(cli, "run_experiment", lambda cfg, out: {"variants": {}, "experiment": "e", "success": None})
+    monkeypatch.setattr(cli, "_log_completed", lambda *a: None)
+    over = ["experiment=goaling_smoke", "frames=3", "tracking.rtol=1e-3", "scene.body.mass=5"]
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        cli.job(compose_config(over), str(tmp_path / "r"), overrides=over)
+    said = _warnings(caplog)
+    assert "tracking.rtol" not in said   # the tracked variant reads it
+    assert "scene.body.mass (read with scene.body.dynamic=true) not used by any variant" in said

@@ -39,8 +39,9 @@ from hydra.experimental.callback import Callback
 
 from hairexp.app.assemble import check_config
 from hairexp.app.config import CONF_DIR, check_bool_overrides, check_interpolations, check_keys, compose_config
-from hairexp.app.experiment import run_experiment
+from hairexp.app.experiment import apply_overrides, run_experiment
 from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside
+from hairexp.app.validate import unused_settings
 from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, SimulationError
@@ -113,6 +114,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         check_interpolations(cfg)   # a ${...} that cannot be resolved (a sweep job Hydra composed)
         check_bool_overrides(list(overrides))
         absolute_inputs(cfg, cwd)
+        _say_unused(cfg, overrides)
         summary = run_experiment(cfg, out)
         late = take_late()   # a signal after the run had written its completed ending
         wild = implausible(summary)
@@ -169,6 +171,26 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
                 pass
             raise Interrupted(signum)
     return res
+
+
+def _say_unused(cfg, overrides) -> None:
+    """A warning for the command line's keys (and each variant's own) that no run of the launch
+    reads (``validate.unused_settings``): said, not refused, since a key shared by an
+    experiment's variants is read by some of them."""
+    keys = [o.split("=", 1)[0] for o in overrides if "=" in o and not o.lstrip("+~").startswith("hydra.")]
+    runs = [cfg]
+    if cfg.get("variants"):
+        try:
+            runs = [apply_overrides(cfg, list(v.overrides), f"variants[{i}] ({v.name})") for i, v in enumerate(cfg.variants)]
+        except InputError:   # said by the run's own checks
+            return
+        for v, vcfg in zip(cfg.variants, runs):
+            own = unused_settings([vcfg], [o.split("=", 1)[0] for o in v.overrides if "=" in o])
+            if own:
+                log.warning("variant %s: %s not used by it", v.name, ", ".join(own))
+    unused = unused_settings(runs, keys)
+    if unused:
+        log.warning("%s not used by %s", ", ".join(unused), "any variant" if len(runs) > 1 else "this run")
 
 
 def _kept(out, what: str) -> str:
@@ -473,6 +495,41 @@ def flag_error(argv: list[str]) -> str | None:
             return (f"hairexp: error: unknown option {arg}; the options are Hydra's ({', '.join(sorted(_FLAGS))}), "
                     "the rest key=value overrides (python -m hairexp --help)")
     return None
+
+
+def duplicate_key_error(argv: list[str]) -> str | None:
+    """The error line for a key given twice on the command line: Hydra took the last
+    ``hydra.run.dir`` while hairexp had locked the first folder (probe of issue 12, round 15)."""
+    seen: dict[str, str] = {}
+    for i, arg in enumerate(argv):
+        if arg.startswith("-") or "=" not in arg or (i and argv[i - 1] in _FLAGS_WITH_VALUE):
+            continue
+        key = arg.split("=", 1)[0].lstrip("+~")
+        if key in seen:
+            return f"hairexp: error: {key}: given twice on the command line ({seen[key]} and {arg}); give it once"
+        seen[key] = arg
+    return None
+
+
+def flags_first(argv: list[str]) -> list[str]:
+    """``argv`` with Hydra's flags (and their values) before the overrides: argparse refused
+    ``key=value --cfg job key=value`` with its 8-line usage ("unrecognized arguments"; probe of
+    issue 12, round 15).  An abbreviation or unknown flag is ``flag_error``'s."""
+    flags, rest, i = [], [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a.startswith("-") and _flag(a) in _FLAGS:
+            flags.append(a)
+            takes = a in _FLAGS_WITH_VALUE and a not in ("-i", "--info")
+            optional = a in ("-i", "--info") and i + 1 < len(argv) and argv[i + 1] in (
+                "all", "config", "defaults", "defaults-tree", "plugins", "searchpath")
+            if (takes or optional) and i + 1 < len(argv):
+                flags.append(argv[i + 1])
+                i += 1
+        else:
+            rest.append(a)
+        i += 1
+    return flags + rest
 
 
 def prints_only(argv: list[str]) -> bool:

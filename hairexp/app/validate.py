@@ -26,6 +26,8 @@ from __future__ import annotations
 import logging
 import math
 
+from omegaconf import OmegaConf
+
 from hairexp.app.config import ColliderConfig, MeasureConfig, changed_keys
 from hairexp.errors import MAX_SPEED, InputError, integer, number
 from hairexp.control.tracking.correspondence import check_correspondence_options
@@ -207,6 +209,59 @@ def _guides(cfg) -> None:
                          "guides.source=keyframed or leave guides.keyframes empty", "guides.keyframes")
 
 
+def _c(cfg, key: str) -> str:
+    return str(_value(OmegaConf.select(cfg, key)))
+
+
+def _tracked(c) -> bool:
+    return _c(c, "controller.name") == "tracking"
+
+
+def _barrier(c) -> bool:
+    return bool(c.collision.objects) and _c(c, "collision.contact") == "barrier"
+
+
+#: (key, or a prefix ending in '.' or '_', whether a run's config reads it, the setting that makes it read);
+#: the first that matches a key decides.  ``unused_settings`` says a key given for a launch that no
+#: run of it reads (probe of issue 12, round 15: ``tracking.rtol`` with the free controller, the
+#: volume keys without hair-hair, ``scene.body.mass`` without a dynamic body, ... were taken silently)
+KEY_USES = (
+    ("tracking.variance.stiffness", _tracked, "controller.name=tracking"),
+    ("tracking.variance.", lambda c: _tracked(c) and float(c.tracking.variance.stiffness) > 0,
+     "controller.name=tracking with tracking.variance.stiffness > 0"),
+    ("tracking.blend_width", lambda c: _tracked(c) and _c(c, "tracking.assignment") == "soft",
+     "controller.name=tracking with tracking.assignment=soft"),
+    ("tracking.", _tracked, "controller.name=tracking"),
+    ("controller.attract_stiffness", lambda c: _c(c, "controller.name") == "attract", "controller.name=attract"),
+    ("collision.volume_", lambda c: bool(c.collision.hair_hair) and _c(c, "collision.hair_hair_model") == "volume"
+     and _c(c, "controller.name") != "skinned", "collision.hair_hair=true with collision.hair_hair_model=volume"),
+    ("collision.hair_hair_model", lambda c: bool(c.collision.hair_hair), "collision.hair_hair=true"),
+    ("collision.hair_hair", lambda c: _c(c, "controller.name") != "skinned",
+     "a controller that simulates the hair (not skinned)"),
+    ("collision.barrier_", _barrier, "collision.contact=barrier with collision.objects=true"),
+    ("collision.friction_epsilon", _barrier, "collision.contact=barrier with collision.objects=true"),
+    ("collision.contact", lambda c: bool(c.collision.objects), "collision.objects=true"),
+    ("scene.body.dynamic", lambda c: True, ""),
+    ("scene.body.", lambda c: bool(c.scene.body.dynamic), "scene.body.dynamic=true"),
+)
+
+
+def unused_settings(cfgs: list, keys) -> list[str]:
+    """The ``keys`` (config keys a launch set: its command line's, or a variant's) that none of
+    ``cfgs`` (the configs of its runs) reads, each as ``key (read with <setting>)`` (``KEY_USES``)."""
+    out = []
+    for key in dict.fromkeys(k.lstrip("+~") for k in keys):
+        for pattern, used, needs in KEY_USES:
+            if key == pattern or (pattern.endswith((".", "_")) and key.startswith(pattern)):
+                try:
+                    if not any(used(c) for c in cfgs):
+                        out.append(f"{key} (read with {needs})")
+                except Exception:  # noqa: BLE001  (a value the checks refuse with their own error)
+                    pass
+                break
+    return out
+
+
 def late_keys(cfg) -> None:
     """A warning for ``guides.edits`` keyed after the run's end (``cfg`` timed: frames and fps
     known, also a stage's): the keys past it are never reached, and an edit keyed only there is
@@ -379,5 +434,5 @@ def validate_measure(cfg, scene) -> None:
                              "give a time within the run, or < 0 for its last frame", "measure.time")
 
 
-__all__ = ["validate_config", "late_keys", "validate_judge", "validate_judge_controllers", "validate_measure", "number", "integer",
+__all__ = ["validate_config", "late_keys", "unused_settings", "validate_judge", "validate_judge_controllers", "validate_measure", "number", "integer",
            "keyframes"]
