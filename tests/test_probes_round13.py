@@ -247,6 +247,7 @@ def test_an_abbreviated_flag_is_named_with_its_full_form():
     ("collision.skin=1e300", "collision.skin"),                  # the neighbour grid overflowed
     ("tracking.blend_width=1e300", "tracking.blend_width"),      # OverflowError
     ("collision.hair_thickness=1e300", "collision.hair_thickness"),   # LinAlgError with hair-hair
+    ("collision.hair_thickness=0.09", "collision.hair_thickness"),   # a wisp stretched 130 % apart (round 15)
     ("collision.volume_cell=1e300", "collision.volume_cell"),
     ("collision.volume_pressure_speed=1e300", "collision.volume_pressure_speed"),
     ("guides.layout_radius=1e300", "guides.layout_radius"),      # the guide simulation diverged, exit 3
