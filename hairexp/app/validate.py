@@ -38,7 +38,7 @@ from hairexp.guides.authoring import check_edits
 from hairexp.model.builders import check_spin
 from hairexp.evaluation.measures import MEASURE_KEYS, collider_named
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR, make_integrator
-from hairexp.physics.simulator import MAX_ITERATION_BUDGET, MAX_LAST_ATTEMPT, MAX_SUBSTEP_LEVELS, check_solver_config  # noqa: F401
+from hairexp.physics.simulator import MAX_ATOL, MAX_ITERATION_BUDGET, MAX_LAST_ATTEMPT, MAX_SUBSTEP_LEVELS, check_solver_config  # noqa: F401
 from hairexp.physics.strand_kernels import check_options
 
 
@@ -63,9 +63,6 @@ MAX_SKIN = 1.0
 #: ``tracking.krylov_max`` at most this: a KKT solve's GMRES keeps krylov_max basis rows as long
 #: as the hair's vertex coordinates (Celia: 188 kB a row); the default is 16
 MAX_KRYLOV = 1000
-#: ``solver.atol`` / ``tracking.atol`` at most this (N): an absolute tolerance on the gradient that
-#: hair's forces (mN) always meet accepts the first iterate of every step
-MAX_ATOL = 1e-3
 
 
 def keyframes(times, key_times: str, values: dict) -> None:

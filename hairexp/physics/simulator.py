@@ -123,6 +123,11 @@ MAX_SUBSTEP_LEVELS = 10
 MAX_ITERATION_BUDGET = 10_000
 
 
+#: ``solver.atol`` / ``tracking.atol`` at most this (N): an absolute tolerance on the gradient that
+#: hair's forces (mN) always meet accepts the first iterate of every step
+MAX_ATOL = 1e-3
+
+
 def check_solver_config(s) -> None:
     """The solver settings (``solver.*``: hairexp/app/config.py SolverConfig, or any object with
     its attributes) a step can run with, or an InputError naming the key: checked by the config's
@@ -136,7 +141,7 @@ def check_solver_config(s) -> None:
     check_options(getattr(s, "kernels", "numba"), getattr(s, "threads", "auto"))   # solver.kernels, solver.threads
     # >= 1, or an absolute tolerance above hair's forces (mN), accepts the first iterate (probe of issue 12, round 14)
     rtol = number(s.rtol, "solver.rtol", lo=0, hi=1, hi_open=True)
-    atol = number(getattr(s, "atol", 0.0), "solver.atol", lo=0, hi=1e-3)
+    atol = number(getattr(s, "atol", 0.0), "solver.atol", lo=0, hi=MAX_ATOL)
     if rtol == 0 and atol == 0:
         raise InputError("solver.rtol and solver.atol are both 0: no step can converge; give one > 0", "solver.rtol")
     if hasattr(s, "dt"):   # worded as the step schedule words it (hairexp/physics/schedule.py)
