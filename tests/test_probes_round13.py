@@ -638,6 +638,7 @@ def test_a_key_given_twice_on_the_command_line_is_refused():
     assert msg == ("hairexp: error: hydra.run.dir: given twice on the command line (hydra.run.dir=a and "
                    "hydra.run.dir=b); give it once")
     assert duplicate_key_error(["-m", "frames=2,3", "--cfg", "job", "solver.dt=0.01"]) is None
+    assert duplicate_key_error(["frames=3", "frames=5"]) is None   # a config key: the last wins, as in Hydra
 
 
 def test_hydras_flags_may_follow_the_overrides():

@@ -498,13 +498,16 @@ def flag_error(argv: list[str]) -> str | None:
 
 
 def duplicate_key_error(argv: list[str]) -> str | None:
-    """The error line for a key given twice on the command line: Hydra took the last
-    ``hydra.run.dir`` while hairexp had locked the first folder (probe of issue 12, round 15)."""
+    """The error line for a ``hydra.*`` key or ``overwrite`` given twice on the command line: Hydra
+    took the last ``hydra.run.dir`` while hairexp had locked the first folder (probe of issue 12,
+    round 15).  Other keys may repeat (the last wins, as in Hydra: a script appends its own)."""
     seen: dict[str, str] = {}
     for i, arg in enumerate(argv):
         if arg.startswith("-") or "=" not in arg or (i and argv[i - 1] in _FLAGS_WITH_VALUE):
             continue
         key = arg.split("=", 1)[0].lstrip("+~")
+        if not (key.startswith("hydra.") or key == "overwrite"):
+            continue
         if key in seen:
             return f"hairexp: error: {key}: given twice on the command line ({seen[key]} and {arg}); give it once"
         seen[key] = arg
