@@ -688,3 +688,18 @@ def test_a_key_read_by_some_variant_is_not_said(tmp_path, monkeypatch, caplog):
     said = _warnings(caplog)
     assert "tracking.rtol" not in said   # the tracked variant reads it
     assert "scene.body.mass (read with scene.body.dynamic=true) not used by any variant" in said
+
+
+def test_a_sweep_workers_startup_handler_is_quiet(monkeypatch, capsys):
+    """SIGTERM forwarded to a sweep's idle workers printed "interrupted by SIGTERM while starting;
+    nothing was run or written" beside the sweep's own report."""
+    import multiprocessing
+
+    from hairexp.app import startup
+
+    exits = []
+    monkeypatch.setattr(startup.os, "_exit", exits.append)
+    monkeypatch.setattr(startup, "_BEGUN", False)
+    monkeypatch.setattr(multiprocessing, "parent_process", lambda: object())   # as in a loky worker
+    startup._handler(signal.SIGTERM, None)
+    assert capsys.readouterr().err == "" and exits == [143]

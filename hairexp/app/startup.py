@@ -44,7 +44,13 @@ def _handler(signum, frame) -> None:
     name = signal.Signals(signum).name
     code = 128 + int(signum)
     try:
-        if _ENDED_CODE is None and not _BEGUN:
+        import multiprocessing
+
+        if multiprocessing.parent_process() is not None:
+            # a sweep's worker process (joblib's loky), idle or between jobs: the main process says
+            # how the sweep ended; its line here ("while starting; nothing was run") misled (round 15)
+            pass
+        elif _ENDED_CODE is None and not _BEGUN:
             sys.stderr.write(f"hairexp: interrupted by {name} while starting; nothing was run or written\n")
         elif _ENDED_CODE is None:
             sys.stderr.write(f"hairexp: {name} while the command was ending: its run folder's summary.json says how "
