@@ -42,6 +42,9 @@ def entry() -> int:
         print(bad_flag, file=sys.stderr)
         return 2
     sys.argv[1:] = cli.flags_first(sys.argv[1:])   # argparse takes no flag after the overrides
+    other_mode = cli.unused_folder_key(sys.argv[1:])
+    if other_mode is not None:
+        print(other_mode, file=sys.stderr)
     bad_value = cli.run_dir_value_error(sys.argv[1:])   # an interpolation Hydra could not resolve
     if bad_value is not None:
         print(bad_value, file=sys.stderr)

@@ -703,3 +703,32 @@ def test_a_sweep_workers_startup_handler_is_quiet(monkeypatch, capsys):
     monkeypatch.setattr(multiprocessing, "parent_process", lambda: object())   # as in a loky worker
     startup._handler(signal.SIGTERM, None)
     assert capsys.readouterr().err == "" and exits == [143]
+
+
+def test_round_15_api_arguments():
+    from hairexp.app.assemble import assemble
+    from hairexp.app.config import compose_config
+    from hairexp.model import RigidMotion, Strands
+
+    line = np.c_[np.zeros(10), -np.linspace(0, 0.2, 10), np.zeros(10)]
+    with pytest.raises(InputError, match=r"vertex counts must be a 1-D sequence .* got shape \(1, 1\)"):
+        Strands.from_polylines(line, np.array([[10]]), 1e-4)
+    with pytest.raises(InputError, match=r"times: must be a 1-D sequence of keyframe times, got shape \(1, 1\)"):
+        RigidMotion(np.zeros((1, 1)), np.zeros((1, 3)), np.zeros((1, 3)))
+    run = assemble(compose_config(SMOKE))
+    with pytest.raises(ValueError, match=r"Simulator.step: dt=1000000000.0 s is above 10 s"):
+        run.simulator.step(run.initial_state(), 1e9)
+
+
+def test_hydra_keys_are_said_unused_where_they_cannot_act(caplog):
+    from hairexp.app.cli import unused_folder_key
+    from hairexp.app.config import compose_config
+
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        cfg = compose_config(["hydra.run.dir=/tmp/x", "frames=3"])
+    assert cfg.frames == 3 and "hydra.run.dir=/tmp/x not used: compose_config composes hairexp's config" in _warnings(caplog)
+    assert unused_folder_key(["-m", "frames=2,3", "hydra.run.dir=a"]) == (
+        "hairexp: warning: hydra.run.dir not used by a -m sweep (its jobs go under hydra.sweep.dir)")
+    assert unused_folder_key(["hydra.sweep.dir=a"]).endswith("not used by a single run (a single run writes into "
+                                                              "hydra.run.dir)")
+    assert unused_folder_key(["hydra.run.dir=a"]) is None

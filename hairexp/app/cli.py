@@ -535,6 +535,19 @@ def flags_first(argv: list[str]) -> list[str]:
     return flags + rest
 
 
+def unused_folder_key(argv: list[str]) -> str | None:
+    """A warning line for ``hydra.run.dir`` given to a ``-m`` sweep, or ``hydra.sweep.dir`` /
+    ``hydra.sweep.subdir`` to a single run: the other mode's folder, not used (probe of issue 12,
+    round 15)."""
+    sweep = _multirun(argv)
+    keys = ("hydra.run.dir",) if sweep else ("hydra.sweep.dir", "hydra.sweep.subdir")
+    given = [k for k in keys if _given(argv, k) is not None]
+    if not given:
+        return None
+    where = "its jobs go under hydra.sweep.dir" if sweep else "a single run writes into hydra.run.dir"
+    return f"hairexp: warning: {', '.join(given)} not used by {'a -m sweep' if sweep else 'a single run'} ({where})"
+
+
 def prints_only(argv: list[str]) -> bool:
     """Whether Hydra only prints something for ``argv`` (``--help``, ``--cfg``, ``--info``, ...):
     nothing runs, so no run folder is checked, locked or made (``--cfg job`` left an empty

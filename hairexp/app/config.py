@@ -666,6 +666,14 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
     before and after, so it can be called any number of times.  A key not in the schema (added
     with ``+``) is an InputError naming it (``check_keys``), as is a boolean key given anything
     but true or false (``check_bool_overrides``: OmegaConf would read ``2`` as true)."""
+    launch = [o for o in overrides if isinstance(o, str) and o.lstrip("+~").startswith("hydra.")]
+    if launch:   # taken without a word (probe of issue 12, round 15)
+        import logging
+
+        logging.getLogger("hairexp").warning(
+            "%s not used: compose_config composes hairexp's config only; Hydra's keys are the command line's (the "
+            "Python API writes a run into the out_dir given to run or run_folder)", ", ".join(launch))
+        overrides = [o for o in overrides if o not in launch]
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 

@@ -47,7 +47,10 @@ class RigidMotion:
     where: str = "motion"      # the input the keyframes came from (errors name it)
 
     def __post_init__(self) -> None:
-        self.times = real_array(self.times, f"{self.where}.times").reshape(-1)
+        self.times = real_array(self.times, f"{self.where}.times")
+        if self.times.ndim > 1:   # a (1, 1) array was flattened without a word (probe of issue 12, round 15)
+            raise InputError(f"must be a 1-D sequence of keyframe times, got shape {self.times.shape}", f"{self.where}.times")
+        self.times = self.times.reshape(-1)
         K = self.times.size
         for name in ("translations", "rotvecs"):
             a = real_array(getattr(self, name), f"{self.where}.{name}")

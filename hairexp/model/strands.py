@@ -33,7 +33,9 @@ def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_v
     ``folds``) for folds (``check_folds``).
     """
     points = real_array(points, f"{where} points")
-    counts = whole_array(counts, f"{where} vertex counts").reshape(-1)
+    counts = whole_array(counts, f"{where} vertex counts")
+    if counts.ndim != 1:   # a (1, 1) array was flattened without a word (probe of issue 12, round 15)
+        raise InputError(f"vertex counts must be a 1-D sequence (one count a curve), got shape {counts.shape}", where)
     if points.ndim != 2 or points.shape[1] != 3:
         raise InputError(f"points must have shape (V, 3), got {points.shape}", where)
     if counts.size == 0:

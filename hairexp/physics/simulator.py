@@ -112,6 +112,8 @@ class _NoColliders:
 
 #: s, the shortest step ``Simulator.step`` takes
 MIN_STEP_DT = 1e-9
+#: the longest step ``Simulator.step`` takes (s): the command line's steps are at most a frame (fps >= 0.1)
+MAX_STEP_DT = 10.0
 #: solver.last_attempt_iterations at most (a step's last attempt with this many times the iterations)
 MAX_LAST_ATTEMPT = 64
 #: solver.max_substep_levels at most: 2^10 substeps of a failing step (beyond, a run whose steps
@@ -466,6 +468,9 @@ class Simulator:
         if (isinstance(dt, (bool, np.bool_)) or not isinstance(dt, (int, float, np.integer, np.floating))
                 or not (np.isfinite(dt) and dt > 0)):   # -0.01 stepped time backwards and said converged (probe of issue 12)
             raise ValueError(f"Simulator.step: dt must be a finite number > 0 (s), got {dt!r}")
+        if dt > MAX_STEP_DT:   # 1e9 "diverged ... try a smaller solver.dt" naming a substep's dt (probe, round 15)
+            raise ValueError(f"Simulator.step: dt={dt!r} s is above {MAX_STEP_DT:g} s: hair moves in milliseconds; a "
+                             "step of a frame (1/24 s) is the longest the integrators are meant for")
         if dt < MIN_STEP_DT:   # 1e-300: the inertia M/dt^2 overflowed and the step "diverged" (probe of issue 12)
             raise ValueError(f"Simulator.step: dt={dt!r} s is below {MIN_STEP_DT:g} s: the inertia term M/dt^2 then "
                              "swamps every force in double precision (or overflows)")
