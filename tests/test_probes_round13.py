@@ -732,3 +732,24 @@ def test_hydra_keys_are_said_unused_where_they_cannot_act(caplog):
     assert unused_folder_key(["hydra.sweep.dir=a"]).endswith("not used by a single run (a single run writes into "
                                                               "hydra.run.dir)")
     assert unused_folder_key(["hydra.run.dir=a"]) is None
+
+
+@pytest.mark.parametrize("override, key", [("scene.body.rail_friction=1e9", "scene.body.rail_friction"),
+                                           ("scene.body.mass=1e12", "scene.body.mass"),
+                                           ("scene.colliders.0.spin=1e9", "scene.colliders[0].spin")])
+def test_round_15_bounds(override, key):
+    from hairexp.app.config import compose_config
+    from hairexp.app.validate import validate_config
+
+    with pytest.raises(InputError) as e:
+        validate_config(compose_config(SMOKE + [override]))
+    assert e.value.where == key
+
+
+def test_the_exporter_checks_the_file_name_before_building(tmp_path, capsys, caplog):
+    from hairexp.app.export_scene import main as export_main
+
+    with caplog.at_level(logging.INFO, logger="hairexp"):
+        assert export_main([str(tmp_path / "out.txt"), "experiment=goaling_smoke", "variants=[]"]) == 2
+    assert "out.txt: a USD file name ends with one of .usda, .usdc, .usd" in capsys.readouterr().err
+    assert "the stage holds" not in _warnings(caplog) and not caplog.records   # nothing was built

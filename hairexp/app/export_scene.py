@@ -23,7 +23,7 @@ from pathlib import Path
 from hairexp.app.assemble import assemble_scene
 from hairexp.app.config import compose_config
 from hairexp.errors import InputError
-from hairexp.io.usd_write import write_scene_usd
+from hairexp.io.usd_write import FORMATS, write_scene_usd
 from hairexp.model.dynamic_body import authoring_motion
 
 log = logging.getLogger(__name__)
@@ -76,6 +76,8 @@ def check_writable(path, overwrite: bool = False) -> None:
         raise DestinationError(f"cannot write the USD stage: {why}", str(path))
     if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
         raise DestinationError("cannot write the USD stage: permission denied", str(path))
+    if p.suffix not in FORMATS:   # checked after the whole scene was built (probe, round 15)
+        raise InputError(f"a USD file name ends with one of {', '.join(FORMATS)}", str(path))
     if (p.exists() or p.is_symlink()) and not overwrite:
         raise InputError("the file exists; give --force to replace it, or another path", str(path))
 

@@ -331,10 +331,10 @@ def _unused(cfg) -> None:
     c, b = cfg.controller, cfg.scene.body
     # 1/s^2; at most 1e9 (omega 3e4 rad/s, k dt^2 = 1.6e6 at dt 0.04): 1e308 passed and the first step overflowed
     number(c.attract_stiffness, "controller.attract_stiffness", lo=0, hi=1e9, lo_open=True)
-    number(b.mass, "scene.body.mass", lo=0, lo_open=True)                             # kg
+    number(b.mass, "scene.body.mass", lo=0, hi=1e6, lo_open=True)   # kg; 1e12 was taken (probe, round 15)
     number(b.rail_height, "scene.body.rail_height")                                   # m
     number(b.rail_end, "scene.body.rail_end")                                         # m
-    number(b.rail_friction, "scene.body.rail_friction", lo=0)
+    number(b.rail_friction, "scene.body.rail_friction", lo=0, hi=100.0)   # as a collider's friction (round 15)
     vel = list(b.velocity)
     if len(vel) != 3:
         raise InputError(f"expected 3 finite numbers (m/s), got {vel}", "scene.body.velocity")

@@ -216,6 +216,12 @@ def check_spin(shape: str, spin, key: str) -> None:
     """InputError for a spin on a collider other than a cylinder (``key``: the collider's)."""
     if shape != "cylinder" and spin != 0:
         raise InputError(f"is {spin} but only a cylinder spins (shape {shape})", f"{key}.spin")
+    if abs(float(spin)) > MAX_SPIN:   # 1e9 rad/s taken without a word (probe of issue 12, round 15)
+        raise InputError(f"must be within +-{MAX_SPIN:g} rad/s (about 1,600 turns a second), got {spin}", f"{key}.spin")
+
+
+#: rad/s, the fastest collider spin
+MAX_SPIN = 1e4
 
 
 def build_collider(c, i: int):
