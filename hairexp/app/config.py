@@ -666,6 +666,13 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
     before and after, so it can be called any number of times.  A key not in the schema (added
     with ``+``) is an InputError naming it (``check_keys``), as is a boolean key given anything
     but true or false (``check_bool_overrides``: OmegaConf would read ``2`` as true)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    if (isinstance(overrides, (str, bytes)) or not isinstance(overrides, (list, tuple))
+            or not all(isinstance(o, str) for o in overrides)):
+        # a single string was read character by character ("Error parsing override 'e'"; probe of issue 12)
+        raise TypeError(f"compose_config: overrides must be a list of 'key=value' strings, got {overrides!r}")
     launch = [o for o in overrides if isinstance(o, str) and o.lstrip("+~").startswith("hydra.")]
     if launch:   # taken without a word (probe of issue 12, round 15)
         import logging
@@ -674,13 +681,6 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
             "%s not used: compose_config composes hairexp's config only; Hydra's keys are the command line's (the "
             "Python API writes a run into the out_dir given to run or run_folder)", ", ".join(launch))
         overrides = [o for o in overrides if o not in launch]
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    if (isinstance(overrides, (str, bytes)) or not isinstance(overrides, (list, tuple))
-            or not all(isinstance(o, str) for o in overrides)):
-        # a single string was read character by character ("Error parsing override 'e'"; probe of issue 12)
-        raise TypeError(f"compose_config: overrides must be a list of 'key=value' strings, got {overrides!r}")
     check_bool_overrides(overrides)
     GlobalHydra.instance().clear()
     try:
