@@ -28,10 +28,10 @@ def _warnings(caplog) -> str:
 def test_export_scene_never_replaces_an_existing_file_without_force(tmp_path, capsys):
     from hairexp.app.export_scene import main as export_main
 
-    notes = tmp_path / "notes.txt"
+    notes = tmp_path / "notes.usda"   # a user's file under a stage's name (any other name: refused by its extension)
     notes.write_text("a user's file")
     assert export_main([str(notes), "experiment=goaling_smoke"]) == 2
-    assert "notes.txt: the file exists; give --force to replace it" in capsys.readouterr().err
+    assert "notes.usda: the file exists; give --force to replace it" in capsys.readouterr().err
     assert notes.read_text() == "a user's file"
     stage = tmp_path / "s.usda"
     assert export_main([str(stage), "experiment=goaling_smoke"]) == 0
