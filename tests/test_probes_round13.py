@@ -753,3 +753,24 @@ def test_the_exporter_checks_the_file_name_before_building(tmp_path, capsys, cap
         assert export_main([str(tmp_path / "out.txt"), "experiment=goaling_smoke", "variants=[]"]) == 2
     assert "out.txt: a USD file name ends with one of .usda, .usdc, .usd" in capsys.readouterr().err
     assert "the stage holds" not in _warnings(caplog) and not caplog.records   # nothing was built
+
+
+def test_a_failed_runs_log_file_says_how_it_ended(tmp_path, monkeypatch, capsys):
+    """__main__.log of a failed or interrupted run had no line of its error (only stderr and the
+    summary said it)."""
+    import hairexp.app.cli as cli
+    from hairexp.app.config import compose_config
+
+    def bad(cfg, out):
+        raise InputError("no collider named 'nosuch'", "measure.collider")
+
+    monkeypatch.setattr(cli, "run_experiment", bad)
+    handler = logging.FileHandler(tmp_path / "run.log")
+    logging.getLogger().addHandler(handler)
+    try:
+        cli.job(compose_config(SMOKE), str(tmp_path / "r"), overrides=[])
+    finally:
+        logging.getLogger().removeHandler(handler)
+        handler.close()
+    assert "failed (exit 2): measure.collider: no collider named 'nosuch'" in (tmp_path / "run.log").read_text()
+    assert capsys.readouterr().err.count("no collider named") == 1   # the console says it once

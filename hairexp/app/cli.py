@@ -157,6 +157,8 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     except Exception as exc:   # noqa: BLE001  (a bug: the traceback, exit 1; the sweep's other jobs go on)
         traceback.print_exc()
         res = outcome(out, "failed", 1, f"{type(exc).__name__}: {exc}")
+    if res["status"] != "completed" or res["code"]:
+        _to_log_files(f"{res['status']} (exit {res['code']}): {res['message']}")
     LAST = res
     if sweep:
         _write_outcome(out, res)
@@ -191,6 +193,19 @@ def _say_unused(cfg, overrides) -> None:
     unused = unused_settings(runs, keys)
     if unused:
         log.warning("%s not used by %s", ", ".join(unused), "any variant" if len(runs) > 1 else "this run")
+
+
+def _to_log_files(message: str) -> None:
+    """``message`` as an error line in the run's log files only (``__main__.log``: Hydra's file
+    handlers), not on the console, where the error's own line was printed: a failed or interrupted
+    run's log ended without a word of how (probe of issue 12, round 15)."""
+    record = logging.LogRecord("hairexp", logging.ERROR, __file__, 0, "%s", (message,), None)
+    for h in logging.getLogger().handlers:
+        if isinstance(h, logging.FileHandler):
+            try:
+                h.handle(record)
+            except Exception:  # noqa: BLE001  (a log file that cannot be written: the summary says it)
+                pass
 
 
 def _kept(out, what: str) -> str:
