@@ -481,7 +481,13 @@ def test_keys_a_stage_replaces_are_said_not_used(tmp_path, caplog):
         build_scene(compose_config(["experiment=from_usd", f"scene.usd={stage}", "scene.motion.times=[0.0,1.0]",
                                     "scene.motion.translations=[[0.0,0.0,0.0],[1.0,0.0,0.0]]",
                                     "scene.motion.rotations_deg=[[0.0,0.0,0.0],[0.0,0.0,0.0]]"]).scene)
-    assert "scene.motion is not used: the body's motion and the colliders come from the stage" in _warnings(caplog)
+    assert "scene.motion is not used: the body's motion comes from the stage" in _warnings(caplog)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hairexp"):   # the config's colliders are added to the stage's
+        scene = build_scene(compose_config(["experiment=from_usd", f"scene.usd={stage}", "scene.colliders=[{name: extra, "
+                                            "shape: sphere, radius: 0.01, motion: {times: [0.0], translations: "
+                                            "[[1.0, 0.0, 0.0]], rotations_deg: [[0.0, 0.0, 0.0]]}}]"]).scene)
+    assert "not used" not in _warnings(caplog) and "extra" in [c.name for c in scene.colliders]
 
 
 def test_group_errors_name_the_key_and_only_real_options():
