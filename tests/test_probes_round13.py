@@ -780,3 +780,36 @@ def test_a_failed_runs_log_file_says_how_it_ended(tmp_path, monkeypatch, capsys)
         handler.close()
     assert "failed (exit 2): measure.collider: no collider named 'nosuch'" in (tmp_path / "run.log").read_text()
     assert capsys.readouterr().err.count("no collider named") == 1   # the console says it once
+
+
+def test_the_stylization_report_names_a_folder_it_cannot_read(tmp_path, capsys):
+    """``python -m hairexp.evaluation.stylization /nonexist``: a traceback, exit 1; a goaling run's
+    folder was measured against default rail values."""
+    from hairexp.evaluation.stylization import main
+
+    assert main([str(tmp_path / "nonexist")]) == 2
+    assert "not a finished run folder" in capsys.readouterr().err
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "summary.json").write_text(json.dumps({"config": {"scene": {"body": {"dynamic": False}}}}))
+    np.savez(tmp_path / "run" / "result.npz", times=np.zeros(1))
+    assert main([str(tmp_path / "run")]) == 2
+    assert "its body is keyframed (scene.body.dynamic=false): it has no rail to measure" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("subdir, said", [("${oc.env:NOPE_HAIREXP_X}", "the environment variable NOPE_HAIREXP_X is not set"),
+                                          ("${foo:bar}", "unknown resolver 'foo'"),
+                                          ("${scene.nope}", "refers to ${scene.nope}, which is not a key")])
+def test_an_unresolvable_sweep_subdir_is_one_line_before_hydra(subdir, said, monkeypatch):
+    from hairexp.app.cli import run_dir_value_error
+
+    monkeypatch.delenv("NOPE_HAIREXP_X", raising=False)
+    msg = run_dir_value_error(["-m", *SMOKE, "frames=2,3", f"hydra.sweep.subdir={subdir}"])
+    assert msg is not None and msg.startswith(f"hairexp: error: hydra.sweep.subdir={subdir}: ") and said in msg
+
+
+def test_the_exporter_refuses_a_stage_of_too_many_frames(tmp_path, capsys):
+    from hairexp.app.export_scene import main as export_main
+
+    assert export_main([str(tmp_path / "s.usda"), "experiment=goaling_smoke", "variants=[]", "frames=20000000"]) == 2
+    assert "frames: is 20000000: a stage of more than 100,000 frames" in capsys.readouterr().err
+    assert not (tmp_path / "s.usda").exists()

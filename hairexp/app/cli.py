@@ -923,7 +923,7 @@ def run_dir_value_error(argv: list[str]) -> str | None:
 
     for arg in argv:
         key, eq, value = arg.lstrip("+~").partition("=")
-        if not eq or key not in ("hydra.run.dir", "hydra.sweep.dir"):
+        if not eq or key not in ("hydra.run.dir", "hydra.sweep.dir", "hydra.sweep.subdir"):   # subdir: round 15
             continue
         for m in _ENV_INTERPOLATION.finditer(value):
             if m.group(2) is None and m.group(1) not in os.environ:

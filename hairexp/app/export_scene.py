@@ -29,6 +29,11 @@ from hairexp.model.dynamic_body import authoring_motion
 log = logging.getLogger(__name__)
 
 
+#: frames at most in an exported stage (``guard.allow_large=true`` lifts it): 100,000 frames of
+#: Celia's 3 guides of 26 vertices are about 100 MB of crate
+MAX_EXPORT_FRAMES = 100_000
+
+
 class DestinationError(InputError):
     """The stage's path cannot be written (exit 4 on the command line)."""
 
@@ -46,6 +51,11 @@ def export_scene(cfg, path, overwrite: bool = False) -> tuple:
         log.warning("scene.settle=%g not used: the stage holds the hair at its elastic rest shape, unsettled; give "
                     "scene.settle to the run that reads the stage (experiment=from_usd scene.usd=%s scene.settle=%g)",
                     float(cfg.scene.settle), path, float(cfg.scene.settle))
+    frames = cfg.get("frames")
+    if isinstance(frames, int) and frames > MAX_EXPORT_FRAMES and not bool(cfg.guard.allow_large):
+        # 2e7 frames ran for minutes and grew without a word, where the run itself is refused (probe, round 15)
+        raise InputError(f"is {frames}: a stage of more than {MAX_EXPORT_FRAMES:,} frames (every frame's guides are "
+                         "built and written) is refused; export fewer frames, or set guard.allow_large=true", "frames")
     cfg, scene, guides = assemble_scene(cfg, settle=False)
     ref = authoring_motion(scene.motion)
     if ref is not scene.motion:  # a dynamic block (scene.body): its motion is not known before a run

@@ -68,9 +68,16 @@ def run_report(run_dir) -> dict:
     import pandas as pd
 
     d = Path(run_dir)
-    summary = json.loads((d / "summary.json").read_text())
-    body = summary["config"]["scene"]["body"]
-    res = np.load(d / "result.npz")
+    try:   # a missing or foreign folder: named, not a traceback (probe of issue 12, round 15)
+        summary = json.loads((d / "summary.json").read_text())
+        body = summary["config"]["scene"]["body"]
+        res = np.load(d / "result.npz")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"not a finished run folder (summary.json with its config, result.npz): "
+                         f"{type(exc).__name__}: {exc}", str(d)) from exc
+    if not body.get("dynamic"):   # a keyframed body has no rail: its "rail" figures were the defaults' (round 15)
+        raise InputError("its body is keyframed (scene.body.dynamic=false): it has no rail to measure; give a "
+                         "stylization run's folder", str(d))
     if "body_positions" not in res:
         raise InputError("result.npz has no body_positions (a run from before they were recorded)", str(d))
     out = block_rail_measure(res["times"], res["body_positions"], body["rail_height"], body["rail_end"])
@@ -97,7 +104,11 @@ def main(argv=None) -> int:
         print(__doc__.strip().splitlines()[-4].strip(), file=sys.stderr)
         return 1
     for a in args:
-        print(json.dumps({"run": a, **run_report(a)}, indent=1))
+        try:
+            print(json.dumps({"run": a, **run_report(a)}, indent=1))
+        except InputError as exc:
+            print(f"hairexp: error: {exc}", file=sys.stderr)
+            return 2
     return 0
 
 
