@@ -813,3 +813,16 @@ def test_the_exporter_refuses_a_stage_of_too_many_frames(tmp_path, capsys):
     assert export_main([str(tmp_path / "s.usda"), "experiment=goaling_smoke", "variants=[]", "frames=20000000"]) == 2
     assert "frames: is 20000000: a stage of more than 100,000 frames" in capsys.readouterr().err
     assert not (tmp_path / "s.usda").exists()
+
+
+def test_a_signal_inside_numbas_compile_cache_callback_is_sent_again_later():
+    """SIGINT inside llvmlite's object-cache callback (a ctypes callback: the exception is printed
+    as "Exception ignored" and lost) left numba's library half-built and the run failed, exit 1."""
+    import sys as _sys
+
+    from hairexp.app.signals import _in_finaliser
+
+    def _raw_object_cache_notify():
+        return _in_finaliser(_sys._getframe())
+
+    assert _raw_object_cache_notify() and not _in_finaliser(_sys._getframe())

@@ -128,10 +128,18 @@ def take_late() -> int | None:
     return first
 
 
+#: functions in which a raised exception is printed as "Exception ignored" and lost: finalisers,
+#: and llvmlite's ctypes callbacks of numba's compile cache (a SIGINT there while the tracked
+#: step's kernels compiled left numba's library half-built: "no compiled object yet", exit 1 with a
+#: traceback; probe of issue 12, round 15)
+_LOSING_FRAMES = frozenset({"__del__", "_raw_object_cache_notify", "_raw_object_cache_getbuffer"})
+
+
 def _in_finaliser(frame) -> bool:
-    """Whether ``frame`` runs inside an object's ``__del__`` (where a raised exception is lost)."""
+    """Whether ``frame`` runs inside an object's ``__del__`` or a ctypes callback
+    (``_LOSING_FRAMES``), where a raised exception is lost."""
     while frame is not None:
-        if frame.f_code.co_name == "__del__":
+        if frame.f_code.co_name in _LOSING_FRAMES:
             return True
         frame = frame.f_back
     return False
