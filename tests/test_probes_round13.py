@@ -826,3 +826,20 @@ def test_a_signal_inside_numbas_compile_cache_callback_is_sent_again_later():
         return _in_finaliser(_sys._getframe())
 
     assert _raw_object_cache_notify() and not _in_finaliser(_sys._getframe())
+
+
+# round 16's short probe
+
+def test_round_16_findings(capsys):
+    from hairexp.app.config import compose_config
+    from hairexp.app.export_scene import main as export_main
+    from hairexp.app.validate import unused_settings
+    from hairexp.model.builders import check_counts
+
+    with pytest.raises(InputError, match=r"scene.length: is 1e-12 m: a strand of 3 vertices \(the fewest\) needs at least"):
+        check_counts(40, 20, 1e-12)   # it advised "use at most 1 vertices"
+    cfg = compose_config(SMOKE + ["collision=off"])
+    assert unused_settings([cfg], ["collision.skin"]) == ["collision.skin (read with collision.hair_hair=true)"]
+    assert export_main(["--bogus", "s.usda"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hairexp: error: unknown option --bogus")

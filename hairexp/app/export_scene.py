@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args or "=" in args[0] or flag is not None:
         why = ("the path of the stage to write is required" if flag is None
                else f"unknown option {flag} (the options are --force and --help)")
-        print(f"{usage}\nhairexp: error: {why}", file=sys.stderr)
+        print(f"hairexp: error: {why} ({usage})", file=sys.stderr)   # one line (probe of issue 12, round 16)
         return 2
     launch = [a for a in args[1:] if a.lstrip("+~").startswith(("hydra.", "overwrite="))]
     if launch:   # accepted and ignored without a word (probe of issue 12, round 14)

@@ -234,6 +234,7 @@ KEY_USES = (
     ("collision.volume_", lambda c: bool(c.collision.hair_hair) and _c(c, "collision.hair_hair_model") == "volume"
      and _c(c, "controller.name") != "skinned", "collision.hair_hair=true with collision.hair_hair_model=volume"),
     ("collision.hair_hair_model", lambda c: bool(c.collision.hair_hair), "collision.hair_hair=true"),
+    ("collision.skin", lambda c: bool(c.collision.hair_hair), "collision.hair_hair=true"),   # round 16
     ("collision.hair_hair", lambda c: _c(c, "controller.name") != "skinned",
      "a controller that simulates the hair (not skinned)"),
     ("collision.barrier_", _barrier, "collision.contact=barrier with collision.objects=true"),

@@ -81,6 +81,9 @@ def check_counts(n_strands: int, n_vertices: int, length: float | None = None, k
         raise InputError(f"must be >= 1, got {n_strands}", "scene.n_strands")
     if n_vertices < 3:
         raise InputError(f"must be >= 3 (two root vertices and one free), got {n_vertices}", key)
+    if length is not None and np.isfinite(length) and 0 < length < 2 * MIN_REST_EDGE:   # no vertex count fits (round 16)
+        raise InputError(f"is {length:g} m: a strand of 3 vertices (the fewest) needs at least {2e3 * MIN_REST_EDGE:g} mm "
+                         f"for edges of {1e3 * MIN_REST_EDGE:g} mm (hairexp reads metres)", "scene.length")
     if length is not None and np.isfinite(length) and length > 0 and length / (n_vertices - 1) < MIN_REST_EDGE:
         raise InputError(f"{n_vertices} vertices on {length:g} m make edges of {1e3 * length / (n_vertices - 1):.3g} mm, "
                          f"shorter than {1e3 * MIN_REST_EDGE:g} mm: the stretch springs are then too stiff for any step "
