@@ -843,3 +843,16 @@ def test_round_16_findings(capsys):
     assert export_main(["--bogus", "s.usda"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("hairexp: error: unknown option --bogus")
+
+
+def test_round_16_bounds_and_a_variants_typo(tmp_path):
+    from hairexp.app.assemble import assemble
+    from hairexp.app.config import compose_config
+    from hairexp.app.experiment import apply_overrides
+
+    with pytest.raises(InputError, match="solver.max_backtracks: must be at most 100"):
+        assemble(compose_config(SMOKE + ["solver.max_backtracks=1000000"]))
+    with pytest.raises(InputError, match=r"scene.hair.stretch_stiffness: is 1e-30 N, below 0.001"):
+        assemble(compose_config(SMOKE + ["scene.hair.stretch_stiffness=1e-30"]))
+    with pytest.raises(InputError, match=r"unknown key 'tracking.rtoll'; did you mean 'tracking.rtol'"):
+        apply_overrides(compose_config(["experiment=goaling_smoke"]), ["tracking.rtoll=1"], "variants[0] (x)")

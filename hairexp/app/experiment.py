@@ -25,7 +25,7 @@ import yaml
 from omegaconf import OmegaConf
 
 from hairexp.app.assemble import check_config
-from hairexp.app.config import check_bool, require_config, to_plain
+from hairexp.app.config import check_bool, require_config, to_plain, unknown_key_hint
 from hairexp.app.validate import validate_judge, validate_judge_controllers
 from hairexp.app.signals import InterruptSignals, take_late
 from hairexp.errors import InputError, Interrupted
@@ -103,8 +103,9 @@ def apply_overrides(cfg, overrides: list[str], where: str):
             raise InputError(f"{o}: a variant cannot set Hydra's keys ({key}): the launch's settings, given on the "
                              "command line (a variant's run folder is <the run folder>/<variant name>)", where)
         node = OmegaConf.select(out, key, default="__missing__")
-        if isinstance(node, str) and node == "__missing__":
-            raise InputError(f"unknown key {key!r}", where)
+        if isinstance(node, str) and node == "__missing__":   # with the command line's hint (probe, round 16)
+            hint = unknown_key_hint(key)
+            raise InputError(f"unknown key {key!r}" + (f"; {hint}" if hint else ""), where)
         if key in ("judge", "judge_tolerance"):   # the experiment's verdict over all variants (probe, round 14)
             raise InputError(f"{o}: a variant cannot set {key!r}: it belongs to the experiment, which judges all its "
                              "variants together (set it on the command line)", where)

@@ -162,11 +162,18 @@ def build_motion(cfg, where: str = "scene.motion") -> RigidMotion:
 
 
 
+#: N, the softest stretch stiffness (EA) a config's hair may have (the API's Material takes less, for tests)
+MIN_STRETCH_STIFFNESS = 1e-3
+
+
 def build_material(h) -> Material:
     """The hair material of ``scene.hair``, validated."""
     for key in ("linear_density", "stretch_stiffness", "bending_stiffness"):
         if not (getattr(h, key) > 0 and np.isfinite(getattr(h, key))):
             raise InputError(f"must be a finite number > 0, got {getattr(h, key)}", f"scene.hair.{key}")
+        if key == "stretch_stiffness" and getattr(h, key) < MIN_STRETCH_STIFFNESS:   # 1e-30: 212 % stretch (round 16)
+            raise InputError(f"is {getattr(h, key):g} N, below {MIN_STRETCH_STIFFNESS:g}: hair that does not hold its "
+                             "length (human hair: EA about 1-100 N)", f"scene.hair.{key}")
         if key == "linear_density" and getattr(h, key) < MIN_LINEAR_DENSITY:   # 1e-300 "converged" in 0 iterations
             raise InputError(f"is {getattr(h, key):g} kg/m, below {MIN_LINEAR_DENSITY:g}: massless hair (human hair is "
                              "about 1e-5 to 1e-4 kg/m; a step's inertia against its stiffness is then beyond double "

@@ -128,6 +128,8 @@ MAX_ITERATION_BUDGET = 10_000
 #: ``solver.atol`` / ``tracking.atol`` at most this (N): an absolute tolerance on the gradient that
 #: hair's forces (mN) always meet accepts the first iterate of every step
 MAX_ATOL = 1e-3
+#: ``solver.max_backtracks`` at most this
+MAX_BACKTRACKS = 100
 
 
 def check_solver_config(s) -> None:
@@ -153,6 +155,9 @@ def check_solver_config(s) -> None:
     for key, lo in (("max_iterations", 1), ("max_backtracks", 0)):
         if hasattr(s, key):
             integer(getattr(s, key), f"solver.{key}", lo)
+    if getattr(s, "max_backtracks", 0) > MAX_BACKTRACKS:   # 1e6 was taken (probe of issue 12, round 16)
+        raise InputError(f"must be at most {MAX_BACKTRACKS} (each halves the step: 2^-{MAX_BACKTRACKS} is below double "
+                         f"precision), got {s.max_backtracks}", "solver.max_backtracks")
     if getattr(s, "max_iterations", 1) > MAX_ITERATION_BUDGET:
         raise InputError(f"must be at most {MAX_ITERATION_BUDGET} (a Newton solve takes 2-25 iterations; one that has "
                          f"not converged in {MAX_ITERATION_BUDGET} will not), got {s.max_iterations}",
