@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import logging
 import re
 from dataclasses import dataclass, field
 from enum import Enum
@@ -675,8 +676,6 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
         raise TypeError(f"compose_config: overrides must be a list of 'key=value' strings, got {overrides!r}")
     launch = [o for o in overrides if isinstance(o, str) and o.lstrip("+~").startswith("hydra.")]
     if launch:   # taken without a word (probe of issue 12, round 15)
-        import logging
-
         logging.getLogger("hairexp").warning(
             "%s not used: compose_config composes hairexp's config only; Hydra's keys are the command line's (the "
             "Python API writes a run into the out_dir given to run or run_folder)", ", ".join(launch))

@@ -44,9 +44,8 @@ def _handler(signum, frame) -> None:
     name = signal.Signals(signum).name
     code = 128 + int(signum)
     try:
-        import multiprocessing
-
-        if multiprocessing.parent_process() is not None:
+        mp = sys.modules.get("multiprocessing")   # no import inside a signal handler (it may land in one)
+        if mp is not None and mp.parent_process() is not None:
             # a sweep's worker process (joblib's loky), idle or between jobs: the main process says
             # how the sweep ended; its line here ("while starting; nothing was run") misled (round 15)
             pass

@@ -41,6 +41,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.cluster.hierarchy import fcluster, linkage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
+from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from hairexp.errors import InputError
 from hairexp.evaluation.stylization import block_rail_measure
@@ -123,10 +126,6 @@ def emst_lengths(X: np.ndarray) -> np.ndarray:
     unsorted: the tree is a subgraph of the Delaunay triangulation (Preparata and Shamos), so the
     minimum spanning tree of the triangulation's edges is it.  Repeated points join at 0; points
     on a plane or a line are triangulated in that subspace (Qhull refuses flat input)."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import minimum_spanning_tree
-    from scipy.spatial import Delaunay, QhullError
-
     U = np.unique(X, axis=0)
     repeated = np.zeros(len(X) - len(U))
     if len(U) < 2:
@@ -178,11 +177,7 @@ def single_linkage_labels(X: np.ndarray, threshold: float) -> np.ndarray:
         if len(X) < 2:
             return np.zeros(len(X), dtype=np.int64)
         return fcluster(linkage(X, method="single"), t=threshold, criterion="distance") - 1
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
     pairs = cKDTree(X).query_pairs(threshold, output_type="ndarray")
-    from scipy.sparse import coo_matrix
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(X), len(X)))
     return connected_components(graph, directed=False)[1]
 

@@ -16,6 +16,9 @@ from __future__ import annotations
 import copy
 import logging
 import math
+import os
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -83,10 +86,6 @@ class _usd_stderr:
     error line that says the same, they made two lines of one error (probe of issue 12, round 14)."""
 
     def __enter__(self) -> list:
-        import os
-        import sys
-        import tempfile
-
         self.lines: list[str] = []
         try:
             sys.stderr.flush()
@@ -98,8 +97,6 @@ class _usd_stderr:
         return self.lines
 
     def __exit__(self, *exc) -> bool:
-        import os
-
         if self._saved is None:
             return False
         os.dup2(self._saved, 2)

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import errno
 import os
+import resource
 import shutil
 import time
 import uuid
@@ -117,8 +118,6 @@ DISK_FULL_BYTES = 64 << 10
 
 def _size_capped(path: str) -> int | None:
     """The file-size limit (RLIMIT_FSIZE, bytes) when the file ``path`` has reached it, else None."""
-    import resource
-
     try:
         soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
         if soft == resource.RLIM_INFINITY or soft <= 0:
