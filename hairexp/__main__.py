@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+import warnings
 from concurrent.futures.process import BrokenProcessPool
 
 import hydra
@@ -37,6 +38,7 @@ def main(cfg: DictConfig) -> float | None:
 
 def entry() -> int:
     logging.raiseExceptions = False   # a log file on a full disk is not worth a traceback per line
+    warnings.formatwarning = cli.one_line_warning
     bad_flag = cli.flag_error(sys.argv[1:]) or cli.duplicate_key_error(sys.argv[1:])   # before any folder is made
     if bad_flag is not None:
         print(bad_flag, file=sys.stderr)

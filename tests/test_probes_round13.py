@@ -88,6 +88,36 @@ def test_guide_edits_keyed_after_the_run_are_said(caplog):
     assert "guides.edits" not in _warnings(caplog)
 
 
+def test_late_edit_keys_that_shape_the_weight_before_the_end_are_not_said(caplog):
+    """The first two keys after the end shape the weight inside the run (the crossing segment and
+    its end slope): only later ones are never reached.  Every shipped experiment is quiet."""
+    from hairexp.app.assemble import timed_config
+    from hairexp.app.config import compose_config
+    from hairexp.app.validate import late_keys
+    from hairexp.guides.authoring import KeyedWeight
+
+    base = ["experiment=goaling_smoke", "frames=30"]   # ends at 1.2 s (25 fps)
+    keys = "guides.edits.0.times=[0.0,1.0,1.5,2.0,3.0,4.0]", "guides.edits.0.weights=[0.0,1.0,0.6,0.3,0.1,0.0]"
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        late_keys(timed_config(compose_config(base + list(keys))))
+    msg = _warnings(caplog)
+    assert "the keys at 3, 4 s lie after the run's end at 1.2 s" in msg and "1.5" not in msg and " 2," not in msg
+    # the claim: the keys named change nothing before the end, the two not named do
+    t = [0.0, 1.0, 1.5, 2.0, 3.0, 4.0]
+    w = [0.0, 1.0, 0.6, 0.3, 0.1, 0.0]   # decreasing after 1 s: the slope at 1.5 s reads the key at 2 s
+    inside = __import__("numpy").linspace(0.0, 1.2, 61)
+    ref = KeyedWeight(t, w, "e")(inside)
+    assert abs(KeyedWeight(t, w[:4] + [0.9, 0.7], "e")(inside) - ref).max() == 0.0
+    assert abs(KeyedWeight(t, w[:3] + [0.5] + w[4:], "e")(inside) - ref).max() > 1e-6
+    assert abs(KeyedWeight(t, w[:2] + [0.9] + w[3:], "e")(inside) - ref).max() > 1e-6
+    for exp in ("goaling_smoke", "splitting_smoke", "spreading_smoke", "stylization_smoke", "celia_smoke",
+                "fanning_smoke", "goaling", "celia"):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="hairexp"):
+            late_keys(timed_config(compose_config([f"experiment={exp}"])))
+        assert "guides.edits" not in _warnings(caplog), exp
+
+
 def test_a_variance_point_given_twice_is_refused():
     from hairexp.app.config import compose_config
     from hairexp.app.validate import validate_config

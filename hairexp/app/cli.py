@@ -62,6 +62,14 @@ SWEEP_DIR: Path | None = None
 SWEEP_TOTAL: int | None = None
 
 
+def one_line_warning(message, category, filename, lineno, line=None) -> str:
+    """``warnings.formatwarning`` of the command lines: a library's warning (OmegaConf's on an
+    interpolation such as ``${oc.env:X,}``) as one line naming its category and module, not two
+    with a source line of the library (probe of issue 12)."""
+    module = Path(filename).stem if filename else "?"
+    return f"hairexp: {category.__name__} (from {module}): {message}\n"
+
+
 def outcome(out, status: str, code: int, message: str | None = None, summary: dict | None = None) -> dict:
     return {"status": status, "code": code, "message": message, "out": str(out),
             "converged": None if summary is None else summary.get("converged")}

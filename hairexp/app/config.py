@@ -702,6 +702,14 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
                 raise InputError(f"{item.group(1)} has no item {item.group(2)}: a dotted index sets a key of an item the "
                                  f"list already has; to add items give the whole list ({item.group(1)}=[...], "
                                  "every item to keep)", bad_value.group(1)) from exc
+            if (re.fullmatch(r"variants(\[\d+\])?", field_key or key) and
+                    ("VariantConfig" in reason or "ListConfig" in reason)):
+                # OmegaConf's "str is not a subclass of VariantConfig" (probe of issue 12, round 15)
+                given = next((o.split("=", 1)[1] for o in overrides if o.lstrip("+~").split("=", 1)[0] == bad_value.group(1)
+                              and "=" in o), "?")
+                raise InputError(f"a variant is {{name: <identifier>, overrides: [key=value, ...]}} and variants is a "
+                                 "list of them (variants='[{name: a, overrides: [controller.name=tracking]}]', or "
+                                 f"variants=[] for the base run alone); got {given}", field_key or key) from exc
             if "incompatible with type hint 'float'" in reason and "(int)" in reason:   # translations=[[0,0,0]]
                 reason += ("; write such a number as a float (0.0, not 0): inside a list of lists OmegaConf does "
                            "not turn an integer into a float")

@@ -102,6 +102,11 @@ def metrics_summary(df) -> dict:
         unconverged = int((~df["converged"].astype(bool)).sum())
         agg = {
             "steps": n,
+            # the step the run took (the frame interval / steps per frame: solver.dt is its upper
+            # bound), and the smallest step / its substeps (a recovery splits a step in halves)
+            # (probe of issue 12: the summary held only the configured solver.dt)
+            "dt": float(df["dt"].max()),
+            "dt_min": float((df["dt"] / df["substeps"].clip(lower=1)).min()),
             "iterations_mean": float(df["iterations"].mean()),
             "iterations_max": int(df["iterations"].max()),
             "converged_fraction": float(df["converged"].mean()),

@@ -263,18 +263,26 @@ def unused_settings(cfgs: list, keys) -> list[str]:
 
 def late_keys(cfg) -> None:
     """A warning for ``guides.edits`` keyed after the run's end (``cfg`` timed: frames and fps
-    known, also a stage's): the keys past it are never reached, and an edit keyed only there is
-    held at its first weight for the whole run (it was silent; probe of issue 12, round 13)."""
+    known, also a stage's) where those keys cannot change the run: an edit keyed only there is held
+    at its first weight for the whole run (it was silent; probe of issue 12, round 13), and keys
+    from the third after the end on are never reached.  The first two keys after the end do shape
+    the weight before it (``KeyedWeight``: the segment that crosses the end runs to the first, and
+    its slope there is the Fritsch-Carlson mean of the secants to the second), so they are not
+    named: goaling_smoke's 30 frames end in the ease back of goaling's edit."""
     if not (_positive(cfg.frames) and _positive(cfg.fps)):
         return
     end = int(cfg.frames) / float(cfg.fps)
     for i, e in enumerate(cfg.guides.edits or ()):
-        late = [float(t) for t in e.times if float(t) > end + 1e-9]
-        if late:
-            held = " (every key is: the edit is held at its first weight, the whole run)" if len(late) == len(e.times) else ""
+        times = [float(t) for t in e.times]
+        late = [t for t in times if t > end + 1e-9]
+        if late and len(late) == len(times):
+            unused, held = late, " (every key is: the edit is held at its first weight, the whole run)"
+        else:
+            unused, held = late[2:], ""
+        if unused:
             log.warning("guides.edits[%d].times: the key%s at %s s lie%s after the run's end at %.6g s (frames / fps) "
-                        "and %s never reached%s", i, "s" if len(late) > 1 else "", ", ".join(f"{t:g}" for t in late),
-                        "" if len(late) > 1 else "s", end, "are" if len(late) > 1 else "is", held)
+                        "and %s never reached%s", i, "s" if len(unused) > 1 else "", ", ".join(f"{t:g}" for t in unused),
+                        "" if len(unused) > 1 else "s", end, "are" if len(unused) > 1 else "is", held)
 
 
 def _scene(cfg) -> None:

@@ -1,0 +1,64 @@
+"""Issue 12's weak findings left after round 16, and round 17's findings, one test each."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+import subprocess
+import sys
+
+REPO = Path(__file__).resolve().parents[1]
+SMOKE = ["experiment=goaling_smoke", "variants=[]", "frames=3", "logging.rerun=false", "logging.progress=false"]
+
+
+def _hairexp(args, tmp_path, timeout=240):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    return subprocess.run([sys.executable, "-m", "hairexp", *args], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def test_log_lines_and_warnings_go_to_stderr_and_the_log_file(tmp_path):
+    """Hydra's console handler wrote every log line, warnings included, to stdout."""
+    out = tmp_path / "run"
+    proc = _hairexp(SMOKE + ["tracking.rtol=1e-4", f"hydra.run.dir={out}"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout == ""
+    assert "tracking.rtol (read with controller.name=tracking) not used" in proc.stderr and "goaling/free: 3 steps" in proc.stderr
+    log = (out / "__main__.log").read_text()
+    assert "goaling/free: 3 steps" in log
+
+
+def test_a_library_warning_is_one_line(tmp_path):
+    """OmegaConf's UserWarning on ``${oc.env:X,}`` came as two lines, the second its source."""
+    proc = _hairexp(SMOKE + ["scene.name=${oc.env:HAIREXP_SURELY_UNSET,}", f"hydra.run.dir={tmp_path / 'run'}"], tmp_path)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert lines[0].startswith("hairexp: UserWarning (from grammar_visitor): In the sequence"), proc.stderr
+    assert lines[-1] == "hairexp: error: scene.name: must be a non-empty name, got ''"
+    assert len(lines) == 2 and "warnings.warn(" not in proc.stderr
+
+
+def test_the_summary_records_the_step_taken(tmp_path):
+    """summary.json held solver.dt (an upper bound) but not the step the run took."""
+    import json
+
+    out = tmp_path / "run"
+    proc = _hairexp(SMOKE + ["solver.dt=0.05", "fps=30", f"hydra.run.dir={out}"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert abs(summary["dt"] - 1 / 30) < 1e-12 and abs(summary["dt_min"] - 1 / 30) < 1e-12
+    assert summary["config"]["solver"]["dt"] == 0.05
+
+
+def test_a_variant_that_is_not_a_record_is_explained():
+    """OmegaConf's 'str is not a subclass of VariantConfig' was the whole message."""
+    import pytest
+
+    from hairexp.app.config import compose_config
+    from hairexp.errors import InputError
+
+    for bad, key in (("variants=[bogus]", "variants[0]"), ("variants=bogus", "variants"), ("variants.0=x", "variants[0]")):
+        with pytest.raises(InputError) as e:
+            compose_config(["experiment=goaling_smoke", bad])
+        assert str(e.value).startswith(f"{key}: a variant is {{name: <identifier>, overrides: [key=value, ...]}}"), bad
+        assert "got " + bad.split("=", 1)[1] in str(e.value) and "subclass" not in str(e.value)
