@@ -684,7 +684,8 @@ def test_hydras_flags_may_follow_the_overrides():
     assert flags_first(["frames=3", "--cfg", "job", "solver.dt=0.01", "-m"]) == ["--cfg", "job", "-m", "frames=3",
                                                                                    "solver.dt=0.01"]
     assert flags_first(["frames=3", "--info", "config"]) == ["--info", "config", "frames=3"]
-    assert flags_first(["--info", "frames=3"]) == ["--info", "frames=3"]   # --info's value is optional
+    # --info's value is optional: without one it goes last, where argparse cannot take an override as its value
+    assert flags_first(["--info", "frames=3"]) == ["frames=3", "--info"]
 
 
 @pytest.mark.parametrize("overrides, said", [

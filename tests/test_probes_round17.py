@@ -62,3 +62,11 @@ def test_a_variant_that_is_not_a_record_is_explained():
             compose_config(["experiment=goaling_smoke", bad])
         assert str(e.value).startswith(f"{key}: a variant is {{name: <identifier>, overrides: [key=value, ...]}}"), bad
         assert "got " + bad.split("=", 1)[1] in str(e.value) and "subclass" not in str(e.value)
+
+
+def test_info_without_a_value_before_an_override_prints_hydras_info(tmp_path):
+    """``--info experiment=x`` gave argparse's usage (it took the override as --info's value)."""
+    proc = _hairexp(["--info", "experiment=goaling_smoke"], tmp_path, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "Installed Hydra Plugins" in proc.stdout and "usage:" not in proc.stderr
+    assert not (tmp_path / "outputs").exists()   # printing makes no folder

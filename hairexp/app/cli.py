@@ -499,6 +499,18 @@ _NO_RUN_FLAGS = frozenset({"-h", "--help", "--hydra-help", "--version", "-c", "-
                            "--shell-completion"})
 
 
+#: the values ``--info`` takes (argparse: an optional value among these choices)
+_INFO_CHOICES = ("all", "config", "defaults", "defaults-tree", "plugins", "searchpath")
+
+
+def _is_value(argv: list[str], i: int) -> bool:
+    """Whether ``argv[i]`` is the value of the flag before it (``--cfg job``; ``--info`` takes
+    one only among its choices): the one reading of Hydra's flag grammar every check here uses."""
+    if i < 1 or argv[i - 1] not in _FLAGS_WITH_VALUE:
+        return False
+    return argv[i - 1] not in ("-i", "--info") or argv[i] in _INFO_CHOICES
+
+
 def _flag(arg: str) -> str:
     """The flag ``arg`` names (``--cfg=job`` is ``--cfg``)."""
     return arg.split("=", 1)[0] if arg.startswith("--") else arg
@@ -511,7 +523,7 @@ def flag_error(argv: list[str]) -> str | None:
     argparse would take (``--multi``) is refused too, naming the flag: hairexp's own checks of
     the run or sweep folder read the flags written in full."""
     for i, arg in enumerate(argv):
-        if arg.startswith("-") and _flag(arg) not in _FLAGS and not (i and argv[i - 1] in _FLAGS_WITH_VALUE):
+        if arg.startswith("-") and _flag(arg) not in _FLAGS and not _is_value(argv, i):
             longer = sorted(f for f in _FLAGS if f.startswith("--") and f.startswith(_flag(arg)))
             if arg.startswith("--") and len(longer) == 1:
                 return f"hairexp: error: {arg}: write the option in full: {longer[0]}"
@@ -526,7 +538,7 @@ def duplicate_key_error(argv: list[str]) -> str | None:
     round 15).  Other keys may repeat (the last wins, as in Hydra: a script appends its own)."""
     seen: dict[str, str] = {}
     for i, arg in enumerate(argv):
-        if arg.startswith("-") or "=" not in arg or (i and argv[i - 1] in _FLAGS_WITH_VALUE):
+        if arg.startswith("-") or "=" not in arg or _is_value(argv, i):
             continue
         key = arg.split("=", 1)[0].lstrip("+~")
         if not (key.startswith("hydra.") or key == "overwrite"):
@@ -541,21 +553,20 @@ def flags_first(argv: list[str]) -> list[str]:
     """``argv`` with Hydra's flags (and their values) before the overrides: argparse refused
     ``key=value --cfg job key=value`` with its 8-line usage ("unrecognized arguments"; probe of
     issue 12, round 15).  An abbreviation or unknown flag is ``flag_error``'s."""
-    flags, rest, i = [], [], 0
+    flags, rest, last, i = [], [], [], 0
     while i < len(argv):
         a = argv[i]
-        if a.startswith("-") and _flag(a) in _FLAGS:
+        if a in ("-i", "--info") and not (i + 1 < len(argv) and _is_value(argv, i + 1)):
+            last.append(a)   # without a value: last, or argparse takes the next override as its value
+        elif a.startswith("-") and _flag(a) in _FLAGS:
             flags.append(a)
-            takes = a in _FLAGS_WITH_VALUE and a not in ("-i", "--info")
-            optional = a in ("-i", "--info") and i + 1 < len(argv) and argv[i + 1] in (
-                "all", "config", "defaults", "defaults-tree", "plugins", "searchpath")
-            if (takes or optional) and i + 1 < len(argv):
+            if i + 1 < len(argv) and _is_value(argv, i + 1):
                 flags.append(argv[i + 1])
                 i += 1
         else:
             rest.append(a)
         i += 1
-    return flags + rest
+    return flags + rest + last
 
 
 def unused_folder_key(argv: list[str]) -> str | None:
@@ -575,7 +586,7 @@ def prints_only(argv: list[str]) -> bool:
     """Whether Hydra only prints something for ``argv`` (``--help``, ``--cfg``, ``--info``, ...):
     nothing runs, so no run folder is checked, locked or made (``--cfg job`` left an empty
     folder holding a ``.lock``; probe of issue 12, round 13)."""
-    return any(_flag(a) in _NO_RUN_FLAGS for i, a in enumerate(argv) if not (i and argv[i - 1] in _FLAGS_WITH_VALUE))
+    return any(_flag(a) in _NO_RUN_FLAGS for i, a in enumerate(argv) if not _is_value(argv, i))
 
 
 def _made_on_the_way(path: str) -> str | None:
@@ -598,7 +609,7 @@ def override_syntax_error(argv: list[str]) -> str | None:
 
     parser = OverridesParser.create()
     for i, arg in enumerate(argv):
-        if arg.startswith("-") or "=" not in arg or (i and argv[i - 1] in _FLAGS_WITH_VALUE):
+        if arg.startswith("-") or "=" not in arg or _is_value(argv, i):
             continue
         try:
             o = parser.parse_override(arg)
