@@ -140,11 +140,6 @@ def _assemble_scene(cfg, settle: bool):
     validate_config(cfg)                                # the config's ranges (hairexp/app/validate.py)
     cfg = timed_config(cfg)
     n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)   # validated before anything is built
-    late_keys(cfg)
-    frame = 1.0 / float(cfg.fps)
-    if float(cfg.solver.dt) > frame * (1 + 1e-9):   # not the step: dt 0.04 at 24 fps is 2 steps of 1/48 s
-        log.warning("solver.dt=%g s is longer than a frame (1/fps = %.4g s): each step is one frame, %.4g s",
-                    float(cfg.solver.dt), frame, dt)
     usd = str(_value(cfg.scene.builder)) == "usd"
     if not usd:   # the resource guard (hairexp/app/guard.py) before the hair is built
         check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices), float(cfg.scene.length))
@@ -157,6 +152,13 @@ def _assemble_scene(cfg, settle: bool):
     if settle:
         scene = settle_scene(scene, cfg)   # scene.settle > 0: start from the hair at rest under gravity
     guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
+    # the config's warnings once everything was built from it: a refused run printed them above its
+    # error line (the error is what to mend)
+    late_keys(cfg)
+    frame = 1.0 / float(cfg.fps)
+    if float(cfg.solver.dt) > frame * (1 + 1e-9):   # not the step: dt 0.04 at 24 fps is 2 steps of 1/48 s
+        log.warning("solver.dt=%g s is longer than a frame (1/fps = %.4g s): each step is one frame, %.4g s",
+                    float(cfg.solver.dt), frame, dt)
     return cfg, scene, guides, n_sub, dt
 
 
