@@ -22,6 +22,12 @@ class ExtentError(InputError):
     its own type, so a caller can add what placed the points without reading the message."""
 
 
+class ScratchError(HairexpError, OSError):
+    """A temporary file of the run (outside the run folder: the guide frame store in the system's
+    temporary folder) could not be written: its own type, so the command line does not call it a
+    run folder that cannot be written."""
+
+
 class SimulationError(HairexpError, RuntimeError):
     """The solver could not produce a finite state, even after the configured recovery."""
 

@@ -70,3 +70,25 @@ def test_info_without_a_value_before_an_override_prints_hydras_info(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "Installed Hydra Plugins" in proc.stdout and "usage:" not in proc.stderr
     assert not (tmp_path / "outputs").exists()   # printing makes no folder
+
+
+def test_a_temporary_file_that_cannot_be_written_is_not_called_the_run_folder(tmp_path):
+    """With ``ulimit -f`` the guide frame store (in TMPDIR) failed and the line said 'cannot write
+    the run folder'."""
+    import json
+    import resource
+
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200 * 1024, 200 * 1024))
+
+    proc = subprocess.run([sys.executable, "-m", "hairexp", "experiment=goaling_smoke", "variants=[]", "frames=300",
+                           "logging.progress=false", "logging.rerun=false", f"hydra.run.dir={out}"], cwd=tmp_path,
+                          env=env, capture_output=True, text=True, timeout=240, preexec_fn=limit)
+    assert proc.returncode == 4, proc.stderr[-2000:]
+    line = proc.stderr.strip().splitlines()[-1]
+    assert line.startswith("hairexp: cannot write a temporary file: [Errno 27] the guide frame store"), line
+    assert "run folder" not in line.split("(a full disk")[0]
+    assert json.loads((out / "summary.json").read_text())["status"] == "failed"

@@ -44,7 +44,7 @@ from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside
 from hairexp.app.validate import unused_settings
 from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
-from hairexp.errors import InputError, Interrupted, SimulationError
+from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
 from hairexp.outputs.files import write_json
 from hairexp.outputs.folder import (LOCK, RESERVE, SUMMARY, held_elsewhere, hold, hydra_link_refusal, note_job_logs,
                                     overwrite_refusal, running_run, used_entries, used_refusal)
@@ -143,6 +143,9 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
             print(f"hairexp: the run folder {out} was moved or deleted while the run went on, so its ending could "
                   f"not be written (the folder's summary.json, wherever it is now, still says running): {exc}",
                   file=sys.stderr)
+        elif isinstance(exc, ScratchError):   # not the run folder: the system's temporary folder (TMPDIR)
+            print(f"hairexp: cannot write a temporary file: {exc} (a full disk, or a file-size limit: ulimit -f; TMPDIR "
+                  f"chooses the folder; the failed summary is in {out})", file=sys.stderr)
         else:
             print(f"hairexp: cannot write the run folder {out}: {exc}", file=sys.stderr)
             _print_notes(exc)

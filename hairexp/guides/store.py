@@ -17,6 +17,8 @@ import tempfile
 
 import numpy as np
 
+from hairexp.errors import ScratchError
+
 #: bytes of frames per block, written and read back together
 BLOCK_BYTES = 1 << 18
 
@@ -67,9 +69,9 @@ class FrameStore:
             try:
                 n = os.pwrite(self._file.fileno(), data[done:], at + done)
             except OSError as exc:   # EFBIG, ENOSPC: named (it said only "File too large"; probe of issue 12, round 14)
-                raise OSError(exc.errno, f"{where}: {exc.strerror} after {at + done} bytes") from exc
+                raise ScratchError(exc.errno, f"{where}: {exc.strerror} after {at + done} bytes") from exc
             if n <= 0:
-                raise OSError(errno.ENOSPC, f"{where}: wrote {done} of {len(data)} bytes (a full disk or a file-size "
+                raise ScratchError(errno.ENOSPC, f"{where}: wrote {done} of {len(data)} bytes (a full disk or a file-size "
                               "limit, ulimit -f)")
             done += n
         self._written += k
