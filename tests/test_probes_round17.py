@@ -92,3 +92,50 @@ def test_a_temporary_file_that_cannot_be_written_is_not_called_the_run_folder(tm
     assert line.startswith("hairexp: cannot write a temporary file: [Errno 27] the guide frame store"), line
     assert "run folder" not in line.split("(a full disk")[0]
     assert json.loads((out / "summary.json").read_text())["status"] == "failed"
+
+
+def test_ctrl_c_of_a_sweep_with_an_idle_worker_lets_the_running_job_write_its_ending(tmp_path):
+    """A Ctrl-C reaches every process of the group.  An idle sweep worker exited at once on it,
+    loky then found its pool broken and killed the other worker while its job was writing its
+    interrupted ending: no metrics.parquet, metrics.parquet.tmp left, the job's summary ended by
+    the main process as 'ended before it wrote its ending'."""
+    import json
+    import signal
+    import time
+
+    sweep = tmp_path / "sweep"
+    env = dict(os.environ, PYTHONPATH=str(REPO), CI="1")
+    # jobs 0 and 1 are short; job 2 runs on a worker that ran one of them while the other idles
+    proc = subprocess.Popen([sys.executable, "-m", "hairexp", "-m", "experiment=goaling_smoke", "variants=[]",
+                             "logging.rerun=false", "logging.progress=false", "frames=10,12,3000",
+                             f"hydra.sweep.dir={sweep}"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+    summary = sweep / "2" / "summary.json"
+
+    def status(p):
+        try:
+            return json.loads(p.read_text())["status"]
+        except (OSError, ValueError, KeyError):
+            return None
+    try:
+        deadline = time.monotonic() + 180
+        # 80 parts of its metrics (2,000 frames): an ending long enough (it merges them) for loky
+        # to kill its worker, had the idle one exited
+        parts = sweep / "2" / "stream" / "metrics"
+        while not (status(summary) == "running" and parts.is_dir() and len(list(parts.iterdir())) >= 80):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "job 2 did not start its steps"
+            time.sleep(0.05)
+        assert status(sweep / "0" / "summary.json") == "completed" == status(sweep / "1" / "summary.json")
+        os.killpg(proc.pid, signal.SIGINT)   # as a terminal's Ctrl-C
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 130, err
+    job = json.loads(summary.read_text())
+    assert job["status"] == "interrupted" and job["error"] == "interrupted by SIGINT", err
+    assert (sweep / "2" / "metrics.parquet").is_file() and not list(sweep.rglob("*.tmp")), err
+    assert json.loads((sweep / "2" / ".hydra" / "outcome.json").read_text())["code"] == 130
+    assert "Traceback" not in err, err

@@ -43,13 +43,17 @@ def ended(code: int) -> None:
 def _handler(signum, frame) -> None:
     name = signal.Signals(signum).name
     code = 128 + int(signum)
+    mp = sys.modules.get("multiprocessing")   # no import inside a signal handler (it may land in one)
+    if mp is not None and mp.parent_process() is not None:
+        # a sweep's worker process (joblib's loky), idle, between jobs or around a job's run: left
+        # to the main process, which stops the running jobs (hairexp/app/cli.py stop_sweep_jobs)
+        # and says how the sweep ended.  An idle worker that exited here on a Ctrl-C (which reaches
+        # every process of the group) made loky find its pool broken and kill the other workers,
+        # a job among them that was writing its interrupted ending: its summary and outcome were
+        # never written, metrics.parquet.tmp was left (probe of issue 12)
+        return
     try:
-        mp = sys.modules.get("multiprocessing")   # no import inside a signal handler (it may land in one)
-        if mp is not None and mp.parent_process() is not None:
-            # a sweep's worker process (joblib's loky), idle or between jobs: the main process says
-            # how the sweep ended; its line here ("while starting; nothing was run") misled (round 15)
-            pass
-        elif _ENDED_CODE is None and not _BEGUN:
+        if _ENDED_CODE is None and not _BEGUN:
             sys.stderr.write(f"hairexp: interrupted by {name} while starting; nothing was run or written\n")
         elif _ENDED_CODE is None:
             sys.stderr.write(f"hairexp: {name} while the command was ending: its run folder's summary.json says how "
