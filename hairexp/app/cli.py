@@ -146,6 +146,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         elif isinstance(exc, ScratchError):   # not the run folder: the system's temporary folder (TMPDIR)
             print(f"hairexp: cannot write a temporary file: {exc} (a full disk, or a file-size limit: ulimit -f; TMPDIR "
                   f"chooses the folder; the failed summary is in {out})", file=sys.stderr)
+            _print_notes(exc)   # the failed ending's own write errors, as for the run folder's
         else:
             print(f"hairexp: cannot write the run folder {out}: {exc}", file=sys.stderr)
             _print_notes(exc)
