@@ -30,7 +30,7 @@ import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
 from hairexp.outputs import layout
-from hairexp.outputs.rerun_sink import (OVERLAYS, _check_complete, abandoned, flush_recording, framing, key_view,
+from hairexp.outputs.rerun_sink import (OVERLAYS, _check_complete, finish_stream, flush_recording, framing, key_view,
                                         partial_name, plot_views, time_panel)
 
 NAME = "comparison.rrd"
@@ -124,8 +124,7 @@ def write_comparison(out: Path, variants: list[str], key: tuple[float, str] | No
         rec.send_blueprint(comparison_blueprint(variants, plots, ranges, plan), make_active=True, make_default=True)
         flush_recording(rec, str(partial))
     finally:
-        if not abandoned(rec):   # a stuck writer: disconnect would wait for it forever
-            rec.disconnect()
+        finish_stream(rec, str(partial))   # disconnect only after a flush that succeeded: a failed writer hangs it
     _check_complete(str(partial))
     os.replace(partial, path)
     return path

@@ -73,9 +73,11 @@ def abandoned(rec) -> bool:
 def flush_recording(rec, partial: str) -> None:
     """Wait (at most FLUSH_TIMEOUT_SECONDS) until rerun's file writer holds everything sent to
     ``rec``; OSError naming the file ``partial`` when it cannot: the writer stopped (a full disk)
-    or did not finish in time.  On a time-out the stream is given up (``abandoned``): neither
-    ``disconnect`` nor rerun's exit handler (``rerun_shutdown``) runs for it, since both would
-    wait for the same writer; the caller then skips ``disconnect``."""
+    or did not finish in time.  On any failure the stream is given up (``abandoned``): neither
+    ``disconnect`` nor rerun's exit handler (``rerun_shutdown``) runs for it, since both wait for
+    the writer without a limit, and a writer that stopped on an error sometimes never answers
+    (``disconnect`` hung for ever after ``File too large``; probe of issue 12, round 17).  Callers
+    end a stream with ``finish_stream``."""
     if abandoned(rec):
         raise OSError(f"{partial}: the recording could not be written (rerun's file writer is stuck)")
     waited = 0.0
@@ -87,27 +89,45 @@ def flush_recording(rec, partial: str) -> None:
         except RuntimeError as exc:   # rerun's file writer stopped, or not done yet
             free = _free_bytes(partial)
             capped = _size_capped(partial)
+            timed_out = "timed out" in str(exc).lower()
+            full = free is not None and free < DISK_FULL_BYTES
+            if timed_out and capped is None and not full and waited + wait < FLUSH_TIMEOUT_SECONDS:
+                waited += wait
+                continue
+            _abandon(rec)
             if capped is not None:   # ulimit -f: rerun's writer only logs its EFBIG (probe of issue 12, round 14)
-                _ABANDONED.append(rec)
-                rr.unregister_shutdown()
                 raise OSError(errno.EFBIG, f"{partial}: the recording could not be written: it reached the process's "
                                            f"file-size limit ({capped} bytes, ulimit -f; rerun: {exc})") from exc
-            full = free is not None and free < DISK_FULL_BYTES
-            if "timed out" not in str(exc).lower():
+            if not timed_out:
                 if full:
                     raise OSError(errno.ENOSPC, f"{partial}: the recording could not be written: no space left on "
                                                 f"the device ({free} bytes free; rerun: {exc})") from exc
                 raise OSError(f"{partial}: the recording could not be written ({exc})") from exc
-            waited += wait
-            if not full and waited < FLUSH_TIMEOUT_SECONDS:
-                continue
-            _ABANDONED.append(rec)
-            rr.unregister_shutdown()
             if full:   # rerun's writer only logs its ENOSPC; the disk is what the run's error names (probe, round 12)
                 raise OSError(errno.ENOSPC, f"{partial}: the recording could not be written: no space left on the "
                                             f"device ({free} bytes free; rerun: {exc})") from exc
             raise OSError(f"{partial}: the recording could not be written (rerun's file writer did not finish "
                           f"within {FLUSH_TIMEOUT_SECONDS:g} s: {exc})") from exc
+
+
+def _abandon(rec) -> None:
+    """Give ``rec`` up: kept alive (no finaliser waits for its writer), rerun's exit handler off."""
+    if not abandoned(rec):
+        _ABANDONED.append(rec)
+    rr.unregister_shutdown()
+
+
+def finish_stream(rec, partial: str) -> None:
+    """End the recording stream ``rec`` (file ``partial``): ``disconnect`` only after a bounded
+    flush that succeeded (``flush_recording``); a stream whose writer failed or is stuck is
+    abandoned instead, and the file stays incomplete (its footer is missing; ``_check_complete``)."""
+    if abandoned(rec):
+        return
+    try:
+        flush_recording(rec, partial)
+    except OSError:   # abandoned by flush_recording; the caller's own error (or _check_complete) tells it
+        return
+    rec.disconnect()
 
 
 #: ``flush_recording`` waits in slices this long, looking at the disk between them (s)
@@ -607,8 +627,7 @@ class RerunSink:
                 self.send_metrics(metrics)
                 self.rec.send_blueprint(blueprint(self.plan()), make_active=True, make_default=True)
         finally:
-            if not self.stuck:
-                self.rec.disconnect()
+            finish_stream(self.rec, self.partial)
         if success:
             _check_complete(self.partial)
             os.replace(self.partial, self.path)
