@@ -306,7 +306,7 @@ def test_an_allocation_that_fails_is_one_line_and_exit_3(tmp_path, monkeypatch, 
     import hairexp.app.cli as cli
     from hairexp.app.config import compose_config
 
-    def no_memory(cfg, out):
+    def no_memory(cfg, out, **kw):
         raise MemoryError("Unable to allocate 536. GiB for an array with shape (1000000001, 72000)")
 
     monkeypatch.setattr(cli, "run_experiment", no_memory)
@@ -408,7 +408,7 @@ def test_a_run_whose_hair_stretched_beyond_1000_percent_exits_3(tmp_path, monkey
     assert implausible({"stretch_max": 0.5}) is None and implausible({"stretch_max": 10.0}) is None
     assert "tracked: 4.5e+09 %" in implausible({"variants": {"free": {"stretch_max": 0.1},
                                                               "tracked": {"stretch_max": 4.5e7}}})
-    monkeypatch.setattr(cli, "run_experiment", lambda cfg, out: {"scene": "s", "controller": "free", "steps": 3,
+    monkeypatch.setattr(cli, "run_experiment", lambda cfg, out, **kw: {"scene": "s", "controller": "free", "steps": 3,
                                                                 "iterations_mean": 2.0, "step_seconds_median": 1e-3,
                                                                 "stretch_max": 4.5e7, "status": "completed"})
     res = cli.job(compose_config(SMOKE), str(tmp_path / "r"), overrides=[])
@@ -467,8 +467,11 @@ def test_an_input_error_found_when_a_variant_starts_names_the_variant(tmp_path):
 
     cfg = compose_config(["experiment=goaling_smoke", "frames=3", "logging.rerun=false", "logging.progress=false",
                           "judge=none", "variants=[{name: a, overrides: ['measure.name=clumps', 'measure.time=99']}]"])
-    with pytest.raises(InputError, match=r"measure.time: is 99.0 s, after the run's end .* \(variant a: "):
+    # checked before any variant runs (round 17: it was found when the variant started, its folder made)
+    with pytest.raises(InputError, match=r"measure.time: is 99.0 s, after the run's end .* \(variants\[0\] a, "
+                                         r"checked before any variant runs\)"):
         run_experiment(cfg, tmp_path / "r")
+    assert not (tmp_path / "r" / "summary.json").exists() and not (tmp_path / "r" / "a").exists()
 
 
 @pytest.mark.parametrize("override, key", [
@@ -658,7 +661,7 @@ def test_a_run_folder_moved_away_mid_run_is_one_line(tmp_path, monkeypatch, caps
         err.add_note("also: while writing the failed ending (metrics): FileNotFoundError")
         raise err
 
-    monkeypatch.setattr(cli, "run_experiment", lambda cfg, folder: moved(cfg, Path(folder)))
+    monkeypatch.setattr(cli, "run_experiment", lambda cfg, folder, **kw: moved(cfg, Path(folder)))
     res = cli.job(compose_config(SMOKE), str(out), overrides=[])
     err = capsys.readouterr().err.strip().splitlines()
     assert res["code"] == 4 and len(err) == 1 and "was moved or deleted while the run went on" in err[0]
@@ -688,6 +691,15 @@ def test_hydras_flags_may_follow_the_overrides():
     assert flags_first(["--info", "frames=3"]) == ["frames=3", "--info"]
 
 
+def _checked(summary):
+    """A stand-in for run_experiment: the config is checked (``on_checked`` is called), ``summary`` returned."""
+    def fake(cfg, out, on_checked=None):
+        if on_checked is not None:
+            on_checked()
+        return summary
+    return fake
+
+
 @pytest.mark.parametrize("overrides, said", [
     (["tracking.rtol=1e-3"], "tracking.rtol (read with controller.name=tracking)"),
     (["controller.attract_stiffness=5"], "controller.attract_stiffness (read with controller.name=attract)"),
@@ -705,9 +717,9 @@ def test_a_command_line_key_no_run_reads_is_said(tmp_path, monkeypatch, caplog, 
     import hairexp.app.cli as cli
     from hairexp.app.config import compose_config
 
-    monkeypatch.setattr(cli, "run_experiment", lambda cfg, out: {"scene": "s", "controller": "c", "steps": 1,
-                                                                "iterations_mean": 1.0, "step_seconds_median": 1e-3,
-                                                                "stretch_max": 0.0, "status": "completed"})
+    monkeypatch.setattr(cli, "run_experiment", _checked({"scene": "s", "controller": "c", "steps": 1,
+                                                         "iterations_mean": 1.0, "step_seconds_median": 1e-3,
+                                                         "stretch_max": 0.0, "status": "completed"}))
     with caplog.at_level(logging.WARNING, logger="hairexp"):
         cli.job(compose_config(SMOKE + overrides), str(tmp_path / "r"), overrides=SMOKE + overrides)
     assert said in _warnings(caplog) and "not used by this run" in _warnings(caplog)
@@ -717,7 +729,7 @@ def test_a_key_read_by_some_variant_is_not_said(tmp_path, monkeypatch, caplog):
     import hairexp.app.cli as cli
     from hairexp.app.config import compose_config
 
-    monkeypatch.setattr(cli, "run_experiment", lambda cfg, out: {"variants": {}, "experiment": "e", "success": None})
+    monkeypatch.setattr(cli, "run_experiment", _checked({"variants": {}, "experiment": "e", "success": None}))
     monkeypatch.setattr(cli, "_log_completed", lambda *a: None)
     over = ["experiment=goaling_smoke", "frames=3", "tracking.rtol=1e-3", "scene.body.mass=5"]
     with caplog.at_level(logging.WARNING, logger="hairexp"):
@@ -804,7 +816,7 @@ def test_a_failed_runs_log_file_says_how_it_ended(tmp_path, monkeypatch, capsys)
     import hairexp.app.cli as cli
     from hairexp.app.config import compose_config
 
-    def bad(cfg, out):
+    def bad(cfg, out, **kw):
         raise InputError("no collider named 'nosuch'", "measure.collider")
 
     monkeypatch.setattr(cli, "run_experiment", bad)

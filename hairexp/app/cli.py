@@ -38,9 +38,9 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 
 from hairexp.app.assemble import check_config
-from hairexp.app.config import CONF_DIR, check_bool_overrides, check_interpolations, check_keys, compose_config
+from hairexp.app.config import CONF_DIR, check_bool_overrides, check_interpolations, check_keys, compose_config, to_plain
 from hairexp.app.experiment import apply_overrides, run_experiment
-from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside
+from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, summarize, to_log_files
 from hairexp.app.validate import unused_settings
 from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
@@ -122,8 +122,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         check_interpolations(cfg)   # a ${...} that cannot be resolved (a sweep job Hydra composed)
         check_bool_overrides(list(overrides))
         absolute_inputs(cfg, cwd)
-        _say_unused(cfg, overrides)
-        summary = run_experiment(cfg, out)
+        summary = run_experiment(cfg, out, on_checked=lambda: _say_unused(cfg, overrides))
         late = take_late()   # a signal after the run had written its completed ending
         wild = implausible(summary)
         if wild is not None and late is None:
@@ -134,6 +133,8 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     except InputError as exc:
         print(f"hairexp: error: {exc}", file=sys.stderr)
         res = outcome(out, "failed", 2, str(exc))
+        if sweep:   # refused before its folder was claimed: the job's folder still says how it ended
+            _refused_summary(cfg, out, str(exc))
     except SimulationError as exc:
         print(f"hairexp: simulation failed: {exc} ({_kept(out, 'partial metrics')})", file=sys.stderr)
         _print_notes(exc)
@@ -170,7 +171,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         traceback.print_exc()
         res = outcome(out, "failed", 1, f"{type(exc).__name__}: {exc}")
     if res["status"] != "completed" or res["code"]:
-        _to_log_files(f"{res['status']} (exit {res['code']}): {res['message']}")
+        to_log_files(f"{res['status']} (exit {res['code']}): {res['message']}")
     LAST = res
     if sweep:
         _write_outcome(out, res)
@@ -185,6 +186,25 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
                 pass
             raise Interrupted(signum)
     return res
+
+
+def _refused_summary(cfg, out, error: str) -> None:
+    """A sweep job refused by its settings (nothing claimed, nothing run) gets a failed
+    ``summary.json`` in its folder, as a job that failed while running has, unless the folder
+    already holds one (a run's own, or another run's in a used folder)."""
+    path = Path(out) / SUMMARY
+    if path.exists() or path.is_symlink():
+        return
+    try:
+        plain = to_plain(cfg)
+        summary = summarize(None, plain, plain["scene"]["name"], plain["controller"]["name"], 0.0, "failed", error)
+    except Exception:  # noqa: BLE001  (a config that cannot be resolved: what is known)
+        summary = {"status": "failed", "error": error}
+    summary["refused"] = "settings: no step ran"
+    try:
+        write_json(path, summary)
+    except OSError as exc:
+        log.error("%s: cannot write the refused job's summary: %s", out, exc)
 
 
 def _say_unused(cfg, overrides) -> None:
@@ -205,19 +225,6 @@ def _say_unused(cfg, overrides) -> None:
     unused = unused_settings(runs, keys)
     if unused:
         log.warning("%s not used by %s", ", ".join(unused), "any variant" if len(runs) > 1 else "this run")
-
-
-def _to_log_files(message: str) -> None:
-    """``message`` as an error line in the run's log files only (``__main__.log``: Hydra's file
-    handlers), not on the console, where the error's own line was printed: a failed or interrupted
-    run's log ended without a word of how (probe of issue 12, round 15)."""
-    record = logging.LogRecord("hairexp", logging.ERROR, __file__, 0, "%s", (message,), None)
-    for h in logging.getLogger().handlers:
-        if isinstance(h, logging.FileHandler):
-            try:
-                h.handle(record)
-            except Exception:  # noqa: BLE001  (a log file that cannot be written: the summary says it)
-                pass
 
 
 def _kept(out, what: str) -> str:

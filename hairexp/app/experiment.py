@@ -31,7 +31,7 @@ from hairexp.app.signals import InterruptSignals, take_late
 from hairexp.errors import InputError, Interrupted
 from hairexp.evaluation.judges import JUDGES
 from hairexp.evaluation.measures import experiment_key_moment
-from hairexp.app.run import config_hash, inputs_inside, run
+from hairexp.app.run import config_hash, inputs_inside, run, to_log_files
 from hairexp.outputs.files import write_json
 from hairexp.outputs.folder import SUMMARY, claim, owner
 
@@ -140,13 +140,16 @@ def _variant_facts(cfg) -> dict:
             "assignment": p["tracking"]["assignment"]}
 
 
-def run_experiment(cfg, out_dir) -> dict:
+def run_experiment(cfg, out_dir, on_checked=None) -> dict:
+    """Run the experiment of ``cfg`` into ``out_dir``.  Every run's config is checked before the
+    folder is claimed; ``on_checked()``, if given, is called then (the command line's warnings
+    about unused keys: said above a refused run's error line, they hid it)."""
     require_config(cfg, "run_folder")
     if not isinstance(out_dir, (str, Path)) or not str(out_dir):
         raise TypeError(f"run_folder: out_dir must be a folder path (str or pathlib.Path), got {out_dir!r}")
     out = Path(out_dir)
     if not cfg.variants:
-        return run(cfg, out)
+        return run(cfg, out, on_checked)
     names = check_variant_names(cfg.variants)
     vcfgs = []
     for i, (name, v) in enumerate(zip(names, cfg.variants)):   # every variant's config, before the first runs
@@ -159,6 +162,8 @@ def run_experiment(cfg, out_dir) -> dict:
         except InputError as exc:   # the key's own message, said to be the variant's
             raise InputError(f"{exc} (variants[{i}] {name}, checked before any variant runs)") from exc
     validate_judge_controllers(cfg, names, [_variant_facts(v)["controller"] for v in vcfgs])
+    if on_checked is not None:
+        on_checked()
     plain = to_plain(cfg)
     if bool(cfg.overwrite):
         inside = inputs_inside(cfg, out)
@@ -201,7 +206,7 @@ def run_experiment(cfg, out_dir) -> dict:
             write_json(out / SUMMARY, summary)
         except Exception as e2:   # noqa: BLE001  (never hide the first error)
             note = f"while writing the experiment's {status} summary: {type(e2).__name__}: {e2}"
-            log.error("%s: %s", out, note)
+            to_log_files(f"{out}: {note}")   # the console gets it under the error's line ("also:")
             exc.add_note(note)
         raise
     return summary

@@ -249,14 +249,20 @@ def inputs_inside(cfg, folder: Path) -> str | None:
     return None
 
 
-def run(cfg, out_dir: str | Path) -> dict:
+def run(cfg, out_dir: str | Path, on_checked=None) -> dict:
+    """Run ``cfg`` into the folder ``out_dir`` (claimed once the config is checked: ``check_config``;
+    then ``on_checked()``, if given, is called) and return its summary."""
     out = Path(out_dir)
     plain = to_plain(cfg)
-    if bool(cfg.overwrite) and used_entries(out):   # the settings first: a bad value removed the run it was to replace
+    if bool(cfg.overwrite) and used_entries(out):
         inside = inputs_inside(cfg, out)
         if inside is not None:
             raise InputError(inside, str(out))
-        check_config(cfg)
+    # the settings before the folder is claimed: a bad value removed the run it was to replace, and
+    # a model-layer key (scene.length=0) left a failed summary that a retry had to overwrite
+    check_config(cfg)
+    if on_checked is not None:
+        on_checked()
     claim(out, overwrite=bool(cfg.overwrite))   # InputError (exit 2) for a used folder; nothing written
     controller = plain["controller"]["name"]
     scene_name = plain["scene"]["name"]
@@ -441,6 +447,19 @@ def _write_ending(path: Path, summary: dict) -> None:
             os.fsync(f.fileno())
 
 
+def to_log_files(message: str) -> None:
+    """``message`` as an error line in the run's log files only (``__main__.log``: Hydra's file
+    handlers), not on the console, where the error's own line is printed: a failed or interrupted
+    run's log ended without a word of how (probe of issue 12, round 15)."""
+    record = logging.LogRecord("hairexp", logging.ERROR, __file__, 0, "%s", (message,), None)
+    for h in logging.getLogger().handlers:
+        if isinstance(h, logging.FileHandler):
+            try:
+                h.handle(record)
+            except Exception:  # noqa: BLE001  (a log file that cannot be written: the summary says it)
+                pass
+
+
 def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: str, controller: str,
                     t_start: float) -> None:
     """Write the ending of a run that did not complete; every step is tried, and a failure in
@@ -454,8 +473,10 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
             return fn()
         except BaseException as e2:   # noqa: BLE001  (the ending must go on)
             note = f"while writing the {status} ending ({what}): {type(e2).__name__}: {e2}"
-            log.error("%s: %s", out, note)
-            exc.add_note(note)
+            if note not in getattr(exc, "__notes__", ()):   # the frames' flush and close failed alike: said twice
+                # the console gets the notes under the error's own line ("also:"); they were printed twice
+                to_log_files(f"{out}: {note}")
+                exc.add_note(note)
             return None
 
     if sinks.progress is not None:
