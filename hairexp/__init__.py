@@ -21,6 +21,11 @@ _os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # 6 x 10 / 40 x 20 hair, against 3.4 / 1.1 MB with 0: reports/bench_memory.md).  0: back at once.
 # Read when rerun's library loads, so set here first.
 _os.environ.setdefault("MIMALLOC_PURGE_DELAY", "0")
+# rerun's SDK logs its file writer's failures (a full disk, ``ulimit -f``) as coloured Rust log
+# lines on stderr, beside hairexp's own line that names the same failure (a flush raises:
+# outputs/rerun_sink.py flush_recording; a file without its footer is not given its final name).
+# Off unless the user sets RUST_LOG (RUST_LOG=warn shows them).  Read when rerun's library loads.
+_os.environ.setdefault("RUST_LOG", "off")
 
 
 #: glibc mallopt parameters (malloc.h).

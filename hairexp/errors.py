@@ -24,8 +24,12 @@ class ExtentError(InputError):
 
 class ScratchError(HairexpError, OSError):
     """A temporary file of the run (outside the run folder: the guide frame store in the system's
-    temporary folder) could not be written: its own type, so the command line does not call it a
-    run folder that cannot be written."""
+    temporary folder) could not be written, or read back (``reading``): its own type, so the
+    command line does not call it a run folder that cannot be written."""
+
+    def __init__(self, *args, reading: bool = False):
+        super().__init__(*args)
+        self.reading = reading
 
 
 class SimulationError(HairexpError, RuntimeError):

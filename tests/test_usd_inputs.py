@@ -1,6 +1,7 @@
 """Bad USD input stops the run with an InputError naming the file, the prim and the curve (or
-frame) at fault; summary.json says failed and neither result.npz nor a result stage is written.
-On the command line: exit code 2 and one ``hairexp: error: scene.usd=<file>:<prim>: ...`` line."""
+frame) at fault, before the run claims its folder: nothing is written.  On the command line: exit
+code 2, one ``hairexp: error: scene.usd=<file>:<prim>: ...`` line and a summary.json that says
+failed (``refused``), without result files."""
 
 from __future__ import annotations
 
@@ -163,9 +164,9 @@ def assert_failed_run(cfg, out, where: str, match: str) -> InputError:
     with pytest.raises(InputError, match=match) as info:
         run(cfg, out)
     assert info.value.where == where
-    assert not [p.name for p in out.glob("result.*")]
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["status"] == "failed" and where in summary["error"]
+    # refused before the run claimed its folder: nothing written (the command line's folder gets a
+    # refused summary.json: test_cli_bad_stage_exits_2_with_one_line)
+    assert not out.exists()
     return info.value
 
 
@@ -227,7 +228,8 @@ def test_cli_bad_stage_exits_2_with_one_line(stage, tmp_path, case):
     assert lines == [lines[0]] and lines[0].startswith(f"hairexp: error: {where}: ") and match in lines[0], proc.stderr
     assert "Traceback" not in proc.stderr + proc.stdout
     assert not [p.name for p in out.glob("result.*")]
-    assert json.loads((out / "summary.json").read_text())["status"] == "failed"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "failed" and summary["refused"] and where in summary["error"]
 
 
 def test_guides_that_leave_the_body_are_said_and_the_stretch_too(stage, tmp_path, caplog):

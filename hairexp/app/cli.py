@@ -28,6 +28,7 @@ import logging
 import math
 import os
 import re
+import resource
 import signal
 import sys
 import tempfile
@@ -35,12 +36,13 @@ import time
 import traceback
 from pathlib import Path
 
+import yaml
 from hydra.experimental.callback import Callback
 
 from hairexp.app.assemble import check_config
-from hairexp.app.config import CONF_DIR, check_bool_overrides, check_interpolations, check_keys, compose_config, to_plain
+from hairexp.app.config import CONF_DIR, check_bool_overrides, check_interpolations, check_keys, compose_config
 from hairexp.app.experiment import apply_overrides, run_experiment
-from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, summarize, to_log_files
+from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, to_log_files, write_refused
 from hairexp.app.validate import unused_settings
 from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
@@ -133,8 +135,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     except InputError as exc:
         print(f"hairexp: error: {exc}", file=sys.stderr)
         res = outcome(out, "failed", 2, str(exc))
-        if sweep:   # refused before its folder was claimed: the job's folder still says how it ended
-            _refused_summary(cfg, out, str(exc))
+        write_refused(cfg, out, str(exc))   # refused before its folder was claimed: the folder says how it ended
     except SimulationError as exc:
         print(f"hairexp: simulation failed: {exc} ({_kept(out, 'partial metrics')})", file=sys.stderr)
         _print_notes(exc)
@@ -144,12 +145,16 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
             print(f"hairexp: the run folder {out} was moved or deleted while the run went on, so its ending could "
                   f"not be written (the folder's summary.json, wherever it is now, still says running): {exc}",
                   file=sys.stderr)
+        elif isinstance(exc, ScratchError) and exc.reading:   # a temporary file that does not read back
+            print(f"hairexp: cannot read a temporary file back: {exc} (a disk error, or the file was changed by "
+                  f"another process; TMPDIR chooses the folder; the failed summary is in {out})", file=sys.stderr)
+            _print_notes(exc)
         elif isinstance(exc, ScratchError):   # not the run folder: the system's temporary folder (TMPDIR)
             print(f"hairexp: cannot write a temporary file: {exc} (a full disk, or a file-size limit: ulimit -f; TMPDIR "
                   f"chooses the folder; the failed summary is in {out})", file=sys.stderr)
             _print_notes(exc)   # the failed ending's own write errors, as for the run folder's
         else:
-            print(f"hairexp: cannot write the run folder {out}: {exc}", file=sys.stderr)
+            print(f"hairexp: cannot write the run folder {out}: {exc}{_limit_hint(exc)}", file=sys.stderr)
             _print_notes(exc)
         res = outcome(out, "failed", 4, str(exc))
     except KeyboardInterrupt as exc:
@@ -188,23 +193,14 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     return res
 
 
-def _refused_summary(cfg, out, error: str) -> None:
-    """A sweep job refused by its settings (nothing claimed, nothing run) gets a failed
-    ``summary.json`` in its folder, as a job that failed while running has, unless the folder
-    already holds one (a run's own, or another run's in a used folder)."""
-    path = Path(out) / SUMMARY
-    if path.exists() or path.is_symlink():
-        return
-    try:
-        plain = to_plain(cfg)
-        summary = summarize(None, plain, plain["scene"]["name"], plain["controller"]["name"], 0.0, "failed", error)
-    except Exception:  # noqa: BLE001  (a config that cannot be resolved: what is known)
-        summary = {"status": "failed", "error": error}
-    summary["refused"] = "settings: no step ran"
-    try:
-        write_json(path, summary)
-    except OSError as exc:
-        log.error("%s: cannot write the refused job's summary: %s", out, exc)
+def _limit_hint(exc: OSError) -> str:
+    """Where a bare ``[Errno 27] File too large`` came from (a numpy or parquet write names no
+    file): the process's file-size limit."""
+    if exc.errno == errno.EFBIG and "ulimit" not in str(exc):
+        soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+        if soft != resource.RLIM_INFINITY:
+            return f" (a file reached the process's file-size limit, ulimit -f: {soft} bytes)"
+    return ""
 
 
 def _say_unused(cfg, overrides) -> None:
@@ -342,10 +338,10 @@ def sweep_outcomes(sweep_dir: Path) -> list[tuple[str, str, dict]]:
         except (OSError, ValueError):
             res = outcome(d, "failed", 1, "the job left no outcome (it did not finish)")
         try:
-            import yaml
-
-            overrides = " ".join(yaml.safe_load((d / ".hydra" / "overrides.yaml").read_text()) or [])
-        except (OSError, ValueError, TypeError):
+            # Hydra's sweeper writes a job's booleans as Python's True / False: shown as they are typed
+            overrides = " ".join(re.sub(r"=(True|False)$", lambda m: "=" + m.group(1).lower(), str(o))
+                                 for o in yaml.safe_load((d / ".hydra" / "overrides.yaml").read_text()) or [])
+        except (OSError, ValueError, TypeError, yaml.YAMLError):
             overrides = ""
         rows.append((d.relative_to(root).as_posix(), overrides, res))
     return rows

@@ -31,7 +31,7 @@ from hairexp.app.signals import InterruptSignals, take_late
 from hairexp.errors import InputError, Interrupted
 from hairexp.evaluation.judges import JUDGES
 from hairexp.evaluation.measures import experiment_key_moment
-from hairexp.app.run import config_hash, inputs_inside, run, to_log_files
+from hairexp.app.run import config_hash, inputs_inside, run, to_log_files, warnings_once
 from hairexp.outputs.files import write_json
 from hairexp.outputs.folder import SUMMARY, claim, owner
 
@@ -140,16 +140,9 @@ def _variant_facts(cfg) -> dict:
             "assignment": p["tracking"]["assignment"]}
 
 
-def run_experiment(cfg, out_dir, on_checked=None) -> dict:
-    """Run the experiment of ``cfg`` into ``out_dir``.  Every run's config is checked before the
-    folder is claimed; ``on_checked()``, if given, is called then (the command line's warnings
-    about unused keys: said above a refused run's error line, they hid it)."""
-    require_config(cfg, "run_folder")
-    if not isinstance(out_dir, (str, Path)) or not str(out_dir):
-        raise TypeError(f"run_folder: out_dir must be a folder path (str or pathlib.Path), got {out_dir!r}")
-    out = Path(out_dir)
-    if not cfg.variants:
-        return run(cfg, out, on_checked)
+def _checked_variants(cfg) -> tuple[list[str], list]:
+    """The variants' names and configs, every one checked (``check_config``, the judge) before
+    the first runs; InputError naming the variant."""
     names = check_variant_names(cfg.variants)
     vcfgs = []
     for i, (name, v) in enumerate(zip(names, cfg.variants)):   # every variant's config, before the first runs
@@ -162,6 +155,25 @@ def run_experiment(cfg, out_dir, on_checked=None) -> dict:
         except InputError as exc:   # the key's own message, said to be the variant's
             raise InputError(f"{exc} (variants[{i}] {name}, checked before any variant runs)") from exc
     validate_judge_controllers(cfg, names, [_variant_facts(v)["controller"] for v in vcfgs])
+    return names, vcfgs
+
+
+def run_experiment(cfg, out_dir, on_checked=None) -> dict:
+    """Run the experiment of ``cfg`` into ``out_dir``.  Every run's config is checked before the
+    folder is claimed; ``on_checked()``, if given, is called then (the command line's warnings
+    about unused keys: said above a refused run's error line, they hid it)."""
+    require_config(cfg, "run_folder")
+    if not isinstance(out_dir, (str, Path)) or not str(out_dir):
+        raise TypeError(f"run_folder: out_dir must be a folder path (str or pathlib.Path), got {out_dir!r}")
+    out = Path(out_dir)
+    if not cfg.variants:
+        return run(cfg, out, on_checked)
+    with warnings_once():   # the variants' checks and runs say each warning once
+        return _experiment(cfg, out, on_checked)
+
+
+def _experiment(cfg, out: Path, on_checked) -> dict:
+    names, vcfgs = _checked_variants(cfg)
     if on_checked is not None:
         on_checked()
     plain = to_plain(cfg)

@@ -29,6 +29,7 @@ import os
 import platform
 import shutil
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -42,7 +43,8 @@ from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
 from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, json_bytes, save_npy, write_json, write_npz
-from hairexp.outputs.folder import STREAM, SUMMARY, claim, free_reserve, owner, remove_tmp, reserve, used_entries
+from hairexp.outputs.folder import (REFUSED, STREAM, SUMMARY, claim, free_reserve, owner, remove_tmp, reserve,
+                                    used_entries)
 from hairexp.memory import release, release_every
 from hairexp.outputs.metrics import MetricsTable, measure
 from hairexp.outputs.progress import Progress, progress_enabled
@@ -252,7 +254,11 @@ def inputs_inside(cfg, folder: Path) -> str | None:
 def run(cfg, out_dir: str | Path, on_checked=None) -> dict:
     """Run ``cfg`` into the folder ``out_dir`` (claimed once the config is checked: ``check_config``;
     then ``on_checked()``, if given, is called) and return its summary."""
-    out = Path(out_dir)
+    with warnings_once():
+        return _checked_run(cfg, Path(out_dir), on_checked)
+
+
+def _checked_run(cfg, out: Path, on_checked) -> dict:
     plain = to_plain(cfg)
     if bool(cfg.overwrite) and used_entries(out):
         inside = inputs_inside(cfg, out)
@@ -445,6 +451,74 @@ def _write_ending(path: Path, summary: dict) -> None:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
+
+
+class _OnceFilter(logging.Filter):
+    """Drops a hairexp warning whose text was already said (``warnings_once``)."""
+
+    def __init__(self):
+        super().__init__()
+        self.said: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno != logging.WARNING or not record.name.startswith("hairexp"):
+            return True
+        text = record.getMessage()
+        if text in self.said:
+            return False
+        self.said.add(text)
+        return True
+
+
+_ONCE: list = []   # the filters of the active ``warnings_once``
+
+
+@contextmanager
+def warnings_once():
+    """Within: each hairexp warning line is said once.  A run's settings are checked with its
+    scene and guides built before it claims its folder, and built again when it runs: their
+    warnings (a USD stage's, a guide key's) came twice, and once more for each variant."""
+    if _ONCE:   # an experiment's, around its variants' runs
+        yield
+        return
+    added = [(h, _OnceFilter()) for h in logging.getLogger().handlers]   # one each: a handler says a line once
+    for h, f in added:
+        h.addFilter(f)
+    _ONCE.append(added)
+    try:
+        yield
+    finally:
+        _ONCE.remove(added)
+        for h, f in added:
+            h.removeFilter(f)
+
+
+def write_refused(cfg, out, error: str) -> None:
+    """A run of the command line refused by its settings before it claimed ``out`` (the folder
+    Hydra made): a ``summary.json`` with ``status: failed``, the error and ``refused``, so the
+    folder says how the run ended.  (``run`` and ``run_experiment`` write nothing when they refuse.)
+    Written only where nothing of another run is (``used_entries``) and no summary is; the next
+    run into the folder replaces it without ``overwrite`` (``claim``).  Never raises: the error
+    line is the refusal's."""
+    out = Path(out)
+    try:
+        if used_entries(out) or (out / SUMMARY).exists() or (out / SUMMARY).is_symlink():
+            return
+        try:
+            plain = to_plain(cfg)
+            if plain.get("variants"):
+                summary = {"experiment": plain.get("experiment"), "status": "failed", "error": error, **owner(),
+                           "success": None, "variants": {}, "config_hash": config_hash(plain), "config": plain}
+            else:
+                summary = summarize(None, plain, plain["scene"]["name"], plain["controller"]["name"], 0.0, "failed",
+                                    error)
+        except Exception:  # noqa: BLE001  (a config that cannot be resolved: what is known)
+            summary = {"status": "failed", "error": error}
+        summary[REFUSED] = "by its settings, before the run claimed its folder: no step ran"
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / SUMMARY, summary)
+    except Exception as exc:  # noqa: BLE001
+        to_log_files(f"{out}: cannot write the refused run's summary: {type(exc).__name__}: {exc}")
 
 
 def to_log_files(message: str) -> None:

@@ -96,15 +96,21 @@ class FrameStore:
             return np.zeros((0, *self.frame_shape), self.dtype)
         out = np.empty((n, *self.frame_shape), self.dtype)
         want = n * self.frame_bytes
-        if hasattr(os, "preadv"):   # straight into the array: no bytes object and copy beside it
-            got = os.preadv(self._file.fileno(), [out], start * self.frame_bytes)
-        else:
-            data = os.pread(self._file.fileno(), want, start * self.frame_bytes)
-            got = len(data)
-            if got == want:
-                out.reshape(-1)[:] = np.frombuffer(data, dtype=self.dtype)
+        where = f"the guide frame store (a temporary file in {tempfile.gettempdir()})"
+        try:
+            if hasattr(os, "preadv"):   # straight into the array: no bytes object and copy beside it
+                got = os.preadv(self._file.fileno(), [out], start * self.frame_bytes)
+            else:
+                data = os.pread(self._file.fileno(), want, start * self.frame_bytes)
+                got = len(data)
+                if got == want:
+                    out.reshape(-1)[:] = np.frombuffer(data, dtype=self.dtype)
+        except OSError as exc:   # EIO: the temporary file's own, not the run folder's (it was called that)
+            raise ScratchError(exc.errno, f"{where}: {exc.strerror} reading frames {start}..{start + n - 1}",
+                               reading=True) from exc
         if got != want:
-            raise OSError(f"frame store: read {got} of {want} bytes")
+            raise ScratchError(errno.EIO, f"{where}: read {got} of {want} bytes of frames {start}..{start + n - 1}",
+                               reading=True)
         return out
 
     def __getitem__(self, i):

@@ -32,7 +32,7 @@ from hairexp.io.usd_layout import (COUNTS_TYPES, POINTS_TYPES, TOKEN_TYPES, chec
 from hairexp.io.usd_layout import tf_message as _message
 from hairexp.guides.animation import MAX_FPS, MIN_FPS, GuideAnimation
 from hairexp.guides.store import FrameStore
-from hairexp.model.builders import build_colliders, build_material, gravity
+from hairexp.model.builders import build_collider, build_material, gravity
 from hairexp.model.scene import Scene
 from hairexp.model.strands import N_ROOT_VERTICES, Strands, check_folds, validate_polylines
 
@@ -255,7 +255,7 @@ def build_usd_scene(cfg):
     material = build_material(cfg.hair)
     strands = Strands.from_polylines(motion.transform(body_pts, 0.0), counts, material.linear_density, where=where)
     colliders = read_colliders(stage, cfg.usd_colliders, tcps, file)
-    colliders += build_colliders(getattr(cfg, "colliders", []) or [], colliders)
+    colliders += [build_collider(c, i) for i, c in enumerate(getattr(cfg, "colliders", []) or [])]
     return Scene(cfg.name, strands, material, motion, gravity(cfg.gravity), body_pts, colliders)
 
 

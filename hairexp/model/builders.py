@@ -209,7 +209,7 @@ def build_procedural_scene(cfg) -> Scene:
     world = motion.transform(body_pts, 0.0)
     counts = np.full(cfg.n_strands, cfg.n_vertices)
     strands = Strands.from_polylines(world, counts, material.linear_density, where=f"scene {cfg.name}")
-    colliders = build_colliders(getattr(cfg, "colliders", []) or [])
+    colliders = [build_collider(c, i) for i, c in enumerate(getattr(cfg, "colliders", []) or [])]
     return Scene(cfg.name, strands, material, motion, gravity(cfg.gravity), body_pts, colliders)
 
 
@@ -234,31 +234,12 @@ def check_spin(shape: str, spin, key: str) -> None:
 MAX_SPIN = 1e4
 
 
-def build_colliders(configs, present=()) -> list:
-    """The colliders of ``scene.colliders`` (``configs``) after those already ``present`` (a USD
-    stage's): each named, and no two alike, since a collider is found by its name
-    (``measure.collider``, the metrics' ``contacts_<name>``, the recording's entity).  An empty
-    name became ``collider0`` and a repeated one drew two colliders as one (probe of issue 12,
-    round 17)."""
-    names = {c.name: getattr(c, "where", None) or c.name for c in present}
-    out = []
-    for i, c in enumerate(configs):
-        key = f"scene.colliders[{i}].name"
-        name = "" if c.name is None else str(c.name)
-        if not name.strip():
-            raise InputError(f"must be a non-empty name, got {name!r} (a collider is found by its name: "
-                             "measure.collider, the metrics' contacts_<name>)", key)
-        if name in names:
-            raise InputError(f"{name!r} is also the name of {names[name]}; colliders need distinct names "
-                             "(measure.collider and the metrics' contacts_<name> find one by it)", key)
-        names[name] = f"scene.colliders[{i}]"
-        out.append(build_collider(c, i))
-    return out
-
-
 def build_collider(c, i: int):
     shape = str(getattr(c.shape, "value", c.shape))
     key = f"scene.colliders[{i}]"
+    if c.name is None or not str(c.name).strip():   # it became ``collider0`` without a word (probe of issue 12, round 17)
+        raise InputError(f"must be a non-empty name, got {c.name!r} (a collider is found by its name: "
+                         "measure.collider, the metrics' contacts_<name>)", f"{key}.name")
     common = dict(name=str(c.name), motion=build_motion(c.motion, f"{key}.motion"),
                   thickness=c.thickness, friction=c.friction, where=key)
     for k in ("radius", "half_length", "half_height"):

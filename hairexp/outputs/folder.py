@@ -324,10 +324,27 @@ def _foreign_label(p: Path, folder: Path) -> str:
 
 
 def used_entries(folder: Path) -> list[Path]:
+    """What ``folder`` holds of another run: all but Hydra's own entries and a refused run's
+    summary (``refused_summary``), which the next run replaces."""
     folder = Path(folder)
     if not folder.is_dir():
         return []
-    return [p for p in sorted(folder.iterdir()) if not _hydras(p)]
+    return [p for p in sorted(folder.iterdir()) if not _hydras(p) and not refused_summary(p)]
+
+
+#: the key of a summary.json written for a run refused by its settings (no step ran, nothing else written)
+REFUSED = "refused"
+
+
+def refused_summary(p: Path) -> bool:
+    """``p`` is the ``summary.json`` of a run refused by its settings before it claimed its folder."""
+    if p.name != SUMMARY or p.is_symlink() or not p.is_file() or p.stat().st_size > (1 << 20):
+        return False
+    try:
+        d = json.loads(p.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(d, dict) and d.get("status") == "failed" and bool(d.get(REFUSED))
 
 
 def used_refusal(folder: Path, used: list[Path] | None = None) -> str | None:
@@ -398,6 +415,8 @@ def claim(folder: Path, overwrite: bool = False) -> None:
             shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
         _drop_previous_log_lines(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    if refused_summary(folder / SUMMARY):   # a refused run's: replaced by this run's
+        (folder / SUMMARY).unlink()
     try:
         os.close(os.open(folder / SUMMARY, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
     except FileExistsError:
