@@ -291,3 +291,48 @@ def test_an_experiments_variants_say_a_shared_warning_once(tmp_path):
     said = [line for line in proc.stderr.splitlines() if "lies after the run's end" in line]
     assert len(said) == 1, proc.stderr
     assert (out / "__main__.log").read_text().count("lies after the run's end") == 1
+
+
+def test_a_signal_during_the_checks_leaves_a_summary_that_says_so(tmp_path, monkeypatch, capsys):
+    """The checks now build the scene and guides before the run claims its folder: a signal then
+    ended the run with no summary.json, while the line said 'summary.json ... says so'."""
+    import signal
+
+    import hairexp.app.cli as cli
+    from hairexp.app.config import compose_config
+    from hairexp.app.run import run
+    from hairexp.errors import Interrupted
+
+    out = tmp_path / "r"
+
+    def interrupted(cfg, folder, on_checked=None):
+        Path(folder).mkdir(parents=True, exist_ok=True)   # Hydra made it
+        raise Interrupted(signal.SIGTERM)
+
+    monkeypatch.setattr(cli, "run_experiment", interrupted)
+    res = cli.job(compose_config(SMOKE), str(out), overrides=[])
+    assert res["code"] == 143 and res["status"] == "interrupted"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "interrupted" and "interrupted while its settings were checked" in summary["refused"]
+    assert f"summary.json in {out} says so" in capsys.readouterr().err
+    s = run(compose_config(SMOKE), out)   # the next run replaces it without overwrite
+    assert s["status"] == "completed" and json.loads((out / "summary.json").read_text())["status"] == "completed"
+
+
+@pytest.mark.parametrize("override, where", [
+    ("guides.n_vertices=2", "guides.n_vertices"),
+    ("guides.edits=[{guide: 9, kind: displace, offset: [0.1, 0.0, 0.0], times: [0.0, 0.1], weights: [0.0, 1.0]}]",
+     "guides.edits[0].guide"),
+])
+def test_simulated_guides_keys_are_checked_before_the_folder_is_claimed(override, where):
+    """Simulated guides were built after the run had claimed its folder: a bad guide key left a
+    failed (not refused) summary.  Their keys and edits are checked on the rest guides now."""
+    from hairexp.app.assemble import check_config
+    from hairexp.app.config import compose_config
+    from hairexp.errors import InputError
+
+    cfg = compose_config(["experiment=goaling_smoke", "variants=[]", "controller=tracking", override])
+    assert str(cfg.guides.source.value) == "simulated"
+    with pytest.raises(InputError) as e:
+        check_config(cfg)
+    assert e.value.where == where

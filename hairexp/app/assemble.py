@@ -21,6 +21,7 @@ hairexp/physics/settle.py), the guide animation (``app.guides.build_guides``), t
 
 from __future__ import annotations
 
+import copy
 import logging
 from dataclasses import dataclass
 from typing import Iterator
@@ -30,7 +31,7 @@ import numpy as np
 from hairexp.app.builders import build_scene
 from hairexp.app.config import require_config
 from hairexp.app.guard import guard_run
-from hairexp.app.guides import build_guides
+from hairexp.app.guides import build_guides, check_simulated_guides
 from hairexp.app.validate import late_keys, validate_config, validate_measure
 from hairexp.control import build_controller
 from hairexp.errors import InputError
@@ -125,8 +126,8 @@ def check_config(cfg) -> None:
     """What ``assemble`` checks before the first step, short of settling and simulated guides:
     the config's ranges, the step schedule, a guide file, the resource guard, the scene as built
     (its keys read by the model layer: lengths, colliders, motions), the measure's references
-    into it, a clear start, and the guides unless simulated (their simulation is a run of its
-    own).  A run checks its config this way before it claims its folder, and an experiment every
+    into it, a clear start, and the guides (simulated ones: their keys, and their edits applied
+    to the rest guides carried rigidly; their simulation is a run of its own).  A run checks its config this way before it claims its folder, and an experiment every
     variant's before the first runs: a bad ``scene.length`` or a later variant's unknown
     ``measure.collider`` left a failed summary in the folder, or was found after the earlier
     variants had run (probe of issue 12, round 17).  Building a paper scene takes 3-10 ms, rigid
@@ -145,8 +146,18 @@ def check_config(cfg) -> None:
         guard_run(cfg, scene.strands.n_vertices, n_sub)
     validate_measure(cfg, scene)
     check_clear_start(scene, str(_value(cfg.collision.contact)))
-    if str(_value(cfg.guides.source)) != "simulated":   # read or made in milliseconds; simulated guides take a run
+    if str(_value(cfg.guides.source)) != "simulated":   # read or made in milliseconds
         build_guides(cfg, scene, cfg.frames, cfg.fps)
+    else:   # their simulation is a run of its own: their keys, and their edits on the rest guides carried rigidly
+        check_simulated_guides(cfg)
+        stand_in = copy.deepcopy(cfg)
+        stand_in.guides.source = "rigid"
+        quiet = logging.root.manager.disable
+        logging.disable(logging.WARNING)   # the stand-in's warnings are not the run's (it says its own)
+        try:
+            build_guides(stand_in, scene, cfg.frames, cfg.fps)
+        finally:
+            logging.disable(quiet)
 
 
 def _assemble_scene(cfg, settle: bool):

@@ -163,6 +163,9 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         if summary is not None and summary.get("status") == "completed":   # the run had ended: nothing partial
             res = _signalled_after(out, signum, summary)
         else:
+            if not (Path(out) / SUMMARY).exists():   # during the checks, before the run claimed its folder
+                write_refused(cfg, out, msg, "interrupted", "interrupted while its settings were checked, before the "
+                                                            "run claimed its folder: no step ran")
             print(f"hairexp: {msg} ({_kept(out, 'partial results')})", file=sys.stderr)
             _print_notes(exc)
             res = outcome(out, "interrupted", signal_exit_code(signum), msg)

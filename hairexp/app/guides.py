@@ -103,6 +103,13 @@ def check_guide_file(path) -> None:
             raise InputError(f"{name} has dtype {dtype}, expected {what}", f"guides.file={path}")
 
 
+def check_simulated_guides(cfg) -> None:
+    """The keys of simulated guides checked before their simulation (InputError)."""
+    if cfg.guides.n_vertices < 3:
+        raise InputError("simulated guides need >= 3 vertices (two are held by the body)", "guides.n_vertices")
+    check_counts(1, int(cfg.guides.n_vertices), float(cfg.scene.length), key="guides.n_vertices")   # as long as the hair
+
+
 def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: int, fps: float) -> GuideAnimation:
     """Free simulation of the guide strands (eq. 5, same solver settings) at the scene's rate.
     With ``guides.collide`` the guides collide with the scene's colliders (the collision stage
@@ -111,9 +118,7 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
     settle under gravity for that time, the body (and colliders) held at their t = 0 poses, and
     the animation starts from the settled guides at rest (frame 0).  The other guide sources
     (rigid, scaled, keyframed, file, usd) are not settled: they are used as given."""
-    if cfg.guides.n_vertices < 3:
-        raise InputError("simulated guides need >= 3 vertices (two are held by the body)", "guides.n_vertices")
-    check_counts(1, int(cfg.guides.n_vertices), float(cfg.scene.length), key="guides.n_vertices")   # as long as the hair
+    check_simulated_guides(cfg)
     motion = authoring_motion(scene.motion)
     world = motion.transform(body, 0.0)
     strands = Strands.from_polylines(world, np.diff(offsets), scene.material.linear_density, where="guides")

@@ -493,10 +493,11 @@ def warnings_once():
             h.removeFilter(f)
 
 
-def write_refused(cfg, out, error: str) -> None:
+def write_refused(cfg, out, error: str, status: str = "failed",
+                  why: str = "by its settings, before the run claimed its folder: no step ran") -> None:
     """A run of the command line refused by its settings before it claimed ``out`` (the folder
-    Hydra made): a ``summary.json`` with ``status: failed``, the error and ``refused``, so the
-    folder says how the run ended.  (``run`` and ``run_experiment`` write nothing when they refuse.)
+    Hydra made): a ``summary.json`` with ``status: failed`` (or ``status``: ``interrupted`` by a
+    signal during the checks), the error and ``refused`` (``why``), so the folder says how the run ended.  (``run`` and ``run_experiment`` write nothing when they refuse.)
     Written only where nothing of another run is (``used_entries``) and no summary is; the next
     run into the folder replaces it without ``overwrite`` (``claim``).  Never raises: the error
     line is the refusal's."""
@@ -507,14 +508,14 @@ def write_refused(cfg, out, error: str) -> None:
         try:
             plain = to_plain(cfg)
             if plain.get("variants"):
-                summary = {"experiment": plain.get("experiment"), "status": "failed", "error": error, **owner(),
+                summary = {"experiment": plain.get("experiment"), "status": status, "error": error, **owner(),
                            "success": None, "variants": {}, "config_hash": config_hash(plain), "config": plain}
             else:
-                summary = summarize(None, plain, plain["scene"]["name"], plain["controller"]["name"], 0.0, "failed",
+                summary = summarize(None, plain, plain["scene"]["name"], plain["controller"]["name"], 0.0, status,
                                     error)
         except Exception:  # noqa: BLE001  (a config that cannot be resolved: what is known)
-            summary = {"status": "failed", "error": error}
-        summary[REFUSED] = "by its settings, before the run claimed its folder: no step ran"
+            summary = {"status": status, "error": error}
+        summary[REFUSED] = why
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / SUMMARY, summary)
     except Exception as exc:  # noqa: BLE001

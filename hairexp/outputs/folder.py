@@ -332,19 +332,21 @@ def used_entries(folder: Path) -> list[Path]:
     return [p for p in sorted(folder.iterdir()) if not _hydras(p) and not refused_summary(p)]
 
 
-#: the key of a summary.json written for a run refused by its settings (no step ran, nothing else written)
+#: the key of a summary.json written for a run that ended before it claimed its folder: why (refused
+#: by its settings, or interrupted); no step ran and nothing else was written
 REFUSED = "refused"
 
 
 def refused_summary(p: Path) -> bool:
-    """``p`` is the ``summary.json`` of a run refused by its settings before it claimed its folder."""
+    """``p`` is the ``summary.json`` of a run that ended before it claimed its folder (refused by
+    its settings: failed; or interrupted), which the next run into the folder replaces."""
     if p.name != SUMMARY or p.is_symlink() or not p.is_file() or p.stat().st_size > (1 << 20):
         return False
     try:
         d = json.loads(p.read_text())
     except (OSError, ValueError):
         return False
-    return isinstance(d, dict) and d.get("status") == "failed" and bool(d.get(REFUSED))
+    return isinstance(d, dict) and d.get("status") in ("failed", "interrupted") and bool(d.get(REFUSED))
 
 
 def used_refusal(folder: Path, used: list[Path] | None = None) -> str | None:
