@@ -31,6 +31,7 @@ input:
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -463,7 +464,8 @@ def test_judge_without_the_controllers_it_compares_is_refused(tmp_path, controll
     assert proc.returncode == 2, proc.stderr
     line = proc.stderr.strip().splitlines()[-1]
     assert "judge" in line and "free_misses_tracked_hits" in line and missing in line, proc.stderr
-    assert not (out / "summary.json").exists()   # refused before any variant ran
+    summary = json.loads((out / "summary.json").read_text())   # refused before any variant ran: says so
+    assert summary["status"] == "failed" and summary["refused"] and not (out / "a").exists()
 
 
 def test_judge_needs_are_known_for_every_judge():

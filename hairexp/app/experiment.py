@@ -140,6 +140,19 @@ def _variant_facts(cfg) -> dict:
             "assignment": p["tracking"]["assignment"]}
 
 
+def _every_variants(cfg, exc: InputError) -> bool:
+    """``exc`` (a variant's refusal) is the experiment's config's own, without any variant's
+    overrides: a bad command-line key was said to be "variants[0] free"'s."""
+    base = copy.deepcopy(cfg)
+    base.variants = []
+    try:
+        check_config(base)
+        validate_judge(cfg, base.measure)
+    except InputError as own:
+        return str(own) == str(exc)
+    return False
+
+
 def _checked_variants(cfg) -> tuple[list[str], list]:
     """The variants' names and configs, every one checked (``check_config``, the judge) before
     the first runs; InputError naming the variant."""
@@ -153,6 +166,8 @@ def _checked_variants(cfg) -> tuple[list[str], list]:
             check_config(vcfg)
             validate_judge(cfg, vcfg.measure)
         except InputError as exc:   # the key's own message, said to be the variant's
+            if _every_variants(cfg, exc):   # the experiment's own setting (scene.n_strands=-5): not one variant's
+                raise
             raise InputError(f"{exc} (variants[{i}] {name}, checked before any variant runs)") from exc
     validate_judge_controllers(cfg, names, [_variant_facts(v)["controller"] for v in vcfgs])
     return names, vcfgs
