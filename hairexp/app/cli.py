@@ -135,7 +135,6 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     except InputError as exc:
         print(f"hairexp: error: {exc}", file=sys.stderr)
         res = outcome(out, "failed", 2, str(exc))
-        write_refused(cfg, out, str(exc))   # refused before its folder was claimed: the folder says how it ended
     except SimulationError as exc:
         print(f"hairexp: simulation failed: {exc} ({_kept(out, 'partial metrics')})", file=sys.stderr)
         _print_notes(exc)
@@ -163,9 +162,6 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         if summary is not None and summary.get("status") == "completed":   # the run had ended: nothing partial
             res = _signalled_after(out, signum, summary)
         else:
-            if not (Path(out) / SUMMARY).exists():   # during the checks, before the run claimed its folder
-                write_refused(cfg, out, msg, "interrupted", "interrupted while its settings were checked, before the "
-                                                            "run claimed its folder: no step ran")
             print(f"hairexp: {msg} ({_kept(out, 'partial results')})", file=sys.stderr)
             _print_notes(exc)
             res = outcome(out, "interrupted", signal_exit_code(signum), msg)
@@ -178,6 +174,12 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     except Exception as exc:   # noqa: BLE001  (a bug: the traceback, exit 1; the sweep's other jobs go on)
         traceback.print_exc()
         res = outcome(out, "failed", 1, f"{type(exc).__name__}: {exc}")
+    if res["status"] != "completed" and Path(out).is_dir() and not (Path(out) / SUMMARY).exists():
+        # ended before the run claimed the folder Hydra made (refused by its settings; a signal, or a temporary
+        # file that could not be written, while they were checked): the folder says how all the same
+        why = {"interrupted": "interrupted while its settings were checked"}.get(
+            res["status"], "refused by its settings" if res["code"] == 2 else "failed while its settings were checked")
+        write_refused(cfg, out, res["message"], res["status"], f"{why}, before the run claimed its folder: no step ran")
     if res["status"] != "completed" or res["code"]:
         to_log_files(f"{res['status']} (exit {res['code']}): {res['message']}")
     LAST = res

@@ -494,17 +494,18 @@ def warnings_once():
 
 
 def write_refused(cfg, out, error: str, status: str = "failed",
-                  why: str = "by its settings, before the run claimed its folder: no step ran") -> None:
-    """A run of the command line refused by its settings before it claimed ``out`` (the folder
-    Hydra made): a ``summary.json`` with ``status: failed`` (or ``status``: ``interrupted`` by a
-    signal during the checks), the error and ``refused`` (``why``), so the folder says how the run ended.  (``run`` and ``run_experiment`` write nothing when they refuse.)
-    Written only where nothing of another run is (``used_entries``) and no summary is; the next
-    run into the folder replaces it without ``overwrite`` (``claim``).  Never raises: the error
-    line is the refusal's."""
+                  why: str = "refused by its settings, before the run claimed its folder: no step ran") -> None:
+    """A run of the command line that ended before it claimed ``out`` (the folder Hydra made):
+    refused by its settings, or a signal or a temporary file's failure while they were checked.
+    A ``summary.json`` with ``status`` (``failed``, ``interrupted``), the error and ``refused``
+    (``why``), so the folder says how the run ended (``run`` and ``run_experiment`` write nothing
+    when they refuse).  Written only into an existing folder where nothing of another run is
+    (``used_entries``) and no summary is; the next run into the folder replaces it without
+    ``overwrite`` (``claim``).  Never raises: the error line is the refusal's."""
     out = Path(out)
     try:
-        if used_entries(out) or (out / SUMMARY).exists() or (out / SUMMARY).is_symlink():
-            return
+        if not out.is_dir() or used_entries(out) or (out / SUMMARY).exists() or (out / SUMMARY).is_symlink():
+            return   # no folder (moved away mid-run, never made), or another run's
         try:
             plain = to_plain(cfg)
             if plain.get("variants"):
@@ -516,7 +517,6 @@ def write_refused(cfg, out, error: str, status: str = "failed",
         except Exception:  # noqa: BLE001  (a config that cannot be resolved: what is known)
             summary = {"status": status, "error": error}
         summary[REFUSED] = why
-        out.mkdir(parents=True, exist_ok=True)
         write_json(out / SUMMARY, summary)
     except Exception as exc:  # noqa: BLE001
         to_log_files(f"{out}: cannot write the refused run's summary: {type(exc).__name__}: {exc}")

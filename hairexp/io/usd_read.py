@@ -113,8 +113,9 @@ class _usd_stderr:
         return False
 
 
-def get_prim(stage, path: str, where: str, what: str, key: str, schema=None) -> Usd.Prim:
-    """The prim at ``path`` (the value of config key ``key``), of type ``schema``."""
+def get_prim(stage, path: str, where: str, what: str, key: str, schema=None, hint: str = "") -> Usd.Prim:
+    """The prim at ``path`` (the value of config key ``key``), of type ``schema``; ``hint`` ends
+    the message when there is none."""
     prim = stage.GetPrimAtPath(path) if path.startswith("/") else None
     if not prim:
         if path.startswith("/"):   # a prim under an inactive one is not on the stage: say which (probe, round 12)
@@ -123,7 +124,7 @@ def get_prim(stage, path: str, where: str, what: str, key: str, schema=None) -> 
                 if a and not a.IsActive():
                     raise InputError(f"is inactive (active = false), so {path} ({what}) is not on the stage: activate "
                                      f"it, or name another prim with {key}", f"{where}:{anc}")
-        raise InputError(f"no prim at {path} ({what}; {key} names its path)", where)
+        raise InputError(f"no prim at {path} ({what}; {key} names its path){hint}", where)
     if not prim.IsActive():   # it was simulated as if active (probe of issue 12)
         raise InputError(f"is inactive (active = false) ({what}): activate it, or name another prim with {key}",
                          f"{where}:{path}")
@@ -300,7 +301,10 @@ def read_guides(cfg, scene, frames: int, fps: float):
     """Guide animation of ``scene.usd_guides`` (world space, one time sample per frame)."""
     stage, file = open_stage(cfg.scene.usd)
     path = cfg.scene.usd_guides
-    prim = get_prim(stage, path, file, "the guides", "scene.usd_guides", UsdGeom.BasisCurves)
+    # a stage without guides (hair and body only) is also simulated with guides.source=rigid (the rest
+    # guides carried by the body): said, since a free run also draws and saves guides (probe, round 18)
+    prim = get_prim(stage, path, file, "the guides", "scene.usd_guides", UsdGeom.BasisCurves,
+                    hint="; a stage without guides runs with guides.source=rigid (the rest guides carried by the body)")
     where = f"{file}:{path}"
     check_curve_types(prim, where)   # before the time samples are checked
     curves = UsdGeom.BasisCurves(prim)
