@@ -336,3 +336,53 @@ def test_simulated_guides_keys_are_checked_before_the_folder_is_claimed(override
     with pytest.raises(InputError) as e:
         check_config(cfg)
     assert e.value.where == where
+
+
+def test_one_note_per_error_of_the_failed_ending(tmp_path, monkeypatch):
+    """A full disk stopped four parts of the ending with the same error: four alike 'also:' lines."""
+    from hairexp.app import run as run_mod
+    from hairexp.errors import SimulationError
+
+    full = OSError(28, "No space left on device")
+
+    def fail():
+        raise full
+
+    class Sinks:
+        progress = None
+        written = []
+        plain = {"experiment": None, "config": None}
+
+        class recorder:
+            flush = close = staticmethod(fail)
+
+        class table:
+            steps = 3
+            flush = write = staticmethod(lambda *a: fail())
+            frame = staticmethod(lambda: None)
+
+        class rerun:
+            close = staticmethod(lambda **k: (_ for _ in ()).throw(OSError(28, "recording: no space")))
+
+    monkeypatch.setattr(run_mod, "summarize", lambda *a, **k: {})
+    exc = SimulationError("boom")
+    run_mod._end_unfinished(exc, Sinks, tmp_path, "s", "free", 0.0)
+    assert exc.__notes__ == [
+        "while writing the failed ending (frames, metrics, metrics.parquet): OSError: [Errno 28] No space left on device",
+        "while writing the failed ending (recording): OSError: [Errno 28] recording: no space"]
+
+
+def test_an_allow_large_warning_is_said_once_a_run(caplog):
+    """The checks and the run both estimate the run: with guard.allow_large the disk warning came
+    twice (its free bytes moved between the two)."""
+    import logging
+
+    from hairexp.app import guard
+
+    est = guard.Estimate(memory=1.0, disk=100.0, steps=10, settle_steps=0, seconds=1.0)
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        guard.check(est, "k", True, None, 50.0, "/x/run18")
+        guard.check(est, "k", True, None, 49.0, "/x/run18")
+        guard.check(est, "k", True, None, 49.0, "/x/other")   # another run (a sweep's next job): said again
+    assert [r.getMessage().split(" but ")[0] for r in caplog.records] == [
+        "k: the run's files would take about 0.1 kB of disk (10 steps; 72 B a vertex a frame)"] * 2

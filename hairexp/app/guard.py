@@ -168,10 +168,12 @@ def check(est: Estimate, keys: str, allow_large: bool, available: float | None, 
     unless ``allow_large``; warn about a long run.  More than ``total`` bytes (the machine's memory
     and swap, ``total_memory``) is refused even with ``allow_large``: such a run can only end
     killed by the out-of-memory killer, its summary left running (probe of issue 12, round 13)."""
-    def refuse(msg: str) -> None:   # an InputError, or with allow_large a warning
+    def refuse(msg: str, kind: str) -> None:   # an InputError, or with allow_large a warning
         if not allow_large:
             raise InputError(msg, keys)
-        log.warning("%s: %s (guard.allow_large=true: running anyway)", keys, msg)
+        if (keys, kind, folder) not in _ANNOUNCED:   # once a run: its checks and its run both estimate it
+            _ANNOUNCED.add((keys, kind, folder))
+            log.warning("%s: %s (guard.allow_large=true: running anyway)", keys, msg)
 
     if allow_large and total is not None and est.memory > total:
         raise InputError(f"the run would need about {_size(est.memory)} of memory, more than the machine has "
@@ -181,16 +183,16 @@ def check(est: Estimate, keys: str, allow_large: bool, available: float | None, 
     if available is not None and est.memory > available:
         refuse(f"the run would need about {_size(est.memory)} of memory ({est.steps:.3g} steps, "
                f"{est.total_steps:.3g} with settle and guide-simulation steps) but {_size(available)} is available; make it smaller "
-               "or set guard.allow_large=true to run anyway")
+               "or set guard.allow_large=true to run anyway", "memory")
     if disk_free is not None and est.disk > disk_free:
         refuse(f"the run's files would take about {_size(est.disk)} of disk ({est.steps:.3g} steps; "
                f"{DISK_BYTES_PER_VERTEX_FRAME} B a vertex a frame) but {_size(disk_free)} is free"
                f"{f' where {folder} is' if folder else ''}; make it smaller or shorter, or set "
-               "guard.allow_large=true to run anyway")
+               "guard.allow_large=true to run anyway", "disk")
     if est.seconds > MAX_RUN_SECONDS:
         refuse(f"the run would take roughly {_duration(est.seconds)} (about {est.total_steps:.3g} steps, "
                f"{est.settle_steps:.3g} of them settle and guide steps), more than {_duration(MAX_RUN_SECONDS)}; "
-               "make it shorter or set guard.allow_large=true to run anyway")
+               "make it shorter or set guard.allow_large=true to run anyway", "time")
     if est.total_steps > LONG_RUN_STEPS or est.seconds > LONG_RUN_SECONDS:
         msg = (f"long run: about {est.total_steps:.3g} steps ({est.steps:.3g} recorded, {est.settle_steps:.3g} settle "
                f"and guide steps), roughly {_duration(est.seconds)} ({keys}: {_size(est.memory)} of memory)")
@@ -199,8 +201,8 @@ def check(est: Estimate, keys: str, allow_large: bool, available: float | None, 
             log.warning("%s", msg)
 
 
-#: the long-run warnings already logged by this process
-_ANNOUNCED: set[str] = set()
+#: the long-run warnings (their text) and allow_large warnings already logged by this process
+_ANNOUNCED: set = set()   # allow_large warnings: (keys, kind, the run folder)
 
 
 def _value(x):

@@ -543,15 +543,27 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
     status = "interrupted" if interrupted else "failed"
     error = (str(exc) if isinstance(exc, Interrupted) else "interrupted by SIGINT") if interrupted else str(exc)
 
+    failed: dict[str, list[str]] = {}   # an error's text -> the parts of the ending it stopped
+
     def attempt(what: str, fn):
         try:
             return fn()
         except BaseException as e2:   # noqa: BLE001  (the ending must go on)
-            note = f"while writing the {status} ending ({what}): {type(e2).__name__}: {e2}"
-            if note not in getattr(exc, "__notes__", ()):   # the frames' flush and close failed alike: said twice
-                # the console gets the notes under the error's own line ("also:"); they were printed twice
-                to_log_files(f"{out}: {note}")
+            err = f"{type(e2).__name__}: {e2}"
+            parts = failed.setdefault(err, [])
+            if what in parts:   # the frames' flush and close failed alike: said twice
+                return None
+            old = f"while writing the {status} ending ({', '.join(parts)}): {err}"
+            parts.append(what)
+            note = f"while writing the {status} ending ({', '.join(parts)}): {err}"
+            # one note per error, naming every part it stopped (a full disk gave four alike "also:" lines);
+            # the console gets the notes under the error's own line ("also:"), the log files here
+            notes = getattr(exc, "__notes__", None)
+            if notes is not None and old in notes:
+                notes[notes.index(old)] = note
+            else:
                 exc.add_note(note)
+            to_log_files(f"{out}: while writing the {status} ending ({what}): {err}")
             return None
 
     if sinks.progress is not None:
