@@ -9,15 +9,13 @@ import subprocess
 import sys
 
 import pytest
+from probe_helpers import REPO, run_cli
 
-REPO = Path(__file__).resolve().parents[1]
 SMOKE = ["experiment=goaling_smoke", "variants=[]", "frames=3", "logging.rerun=false", "logging.progress=false"]
 
 
-def _hairexp(args, tmp_path, timeout=240):
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    return subprocess.run([sys.executable, "-m", "hairexp", *args], cwd=tmp_path, env=env, capture_output=True,
-                          text=True, timeout=timeout)
+def _hairexp(args, tmp_path):
+    return run_cli(args, tmp_path, timeout=240)
 
 
 class _Stream:
