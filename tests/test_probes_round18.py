@@ -384,3 +384,24 @@ def test_an_allow_large_warning_is_said_once_a_run(caplog):
         guard.check(est, "k", True, None, 49.0, "/x/other")   # another run (a sweep's next job): said again
     assert [r.getMessage().split(" but ")[0] for r in caplog.records] == [
         "k: the run's files would take about 0.1 kB of disk (10 steps; 72 B a vertex a frame)"] * 2
+
+
+def test_a_variants_write_failure_names_the_variants_folder(tmp_path, monkeypatch, capsys):
+    """A full disk in the tracked variant said 'cannot write the run folder <experiment folder>'."""
+    import hairexp.app.cli as cli
+    import hairexp.app.experiment as experiment
+    from hairexp.app.config import compose_config
+
+    def full(cfg, folder, on_checked=None):
+        if Path(folder).name == "tracked":
+            raise OSError(28, "No space left on device")
+        return {"measures": {}, "status": "completed"}
+
+    monkeypatch.setattr(experiment, "run", full)
+    out = tmp_path / "r"
+    res = cli.job(compose_config(["experiment=goaling_smoke", "frames=3", "logging.rerun=false"]), str(out),
+                  overrides=[])
+    err = capsys.readouterr().err
+    assert res["code"] == 4
+    assert f"hairexp: cannot write the run folder {out / 'tracked'}: [Errno 28] No space left on device" in err, err
+    assert json.loads((out / "summary.json").read_text())["status"] == "failed"

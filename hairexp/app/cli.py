@@ -153,7 +153,8 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
                   f"chooses the folder; the failed summary is in {out})", file=sys.stderr)
             _print_notes(exc)   # the failed ending's own write errors, as for the run folder's
         else:
-            print(f"hairexp: cannot write the run folder {out}: {exc}{_limit_hint(exc)}", file=sys.stderr)
+            where = getattr(exc, "run_folder", None) or out   # a variant's folder (an experiment's own run)
+            print(f"hairexp: cannot write the run folder {where}: {exc}{_limit_hint(exc)}", file=sys.stderr)
             _print_notes(exc)
         res = outcome(out, "failed", 4, str(exc))
     except KeyboardInterrupt as exc:
