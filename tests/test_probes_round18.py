@@ -405,3 +405,15 @@ def test_a_variants_write_failure_names_the_variants_folder(tmp_path, monkeypatc
     assert res["code"] == 4
     assert f"hairexp: cannot write the run folder {out / 'tracked'}: [Errno 28] No space left on device" in err, err
     assert json.loads((out / "summary.json").read_text())["status"] == "failed"
+
+
+def test_a_second_refusal_in_the_same_folder_says_its_own_error(tmp_path):
+    """The refused summary of a first launch stayed when a second launch into the folder was refused
+    for another reason: the folder named the first error."""
+    out = tmp_path / "run"
+    base = ["experiment=goaling_smoke", "variants=[]", "frames=3", "logging.rerun=false", "logging.progress=false",
+            f"hydra.run.dir={out}"]
+    assert _hairexp(base + ["scene.length=0"], tmp_path).returncode == 2
+    assert json.loads((out / "summary.json").read_text())["error"].startswith("scene.length:")
+    assert _hairexp(base + ["solver.dt=0"], tmp_path).returncode == 2
+    assert json.loads((out / "summary.json").read_text())["error"].startswith("solver.dt:")

@@ -127,11 +127,11 @@ def check_config(cfg) -> None:
     the config's ranges, the step schedule, a guide file, the resource guard, the scene as built
     (its keys read by the model layer: lengths, colliders, motions), the measure's references
     into it, a clear start, and the guides (simulated ones: their keys, and their edits applied
-    to the rest guides carried rigidly; their simulation is a run of its own).  A run checks its config this way before it claims its folder, and an experiment every
-    variant's before the first runs: a bad ``scene.length`` or a later variant's unknown
-    ``measure.collider`` left a failed summary in the folder, or was found after the earlier
-    variants had run (probe of issue 12, round 17).  Building a paper scene takes 3-10 ms, rigid
-    guides for 230 frames 35 ms."""
+    to the rest guides carried rigidly; their simulation is a run of its own).  A run checks its
+    config this way before it claims its folder, and an experiment every variant's before the
+    first runs: a bad ``scene.length`` or a later variant's unknown ``measure.collider`` left a
+    failed summary in the folder, or was found after the earlier variants had run (probe of
+    issue 12, round 17).  The checks take 20-60 ms on the paper scenes."""
     validate_config(cfg)
     cfg = timed_config(cfg)
     n_sub, _ = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)

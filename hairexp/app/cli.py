@@ -49,7 +49,7 @@ from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
 from hairexp.outputs.files import write_json
 from hairexp.outputs.folder import (LOCK, RESERVE, SUMMARY, held_elsewhere, hold, hydra_link_refusal, note_job_logs,
-                                    overwrite_refusal, running_run, used_entries, used_refusal)
+                                    overwrite_refusal, refused_summary, running_run, used_entries, used_refusal)
 
 log = logging.getLogger("hairexp")
 OUTCOME = Path(".hydra") / "outcome.json"
@@ -175,7 +175,8 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     except Exception as exc:   # noqa: BLE001  (a bug: the traceback, exit 1; the sweep's other jobs go on)
         traceback.print_exc()
         res = outcome(out, "failed", 1, f"{type(exc).__name__}: {exc}")
-    if res["status"] != "completed" and Path(out).is_dir() and not (Path(out) / SUMMARY).exists():
+    if res["status"] != "completed" and Path(out).is_dir() and (
+            not (Path(out) / SUMMARY).exists() or refused_summary(Path(out) / SUMMARY)):
         # ended before the run claimed the folder Hydra made (refused by its settings; a signal, or a temporary
         # file that could not be written, while they were checked): the folder says how all the same
         why = {"interrupted": "interrupted while its settings were checked"}.get(

@@ -43,8 +43,8 @@ from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
 from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, json_bytes, save_npy, write_json, write_npz
-from hairexp.outputs.folder import (REFUSED, STREAM, SUMMARY, claim, free_reserve, owner, remove_tmp, reserve,
-                                    used_entries)
+from hairexp.outputs.folder import (REFUSED, STREAM, SUMMARY, claim, free_reserve, owner, refused_summary, remove_tmp,
+                                    reserve, used_entries)
 from hairexp.memory import release, release_every
 from hairexp.outputs.metrics import MetricsTable, measure
 from hairexp.outputs.progress import Progress, progress_enabled
@@ -504,8 +504,10 @@ def write_refused(cfg, out, error: str, status: str = "failed",
     ``overwrite`` (``claim``).  Never raises: the error line is the refusal's."""
     out = Path(out)
     try:
-        if not out.is_dir() or used_entries(out) or (out / SUMMARY).exists() or (out / SUMMARY).is_symlink():
-            return   # no folder (moved away mid-run, never made), or another run's
+        summary_path = out / SUMMARY
+        if not out.is_dir() or used_entries(out) or (
+                (summary_path.exists() or summary_path.is_symlink()) and not refused_summary(summary_path)):
+            return   # no folder (moved away mid-run, never made), or another run's (an earlier refusal's: replaced)
         try:
             plain = to_plain(cfg)
             if plain.get("variants"):
