@@ -51,8 +51,8 @@ def entry() -> int:
     if bad_value is not None:
         print(bad_value, file=sys.stderr)
         return 2
-    bad_dir = cli.run_dir_error(sys.argv[1:])   # before Hydra creates it (its traceback, exit 1)
-    if bad_dir is not None:
+    bad_dir = cli.run_dir_error(sys.argv[1:]) or cli.file_size_limit_error(sys.argv[1:])   # before Hydra writes
+    if bad_dir is not None:   # (its traceback, exit 1)
         print(bad_dir, file=sys.stderr)
         return 4
     bad_config = cli.config_error(sys.argv[1:])   # a typo, a wrong type, an unknown choice: bad input

@@ -417,3 +417,24 @@ def test_a_second_refusal_in_the_same_folder_says_its_own_error(tmp_path):
     assert json.loads((out / "summary.json").read_text())["error"].startswith("scene.length:")
     assert _hairexp(base + ["solver.dt=0"], tmp_path).returncode == 2
     assert json.loads((out / "summary.json").read_text())["error"].startswith("solver.dt:")
+
+
+def test_a_file_size_limit_too_small_for_the_first_files_is_refused_before_hydra(tmp_path):
+    """Under ``ulimit -f 1`` Hydra's write of .hydra/config.yaml failed: its traceback, exit 1, no summary."""
+    import resource
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1024, resource.RLIM_INFINITY))
+
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run([sys.executable, "-m", "hairexp", *SMOKE, f"hydra.run.dir={out}"], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=120, preexec_fn=limit)
+    assert proc.returncode == 4, proc.stderr[-2000:]
+    assert proc.stderr.strip().splitlines() == [
+        "hairexp: error: the process's file-size limit (ulimit -f) is 1024 bytes, less than the 64 kB a run needs to "
+        "write its first files (Hydra's .hydra/config.yaml, summary.json); raise it (ulimit -f unlimited)"]
+    assert not out.exists()
+    shown = subprocess.run([sys.executable, "-m", "hairexp", *SMOKE, "--cfg", "job"], cwd=tmp_path, env=env,
+                           capture_output=True, text=True, timeout=120, preexec_fn=limit)
+    assert shown.returncode == 0 and "scene:" in shown.stdout   # printing writes no file

@@ -411,6 +411,26 @@ def exit_code(signum: int | None = None) -> int:
 MIN_FREE_BYTES = 256 << 10
 
 
+#: the smallest file-size limit (RLIMIT_FSIZE, ``ulimit -f``) a run starts under: Hydra's own
+#: .hydra/config.yaml (4-5 kB) and the run's summary.json (about 10 kB) must fit
+MIN_FILE_SIZE_LIMIT = 64 << 10
+
+
+def file_size_limit_error(argv: list[str]) -> str | None:
+    """The error line when the process's file-size limit cannot hold a run's first files, or None.
+    Under ``ulimit -f 1`` Hydra's write of .hydra/config.yaml failed with its traceback, exit 1,
+    and no summary (probe of issue 12, round 18).  A larger limit that a run reaches later is the
+    run's own failure (exit 4, its summary failed)."""
+    if prints_only(argv):
+        return None
+    soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+    if soft == resource.RLIM_INFINITY or soft >= MIN_FILE_SIZE_LIMIT:
+        return None
+    return (f"hairexp: error: the process's file-size limit (ulimit -f) is {soft} bytes, less than the "
+            f"{MIN_FILE_SIZE_LIMIT >> 10} kB a run needs to write its first files (Hydra's .hydra/config.yaml, "
+            "summary.json); raise it (ulimit -f unlimited)")
+
+
 #: names a run folder keeps for Hydra's record and the launch lock (hairexp/outputs/folder.py)
 RESERVED_NAMES = (".hydra", ".lock")
 
