@@ -438,3 +438,15 @@ def test_a_file_size_limit_too_small_for_the_first_files_is_refused_before_hydra
     shown = subprocess.run([sys.executable, "-m", "hairexp", *SMOKE, "--cfg", "job"], cwd=tmp_path, env=env,
                            capture_output=True, text=True, timeout=120, preexec_fn=limit)
     assert shown.returncode == 0 and "scene:" in shown.stdout   # printing writes no file
+
+
+def test_a_usd_syntax_error_names_the_line_and_the_reason(tmp_path):
+    """'cannot read the USD stage: Failed to open layer @...@' dropped the parser's line:column and reason."""
+    from hairexp.errors import InputError
+    from hairexp.io.usd_read import open_stage
+
+    stage = tmp_path / "bad.usda"
+    stage.write_text('#usda 1.0\n\ndef Xform "Root"\n{\n    def Xform "A"\n    {\n}\n')
+    with pytest.raises(InputError, match=r"cannot read the USD stage: .*bad\.usda:\d+:\d+: ") as e:
+        open_stage(str(stage))
+    assert "Failed to open layer" not in str(e.value)

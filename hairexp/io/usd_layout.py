@@ -52,9 +52,12 @@ RIGID_TOL = 1e-6
 
 
 def tf_message(exc: Exception) -> str:
-    """The first quoted reason in a Tf error (``... : 'reason'``), else the text."""
-    found = re.findall(r" : '(.*)'\s*$", str(exc), flags=re.M)
-    return found[0] if found else " ".join(str(exc).split())
+    """The first quoted reason in a Tf error (``Error in '...' at line N in file F : 'reason'``, one
+    per error), else the text.  A reason may hold quotes and end with a newline: a syntax error's
+    ``'<file>:67:6: Expected } at '{' in </Root/Colliders>\n'`` was skipped for the next error's
+    ``Failed to open layer`` (probe of issue 12, round 18)."""
+    found = re.findall(r" : '(.*?)'\s*(?=\n\s*Error in |\Z)", str(exc), flags=re.S)
+    return " ".join(found[0].split()) if found else " ".join(str(exc).split())
 
 
 def _kind(label: str, *names: str) -> tuple[str, frozenset]:
