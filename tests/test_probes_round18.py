@@ -450,3 +450,33 @@ def test_a_usd_syntax_error_names_the_line_and_the_reason(tmp_path):
     with pytest.raises(InputError, match=r"cannot read the USD stage: .*bad\.usda:\d+:\d+: ") as e:
         open_stage(str(stage))
     assert "Failed to open layer" not in str(e.value)
+
+
+def test_a_killed_sweep_jobs_summary_counts_the_steps_it_streamed(tmp_path, monkeypatch):
+    """A sweep worker killed (kill -9): the main process ended its job's summary as failed with no
+    steps, while stream/metrics held 825 frames of them (round 18)."""
+    import socket
+
+    import hairexp.app.cli as cli
+    from hairexp.app.run import summarize
+    from hairexp.outputs.metrics import MetricsTable
+
+    job = tmp_path / "0"
+    (job / ".hydra").mkdir(parents=True)
+    table = MetricsTable(job / "stream" / "metrics")
+    for k in range(6):
+        table.rows.append({"step": k + 1, "frame": k + 1, "time": 0.01 * (k + 1), "converged": k != 2, "dt": 0.01,
+                           "substeps": 1, "iterations": 3 + k, "recovered": False, "step_seconds": 0.002,
+                           "stretch_max": 1e-5 * k, "residual_rel_max": None})
+        if k % 2:
+            table.flush()
+    running = {**summarize(None, {"experiment": "e", "config": {}}, "s", "free", 0.0, "running"),
+               "pid": 2 ** 22 + 12345, "host": socket.gethostname()}   # a process that does not exist
+    (job / "summary.json").write_text(json.dumps(running))
+    res = {"status": "running", "code": 1, "message": "the job did not finish", "out": str(job)}
+    monkeypatch.setattr(cli, "SWEEP_DIR", tmp_path)
+    cli._end_killed_jobs([("0", "", res)], None)
+    s = json.loads((job / "summary.json").read_text())
+    assert s["status"] == "failed" and "ended before it wrote its ending" in s["error"]
+    assert (s["steps"], s["unconverged_steps"], s["iterations_max"]) == (6, 1, 8)
+    assert res["status"] == "failed"

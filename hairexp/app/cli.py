@@ -42,14 +42,16 @@ from hydra.experimental.callback import Callback
 from hairexp.app.assemble import check_config
 from hairexp.app.config import CONF_DIR, check_bool_overrides, check_interpolations, check_keys, compose_config
 from hairexp.app.experiment import apply_overrides, run_experiment
-from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, to_log_files, write_refused
+from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, metrics_summary, to_log_files, write_refused
 from hairexp.app.validate import unused_settings
 from hairexp.app.signals import child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
 from hairexp.outputs.files import write_json
-from hairexp.outputs.folder import (LOCK, RESERVE, SUMMARY, held_elsewhere, hold, hydra_link_refusal, note_job_logs,
-                                    overwrite_refusal, refused_summary, running_run, used_entries, used_refusal)
+from hairexp.outputs.metrics import read_parts
+from hairexp.outputs.folder import (LOCK, RESERVE, STREAM, SUMMARY, held_elsewhere, hold, hydra_link_refusal,
+                                    note_job_logs, overwrite_refusal, refused_summary, running_run, used_entries,
+                                    used_refusal)
 
 log = logging.getLogger("hairexp")
 OUTCOME = Path(".hydra") / "outcome.json"
@@ -374,6 +376,13 @@ def _end_killed_jobs(rows: list, signum: int | None) -> None:
                   else ": killed, or stopped with the sweep's other workers when one of them was killed)"))
         try:
             summary.update(status=status, error=why)
+            # the steps it had streamed: the summary said none while stream/ held 825 frames (round 18)
+            done = read_parts(d / STREAM / "metrics")
+            if done is not None and len(done):
+                try:
+                    summary.update(metrics_summary(done))
+                except (KeyError, ValueError, TypeError):   # parts of another layout: the status and error only
+                    pass
             write_json(d / SUMMARY, summary)
             (d / RESERVE).unlink(missing_ok=True)
         except OSError:

@@ -168,6 +168,20 @@ class MetricsTable:
         return df
 
 
+def read_parts(folder: Path):
+    """The rows a streamed table (``MetricsTable(folder)``) flushed before its process ended, as one
+    pandas table (the parts in order), or None when there are none or they cannot be read."""
+    import pandas as pd
+
+    parts = sorted(Path(folder).glob("part-*.parquet"))
+    if not parts:
+        return None
+    try:
+        return pd.concat([pd.read_parquet(p) for p in parts], ignore_index=True)
+    except Exception:  # noqa: BLE001  (a part cut short by the kill: nothing to add to the summary)
+        return None
+
+
 def _text_unified(schemas):
     """The union of ``schemas``' fields; a field whose types differ (beyond null) becomes text."""
     import pyarrow as pa
