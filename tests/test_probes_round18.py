@@ -480,3 +480,14 @@ def test_a_killed_sweep_jobs_summary_counts_the_steps_it_streamed(tmp_path, monk
     assert s["status"] == "failed" and "ended before it wrote its ending" in s["error"]
     assert (s["steps"], s["unconverged_steps"], s["iterations_max"]) == (6, 1, 8)
     assert res["status"] == "failed"
+
+
+def test_a_section_deleted_on_the_command_line_is_named_as_such(tmp_path):
+    """``~measure`` said 'missing from the config given to run_folder (compose it with
+    hairexp.app.compose_config)': the Python API's advice, to a command-line user."""
+    out = tmp_path / "run"
+    proc = _hairexp(SMOKE + ["~measure", f"hydra.run.dir={out}"], tmp_path)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == ["hairexp: error: measure: deleted from the config (~measure on the "
+                                                "command line); every run reads it: drop the ~ override"]
+    assert json.loads((out / "summary.json").read_text())["status"] == "failed"

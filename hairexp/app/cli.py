@@ -40,7 +40,8 @@ import yaml
 from hydra.experimental.callback import Callback
 
 from hairexp.app.assemble import check_config
-from hairexp.app.config import CONF_DIR, check_bool_overrides, check_interpolations, check_keys, compose_config
+from hairexp.app.config import (CONF_DIR, check_bool_overrides, check_interpolations, check_keys, check_sections,
+                                compose_config)
 from hairexp.app.experiment import apply_overrides, run_experiment
 from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, metrics_summary, to_log_files, write_refused
 from hairexp.app.validate import unused_settings
@@ -122,6 +123,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         _write_outcome(out, outcome(out, "running", 1, "the job did not finish"))
     summary = None
     try:
+        check_sections(cfg)   # a section deleted with ``~section``
         check_keys(cfg)   # a ``+key`` Hydra added without asking the schema
         check_interpolations(cfg)   # a ${...} that cannot be resolved (a sweep job Hydra composed)
         check_bool_overrides(list(overrides))

@@ -483,6 +483,16 @@ def require_config(cfg, where: str) -> None:
                          ", ".join(missing))
 
 
+def check_sections(cfg) -> None:
+    """InputError for a top-level section deleted on the command line (``~measure``): it said
+    "missing from the config given to run_folder (compose it with hairexp.app.compose_config)",
+    the Python API's advice (probe of issue 12, round 18)."""
+    missing = [f.name for f in dataclasses.fields(Config) if f.name not in cfg]
+    if missing:
+        raise InputError(f"deleted from the config (~{missing[0]} on the command line); every run reads "
+                         f"{'it' if len(missing) == 1 else 'them'}: drop the ~ override", ", ".join(missing))
+
+
 def _or_run(name) -> str:
     """The ``or_run`` resolver of conf/config.yaml's default run folders: the experiment's name, or
     ``run`` for a run without one (``oc.select`` keeps a null: ``outputs/None/...``; probe of
