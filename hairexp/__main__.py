@@ -85,7 +85,7 @@ def entry() -> int:
         print(f"hairexp: a sweep worker process ended abruptly (killed: out of memory, or a SIGKILL); the jobs it "
               f"ran are failed ({type(exc).__name__}: {first})", file=sys.stderr)
         code = cli.exit_code()
-        return code if code else 1
+        return code if code else 3   # as a killed job's (cli._end_killed_jobs)
     except KeyboardInterrupt as exc:
         code = exit_code(exc.signum) if isinstance(exc, Interrupted) else 130
         # outside a run (a run prints its own line): while the config was composed, or between sweep jobs

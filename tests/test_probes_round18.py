@@ -480,6 +480,7 @@ def test_a_killed_sweep_jobs_summary_counts_the_steps_it_streamed(tmp_path, monk
     assert s["status"] == "failed" and "ended before it wrote its ending" in s["error"]
     assert (s["steps"], s["unconverged_steps"], s["iterations_max"]) == (6, 1, 8)
     assert res["status"] == "failed"
+    assert res["code"] == 3   # a run that could not continue, not a bug's exit 1 (round 18's weak finding)
 
 
 def test_a_section_deleted_on_the_command_line_is_named_as_such(tmp_path):

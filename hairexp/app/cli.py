@@ -389,7 +389,9 @@ def _end_killed_jobs(rows: list, signum: int | None) -> None:
             (d / RESERVE).unlink(missing_ok=True)
         except OSError:
             pass
-        res.update(status=status, code=signal_exit_code(signum) if signum is not None else 1, message=why)
+        # killed (the out-of-memory killer, a SIGKILL): a run that could not continue, exit 3 as an
+        # allocation that failed; 1 is a bug's traceback (probe of issue 12, round 18)
+        res.update(status=status, code=signal_exit_code(signum) if signum is not None else 3, message=why)
         _write_outcome(d, res)
 
 

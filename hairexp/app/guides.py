@@ -101,6 +101,13 @@ def check_guide_file(path) -> None:
         kinds, what = GUIDE_FILE_KINDS[name]
         if dtype.kind not in kinds:
             raise InputError(f"{name} has dtype {dtype}, expected {what}", f"guides.file={path}")
+    pos = headers.get("guide_positions")
+    if pos is not None and pos.kind == "f" and pos.itemsize < 4:   # accepted without a word (probe of issue 12, round 18)
+        eps = float(np.finfo(pos).eps)
+        logging.getLogger("hairexp").warning(
+            "guides.file=%s: guide_positions are %s, about %d significant digits (a step of %.2g mm at 1 m): "
+            "the guides are read as they are; save them as float64 (or float32) for exact positions",
+            path, pos, int(np.finfo(pos).precision), eps * 1e3)
 
 
 def check_simulated_guides(cfg) -> None:

@@ -141,7 +141,7 @@ class MetricsTable:
                 for k, p in enumerate(self.parts):
                     # ParquetFile.read, not read_table: the dataset reader behind read_table keeps
                     # about 0.5 MB of resident memory per file read (measured, pyarrow 26)
-                    t = pq.ParquetFile(p).read().replace_schema_metadata(None)
+                    t = pq.ParquetFile(p, pre_buffer=False).read(use_threads=False).replace_schema_metadata(None)
                     cols = [t.column(n).cast(fld.type) if n in t.column_names else pa.nulls(len(t), fld.type)
                             for n, fld in zip(schema.names, schema)]
                     group.append(pa.Table.from_arrays(cols, schema=schema))
