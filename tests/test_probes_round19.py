@@ -26,3 +26,19 @@ def test_low_precision_guide_positions_are_said(tmp_path, caplog, dtype, warned)
     assert bool(said) == warned
     if warned:
         assert f"guides.file={path}" in said[0] and "float16" in said[0]
+
+
+def test_a_guide_files_own_errors_name_the_key_before_the_run(tmp_path):
+    """A guide file's fps of 0 was named by its path alone (``<path>: fps must be ...``) when the
+    checks before the run read it; the run itself said ``guides.file=<path>: ...``."""
+    from probe_helpers import run_cli
+
+    path = _guide_file(tmp_path / "g.npz", np.float64)
+    with np.load(path) as d:
+        np.savez(path, guide_positions=d["guide_positions"], guide_offsets=d["guide_offsets"], fps=np.array(0.0))
+    p = run_cli(["experiment=goaling_smoke", "variants=[]", "frames=3", "logging=off", "guides.source=file",
+                 f"guides.file={path}", f"hydra.run.dir={tmp_path / 'run'}"], tmp_path)
+    assert p.returncode == 2, p.stderr
+    line = [s for s in p.stderr.splitlines() if s.startswith("hairexp: error:")]
+    assert line == [f"hairexp: error: guides.file={path}: fps must be a number from 0.1 to 100000 "
+                    "(frames per second), got 0.0"], p.stderr

@@ -154,9 +154,11 @@ CASES = {  # name: (edit, prim, message regex)
     "mesh_collider": (add_mesh_collider, "/Root/Colliders/rock", r"unsupported collider type Mesh"),
     "capsule_axis": (capsule_along_z, "/Root/Colliders/pole", r"axis is Z"),
     "negative_radius": (set_attr("/Root/Colliders/ball", "radius", -1.0), "/Root/Colliders/ball",
-                        r"radius must be > 0, got -1"),
+                        r"radius must be a finite number > 0, got -1"),
     "nan_friction": (set_attr("/Root/Colliders/ball", "hairexp:friction", float("nan")), "/Root/Colliders/ball",
-                     r"hairexp:friction must be >= 0, got nan"),
+                     r"hairexp:friction must be a finite number >= 0, got nan"),
+    "infinite_thickness": (set_attr("/Root/Colliders/ball", "hairexp:thickness", float("inf")), "/Root/Colliders/ball",
+                           r"hairexp:thickness must be a finite number >= 0, got inf"),
 }
 
 

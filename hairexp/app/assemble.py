@@ -31,11 +31,11 @@ import numpy as np
 from hairexp.app.builders import build_scene
 from hairexp.app.config import require_config
 from hairexp.app.guard import guard_run
-from hairexp.app.guides import build_guides, check_simulated_guides
+from hairexp.app.guides import build_guides, check_simulated_guides, read_guide_file
 from hairexp.app.validate import late_keys, validate_config, validate_measure
 from hairexp.control import build_controller
 from hairexp.errors import InputError
-from hairexp.guides.animation import GuideAnimation, file_guides
+from hairexp.guides.animation import GuideAnimation
 from hairexp.model.builders import check_counts
 from hairexp.model.scene import Scene
 from hairexp.physics.controller import Controller
@@ -136,7 +136,7 @@ def check_config(cfg) -> None:
     cfg = timed_config(cfg)
     n_sub, _ = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
     if str(_value(cfg.guides.source)) == "file":   # read now: a later variant's bad file failed after the others ran
-        file_guides(str(cfg.guides.file), None, int(cfg.frames), float(cfg.fps))
+        read_guide_file(cfg.guides, None, int(cfg.frames), float(cfg.fps))
     usd = str(_value(cfg.scene.builder)) == "usd"
     if not usd:
         check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices), float(cfg.scene.length))

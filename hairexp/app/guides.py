@@ -30,14 +30,7 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     source = str(getattr(g.source, "value", g.source))
     motion = authoring_motion(scene.motion)   # a dynamic body: its initial pose held still
     if source == "file":
-        check_guide_file(g.file)
-        try:
-            anim = file_guides(g.file, scene.motion, frames, fps)
-        except InputError as exc:   # the file's own errors name the path: say which key it is
-            where = exc.where or ""
-            if where.startswith(str(g.file)) and not where.startswith("guides.file="):
-                raise InputError(str(exc)[len(where) + 2:], f"guides.file={where}") from exc
-            raise
+        anim = read_guide_file(g, scene.motion, frames, fps)
         unused_shape_keys(g, anim, "guides.file")
         return anim   # every frame's extent checked by GuideAnimation
     if source == "usd":  # the guide prim of the stage scene.usd
@@ -55,6 +48,19 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
         return GuideAnimation(pos, offsets, fps, where="guides.keyframes", motion=scene.motion)
     pos = carried_guides(g, body, offsets, motion, frames, fps, scaled=source == "scaled")
     return GuideAnimation(pos, offsets, fps, motion=scene.motion)
+
+
+def read_guide_file(g, motion, frames: int, fps: float) -> GuideAnimation:
+    """The guide animation of ``guides.file`` (``check_guide_file``, then
+    ``animation.file_guides``); its errors are named ``guides.file=<path>...``."""
+    check_guide_file(g.file)
+    try:
+        return file_guides(str(g.file), motion, frames, fps)
+    except InputError as exc:   # the file's own errors name the path: say which key it is
+        where = exc.where or ""
+        if where.startswith(str(g.file)) and not where.startswith("guides.file="):
+            raise InputError(str(exc)[len(where) + 2:], f"guides.file={where}") from exc
+        raise
 
 
 def unused_shape_keys(g, anim: GuideAnimation, source: str) -> None:

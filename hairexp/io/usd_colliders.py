@@ -56,7 +56,7 @@ def _number(prim, name: str, where: str, positive: bool = False, default=None) -
     except (TypeError, ValueError):
         raise InputError(f"{name} must be a number, got {value!r}", where) from None
     if not math.isfinite(value) or value < 0 or (positive and value == 0):
-        raise InputError(f"{name} must be {'> 0' if positive else '>= 0'}, got {value}", where)
+        raise InputError(f"{name} must be a finite number {'> 0' if positive else '>= 0'}, got {value}", where)
     return value
 
 
