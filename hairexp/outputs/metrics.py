@@ -125,7 +125,11 @@ class MetricsTable:
         if self.folder is None or not self.parts:   # an in-memory table, or nothing flushed: one frame
             atomic_write_bytes(path, lambda f: self.frame().to_parquet(f))
             return MetricColumns(path)
-        schemas = [pq.read_schema(p).remove_metadata() for p in self.parts]
+        schemas = []   # the distinct ones: one schema kept per part grew the end's memory with the run's length
+        for p in self.parts:
+            sch = pq.read_schema(p).remove_metadata()
+            if not any(sch.equals(t) for t in schemas):
+                schemas.append(sch)
         try:
             schema = pa.unify_schemas(schemas, promote_options="permissive")
         except (pa.ArrowInvalid, pa.ArrowTypeError):
