@@ -526,6 +526,9 @@ def test_sweep_with_a_bad_job(tmp_path):
     jobs = [line for line in err.splitlines() if line.startswith("hairexp: job ")]
     assert len(jobs) == 2 and "completed (exit 0)" in jobs[0] and "failed (exit 2)" in jobs[1], err
     assert "hairexp: sweep: 1 of 2 jobs completed" in err
+    # said when it happened, naming the job (it read as the closing line's error said twice)
+    assert [s for s in err.splitlines() if s.startswith("hairexp: error:")] == [
+        "hairexp: error: job 1: scene.n_vertices: must be >= 3 (two root vertices and one free), got 1"], err
 
 
 def test_a_killed_run_is_named_when_its_folder_is_reused(hydra_conf, tmp_path):

@@ -101,6 +101,15 @@ def absolute_inputs(cfg, cwd: str | None) -> None:
                 ovr[i] = f"{key.strip()}={os.path.join(cwd, value.strip())}"
 
 
+def _job_label(out: str, sweep_dir: str | None) -> str:
+    """``job <name>: `` of a sweep's job folder (its path under the sweep folder), as the sweep's
+    closing lines name it."""
+    try:
+        return f"job {Path(out).resolve().relative_to(Path(sweep_dir).resolve()).as_posix()}: "
+    except (TypeError, ValueError, OSError):
+        return f"job {Path(out).name}: "
+
+
 def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overrides=(),
         cwd: str | None = None) -> dict:
     """Run the experiment of ``cfg`` into ``out``; returns its outcome (never raises for a
@@ -137,7 +146,9 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
                else _signalled_after(out, late, summary))
         _log_completed(summary, out)
     except InputError as exc:
-        print(f"hairexp: error: {exc}", file=sys.stderr)
+        # a sweep's job says which it is: the line is said again in the sweep's closing lines, which
+        # name the job (it read as the same error twice; probe of issue 12, round 18)
+        print(f"hairexp: error: {_job_label(out, sweep_dir) if sweep else ''}{exc}", file=sys.stderr)
         res = outcome(out, "failed", 2, str(exc))
     except SimulationError as exc:
         print(f"hairexp: simulation failed: {exc} ({_kept(out, 'partial metrics')})", file=sys.stderr)
