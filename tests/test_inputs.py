@@ -56,12 +56,14 @@ def test_inf_point_is_rejected():
         Strands.from_polylines(pts, counts, DENSITY)
 
 
-@pytest.mark.parametrize("counts", [(4, 5, 4), (4, 5, 2), (4, 5)])
-def test_counts_not_matching_points(counts):
+@pytest.mark.parametrize("counts,match", [((4, 5, 4), "add up to"), ((4, 5), "add up to"),
+                                          # a curve's own count is named first (a negative one said only the sum)
+                                          ((4, 5, 1), "curve 2 has 1 vertices"), ((4, -5, 4), "curve 1 has -5 vertices")])
+def test_counts_not_matching_points(counts, match):
     pts, _ = three_curves()
-    with pytest.raises(InputError, match="add up to"):
+    with pytest.raises(InputError, match=match):
         validate_polylines(pts, np.asarray(counts), "where")
-    with pytest.raises(InputError, match="add up to"):
+    with pytest.raises(InputError, match=match):
         Strands.from_polylines(pts, np.asarray(counts), DENSITY)
 
 
