@@ -42,3 +42,19 @@ def test_a_guide_files_own_errors_name_the_key_before_the_run(tmp_path):
     line = [s for s in p.stderr.splitlines() if s.startswith("hairexp: error:")]
     assert line == [f"hairexp: error: guides.file={path}: fps must be a number from 0.1 to 100000 "
                     "(frames per second), got 0.0"], p.stderr
+
+
+def test_arrays_a_guide_file_holds_beside_its_own_are_said(tmp_path, caplog):
+    """An npz with an extra array (``junk``, or a misspelt one) was read without a word about it."""
+    path = _guide_file(tmp_path / "g.npz", np.float64)
+    with np.load(path) as d:
+        np.savez(path, **dict(d), junk=np.arange(3), guide_offset=np.array([0, 4]))
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        check_guide_file(path)
+    said = [r.getMessage() for r in caplog.records if "not read" in r.getMessage()]
+    assert said == [f"guides.file={path}: guide_offset, junk are not read (a guide file holds guide_positions, "
+                    "guide_offsets and fps)"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        check_guide_file(_guide_file(tmp_path / "plain.npz", np.float64))
+    assert not [r for r in caplog.records if "not read" in r.getMessage()]

@@ -92,6 +92,8 @@ def check_guide_file(path) -> None:
     regular_file(path, f"guides.file={path}", "guide npz")   # a FIFO would block the zip reader
     try:
         with zipfile.ZipFile(path) as z:
+            stems = (n[:-4] if n.endswith(".npy") else n for n in z.namelist())
+            others = sorted(n for n in stems if n not in GUIDE_FILE_KINDS)
             headers = {}
             for name in GUIDE_FILE_KINDS:
                 if f"{name}.npy" not in z.namelist():
@@ -107,6 +109,10 @@ def check_guide_file(path) -> None:
         kinds, what = GUIDE_FILE_KINDS[name]
         if dtype.kind not in kinds:
             raise InputError(f"{name} has dtype {dtype}, expected {what}", f"guides.file={path}")
+    if others:   # ignored without a word (own probe, 2026-12-05): a misspelt optional array would be
+        logging.getLogger("hairexp").warning(
+            "guides.file=%s: %s not read (a guide file holds guide_positions, guide_offsets and fps)",
+            path, ", ".join(others) + (" is" if len(others) == 1 else " are"))
     pos = headers.get("guide_positions")
     if pos is not None and pos.kind == "f" and pos.itemsize < 4:   # accepted without a word (probe of issue 12, round 18)
         eps = float(np.finfo(pos).eps)
