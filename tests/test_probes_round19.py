@@ -58,3 +58,73 @@ def test_arrays_a_guide_file_holds_beside_its_own_are_said(tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="hairexp"):
         check_guide_file(_guide_file(tmp_path / "plain.npz", np.float64))
     assert not [r for r in caplog.records if "not read" in r.getMessage()]
+
+
+def test_a_write_error_names_its_file(tmp_path, monkeypatch):
+    """A full disk left summary.json's error as '[Errno 28] No space left on device', no file named:
+    a write to an open file raises an OSError without a filename."""
+    import builtins
+    import errno
+
+    from hairexp.outputs.files import GrowingNpy, atomic_write_bytes, naming
+
+    def full(_):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    with pytest.raises(OSError) as info:
+        atomic_write_bytes(tmp_path / "a.json", full)
+    assert info.value.errno == errno.ENOSPC and info.value.filename == str(tmp_path / "a.json")
+    assert not list(tmp_path.iterdir())   # no temporary file left
+
+    g = GrowingNpy(tmp_path / "x.npy", (2,), np.float64)
+    g.append(np.zeros(2))
+    monkeypatch.setattr(g, "f", type("F", (), {"seek": lambda *a: None, "write": lambda _, b: full(b),
+                                               "flush": lambda *a: None})())
+    with pytest.raises(OSError) as info:
+        g.flush()
+    assert info.value.filename == str(tmp_path / "x.npy")
+
+    # an error that names its file, or one of another class, goes through as it is
+    for exc in (FileNotFoundError(errno.ENOENT, "No such file", "/elsewhere"), builtins.ValueError("v")):
+        with pytest.raises(type(exc)) as info, naming(tmp_path / "y"):
+            raise exc
+        assert info.value is exc
+
+
+
+def test_one_note_per_os_error_whatever_file_it_names(tmp_path, monkeypatch):
+    """With the files named (``files.naming``), a full disk's failed ending said one "also:" line
+    per file again: the same OSError (class, errno, reason) is one note, with the first file."""
+    from hairexp.app import run as run_mod
+    from hairexp.errors import SimulationError
+
+    def fail(name):
+        def raise_():
+            raise OSError(28, "No space left on device", str(tmp_path / name))
+        return raise_
+
+    class Sinks:
+        progress = None
+        written = []
+        plain = {"experiment": None, "config": None}
+
+        class recorder:
+            flush = staticmethod(fail("positions.npy"))
+            close = staticmethod(fail("times.npy"))
+
+        class table:
+            steps = 3
+            flush = staticmethod(fail("part-00001.parquet"))
+            write = staticmethod(lambda *a: fail("metrics.parquet")())
+            frame = staticmethod(lambda: None)
+
+        class rerun:
+            close = staticmethod(lambda **k: (_ for _ in ()).throw(OSError(13, "Permission denied", "rec.rrd")))
+
+    monkeypatch.setattr(run_mod, "summarize", lambda *a, **k: {})
+    exc = SimulationError("boom")
+    run_mod._end_unfinished(exc, Sinks, tmp_path, "s", "free", 0.0)
+    assert exc.__notes__ == [
+        "while writing the failed ending (frames, metrics, metrics.parquet): OSError: [Errno 28] No space left on "
+        f"device: '{tmp_path / 'positions.npy'}'",
+        "while writing the failed ending (recording): PermissionError: [Errno 13] Permission denied: 'rec.rrd'"]

@@ -545,14 +545,19 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
     status = "interrupted" if interrupted else "failed"
     error = (str(exc) if isinstance(exc, Interrupted) else "interrupted by SIGINT") if interrupted else str(exc)
 
-    failed: dict[str, list[str]] = {}   # an error's text -> the parts of the ending it stopped
+    failed: dict[str, list[str]] = {}   # an error -> the parts of the ending it stopped
+    shown: dict[str, str] = {}          # an error -> its text as first met
 
     def attempt(what: str, fn):
         try:
             return fn()
         except BaseException as e2:   # noqa: BLE001  (the ending must go on)
-            err = f"{type(e2).__name__}: {e2}"
-            parts = failed.setdefault(err, [])
+            # an OSError is the same error whatever file it names (a full disk: positions.npy, then
+            # a metrics part, each named since files.naming): said once, with the first file
+            key = (f"{type(e2).__name__}: [Errno {e2.errno}] {e2.strerror}" if isinstance(e2, OSError) and e2.errno
+                   else f"{type(e2).__name__}: {e2}")
+            err = shown.setdefault(key, f"{type(e2).__name__}: {e2}")
+            parts = failed.setdefault(key, [])
             if what in parts:   # the frames' flush and close failed alike: said twice
                 return None
             old = f"while writing the {status} ending ({', '.join(parts)}): {err}"

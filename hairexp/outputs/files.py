@@ -20,6 +20,7 @@ import json
 import os
 import struct
 import zipfile
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -44,13 +45,26 @@ def tmp_name(path: Path) -> Path:
     return path.with_name(path.name + ".tmp")
 
 
+@contextmanager
+def naming(path: Path):
+    """An OSError from a write to an open file names no file (``[Errno 28] No space left on
+    device``, summary.json's error of a full disk; own probe, 2026-12-05): it is raised again
+    naming ``path``.  Only the built-in OSError classes (their constructor is known)."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.filename is None and exc.errno is not None and type(exc).__module__ == "builtins":
+            raise type(exc)(exc.errno, exc.strerror, str(path)) from exc
+        raise
+
+
 def atomic_write_bytes(path: Path, write) -> None:
     """``write(f)`` into a temporary file, then rename it to ``path``; on any error the
-    temporary file is removed and the error propagates."""
+    temporary file is removed and the error propagates (naming ``path`` if it named no file)."""
     path = Path(path)
     tmp = tmp_name(path)
     try:
-        with open(tmp, "wb") as f:
+        with naming(path), open(tmp, "wb") as f:
             write(f)
         os.replace(tmp, path)
     finally:
@@ -96,8 +110,9 @@ class GrowingNpy:
         self.n = 0
         self.pending: list[bytes] = []
         self.f = open(self.path, "wb")
-        self.f.write(_npy_header((0, *self.frame_shape), self.dtype))
-        self.f.flush()
+        with naming(self.path):
+            self.f.write(_npy_header((0, *self.frame_shape), self.dtype))
+            self.f.flush()
 
     def append(self, a) -> None:
         a = np.asarray(a)
@@ -109,15 +124,16 @@ class GrowingNpy:
         if not self.pending:
             return
         k = len(self.pending)
-        self.f.seek(HEADER_BYTES + self.n * self.frame_bytes)
-        for b in self.pending:
-            self.f.write(b)
-        self.f.flush()
-        self.pending.clear()
-        self.n += k
-        self.f.seek(0)
-        self.f.write(_npy_header((self.n, *self.frame_shape), self.dtype))
-        self.f.flush()
+        with naming(self.path):
+            self.f.seek(HEADER_BYTES + self.n * self.frame_bytes)
+            for b in self.pending:
+                self.f.write(b)
+            self.f.flush()
+            self.pending.clear()
+            self.n += k
+            self.f.seek(0)
+            self.f.write(_npy_header((self.n, *self.frame_shape), self.dtype))
+            self.f.flush()
 
     @property
     def frame_bytes(self) -> int:
