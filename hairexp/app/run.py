@@ -83,12 +83,19 @@ def versions() -> dict:
             "torch": torch.__version__}
 
 
+#: the most of an error's text a summary.json holds: its ending must fit the disk space held for it
+#: (``outputs.folder.RESERVE_BYTES``) when the disk is full
+ERROR_CHARS = 4000
+
+
 def summarize(df, plain: dict, scene_name: str, controller: str, wall: float, status: str,
               error: str | None = None, agg: dict | None = None) -> dict:
     """summary.json of a run; ``df``: its metrics table (None or empty: no step yet), or ``agg``:
     its ``metrics_summary``, computed before."""
     if agg is None:
         agg = metrics_summary(df)
+    if error is not None and len(error) > ERROR_CHARS:   # a library's error of pages (USD's: one line a failed write)
+        error = f"{error[:ERROR_CHARS]} ... ({len(error) - ERROR_CHARS} more characters)"
     return {
         "scene": scene_name, "controller": controller, "experiment": plain.get("experiment"),
         "status": status, "error": error, **owner(), "success": None, "measures": {},

@@ -32,13 +32,15 @@ failure removes both.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import logging
 import os
 import shutil
 from pathlib import Path
 
 import numpy as np
-from pxr import Sdf, Usd, UsdGeom, Vt
+from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
 from hairexp.io.usd_colliders import write_colliders
 from hairexp.memory import release
@@ -63,6 +65,38 @@ MATRIX_BYTES = 128
 SAMPLE_BYTES = 256
 
 
+#: what USD's write errors say, and the errno each one is (``writing``)
+_WRITE_ERRORS = (("No space left", errno.ENOSPC), ("File too large", errno.EFBIG), ("Disk quota", errno.EDQUOT),
+                 ("Read-only file system", errno.EROFS), ("Permission denied", errno.EACCES),
+                 ("Operation not permitted", errno.EPERM), ("No such file or directory", errno.ENOENT))
+
+
+def usd_write_error(exc: Exception, file) -> OSError:
+    """USD's error (``pxr.Tf.ErrorException``: one line per failed write, thousands when the disk
+    fills during a save) as one OSError naming ``file``: its errno when the text says which
+    (disk full, file-size limit, ...), else EIO with USD's first message (probe of issue 12: a full
+    disk during the result's export ended with a traceback and pages of USD lines, exit 1)."""
+    text = str(exc)
+    for words, code in _WRITE_ERRORS:
+        if words in text:
+            return OSError(code, os.strerror(code), str(file))
+    first = next((line.strip() for line in text.splitlines() if line.strip()), type(exc).__name__)
+    if " : " in first:   # "Error in '<C++ function>' at line N in file F : 'what'": the what
+        first = first.rsplit(" : ", 1)[1]
+        if len(first) > 1 and first[0] == first[-1] == "'":
+            first = first[1:-1]
+    return OSError(errno.EIO, f"USD could not write it: {first[:300]}", str(file))
+
+
+@contextlib.contextmanager
+def writing(file):
+    """USD calls that write ``file``: their errors raised as one OSError (``usd_write_error``)."""
+    try:
+        yield
+    except Tf.ErrorException as exc:
+        raise usd_write_error(exc, file) from None
+
+
 class Saves:
     """Saves a file-backed stage (or Sdf layer) every SAVE_BYTES of samples added (``add``), so
     that its samples leave memory (a saved crate layer reads them back from the file on demand)."""
@@ -74,15 +108,18 @@ class Saves:
     def add(self, nbytes: int) -> None:
         self.added += nbytes
         if self.added >= SAVE_BYTES:
-            if not self.layer.Save():
-                raise OSError(f"cannot write {self.layer.realPath}")
+            with writing(self.layer.realPath):
+                ok = self.layer.Save()
+            if not ok:
+                raise OSError(errno.EIO, "USD could not write it", self.layer.realPath)
             self.added = 0
             release()   # each save's packing tables grow with the samples saved: free them, or the heap grows
 
 
 def new_stage(fps: float, frames: int, doc: str, path=None) -> Usd.Stage:
     """A stage in memory, or (``path``) one backed by a new file that ``Save`` writes."""
-    stage = Usd.Stage.CreateInMemory() if path is None else Usd.Stage.CreateNew(str(path))
+    with writing(path):
+        stage = Usd.Stage.CreateInMemory() if path is None else Usd.Stage.CreateNew(str(path))
     if stage is None:
         raise OSError(f"cannot create the USD stage {path}")
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
@@ -169,17 +206,29 @@ def write_animation(stage, path: str, frames, offsets: np.ndarray, width: float,
             saves.add(12 * len(P) + 24 + 2 * SAMPLE_BYTES)   # points and extent
 
 
+def _discard(tmp: Path) -> None:
+    """Remove a temporary file if it is there; an error doing so (its folder is not one: the
+    write's own error says why) is not raised over the write's (``[Errno 20] Not a directory``
+    of the unlink hid USD's)."""
+    try:
+        tmp.unlink(missing_ok=True)
+    except OSError:
+        pass
+
+
 def save(stage, path) -> None:
     path = Path(path)
     if path.suffix not in FORMATS:
         raise ValueError(f"{path}: a USD file name ends with one of {', '.join(FORMATS)}")
     tmp = path.with_name(path.stem + ".tmp" + path.suffix)  # same suffix: same file format
     try:
-        if not stage.GetRootLayer().Export(str(tmp)):
-            raise OSError(f"cannot write {tmp}")
+        with writing(path):
+            ok = stage.GetRootLayer().Export(str(tmp))
+        if not ok:
+            raise OSError(errno.EIO, "USD could not write it", str(path))
         os.replace(tmp, path)
     finally:
-        tmp.unlink(missing_ok=True)
+        _discard(tmp)
 
 
 def write_scene_usd(path, scene, guides, fps: float, frames: int) -> None:
@@ -246,14 +295,16 @@ def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps
         if path.suffix == ".usda":
             save(stage, path)
         else:
-            if not stage.GetRootLayer().Save():
-                raise OSError(f"cannot write {crate}")
+            with writing(path):
+                ok = stage.GetRootLayer().Save()
+            if not ok:
+                raise OSError(errno.EIO, "USD could not write it", str(path))
             stage = None
             os.replace(crate, path)
         shutil.rmtree(clips_dir(path), ignore_errors=True)   # an earlier write's clips: not this stage's
     finally:
         stage = None   # releases the layer (a traceback keeps this frame alive) before its file goes
-        crate.unlink(missing_ok=True)
+        _discard(crate)
 
 
 def _has_guides(guide_positions) -> bool:
@@ -293,7 +344,8 @@ def _pose_channel(prim: str, motion, fps: float) -> _Channel:
 def _write_clip(file: Path, channels: list, first: int, last: int, fps: float) -> Sdf.Layer:
     """Clip layer ``file``: the channels' samples at frames first..last (over specs), saved every
     SAVE_BYTES and at the end; returns the layer (the caller drops it)."""
-    layer = Sdf.Layer.CreateNew(str(file))
+    with writing(file):
+        layer = Sdf.Layer.CreateNew(str(file))
     if layer is None:
         raise OSError(f"cannot create {file}")
     layer.timeCodesPerSecond = layer.framesPerSecond = float(fps)   # as the root's: no time scaling
@@ -307,8 +359,10 @@ def _write_clip(file: Path, channels: list, first: int, last: int, fps: float) -
         for c, p in zip(channels, paths):
             layer.SetTimeSample(p, float(f), c.value(f))
             saves.add(c.nbytes)
-    if not layer.Save():
-        raise OSError(f"cannot write {file}")
+    with writing(file):
+        ok = layer.Save()
+    if not ok:
+        raise OSError(errno.EIO, "USD could not write it", str(file))
     return layer
 
 
@@ -350,8 +404,10 @@ def write_clipped(path, scene, positions, guide_positions, guide_offsets, fps: f
             layer = _write_clip(tmp / f"{k}.usdc", channels, first, min(first + CLIP_FRAMES, frames), fps)
             if k == 0:   # every clip has the same attributes: the manifest is the first one's
                 manifest = Usd.ClipsAPI.GenerateClipManifestFromLayers([layer], ROOT)
-                if not manifest.Export(str(tmp / "manifest.usdc")):
-                    raise OSError(f"cannot write {tmp / 'manifest.usdc'}")
+                with writing(tmp / "manifest.usdc"):
+                    ok = manifest.Export(str(tmp / "manifest.usdc"))
+                if not ok:
+                    raise OSError(errno.EIO, "USD could not write it", str(tmp / "manifest.usdc"))
                 manifest = None
             layer = None
             release()   # the chunk's samples and packing tables
