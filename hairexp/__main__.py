@@ -18,6 +18,7 @@ from concurrent.futures.process import BrokenProcessPool
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import ConfigCompositionException, MissingConfigException, SearchPathException
 from omegaconf import DictConfig
 
 import hairexp.app.config  # noqa: F401  (registers the schema in the ConfigStore)
@@ -39,7 +40,11 @@ def main(cfg: DictConfig) -> float | None:
 def entry() -> int:
     logging.raiseExceptions = False   # a log file on a full disk is not worth a traceback per line
     warnings.formatwarning = cli.one_line_warning
-    bad_flag = cli.flag_error(sys.argv[1:]) or cli.duplicate_key_error(sys.argv[1:])   # before any folder is made
+    if "--version" in sys.argv[1:]:   # Hydra's said only "Hydra 1.3.8" (probe of issue 12, round 19)
+        print(f"hairexp {cli.version()} (Hydra {hydra.__version__})")
+        return 0
+    bad_flag = (cli.flag_error(sys.argv[1:]) or cli.duplicate_key_error(sys.argv[1:])   # before any folder is made
+                or cli.config_source_error(sys.argv[1:]))
     if bad_flag is not None:
         print(bad_flag, file=sys.stderr)
         return 2
@@ -86,6 +91,12 @@ def entry() -> int:
               f"ran are failed ({type(exc).__name__}: {first})", file=sys.stderr)
         code = cli.exit_code()
         return code if code else 3   # as a killed job's (cli._end_killed_jobs)
+    except (ConfigCompositionException, MissingConfigException, SearchPathException) as exc:
+        # what Hydra could not compose and hairexp's checks did not foresee: in a -m sweep (Hydra lets
+        # its exceptions through, above) a traceback, exit 1 (probe of issue 12, round 19)
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        print(f"hairexp: error: {first}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt as exc:
         code = exit_code(exc.signum) if isinstance(exc, Interrupted) else 130
         # outside a run (a run prints its own line): while the config was composed, or between sweep jobs

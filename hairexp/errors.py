@@ -94,7 +94,9 @@ class Interrupted(KeyboardInterrupt):
         import signal
 
         self.signum = int(signum)
-        super().__init__(f"interrupted by {signal.Signals(self.signum).name}")
+        name = signal.Signals(self.signum).name
+        why = {"SIGXCPU": " (the process's CPU-time limit, ulimit -t, was reached)"}.get(name, "")
+        super().__init__(f"interrupted by {name}{why}")
 
 
 def regular_file(path, where: str, what: str = "file"):

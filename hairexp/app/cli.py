@@ -45,7 +45,7 @@ from hairexp.app.config import (CONF_DIR, check_bool_overrides, check_interpolat
 from hairexp.app.experiment import apply_overrides, run_experiment
 from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, metrics_summary, to_log_files, write_refused
 from hairexp.app.validate import unused_settings
-from hairexp.app.signals import child_pids, forward, take_late
+from hairexp.app.signals import SIGNALS, child_pids, forward, take_late
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
 from hairexp.outputs.files import write_json
@@ -271,7 +271,7 @@ def _stopped_by(sweep_dir) -> str | None:
         name = (Path(sweep_dir) / STOP_MARK).read_text().strip()
     except OSError:
         return None
-    return name if name in ("SIGTERM", "SIGINT", "SIGHUP") else "SIGTERM"
+    return name if name in {signal.Signals(s).name for s in SIGNALS} else "SIGTERM"
 
 
 def _signum(name: str) -> int:
@@ -574,6 +574,23 @@ def _flag(arg: str) -> str:
     return arg.split("=", 1)[0] if arg.startswith("--") else arg
 
 
+def version() -> str:
+    """hairexp's version: the installed package's, else pyproject.toml's (a checkout run in place)."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as installed
+
+    try:
+        return installed("hairexp")
+    except PackageNotFoundError:
+        pass
+    try:
+        text = (Path(__file__).resolve().parents[2] / "pyproject.toml").read_text()
+    except OSError:
+        return "unknown"
+    found = re.search(r'^version\s*=\s*"([^"]+)"', text, re.M)
+    return found.group(1) if found else "unknown"
+
+
 def flag_error(argv: list[str]) -> str | None:
     """The error line for a command-line flag Hydra does not have (``--bogus-flag``), before any
     folder is made: Hydra's argparse refused it (exit 2) after hairexp had taken the run folder's
@@ -587,6 +604,58 @@ def flag_error(argv: list[str]) -> str | None:
                 return f"hairexp: error: {arg}: write the option in full: {longer[0]}"
             return (f"hairexp: error: unknown option {arg}; the options are Hydra's ({', '.join(sorted(_FLAGS))}), "
                     "the rest key=value overrides (python -m hairexp --help)")
+    return None
+
+
+def _flag_values(argv: list[str], *names: str) -> list[str]:
+    """The values given to the flag ``names`` (``-cn x`` and ``--config-name=x`` alike)."""
+    out = []
+    for i, arg in enumerate(argv):
+        if _is_value(argv, i):
+            continue
+        if arg in names and i + 1 < len(argv):
+            out.append(argv[i + 1])
+        elif "=" in arg and arg.split("=", 1)[0] in names:
+            out.append(arg.split("=", 1)[1])
+    return out
+
+
+def config_source_error(argv: list[str]) -> str | None:
+    """The error line for ``--config-dir`` / ``-cd`` that is not a folder, ``--config-path`` /
+    ``-cp`` that is not one (absolute, or relative to hairexp/, as Hydra reads it), or
+    ``--config-name`` / ``-cn`` that none of them (nor the schema's registered configs) holds; before
+    any folder is made.  Hydra found these after hairexp had locked the run folder: exit 1 with its
+    multi-line message and a folder holding only ``.lock``, and in a ``-m`` sweep a traceback
+    (probe of issue 12, round 19)."""
+    from hydra.core.config_store import ConfigStore
+
+    dirs = []
+    for value in _flag_values(argv, "--config-dir", "-cd"):
+        path = Path(value).expanduser().absolute()
+        if not path.is_dir():
+            return (f"hairexp: error: --config-dir={value}: " + ("not a folder" if path.exists() else "no such folder")
+                    + " (a folder of extra config files)")
+        dirs.append(path)
+    paths = _flag_values(argv, "--config-path", "-cp")
+    primary = [Path(__file__).resolve().parents[2] / "conf"]
+    for value in paths:
+        if "://" in value:   # pkg:// or file://: Hydra's to read
+            return None
+        path = Path(value).expanduser()
+        path = path if path.is_absolute() else Path(__file__).resolve().parents[1] / path
+        if not path.is_dir():
+            return (f"hairexp: error: --config-path={value}: no such folder ({path}; a relative config path is "
+                    "read from hairexp/, where python -m hairexp's entry point is)")
+        primary = [path]
+    names = _flag_values(argv, "--config-name", "-cn") or ["config"]
+    name = names[-1]
+    file = name if name.endswith(".yaml") else f"{name}.yaml"
+    stored = ConfigStore.instance().repo
+    if not any((d / file).is_file() for d in primary + dirs) and file not in stored:
+        where = ", ".join(str(d) for d in primary + dirs)
+        return (f"hairexp: error: --config-name={name}: no config {file} in {where}"
+                + ("" if name != "config" else " (the primary config: give --config-name, or a --config-path "
+                   "holding config.yaml)"))
     return None
 
 

@@ -1,4 +1,5 @@
-"""SIGINT and SIGTERM end a run as ``interrupted``.
+"""SIGINT and SIGTERM (and the other signals that would end the process at once, ``SIGNALS``) end
+a run as ``interrupted``.
 
 Inside ``InterruptSignals()`` both signals raise ``hairexp.errors.Interrupted`` (a
 KeyboardInterrupt carrying the signal number) in the main thread, so the run can write its
@@ -30,9 +31,14 @@ from pathlib import Path
 
 from hairexp.errors import Interrupted
 
-#: SIGHUP (the terminal closed) ends a run as SIGTERM does (exit 129); it killed the process and
-#: left its summary "running" (probe of issue 12, round 10)
-SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: the signals that end a run as ``interrupted`` (exit 128 + signal): SIGINT, SIGTERM, SIGHUP (the
+#: terminal closed; it killed the process and left its summary "running": probe of issue 12,
+#: round 10), and the others whose default kills the process at once, which did the same
+#: (round 19): SIGQUIT (Ctrl-\\, exit 131; no core is dumped), SIGUSR1 / SIGUSR2 (138 / 140) and
+#: SIGXCPU (the soft CPU-time limit, ``ulimit -S -t``, exit 152).  SIGKILL cannot be caught;
+#: SIGXFSZ is ignored by Python (a write past ``ulimit -f`` fails with EFBIG, named).
+SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2,
+           signal.SIGXCPU)
 #: s, the delay before a signal that landed in a finaliser is delivered again
 REDELIVER_SECONDS = 0.01
 

@@ -15,6 +15,7 @@ import signal
 import sys
 import threading
 
+from hairexp.app.signals import SIGNALS
 
 #: the exit code of the command once its work has ended (``ended``); None while it starts
 _ENDED_CODE: int | None = None
@@ -79,7 +80,7 @@ def install(force: bool = False) -> bool:
     if not (force or is_command_line()) or threading.current_thread() is not threading.main_thread():
         return False
     installed = False
-    for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+    for s in SIGNALS:
         if signal.getsignal(s) in (signal.default_int_handler, signal.SIG_DFL):
             signal.signal(s, _handler)
             installed = True

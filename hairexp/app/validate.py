@@ -297,9 +297,16 @@ def _scene(cfg) -> None:
                          "or leave scene.usd empty", "scene.usd")
 
 
+#: m, the largest measure.tolerance: a hit is within the hair's thickness plus this
+MAX_CONTACT_TOLERANCE = 0.1
+
+
 def _measure(cfg) -> None:
     m = cfg.measure
-    number(m.tolerance, "measure.tolerance", lo=0)
+    tol = number(m.tolerance, "measure.tolerance", lo=0)
+    if tol > MAX_CONTACT_TOLERANCE:   # 5 (m) made a run 0.7 m from the wheel "hit" from frame 0 (probe, round 19)
+        raise InputError(f"is {tol:g} m beyond the hair's thickness: a strand that far from the collider would count as "
+                         f"touching it; at most {MAX_CONTACT_TOLERANCE:g} m (the default is 0.002)", "measure.tolerance")
     number(m.time, "measure.time")
     number(m.threshold, "measure.threshold", lo=0, lo_open=True)
     number(m.strand_fraction, "measure.strand_fraction", lo=0, hi=1, hi_open=True)

@@ -158,6 +158,20 @@ BLOCK_FRAMES = 256
 MAX_EDIT_DEGREES = MAX_KEY_DEGREES
 
 
+#: the schema's defaults of the keys one kind of edit reads and the other does not (GuideEditConfig)
+DEFAULT_AXIS = (0.0, 0.0, 1.0)
+DEFAULT_FALLOFF = 1.0
+
+
+def _differs(value, default) -> bool:
+    """Whether a config value differs from ``default`` (a value that is not a number does: the
+    kind's own check would refuse it)."""
+    try:
+        return not np.array_equal(np.asarray(value, dtype=float), np.asarray(default, dtype=float))
+    except (TypeError, ValueError):
+        return True
+
+
 def _edit(i: int, e, G: int, offsets: np.ndarray, rest: np.ndarray):
     """Edit ``i`` checked, as a function ``op(P, times, R)`` that edits the frames P (n, Vg, 3) at
     ``times`` (n,) under body rotations R (n, 3, 3) in place."""
@@ -179,6 +193,15 @@ def _edit(i: int, e, G: int, offsets: np.ndarray, rest: np.ndarray):
     if kind == "displace" and float(e.angle_deg) != 0:
         raise InputError("is a rotate edit's key; a displace edit moves the guide by offset "
                          "(kind: rotate to turn it by angle_deg)", f"{where}.angle_deg")
+    # the same for the other kind's shape keys, set away from their defaults (an axis on a displace, a
+    # falloff on a rotate were accepted and unused; probe of issue 12, round 19)
+    if kind == "displace" and _differs(e.axis, DEFAULT_AXIS):
+        raise InputError("is a rotate edit's key (the axis it turns about); a displace edit moves the guide by "
+                         "offset, in the body frame (kind: rotate to turn it about axis)", f"{where}.axis")
+    if kind == "rotate" and _differs(e.falloff, DEFAULT_FALLOFF):
+        raise InputError("is a displace edit's key (the profile s^falloff of its offset); a rotate edit turns the "
+                         "guide rigidly about its root (kind: displace to move it by offset x s^falloff)",
+                         f"{where}.falloff")
     if kind == "rotate":
         axis = _vector(e.axis, f"{where}.axis", nonzero=True)
         axis /= np.linalg.norm(axis)

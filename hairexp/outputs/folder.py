@@ -417,8 +417,9 @@ def claim(folder: Path, overwrite: bool = False) -> None:
             shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
         _drop_previous_log_lines(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    if refused_summary(folder / SUMMARY):   # a refused run's: replaced by this run's
-        (folder / SUMMARY).unlink()
+    if refused_summary(folder / SUMMARY):   # a refused run's: replaced by this run's, and so are its log
+        (folder / SUMMARY).unlink()          # lines (its "failed (exit 2)" line stood above this run's; round 19)
+        _drop_previous_log_lines(folder)
     try:
         os.close(os.open(folder / SUMMARY, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
     except FileExistsError:
