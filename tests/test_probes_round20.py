@@ -272,3 +272,19 @@ def test_a_run_after_a_refused_one_has_a_log_of_its_own(tmp_path):
     assert p.returncode == 0, p.stderr
     log = (out / "__main__.log").read_text()
     assert "failed (exit 2)" not in log and "goaling/free: 2 steps" in log
+
+
+def test_an_export_past_the_file_size_limit_is_one_line_exit_4(tmp_path):
+    """Own probe after round 19: the exporter's guide frame store (a temporary file) past ``ulimit
+    -f`` ended with a ScratchError traceback, exit 1; the stage itself past it is named too."""
+    env = dict(os.environ, CI="1", PYTHONPATH=str(REPO), TMPDIR=str(tmp_path))
+    for limit, expected in ((30 * 1024, "hairexp: cannot write a temporary file: [Errno 27] the guide frame store"),
+                            (100 * 1024, f"hairexp: error: {tmp_path / 'e.usda'}: cannot write the USD stage: "
+                                         f"[Errno 27] File too large: '{tmp_path / 'e.usda'}'")):
+        p = subprocess.run([sys.executable, "-m", "hairexp.io.export_scene", str(tmp_path / "e.usda"),
+                            "experiment=goaling", "variants=[]"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                           timeout=300, preexec_fn=_limited(limit))
+        assert p.returncode == 4, p.stderr[-2000:]
+        lines = [s for s in p.stderr.splitlines() if s.startswith("hairexp:")]
+        assert len(lines) == 1 and lines[0].startswith(expected) and "Traceback" not in p.stderr, p.stderr[-2000:]
+        assert not (tmp_path / "e.usda").exists() and not list(tmp_path.glob("*.tmp*"))

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from hairexp.app.assemble import assemble_scene
 from hairexp.app.config import compose_config
-from hairexp.errors import InputError
+from hairexp.errors import InputError, ScratchError
 from hairexp.io.usd_write import FORMATS, write_scene_usd
 from hairexp.model.dynamic_body import authoring_motion
 
@@ -121,6 +121,14 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, ValueError) as exc:
         print(f"hairexp: error: {exc}", file=sys.stderr)
         return 4 if isinstance(exc, DestinationError) else 2
+    except OSError as exc:   # the guide frame store (TMPDIR) on a full disk or past ulimit -f: a traceback, exit 1 (round 20)
+        if isinstance(exc, ScratchError):
+            print(f"hairexp: cannot {'read a temporary file back' if exc.reading else 'write a temporary file'}: {exc} "
+                  "(a full disk, or a file-size limit: ulimit -f; TMPDIR chooses the folder); nothing was written to "
+                  f"{args[0]}", file=sys.stderr)
+        else:
+            print(f"hairexp: error: {args[0]}: {exc}", file=sys.stderr)
+        return 4
     print(f"wrote {args[0]}: {scene.strands.n_strands} strands, {guides.n_guides} guides, {guides.n_frames - 1} frames")
     return 0
 
