@@ -288,3 +288,24 @@ def test_an_export_past_the_file_size_limit_is_one_line_exit_4(tmp_path):
         lines = [s for s in p.stderr.splitlines() if s.startswith("hairexp:")]
         assert len(lines) == 1 and lines[0].startswith(expected) and "Traceback" not in p.stderr, p.stderr[-2000:]
         assert not (tmp_path / "e.usda").exists() and not list(tmp_path.glob("*.tmp*"))
+
+
+def test_a_sweeps_signal_is_not_sent_to_the_resource_trackers():
+    """Own probe after round 19: SIGQUIT to a ``-m`` sweep was forwarded to loky's resource tracker
+    too (it ignores SIGINT and SIGTERM only): it died, and its successor printed a KeyError
+    traceback per shared resource."""
+    from hairexp.app.signals import child_pids, worker_pids
+
+    tracker = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)  # resource_tracker stand-in"])
+    worker = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        deadline = time.monotonic() + 10
+        while not {tracker.pid, worker.pid} <= set(child_pids()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert {tracker.pid, worker.pid} <= set(child_pids())
+        pids = worker_pids()
+        assert worker.pid in pids and tracker.pid not in pids
+    finally:
+        for p in (tracker, worker):
+            p.kill()
+            p.wait()

@@ -45,7 +45,7 @@ from hairexp.app.config import (CONF_DIR, check_bool_overrides, check_interpolat
 from hairexp.app.experiment import apply_overrides, run_experiment
 from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, metrics_summary, to_log_files, write_refused
 from hairexp.app.validate import unused_settings
-from hairexp.app.signals import SIGNALS, child_pids, forward, take_late
+from hairexp.app.signals import SIGNALS, forward, take_late, worker_pids
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
 from hairexp.outputs.files import write_json
@@ -1199,7 +1199,7 @@ def stop_sweep_jobs(signum: int) -> None:
     if signum == signal.SIGINT:
         if not _wait_jobs(sweep_dir, SIGINT_GRACE_SECONDS):
             return
-    sent = forward(signum, child_pids())
+    sent = forward(signum, worker_pids())
     print(f"hairexp: {name}: waiting up to {STOP_WAIT_SECONDS:g} s for the sweep's running jobs to end "
           f"({len(sent)} child processes signalled)", file=sys.stderr)
     left = _wait_jobs(sweep_dir, STOP_WAIT_SECONDS)

@@ -176,6 +176,22 @@ def child_pids(pid: int | None = None) -> list[int]:
     return sorted(out)
 
 
+def _is_resource_tracker(pid: int) -> bool:
+    """Whether ``pid`` runs a resource tracker (joblib's loky or multiprocessing's): a helper of the
+    launcher, not a job's worker, that ignores SIGINT and SIGTERM only; any other signal
+    forwarded to it (SIGQUIT) killed it, and its relaunched successor printed a traceback for each
+    shared resource it no longer knew (own probe of issue 12, round 20)."""
+    try:
+        return b"resource_tracker" in Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return False
+
+
+def worker_pids(pid: int | None = None) -> list[int]:
+    """``child_pids`` without the resource trackers: the processes a sweep's signal goes to."""
+    return [p for p in child_pids(pid) if not _is_resource_tracker(p)]
+
+
 def forward(signum: int, pids: list[int]) -> list[int]:
     """Send ``signum`` to ``pids``; the ones it reached."""
     sent = []
