@@ -26,6 +26,7 @@ from hairexp.app import cli
 from hairexp.app.signals import InterruptSignals, exit_code
 from hairexp.app.startup import begun, ended
 from hairexp.errors import Interrupted
+from hairexp.outputs.folder import unhold_unused
 
 
 @hydra.main(config_path="../conf", config_name="config", version_base="1.3")
@@ -74,10 +75,9 @@ def entry() -> int:
     if used is not None:
         print(used, file=sys.stderr)
         return 2
-    if any(a in ("-m", "--multirun") for a in sys.argv[1:]):
-        # Hydra then lets the launcher's exceptions through instead of printing them and exiting 1
-        # itself: a sweep worker that was killed is said below in one line
-        os.environ.setdefault("HYDRA_FULL_ERROR", "1")
+    # Hydra lets its exceptions through instead of printing them and exiting 1 itself: a config it
+    # cannot compose is said below in one line (exit 2), and so is a sweep worker that was killed
+    os.environ.setdefault("HYDRA_FULL_ERROR", "1")
     begun()   # from here a signal is the run's (its handlers), then one while the command ends
     try:
         # outside a run (composing, between sweep jobs) too; a sweep's running jobs are stopped first
@@ -95,7 +95,10 @@ def entry() -> int:
         # what Hydra could not compose and hairexp's checks did not foresee: in a -m sweep (Hydra lets
         # its exceptions through, above) a traceback, exit 1 (probe of issue 12, round 19)
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        print(f"hairexp: error: {first}", file=sys.stderr)
+        names = cli._flag_values(sys.argv[1:], "--config-name", "-cn")
+        where = f"--config-name={names[-1]}: " if names else ""
+        print(f"hairexp: error: {where}{first}", file=sys.stderr)
+        unhold_unused()   # the run folder Hydra never wrote: not left holding only .lock
         return 2
     except KeyboardInterrupt as exc:
         code = exit_code(exc.signum) if isinstance(exc, Interrupted) else 130

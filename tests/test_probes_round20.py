@@ -186,13 +186,18 @@ def test_sigxcpu_says_the_cpu_time_limit(tmp_path):
     (["-m", "-cd", "/etc/hostname"], "hairexp: error: --config-dir=/etc/hostname: not a folder"),
     (["-m", "-cp", "/tmp"], "hairexp: error: --config-name=config: no config config.yaml in /tmp"),
     (["--config-path=../nowhere"], "hairexp: error: --config-path=../nowhere: no such folder"),
+    # own probes after round 19: a "~" the shell did not expand is a folder named "~" to Hydra; a config
+    # that exists but does not compose (the schema's base, an experiment as the primary config)
+    (["-cd", "~"], "hairexp: error: --config-dir=~: no such folder"),
+    (["-cn", "base_config"], "hairexp: error: --config-name=base_config: Could not override '"),
+    (["-m", "-cn", "experiment/goaling_smoke"], "hairexp: error: --config-name=experiment/goaling_smoke: "),
 ])
 def test_bad_config_flags_are_one_line_exit_2_and_no_folder(tmp_path, flags, expected):
     """Round 19: exit 1 with Hydra's multi-line message and a folder holding only ``.lock``; under
     ``-m`` a traceback."""
     p = run_cli([*flags, *SMALL, f"hydra.run.dir={tmp_path / 'r'}", f"hydra.sweep.dir={tmp_path / 's'}"], tmp_path)
     assert p.returncode == 2, p.stderr
-    errors = [s for s in p.stderr.splitlines() if not s.startswith("hairexp: warning")]
+    errors = [s for s in p.stderr.splitlines() if s.startswith("hairexp: error") or "Traceback" in s]
     assert len(errors) == 1 and errors[0].startswith(expected), p.stderr
     assert not (tmp_path / "r").exists() and not (tmp_path / "s").exists()
 

@@ -631,7 +631,7 @@ def config_source_error(argv: list[str]) -> str | None:
 
     dirs = []
     for value in _flag_values(argv, "--config-dir", "-cd"):
-        path = Path(value).expanduser().absolute()
+        path = Path(value).absolute()   # as Hydra reads it: a "~" the shell left is a folder named "~"
         if not path.is_dir():
             return (f"hairexp: error: --config-dir={value}: " + ("not a folder" if path.exists() else "no such folder")
                     + " (a folder of extra config files)")
@@ -641,7 +641,7 @@ def config_source_error(argv: list[str]) -> str | None:
     for value in paths:
         if "://" in value:   # pkg:// or file://: Hydra's to read
             return None
-        path = Path(value).expanduser()
+        path = Path(value)
         path = path if path.is_absolute() else Path(__file__).resolve().parents[1] / path
         if not path.is_dir():
             return (f"hairexp: error: --config-path={value}: no such folder ({path}; a relative config path is "

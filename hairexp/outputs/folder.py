@@ -40,6 +40,9 @@ RUN_DIRS = frozenset({STREAM, "result.clips", "result.clips.tmp"})   # the USD r
 #: first one's ``.hydra/`` record
 LOCK = ".lock"
 _HELD: list[int] = []
+#: the folders ``hold`` made, and every folder it locked (``unhold_unused``)
+_MADE: list[Path] = []
+_LOCKED: list[Path] = []
 
 
 def held_elsewhere(folder: Path) -> bool:
@@ -99,6 +102,8 @@ def hold(folder: Path) -> bool:
     import fcntl
 
     folder = Path(folder)
+    if not folder.exists():
+        _MADE.append(folder)
     folder.mkdir(parents=True, exist_ok=True)
     try:   # a link planted as .lock is not followed (it made a file outside the folder; probe of issue 12)
         fd = os.open(folder / LOCK, os.O_CREAT | os.O_RDWR | getattr(os, "O_NOFOLLOW", 0), 0o644)
@@ -115,7 +120,22 @@ def hold(folder: Path) -> bool:
         os.close(fd)
         return True
     _HELD.append(fd)
+    _LOCKED.append(folder)
     return True
+
+
+def unhold_unused() -> None:
+    """Remove the ``.lock`` of the folders ``hold`` locked that hold nothing else, and the folders
+    it made for them: the launch ended before anything was written (Hydra could not compose the
+    config; a folder holding only ``.lock`` was left; probe of issue 12, round 19)."""
+    for folder in [f for f in _MADE] + [Path(f) for f in _LOCKED if Path(f) not in _MADE]:
+        try:
+            if [p.name for p in folder.iterdir()] == [LOCK]:
+                (folder / LOCK).unlink()
+                if folder in _MADE:
+                    folder.rmdir()
+        except OSError:
+            pass
 
 
 def _is_tmp(p: Path) -> bool:
