@@ -89,7 +89,8 @@ def test_usd_errors_are_mapped_to_their_errno():
             return self.text
 
     line = "\tError in 'Ar::Write' at line 78 in file f.cpp : 'Error occurred writing file: {}'\n"
-    for words, code in (("No space left on device", 28), ("File too large", 27), ("Permission denied", 13)):
+    for words, code in (("No space left on device", 28), ("File too large", 27), ("Permission denied", 13),
+                        ("Insufficient permissions to write to destination directory '/x'", 13)):
         e = usd_write_error(Fake(line.format(words) * 3000), "/x/result.usda")
         assert (e.errno, e.filename) == (code, "/x/result.usda")
         assert len(str(e)) < 100

@@ -68,6 +68,7 @@ SAMPLE_BYTES = 256
 #: what USD's write errors say, and the errno each one is (``writing``)
 _WRITE_ERRORS = (("No space left", errno.ENOSPC), ("File too large", errno.EFBIG), ("Disk quota", errno.EDQUOT),
                  ("Read-only file system", errno.EROFS), ("Permission denied", errno.EACCES),
+                 ("Insufficient permissions", errno.EACCES),
                  ("Operation not permitted", errno.EPERM), ("No such file or directory", errno.ENOENT))
 
 
