@@ -315,3 +315,45 @@ def test_a_sweeps_signal_is_not_sent_to_the_resource_trackers():
         for p in (tracker, worker):
             p.kill()
             p.wait()
+
+
+CACHED_KERNEL = """
+from hairexp.physics.kernels import njit
+
+@njit(cache=True)
+def big(x):
+    s = 0.0
+    for i in range(x.shape[0]):
+        s += x[i] * x[i] + 0.5 * x[i] - 1.0 / (1.0 + x[i] * x[i])
+    return s
+"""
+
+CALL_KERNEL = """
+import logging, sys
+import numpy as np
+logging.basicConfig(level=logging.WARNING, format="%(message)s")
+sys.path.insert(0, sys.argv[1])
+import cachedkernel
+print(cachedkernel.big(np.arange(4.0)))
+"""
+
+
+def test_a_compile_cache_that_cannot_be_written_is_said_not_raised(tmp_path):
+    """Independent probe round 22: under ``ulimit -f 100`` with a cold numba cache, numba's cache
+    write raised EFBIG into the run, which failed as a run folder that could not be written, naming
+    no file.  A real write failure here: a 1-byte file-size limit on the cache folder's files."""
+    (tmp_path / "cachedkernel.py").write_text(CACHED_KERNEL)
+    env = dict(os.environ, PYTHONPATH=str(REPO), NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    p = subprocess.run([sys.executable, "-c", CALL_KERNEL, str(tmp_path)], capture_output=True, text=True,
+                       timeout=300, env=env, preexec_fn=_limited(1))
+    assert p.returncode == 0, p.stderr[-2000:]
+    expected = sum(x * x + 0.5 * x - 1.0 / (1.0 + x * x) for x in (0.0, 1.0, 2.0, 3.0))
+    assert abs(float(p.stdout.strip()) - expected) < 1e-12
+    said = [s for s in p.stderr.splitlines() if "compile cache could not be written" in s]
+    assert len(said) == 1 and "[Errno 27] File too large" in said[0], p.stderr[-2000:]
+    # without the limit the same kernel is cached, and a second process reads it without a word
+    for _ in range(2):
+        q = subprocess.run([sys.executable, "-c", CALL_KERNEL, str(tmp_path)], capture_output=True, text=True,
+                           timeout=300, env=env)
+        assert q.returncode == 0 and "compile cache" not in q.stderr, q.stderr[-2000:]
+    assert list((tmp_path / "cache").rglob("*.nbc"))

@@ -42,7 +42,31 @@ import numpy as np
 try:  # numba is a dependency, but a missing or broken install must not stop the torch path
     from numba import njit as _numba_njit
     from numba import prange
+    from numba.core import caching as _caching
     HAVE_NUMBA = True
+
+    _numba_save_overload = _caching.Cache.save_overload
+    _CACHE_WARNED: list[str] = []
+
+    def _save_or_warn(self, sig, data):
+        """numba's ``Cache.save_overload``, with a write error of the on-disk compile cache said
+        once and not raised: the function is compiled and in memory; only the next process
+        compiles it again.  numba raised it into the run, which then failed as if its run folder
+        could not be written (``[Errno 27] File too large``, naming no file, under ``ulimit -f``
+        with a cold cache; independent probe of issue 12, round 22)."""
+        try:
+            _numba_save_overload(self, sig, data)
+        except OSError as exc:
+            if not _CACHE_WARNED:
+                import logging
+
+                where = getattr(self, "_cache_path", "numba's cache folder")
+                _CACHE_WARNED.append(str(exc))
+                logging.getLogger("hairexp").warning(
+                    "numba's compile cache could not be written in %s (%s): the run goes on; the kernels "
+                    "compile again in the next process (NUMBA_CACHE_DIR chooses the folder)", where, exc)
+
+    _caching.Cache.save_overload = _save_or_warn
 
     def njit(*args, **kwargs):
         """numba's ``njit``; where its cache cannot be written (the checkout is read-only to this
