@@ -44,8 +44,8 @@ def entry() -> int:
     if "--version" in sys.argv[1:]:   # Hydra's said only "Hydra 1.3.8" (probe of issue 12, round 19)
         print(f"hairexp {cli.version()} (Hydra {hydra.__version__})")
         return 0
-    bad_flag = (cli.flag_error(sys.argv[1:]) or cli.duplicate_key_error(sys.argv[1:])   # before any folder is made
-                or cli.config_source_error(sys.argv[1:]))
+    bad_flag = (cli.flag_error(sys.argv[1:]) or cli.mode_error(sys.argv[1:])   # before any folder is made
+                or cli.duplicate_key_error(sys.argv[1:]) or cli.config_source_error(sys.argv[1:]))
     if bad_flag is not None:
         print(bad_flag, file=sys.stderr)
         return 2

@@ -357,3 +357,25 @@ def test_a_compile_cache_that_cannot_be_written_is_said_not_raised(tmp_path):
                            timeout=300, env=env)
         assert q.returncode == 0 and "compile cache" not in q.stderr, q.stderr[-2000:]
     assert list((tmp_path / "cache").rglob("*.nbc"))
+
+
+@pytest.mark.parametrize("flags,expected", [
+    (["-m", "--cfg", "hydra"], "hairexp: error: --multirun and --cfg given together"),
+    (["--info", "-m", "solver.dt=0.01,0.02"], "hairexp: error: --info and --multirun given together"),
+    (["--run", "--cfg", "job"], "hairexp: error: --run and --cfg given together"),
+    (["--cfg", "job", "solver.dt=abc"], "hairexp: error: solver.dt: Value 'abc' of type 'str' could not be converted"),
+    (["--cfg", "job", "tracking.rtoll=1"], "hairexp: error: tracking.rtoll: unknown key"),
+])
+def test_hydras_modes_and_a_printed_config_are_checked_like_a_run(tmp_path, flags, expected):
+    """Independent probe round 22: two of Hydra's modes together gave its ValueError as a
+    traceback, exit 1; ``--cfg job`` with a bad value, Hydra's multi-line message, exit 1."""
+    p = run_cli(flags, tmp_path)
+    assert p.returncode == 2, p.stderr
+    errors = [s for s in p.stderr.splitlines() if s.startswith("hairexp: error") or "Traceback" in s]
+    assert len(errors) == 1 and errors[0].startswith(expected), p.stderr
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_printed_config_still_prints(tmp_path):
+    p = run_cli(["--cfg", "job", "experiment=goaling_smoke", "solver.dt=0.02"], tmp_path)
+    assert p.returncode == 0 and "dt: 0.02" in p.stdout, p.stderr

@@ -591,6 +591,29 @@ def version() -> str:
     return found.group(1) if found else "unknown"
 
 
+#: the flags with which the config given is composed as for a run (``config_error`` checks it first:
+#: ``--cfg job solver.dt=abc`` gave Hydra's multi-line message, exit 1; independent probe, round 22)
+_COMPOSING_FLAGS = frozenset({"-m", "--multirun", "--cfg", "-c", "--resolve", "--package", "-p"})
+#: Hydra's mutually exclusive modes (its ValueError "Only one of --run, --multirun, --cfg, --info and
+#: --shell-completion can be specified" came as a traceback, exit 1; independent probe, round 22)
+_MODES = {"--run": "--run", "-r": "--run", "--multirun": "--multirun", "-m": "--multirun", "--cfg": "--cfg",
+          "-c": "--cfg", "--info": "--info", "-i": "--info", "--shell-completion": "--shell-completion",
+          "-sc": "--shell-completion"}
+
+
+def mode_error(argv: list[str]) -> str | None:
+    """The error line for more than one of Hydra's modes on one command line (``-m --cfg job``)."""
+    modes = []
+    for i, a in enumerate(argv):
+        m = _MODES.get(_flag(a))
+        if m is not None and not _is_value(argv, i) and m not in modes:
+            modes.append(m)
+    if len(modes) > 1:
+        return (f"hairexp: error: {' and '.join(modes)} given together; give one of --run, --multirun (-m), --cfg (-c), "
+                "--info (-i), --shell-completion (-sc)")
+    return None
+
+
 def flag_error(argv: list[str]) -> str | None:
     """The error line for a command-line flag Hydra does not have (``--bogus-flag``), before any
     folder is made: Hydra's argparse refused it (exit 2) after hairexp had taken the run folder's
@@ -1213,8 +1236,8 @@ def _hydra_arg(a: str) -> bool:
 
 
 def _plain_overrides(argv: list[str]) -> list[str]:
-    """The command line's config overrides: neither a flag nor one of Hydra's own keys."""
-    return [a for a in argv if not (a.startswith("-") or _hydra_arg(a))]
+    """The command line's config overrides: neither a flag, a flag's value, nor one of Hydra's own keys."""
+    return [a for i, a in enumerate(argv) if not (a.startswith("-") or _is_value(argv, i) or _hydra_arg(a))]
 
 
 def compose_error(overrides: list[str], input_errors: bool = True) -> str | None:
@@ -1324,7 +1347,7 @@ def config_error(argv: list[str]) -> str | None:
     if bad is not None:
         return bad
     multirun = any(a in ("-m", "--multirun") for a in argv)
-    if any(a.startswith("-") and a not in ("-m", "--multirun") for a in argv):
+    if any(a.startswith("-") and _flag(a) not in _COMPOSING_FLAGS and not _is_value(argv, i) for i, a in enumerate(argv)):
         return None
     hydra_msg = hydra_key_error([a for a in argv if _hydra_arg(a)])
     if hydra_msg is not None:
