@@ -379,3 +379,25 @@ def test_hydras_modes_and_a_printed_config_are_checked_like_a_run(tmp_path, flag
 def test_a_printed_config_still_prints(tmp_path):
     p = run_cli(["--cfg", "job", "experiment=goaling_smoke", "solver.dt=0.02"], tmp_path)
     assert p.returncode == 0 and "dt: 0.02" in p.stdout, p.stderr
+
+
+def test_rerun_write_errors_of_the_comparison_are_named_oserrors(tmp_path):
+    """Independent probe round 22: a full disk while comparison.rrd was written ended the experiment
+    with rerun's RuntimeError as a traceback, exit 1, and its summary left "running" (by hand, on a
+    20 MB tmpfs filled as tracked/recording.rrd appeared: now exit 4, ``[Errno 28] No space left on
+    device: '.../comparison.partial.rrd'``, the experiment's summary failed)."""
+    from hairexp.outputs.comparison import _written
+
+    def full():
+        raise RuntimeError("Failed to encode LogMsg: Failed to write: No space left on device (os error 28)")
+
+    with pytest.raises(OSError) as err:
+        _written(tmp_path / "c.rrd", full)
+    assert (err.value.errno, err.value.filename) == (28, str(tmp_path / "c.rrd"))
+
+    def other():
+        raise RuntimeError("some other rerun error")
+
+    with pytest.raises(RuntimeError):
+        _written(tmp_path / "c.rrd", other)
+    assert _written(tmp_path / "c.rrd", lambda: 7) == 7

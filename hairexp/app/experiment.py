@@ -31,9 +31,9 @@ from hairexp.app.signals import InterruptSignals, take_late
 from hairexp.errors import InputError, Interrupted
 from hairexp.evaluation.judges import JUDGES
 from hairexp.evaluation.measures import experiment_key_moment
-from hairexp.app.run import config_hash, inputs_inside, run, to_log_files, warnings_once
+from hairexp.app.run import _write_ending, config_hash, inputs_inside, run, to_log_files, warnings_once
 from hairexp.outputs.files import write_json
-from hairexp.outputs.folder import SUMMARY, claim, owner
+from hairexp.outputs.folder import SUMMARY, claim, free_reserve, owner, reserve
 
 log = logging.getLogger("hairexp")
 
@@ -202,6 +202,9 @@ def _experiment(cfg, out: Path, on_checked) -> dict:
                "judge": plain["judge"],
                "variants": {}, "config_hash": config_hash(plain), "config": plain}
     write_json(out / SUMMARY, summary)
+    # room for the experiment's ending on a disk that fills meanwhile (its summary stayed "running":
+    # independent probe of issue 12, round 22), as a run holds for its own
+    reserve(out)
     measures, facts = {}, {}
     try:
         with InterruptSignals():
@@ -224,13 +227,15 @@ def _experiment(cfg, out: Path, on_checked) -> dict:
         converged = [v.get("converged") for v in summary["variants"].values()]
         summary.update(status="completed", converged=all(c is not False for c in converged),
                        wall_seconds=time.perf_counter() - t0)
+        free_reserve(out)
         write_json(out / SUMMARY, summary)
     except BaseException as exc:
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
         if summary["status"] in ("running", "completed"):   # not yet told by a variant
             summary.update(status=status, error=str(exc) or type(exc).__name__, wall_seconds=time.perf_counter() - t0)
         try:
-            write_json(out / SUMMARY, summary)
+            free_reserve(out)   # its room is the summary's
+            _write_ending(out / SUMMARY, summary)   # in place when the disk has no room for a new file
         except Exception as e2:   # noqa: BLE001  (never hide the first error)
             note = f"while writing the experiment's {status} summary: {type(e2).__name__}: {e2}"
             to_log_files(f"{out}: {note}")   # the console gets it under the error's line ("also:")

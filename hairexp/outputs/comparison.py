@@ -87,6 +87,24 @@ def _chunks(variant: str, rrd: Path):
     return RrdReader(rrd).stream().flat_map(move)
 
 
+def _written(path: Path, call):
+    """``call()``, a rerun call that writes ``path``; rerun's RuntimeError of a failed write ("Failed
+    to encode LogMsg: Failed to write: No space left on device") as an OSError naming ``path``: it
+    ended the experiment with a traceback, exit 1 (independent probe of issue 12, round 22)."""
+    import errno
+    import os
+
+    try:
+        return call()
+    except RuntimeError as exc:
+        text = str(exc)
+        if "Failed to write" not in text and "No space" not in text:
+            raise
+        code = errno.ENOSPC if "No space" in text else errno.EFBIG if "too large" in text else errno.EIO
+        raise OSError(code, os.strerror(code) if code != errno.EIO else f"the recording could not be written: {text}",
+                      str(path)) from None
+
+
 def write_comparison(out: Path, variants: list[str], key: tuple[float, str] | None = None) -> Path | None:
     """Write ``out/comparison.rrd`` from the variant folders ``out/<variant>/`` (their
     recordings, summaries and metrics); None (nothing written) when a variant has no recording
@@ -111,17 +129,18 @@ def write_comparison(out: Path, variants: list[str], key: tuple[float, str] | No
     path = out / NAME
     partial = Path(partial_name(str(path)))
     rec = rr.RecordingStream("hairexp", recording_id=str(uuid.uuid4()))
-    rec.save(str(partial))
+    _written(partial, lambda: rec.save(str(partial)))
     try:
         for i, (v, f) in enumerate(zip(variants, folders)):
-            rr.send_chunks(_chunks(v, f / "recording.rrd"), recording=rec)
+            _written(partial, lambda v=v, f=f: rr.send_chunks(_chunks(v, f / "recording.rrd"), recording=rec))
             color = PALETTE[i % len(PALETTE)]
             for p in plots:
                 for c in p.columns:
                     rec.log(f"/metrics/{c}/{v}", rr.SeriesLines(names=v, colors=[color]), static=True)
         plan = {"bounds": None if bounds.empty else bounds.to_json(), "t_end": t_end,
                 "key": None if key is None else {"time": float(key[0]), "what": key[1]}}
-        rec.send_blueprint(comparison_blueprint(variants, plots, ranges, plan), make_active=True, make_default=True)
+        _written(partial, lambda: rec.send_blueprint(comparison_blueprint(variants, plots, ranges, plan),
+                                                     make_active=True, make_default=True))
         flush_recording(rec, str(partial))
     finally:
         finish_stream(rec, str(partial))   # disconnect only after a flush that succeeded: a failed writer hangs it
