@@ -120,6 +120,10 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     ``cwd``: the directory hairexp was started in, which relative input paths are read from
     (``absolute_inputs``)."""
     global LAST
+    # a log file on a full disk is not worth a traceback per line, in a sweep's worker process too (the
+    # main process sets it in __main__.entry; a worker printed "--- Logging error ---" with a traceback
+    # for each line, ~300 lines; independent probe of issue 12, round 22)
+    logging.raiseExceptions = False
     note_job_logs(Path(out))   # what its logs hold now is a previous run's (overwrite=true drops it)
     if sweep:
         stopped = _stopped_by(sweep_dir)
