@@ -95,7 +95,7 @@ def entry() -> int:
         # what Hydra could not compose and hairexp's checks did not foresee: in a -m sweep (Hydra lets
         # its exceptions through, above) a traceback, exit 1 (probe of issue 12, round 19)
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        names = cli._flag_values(sys.argv[1:], "--config-name", "-cn")
+        names = cli.flag_values(sys.argv[1:], "--config-name", "-cn")
         where = f"--config-name={names[-1]}: " if names else ""
         print(f"hairexp: error: {where}{first}", file=sys.stderr)
         unhold_unused()   # the run folder Hydra never wrote: not left holding only .lock

@@ -99,6 +99,21 @@ class Interrupted(KeyboardInterrupt):
         super().__init__(f"interrupted by {name}{why}")
 
 
+#: what a library's write error says (USD's ``Tf.ErrorException``, rerun's RuntimeError: their
+#: exceptions carry no errno), and the errno each one is (``errno_in_text``)
+_WRITE_ERRORS = (("No space left", "ENOSPC"), ("File too large", "EFBIG"), ("Disk quota", "EDQUOT"),
+                 ("Read-only file system", "EROFS"), ("Permission denied", "EACCES"),
+                 ("Insufficient permissions", "EACCES"), ("Operation not permitted", "EPERM"),
+                 ("No such file or directory", "ENOENT"))
+
+
+def errno_in_text(text: str) -> int | None:
+    """The errno a library's write error names in its text (``_WRITE_ERRORS``), or None."""
+    import errno
+
+    return next((getattr(errno, name) for words, name in _WRITE_ERRORS if words in text), None)
+
+
 def regular_file(path, where: str, what: str = "file"):
     """``path`` (a Path) when it is a readable regular file, else an InputError naming ``where``:
     no such file, a directory, a FIFO or device (reading one would block or never end), or a

@@ -588,7 +588,7 @@ def version() -> str:
     except PackageNotFoundError:
         pass
     try:
-        text = (Path(__file__).resolve().parents[2] / "pyproject.toml").read_text()
+        text = (CONF_DIR.parent / "pyproject.toml").read_text()
     except OSError:
         return "unknown"
     found = re.search(r'^version\s*=\s*"([^"]+)"', text, re.M)
@@ -634,7 +634,7 @@ def flag_error(argv: list[str]) -> str | None:
     return None
 
 
-def _flag_values(argv: list[str], *names: str) -> list[str]:
+def flag_values(argv: list[str], *names: str) -> list[str]:
     """The values given to the flag ``names`` (``-cn x`` and ``--config-name=x`` alike)."""
     out = []
     for i, arg in enumerate(argv):
@@ -657,14 +657,14 @@ def config_source_error(argv: list[str]) -> str | None:
     from hydra.core.config_store import ConfigStore
 
     dirs = []
-    for value in _flag_values(argv, "--config-dir", "-cd"):
+    for value in flag_values(argv, "--config-dir", "-cd"):
         path = Path(value).absolute()   # as Hydra reads it: a "~" the shell left is a folder named "~"
         if not path.is_dir():
             return (f"hairexp: error: --config-dir={value}: " + ("not a folder" if path.exists() else "no such folder")
                     + " (a folder of extra config files)")
         dirs.append(path)
-    paths = _flag_values(argv, "--config-path", "-cp")
-    primary = [Path(__file__).resolve().parents[2] / "conf"]
+    paths = flag_values(argv, "--config-path", "-cp")
+    primary = [CONF_DIR]
     for value in paths:
         if "://" in value:   # pkg:// or file://: Hydra's to read
             return None
@@ -674,7 +674,7 @@ def config_source_error(argv: list[str]) -> str | None:
             return (f"hairexp: error: --config-path={value}: no such folder ({path}; a relative config path is "
                     "read from hairexp/, where python -m hairexp's entry point is)")
         primary = [path]
-    names = _flag_values(argv, "--config-name", "-cn") or ["config"]
+    names = flag_values(argv, "--config-name", "-cn") or ["config"]
     name = names[-1]
     file = name if name.endswith(".yaml") else f"{name}.yaml"
     stored = ConfigStore.instance().repo

@@ -31,7 +31,7 @@ from hairexp.app.signals import InterruptSignals, take_late
 from hairexp.errors import InputError, Interrupted
 from hairexp.evaluation.judges import JUDGES
 from hairexp.evaluation.measures import experiment_key_moment
-from hairexp.app.run import _write_ending, config_hash, inputs_inside, run, to_log_files, warnings_once
+from hairexp.app.run import config_hash, inputs_inside, run, to_log_files, warnings_once, write_ending
 from hairexp.outputs.files import write_json
 from hairexp.outputs.folder import SUMMARY, claim, free_reserve, owner, reserve
 
@@ -235,7 +235,7 @@ def _experiment(cfg, out: Path, on_checked) -> dict:
             summary.update(status=status, error=str(exc) or type(exc).__name__, wall_seconds=time.perf_counter() - t0)
         try:
             free_reserve(out)   # its room is the summary's
-            _write_ending(out / SUMMARY, summary)   # in place when the disk has no room for a new file
+            write_ending(out / SUMMARY, summary)   # in place when the disk has no room for a new file
         except Exception as e2:   # noqa: BLE001  (never hide the first error)
             note = f"while writing the experiment's {status} summary: {type(e2).__name__}: {e2}"
             to_log_files(f"{out}: {note}")   # the console gets it under the error's line ("also:")

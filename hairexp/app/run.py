@@ -441,7 +441,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     return summary
 
 
-def _write_ending(path: Path, summary: dict) -> None:
+def write_ending(path: Path, summary: dict) -> None:
     """The ending's summary.json: atomically (a new file, renamed), or, when the disk has no room
     for the new file, over the running summary's own bytes (truncated first, which frees them),
     so that a full disk does not leave the summary saying "running" (probe of issue 12); the same
@@ -615,7 +615,7 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
         summary["converged_fraction"] = float(summary.get("converged_fraction", 1.0)) * n / (n + 1)
         summary["failed_step"] = n + 1   # 1-based: the step after the last one in metrics.parquet
     free_reserve(out)   # its room is the summary's
-    attempt("summary.json", lambda: _write_ending(out / SUMMARY, summary))
+    attempt("summary.json", lambda: write_ending(out / SUMMARY, summary))
     stream = out / STREAM
     if stream.is_dir() and not any(p.is_file() for p in stream.rglob("*")):
         attempt(STREAM, lambda: shutil.rmtree(stream))

@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
+from hairexp.errors import errno_in_text
 from hairexp.io.usd_colliders import write_colliders
 from hairexp.memory import release
 from hairexp.io.usd_layout import (BODY, GUIDE_WIDTH, GUIDES, HAIR, HAIR_WIDTH, RESULT, RESULT_HAIR, ROOT,
@@ -65,22 +66,15 @@ MATRIX_BYTES = 128
 SAMPLE_BYTES = 256
 
 
-#: what USD's write errors say, and the errno each one is (``writing``)
-_WRITE_ERRORS = (("No space left", errno.ENOSPC), ("File too large", errno.EFBIG), ("Disk quota", errno.EDQUOT),
-                 ("Read-only file system", errno.EROFS), ("Permission denied", errno.EACCES),
-                 ("Insufficient permissions", errno.EACCES),
-                 ("Operation not permitted", errno.EPERM), ("No such file or directory", errno.ENOENT))
-
-
 def usd_write_error(exc: Exception, file) -> OSError:
     """USD's error (``pxr.Tf.ErrorException``: one line per failed write, thousands when the disk
     fills during a save) as one OSError naming ``file``: its errno when the text says which
     (disk full, file-size limit, ...), else EIO with USD's first message (probe of issue 12: a full
     disk during the result's export ended with a traceback and pages of USD lines, exit 1)."""
     text = str(exc)
-    for words, code in _WRITE_ERRORS:
-        if words in text:
-            return OSError(code, os.strerror(code), str(file))
+    code = errno_in_text(text)
+    if code is not None:
+        return OSError(code, os.strerror(code), str(file))
     first = next((line.strip() for line in text.splitlines() if line.strip()), type(exc).__name__)
     if " : " in first:   # "Error in '<C++ function>' at line N in file F : 'what'": the what
         first = first.rsplit(" : ", 1)[1]
@@ -98,6 +92,15 @@ def writing(file):
         raise usd_write_error(exc, file) from None
 
 
+def _saved(file, call) -> None:
+    """``call()``, a USD call that writes ``file`` and returns whether it did: its errors, and a
+    False, raised as one OSError naming ``file`` (``writing``)."""
+    with writing(file):
+        ok = call()
+    if not ok:
+        raise OSError(errno.EIO, "USD could not write it", str(file))
+
+
 class Saves:
     """Saves a file-backed stage (or Sdf layer) every SAVE_BYTES of samples added (``add``), so
     that its samples leave memory (a saved crate layer reads them back from the file on demand)."""
@@ -109,10 +112,7 @@ class Saves:
     def add(self, nbytes: int) -> None:
         self.added += nbytes
         if self.added >= SAVE_BYTES:
-            with writing(self.layer.realPath):
-                ok = self.layer.Save()
-            if not ok:
-                raise OSError(errno.EIO, "USD could not write it", self.layer.realPath)
+            _saved(self.layer.realPath, self.layer.Save)
             self.added = 0
             release()   # each save's packing tables grow with the samples saved: free them, or the heap grows
 
@@ -223,10 +223,7 @@ def save(stage, path) -> None:
         raise ValueError(f"{path}: a USD file name ends with one of {', '.join(FORMATS)}")
     tmp = path.with_name(path.stem + ".tmp" + path.suffix)  # same suffix: same file format
     try:
-        with writing(path):
-            ok = stage.GetRootLayer().Export(str(tmp))
-        if not ok:
-            raise OSError(errno.EIO, "USD could not write it", str(path))
+        _saved(path, lambda: stage.GetRootLayer().Export(str(tmp)))
         os.replace(tmp, path)
     finally:
         _discard(tmp)
@@ -296,10 +293,7 @@ def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps
         if path.suffix == ".usda":
             save(stage, path)
         else:
-            with writing(path):
-                ok = stage.GetRootLayer().Save()
-            if not ok:
-                raise OSError(errno.EIO, "USD could not write it", str(path))
+            _saved(path, stage.GetRootLayer().Save)
             stage = None
             os.replace(crate, path)
         shutil.rmtree(clips_dir(path), ignore_errors=True)   # an earlier write's clips: not this stage's
@@ -360,10 +354,7 @@ def _write_clip(file: Path, channels: list, first: int, last: int, fps: float) -
         for c, p in zip(channels, paths):
             layer.SetTimeSample(p, float(f), c.value(f))
             saves.add(c.nbytes)
-    with writing(file):
-        ok = layer.Save()
-    if not ok:
-        raise OSError(errno.EIO, "USD could not write it", str(file))
+    _saved(file, layer.Save)
     return layer
 
 
@@ -405,10 +396,7 @@ def write_clipped(path, scene, positions, guide_positions, guide_offsets, fps: f
             layer = _write_clip(tmp / f"{k}.usdc", channels, first, min(first + CLIP_FRAMES, frames), fps)
             if k == 0:   # every clip has the same attributes: the manifest is the first one's
                 manifest = Usd.ClipsAPI.GenerateClipManifestFromLayers([layer], ROOT)
-                with writing(tmp / "manifest.usdc"):
-                    ok = manifest.Export(str(tmp / "manifest.usdc"))
-                if not ok:
-                    raise OSError(errno.EIO, "USD could not write it", str(tmp / "manifest.usdc"))
+                _saved(tmp / "manifest.usdc", lambda: manifest.Export(str(tmp / "manifest.usdc")))
                 manifest = None
             layer = None
             release()   # the chunk's samples and packing tables

@@ -18,6 +18,7 @@ overlays are left out (each variant's own recording has them).
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import uuid
@@ -29,6 +30,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 from rerun.chunk import RrdReader
 
+from hairexp.errors import errno_in_text
 from hairexp.outputs import layout
 from hairexp.outputs.rerun_sink import (OVERLAYS, _check_complete, finish_stream, flush_recording, framing, key_view,
                                         partial_name, plot_views, time_panel)
@@ -91,18 +93,16 @@ def _written(path: Path, call):
     """``call()``, a rerun call that writes ``path``; rerun's RuntimeError of a failed write ("Failed
     to encode LogMsg: Failed to write: No space left on device") as an OSError naming ``path``: it
     ended the experiment with a traceback, exit 1 (independent probe of issue 12, round 22)."""
-    import errno
-    import os
-
     try:
         return call()
     except RuntimeError as exc:
         text = str(exc)
         if "Failed to write" not in text and "No space" not in text:
             raise
-        code = errno.ENOSPC if "No space" in text else errno.EFBIG if "too large" in text else errno.EIO
-        raise OSError(code, os.strerror(code) if code != errno.EIO else f"the recording could not be written: {text}",
-                      str(path)) from None
+        code = errno_in_text(text)
+        if code is None:
+            raise OSError(errno.EIO, f"the recording could not be written: {text}", str(path)) from None
+        raise OSError(code, os.strerror(code), str(path)) from None
 
 
 def write_comparison(out: Path, variants: list[str], key: tuple[float, str] | None = None) -> Path | None:
