@@ -17,6 +17,7 @@ import warnings
 from concurrent.futures.process import BrokenProcessPool
 
 import hydra
+import yaml
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import ConfigCompositionException, MissingConfigException, SearchPathException
 from omegaconf import DictConfig
@@ -91,10 +92,16 @@ def entry() -> int:
               f"ran are failed ({type(exc).__name__}: {first})", file=sys.stderr)
         code = cli.exit_code()
         return code if code else 3   # as a killed job's (cli._end_killed_jobs)
-    except (ConfigCompositionException, MissingConfigException, SearchPathException) as exc:
+    except (ConfigCompositionException, MissingConfigException, SearchPathException, yaml.YAMLError) as exc:
         # what Hydra could not compose and hairexp's checks did not foresee: in a -m sweep (Hydra lets
-        # its exceptions through, above) a traceback, exit 1 (probe of issue 12, round 19)
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        # its exceptions through, above) a traceback, exit 1 (probe of issue 12, round 19); a user's
+        # own config file (--config-dir) that is not YAML, or whose key or value the schema refuses:
+        # a traceback, or only Hydra's first line "ConfigKeyError raised while composing config:" (the
+        # reason is its cause's; independent probe of issue 12, round 22)
+        first = (f"{' '.join(str(exc).split())}" if isinstance(exc, yaml.YAMLError) else cli.one_line(exc)) \
+            or type(exc).__name__
+        if isinstance(exc, yaml.YAMLError):
+            first = f"a config file is not valid YAML: {first}"
         names = cli.flag_values(sys.argv[1:], "--config-name", "-cn")
         where = f"--config-name={names[-1]}: " if names else ""
         print(f"hairexp: error: {where}{first}", file=sys.stderr)

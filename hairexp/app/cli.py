@@ -1255,18 +1255,21 @@ def compose_error(overrides: list[str], input_errors: bool = True) -> str | None
                      or "of the config group" in str(exc))
         return str(exc) if input_errors or composing else None   # error, in a sweep's jobs too (a wrong type too)
     except Exception as exc:   # Hydra's composition and override-parsing errors, OmegaConf's validation
-        return _one_line(exc)
+        return one_line(exc)
     return None
 
 
-def _one_line(exc: BaseException) -> str:
+def one_line(exc: BaseException) -> str:
     """A Hydra or OmegaConf error as one line: its message and its cause's first line ("Error
     merging override x=y" says why only there), without Hydra's list of its search path."""
-    msg = str(exc).strip()
+    msg = " ".join(str(exc).split())
     cause = exc.__cause__ or exc.__context__
-    if cause is not None and str(cause).strip():
-        msg += ": " + str(cause).strip().splitlines()[0]
-    return " ".join(msg.split()).split(" Config search path:")[0]
+    said = " ".join(str(cause).strip().splitlines()[0].split()) if cause is not None and str(cause).strip() else ""
+    if said and said not in msg:
+        msg += ": " + said
+    msg = msg.split(" Config search path:")[0]
+    # OmegaConf's tail (a user's config file with a wrong key or value: --config-dir): the key, not the types
+    return re.sub(r"\s*full_key: (\S+)\s+object_type=\S+", r" (key \1)", msg)
 
 
 def _sweep_jobs(overrides: list[str], every: int | None = None) -> list[tuple[list[str], list[str]]] | None:
@@ -1332,7 +1335,7 @@ def hydra_key_error(hydra_args: list[str]) -> str | None:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             compose(config_name="config", overrides=plain, return_hydra_config=True)
     except Exception as exc:  # noqa: BLE001  (Hydra's composition / validation error of its own keys)
-        return _one_line(exc)
+        return one_line(exc)
     finally:
         GlobalHydra.instance().clear()
     return None

@@ -27,7 +27,7 @@ from omegaconf import OmegaConf
 from hairexp.app.assemble import check_config
 from hairexp.app.config import check_bool, require_config, to_plain, unknown_key_hint
 from hairexp.app.validate import validate_judge, validate_judge_controllers
-from hairexp.app.signals import InterruptSignals, take_late
+from hairexp.app.signals import InterruptSignals, note_late, take_late
 from hairexp.errors import InputError, Interrupted
 from hairexp.evaluation.judges import JUDGES
 from hairexp.evaluation.measures import experiment_key_moment
@@ -196,51 +196,64 @@ def _experiment(cfg, out: Path, on_checked) -> dict:
         inside = inputs_inside(cfg, out)
         if inside is not None:
             raise InputError(inside, str(out))
-    claim(out, overwrite=bool(cfg.overwrite))
     t0 = time.perf_counter()
     summary = {"experiment": plain.get("experiment"), "status": "running", **owner(), "success": None,
                "judge": plain["judge"],
                "variants": {}, "config_hash": config_hash(plain), "config": plain}
-    write_json(out / SUMMARY, summary)
-    # room for the experiment's ending on a disk that fills meanwhile (its summary stayed "running":
-    # independent probe of issue 12, round 22), as a run holds for its own
-    reserve(out)
     measures, facts = {}, {}
-    try:
-        with InterruptSignals():
-            _run_variants(out, names, vcfgs, summary, measures, facts, t0)
-        judge = plain["judge"]
-        if judge != "none":
-            ok, details = JUDGES[judge](measures, facts, float(cfg.judge_tolerance))
-            why = unjudgeable(summary["variants"])
-            if why is not None:   # the measures of a run that did not solve its steps say nothing
-                log.warning("%s: no verdict (success: null): %s", out, why)
-                ok, details = None, {**details, "not_judged": why}
-            summary.update(success=ok, verdict=details)
-        if cfg.logging.rerun:   # the variants side by side, from their folders (rerun is imported only here)
-            from hairexp.outputs.comparison import write_comparison
-
-            key = experiment_key_moment(str(plain["measure"]["name"]), measures)
-            if write_comparison(out, names, key) is not None:
-                summary["comparison"] = {"file": "comparison.rrd",
-                                         "key": None if key is None else {"time": key[0], "what": key[1]}}
-        converged = [v.get("converged") for v in summary["variants"].values()]
-        summary.update(status="completed", converged=all(c is not False for c in converged),
-                       wall_seconds=time.perf_counter() - t0)
-        free_reserve(out)
-        write_json(out / SUMMARY, summary)
-    except BaseException as exc:
-        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
-        if summary["status"] in ("running", "completed"):   # not yet told by a variant
-            summary.update(status=status, error=str(exc) or type(exc).__name__, wall_seconds=time.perf_counter() - t0)
+    with InterruptSignals() as signals:
+        with signals.deferred():
+            # a signal while overwrite=true removes the previous run's files, or before the running
+            # summary is written, is kept for the try below: the folder is never left without a summary
+            # beside half of the old run (independent probe of issue 12, round 22)
+            claim(out, overwrite=bool(cfg.overwrite))
+            write_json(out / SUMMARY, summary)
+            # room for the experiment's ending on a disk that fills meanwhile (its summary stayed "running":
+            # independent probe of issue 12, round 22), as a run holds for its own
+            reserve(out)
         try:
-            free_reserve(out)   # its room is the summary's
-            write_ending(out / SUMMARY, summary)   # in place when the disk has no room for a new file
-        except Exception as e2:   # noqa: BLE001  (never hide the first error)
-            note = f"while writing the experiment's {status} summary: {type(e2).__name__}: {e2}"
-            to_log_files(f"{out}: {note}")   # the console gets it under the error's line ("also:")
-            exc.add_note(note)
-        raise
+            if signals.pending is not None:
+                raise Interrupted(signals.pending)
+            _run_variants(out, names, vcfgs, summary, measures, facts, t0)
+            judge = plain["judge"]
+            if judge != "none":
+                ok, details = JUDGES[judge](measures, facts, float(cfg.judge_tolerance))
+                why = unjudgeable(summary["variants"])
+                if why is not None:   # the measures of a run that did not solve its steps say nothing
+                    log.warning("%s: no verdict (success: null): %s", out, why)
+                    ok, details = None, {**details, "not_judged": why}
+                summary.update(success=ok, verdict=details)
+            if cfg.logging.rerun:   # the variants side by side, from their folders (rerun is imported only here)
+                from hairexp.outputs.comparison import write_comparison
+
+                key = experiment_key_moment(str(plain["measure"]["name"]), measures)
+                if write_comparison(out, names, key) is not None:
+                    summary["comparison"] = {"file": "comparison.rrd",
+                                             "key": None if key is None else {"time": key[0], "what": key[1]}}
+            with signals.deferred():   # the completed ending is written whole; a signal meanwhile comes after it
+                converged = [v.get("converged") for v in summary["variants"].values()]
+                summary.update(status="completed", converged=all(c is not False for c in converged),
+                               wall_seconds=time.perf_counter() - t0)
+                free_reserve(out)
+                write_json(out / SUMMARY, summary)
+        except BaseException as exc:
+            status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+            with signals.deferred():
+                if summary["status"] in ("running", "completed"):   # not yet told by a variant
+                    # a verdict given before the ending (an interrupted comparison recording) is kept under
+                    # "verdict", but an experiment that did not complete is no success (round 22: it said true)
+                    summary.update(status=status, error=str(exc) or type(exc).__name__, success=None,
+                                   wall_seconds=time.perf_counter() - t0)
+                try:
+                    free_reserve(out)   # its room is the summary's
+                    write_ending(out / SUMMARY, summary)   # in place when the disk has no room for a new file
+                except Exception as e2:   # noqa: BLE001  (never hide the first error)
+                    note = f"while writing the experiment's {status} summary: {type(e2).__name__}: {e2}"
+                    to_log_files(f"{out}: {note}")   # the console gets it under the error's line ("also:")
+                    exc.add_note(note)
+            raise
+        if signals.pending is not None:   # after the completed ending: the experiment stays completed
+            note_late(signals.pending)
     return summary
 
 
