@@ -37,6 +37,7 @@ def column_of(report: dict, path: Path) -> tuple[str, float]:
     """(integrator, dt) from the command the report records (without them: the default integrator,
     ``DEFAULT_INTEGRATOR``, and 0.04; the reports under reports/verdicts/ all name both)."""
     cmd = report.get("command", "")
+    cmd = cmd if isinstance(cmd, str) else ""
     integ = re.search(r"solver\.integrator=(\w+)", cmd)
     dt = re.search(r"solver\.dt=([0-9.eE+-]+)", cmd)
     if not cmd:
@@ -55,9 +56,16 @@ def load(paths: list[Path]) -> dict:
             rep = json.loads(p.read_text())
         except (OSError, ValueError) as exc:
             raise SystemExit(f"integrator_verdicts: {p}: cannot read the report: {exc}")
-        if "scenes" not in rep:
+        if not isinstance(rep, dict) or not isinstance(rep.get("scenes"), dict):
             raise SystemExit(f"integrator_verdicts: {p}: not a paper_scenes report (no 'scenes')")
-        parts.append((rep["machine"].get("date") or "", str(p), column_of(rep, p), rep))
+        for name, scene in rep["scenes"].items():   # a hand-made or truncated report: a KeyError (probe, round 21)
+            if not isinstance(scene, dict) or (scene.get("status") != "failed"
+                                               and not isinstance(scene.get("variants"), dict)):
+                raise SystemExit(f"integrator_verdicts: {p}: scene {name!r} is not a paper_scenes scene record "
+                                 "(no 'variants', and not failed)")
+        machine = rep.get("machine") if isinstance(rep.get("machine"), dict) else {}
+        rep = {**rep, "machine": machine}
+        parts.append((str(machine.get("date") or ""), str(p), column_of(rep, p), rep))
     cols = {}
     for date, path, key, rep in sorted(parts, key=lambda q: (q[0], q[1])):
         c = cols.setdefault(key, {"paths": [], "commands": [], "dates": [], "scenes": {}})

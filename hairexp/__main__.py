@@ -10,6 +10,7 @@ non-zero exit; the codes are decided after Hydra returns (hairexp/app/cli.py): 2
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import sys
@@ -43,7 +44,11 @@ def entry() -> int:
     logging.raiseExceptions = False   # a log file on a full disk is not worth a traceback per line
     warnings.formatwarning = cli.one_line_warning
     if "--version" in sys.argv[1:]:   # Hydra's said only "Hydra 1.3.8" (probe of issue 12, round 19)
-        print(f"hairexp {cli.version()} (Hydra {hydra.__version__})")
+        try:
+            print(f"hairexp {cli.version()} (Hydra {hydra.__version__})", flush=True)
+        except OSError as exc:   # a full or closed standard output
+            print(f"hairexp: error: cannot write the standard output: {exc}", file=sys.stderr)
+            return 4
         return 0
     bad_flag = (cli.flag_error(sys.argv[1:]) or cli.mode_error(sys.argv[1:])   # before any folder is made
                 or cli.duplicate_key_error(sys.argv[1:]) or cli.config_source_error(sys.argv[1:]))
@@ -107,6 +112,26 @@ def entry() -> int:
         print(f"hairexp: error: {where}{first}", file=sys.stderr)
         unhold_unused()   # the run folder Hydra never wrote: not left holding only .lock
         return 2
+    except ValueError as exc:
+        if not _raised_by_hydra(exc):
+            raise
+        # Hydra's own flags given a value it refuses (--experimental-rerun of a missing file,
+        # --shell-completion without install/uninstall/query): a traceback, exit 1 (round 21)
+        flags = [a.split("=")[0] for a in sys.argv[1:] if a.startswith("--")]
+        print(f"hairexp: error: {', '.join(flags) + ': ' if flags else ''}{cli.one_line(exc)}", file=sys.stderr)
+        unhold_unused()
+        return 2
+    except OSError as exc:
+        # outside a run (a run's own write errors end it, hairexp/app/cli.py): what Hydra prints itself,
+        # --cfg / --info / --help, to a full or closed standard output (`--cfg job >/dev/full`: a
+        # traceback, exit 1; independent probe of issue 12, round 21)
+        what = "the standard output" if exc.errno in (errno.ENOSPC, errno.EPIPE, errno.EBADF, errno.EIO) else "a file"
+        try:
+            print(f"hairexp: error: cannot write {what}: {exc}", file=sys.stderr)
+        except (OSError, ValueError, AttributeError):
+            pass
+        unhold_unused()
+        return 4
     except KeyboardInterrupt as exc:
         code = exit_code(exc.signum) if isinstance(exc, Interrupted) else 130
         # outside a run (a run prints its own line): while the config was composed, or between sweep jobs
@@ -116,6 +141,15 @@ def entry() -> int:
         cli.exit_code(exc.signum if isinstance(exc, Interrupted) else 2)   # a sweep's jobs so far
         return code
     return cli.exit_code()
+
+
+def _raised_by_hydra(exc: BaseException) -> bool:
+    """Whether ``exc`` was raised in Hydra's or joblib's own code (its innermost frame)."""
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    path = tb.tb_frame.f_code.co_filename.replace(os.sep, "/") if tb is not None else ""
+    return "/hydra/" in path or "/joblib/" in path
 
 
 def exit_now(code: int) -> None:
@@ -136,6 +170,8 @@ def exit_now(code: int) -> None:
         sys.exit(code)
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
+        if stream is None:   # started with the stream closed (`>&-`): Python has none (round 21: a traceback)
+            continue
         try:
             stream.flush()
         except (OSError, ValueError):   # a closed or broken pipe: nothing more can be said

@@ -101,3 +101,123 @@ def test_a_broken_user_config_file_is_one_line_exit_2_and_no_folder(tmp_path, bo
     if "YAML" in said:
         assert "mine.yaml" in lines[0] and "line 4" in lines[0]
     assert not out.exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# independent probe round 21: standard streams, Hydra's own keys and flags, export signals
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("redirect", ["stdout-closed", "stderr-closed"])
+def test_a_run_with_a_closed_standard_stream_completes_exit_0(tmp_path, redirect):
+    """``>&-`` / ``2>&-``: Python has no sys.stdout / sys.stderr (the final flush raised, exit 1)."""
+    import subprocess
+    import sys
+
+    from probe_helpers import REPO
+
+    out = tmp_path / "r"
+    fd = 1 if redirect == "stdout-closed" else 2
+    code = f"import os, runpy, sys; os.close({fd}); sys.argv[0] = {str(REPO / 'hairexp' / '__main__.py')!r}; " \
+           f"runpy.run_module('hairexp', run_name='__main__', alter_sys=True)"
+    p = subprocess.run([sys.executable, "-c", code, *SMOKE, f"hydra.run.dir={out}"], cwd=tmp_path, capture_output=True,
+                       text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert p.returncode == 0, p.stderr
+    assert "Traceback" not in p.stderr
+    assert json.loads((out / "summary.json").read_text())["status"] == "completed"
+
+
+def test_printing_the_config_to_a_full_stdout_is_one_line_exit_4(tmp_path):
+    import subprocess
+    import sys
+
+    from probe_helpers import REPO
+
+    with open("/dev/full", "w") as full:
+        p = subprocess.run([sys.executable, "-m", "hairexp", *SMOKE, "--cfg", "job"], cwd=tmp_path, stdout=full,
+                           stderr=subprocess.PIPE, text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert p.returncode == 4, p.stderr
+    assert p.stderr.strip().splitlines() == ["hairexp: error: cannot write the standard output: [Errno 28] No space "
+                                             "left on device"]
+
+
+@pytest.mark.parametrize("arg, said", [
+    ("hydra.job.name=../../victim", "hydra.job.name=../../victim: the job's name is its log file's name"),
+    ("hydra.output_subdir=../x", "hydra.output_subdir=../x: Hydra's record of the run (.hydra) goes in a folder"),
+    ("hydra.output_subdir=/abs", "hydra.output_subdir=/abs: Hydra's record"),
+])
+def test_hydra_names_that_write_outside_the_run_folder_are_refused(tmp_path, arg, said):
+    from probe_helpers import run_cli
+
+    out = tmp_path / "a" / "b" / "r"
+    p = run_cli([*SMOKE, f"hydra.run.dir={out}", arg], tmp_path)
+    assert p.returncode == 2 and p.stderr.strip().splitlines()[-1].startswith(f"hairexp: error: {said}"), p.stderr
+    assert not out.exists() and not list(tmp_path.rglob("victim*")) and not (tmp_path / "a" / "b" / "x").exists()
+
+
+def test_a_run_with_its_hydra_record_renamed_is_not_refused_as_another_runs(tmp_path):
+    from probe_helpers import run_cli
+
+    out = tmp_path / "r"
+    p = run_cli([*SMOKE, f"hydra.run.dir={out}", "hydra.output_subdir=rec"], tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert (out / "rec" / "config.yaml").is_file() and (out / "result.npz").is_file()
+    p = run_cli([*SMOKE, f"hydra.run.dir={out}", "hydra.output_subdir=rec"], tmp_path)   # a used folder, still
+    assert p.returncode == 2 and "not empty (guides.npz, metrics.parquet" in p.stderr, p.stderr
+
+
+@pytest.mark.parametrize("args, said", [
+    (["-m", "hydra.launcher.n_jobs=0"], "hydra.launcher.n_jobs=0: the number of jobs run at once is a positive count"),
+    (["--shell-completion"], "--shell-completion: Expecting one subcommand"),
+    (["--experimental-rerun", "nothere.pickle"], "--experimental-rerun: File nothere.pickle does not exist"),
+])
+def test_hydra_flags_and_launcher_values_it_refuses_are_one_line_exit_2(tmp_path, args, said):
+    from probe_helpers import run_cli
+
+    p = run_cli([*SMOKE, *args, f"hydra.sweep.dir={tmp_path / 's'}", f"hydra.run.dir={tmp_path / 'r'}"], tmp_path)
+    assert p.returncode == 2, p.stderr
+    assert "Traceback" not in p.stderr and p.stderr.strip().splitlines()[-1].startswith(f"hairexp: error: {said}"), \
+        p.stderr
+    assert not (tmp_path / "s").exists() and not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_during_an_export_is_one_line_and_writes_nothing(tmp_path, monkeypatch, capsys, signum):
+    """Ctrl-C printed a KeyboardInterrupt traceback; SIGTERM left the temporary stage behind."""
+    import hairexp.app.export_scene as ex
+    import hairexp.io.usd_write as usd_write
+
+    real = usd_write._saved
+
+    def saved(path, write):   # the stage is being written when the signal comes
+        write()
+        os.kill(os.getpid(), signum)
+        return real(path, lambda: None)
+
+    monkeypatch.setattr(usd_write, "_saved", saved)
+    path = tmp_path / "s.usda"
+    code = ex.main([str(path), "experiment=goaling_smoke", "variants=[]", "frames=3"])
+    assert code == 128 + signum
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (f"hairexp: interrupted by {signal.Signals(signum).name} while exporting; nothing was written "
+                       f"to {path}")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_export_says_the_frames_it_wrote(tmp_path, capsys):
+    import hairexp.app.export_scene as ex
+
+    assert ex.main([str(tmp_path / "s.usda"), "experiment=goaling_smoke", "variants=[]", "frames=5"]) == 0
+    assert capsys.readouterr().out.strip().endswith("3 guides, 5 frames (0..5)")
+
+
+@pytest.mark.parametrize("report", ['{"scenes": {"goaling": 3}, "command": "x"}', '[1]',
+                                    '{"scenes": {"goaling": {"success": true}}, "command": "x"}'])
+def test_integrator_verdicts_refuses_a_foreign_report_with_a_usage_error(tmp_path, capsys, report):
+    """A report without ``machine`` or with scenes of another shape: a KeyError traceback (round 21)."""
+    from experiments.integrator_verdicts import main
+
+    (tmp_path / "r.json").write_text(report)
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "r.json")])
+    assert e.value.code == 2
+    assert "r.json: " in capsys.readouterr().err

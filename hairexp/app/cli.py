@@ -1312,6 +1312,28 @@ def _sweep_jobs(overrides: list[str], every: int | None = None) -> list[tuple[li
     return jobs
 
 
+def _hydra_value_error(key: str, value) -> str | None:
+    """Why a value of one of Hydra's own keys that its schema lets through cannot be used, or None:
+    ``hydra.job.name`` and ``hydra.output_subdir`` that write outside the run folder (the job's log
+    file is ``<run dir>/<job.name>.log``, Hydra's record ``<run dir>/<output_subdir>``;
+    ``hydra.job.name=../../victim`` appended the run's log lines to a file two folders up), and
+    ``hydra.launcher.n_jobs=0`` (joblib's ValueError traceback, a multirun.yaml left behind that
+    refused the next launch; independent probe of issue 12, round 21)."""
+    if key == "hydra.launcher.n_jobs" and value == 0 and not isinstance(value, bool):
+        return (f"{key}=0: the number of jobs run at once is a positive count (or -1 for one per core; joblib's "
+                "-n is cores + 1 - n)")
+    if not isinstance(value, str):
+        return None
+    parts = value.replace("\\", "/").split("/")
+    if key == "hydra.job.name" and (len(parts) > 1 or value in ("", ".", "..")):
+        return (f"{key}={value}: the job's name is its log file's name in the run folder (<name>.log); give a "
+                "name without '/' or '..'")
+    if key == "hydra.output_subdir" and (value.startswith("/") or ".." in parts or value in ("", ".")):
+        return (f"{key}={value}: Hydra's record of the run (.hydra) goes in a folder inside the run folder; give a "
+                "relative name without '..' (or null for none)")
+    return None
+
+
 def hydra_key_error(hydra_args: list[str]) -> str | None:
     """The message of ``hydra.*`` overrides Hydra's own config refuses (a typo such as
     ``hydra.foo=1``, ``hydra.job.chdir=maybe``), or None: composed here with Hydra's config, so
@@ -1330,6 +1352,10 @@ def hydra_key_error(hydra_args: list[str]) -> str | None:
     plain = [a for a, o in zip(hydra_args, parsed) if not o.is_sweep_override()]
     if not plain:
         return None
+    for o in parsed:
+        bad = _hydra_value_error(o.get_key_element(), o.value()) if not o.is_sweep_override() else None
+        if bad is not None:
+            return bad
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):

@@ -16,13 +16,16 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
 from hairexp.app.assemble import assemble_scene
 from hairexp.app.config import compose_config
-from hairexp.errors import InputError, ScratchError
+from hairexp.app.signals import InterruptSignals, exit_code
+from hairexp.errors import InputError, Interrupted, ScratchError
 from hairexp.io.usd_write import FORMATS, write_scene_usd
 from hairexp.model.dynamic_body import authoring_motion
 
@@ -40,7 +43,8 @@ class DestinationError(InputError):
 
 def export_scene(cfg, path, overwrite: bool = False) -> tuple:
     """Build ``cfg``'s scene and guides (``assemble_scene``, the run's assembly path, without the
-    settle phase: the stage holds the elastic rest shape) and write them to ``path``; (scene, guides).
+    settle phase: the stage holds the elastic rest shape) and write them to ``path``; (scene, guides,
+    frames written: 0..frames).
     An unwritable ``path`` (a DestinationError), or an existing file without ``overwrite``, is an
     InputError naming it, before anything is built."""
     check_writable(path, overwrite)
@@ -67,7 +71,7 @@ def export_scene(cfg, path, overwrite: bool = False) -> tuple:
         write_scene_usd(path, scene, guides, cfg.fps, cfg.frames)
     except (OSError, RuntimeError) as exc:   # pxr's Tf errors are RuntimeErrors
         raise DestinationError(f"cannot write the USD stage: {' '.join(str(exc).split())}", str(path)) from exc
-    return scene, guides
+    return scene, guides, int(cfg.frames)
 
 
 def check_writable(path, overwrite: bool = False) -> None:
@@ -117,7 +121,18 @@ def main(argv: list[str] | None = None) -> int:
         print(f"hairexp: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     try:
-        scene, guides = export_scene(cfg, args[0], overwrite=force)
+        # a signal ends the export with one line, its temporary file removed (Ctrl-C printed a
+        # KeyboardInterrupt traceback, SIGTERM left a 1.6 MB *.tmp.usda; independent probe of issue 12, round 21)
+        start = time.time()
+        with InterruptSignals():
+            scene, guides, frames = export_scene(cfg, args[0], overwrite=force)
+    except KeyboardInterrupt as exc:
+        signum = exc.signum if isinstance(exc, Interrupted) else int(signal.SIGINT)
+        p = Path(args[0])
+        done = p.is_file() and p.stat().st_mtime >= start - 1   # the signal came just after the stage was written
+        _say(f"hairexp: interrupted by {signal.Signals(signum).name} "
+             + (f"after {args[0]} was written" if done else f"while exporting; nothing was written to {args[0]}"))
+        return exit_code(signum)
     except (InputError, ValueError) as exc:
         print(f"hairexp: error: {exc}", file=sys.stderr)
         return 4 if isinstance(exc, DestinationError) else 2
@@ -129,8 +144,21 @@ def main(argv: list[str] | None = None) -> int:
         else:
             print(f"hairexp: error: {args[0]}: {exc}", file=sys.stderr)
         return 4
-    print(f"wrote {args[0]}: {scene.strands.n_strands} strands, {guides.n_guides} guides, {guides.n_frames - 1} frames")
+    try:
+        print(f"wrote {args[0]}: {scene.strands.n_strands} strands, {guides.n_guides} guides, {frames} frames "
+              f"(0..{frames})", flush=True)
+    except OSError as exc:   # a full or closed standard output (a traceback, exit 1; round 21)
+        _say(f"hairexp: error: cannot write the standard output: {exc} (the stage {args[0]} was written)")
+        return 4
     return 0
+
+
+def _say(line: str) -> None:
+    """``line`` on stderr, if stderr can take it."""
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except (OSError, ValueError, AttributeError):
+        pass
 
 
 if __name__ == "__main__":

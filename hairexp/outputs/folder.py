@@ -87,9 +87,23 @@ def hydra_link_refusal(folder: Path) -> str | None:
     return None
 
 
+#: the files of Hydra's record of a run (``.hydra/``, or the folder ``hydra.output_subdir`` names)
+HYDRA_RECORD = frozenset({"config.yaml", "hydra.yaml", "overrides.yaml"})
+
+
 def _hydras(p: Path) -> bool:
-    """Hydra's own entries (``.hydra/``, the job's ``*.log``) and the launch's ``.lock``."""
-    return p.name in (".hydra", LOCK) or (p.is_file() and not p.is_symlink() and p.suffix == ".log")
+    """Hydra's own entries (``.hydra/``, the job's ``*.log``) and the launch's ``.lock``.  Hydra's
+    record under another name (``hydra.output_subdir=rec``): a folder of only its files (the run
+    refused its own record as another run's; independent probe of issue 12, round 23)."""
+    if p.name in (".hydra", LOCK) or (p.is_file() and not p.is_symlink() and p.suffix == ".log"):
+        return True
+    if p.is_dir() and not p.is_symlink():
+        try:
+            names = {q.name for q in p.iterdir()}
+        except OSError:
+            return False
+        return bool(names) and names <= HYDRA_RECORD and all((p / n).is_file() for n in names)
+    return False
 
 
 def hold(folder: Path) -> bool:
