@@ -54,8 +54,9 @@ def compare(a: Path, b: Path) -> tuple[int, int]:
         try:
             diff = _differences(fa, fb)
         except Exception as exc:   # a corrupt or truncated file: a difference, named
-            print(f"UNREADABLE {rel}: {type(exc).__name__}: {exc}")
-            print(f"compare_runs: {rel}: cannot be read ({type(exc).__name__}: {exc})", file=sys.stderr)
+            why = _unreadable(fa, fb, exc)
+            print(f"UNREADABLE {rel}: {why}")
+            print(f"compare_runs: {rel}: cannot be read ({why})", file=sys.stderr)
             bad += 1
             continue
         print(("DIFF " if diff else "same ") + str(rel) + (f" {diff}" if diff else ""))
@@ -63,11 +64,32 @@ def compare(a: Path, b: Path) -> tuple[int, int]:
     return n, bad
 
 
-def main() -> int:
+#: the first bytes of the files compared (numpy's message for a file that is not an npz said it held
+#: "pickled (object) data"; independent probe of issue 12, round 21)
+_MAGIC = {".npz": (b"PK\x03\x04", "an .npz (zip) archive"), ".parquet": (b"PAR1", "a Parquet file"),
+          ".json": (None, "JSON")}
+
+
+def _unreadable(fa: Path, fb: Path, exc: Exception) -> str:
+    """Why a pair of files could not be compared: the file that is not of its kind, or the error."""
+    magic, kind = _MAGIC.get(fa.suffix, (None, None))
+    if magic is not None:
+        for f in (fa, fb):
+            try:
+                with open(f, "rb") as fh:
+                    head = fh.read(len(magic))
+            except OSError as e:
+                return f"{f}: {e}"
+            if head != magic:
+                return f"{f} is not {kind} (it does not begin as one: {'empty' if not head else 'other bytes'})"
+    return f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+
+
+def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("before", type=Path)
     ap.add_argument("after", type=Path)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     for p in (args.before, args.after):
         if not p.is_dir():
             print(f"compare_runs: error: {p}: not a folder", file=sys.stderr)

@@ -221,3 +221,33 @@ def test_integrator_verdicts_refuses_a_foreign_report_with_a_usage_error(tmp_pat
         main([str(tmp_path / "r.json")])
     assert e.value.code == 2
     assert "r.json: " in capsys.readouterr().err
+
+
+def test_a_judge_without_variants_is_said_not_used(tmp_path):
+    from probe_helpers import run_cli
+
+    p = run_cli([*SMOKE, "judge=free_misses_tracked_hits", f"hydra.run.dir={tmp_path / 'r'}"], tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert "judge (read with variants: a judge compares an experiment's variants" in p.stderr
+
+
+def test_the_stylization_report_command_without_a_folder_is_a_usage_error(capsys):
+    from hairexp.evaluation.stylization import main
+
+    assert main([]) == 2
+    assert capsys.readouterr().err.startswith("hairexp: error: a run folder is required (usage: ")
+    assert main(["--help"]) == 0
+
+
+def test_compare_runs_names_a_file_that_is_not_an_npz(tmp_path, capsys):
+    import shutil
+
+    from experiments.compare_runs import main
+    from hairexp.app.config import compose_config
+    from hairexp.app.run import run
+
+    run(compose_config(SMOKE), tmp_path / "a")
+    shutil.copytree(tmp_path / "a", tmp_path / "b")
+    (tmp_path / "b" / "result.npz").write_bytes(b"garbage")
+    assert main([str(tmp_path / "a"), str(tmp_path / "b")]) == 1
+    assert f"{tmp_path / 'b' / 'result.npz'} is not an .npz (zip) archive" in capsys.readouterr().err

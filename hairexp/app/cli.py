@@ -245,6 +245,11 @@ def _say_unused(cfg, overrides) -> None:
             if own:
                 log.warning("variant %s: %s not used by it", v.name, ", ".join(own))
     unused = unused_settings(runs, keys)
+    if not cfg.get("variants"):   # a judge compares an experiment's variants (silent; independent probe, round 22)
+        judged = [k for k in dict.fromkeys(k.lstrip("+~") for k in keys) if k in ("judge", "judge_tolerance")]
+        if judged:
+            unused.append(f"{', '.join(judged)} (read with variants: a judge compares an experiment's variants; "
+                          "variants=[] runs the base config alone)")
     if unused:
         log.warning("%s not used by %s", ", ".join(unused), "any variant" if len(runs) > 1 else "this run")
 

@@ -100,9 +100,15 @@ def run_report(run_dir) -> dict:
 
 def main(argv=None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
-    if not args:
-        print(__doc__.strip().splitlines()[-4].strip(), file=sys.stderr)
-        return 1
+    usage = "usage: " + __doc__.strip().splitlines()[-4].strip()
+    if any(a in ("-h", "--help") for a in args):
+        print(usage)
+        return 0
+    if not args or any(a.startswith("-") for a in args):   # a usage error: exit 2, as the other commands
+        bad = next((a for a in args if a.startswith("-")), None)
+        print(f"hairexp: error: {'unknown option ' + bad if bad else 'a run folder is required'} ({usage})",
+              file=sys.stderr)
+        return 2
     for a in args:
         try:
             print(json.dumps({"run": a, **run_report(a)}, indent=1))
