@@ -137,10 +137,27 @@ def entry() -> int:
         # outside a run (a run prints its own line): while the config was composed, or between sweep jobs
         what = str(exc) if isinstance(exc, Interrupted) and str(exc) else "interrupted by SIGINT"
         print(f"hairexp: {what}", file=sys.stderr)
+        _say_in_run_folder(what)
         cli.clear_stop_mark()   # the launcher has torn its workers down
         cli.exit_code(exc.signum if isinstance(exc, Interrupted) else 2)   # a sweep's jobs so far
         return code
     return cli.exit_code()
+
+
+def _say_in_run_folder(what: str) -> None:
+    """A signal outside the job (in Hydra's code, after it wrote ``.hydra/`` into the run folder and
+    before the job began): the folder says how the launch ended, as for a run refused before it
+    claimed its folder (it held only Hydra's files, no summary.json; independent probe of issue 12,
+    round 22).  A folder with a summary (the job's own ending) is left as it is."""
+    if any(a in ("-m", "--multirun") for a in sys.argv[1:]):   # a sweep's jobs say their own
+        return
+    # Hydra has reset its HydraConfig by now; the job's log file (Hydra's, <run folder>/<job name>.log,
+    # made before its record) names the folder
+    logs = [h.baseFilename for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
+    out = os.path.dirname(logs[0]) if len(logs) == 1 else None
+    if out:
+        cli.write_refused(None, out, what, "interrupted", "interrupted while Hydra started the run, before the run "
+                          "claimed its folder: no step ran")
 
 
 def _raised_by_hydra(exc: BaseException) -> bool:

@@ -251,3 +251,36 @@ def test_compare_runs_names_a_file_that_is_not_an_npz(tmp_path, capsys):
     (tmp_path / "b" / "result.npz").write_bytes(b"garbage")
     assert main([str(tmp_path / "a"), str(tmp_path / "b")]) == 1
     assert f"{tmp_path / 'b' / 'result.npz'} is not an .npz (zip) archive" in capsys.readouterr().err
+
+
+SIGNAL_AFTER_RECORD = """
+import os, runpy, signal, sys
+import hydra.core.utils as u
+real = u._save_config
+def save(cfg, filename, output_dir):
+    real(cfg, filename, output_dir)
+    if filename == "overrides.yaml":   # Hydra's record is written; the job has not begun
+        os.kill(os.getpid(), signal.SIGTERM)
+u._save_config = save
+sys.argv[0] = sys.argv.pop(1)
+runpy.run_module("hairexp", run_name="__main__", alter_sys=True)
+"""
+
+
+def test_a_signal_after_hydra_wrote_its_record_leaves_an_interrupted_summary(tmp_path):
+    """The run folder held only .hydra/ and the log (no summary.json) when a signal came between
+    Hydra's record and the job."""
+    import subprocess
+    import sys
+
+    from probe_helpers import REPO
+
+    out = tmp_path / "r"
+    p = subprocess.run([sys.executable, "-c", SIGNAL_AFTER_RECORD, str(REPO / "hairexp" / "__main__.py"), *SMOKE,
+                        f"hydra.run.dir={out}"], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert p.returncode == 143, p.stderr
+    assert p.stderr.strip().splitlines()[-1] == "hairexp: interrupted by SIGTERM", p.stderr
+    s = json.loads((out / "summary.json").read_text())
+    assert s["status"] == "interrupted" and "before the run claimed its folder" in s["refused"]
+    assert (out / ".hydra" / "overrides.yaml").is_file() and not (out / "result.npz").exists()
