@@ -45,6 +45,10 @@ def main(argv=None):
     ap.add_argument("--set", nargs="*", default=[], type=key_value, metavar="KEY=VALUE",
                     help="hydra overrides applied to every scene (e.g. frames=10)")
     args = ap.parse_args(argv)
+    launch = [o for o in args.set if o.lstrip("+~").startswith(("hydra.", "overwrite="))]
+    if launch:   # taken and ignored (independent probe of issue 12, round 21)
+        ap.error(f"--set {' '.join(launch)}: the scenes run in outputs/paper_scenes/<name>/, replaced each time; "
+                 "hydra.* and overwrite are a command line's keys")
     names = experiment_names(ap, args.names, SCENES)
     check_reports(ap, "paper_scenes")
     md = header("The paper's scenes, judged")

@@ -284,3 +284,22 @@ def test_a_signal_after_hydra_wrote_its_record_leaves_an_interrupted_summary(tmp
     s = json.loads((out / "summary.json").read_text())
     assert s["status"] == "interrupted" and "before the run claimed its folder" in s["refused"]
     assert (out / ".hydra" / "overrides.yaml").is_file() and not (out / "result.npz").exists()
+
+
+def test_a_report_that_cannot_be_encoded_leaves_the_old_one_whole(tmp_path, monkeypatch):
+    import hairexp.app.report as report
+
+    monkeypatch.setattr(report, "REPORTS", tmp_path)
+    report.write_report("x", "# old\n", {"a": 1})
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    with pytest.raises(TypeError):
+        report.write_report("x", "# new\n", {"a": {1, 2}})   # a set: not JSON
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+
+
+def test_paper_scenes_refuses_a_launch_key_in_set(capsys):
+    from experiments.paper_scenes import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["goaling_smoke", "--set", "hydra.run.dir=/tmp/elsewhere"])
+    assert e.value.code == 2 and "hydra.* and overwrite are a command line's keys" in capsys.readouterr().err

@@ -53,8 +53,12 @@ def header(title: str) -> str:
 
 
 def write_report(name: str, markdown: str, data: dict) -> Path:
+    from hairexp.outputs.files import atomic_write_bytes
+
     REPORTS.mkdir(exist_ok=True)
-    (REPORTS / f"{name}.md").write_text(markdown)
-    (REPORTS / f"{name}.json").write_text(json.dumps({"machine": machine(), "command": command(), **data}, indent=2,
-                                                     default=float))
+    # whole or not at all: a full disk left a half-written report under its final name (the committed
+    # one lost), and the pair of files is written only once both are encoded
+    body = json.dumps({"machine": machine(), "command": command(), **data}, indent=2, default=float).encode()
+    atomic_write_bytes(REPORTS / f"{name}.json", lambda f: f.write(body))
+    atomic_write_bytes(REPORTS / f"{name}.md", lambda f: f.write(markdown.encode()))
     return REPORTS / f"{name}.md"
