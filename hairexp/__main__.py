@@ -14,6 +14,13 @@ import errno
 import logging
 import os
 import sys
+
+try:   # before torch loads: in a deleted working folder it failed with "Intel oneMKL FATAL ERROR" (round 21)
+    os.getcwd()
+except FileNotFoundError:
+    sys.stderr.write("hairexp: error: the working folder no longer exists (deleted while the shell was in it); cd to "
+                     "a folder that exists and launch again\n")
+    raise SystemExit(2) from None
 import warnings
 from concurrent.futures.process import BrokenProcessPool
 

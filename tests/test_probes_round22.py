@@ -303,3 +303,19 @@ def test_paper_scenes_refuses_a_launch_key_in_set(capsys):
     with pytest.raises(SystemExit) as e:
         main(["goaling_smoke", "--set", "hydra.run.dir=/tmp/elsewhere"])
     assert e.value.code == 2 and "hydra.* and overwrite are a command line's keys" in capsys.readouterr().err
+
+
+def test_a_deleted_working_folder_is_one_line_exit_2(tmp_path):
+    """torch failed to load with "Intel oneMKL FATAL ERROR" in a working folder deleted meanwhile."""
+    import subprocess
+    import sys
+
+    from probe_helpers import REPO
+
+    gone = tmp_path / "gone"
+    gone.mkdir()
+    p = subprocess.run([sys.executable, "-m", "hairexp", *SMOKE], cwd=gone, capture_output=True, text=True,
+                       timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)), preexec_fn=lambda: os.rmdir(gone))
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.strip().splitlines() == ["hairexp: error: the working folder no longer exists (deleted while the "
+                                             "shell was in it); cd to a folder that exists and launch again"]
