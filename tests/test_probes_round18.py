@@ -158,6 +158,10 @@ def test_the_failed_endings_errors_are_said_once_each(tmp_path, monkeypatch):
                 raise OSError(27, "File too large")
 
             @staticmethod
+            def align():
+                raise OSError(27, "File too large")
+
+            @staticmethod
             def close():
                 raise OSError(27, "File too large")
 
@@ -352,7 +356,7 @@ def test_one_note_per_error_of_the_failed_ending(tmp_path, monkeypatch):
         plain = {"experiment": None, "config": None}
 
         class recorder:
-            flush = close = staticmethod(fail)
+            flush = align = close = staticmethod(fail)
 
         class table:
             steps = 3

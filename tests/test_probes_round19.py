@@ -109,7 +109,7 @@ def test_one_note_per_os_error_whatever_file_it_names(tmp_path, monkeypatch):
         plain = {"experiment": None, "config": None}
 
         class recorder:
-            flush = staticmethod(fail("positions.npy"))
+            flush = align = staticmethod(fail("positions.npy"))
             close = staticmethod(fail("times.npy"))
 
         class table:

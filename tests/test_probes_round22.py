@@ -319,3 +319,37 @@ def test_a_deleted_working_folder_is_one_line_exit_2(tmp_path):
     assert p.returncode == 2, p.stderr
     assert p.stderr.strip().splitlines() == ["hairexp: error: the working folder no longer exists (deleted while the "
                                              "shell was in it); cd to a folder that exists and launch again"]
+
+
+def test_a_failed_flush_leaves_every_stream_array_at_the_same_frames(tmp_path, monkeypatch):
+    """A full disk in the middle of a flush: positions.npy held 626 frames beside 601 of
+    guide_positions.npy, and the summary said neither; now every array is cut to the frames all hold,
+    and the summary says how many were kept and lost."""
+    import errno
+
+    import hairexp.outputs.files as files
+    from hairexp.app.config import compose_config
+    from hairexp.app.run import run
+
+    real = files.GrowingNpy.flush
+    calls = {"n": 0}
+
+    def flush(self):
+        if self.path.stem == "guide_positions" and self.pending:
+            calls["n"] += 1
+            if calls["n"] >= 2:   # from its second flush on this array fails (the disk is full), after others succeeded
+                raise OSError(errno.ENOSPC, "No space left on device", str(self.path))
+        return real(self)
+
+    monkeypatch.setattr(files.GrowingNpy, "flush", flush)
+    monkeypatch.setattr("hairexp.app.run.FLUSH_FRAMES", 10)
+    out = tmp_path / "r"
+    with pytest.raises(OSError) as e:
+        run(compose_config([*SMALL, "frames=60", "logging=off"]), out)
+    s = json.loads((out / "summary.json").read_text())
+    lengths = {p.stem: np.load(p, mmap_mode="r").shape[0] for p in (out / "stream").glob("*.npy")
+               if p.stem in ("positions", "guide_positions", "times", "body_positions", "targets", "com")}
+    assert len(set(lengths.values())) == 1, lengths
+    assert s["status"] == "failed" and s["frames_kept"] == lengths["positions"] and s["frames_lost"] > 0
+    assert s["frames_kept"] + s["frames_lost"] == s["steps"] + 1
+    assert any("could not be written" in n for n in e.value.__notes__)

@@ -584,8 +584,10 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
 
     if sinks.progress is not None:
         attempt("progress", sinks.progress.close)
+    kept = None
     if sinks.recorder is not None:
         attempt("frames", sinks.recorder.flush)
+        kept = attempt("frames", sinks.recorder.align)   # every array the same frames, whatever was written
         attempt("frames", sinks.recorder.close)
     attempt("metrics", sinks.table.flush)
     df = None
@@ -616,6 +618,13 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
         summary["unconverged_steps"] = int(summary.get("unconverged_steps", 0)) + 1
         summary["converged_fraction"] = float(summary.get("converged_fraction", 1.0)) * n / (n + 1)
         summary["failed_step"] = n + 1   # 1-based: the step after the last one in metrics.parquet
+    if kept is not None:
+        summary["frames_kept"] = int(kept)   # stream/ holds frames 0..frames_kept-1 of every array
+        lost = sinks.recorder.frames - int(kept)
+        if lost > 0:   # computed, not written (a full disk): said, as the steps in metrics are more
+            summary["frames_lost"] = lost
+            exc.add_note(f"stream/ holds frames 0..{kept - 1} of every array; the last {lost} frame(s) computed "
+                         "could not be written")
     free_reserve(out)   # its room is the summary's
     attempt("summary.json", lambda: write_ending(out / SUMMARY, summary))
     stream = out / STREAM
