@@ -11,6 +11,8 @@ import sys
 from datetime import datetime, timezone
 from pathlib import Path
 
+from hairexp.outputs.files import atomic_write_bytes
+
 REPORTS = Path(__file__).resolve().parents[2] / "reports"
 
 
@@ -53,8 +55,6 @@ def header(title: str) -> str:
 
 
 def write_report(name: str, markdown: str, data: dict) -> Path:
-    from hairexp.outputs.files import atomic_write_bytes
-
     REPORTS.mkdir(exist_ok=True)
     # whole or not at all: a full disk left a half-written report under its final name (the committed
     # one lost), and the pair of files is written only once both are encoded
