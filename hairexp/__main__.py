@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import errno
 import logging
+import multiprocessing
 import os
 import sys
 
@@ -27,7 +28,7 @@ from concurrent.futures.process import BrokenProcessPool
 import hydra
 import yaml
 from hydra.core.hydra_config import HydraConfig
-from hydra.errors import ConfigCompositionException, MissingConfigException, SearchPathException
+from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException, SearchPathException
 from omegaconf import DictConfig
 
 import hairexp.app.config  # noqa: F401  (registers the schema in the ConfigStore)
@@ -104,7 +105,16 @@ def entry() -> int:
               f"ran are failed ({type(exc).__name__}: {first})", file=sys.stderr)
         code = cli.exit_code()
         return code if code else 3   # as a killed job's (cli._end_killed_jobs)
-    except (ConfigCompositionException, MissingConfigException, SearchPathException, yaml.YAMLError) as exc:
+    except multiprocessing.TimeoutError:
+        # hydra.launcher.timeout: joblib gave up waiting and ended its workers (a traceback, exit 1, no job
+        # lines; independent probe of issue 12, round 23); the jobs it ended are failed below
+        limit = next((a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("hydra.launcher.timeout=")), "?")
+        print(f"hairexp: the sweep was stopped: a job ran longer than hydra.launcher.timeout={limit} s, and the "
+              "launcher ended its worker processes", file=sys.stderr)
+        code = cli.exit_code()
+        return code if code else 3
+    except (ConfigCompositionException, MissingConfigException, SearchPathException, OverrideParseException,
+            yaml.YAMLError) as exc:
         # what Hydra could not compose and hairexp's checks did not foresee: in a -m sweep (Hydra lets
         # its exceptions through, above) a traceback, exit 1 (probe of issue 12, round 19); a user's
         # own config file (--config-dir) that is not YAML, or whose key or value the schema refuses:
@@ -163,6 +173,7 @@ def _say_in_run_folder(what: str) -> None:
     logs = [h.baseFilename for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
     out = os.path.dirname(logs[0]) if len(logs) == 1 else None
     if out:
+        cli.restore_previous_record(out)
         cli.write_refused(None, out, what, "interrupted", "interrupted while Hydra started the run, before the run "
                           "claimed its folder: no step ran")
 
@@ -203,8 +214,41 @@ def exit_now(code: int) -> None:
     os._exit(code)
 
 
+class _Tolerant:
+    """A standard stream whose write errors are kept instead of raised: a full or closed stdout or
+    stderr (`>/dev/full`, `2>&-`, `| head -c 0`) raised from whichever print met it (a sweep's job
+    lines, a bad value's error line, Hydra's --cfg), a traceback and exit 1 or 4 instead of the
+    run's own code and ending (independent probe of issue 12, rounds 21 and 23).  A closed stream
+    (None in Python) writes nowhere."""
+
+    def __init__(self, stream):
+        self._stream = stream if stream is not None else open(os.devnull, "w")
+        self.error: OSError | None = None
+
+    def write(self, s):
+        try:
+            return self._stream.write(s)
+        except (OSError, ValueError) as exc:
+            self.error = self.error or (exc if isinstance(exc, OSError) else OSError(errno.EBADF, str(exc)))
+            return len(s)
+
+    def flush(self):
+        try:
+            self._stream.flush()
+        except (OSError, ValueError) as exc:
+            self.error = self.error or (exc if isinstance(exc, OSError) else OSError(errno.EBADF, str(exc)))
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def _main() -> None:
+    sys.stdout, sys.stderr = _Tolerant(sys.stdout), _Tolerant(sys.stderr)
     code = entry()
+    sys.stdout.flush()
+    if sys.stdout.error is not None and code == 0:   # the work is done; what it printed is lost
+        print(f"hairexp: error: cannot write the standard output: {sys.stdout.error}", file=sys.stderr)
+        code = 4
     ended(code)   # a signal while the process exits keeps this code (hairexp/app/startup.py)
     exit_now(code)
 

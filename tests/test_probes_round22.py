@@ -353,3 +353,96 @@ def test_a_failed_flush_leaves_every_stream_array_at_the_same_frames(tmp_path, m
     assert s["status"] == "failed" and s["frames_kept"] == lengths["positions"] and s["frames_lost"] > 0
     assert s["frames_kept"] + s["frames_lost"] == s["steps"] + 1
     assert any("could not be written" in n for n in e.value.__notes__)
+
+
+def test_overwrite_interrupted_before_the_run_began_leaves_the_previous_run_whole(tmp_path):
+    """overwrite=true into a finished run, a signal between Hydra's record and the job: the folder
+    held the old run's completed summary and results beside the new launch's .hydra/ config, and
+    the console said "partial results" (independent probe of issue 12, round 23)."""
+    import subprocess
+    import sys
+
+    from probe_helpers import REPO, run_cli
+
+    out = tmp_path / "r"
+    assert run_cli([*SMOKE, f"hydra.run.dir={out}"], tmp_path).returncode == 0
+    before = {p.name: p.read_bytes() for p in (out / ".hydra").iterdir()}
+    old = (out / "summary.json").read_bytes()
+    p = subprocess.run([sys.executable, "-c", SIGNAL_AFTER_RECORD, str(REPO / "hairexp" / "__main__.py"), *SMOKE,
+                        "frames=3", "overwrite=true", f"hydra.run.dir={out}"], cwd=tmp_path, capture_output=True,
+                       text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert p.returncode == 143, p.stderr
+    assert "partial results" not in p.stderr
+    assert {q.name: q.read_bytes() for q in (out / ".hydra").iterdir()} == before
+    assert (out / "summary.json").read_bytes() == old
+
+
+# ---------------------------------------------------------------------------------------------
+# independent probe round 23
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("args, said", [
+    (["--info", "nosuch"], "Error parsing override 'nosuch'"),
+    (["hydra.output_subdir=stream"], "hydra.output_subdir=stream: Hydra's record of the run (.hydra) goes in a folder"),
+    (["hydra.output_subdir=.lock"], "hydra.output_subdir=.lock: Hydra's record"),
+    (["hydra.job.name=" + "j" * 300], "hydra.job.name=jjjj"),
+    (["-m", "hydra.launcher.batch_size=0"], "hydra.launcher.batch_size=0: joblib's batch size is a positive count"),
+])
+def test_more_hydra_values_it_cannot_use_are_one_line_exit_2(tmp_path, args, said):
+    from probe_helpers import run_cli
+
+    p = run_cli([*SMOKE, *args, f"hydra.sweep.dir={tmp_path / 's'}", f"hydra.run.dir={tmp_path / 'r'}"], tmp_path)
+    assert p.returncode == 2, p.stderr
+    assert "Traceback" not in p.stderr and p.stderr.strip().splitlines()[-1].startswith(f"hairexp: error: {said}"), \
+        p.stderr
+    assert not (tmp_path / "s").exists() and not (tmp_path / "r").exists()
+
+
+def _cli_to(tmp_path, args, **streams):
+    import subprocess
+    import sys
+
+    from probe_helpers import REPO
+
+    return subprocess.run([sys.executable, "-m", "hairexp", *args], cwd=tmp_path, text=True, timeout=180,
+                          env=dict(os.environ, PYTHONPATH=str(REPO)), **streams)
+
+
+def test_a_bad_value_with_a_full_stderr_still_ends_exit_2_with_its_summary(tmp_path):
+    """The error line to a full stderr raised: exit 1 (then 4), and no summary.json."""
+    import subprocess
+
+    with open("/dev/full", "w") as full:
+        p = _cli_to(tmp_path, [*SMOKE, "frames=-1", f"hydra.run.dir={tmp_path / 'r'}"], stderr=full,
+                    stdout=subprocess.DEVNULL)
+    assert p.returncode == 2
+    s = json.loads((tmp_path / "r" / "summary.json").read_text())
+    assert s["status"] == "failed" and "frames" in s["error"]
+
+
+def test_a_sweep_with_a_full_stdout_runs_its_jobs_and_says_so_exit_4(tmp_path):
+    """The sweep's job lines to a full stdout raised OSError in the main process: a traceback, exit 1."""
+    import subprocess
+
+    with open("/dev/full", "w") as full:
+        p = _cli_to(tmp_path, ["-m", *SMOKE, "frames=1,2", f"hydra.sweep.dir={tmp_path / 's'}"], stdout=full,
+                    stderr=subprocess.PIPE)
+    assert p.returncode == 4, p.stderr
+    assert "Traceback" not in p.stderr
+    assert p.stderr.strip().splitlines()[-1] == ("hairexp: error: cannot write the standard output: [Errno 28] No "
+                                                 "space left on device")
+    for job in ("0", "1"):
+        assert json.loads((tmp_path / "s" / job / "summary.json").read_text())["status"] == "completed"
+
+
+def test_a_launcher_timeout_is_one_line_and_the_jobs_are_said(tmp_path):
+    """hydra.launcher.timeout shorter than the jobs: joblib's TimeoutError traceback, exit 1, no job lines."""
+    import subprocess
+
+    p = _cli_to(tmp_path, ["-m", *SMOKE, "frames=1,2", f"hydra.sweep.dir={tmp_path / 's'}",
+                           "hydra.launcher.timeout=0.5"], capture_output=True)
+    assert p.returncode in (1, 3), p.stderr   # 1: no job started (their workers were still importing); 3: ended
+    assert "Traceback" not in p.stderr
+    assert ("hairexp: the sweep was stopped: a job ran longer than hydra.launcher.timeout=0.5 s, and the launcher "
+            "ended its worker processes") in p.stderr
+    assert p.stderr.strip().splitlines()[-1].startswith("hairexp: sweep: ")

@@ -30,6 +30,7 @@ import os
 import re
 import resource
 import signal
+import socket
 import sys
 import tempfile
 import time
@@ -48,9 +49,9 @@ from hairexp.app.validate import unused_settings
 from hairexp.app.signals import SIGNALS, forward, take_late, worker_pids
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
-from hairexp.outputs.files import write_json
+from hairexp.outputs.files import atomic_write_bytes, write_json
 from hairexp.outputs.metrics import read_parts
-from hairexp.outputs.folder import (LOCK, RESERVE, STREAM, SUMMARY, held_elsewhere, hold, hydra_link_refusal,
+from hairexp.outputs.folder import (LOCK, RESERVE, RUN_DIRS, RUN_FILES, STREAM, SUMMARY, held_elsewhere, hold, hydra_link_refusal,
                                     note_job_logs, overwrite_refusal, refused_summary, running_run, used_entries,
                                     used_refusal)
 
@@ -194,6 +195,8 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     except Exception as exc:   # noqa: BLE001  (a bug: the traceback, exit 1; the sweep's other jobs go on)
         traceback.print_exc()
         res = outcome(out, "failed", 1, f"{type(exc).__name__}: {exc}")
+    if res["status"] != "completed":
+        restore_previous_record(out)   # overwrite=true that ended before the run claimed the folder
     if res["status"] != "completed" and Path(out).is_dir() and (
             not (Path(out) / SUMMARY).exists() or refused_summary(Path(out) / SUMMARY)):
         # ended before the run claimed the folder Hydra made (refused by its settings; a signal, or a temporary
@@ -258,9 +261,20 @@ def _kept(out, what: str) -> str:
     """Where a failed or interrupted run's data are: ``what`` in the folder when a step's metrics
     were kept (metrics.parquet, here or in a variant's folder), else that no step ran (it said
     "partial results" when nothing but the summary was there; probe of issue 12)."""
+    if not _this_runs(Path(out)):   # ended before the run claimed the folder: what is there is not its
+        return f"no step of the hair ran; summary.json in {out} says so"   # (round 23: "partial results" of the old run)
     if any(Path(out).rglob("metrics.parquet")):
         return f"{what} in {out}"
     return f"no step of the hair ran; summary.json in {out} says so"
+
+
+def _this_runs(out: Path) -> bool:
+    """Whether ``out``'s summary.json is this process's run's (its ``pid`` and ``host``)."""
+    try:
+        d = json.loads((out / SUMMARY).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(d, dict) and d.get("pid") == os.getpid() and d.get("host") == socket.gethostname()
 
 
 def _signalled_after(out, signum: int, summary: dict) -> dict:
@@ -839,9 +853,46 @@ def used_dir_error(argv: list[str]) -> str | None:
         refused = overwrite_refusal(folder)
         if refused is not None:
             return f"hairexp: error: {folder}: {refused}"
-        return _overwrite_config_error(argv) if used_entries(folder) else None
+        if not used_entries(folder):
+            return None
+        bad = _overwrite_config_error(argv)
+        if bad is None:
+            _keep_previous_record(folder)
+        return bad
     refused = used_refusal(folder)
     return None if refused is None else f"hairexp: error: {folder}: {refused}"
+
+
+#: (folder, {name: bytes}) of the ``.hydra/`` record of the run that ``overwrite=true`` is to replace,
+#: read before Hydra writes this launch's over it (``restore_previous_record``)
+_PREVIOUS_RECORD: tuple[Path, dict[str, bytes]] | None = None
+
+
+def _keep_previous_record(folder: Path) -> None:
+    global _PREVIOUS_RECORD
+    record = Path(folder) / ".hydra"
+    try:
+        files = {p.name: p.read_bytes() for p in record.iterdir() if p.is_file() and not p.is_symlink()}
+    except OSError:
+        return
+    _PREVIOUS_RECORD = (Path(folder).resolve(), files)
+
+
+def restore_previous_record(out) -> None:
+    """A launch with ``overwrite=true`` that ended before its run claimed the folder (a signal, a
+    refused setting): the previous run is still there, and Hydra had written this launch's
+    ``.hydra/`` over that run's; its own record is put back, so that the folder is one run's
+    (its completed summary beside the other launch's config; independent probe of issue 12, round 23)."""
+    if _PREVIOUS_RECORD is None or _this_runs(Path(out)):
+        return
+    folder, files = _PREVIOUS_RECORD
+    try:
+        if Path(out).resolve() != folder or not used_entries(folder):
+            return
+        for name, data in files.items():
+            atomic_write_bytes(folder / ".hydra" / name, lambda f, data=data: f.write(data))
+    except OSError as exc:
+        to_log_files(f"{out}: cannot put the previous run's .hydra/ back: {exc}")
 
 
 def inside_run_error(folder: Path, key: str) -> str | None:
@@ -1327,16 +1378,26 @@ def _hydra_value_error(key: str, value) -> str | None:
     if key == "hydra.launcher.n_jobs" and value == 0 and not isinstance(value, bool):
         return (f"{key}=0: the number of jobs run at once is a positive count (or -1 for one per core; joblib's "
                 "-n is cores + 1 - n)")
+    if key == "hydra.launcher.batch_size" and not (value == "auto" or (isinstance(value, int) and not
+                                                                        isinstance(value, bool) and value > 0)):
+        return f"{key}={value}: joblib's batch size is a positive count or auto"
     if not isinstance(value, str):
         return None
     parts = value.replace("\\", "/").split("/")
-    if key == "hydra.job.name" and (len(parts) > 1 or value in ("", ".", "..")):
-        return (f"{key}={value}: the job's name is its log file's name in the run folder (<name>.log); give a "
-                "name without '/' or '..'")
-    if key == "hydra.output_subdir" and (value.startswith("/") or ".." in parts or value in ("", ".")):
-        return (f"{key}={value}: Hydra's record of the run (.hydra) goes in a folder inside the run folder; give a "
-                "relative name without '..' (or null for none)")
+    if key == "hydra.job.name" and (len(parts) > 1 or value in ("", ".", "..") or len(value.encode()) > NAME_BYTES):
+        return (f"{key}={value[:60]}{'...' if len(value) > 60 else ''}: the job's name is its log file's name in the "
+                f"run folder (<name>.log); give a name without '/' or '..', of at most {NAME_BYTES} bytes")
+    if key == "hydra.output_subdir" and (value.startswith("/") or ".." in parts or value in ("", ".")
+                                         or parts[0] in RUN_FILES | RUN_DIRS | {LOCK}
+                                         or any(len(q.encode()) > NAME_BYTES for q in parts)):
+        return (f"{key}={value[:60]}{'...' if len(value) > 60 else ''}: Hydra's record of the run (.hydra) goes in a "
+                "folder of its own inside the run folder; give a relative name without '..' that is not one of the "
+                "run's files (or null for none)")
     return None
+
+
+#: bytes of a file name hairexp gives Hydra (NAME_MAX 255, less ".log" and room for Hydra's suffixes)
+NAME_BYTES = 200
 
 
 def hydra_key_error(hydra_args: list[str]) -> str | None:
