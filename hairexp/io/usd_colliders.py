@@ -20,7 +20,7 @@ import math
 from pxr import Sdf, Tf, Usd, UsdGeom
 
 from hairexp.errors import InputError
-from hairexp.io.usd_layout import (COLLIDER_DEFAULTS, COLLIDERS, FRICTION, NUMBER_TYPES, PLANE_SIZE, SPIN, THICKNESS,
+from hairexp.io.usd_layout import (COLLIDER_DEFAULTS, COLLIDERS, FRICTION, NAME, NUMBER_TYPES, PLANE_SIZE, SPIN, THICKNESS,
                                    TOKEN_TYPES, check_type, read_motion, set_transform)
 from hairexp.model.colliders import Box, Capsule, Cylinder, Plane, Sphere
 
@@ -98,7 +98,7 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
         if kind not in SUPPORTED:
             raise InputError(f"unsupported collider type {kind or '(typeless)'}; use {', '.join(SUPPORTED)}", where)
         motion, scale = read_motion(prim, tcps, where, allow_scale=kind == "Cube")
-        common = dict(name=prim.GetName(), motion=motion, where=where,
+        common = dict(name=_name(prim, where), motion=motion, where=where,
                       thickness=_number(prim, THICKNESS, where, default=COLLIDER_DEFAULTS[THICKNESS]),
                       friction=_number(prim, FRICTION, where, default=COLLIDER_DEFAULTS[FRICTION]))
         if kind != "Cylinder" and prim.GetAttribute(SPIN).HasAuthoredValue():
@@ -123,6 +123,18 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
     return out
 
 
+def _name(prim, where: str) -> str:
+    """A collider's name: its ``hairexp:name`` (written where the name is not a USD identifier),
+    else the prim's name."""
+    a = prim.GetAttribute(NAME)
+    if not a.HasAuthoredValue():
+        return prim.GetName()
+    v = a.Get()
+    if not isinstance(v, str) or not v.strip():
+        raise InputError(f"{NAME} must be a non-empty string (the collider's name), got {v!r}", where)
+    return v
+
+
 def _custom(prim, name: str, value: float) -> None:
     prim.CreateAttribute(name, Sdf.ValueTypeNames.Double, custom=True).Set(float(value))
 
@@ -140,10 +152,6 @@ def write_colliders(stage, colliders: list, pose_samples) -> list:
         while name in used:
             name += "_"
         used.add(name)
-        if name != c.name:   # a prim name is an identifier: said, since measure.collider goes by name (probe of issue 12)
-            logging.getLogger("hairexp").warning(
-                "collider %r is written as the prim %s/%s (USD prim names are identifiers); after re-import its "
-                "name is %r (measure.collider and the metrics' contacts_<name> follow it)", c.name, COLLIDERS, name, name)
         path = f"{COLLIDERS}/{name}"
         if isinstance(c, Sphere):
             g = UsdGeom.Sphere.Define(stage, path)
@@ -170,6 +178,8 @@ def write_colliders(stage, colliders: list, pose_samples) -> list:
             g.AddScaleOp(UsdGeom.XformOp.PrecisionDouble).Set(tuple(float(h) for h in c.half_extents))
         _custom(g.GetPrim(), THICKNESS, c.thickness)
         _custom(g.GetPrim(), FRICTION, c.friction)
+        if name != c.name:   # a prim name is an identifier; the collider keeps its own (round 23: renamed silently)
+            g.GetPrim().CreateAttribute(NAME, Sdf.ValueTypeNames.String, custom=True).Set(str(c.name))
         g.CreateExtentAttr(UsdGeom.Boundable.ComputeExtentFromPlugins(g, Usd.TimeCode.Default()))
         written.append((path, c))
     return written

@@ -40,6 +40,10 @@ RESULT = "/Root/Result"
 RESULT_HAIR = "/Root/Result/Hair"
 
 THICKNESS, FRICTION, SPIN = "hairexp:thickness", "hairexp:friction", "hairexp:spin"
+#: a collider's own name where it is not a USD identifier (the prim's name is made one: 'ball-1' is
+#: the prim ball_1); read back as the collider's name, so that measure.collider and the metrics'
+#: contacts_<name> still match after a re-import
+NAME = "hairexp:name"
 #: Collider attributes read when a prim does not author them (the config's defaults).
 COLLIDER_DEFAULTS = {THICKNESS: 0.002, FRICTION: 0.3, SPIN: 0.0}
 
