@@ -446,3 +446,19 @@ def test_a_launcher_timeout_is_one_line_and_the_jobs_are_said(tmp_path):
     assert ("hairexp: the sweep was stopped: a job ran longer than hydra.launcher.timeout=0.5 s, and the launcher "
             "ended its worker processes") in p.stderr
     assert p.stderr.strip().splitlines()[-1].startswith("hairexp: sweep: ")
+
+
+def test_a_body_scale_round_off_between_samples_is_not_a_collider_error(tmp_path):
+    """The body's transform scaled by 1.0000001 at one time code (an exporter's round-off): refused as
+    'a collider keeps its size' (the body is no collider); within the rigid tolerance it is read."""
+    from pxr import Gf, Usd, UsdGeom
+
+    from hairexp.io.usd_layout import read_motion
+
+    stage = Usd.Stage.CreateInMemory()
+    x = UsdGeom.Xform.Define(stage, "/Body")
+    op = x.AddTransformOp()
+    op.Set(Gf.Matrix4d(1.0), 0)
+    op.Set(Gf.Matrix4d(1.0).SetScale(Gf.Vec3d(1.0000001, 1.0000001, 1.0000001)), 3)
+    motion, scale = read_motion(x.GetPrim(), 24.0, "s.usda:/Body")
+    assert len(motion.times) == 2 and abs(scale[0] - 1) < 1e-6
