@@ -22,6 +22,32 @@ except FileNotFoundError:
     sys.stderr.write("hairexp: error: the working folder no longer exists (deleted while the shell was in it); cd to "
                      "a folder that exists and launch again\n")
     raise SystemExit(2) from None
+
+
+def _address_space_error() -> str | None:
+    """The error line when the process's address-space limit (``ulimit -v``) is below what a run
+    reserves, or None.  A run reserves about 5.2-5.5 GB of virtual memory (VmPeak of goaling_smoke
+    and celia_smoke; resident about 0.6 GB: the reservations of torch, numba's LLVM, USD and the
+    threads' heaps and stacks).  Under 2-4.5 GB USD crashed with SIGSEGV while writing the result
+    (exit 139, no word, summary.json left "running"); under 800 MB the import failed with a
+    traceback (independent probe of issue 12, round 23)."""
+    import resource
+
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft == resource.RLIM_INFINITY or soft >= MIN_ADDRESS_SPACE:
+        return None
+    return (f"hairexp: error: the process's address-space limit (ulimit -v) is {soft / 2**30:.2f} GiB; a run reserves "
+            f"about 5.5 GiB of virtual memory (it uses about 0.6 GiB of it: torch's, LLVM's and USD's reservations "
+            f"and the threads' heaps), and USD crashes when a reservation fails; raise it to at least "
+            f"{MIN_ADDRESS_SPACE / 2**30:.0f} GiB (ulimit -v {MIN_ADDRESS_SPACE >> 10}) or lift it (ulimit -v unlimited)")
+
+
+#: the smallest address-space limit (RLIMIT_AS) a run starts under (_address_space_error)
+MIN_ADDRESS_SPACE = 6 << 30
+
+if (_why := _address_space_error()) is not None:   # before torch, numba and USD load
+    sys.stderr.write(_why + "\n")
+    raise SystemExit(2)
 import warnings
 from concurrent.futures.process import BrokenProcessPool
 

@@ -462,3 +462,53 @@ def test_a_body_scale_round_off_between_samples_is_not_a_collider_error(tmp_path
     op.Set(Gf.Matrix4d(1.0).SetScale(Gf.Vec3d(1.0000001, 1.0000001, 1.0000001)), 3)
     motion, scale = read_motion(x.GetPrim(), 24.0, "s.usda:/Body")
     assert len(motion.times) == 2 and abs(scale[0] - 1) < 1e-6
+
+
+def test_an_address_space_limit_below_a_runs_reservations_is_one_line_exit_2(tmp_path):
+    """ulimit -v 3 GB: USD crashed with SIGSEGV writing the result (exit 139, summary left running);
+    800 MB: a traceback at import."""
+    import resource
+    import subprocess
+    import sys
+
+    from probe_helpers import REPO
+
+    for limit in (800 << 20, 3 << 30):
+        p = subprocess.run([sys.executable, "-m", "hairexp", *SMOKE, f"hydra.run.dir={tmp_path / 'r'}"], cwd=tmp_path,
+                           capture_output=True, text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)),
+                           preexec_fn=lambda limit=limit: resource.setrlimit(resource.RLIMIT_AS,
+                                                                             (limit, resource.RLIM_INFINITY)))
+        assert p.returncode == 2, p.stderr
+        line, = p.stderr.strip().splitlines()
+        assert line.startswith("hairexp: error: the process's address-space limit (ulimit -v) is ") and \
+            "raise it to at least 6 GiB" in line
+        assert not (tmp_path / "r").exists()
+
+
+def test_a_partial_recording_cut_short_is_said(tmp_path, monkeypatch):
+    """A full disk at the end of a run: recording.partial.rrd was kept cut mid-message (no footer),
+    said nowhere, while the README calls it a valid recording of the steps done."""
+    import errno
+
+    import hairexp.app.run as run_mod
+    import hairexp.outputs.rerun_sink as sink
+    from hairexp.app.config import compose_config
+
+    real_finish = sink.finish_stream
+
+    def finish(rec, path):   # the writer stops short, as on a full disk
+        real_finish(rec, path)
+        with open(path, "r+b") as f:
+            f.truncate(os.path.getsize(path) - 100)
+
+    def no_room(path, folder, names=None):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(sink, "finish_stream", finish)
+    monkeypatch.setattr(run_mod, "write_npz", no_room)
+    out = tmp_path / "r"
+    with pytest.raises(OSError) as e:
+        run_mod.run(compose_config([*SMALL[:-1], "logging.rerun=true", "logging.progress=false"]), out)
+    assert any("recording.partial.rrd: cut short where its writer failed" in n for n in e.value.__notes__), \
+        e.value.__notes__
+    assert (out / "recording.partial.rrd").is_file()

@@ -631,6 +631,14 @@ class RerunSink:
         if success:
             _check_complete(self.partial)
             os.replace(self.partial, self.path)
+        elif os.path.isfile(self.partial):
+            # a partial recording is kept as a valid recording of the steps done; one its writer could
+            # not finish (a full disk) ends mid-message, and nothing said so (independent probe, round 23)
+            try:
+                _check_complete(self.partial)
+            except OSError:
+                raise OSError(f"{self.partial}: cut short where its writer failed (no rerun footer: a full disk?); "
+                              "rerun shows the data before that point") from None
         return facts
 
 
