@@ -229,6 +229,10 @@ def _limit_hint(exc: OSError) -> str:
         soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
         if soft != resource.RLIM_INFINITY:
             return f" (a file reached the process's file-size limit, ulimit -f: {soft} bytes)"
+    if exc.errno == errno.EMFILE:   # not the folder's fault (own probe, 2026-12-05: ulimit -n 16)
+        soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+        return (f" (the process's open-file limit, ulimit -n {soft}: a run holds about 30 files open, its "
+                "libraries' included; raise it)")
     return ""
 
 
