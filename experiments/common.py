@@ -412,8 +412,15 @@ def run_script(main) -> None:
     """A script's entry point: ``main()``'s return code, and an interrupted run (SIGINT, SIGTERM:
     hairexp's ``Interrupted``) as one line and exit 128 + signal instead of a traceback from deep
     inside the run (probe of issue 12).  What the script wrote before stays."""
+    from hairexp.app.streams import guard_streams, stdout_checked
+
+    guard_streams()   # a full or closed stdout (--help >/dev/full): one line and exit 4, not a traceback
+    prog = Path(sys.argv[0]).stem
     try:
         code = main()
+    except SystemExit as exc:   # argparse's --help (0) and usage errors (2)
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        sys.exit(stdout_checked(code, prog))
     except KeyboardInterrupt as exc:   # hairexp.errors.Interrupted is one
         import signal as _signal
 
@@ -421,4 +428,4 @@ def run_script(main) -> None:
         name = _signal.Signals(signum).name
         print(f"{Path(sys.argv[0]).stem}: interrupted by {name}; the runs finished before it are kept", file=sys.stderr)
         sys.exit(128 + signum)
-    sys.exit(code if isinstance(code, int) and not isinstance(code, bool) else 0)
+    sys.exit(stdout_checked(code if isinstance(code, int) and not isinstance(code, bool) else 0, prog))

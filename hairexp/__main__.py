@@ -60,6 +60,7 @@ from omegaconf import DictConfig
 import hairexp.app.config  # noqa: F401  (registers the schema in the ConfigStore)
 from hairexp.app import cli
 from hairexp.app.signals import InterruptSignals, exit_code
+from hairexp.app.streams import guard_streams, stdout_checked
 from hairexp.app.startup import begun, ended
 from hairexp.errors import Interrupted
 from hairexp.outputs.folder import unhold_unused
@@ -155,15 +156,6 @@ def entry() -> int:
         print(f"hairexp: error: {where}{first}", file=sys.stderr)
         unhold_unused()   # the run folder Hydra never wrote: not left holding only .lock
         return 2
-    except ValueError as exc:
-        if not _raised_by_hydra(exc):
-            raise
-        # Hydra's own flags given a value it refuses (--experimental-rerun of a missing file,
-        # --shell-completion without install/uninstall/query): a traceback, exit 1 (round 21)
-        flags = [a.split("=")[0] for a in sys.argv[1:] if a.startswith("--")]
-        print(f"hairexp: error: {', '.join(flags) + ': ' if flags else ''}{cli.one_line(exc)}", file=sys.stderr)
-        unhold_unused()
-        return 2
     except OSError as exc:
         # outside a run (a run's own write errors end it, hairexp/app/cli.py): what Hydra prints itself,
         # --cfg / --info / --help, to a full or closed standard output (`--cfg job >/dev/full`: a
@@ -175,6 +167,21 @@ def entry() -> int:
             pass
         unhold_unused()
         return 4
+    except Exception as exc:  # noqa: BLE001  (re-raised unless Hydra's own)
+        if not _raised_by_hydra(exc):
+            raise
+        # Hydra's own flags given a value it refuses (--experimental-rerun of a missing file or of
+        # one that is not a pickle, --shell-completion without install/uninstall/query or without
+        # COMP_LINE): a traceback, exit 1 (independent probes, rounds 21 and 24).  A job's own errors
+        # never get here (cli.job ends them)
+        flags = [a.split("=")[0] for a in sys.argv[1:] if a.startswith("--")]
+        why = (cli.one_line(exc) if isinstance(exc, ValueError)
+               else f"{type(exc).__name__} {' '.join(str(exc).split())} (in Hydra's own code)")
+        if isinstance(exc, KeyError) and str(exc).strip("'") in ("COMP_LINE", "COMP_POINT"):
+            why = f"{str(exc)} is not set: the shell sets it when it asks for completions (install=bash sets that up)"
+        print(f"hairexp: error: {', '.join(flags) + ': ' if flags else ''}{why}", file=sys.stderr)
+        unhold_unused()
+        return 2
     except KeyboardInterrupt as exc:
         code = exit_code(exc.signum) if isinstance(exc, Interrupted) else 130
         # outside a run (a run prints its own line): while the config was composed, or between sweep jobs
@@ -205,12 +212,19 @@ def _say_in_run_folder(what: str) -> None:
 
 
 def _raised_by_hydra(exc: BaseException) -> bool:
-    """Whether ``exc`` was raised in Hydra's or joblib's own code (its innermost frame)."""
-    tb = exc.__traceback__
-    while tb is not None and tb.tb_next is not None:
+    """Whether ``exc`` was raised under Hydra's or joblib's own code and not under hairexp's (the
+    frames below ``entry``: a KeyError of ``os.environ`` that Hydra's shell completion asked for
+    has its innermost frame in ``os``)."""
+    tb, ours, theirs = exc.__traceback__, False, False
+    here = os.path.dirname(os.path.abspath(__file__)).replace(os.sep, "/") + "/"
+    while tb is not None:
+        path = tb.tb_frame.f_code.co_filename.replace(os.sep, "/")
+        if path.startswith(here) and not path.endswith("/__main__.py"):
+            ours = True
+        elif "/hydra/" in path or "/joblib/" in path:
+            theirs = True
         tb = tb.tb_next
-    path = tb.tb_frame.f_code.co_filename.replace(os.sep, "/") if tb is not None else ""
-    return "/hydra/" in path or "/joblib/" in path
+    return theirs and not ours
 
 
 def exit_now(code: int) -> None:
@@ -240,41 +254,13 @@ def exit_now(code: int) -> None:
     os._exit(code)
 
 
-class _Tolerant:
-    """A standard stream whose write errors are kept instead of raised: a full or closed stdout or
-    stderr (`>/dev/full`, `2>&-`, `| head -c 0`) raised from whichever print met it (a sweep's job
-    lines, a bad value's error line, Hydra's --cfg), a traceback and exit 1 or 4 instead of the
-    run's own code and ending (independent probe of issue 12, rounds 21 and 23).  A closed stream
-    (None in Python) writes nowhere."""
-
-    def __init__(self, stream):
-        self._stream = stream if stream is not None else open(os.devnull, "w")
-        self.error: OSError | None = None
-
-    def write(self, s):
-        try:
-            return self._stream.write(s)
-        except (OSError, ValueError) as exc:
-            self.error = self.error or (exc if isinstance(exc, OSError) else OSError(errno.EBADF, str(exc)))
-            return len(s)
-
-    def flush(self):
-        try:
-            self._stream.flush()
-        except (OSError, ValueError) as exc:
-            self.error = self.error or (exc if isinstance(exc, OSError) else OSError(errno.EBADF, str(exc)))
-
-    def __getattr__(self, name):
-        return getattr(self._stream, name)
-
-
 def _main() -> None:
-    sys.stdout, sys.stderr = _Tolerant(sys.stdout), _Tolerant(sys.stderr)
-    code = entry()
-    sys.stdout.flush()
-    if sys.stdout.error is not None and code == 0:   # the work is done; what it printed is lost
-        print(f"hairexp: error: cannot write the standard output: {sys.stdout.error}", file=sys.stderr)
-        code = 4
+    guard_streams()
+    try:
+        code = entry()
+    except SystemExit as exc:   # Hydra's --help / --hydra-help end with sys.exit(0) after printing
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    code = stdout_checked(code, "hairexp")
     ended(code)   # a signal while the process exits keeps this code (hairexp/app/startup.py)
     exit_now(code)
 

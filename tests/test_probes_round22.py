@@ -512,3 +512,65 @@ def test_a_partial_recording_cut_short_is_said(tmp_path, monkeypatch):
     assert any("recording.partial.rrd: cut short where its writer failed" in n for n in e.value.__notes__), \
         e.value.__notes__
     assert (out / "recording.partial.rrd").is_file()
+
+
+# ---------------------------------------------------------------------------------------------
+# independent probe round 24
+# ---------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("cmd", [["-m", "hairexp", "--help"], ["-m", "hairexp", "--hydra-help"],
+                                 ["-m", "hairexp.io.export_scene", "--help"],
+                                 ["-m", "experiments.traced_run", "--help"], ["-m", "experiments.bench_free", "--help"]])
+def test_help_to_a_full_stdout_is_one_line_exit_4(tmp_path, cmd):
+    """--help to /dev/full: exit 0 with nothing said (hairexp's), or a traceback (the export's, traced_run's)."""
+    import subprocess
+    import sys
+
+    from probe_helpers import REPO
+
+    with open("/dev/full", "w") as full:
+        p = subprocess.run([sys.executable, *cmd], cwd=REPO, stdout=full, stderr=subprocess.PIPE, text=True,
+                           timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert p.returncode == 4, p.stderr
+    assert p.stderr.strip().splitlines()[-1].endswith("error: cannot write the standard output: [Errno 28] No space "
+                                                      "left on device") and "Traceback" not in p.stderr
+
+
+@pytest.mark.parametrize("args, said", [
+    (["--shell-completion", "query=bash"], "--shell-completion: 'COMP_LINE' is not set"),
+    (["--experimental-rerun", "{yaml}"], "--experimental-rerun: "),
+])
+def test_hydras_flags_failing_in_its_own_code_are_one_line_exit_2(tmp_path, args, said):
+    (tmp_path / "c.yaml").write_text("a: 1\n")   # not a pickle
+    args = [a.replace("{yaml}", str(tmp_path / "c.yaml")) for a in args]
+    env_free = {k: v for k, v in os.environ.items() if not k.startswith("COMP_")}
+    import subprocess
+    import sys
+
+    from probe_helpers import REPO
+
+    p = subprocess.run([sys.executable, "-m", "hairexp", *args], cwd=tmp_path, capture_output=True, text=True,
+                       timeout=120, env=dict(env_free, PYTHONPATH=str(REPO)))
+    assert p.returncode == 2, p.stderr
+    assert "Traceback" not in p.stderr and p.stderr.strip().splitlines()[-1].startswith(f"hairexp: error: {said}")
+
+
+def test_hydras_record_in_a_variants_folder_is_refused_before_hydra_starts(tmp_path):
+    from probe_helpers import run_cli
+
+    out = tmp_path / "r"
+    p = run_cli(["experiment=goaling_smoke", "frames=2", "logging=off", "hydra.output_subdir=free",
+                 f"hydra.run.dir={out}"], tmp_path)
+    assert p.returncode == 2
+    assert p.stderr.strip().splitlines()[-1] == ("hairexp: error: hydra.output_subdir=free: Hydra's record would go "
+                                                 "into the folder of the variant free; give another name (the "
+                                                 "variants are free, tracked)")
+    assert not out.exists()
+
+
+def test_an_interrupted_overwrite_says_the_previous_run_is_kept(tmp_path):
+    from hairexp.app import cli
+
+    (tmp_path / "summary.json").write_text(json.dumps({"status": "completed", "pid": os.getpid() + 1, "host": "x"}))
+    assert cli._kept(tmp_path, "partial results") == (f"no step of the hair ran; {tmp_path} still holds the "
+                                                      "previous run, as it was")

@@ -266,7 +266,10 @@ def _kept(out, what: str) -> str:
     were kept (metrics.parquet, here or in a variant's folder), else that no step ran (it said
     "partial results" when nothing but the summary was there; probe of issue 12)."""
     if not _this_runs(Path(out)):   # ended before the run claimed the folder: what is there is not its
-        return f"no step of the hair ran; summary.json in {out} says so"   # (round 23: "partial results" of the old run)
+        summary = Path(out) / SUMMARY   # (round 23: "partial results" of the old run)
+        if summary.is_file() and not refused_summary(summary):   # overwrite=true that never began (round 24)
+            return f"no step of the hair ran; {out} still holds the previous run, as it was"
+        return f"no step of the hair ran; summary.json in {out} says so"
     if any(Path(out).rglob("metrics.parquet")):
         return f"{what} in {out}"
     return f"no step of the hair ran; summary.json in {out} says so"
@@ -440,17 +443,18 @@ def exit_code(signum: int | None = None) -> int:
         rows = sweep_outcomes(SWEEP_DIR) if SWEEP_DIR.is_dir() else []
         _end_killed_jobs(rows, signum)
         bad = [r for r in rows if r[2]["code"] != 0]
-        stream = sys.stderr if bad else sys.stdout
+        total = max(len(rows), SWEEP_TOTAL or 0)
+        # the job lines and the closing line on one stream: stderr when a job failed or never ran (the job
+        # lines went to stdout and the closing line to stderr in an interrupted sweep; round 24)
+        stream = sys.stderr if bad or total > len(rows) else sys.stdout
         for name, overrides, res in rows:
             note = "" if res.get("converged") is not False else ", not converged"
             msg = f": {res['message']}" if res.get("message") and res["code"] != 0 else ""
             print(f"hairexp: job {name} [{overrides}]: {res['status']}{note} (exit {res['code']}){msg} -> {res['out']}",
                   file=stream)
-        total = max(len(rows), SWEEP_TOTAL or 0)
         unstarted = f" ({total - len(rows)} not started)" if total > len(rows) else ""
         if unstarted:   # an interrupted sweep: its jobs that never ran are said, not left out (probe of issue 12)
             bad = bad or [("", "", {"code": 1})]
-            stream = sys.stderr
         print(f"hairexp: sweep: {len(rows) - sum(1 for r in rows if r[2]['code'] != 0)} of {total} jobs completed"
               f"{unstarted} -> {SWEEP_DIR}", file=stream)
         return bad[0][2]["code"] if bad else (0 if rows else 1)
@@ -1304,6 +1308,24 @@ def _plain_overrides(argv: list[str]) -> list[str]:
     return [a for i, a in enumerate(argv) if not (a.startswith("-") or _is_value(argv, i) or _hydra_arg(a))]
 
 
+def _record_in_variant_error(argv: list[str], overrides: list[str]) -> str | None:
+    """Why ``hydra.output_subdir`` cannot be the name it gives: an experiment's variant folder (Hydra's
+    record went into ``free/``, and the variant's run refused its folder as used; round 24), or None."""
+    given = [a.split("=", 1)[1] for a in argv if a.startswith("hydra.output_subdir=")]
+    if not given or given[-1] in ("null", ""):
+        return None
+    try:
+        variants = compose_config(overrides).get("variants") or []
+        names = {str(v.name) for v in variants}
+    except Exception:  # noqa: BLE001  (compose_error's)
+        return None
+    first = given[-1].replace("\\", "/").split("/")[0]
+    if first in names:
+        return (f"hydra.output_subdir={given[-1]}: Hydra's record would go into the folder of the variant {first}; "
+                "give another name (the variants are " + ", ".join(sorted(names)) + ")")
+    return None
+
+
 def compose_error(overrides: list[str], input_errors: bool = True) -> str | None:
     """The message (without the ``hairexp: error:`` prefix) of ``overrides`` whose config cannot
     be composed, or None; ``input_errors=False``: hairexp's own checks (``InputError``: a ``+key``
@@ -1457,7 +1479,7 @@ def config_error(argv: list[str]) -> str | None:
         return f"hairexp: error: {hydra_msg}"
     overrides = _plain_overrides(argv)
     if not multirun:
-        msg = compose_error(overrides)
+        msg = compose_error(overrides) or _record_in_variant_error(argv, overrides)
         return None if msg is None else f"hairexp: error: {msg}"
     for job_overrides, swept in _sweep_jobs(overrides) or []:
         msg = compose_error(job_overrides, input_errors=False)

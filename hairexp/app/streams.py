@@ -1,0 +1,63 @@
+"""The standard streams of a command: their write errors kept, not raised.
+
+A full or closed stdout or stderr (``>/dev/full``, ``2>&-``, ``| head -c 0``) raised from whichever
+print met it (a sweep's job lines, a bad value's error line, Hydra's ``--cfg``, ``--help``): a
+traceback and exit 1 or 4 instead of the command's own code and ending (independent probes of
+issue 12, rounds 21, 23 and 24).  ``guard_streams()`` wraps both; ``stdout_checked(code)`` at the
+end turns a lost standard output into one line on stderr and exit 4 (README "Exit codes").
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import sys
+
+
+class Tolerant:
+    """A standard stream whose write errors are kept (``error``) instead of raised; a closed
+    stream (None in Python) writes nowhere."""
+
+    def __init__(self, stream):
+        self._stream = stream if stream is not None else open(os.devnull, "w")
+        self.error: OSError | None = None
+
+    def _keep(self, exc: Exception) -> None:
+        if self.error is None:
+            self.error = exc if isinstance(exc, OSError) else OSError(errno.EBADF, str(exc))
+
+    def write(self, s):
+        try:
+            return self._stream.write(s)
+        except (OSError, ValueError) as exc:
+            self._keep(exc)
+            return len(s)
+
+    def flush(self):
+        try:
+            self._stream.flush()
+        except (OSError, ValueError) as exc:
+            self._keep(exc)
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+def guard_streams() -> None:
+    """Wrap ``sys.stdout`` and ``sys.stderr`` (once)."""
+    if not isinstance(sys.stdout, Tolerant):
+        sys.stdout = Tolerant(sys.stdout)
+    if not isinstance(sys.stderr, Tolerant):
+        sys.stderr = Tolerant(sys.stderr)
+
+
+def stdout_checked(code: int, prog: str) -> int:
+    """``code``, or 4 when it is 0 but the standard output could not be written (the work is
+    done, what it printed is lost): said on stderr."""
+    out = sys.stdout
+    if isinstance(out, Tolerant):
+        out.flush()
+        if out.error is not None and not code:
+            print(f"{prog}: error: cannot write the standard output: {out.error}", file=sys.stderr)
+            return 4
+    return code
