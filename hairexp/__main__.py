@@ -14,6 +14,7 @@ import errno
 import logging
 import multiprocessing
 import os
+import signal
 import sys
 
 try:   # before torch loads: in a deleted working folder it failed with "Intel oneMKL FATAL ERROR" (round 21)
@@ -44,8 +45,24 @@ def _address_space_error() -> str | None:
 
 #: the smallest address-space limit (RLIMIT_AS) a run starts under (_address_space_error)
 MIN_ADDRESS_SPACE = 6 << 30
+#: the smallest open-file limit (RLIMIT_NOFILE) a run starts under: celia_smoke's experiment and a
+#: two-job sweep ran under 64; under 16-20 a run failed on its stream's files, said as the run
+#: folder's fault (exit 4; independent probe of issue 12, round 24)
+MIN_OPEN_FILES = 64
 
-if (_why := _address_space_error()) is not None:   # before torch, numba and USD load
+
+def _open_files_error() -> str | None:
+    import resource
+
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft >= MIN_OPEN_FILES:
+        return None
+    return (f"hairexp: error: the process's open-file limit (ulimit -n) is {soft}; a run holds up to about 40 files "
+            f"open (its libraries', its stream's and its logs'): raise it to at least {MIN_OPEN_FILES} "
+            f"(ulimit -n {MIN_OPEN_FILES})")
+
+
+if (_why := _address_space_error() or _open_files_error()) is not None:   # before torch, numba and USD load
     sys.stderr.write(_why + "\n")
     raise SystemExit(2)
 import warnings
@@ -77,6 +94,11 @@ def main(cfg: DictConfig) -> float | None:
 
 def entry() -> int:
     logging.raiseExceptions = False   # a log file on a full disk is not worth a traceback per line
+    # a sweep's interrupted or timed-out workers leave their semaphores to joblib's resource tracker,
+    # which warned "resource_tracker: There appear to be N leaked semaphore objects" after the sweep's
+    # closing line (it cleans them up all the same; round 24): its process takes the interpreter's -W
+    # options from these
+    sys.warnoptions.append("ignore:resource_tracker:UserWarning")
     warnings.formatwarning = cli.one_line_warning
     if "--version" in sys.argv[1:]:   # Hydra's said only "Hydra 1.3.8" (probe of issue 12, round 19)
         try:
@@ -90,6 +112,9 @@ def entry() -> int:
     if bad_flag is not None:
         print(bad_flag, file=sys.stderr)
         return 2
+    shadowed = cli.shadowed_config_warning(sys.argv[1:])
+    if shadowed is not None:
+        print(shadowed, file=sys.stderr)
     sys.argv[1:] = cli.flags_first(sys.argv[1:])   # argparse takes no flag after the overrides
     other_mode = cli.unused_folder_key(sys.argv[1:])
     if other_mode is not None:
@@ -136,10 +161,11 @@ def entry() -> int:
         # hydra.launcher.timeout: joblib gave up waiting and ended its workers (a traceback, exit 1, no job
         # lines; independent probe of issue 12, round 23); the jobs it ended are failed below
         limit = next((a.split("=", 1)[1] for a in sys.argv[1:] if a.startswith("hydra.launcher.timeout=")), "?")
-        print(f"hairexp: the sweep was stopped: a job ran longer than hydra.launcher.timeout={limit} s, and the "
-              "launcher ended its worker processes", file=sys.stderr)
-        code = cli.exit_code()
-        return code if code else 3
+        print(f"hairexp: the sweep was stopped: a job ran longer than hydra.launcher.timeout={limit} s", file=sys.stderr)
+        # joblib has ended its workers (loky's abort): the jobs that were running are ended here as failed,
+        # those not begun said as not started (their summaries said "running", or there were none)
+        code = cli.exit_code(workers_gone=True)
+        return code if code not in (0, 1) else 3   # a job's own bad ending, or 3: the sweep could not finish
     except (ConfigCompositionException, MissingConfigException, SearchPathException, OverrideParseException,
             yaml.YAMLError) as exc:
         # what Hydra could not compose and hairexp's checks did not foresee: in a -m sweep (Hydra lets

@@ -399,7 +399,14 @@ def sweep_outcomes(sweep_dir: Path) -> list[tuple[str, str, dict]]:
     return rows
 
 
-def _end_killed_jobs(rows: list, signum: int | None) -> None:
+def _wait_workers_gone(seconds: float = 10.0) -> None:
+    """Wait until this process has no worker processes left (the launcher's teardown), at most ``seconds``."""
+    end = time.monotonic() + seconds
+    while worker_pids() and time.monotonic() < end:
+        time.sleep(0.1)
+
+
+def _end_killed_jobs(rows: list, signum: int | None, workers_gone: bool = False) -> None:
     """Jobs whose outcome still says running and whose process is gone (a sweep's teardown
     killed a worker before its job wrote its ending; probe of issue 12: the job's summary.json
     stayed "running" with its ``.ending.reserve``): their summary and outcome are ended here as
@@ -409,39 +416,55 @@ def _end_killed_jobs(rows: list, signum: int | None) -> None:
             continue
         d = SWEEP_DIR / name
         found = running_run(d)
-        if found is None or found[0] != "killed":
+        if found is None and workers_gone and not (d / SUMMARY).exists():
+            # ended by the launcher before its run claimed its folder: said in the folder as such (round 24)
+            why = "the launcher ended the job's process (hydra.launcher.timeout) before its run began"
+            write_refused(None, d, why, "failed", "ended by the sweep's launcher before the run claimed its folder: "
+                          "no step ran")
+            res.update(status="failed", code=3, message=why)
+            _write_outcome(d, res)
+            continue
+        if found is None or (found[0] != "killed" and not (workers_gone and found[0] == "live")):
             continue
         summary = found[1]
         status = "interrupted" if signum is not None else "failed"
         # a healthy job's worker is torn down with the others when one worker is killed (loky): said so (round 14)
         why = (f"the job's process ended before it wrote its ending (pid {summary['pid']}"
                + (f", the sweep was stopped by {signal.Signals(signum).name})" if signum is not None
+                  else ": ended by the launcher, hydra.launcher.timeout)" if workers_gone
                   else ": killed, or stopped with the sweep's other workers when one of them was killed)"))
-        try:
-            summary.update(status=status, error=why)
-            # the steps it had streamed: the summary said none while stream/ held 825 frames (round 18)
-            done = read_parts(d / STREAM / "metrics")
-            if done is not None and len(done):
-                try:
-                    summary.update(metrics_summary(done))
-                except (KeyError, ValueError, TypeError):   # parts of another layout: the status and error only
-                    pass
-            write_json(d / SUMMARY, summary)
-            (d / RESERVE).unlink(missing_ok=True)
-        except OSError:
-            pass
+        # the job's folder, and an experiment's variant folders in it (a variant's summary stayed
+        # "running" under its failed experiment; independent probe of issue 12, round 24)
+        for f, s in [(d, summary)] + [(v, r[1]) for v in sorted(p for p in d.iterdir() if p.is_dir())
+                                       if (r := running_run(v)) is not None and r[0] in ("killed", "live")]:
+            try:
+                s.update(status=status, error=why)
+                # the steps it had streamed: the summary said none while stream/ held 825 frames (round 18)
+                done = read_parts(f / STREAM / "metrics")
+                if done is not None and len(done):
+                    try:
+                        s.update(metrics_summary(done))
+                    except (KeyError, ValueError, TypeError):   # parts of another layout: the status and error only
+                        pass
+                write_json(f / SUMMARY, s)
+                (f / RESERVE).unlink(missing_ok=True)
+            except OSError:
+                pass
         # killed (the out-of-memory killer, a SIGKILL): a run that could not continue, exit 3 as an
         # allocation that failed; 1 is a bug's traceback (probe of issue 12, round 18)
         res.update(status=status, code=signal_exit_code(signum) if signum is not None else 3, message=why)
         _write_outcome(d, res)
 
 
-def exit_code(signum: int | None = None) -> int:
+def exit_code(signum: int | None = None, workers_gone: bool = False) -> int:
     """The process's exit code after Hydra returned: a single run's, or a sweep's (one line per
-    job printed; the first failing job's code).  ``signum``: the signal that stopped the sweep."""
+    job printed; the first failing job's code).  ``signum``: the signal that stopped the sweep;
+    ``workers_gone``: the launcher ended its worker processes (hydra.launcher.timeout)."""
     if SWEEP_DIR is not None:
         rows = sweep_outcomes(SWEEP_DIR) if SWEEP_DIR.is_dir() else []
-        _end_killed_jobs(rows, signum)
+        if workers_gone:
+            _wait_workers_gone()
+        _end_killed_jobs(rows, signum, workers_gone)
         bad = [r for r in rows if r[2]["code"] != 0]
         total = max(len(rows), SWEEP_TOTAL or 0)
         # the job lines and the closing line on one stream: stderr when a job failed or never ran (the job
@@ -710,6 +733,26 @@ def config_source_error(argv: list[str]) -> str | None:
         return (f"hairexp: error: --config-name={name}: no config {file} in {where}"
                 + ("" if name != "config" else " (the primary config: give --config-name, or a --config-path "
                    "holding config.yaml)"))
+    return None
+
+
+def shadowed_config_warning(argv: list[str]) -> str | None:
+    """A warning line when a ``--config-dir`` holds files of the names hairexp's own config folder
+    has (``config.yaml``, ``experiment/goaling.yaml``): Hydra reads the primary folder's first, and
+    the user's file was ignored without a word, broken or not (independent probe of issue 12, round 24)."""
+    primary = CONF_DIR
+    for value in flag_values(argv, "--config-dir", "-cd"):
+        user = Path(value).absolute()
+        if not user.is_dir():
+            continue
+        try:
+            same = sorted(str(p.relative_to(user)) for p in user.rglob("*.yaml") if (primary / p.relative_to(user)).is_file())
+        except OSError:
+            continue
+        if same:
+            return (f"hairexp: warning: --config-dir={value}: {', '.join(same[:5])}{', ...' if len(same) > 5 else ''} "
+                    "not used: hairexp's own config folder has files of these names and Hydra reads them first; give "
+                    "yours other names (--config-name=<name> for a primary config, experiment=<name> for an experiment)")
     return None
 
 
@@ -1407,6 +1450,13 @@ def _hydra_value_error(key: str, value) -> str | None:
     if key == "hydra.launcher.batch_size" and not (value == "auto" or (isinstance(value, int) and not
                                                                         isinstance(value, bool) and value > 0)):
         return f"{key}={value}: joblib's batch size is a positive count or auto"
+    if key == "hydra.launcher.pre_dispatch" and isinstance(value, int) and not isinstance(value, bool) and value <= 0:
+        # nothing ran and the sweep said "0 of 2 jobs completed (2 not started)", exit 1 (round 24)
+        return f"{key}={value}: joblib's pre-dispatch is a positive count of jobs, or an expression such as 2*n_jobs"
+    if key == "hydra.launcher.backend" and value not in JOBLIB_BACKENDS:   # an unknown one was taken silently
+        return f"{key}={value}: joblib's backends are loky (the default), multiprocessing, threading and sequential"
+    if key == "hydra.launcher.prefer" and value not in (None, "processes", "threads"):
+        return f"{key}={value}: joblib's prefer is processes or threads"
     if not isinstance(value, str):
         return None
     parts = value.replace("\\", "/").split("/")
@@ -1421,6 +1471,9 @@ def _hydra_value_error(key: str, value) -> str | None:
                 "run's files (or null for none)")
     return None
 
+
+#: joblib's parallel backends (hydra.launcher.backend; None: its default, loky)
+JOBLIB_BACKENDS = (None, "loky", "multiprocessing", "threading", "sequential")
 
 #: bytes of a file name hairexp gives Hydra (NAME_MAX 255, less ".log" and room for Hydra's suffixes)
 NAME_BYTES = 200

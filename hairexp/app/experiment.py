@@ -25,6 +25,7 @@ import yaml
 from omegaconf import OmegaConf
 
 from hairexp.app.assemble import check_config
+from hairexp.app.guard import planning
 from hairexp.app.config import check_bool, require_config, to_plain, unknown_key_hint
 from hairexp.app.validate import validate_judge, validate_judge_controllers
 from hairexp.app.signals import InterruptSignals, note_late, take_late
@@ -157,6 +158,11 @@ def _checked_variants(cfg) -> tuple[list[str], list]:
     """The variants' names and configs, every one checked (``check_config``, the judge) before
     the first runs; InputError naming the variant."""
     names = check_variant_names(cfg.variants)
+    with planning():   # the variants share the folder's disk: checked together against it
+        return _checked_each(cfg, names)
+
+
+def _checked_each(cfg, names: list[str]) -> tuple[list[str], list]:
     vcfgs = []
     for i, (name, v) in enumerate(zip(names, cfg.variants)):   # every variant's config, before the first runs
         vcfg = apply_overrides(cfg, list(v.overrides), f"variants[{i}] ({name})")

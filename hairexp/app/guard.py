@@ -10,6 +10,7 @@ The estimate (``estimate``, a pure function) is
            + (frames + 1) x BYTES_PER_FRAME               (what still grows with the frames: the USD
                                                            crate layer's index of its time samples)
     disk   = (frames + 1) x (V + Vg) x DISK_BYTES_PER_VERTEX_FRAME + steps x DISK_BYTES_PER_STEP
+           + with the recording on: RECORDING_BYTES + (frames + 1) x (V + Vg) x RECORDING_BYTES_PER_VERTEX_FRAME
     time   = (steps + settle steps) x (SECONDS_PER_STEP + V x SECONDS_PER_VERTEX_STEP)
 
 (V hair vertices, Vg vertices of a simulated guide animation).  Frames and metrics rows are
@@ -28,10 +29,12 @@ blocks: 20 000 tracked vertices peaked at 694 MB).  A step took 4 ms at 10 verti
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import logging
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from hairexp.errors import InputError
 from hairexp.physics.settle import settle_seconds, settle_step
@@ -42,6 +45,12 @@ BYTES_PER_VERTEX = 6_000
 BYTES_PER_FRAME = 1_000
 DISK_BYTES_PER_VERTEX_FRAME = 72
 DISK_BYTES_PER_STEP = 200
+#: recording.rrd (logging.rerun=true): goaling_smoke's free run (90 vertices with the guides) wrote
+#: 767 kB at 200 frames and 4.83 MB at 3,000, 16 B a vertex a frame over about 480 kB of metrics,
+#: layout and static entities; celia_smoke's (360 + 78 vertices, 30 frames) 649 kB.  It was left out,
+#: and an experiment's second variant was refused for want of disk after the first had run (round 24)
+RECORDING_BYTES = 500_000
+RECORDING_BYTES_PER_VERTEX_FRAME = 16
 SECONDS_PER_STEP = 4e-3
 SECONDS_PER_VERTEX_STEP = 1e-5
 #: runs with more steps (settle phases included), or estimated to take longer (s), are announced
@@ -162,7 +171,7 @@ MAX_RUN_SECONDS = 7 * 86400.0
 
 
 def check(est: Estimate, keys: str, allow_large: bool, available: float | None, disk_free: float | None = None,
-          folder: str | None = None, total: float | None = None) -> None:
+          folder: str | None = None, total: float | None = None, planned: float = 0.0) -> None:
     """Refuse ``est`` when it needs more than ``available`` bytes of memory or ``disk_free`` bytes
     of the disk of ``folder`` (an InputError naming ``keys``, the config keys that size the run),
     unless ``allow_large``; warn about a long run.  More than ``total`` bytes (the machine's memory
@@ -184,10 +193,12 @@ def check(est: Estimate, keys: str, allow_large: bool, available: float | None, 
         refuse(f"the run would need about {_size(est.memory)} of memory ({est.steps:.3g} steps, "
                f"{est.total_steps:.3g} with settle and guide-simulation steps) but {_size(available)} is available; make it smaller "
                "or set guard.allow_large=true to run anyway", "memory")
-    if disk_free is not None and est.disk > disk_free:
+    if disk_free is not None and est.disk + planned > disk_free:
+        shared = (f", {_size(planned)} of it for the experiment's variants checked before this one" if planned > 0
+                  else "")
         refuse(f"the run's files would take about {_size(est.disk)} of disk ({est.steps:.3g} steps; "
                f"{DISK_BYTES_PER_VERTEX_FRAME} B a vertex a frame) but {_size(disk_free)} is free"
-               f"{f' where {folder} is' if folder else ''}; make it smaller or shorter, or set "
+               f"{f' where {folder} is' if folder else ''}{shared}; make it smaller or shorter, or set "
                "guard.allow_large=true to run anyway", "disk")
     if est.seconds > MAX_RUN_SECONDS:
         refuse(f"the run would take roughly {_duration(est.seconds)} (about {est.total_steps:.3g} steps, "
@@ -209,6 +220,25 @@ def _value(x):
     return getattr(x, "value", x)
 
 
+#: the disk (bytes) of the runs checked before this one in the same launch while ``planning()`` is
+#: on: an experiment's variants share its folder's disk, and each was checked alone (the second of
+#: two variants that fitted one at a time was refused after the first had run; independent probe
+#: of issue 12, round 24)
+_PLANNED: list | None = None
+
+
+@contextmanager
+def planning():
+    """Runs checked inside this block are checked together against the disk: each run's estimate
+    is added to the ones checked before it."""
+    global _PLANNED
+    old, _PLANNED = _PLANNED, []
+    try:
+        yield
+    finally:
+        _PLANNED = old
+
+
 def guard_run(cfg, n_vertices: int, steps_per_frame: int, run: bool = True) -> Estimate:
     """Estimate and check the run of ``cfg`` (frames and fps known, keys validated) with
     ``n_vertices`` hair vertices; ``run=False`` (the USD export): the scene and guides are built
@@ -221,9 +251,15 @@ def guard_run(cfg, n_vertices: int, steps_per_frame: int, run: bool = True) -> E
     gsteps = int(cfg.frames) * steps_per_frame + hair_settle if simulated else 0   # the guides settle too
     frames = int(cfg.frames) if run else 0
     est = estimate(n_vertices, frames, steps_per_frame, hair_settle if run else 0, gv, gsteps)
+    if run and bool(getattr(getattr(cfg, "logging", None), "rerun", False)):
+        vertices = float(n_vertices + int(g.count) * int(g.n_vertices))
+        est = replace(est, disk=est.disk + RECORDING_BYTES + (frames + 1.0) * vertices * RECORDING_BYTES_PER_VERTEX_FRAME)
     keys = "scene.usd" if str(_value(cfg.scene.builder)) == "usd" else "scene.n_strands x scene.n_vertices"
     keys += ", frames, solver.dt" + (", scene.settle" if hair_settle else "")
     folder = run_folder() if run else None
+    planned = sum(_PLANNED) if _PLANNED is not None else 0.0
     check(est, keys, bool(getattr(getattr(cfg, "guard", None), "allow_large", False)), available_memory(),
-          None if folder is None else available_disk(folder), folder, total_memory())
+          None if folder is None else available_disk(folder), folder, total_memory(), planned)
+    if _PLANNED is not None and run:
+        _PLANNED.append(est.disk)
     return est
