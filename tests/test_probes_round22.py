@@ -169,6 +169,12 @@ def test_a_run_with_its_hydra_record_renamed_is_not_refused_as_another_runs(tmp_
     (["-m", "hydra.launcher.n_jobs=0"], "hydra.launcher.n_jobs=0: the number of jobs run at once is a positive count"),
     (["--shell-completion"], "--shell-completion: Expecting one subcommand"),
     (["--experimental-rerun", "nothere.pickle"], "--experimental-rerun: File nothere.pickle does not exist"),
+    # round 23
+    (["--info", "nosuch"], "Error parsing override 'nosuch'"),
+    (["hydra.output_subdir=stream"], "hydra.output_subdir=stream: Hydra's record of the run (.hydra) goes in a folder"),
+    (["hydra.output_subdir=.lock"], "hydra.output_subdir=.lock: Hydra's record"),
+    (["hydra.job.name=" + "j" * 300], "hydra.job.name=jjjj"),
+    (["-m", "hydra.launcher.batch_size=0"], "hydra.launcher.batch_size=0: joblib's batch size is a positive count"),
 ])
 def test_hydra_flags_and_launcher_values_it_refuses_are_one_line_exit_2(tmp_path, args, said):
     from probe_helpers import run_cli
@@ -380,23 +386,6 @@ def test_overwrite_interrupted_before_the_run_began_leaves_the_previous_run_whol
 # ---------------------------------------------------------------------------------------------
 # independent probe round 23
 # ---------------------------------------------------------------------------------------------
-
-@pytest.mark.parametrize("args, said", [
-    (["--info", "nosuch"], "Error parsing override 'nosuch'"),
-    (["hydra.output_subdir=stream"], "hydra.output_subdir=stream: Hydra's record of the run (.hydra) goes in a folder"),
-    (["hydra.output_subdir=.lock"], "hydra.output_subdir=.lock: Hydra's record"),
-    (["hydra.job.name=" + "j" * 300], "hydra.job.name=jjjj"),
-    (["-m", "hydra.launcher.batch_size=0"], "hydra.launcher.batch_size=0: joblib's batch size is a positive count"),
-])
-def test_more_hydra_values_it_cannot_use_are_one_line_exit_2(tmp_path, args, said):
-    from probe_helpers import run_cli
-
-    p = run_cli([*SMOKE, *args, f"hydra.sweep.dir={tmp_path / 's'}", f"hydra.run.dir={tmp_path / 'r'}"], tmp_path)
-    assert p.returncode == 2, p.stderr
-    assert "Traceback" not in p.stderr and p.stderr.strip().splitlines()[-1].startswith(f"hairexp: error: {said}"), \
-        p.stderr
-    assert not (tmp_path / "s").exists() and not (tmp_path / "r").exists()
-
 
 def _cli_to(tmp_path, args, **streams):
     import subprocess
