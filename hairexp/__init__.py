@@ -5,6 +5,32 @@ layout; the method is the paper's (Milliez et al., "HairControl", sections 3.1-3
 __version__ = "0.1.0"
 
 import os as _os
+import signal as _signal
+import sys as _sys
+
+
+def _early_signal(signum, frame) -> None:
+    """A signal while ``python -m hairexp`` (or ``-m hairexp.io.export_scene``) imports its
+    libraries, before the app layer's start-up handlers (hairexp/app/startup.py) are in place:
+    one line and 128 + signal (Ctrl-C 30 ms after the launch printed a KeyboardInterrupt
+    traceback from ``import hydra``; independent probe of issue 12, round 24)."""
+    try:
+        _sys.stderr.write(f"hairexp: interrupted by {_signal.Signals(signum).name} while starting; nothing was run "
+                          "or written\n")
+        _sys.stderr.flush()
+    finally:
+        _os._exit(128 + int(signum))
+
+
+#: the signals handled from the first import on (the start-up handlers' own, hairexp/app/signals.py)
+_EARLY_SIGNALS = tuple(getattr(_signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2",
+                                                     "SIGXCPU") if hasattr(_signal, n))
+# "-m": this package is being imported while Python locates the module ``python -m`` runs
+# (sys.argv[0] is "-m" until then); a library user's process keeps its own handlers
+if _sys.argv[:1] == ["-m"]:
+    for _s in _EARLY_SIGNALS:
+        if _signal.getsignal(_s) in (_signal.default_int_handler, _signal.SIG_DFL):
+            _signal.signal(_s, _early_signal)
 
 # numpy/scipy's OpenBLAS threads and torch's OpenMP threads fight over the cores: with both
 # at 2 threads on the 2-core machines a step took 54 ms instead of 22 ms (experiments/

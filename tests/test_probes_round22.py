@@ -628,3 +628,43 @@ def test_a_config_dir_file_shadowed_by_hairexps_own_is_said(tmp_path):
     assert p.returncode == 0, p.stderr
     assert (f"hairexp: warning: --config-dir={tmp_path / 'mine'}: experiment/goaling_smoke.yaml not used: hairexp's "
             "own config folder has files of these names") in p.stderr
+
+
+EARLY = """
+import os, signal, sys
+sys.argv = ["-m"]   # as while python -m locates the module: the package is being imported
+import hairexp
+assert signal.getsignal(signal.SIGINT) is hairexp._early_signal
+if len(sys.argv) and os.environ.get("THEN_APP"):
+    import hairexp.app.startup as startup
+    sys.argv = [os.path.join(os.path.dirname(hairexp.__file__), "__main__.py")]
+    assert startup.install() and signal.getsignal(signal.SIGINT) is startup._handler
+os.kill(os.getpid(), signal.SIGINT)
+"""
+
+
+@pytest.mark.parametrize("then_app", [False, True])
+def test_a_signal_while_the_libraries_load_is_one_line(tmp_path, then_app):
+    """Ctrl-C 30 ms after the launch (during ``import hydra``, before the app layer's start-up handlers):
+    a KeyboardInterrupt traceback; the package's own handler is in place from its import on, and the
+    start-up handlers replace it."""
+    import subprocess
+    import sys
+
+    from probe_helpers import REPO
+
+    env = dict(os.environ, PYTHONPATH=str(REPO), **({"THEN_APP": "1"} if then_app else {}))
+    p = subprocess.run([sys.executable, "-c", EARLY], capture_output=True, text=True, timeout=120, env=env,
+                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert p.returncode == 130, p.stderr
+    assert p.stderr.strip().splitlines() == ["hairexp: interrupted by SIGINT while starting; nothing was run or written"]
+
+
+def test_a_key_into_a_list_without_an_index_is_named(tmp_path):
+    from probe_helpers import run_cli
+
+    p = run_cli([*SMOKE, "guides.edits.kind=twist", f"hydra.run.dir={tmp_path / 'r'}"], tmp_path)
+    assert p.returncode == 2
+    assert p.stderr.strip().splitlines()[-1] == (
+        "hairexp: error: guides.edits.kind: guides.edits is a list: give an item's index (guides.edits.0.kind=...) or "
+        "the whole list (guides.edits=[...])")

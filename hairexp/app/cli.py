@@ -1380,7 +1380,24 @@ def compose_error(overrides: list[str], input_errors: bool = True) -> str | None
                      or "of the config group" in str(exc))
         return str(exc) if input_errors or composing else None   # error, in a sweep's jobs too (a wrong type too)
     except Exception as exc:   # Hydra's composition and override-parsing errors, OmegaConf's validation
-        return one_line(exc)
+        return _list_key_error(overrides, exc) or one_line(exc)
+    return None
+
+
+def _list_key_error(overrides: list[str], exc: Exception) -> str | None:
+    """A key into a list without an index (``guides.edits.kind=twist``: OmegaConf's "invalid literal
+    for int() with base 10: 'kind'", naming no key; independent probe of issue 12, round 24), or None."""
+    m = re.search(r"invalid literal for int\(\) with base 10: '([^']*)'", str(exc))
+    if m is None:
+        return None
+    for o in overrides:
+        key = o.split("=", 1)[0].lstrip("+~")
+        parts = key.split(".")
+        if m.group(1) in parts[1:]:
+            at = parts.index(m.group(1), 1)
+            lst = ".".join(parts[:at])
+            return (f"{key}: {lst} is a list: give an item's index ({lst}.0.{'.'.join(parts[at:])}=...) or the whole "
+                    f"list ({lst}=[...])")
     return None
 
 

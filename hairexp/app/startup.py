@@ -15,6 +15,7 @@ import signal
 import sys
 import threading
 
+import hairexp
 from hairexp.app.signals import SIGNALS
 
 #: the exit code of the command once its work has ended (``ended``); None while it starts
@@ -81,7 +82,8 @@ def install(force: bool = False) -> bool:
         return False
     installed = False
     for s in SIGNALS:
-        if signal.getsignal(s) in (signal.default_int_handler, signal.SIG_DFL):
+        h = signal.getsignal(s)
+        if h in (signal.default_int_handler, signal.SIG_DFL) or h is hairexp._early_signal:
             signal.signal(s, _handler)
             installed = True
     return installed
