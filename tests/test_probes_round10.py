@@ -241,7 +241,7 @@ def test_a_failed_runs_aggregates_count_the_failed_step(tmp_path):
 
 def test_an_interrupted_variant_keeps_its_figures_in_the_experiment_summary(tmp_path):
     run = tmp_path / "exp"
-    p = subprocess.Popen(PY + ["experiment=goaling_smoke", "frames=3000", "logging.rerun=false",
+    p = subprocess.Popen(PY + ["experiment=goaling_smoke", "frames=1500", "logging.rerun=false",
                                f"hydra.run.dir={run}"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                          text=True, env=ENV)
     try:
@@ -254,7 +254,7 @@ def test_an_interrupted_variant_keeps_its_figures_in_the_experiment_summary(tmp_
             except (OSError, ValueError, KeyError):
                 time.sleep(0.1)
         second = names[1]["name"]
-        _wait_for(run / second / "metrics.parquet", 120)
+        _wait_for(run / second / "stream" / "metrics" / "part-00000.parquet", 120)   # it has streamed steps
         p.send_signal(signal.SIGTERM)
         p.communicate(timeout=120)
     finally:
