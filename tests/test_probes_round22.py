@@ -668,3 +668,23 @@ def test_a_key_into_a_list_without_an_index_is_named(tmp_path):
     assert p.stderr.strip().splitlines()[-1] == (
         "hairexp: error: guides.edits.kind: guides.edits is a list: give an item's index (guides.edits.0.kind=...) or "
         "the whole list (guides.edits=[...])")
+
+
+def test_a_sweep_whose_recordings_hit_the_file_size_limit_ends(tmp_path):
+    """ulimit -f 200 kB, recording on: the jobs failed (exit 4) and the sweep said so, then hung for
+    ever: a worker's abandoned recording stream waited for its stuck writer at the worker's exit."""
+    import resource
+    import subprocess
+    import sys
+
+    from probe_helpers import REPO
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (200 << 10, resource.RLIM_INFINITY))
+
+    p = subprocess.run([sys.executable, "-m", "hairexp", "-m", "experiment=goaling_smoke", "variants=[]", "frames=20",
+                        "logging.progress=false", "solver.rtol=1e-4,1e-5", f"hydra.sweep.dir={tmp_path / 's'}"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=90, preexec_fn=limit,
+                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert p.returncode == 4, p.stderr
+    assert "hairexp: sweep: 0 of 2 jobs completed" in p.stderr
