@@ -688,3 +688,12 @@ def test_a_sweep_whose_recordings_hit_the_file_size_limit_ends(tmp_path):
                        env=dict(os.environ, PYTHONPATH=str(REPO)))
     assert p.returncode == 4, p.stderr
     assert "hairexp: sweep: 0 of 2 jobs completed" in p.stderr
+
+
+def test_a_usd_builder_without_a_stage_is_one_line_without_warnings_about_it(tmp_path):
+    from probe_helpers import run_cli
+
+    p = run_cli([*SMOKE, "scene.builder=usd", f"hydra.run.dir={tmp_path / 'r'}"], tmp_path)
+    assert p.returncode == 2
+    assert p.stderr.strip().splitlines() == ["hairexp: error: scene.usd: the path of a USD stage is required "
+                                             "(scene.builder=usd or guides.source=usd)"]

@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 
 from hairexp.app.config import SceneConfig, changed_keys
+from hairexp.errors import InputError
 from hairexp.model.builders import build_procedural_scene, with_dynamic_body
 from hairexp.model.scene import Scene
 
@@ -27,6 +28,9 @@ def build_scene(cfg) -> Scene:
     if builder == "usd":  # a user's USD stage (pxr is imported only then)
         from hairexp.io.usd_read import build_usd_scene
 
+        if not str(cfg.usd or "").strip():   # the error first: the warnings spoke of a stage there is not (round 24)
+            raise InputError("the path of a USD stage is required (scene.builder=usd or guides.source=usd)",
+                             "scene.usd")
         unused = unused_procedural_keys(cfg)
         if unused:
             logging.getLogger("hairexp").warning(
