@@ -1470,10 +1470,16 @@ def _hydra_value_error(key: str, value) -> str | None:
     if key == "hydra.launcher.pre_dispatch" and isinstance(value, int) and not isinstance(value, bool) and value <= 0:
         # nothing ran and the sweep said "0 of 2 jobs completed (2 not started)", exit 1 (round 24)
         return f"{key}={value}: joblib's pre-dispatch is a positive count of jobs, or an expression such as 2*n_jobs"
-    if key == "hydra.launcher.backend" and value not in JOBLIB_BACKENDS:   # an unknown one was taken silently
-        return f"{key}={value}: joblib's backends are loky (the default), multiprocessing, threading and sequential"
-    if key == "hydra.launcher.prefer" and value not in (None, "processes", "threads"):
-        return f"{key}={value}: joblib's prefer is processes or threads"
+    # Hydra's joblib launcher runs its jobs with loky processes whatever these say (its _core.py sets
+    # backend=loky): another value was taken silently, recorded in multirun.yaml but not used, and
+    # require=sharedmem failed after the sweep folder was made (independent probe, rounds 24 and 25)
+    if (key == "hydra.launcher.backend" and value not in (None, "loky")) or (
+            key == "hydra.launcher.prefer" and value not in (None, "processes")) or (
+            key == "hydra.launcher.require" and value is not None):
+        return (f"{key}={value}: Hydra's joblib launcher runs the jobs in loky worker processes whatever this says "
+                "(backend loky, prefer processes, require null); leave it out")
+    if key == "hydra.launcher.mmap_mode" and value not in JOBLIB_MMAP_MODES:
+        return f"{key}={value}: joblib's mmap_mode is one of r, r+, w+, c or null"
     if not isinstance(value, str):
         return None
     parts = value.replace("\\", "/").split("/")
@@ -1489,8 +1495,8 @@ def _hydra_value_error(key: str, value) -> str | None:
     return None
 
 
-#: joblib's parallel backends (hydra.launcher.backend; None: its default, loky)
-JOBLIB_BACKENDS = (None, "loky", "multiprocessing", "threading", "sequential")
+#: joblib's memory-map modes (hydra.launcher.mmap_mode)
+JOBLIB_MMAP_MODES = (None, "r", "r+", "w+", "c")
 
 #: bytes of a file name hairexp gives Hydra (NAME_MAX 255, less ".log" and room for Hydra's suffixes)
 NAME_BYTES = 200
