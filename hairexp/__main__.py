@@ -205,6 +205,11 @@ def entry() -> int:
                else f"{type(exc).__name__} {' '.join(str(exc).split())} (in Hydra's own code)")
         if isinstance(exc, KeyError) and str(exc).strip("'") in ("COMP_LINE", "COMP_POINT"):
             why = f"{str(exc)} is not set: the shell sets it when it asks for completions (install=bash sets that up)"
+        elif isinstance(exc, RecursionError):   # a user's config whose defaults list includes itself (round 25)
+            why = "the defaults lists of the configs include one another in a loop (a file among its own defaults?)"
+        elif isinstance(exc, UnicodeDecodeError):   # a user's config file of binary bytes: name it (round 25)
+            bad = cli.undecodable_config(sys.argv[1:])
+            why = f"{bad}: not UTF-8 text (a config file is YAML)" if bad else why
         print(f"hairexp: error: {', '.join(flags) + ': ' if flags else ''}{why}", file=sys.stderr)
         unhold_unused()
         return 2

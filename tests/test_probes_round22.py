@@ -699,3 +699,54 @@ def test_a_usd_builder_without_a_stage_is_one_line_without_warnings_about_it(tmp
     assert p.returncode == 2
     assert p.stderr.strip().splitlines() == ["hairexp: error: scene.usd: the path of a USD stage is required "
                                              "(scene.builder=usd or guides.source=usd)"]
+
+
+def test_a_stream_array_is_cut_after_its_file_object_keeps_failing(tmp_path):
+    """After a write the disk refused, the file object's buffer held it and every later seek or write
+    raised again: the cut failed, and the summary had no frames_kept (independent probe, round 25)."""
+    import errno
+
+    from hairexp.outputs.files import GrowingNpy
+
+    g = GrowingNpy(tmp_path / "a.npy", (2,), np.float64)
+    for i in range(3):
+        g.append([i, i])
+        g.flush()
+
+    class Full:   # a buffered writer whose buffer the disk refuses
+        def __init__(self, f):
+            self.f = f
+
+        def _full(self, *a, **k):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        seek = write = flush = truncate = _full
+
+        def close(self):
+            self.f.close()
+            self._full()
+
+    g.f = Full(g.f)
+    g.append([9, 9])
+    with pytest.raises(OSError):
+        g.flush()
+    g.cut(3)
+    g.close()
+    a = np.load(tmp_path / "a.npy")
+    assert a.shape == (3, 2) and a[:, 0].tolist() == [0.0, 1.0, 2.0]
+
+
+@pytest.mark.parametrize("body, said", [
+    (b"frames: 5\n", "it begins with the line '# @package _global_'"),
+    (b"# @package _global_\ndefaults:\n  - /experiment/mine\nframes: 5\n", "include one another in a loop"),
+    (b"\xff\xfe\x00bin", "mine.yaml: not UTF-8 text"),
+])
+def test_a_users_broken_experiment_file_is_said_with_its_cause(tmp_path, body, said):
+    from probe_helpers import run_cli
+
+    (tmp_path / "cd" / "experiment").mkdir(parents=True)
+    (tmp_path / "cd" / "experiment" / "mine.yaml").write_bytes(body)
+    p = run_cli(["--config-dir", str(tmp_path / "cd"), "experiment=mine", f"hydra.run.dir={tmp_path / 'r'}"], tmp_path)
+    assert p.returncode == 2, p.stderr
+    line, = p.stderr.strip().splitlines()
+    assert line.startswith("hairexp: error: ") and said in line

@@ -736,6 +736,20 @@ def config_source_error(argv: list[str]) -> str | None:
     return None
 
 
+def undecodable_config(argv: list[str]) -> str | None:
+    """The first ``*.yaml`` under the command line's ``--config-dir`` folders that is not UTF-8, or None."""
+    for value in flag_values(argv, "--config-dir", "-cd"):
+        try:
+            for p in sorted(Path(value).rglob("*.yaml")):
+                try:
+                    p.read_bytes().decode("utf-8")
+                except UnicodeDecodeError:
+                    return str(p)
+        except OSError:
+            continue
+    return None
+
+
 def shadowed_config_warning(argv: list[str]) -> str | None:
     """A warning line when a ``--config-dir`` holds files of the names hairexp's own config folder
     has (``config.yaml``, ``experiment/goaling.yaml``): Hydra reads the primary folder's first, and
@@ -1410,6 +1424,11 @@ def one_line(exc: BaseException) -> str:
     if said and said not in msg:
         msg += ": " + said
     msg = msg.split(" Config search path:")[0]
+    if "Cannot convert 'DictConfig' to string" in msg and "(key experiment)" in re.sub(
+            r"\s*full_key: (\S+)\s+object_type=\S+", r" (key \1)", msg):
+        # a user's experiment file without its package line: its keys landed under "experiment" (round 25)
+        msg += (" (an experiment file sets the config's own keys: it begins with the line '# @package _global_', "
+                "as conf/experiment/*.yaml do)")
     # OmegaConf's tail (a user's config file with a wrong key or value: --config-dir): the key, not the types
     return re.sub(r"\s*full_key: (\S+)\s+object_type=\S+", r" (key \1)", msg)
 

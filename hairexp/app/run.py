@@ -623,8 +623,8 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
         lost = sinks.recorder.frames - int(kept)
         if lost > 0:   # computed, not written (a full disk): said, as the steps in metrics are more
             summary["frames_lost"] = lost
-            exc.add_note(f"stream/ holds frames 0..{kept - 1} of every array; the last {lost} frame(s) computed "
-                         "could not be written")
+            held = f"frames 0..{kept - 1} of every array" if kept else "no frame"
+            exc.add_note(f"stream/ holds {held}; the last {lost} frame(s) computed could not be written")
     free_reserve(out)   # its room is the summary's
     attempt("summary.json", lambda: write_ending(out / SUMMARY, summary))
     stream = out / STREAM

@@ -53,11 +53,12 @@ def guard_streams() -> None:
 
 def stdout_checked(code: int, prog: str) -> int:
     """``code``, or 4 when it is 0 but the standard output could not be written (the work is
-    done, what it printed is lost): said on stderr."""
+    done, what it printed is lost); the lost output is said on stderr whatever the code (a
+    comparison that found differences, exit 1, lost its lines silently; round 25)."""
     out = sys.stdout
     if isinstance(out, Tolerant):
         out.flush()
-        if out.error is not None and not code:
+        if out.error is not None:
             print(f"{prog}: error: cannot write the standard output: {out.error}", file=sys.stderr)
-            return 4
+            return code or 4
     return code

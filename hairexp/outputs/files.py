@@ -140,8 +140,12 @@ class GrowingNpy:
         counts them and the file ends after them."""
         self.pending.clear()
         self.n = min(self.n, int(n))
+        try:   # after a write the disk refused, the file object's buffer still holds it: each later
+            self.f.close()   # seek or write raised ENOSPC again (round 25: frames_kept missing); the
+        except OSError:      # descriptor is closed all the same, and the file is opened afresh
+            pass
         with naming(self.path):
-            self.f.seek(0)
+            self.f = open(self.path, "r+b")
             self.f.write(_npy_header((self.n, *self.frame_shape), self.dtype))
             self.f.truncate(HEADER_BYTES + self.n * self.frame_bytes)
             self.f.flush()

@@ -164,6 +164,19 @@ FLUSH_SLICE_SECONDS = 2.0
 DISK_FULL_BYTES = 64 << 10
 
 
+def _why_incomplete(path: str, exc: OSError) -> OSError:
+    """``exc`` (a recording without its footer) with its cause when the disk can tell it: the disk
+    full (ENOSPC) or the file-size limit reached (EFBIG), as ``flush_recording`` says them."""
+    capped, free = _size_capped(path), _free_bytes(path)
+    if capped is not None:
+        return OSError(errno.EFBIG, f"{path}: the recording could not be written: it reached the process's "
+                                    f"file-size limit ({capped} bytes, ulimit -f)")
+    if free is not None and free < DISK_FULL_BYTES:
+        return OSError(errno.ENOSPC, f"{path}: the recording could not be written: no space left on the device "
+                                     f"({free} bytes free; {exc})")
+    return exc
+
+
 def _size_capped(path: str) -> int | None:
     """The file-size limit (RLIMIT_FSIZE, bytes) when the file ``path`` has reached it, else None."""
     try:
@@ -657,7 +670,10 @@ class RerunSink:
         finally:
             finish_stream(self.rec, self.partial)
         if success:
-            _check_complete(self.partial)
+            try:
+                _check_complete(self.partial)
+            except OSError as exc:   # the writer stopped where the disk filled, without an error of its own
+                raise _why_incomplete(self.partial, exc) from None   # (round 25: the cause was not named)
             os.replace(self.partial, self.path)
         elif os.path.isfile(self.partial):
             # a partial recording is kept as a valid recording of the steps done; one its writer could
