@@ -10,7 +10,6 @@ non-zero exit; the codes are decided after Hydra returns (hairexp/app/cli.py): 2
 
 from __future__ import annotations
 
-import errno
 import logging
 import multiprocessing
 import os
@@ -101,11 +100,7 @@ def entry() -> int:
     sys.warnoptions.append("ignore:resource_tracker:UserWarning")
     warnings.formatwarning = cli.one_line_warning
     if "--version" in sys.argv[1:]:   # Hydra's said only "Hydra 1.3.8" (probe of issue 12, round 19)
-        try:
-            print(f"hairexp {cli.version()} (Hydra {hydra.__version__})", flush=True)
-        except OSError as exc:   # a full or closed standard output
-            print(f"hairexp: error: cannot write the standard output: {exc}", file=sys.stderr)
-            return 4
+        print(f"hairexp {cli.version()} (Hydra {hydra.__version__})")   # a lost stdout: _main says it, exit 4
         return 0
     bad_flag = (cli.flag_error(sys.argv[1:]) or cli.mode_error(sys.argv[1:])   # before any folder is made
                 or cli.duplicate_key_error(sys.argv[1:]) or cli.config_source_error(sys.argv[1:]))
@@ -183,14 +178,9 @@ def entry() -> int:
         unhold_unused()   # the run folder Hydra never wrote: not left holding only .lock
         return 2
     except OSError as exc:
-        # outside a run (a run's own write errors end it, hairexp/app/cli.py): what Hydra prints itself,
-        # --cfg / --info / --help, to a full or closed standard output (`--cfg job >/dev/full`: a
-        # traceback, exit 1; independent probe of issue 12, round 21)
-        what = "the standard output" if exc.errno in (errno.ENOSPC, errno.EPIPE, errno.EBADF, errno.EIO) else "a file"
-        try:
-            print(f"hairexp: error: cannot write {what}: {exc}", file=sys.stderr)
-        except (OSError, ValueError, AttributeError):
-            pass
+        # outside a run (a run's own write errors end it, hairexp/app/cli.py; the standard streams keep
+        # theirs, hairexp/app/streams.py): Hydra's own files, such as .hydra/config.yaml on a full disk
+        print(f"hairexp: error: cannot write {exc.filename or 'a file of Hydra'}: {exc}", file=sys.stderr)
         unhold_unused()
         return 4
     except Exception as exc:  # noqa: BLE001  (re-raised unless Hydra's own)
