@@ -69,10 +69,13 @@ def test_overwrite_removes_the_old_summary_first(tmp_path, monkeypatch):
         return real_unlink(self, *a, **k)
 
     monkeypatch.setattr(Path, "unlink", unlink)
-    with pytest.raises(OSError):
+    with pytest.raises(OSError, match="overwrite=true could not remove the previous run's"):
         folder.claim(run, overwrite=True)
+    monkeypatch.undo()
     assert removed[0] == "summary.json"
-    assert not (run / "summary.json").exists()
+    # the old "completed" summary is gone; the folder says the removal failed (round 25: it said nothing)
+    s = json.loads((run / "summary.json").read_text())
+    assert s["status"] == "failed" and "could not remove" in s["error"]
 
 
 def test_the_launch_lock_is_exclusive(tmp_path):

@@ -229,6 +229,10 @@ def _experiment(cfg, out: Path, on_checked) -> dict:
                     log.warning("%s: no verdict (success: null): %s", out, why)
                     ok, details = None, {**details, "not_judged": why}
                 summary.update(success=ok, verdict=details)
+            recorded = {n: (out / n / "recording.rrd").is_file() for n in names}
+            if any(recorded.values()) and not all(recorded.values()):   # skipped without a word (round 25)
+                log.warning("%s: no comparison.rrd (the variants side by side): %s ran without a recording "
+                            "(logging.rerun=false)", out, ", ".join(n for n, r in recorded.items() if not r))
             if cfg.logging.rerun:   # the variants side by side, from their folders (rerun is imported only here)
                 from hairexp.outputs.comparison import write_comparison
 

@@ -21,6 +21,7 @@ import socket
 from pathlib import Path
 
 from hairexp.errors import InputError
+from hairexp.outputs.files import write_json
 
 SUMMARY = "summary.json"
 STREAM = "stream"
@@ -448,7 +449,10 @@ def claim(folder: Path, overwrite: bool = False) -> None:
         # the previous run's summary first: if a removal fails below, no summary is left saying
         # "completed" beside results that are gone (probe of issue 12, round 10)
         for p in sorted(ours, key=lambda q: q.name != SUMMARY):
-            shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+            try:
+                shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+            except OSError as exc:
+                _removal_failed(folder, p, exc)
         _drop_previous_log_lines(folder)
     folder.mkdir(parents=True, exist_ok=True)
     if refused_summary(folder / SUMMARY):   # a refused run's: replaced by this run's, and so are its log
@@ -458,6 +462,25 @@ def claim(folder: Path, overwrite: bool = False) -> None:
         os.close(os.open(folder / SUMMARY, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
     except FileExistsError:
         raise InputError("another run has just started in this folder", str(folder)) from None
+
+
+def _removal_failed(folder: Path, p: Path, exc: OSError) -> None:
+    """``overwrite=true`` could not remove ``p`` of the previous run (an immutable file, a read-only
+    disk): the folder held half of that run and no summary (independent probe of issue 12, round 25).
+    A failed summary (``refused``: no step ran) says what was left; OSError naming the file."""
+    where = exc.filename if isinstance(exc.filename, str) and os.path.isabs(exc.filename) else str(p)
+    try:
+        left = ", ".join(sorted(q.name for q in folder.iterdir() if not _hydras(q))) or "nothing"
+    except OSError:
+        left = "?"
+    msg = (f"overwrite=true could not remove the previous run's {where}: {exc.strerror or exc}; the folder holds "
+           f"what was left of that run ({left})")
+    try:
+        write_json(folder / SUMMARY, {"status": "failed", "error": msg, **owner(),
+                                      REFUSED: "the previous run could not be removed: no step ran"})
+    except OSError:
+        pass
+    raise OSError(exc.errno, msg, where) from exc
 
 
 def remove_tmp(folder: Path) -> None:
