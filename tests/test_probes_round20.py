@@ -139,7 +139,7 @@ def test_sigquit_mid_run_ends_it_interrupted(tmp_path):
     takes the same handler, ``SIGNALS`` above; by hand: ``interrupted by SIGUSR1``, 335 steps kept)."""
     sig = signal.SIGQUIT
     out = tmp_path / "run"
-    p = subprocess.Popen([sys.executable, "-m", "hairexp", *SMALL, "frames=20000", f"hydra.run.dir={out}"],
+    p = subprocess.Popen([sys.executable, "-m", "hairexp", *SMALL, "frames=20000", "guides.source=rigid", f"hydra.run.dir={out}"],
                          cwd=tmp_path, env=dict(os.environ, CI="1", PYTHONPATH=str(REPO)), stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, preexec_fn=_limited(resource.RLIM_INFINITY))
     try:
@@ -165,9 +165,9 @@ def test_sigxcpu_says_the_cpu_time_limit(tmp_path):
     out = tmp_path / "run"
 
     def pre():
-        resource.setrlimit(resource.RLIMIT_CPU, (12, resource.RLIM_INFINITY))
+        resource.setrlimit(resource.RLIMIT_CPU, (8, resource.RLIM_INFINITY))
 
-    p = subprocess.run([sys.executable, "-m", "hairexp", *SMALL, "frames=20000", f"hydra.run.dir={out}"],
+    p = subprocess.run([sys.executable, "-m", "hairexp", *SMALL, "frames=20000", "guides.source=rigid", f"hydra.run.dir={out}"],
                        cwd=tmp_path, env=dict(os.environ, CI="1", PYTHONPATH=str(REPO)), capture_output=True,
                        text=True, timeout=300, preexec_fn=pre)
     assert p.returncode == 128 + signal.SIGXCPU, p.stderr[-2000:]
