@@ -98,19 +98,27 @@ def flush_recording(rec, partial: str) -> None:
                 waited += wait
                 continue
             _abandon(rec)
-            if capped is not None:   # ulimit -f: rerun's writer only logs its EFBIG (probe of issue 12, round 14)
-                raise OSError(errno.EFBIG, f"{partial}: the recording could not be written: it reached the process's "
-                                           f"file-size limit ({capped} bytes, ulimit -f; rerun: {exc})") from exc
+            cause = _disk_error(partial, capped, free, f"rerun: {exc}")
+            if cause is not None:
+                raise cause from exc
             if not timed_out:
-                if full:
-                    raise OSError(errno.ENOSPC, f"{partial}: the recording could not be written: no space left on "
-                                                f"the device ({free} bytes free; rerun: {exc})") from exc
                 raise OSError(f"{partial}: the recording could not be written ({exc})") from exc
-            if full:   # rerun's writer only logs its ENOSPC; the disk is what the run's error names (probe, round 12)
-                raise OSError(errno.ENOSPC, f"{partial}: the recording could not be written: no space left on the "
-                                            f"device ({free} bytes free; rerun: {exc})") from exc
             raise OSError(f"{partial}: the recording could not be written (rerun's file writer did not finish "
                           f"within {FLUSH_TIMEOUT_SECONDS:g} s: {exc})") from exc
+
+
+def _disk_error(path: str, capped: int | None, free: int | None, said: str) -> OSError | None:
+    """The recording ``path`` could not be written because of its disk: the file-size limit
+    reached (``capped``, ``_size_capped``: EFBIG; probe of issue 12, round 14) or the disk full
+    (``free`` below DISK_FULL_BYTES: ENOSPC; round 12), with ``said`` (what rerun or the check said),
+    or None.  rerun's writer only logs these: the disk is what the run's error names."""
+    if capped is not None:
+        return OSError(errno.EFBIG, f"{path}: the recording could not be written: it reached the process's "
+                                    f"file-size limit ({capped} bytes, ulimit -f; {said})")
+    if free is not None and free < DISK_FULL_BYTES:
+        return OSError(errno.ENOSPC, f"{path}: the recording could not be written: no space left on the device "
+                                     f"({free} bytes free; {said})")
+    return None
 
 
 def _abandon(rec) -> None:
@@ -162,19 +170,6 @@ def finish_stream(rec, partial: str) -> None:
 FLUSH_SLICE_SECONDS = 2.0
 #: fewer free bytes than this on the recording's disk while its writer is not done: the disk is full
 DISK_FULL_BYTES = 64 << 10
-
-
-def _why_incomplete(path: str, exc: OSError) -> OSError:
-    """``exc`` (a recording without its footer) with its cause when the disk can tell it: the disk
-    full (ENOSPC) or the file-size limit reached (EFBIG), as ``flush_recording`` says them."""
-    capped, free = _size_capped(path), _free_bytes(path)
-    if capped is not None:
-        return OSError(errno.EFBIG, f"{path}: the recording could not be written: it reached the process's "
-                                    f"file-size limit ({capped} bytes, ulimit -f)")
-    if free is not None and free < DISK_FULL_BYTES:
-        return OSError(errno.ENOSPC, f"{path}: the recording could not be written: no space left on the device "
-                                     f"({free} bytes free; {exc})")
-    return exc
 
 
 def _size_capped(path: str) -> int | None:
@@ -673,7 +668,8 @@ class RerunSink:
             try:
                 _check_complete(self.partial)
             except OSError as exc:   # the writer stopped where the disk filled, without an error of its own
-                raise _why_incomplete(self.partial, exc) from None   # (round 25: the cause was not named)
+                raise (_disk_error(self.partial, _size_capped(self.partial), _free_bytes(self.partial), str(exc))
+                       or exc) from None   # (round 25: the cause was not named)
             os.replace(self.partial, self.path)
         elif os.path.isfile(self.partial):
             # a partial recording is kept as a valid recording of the steps done; one its writer could
