@@ -130,8 +130,9 @@ def main(argv: list[str] | None = None) -> int:
         signum = exc.signum if isinstance(exc, Interrupted) else int(signal.SIGINT)
         p = Path(args[0])
         done = p.is_file() and p.stat().st_mtime >= start - 1   # the signal came just after the stage was written
-        _say(f"hairexp: interrupted by {signal.Signals(signum).name} "
-             + (f"after {args[0]} was written" if done else f"while exporting; nothing was written to {args[0]}"))
+        print(f"hairexp: interrupted by {signal.Signals(signum).name} "
+              + (f"after {args[0]} was written" if done else f"while exporting; nothing was written to {args[0]}"),
+              file=sys.stderr)
         return exit_code(signum)
     except (InputError, ValueError) as exc:
         print(f"hairexp: error: {exc}", file=sys.stderr)
@@ -144,21 +145,9 @@ def main(argv: list[str] | None = None) -> int:
         else:
             print(f"hairexp: error: {args[0]}: {exc}", file=sys.stderr)
         return 4
-    try:
-        print(f"wrote {args[0]}: {scene.strands.n_strands} strands, {guides.n_guides} guides, {frames} frames "
-              f"(0..{frames})", flush=True)
-    except OSError as exc:   # a full or closed standard output (a traceback, exit 1; round 21)
-        _say(f"hairexp: error: cannot write the standard output: {exc} (the stage {args[0]} was written)")
-        return 4
+    # a full or closed stdout: the entry point's guarded streams (hairexp/app/streams.py) say it, exit 4
+    print(f"wrote {args[0]}: {scene.strands.n_strands} strands, {guides.n_guides} guides, {frames} frames (0..{frames})")
     return 0
-
-
-def _say(line: str) -> None:
-    """``line`` on stderr, if stderr can take it."""
-    try:
-        print(line, file=sys.stderr, flush=True)
-    except (OSError, ValueError, AttributeError):
-        pass
 
 
 if __name__ == "__main__":
