@@ -22,13 +22,14 @@ def _early_signal(signum, frame) -> None:
         _os._exit(128 + int(signum))
 
 
-#: the signals handled from the first import on (the start-up handlers' own, hairexp/app/signals.py)
-_EARLY_SIGNALS = tuple(getattr(_signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT", "SIGUSR1", "SIGUSR2",
-                                                     "SIGXCPU") if hasattr(_signal, n))
+#: the signals that end a command cleanly, from the first import on (here) to the run's ending
+#: (hairexp/app/signals.py ``SIGNALS``, which says why each is there)
+HANDLED_SIGNALS = (_signal.SIGINT, _signal.SIGTERM, _signal.SIGHUP, _signal.SIGQUIT, _signal.SIGUSR1, _signal.SIGUSR2,
+                   _signal.SIGXCPU)
 # "-m": this package is being imported while Python locates the module ``python -m`` runs
 # (sys.argv[0] is "-m" until then); a library user's process keeps its own handlers
 if _sys.argv[:1] == ["-m"]:
-    for _s in _EARLY_SIGNALS:
+    for _s in HANDLED_SIGNALS:
         if _signal.getsignal(_s) in (_signal.default_int_handler, _signal.SIG_DFL):
             _signal.signal(_s, _early_signal)
 

@@ -29,6 +29,7 @@ import threading
 from contextlib import contextmanager
 from pathlib import Path
 
+from hairexp import HANDLED_SIGNALS
 from hairexp.errors import Interrupted
 
 #: the signals that end a run as ``interrupted`` (exit 128 + signal): SIGINT, SIGTERM, SIGHUP (the
@@ -37,8 +38,7 @@ from hairexp.errors import Interrupted
 #: (round 19): SIGQUIT (Ctrl-\\, exit 131; no core is dumped), SIGUSR1 / SIGUSR2 (138 / 140) and
 #: SIGXCPU (the soft CPU-time limit, ``ulimit -S -t``, exit 152).  SIGKILL cannot be caught;
 #: SIGXFSZ is ignored by Python (a write past ``ulimit -f`` fails with EFBIG, named).
-SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2,
-           signal.SIGXCPU)
+SIGNALS = HANDLED_SIGNALS   # one list: the package's early handler (hairexp/__init__.py) takes the same
 #: s, the delay before a signal that landed in a finaliser is delivered again
 REDELIVER_SECONDS = 0.01
 
