@@ -30,7 +30,6 @@ import os
 import re
 import resource
 import signal
-import socket
 import sys
 import tempfile
 import time
@@ -51,9 +50,9 @@ from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
 from hairexp.outputs.files import atomic_write_bytes, write_json
 from hairexp.outputs.metrics import read_parts
-from hairexp.outputs.folder import (LOCK, RESERVE, RUN_DIRS, RUN_FILES, STREAM, SUMMARY, held_elsewhere, hold, hydra_link_refusal,
-                                    note_job_logs, overwrite_refusal, refused_summary, running_run, used_entries,
-                                    used_refusal)
+from hairexp.outputs.folder import (LOCK, RESERVE, RUN_DIRS, RUN_FILES, STREAM, SUMMARY, held_elsewhere, hold,
+                                    hydra_link_refusal, note_job_logs, overwrite_refusal, owner, refused_summary,
+                                    running_run, used_entries, used_refusal)
 
 log = logging.getLogger("hairexp")
 OUTCOME = Path(".hydra") / "outcome.json"
@@ -281,7 +280,7 @@ def _this_runs(out: Path) -> bool:
         d = json.loads((out / SUMMARY).read_text())
     except (OSError, ValueError):
         return False
-    return isinstance(d, dict) and d.get("pid") == os.getpid() and d.get("host") == socket.gethostname()
+    return isinstance(d, dict) and {k: d.get(k) for k in ("pid", "host")} == owner()
 
 
 def _signalled_after(out, signum: int, summary: dict) -> dict:
@@ -1423,14 +1422,13 @@ def one_line(exc: BaseException) -> str:
     said = " ".join(str(cause).strip().splitlines()[0].split()) if cause is not None and str(cause).strip() else ""
     if said and said not in msg:
         msg += ": " + said
-    msg = msg.split(" Config search path:")[0]
-    if "Cannot convert 'DictConfig' to string" in msg and "(key experiment)" in re.sub(
-            r"\s*full_key: (\S+)\s+object_type=\S+", r" (key \1)", msg):
+    # OmegaConf's tail (a user's config file with a wrong key or value: --config-dir): the key, not the types
+    msg = re.sub(r"\s*full_key: (\S+)\s+object_type=\S+", r" (key \1)", msg.split(" Config search path:")[0])
+    if "Cannot convert 'DictConfig' to string" in msg and "(key experiment)" in msg:
         # a user's experiment file without its package line: its keys landed under "experiment" (round 25)
         msg += (" (an experiment file sets the config's own keys: it begins with the line '# @package _global_', "
                 "as conf/experiment/*.yaml do)")
-    # OmegaConf's tail (a user's config file with a wrong key or value: --config-dir): the key, not the types
-    return re.sub(r"\s*full_key: (\S+)\s+object_type=\S+", r" (key \1)", msg)
+    return msg
 
 
 def _sweep_jobs(overrides: list[str], every: int | None = None) -> list[tuple[list[str], list[str]]] | None:
