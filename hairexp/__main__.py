@@ -207,21 +207,23 @@ def entry() -> int:
         code = exit_code(exc.signum) if isinstance(exc, Interrupted) else 130
         # outside a run (a run prints its own line): while the config was composed, or between sweep jobs
         what = str(exc) if isinstance(exc, Interrupted) and str(exc) else "interrupted by SIGINT"
-        print(f"hairexp: {what}", file=sys.stderr)
-        _say_in_run_folder(what)
+        where = _say_in_run_folder(what)
+        print(f"hairexp: {what}{f' ({where})' if where else ''}", file=sys.stderr)
         cli.clear_stop_mark()   # the launcher has torn its workers down
         cli.exit_code(exc.signum if isinstance(exc, Interrupted) else 2)   # a sweep's jobs so far
         return code
     return cli.exit_code()
 
 
-def _say_in_run_folder(what: str) -> None:
+def _say_in_run_folder(what: str) -> str | None:
     """A signal outside the job (in Hydra's code, after it wrote ``.hydra/`` into the run folder and
     before the job began): the folder says how the launch ended, as for a run refused before it
     claimed its folder (it held only Hydra's files, no summary.json; independent probe of issue 12,
-    round 22).  A folder with a summary (the job's own ending) is left as it is."""
+    round 22).  A folder with a summary (the job's own ending) is left as it is.  Returns what the
+    folder holds now, for the interruption's line (it said a bare "interrupted by SIGTERM" in this
+    window, where the other windows say what was kept; round 26), or None outside a run folder."""
     if any(a in ("-m", "--multirun") for a in sys.argv[1:]):   # a sweep's jobs say their own
-        return
+        return None
     # Hydra has reset its HydraConfig by now; the job's log file (Hydra's, <run folder>/<job name>.log,
     # made before its record) names the folder
     logs = [h.baseFilename for h in logging.getLogger().handlers if isinstance(h, logging.FileHandler)]
@@ -230,6 +232,8 @@ def _say_in_run_folder(what: str) -> None:
         cli.restore_previous_record(out)
         cli.write_refused(None, out, what, "interrupted", "interrupted while Hydra started the run, before the run "
                           "claimed its folder: no step ran")
+        return f"while starting: {cli.kept(out, 'partial results')}"
+    return None
 
 
 def _raised_by_hydra(exc: BaseException) -> bool:

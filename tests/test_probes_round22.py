@@ -286,7 +286,8 @@ def test_a_signal_after_hydra_wrote_its_record_leaves_an_interrupted_summary(tmp
                         f"hydra.run.dir={out}"], cwd=tmp_path, capture_output=True, text=True, timeout=120,
                        env=dict(os.environ, PYTHONPATH=str(REPO)))
     assert p.returncode == 143, p.stderr
-    assert p.stderr.strip().splitlines()[-1] == "hairexp: interrupted by SIGTERM", p.stderr
+    assert p.stderr.strip().splitlines()[-1] == (f"hairexp: interrupted by SIGTERM (while starting: no step of the "
+                                                 f"hair ran; summary.json in {out} says so)"), p.stderr
     s = json.loads((out / "summary.json").read_text())
     assert s["status"] == "interrupted" and "before the run claimed its folder" in s["refused"]
     assert (out / ".hydra" / "overrides.yaml").is_file() and not (out / "result.npz").exists()
@@ -379,6 +380,9 @@ def test_overwrite_interrupted_before_the_run_began_leaves_the_previous_run_whol
                        text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)))
     assert p.returncode == 143, p.stderr
     assert "partial results" not in p.stderr
+    # the line says the folder is the previous run's (it was a bare "interrupted by SIGTERM"; round 26)
+    assert p.stderr.strip().splitlines()[-1] == (f"hairexp: interrupted by SIGTERM (while starting: no step of the "
+                                                 f"hair ran; {out} still holds the previous run, as it was)"), p.stderr
     assert {q.name: q.read_bytes() for q in (out / ".hydra").iterdir()} == before
     assert (out / "summary.json").read_bytes() == old
 
@@ -560,7 +564,7 @@ def test_an_interrupted_overwrite_says_the_previous_run_is_kept(tmp_path):
     from hairexp.app import cli
 
     (tmp_path / "summary.json").write_text(json.dumps({"status": "completed", "pid": os.getpid() + 1, "host": "x"}))
-    assert cli._kept(tmp_path, "partial results") == (f"no step of the hair ran; {tmp_path} still holds the "
+    assert cli.kept(tmp_path, "partial results") == (f"no step of the hair ran; {tmp_path} still holds the "
                                                       "previous run, as it was")
 
 

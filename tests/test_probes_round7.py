@@ -66,17 +66,17 @@ def test_overwrite_with_a_bad_value_keeps_the_previous_run(tmp_path):
 
 
 def test_an_interruption_before_any_step_does_not_announce_partial_results(tmp_path, capsys):
-    assert cli._kept(tmp_path, "partial results") == f"no step of the hair ran; summary.json in {tmp_path} says so"
+    assert cli.kept(tmp_path, "partial results") == f"no step of the hair ran; summary.json in {tmp_path} says so"
     (tmp_path / "v").mkdir()
     (tmp_path / "v" / "metrics.parquet").write_bytes(b"x")
     # metrics of another run (a summary not this process's: an overwrite=true ended before its claim)
     (tmp_path / "summary.json").write_text(json.dumps({"status": "completed", "pid": os.getpid() + 1, "host": "x"}))
-    assert cli._kept(tmp_path, "partial results") == (f"no step of the hair ran; {tmp_path} still holds the previous "
+    assert cli.kept(tmp_path, "partial results") == (f"no step of the hair ran; {tmp_path} still holds the previous "
                                                       "run, as it was")
     from hairexp.outputs.folder import owner
 
     (tmp_path / "summary.json").write_text(json.dumps({"status": "interrupted", **owner()}))   # this run's
-    assert cli._kept(tmp_path, "partial results") == f"partial results in {tmp_path}"
+    assert cli.kept(tmp_path, "partial results") == f"partial results in {tmp_path}"
 
 
 def test_a_value_swept_twice_into_one_folder_is_refused(tmp_path):

@@ -155,7 +155,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         print(f"hairexp: error: {_job_label(out, sweep_dir) if sweep else ''}{exc}", file=sys.stderr)
         res = outcome(out, "failed", 2, str(exc))
     except SimulationError as exc:
-        print(f"hairexp: simulation failed: {exc} ({_kept(out, 'partial metrics')})", file=sys.stderr)
+        print(f"hairexp: simulation failed: {exc} ({kept(out, 'partial metrics')})", file=sys.stderr)
         _print_notes(exc)
         res = outcome(out, "failed", 3, str(exc))
     except OSError as exc:   # the run folder could not be written (a full disk, a blocked path)
@@ -182,12 +182,12 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         if summary is not None and summary.get("status") == "completed":   # the run had ended: nothing partial
             res = _signalled_after(out, signum, summary)
         else:
-            print(f"hairexp: {msg} ({_kept(out, 'partial results')})", file=sys.stderr)
+            print(f"hairexp: {msg} ({kept(out, 'partial results')})", file=sys.stderr)
             _print_notes(exc)
             res = outcome(out, "interrupted", signal_exit_code(signum), msg)
     except MemoryError as exc:   # numpy's ArrayMemoryError too: a size the checks did not foresee (probe, round 14)
         why = " ".join(str(exc).split()) or "an allocation failed"
-        print(f"hairexp: out of memory: {why} ({_kept(out, 'partial metrics')}); make the run smaller (scene.n_strands, "
+        print(f"hairexp: out of memory: {why} ({kept(out, 'partial metrics')}); make the run smaller (scene.n_strands, "
               "scene.n_vertices, guides.count, tracking.points_per_guide) or lower the setting that sized it",
               file=sys.stderr)
         res = outcome(out, "failed", 3, f"out of memory: {why}")
@@ -260,7 +260,7 @@ def _say_unused(cfg, overrides) -> None:
         log.warning("%s not used by %s", ", ".join(unused), "any variant" if len(runs) > 1 else "this run")
 
 
-def _kept(out, what: str) -> str:
+def kept(out, what: str) -> str:
     """Where a failed or interrupted run's data are: ``what`` in the folder when a step's metrics
     were kept (metrics.parquet, here or in a variant's folder), else that no step ran (it said
     "partial results" when nothing but the summary was there; probe of issue 12)."""
