@@ -278,6 +278,24 @@ def test_samples_rescaled_from_a_sublayer_are_explained(stage, tmp_path):
         run(usd_cfg(root, frames=3), tmp_path / "run")
 
 
+def test_samples_spread_by_a_referenced_layers_rate_are_explained(stage, tmp_path):
+    """A root layer at 50 codes a second that references the 25-a-second scene: USD spreads its
+    samples to every second code, and the gap at code 1 was said without the reason (the samples
+    the file has, and the referenced layer's rate; independent probe of issue 12, round 26)."""
+    from pxr import Sdf
+
+    root = tmp_path / "root.usda"
+    layer = Sdf.Layer.CreateNew(str(root))
+    layer.timeCodesPerSecond = 50
+    prim = Sdf.CreatePrimInLayer(layer, "/Root")
+    prim.referenceList.Prepend(Sdf.Reference(str(stage), "/Root"))
+    layer.Save()
+    with pytest.raises(InputError, match=r"no time sample at time code 1 \(frame 1\).*its samples are at time codes "
+                                         r"0, 2, 4, 6, \.\.\.\); the samples come from .* at 25 time codes per "
+                                         r"second.*set timeCodesPerSecond = 25 on the root layer"):
+        run(usd_cfg(root, frames=3), tmp_path / "run")
+
+
 def test_a_start_time_code_that_is_not_used_is_said(stage, tmp_path, caplog):
     """startTimeCode 2: the run starts at time code 0 all the same, and says so (it was ignored
     without a word; probe of issue 12)."""

@@ -293,7 +293,10 @@ def guide_frames(attr, where: str) -> int:
     have = {int(s) for s in samples}
     missing = next((f for f in range(max(have) + 1) if f not in have), None)
     if missing is not None:
-        raise InputError(f"no time sample at time code {missing} (frame {missing}): guides need one per frame", where)
+        at = ", ".join(f"{s:g}" for s in samples[:4]) + (", ..." if len(samples) > 4 else "")
+        # a referenced layer of another rate, rescaled to every second code, read as a gap (round 26)
+        raise InputError(f"no time sample at time code {missing} (frame {missing}): guides need one per frame (its "
+                         f"samples are at time codes {at})" + _rescaled_hint(attr), where)
     return len(have)
 
 
