@@ -111,6 +111,10 @@ def entry() -> int:
     if shadowed is not None:
         print(shadowed, file=sys.stderr)
     sys.argv[1:] = cli.flags_first(sys.argv[1:])   # argparse takes no flag after the overrides
+    sys.argv[1:], unread = cli.hydra_help_argv(sys.argv[1:])
+    if unread:
+        print(f"hairexp: warning: {' '.join(unread)} not used: --hydra-help prints Hydra's own help, which reads "
+              "no override but hydra.*", file=sys.stderr)
     other_mode = cli.unused_folder_key(sys.argv[1:])
     if other_mode is not None:
         print(other_mode, file=sys.stderr)

@@ -245,7 +245,10 @@ def test_sweep_job_started_after_stop_is_interrupted(tmp_path):
     res = cli.job(None, str(out), sweep=True, sweep_dir=str(tmp_path))   # cfg is never read
     assert (res["status"], res["code"]) == ("interrupted", 143)
     assert json.loads((out / ".hydra" / "outcome.json").read_text())["status"] == "interrupted"
-    assert not (out / "summary.json").exists()
+    # the folder says it (it held only Hydra's record and an empty log; independent probe of issue 12, round 26)
+    s = json.loads((out / "summary.json").read_text())
+    assert s["status"] == "interrupted" and s["error"] == "interrupted by SIGTERM before the job started"
+    assert "stopped before this job started" in s["refused"] and not (out / "result.npz").exists()
 
 
 # 5. (issue 12 probes) a guide simulation that fails is said to be the guides', and the exit line

@@ -132,6 +132,8 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
             print(f"hairexp: {msg} ({out})", file=sys.stderr)
             LAST = outcome(out, "interrupted", signal_exit_code(_signum(stopped)), msg)
             _write_outcome(out, LAST)
+            # the folder says it too (it held Hydra's record and an empty log; independent probe, round 26)
+            write_refused(cfg, out, msg, "interrupted", "the sweep was stopped before this job started: no step ran")
             return LAST
         _write_outcome(out, outcome(out, "running", 1, "the job did not finish"))
     summary = None
@@ -155,7 +157,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         print(f"hairexp: error: {_job_label(out, sweep_dir) if sweep else ''}{exc}", file=sys.stderr)
         res = outcome(out, "failed", 2, str(exc))
     except SimulationError as exc:
-        print(f"hairexp: simulation failed: {exc} ({kept(out, 'partial metrics')})", file=sys.stderr)
+        print(f"hairexp: simulation failed: {exc} ({kept(out, 'partial metrics', exc)})", file=sys.stderr)
         _print_notes(exc)
         res = outcome(out, "failed", 3, str(exc))
     except OSError as exc:   # the run folder could not be written (a full disk, a blocked path)
@@ -182,12 +184,12 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
         if summary is not None and summary.get("status") == "completed":   # the run had ended: nothing partial
             res = _signalled_after(out, signum, summary)
         else:
-            print(f"hairexp: {msg} ({kept(out, 'partial results')})", file=sys.stderr)
+            print(f"hairexp: {msg} ({kept(out, 'partial results', exc)})", file=sys.stderr)
             _print_notes(exc)
             res = outcome(out, "interrupted", signal_exit_code(signum), msg)
     except MemoryError as exc:   # numpy's ArrayMemoryError too: a size the checks did not foresee (probe, round 14)
         why = " ".join(str(exc).split()) or "an allocation failed"
-        print(f"hairexp: out of memory: {why} ({kept(out, 'partial metrics')}); make the run smaller (scene.n_strands, "
+        print(f"hairexp: out of memory: {why} ({kept(out, 'partial metrics', exc)}); make the run smaller (scene.n_strands, "
               "scene.n_vertices, guides.count, tracking.points_per_guide) or lower the setting that sized it",
               file=sys.stderr)
         res = outcome(out, "failed", 3, f"out of memory: {why}")
@@ -260,10 +262,19 @@ def _say_unused(cfg, overrides) -> None:
         log.warning("%s not used by %s", ", ".join(unused), "any variant" if len(runs) > 1 else "this run")
 
 
-def kept(out, what: str) -> str:
+def kept(out, what: str, exc: BaseException | None = None) -> str:
     """Where a failed or interrupted run's data are: ``what`` in the folder when a step's metrics
     were kept (metrics.parquet, here or in a variant's folder), else that no step ran (it said
-    "partial results" when nothing but the summary was there; probe of issue 12)."""
+    "partial results" when nothing but the summary was there; probe of issue 12).  ``exc``: the
+    error, whose ``run_folder`` is the failing variant's folder (an experiment's): its own steps
+    (it said "partial metrics" of the variants before it; independent probe, round 26)."""
+    variant = getattr(exc, "run_folder", None)
+    if variant is not None and Path(variant) != Path(out) and _this_runs(Path(out)):
+        if (Path(variant) / "metrics.parquet").is_file():
+            return f"{what} in {variant}"
+        before = sorted(p.parent.name for p in Path(out).glob("*/metrics.parquet"))
+        return (f"no step of the hair of variant {Path(variant).name} ran: its summary.json in {variant} says so"
+                + (f"; the variants before it ({', '.join(before)}) are in {out}" if before else ""))
     if not _this_runs(Path(out)):   # ended before the run claimed the folder: what is there is not its
         summary = Path(out) / SUMMARY   # (round 23: "partial results" of the old run)
         if summary.is_file() and not refused_summary(summary):   # overwrite=true that never began (round 24)
@@ -804,6 +815,20 @@ def flags_first(argv: list[str]) -> list[str]:
             rest.append(a)
         i += 1
     return flags + rest + last
+
+
+def hydra_help_argv(argv: list[str]) -> tuple[list[str], list[str]]:
+    """(``argv`` without the overrides ``--hydra-help`` does not read, those overrides).  Hydra's
+    own help composes Hydra's config alone, and refused ``experiment=goaling_smoke`` with "Could
+    not override 'experiment'. No match in the defaults list" (a valid choice; independent probe
+    of issue 12, round 26); ``hydra.*`` overrides are read."""
+    if "--hydra-help" not in argv:
+        return argv, []
+    kept, dropped = [], []
+    for i, a in enumerate(argv):
+        override = not a.startswith("-") and not _is_value(argv, i)
+        (dropped if override and not a.lstrip("+~").startswith("hydra.") else kept).append(a)
+    return kept, dropped
 
 
 def unused_folder_key(argv: list[str]) -> str | None:

@@ -311,8 +311,8 @@ def _run_variants(out: Path, names: list[str], vcfgs: list, summary: dict, measu
             summary.update(status=status, error=f"variant {name}: {exc}", wall_seconds=time.perf_counter() - t0)
             if type(exc) is InputError:   # a key checked once the variant's scene is built: said to be the variant's
                 raise InputError(f"{exc} (variant {name}: {out / name})") from exc   # (probe of issue 12, round 14)
-            if isinstance(exc, OSError) and not hasattr(exc, "run_folder"):
-                exc.run_folder = str(out / name)   # the command line names the variant's folder (round 18)
+            if not hasattr(exc, "run_folder"):   # the command line names the variant's folder (round 18), and
+                exc.run_folder = str(out / name)   # looks there for its partial metrics (round 26)
             raise
         measures[name] = s["measures"]
         coh = s.get("cohesion") or {}

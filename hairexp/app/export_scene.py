@@ -22,6 +22,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from hairexp.app import startup
 from hairexp.app.assemble import assemble_scene
 from hairexp.app.config import compose_config
 from hairexp.app.signals import InterruptSignals, exit_code
@@ -96,7 +97,7 @@ def check_writable(path, overwrite: bool = False) -> None:
         raise InputError("the file exists; give --force to replace it, or another path", str(path))
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, command: bool = False) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
     usage = "usage: python -m hairexp.io.export_scene [--force] OUT.usda|OUT.usdc|OUT.usd [key=value ...]"
     if any(a in ("-h", "--help") for a in args):
@@ -120,18 +121,38 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # unknown key, wrong type (Hydra's message, or the schema check's): bad input
         print(f"hairexp: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
+    # a signal once the export has ended, after its handlers below are removed, says what was written
+    # (it said the early handler's "while starting; nothing was run or written" after a stage had
+    # replaced the old file; independent probe of issue 12, round 26)
+    # (``command``: this process is the command; a caller's process keeps its own handlers)
+    start = time.time()
+    if command and startup.install(force=True):
+        startup.begun("the export", f"{args[0]} was written whole if the export said 'wrote {args[0]}'")
+    code = _export(cfg, args[0], force, start)
+    if command:
+        p = Path(args[0])
+        written = p.is_file() and p.stat().st_mtime >= start - 1
+        startup.ended(code, f"{args[0]} was written whole" if code == 0 or written
+                      else f"nothing was written to {args[0]}")
+    return code
+
+
+def _export(cfg, path: str, force: bool, start: float) -> int:
+    """The export of ``main`` and its exit code; its lines on the standard streams."""
     try:
         # a signal ends the export with one line, its temporary file removed (Ctrl-C printed a
         # KeyboardInterrupt traceback, SIGTERM left a 1.6 MB *.tmp.usda; independent probe of issue 12, round 21)
-        start = time.time()
         with InterruptSignals():
-            scene, guides, frames = export_scene(cfg, args[0], overwrite=force)
+            scene, guides, frames = export_scene(cfg, path, overwrite=force)
+            # a full or closed stdout: the entry point's guarded streams (hairexp/app/streams.py) say it, exit 4
+            print(f"wrote {path}: {scene.strands.n_strands} strands, {guides.n_guides} guides, {frames} frames "
+                  f"(0..{frames})")
     except KeyboardInterrupt as exc:
         signum = exc.signum if isinstance(exc, Interrupted) else int(signal.SIGINT)
-        p = Path(args[0])
+        p = Path(path)
         done = p.is_file() and p.stat().st_mtime >= start - 1   # the signal came just after the stage was written
         print(f"hairexp: interrupted by {signal.Signals(signum).name} "
-              + (f"after {args[0]} was written" if done else f"while exporting; nothing was written to {args[0]}"),
+              + (f"after {path} was written" if done else f"while exporting; nothing was written to {path}"),
               file=sys.stderr)
         return exit_code(signum)
     except (InputError, ValueError) as exc:
@@ -141,12 +162,10 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(exc, ScratchError):
             print(f"hairexp: cannot {'read a temporary file back' if exc.reading else 'write a temporary file'}: {exc} "
                   "(a full disk, or a file-size limit: ulimit -f; TMPDIR chooses the folder); nothing was written to "
-                  f"{args[0]}", file=sys.stderr)
+                  f"{path}", file=sys.stderr)
         else:
-            print(f"hairexp: error: {args[0]}: {exc}", file=sys.stderr)
+            print(f"hairexp: error: {path}: {exc}", file=sys.stderr)
         return 4
-    # a full or closed stdout: the entry point's guarded streams (hairexp/app/streams.py) say it, exit 4
-    print(f"wrote {args[0]}: {scene.strands.n_strands} strands, {guides.n_guides} guides, {frames} frames (0..{frames})")
     return 0
 
 

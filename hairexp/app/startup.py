@@ -22,24 +22,30 @@ from hairexp.app.signals import SIGNALS
 _ENDED_CODE: int | None = None
 #: whether the command's work has begun (``begun``): its own handlers were installed around it
 _BEGUN = False
+#: what the command's work is, and where its outcome is told, for a signal after it (``begun``, ``ended``)
+_WORK = "the run"
+_TOLD = "its run folder's summary.json says how the run ended"
 
 
-def begun() -> None:
+def begun(work: str = "the run", told: str = "its run folder's summary.json says how the run ended") -> None:
     """The command's work begins (its handlers go in place around it): a signal after they are
     removed and before ``ended`` is not one "while starting".  After a run ended as interrupted
     a third quick signal in that window said "interrupted while starting; nothing was run or
-    written" below the run's own line (probe of issue 12, round 13)."""
-    global _BEGUN
-    _BEGUN = True
+    written" below the run's own line (probe of issue 12, round 13).  ``work``: what the work is
+    ("the export"); ``told``: what a signal after it says of its outcome."""
+    global _BEGUN, _WORK, _TOLD
+    _BEGUN, _WORK, _TOLD = True, work, told
 
 
-def ended(code: int) -> None:
+def ended(code: int, told: str | None = None) -> None:
     """The command's work has ended with ``code``: a signal from now on (the handlers are these
     again once the run's are removed) ends the process with 128 + signal, saying that the run
     had ended before it.  It said "interrupted while starting; nothing was run or written" after
-    a completed run had written everything (probe of issue 12)."""
-    global _ENDED_CODE
+    a completed run had written everything (probe of issue 12).  ``told``: the outcome to say, if
+    ``begun``'s is not it."""
+    global _ENDED_CODE, _TOLD
     _ENDED_CODE = int(code or 0)
+    _TOLD = told or _TOLD
 
 
 def _handler(signum, frame) -> None:
@@ -58,11 +64,10 @@ def _handler(signum, frame) -> None:
         if _ENDED_CODE is None and not _BEGUN:
             sys.stderr.write(f"hairexp: interrupted by {name} while starting; nothing was run or written\n")
         elif _ENDED_CODE is None:
-            sys.stderr.write(f"hairexp: {name} while the command was ending: its run folder's summary.json says how "
-                             "the run ended\n")
+            sys.stderr.write(f"hairexp: {name} while the command was ending: {_TOLD}\n")
         else:
-            sys.stderr.write(f"hairexp: {name} while exiting, after the run had ended (exit code {_ENDED_CODE} "
-                             "before it): its run folder's summary.json says how the run ended\n")
+            sys.stderr.write(f"hairexp: {name} while exiting, after {_WORK} had ended (exit code {_ENDED_CODE} "
+                             f"before it): {_TOLD}\n")
         sys.stderr.flush()
     finally:
         os._exit(code)   # no traceback from the import it landed in, no atexit work to do

@@ -14,4 +14,4 @@ from hairexp.app.streams import guard_streams, stdout_checked
 if __name__ == "__main__":
     warnings.formatwarning = one_line_warning
     guard_streams()   # a full or closed stdout: one line, exit 4 (README "USD scenes")
-    sys.exit(stdout_checked(main(), "hairexp"))
+    sys.exit(stdout_checked(main(command=True), "hairexp"))

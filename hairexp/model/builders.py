@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from hairexp.errors import MAX_COORDINATE, InputError
@@ -90,6 +91,11 @@ def check_counts(n_strands: int, n_vertices: int, length: float | None = None, k
                          f"to converge; use at most {int(length / MIN_REST_EDGE) + 1} vertices", key)
 
 
+#: the smallest distance between two roots of ``straight_strands`` without a spread: 1 micrometre
+#: (a hair is about 70 micrometres thick)
+MIN_ROOT_GAP = 1e-6
+
+
 def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius: float, center: np.ndarray,
                      direction: np.ndarray, spread: float, seed: int, fan: bool = False,
                      layout: str = "disk") -> np.ndarray:
@@ -124,6 +130,12 @@ def straight_strands(n_strands: int, n_vertices: int, length: float, root_radius
     if layout not in ("disk", "line"):
         raise InputError(f"unknown root layout {layout!r} (disk|line)", "scene.root_layout")
     d2 = disk_points(n_strands, root_radius) if layout == "disk" else line_points(n_strands, root_radius)
+    if n_strands > 1 and spread == 0:   # 1e-300 m was taken where 0 is refused (independent probe, round 26)
+        gap = float(cKDTree(d2).query(d2, k=2)[0][:, 1].min())
+        if gap < MIN_ROOT_GAP:
+            raise InputError(f"is {root_radius:g} m: the {n_strands} roots would be {gap:.3g} m apart, less than "
+                             f"{MIN_ROOT_GAP:g} m (a strand lying on another without scene.spread); give a radius "
+                             "in metres, such as 0.02", "scene.root_radius")
     roots = center + d2[:, :1] * u + d2[:, 1:] * w
     rng = np.random.default_rng(seed)
     s = np.linspace(0.0, length, n_vertices)

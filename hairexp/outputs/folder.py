@@ -14,6 +14,7 @@ SIGKILL never writes its ending, and the refusal of its folder says so (``runnin
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import shutil
@@ -446,6 +447,10 @@ def claim(folder: Path, overwrite: bool = False) -> None:
         if refused is not None:
             raise InputError(refused, str(folder))
         ours, _ = _removable(folder, top=True)
+        stuck = _unremovable(folder, ours)
+        if stuck is not None:   # nothing removed: the previous run is left whole (it was half removed; round 26)
+            raise OSError(errno.EPERM, f"overwrite=true cannot remove the previous run: {stuck[0]} is {stuck[1]}; "
+                          "nothing of that run was removed (the folder holds it as it was)")
         # the previous run's summary first: if a removal fails below, no summary is left saying
         # "completed" beside results that are gone (probe of issue 12, round 10)
         for p in sorted(ours, key=lambda q: q.name != SUMMARY):
@@ -462,6 +467,58 @@ def claim(folder: Path, overwrite: bool = False) -> None:
         os.close(os.open(folder / SUMMARY, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
     except FileExistsError:
         raise InputError("another run has just started in this folder", str(folder)) from None
+
+
+#: Linux's inode flags (linux/fs.h): FS_IOC_GETFLAGS, and the immutable and append-only flags
+#: (``chattr +i``, ``chattr +a``), under which not even root can remove a file or an entry of a folder
+_FS_IOC_GETFLAGS, _FS_IMMUTABLE_FL, _FS_APPEND_FL = 0x80086601, 0x10, 0x20
+
+
+def _pinned(path: Path) -> str | None:
+    """Why ``path`` (a file or folder, not followed if a link) is immutable or append-only, or None
+    (also where the file system has no such flags)."""
+    import fcntl
+    import struct
+
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOFOLLOW)
+    except OSError:   # a link, a socket, unreadable: its removal decides
+        return None
+    try:
+        flags = struct.unpack("i", fcntl.ioctl(fd, _FS_IOC_GETFLAGS, b"\0" * 8)[:4])[0]
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
+    if flags & _FS_IMMUTABLE_FL:
+        return "immutable (chattr +i)"
+    if flags & _FS_APPEND_FL:
+        return "append-only (chattr +a)"
+    return None
+
+
+def _unremovable(folder: Path, ours: list[Path]) -> tuple[Path, str] | None:
+    """(the first path of ``ours`` (entries of ``folder``, folders with all they hold) that cannot
+    be removed, why), or None: checked before ``overwrite=true`` removes anything.  An immutable
+    file stopped the removal halfway, and the new run's failed summary stood beside the previous
+    run's results (independent probe of issue 12, round 26).  Checked: the flags of the folders
+    and files and the folders' write access; a removal can still fail for another reason
+    (``_removal_failed``)."""
+    todo = [folder, *ours]
+    while todo:
+        p = todo.pop()
+        why = _pinned(p)
+        if why is None and p.is_dir() and not p.is_symlink():
+            try:
+                entries = [] if p == folder else list(p.iterdir())
+            except OSError as exc:
+                return p, f"not readable ({exc.strerror or exc})"
+            if (entries or p == folder) and not os.access(p, os.W_OK):
+                why = "not writable"
+            todo.extend(entries)
+        if why is not None:
+            return p, why
+    return None
 
 
 def _removal_failed(folder: Path, p: Path, exc: OSError) -> None:
