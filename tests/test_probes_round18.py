@@ -370,7 +370,8 @@ def test_one_note_per_error_of_the_failed_ending(tmp_path, monkeypatch):
     exc = SimulationError("boom")
     run_mod._end_unfinished(exc, Sinks, tmp_path, "s", "free", 0.0)
     assert exc.__notes__ == [
-        "while writing the failed ending (frames, metrics, metrics.parquet): OSError: [Errno 28] No space left on device",
+        # (the table's flush is write's own first act since round 26: one part, metrics.parquet)
+        "while writing the failed ending (frames, metrics.parquet): OSError: [Errno 28] No space left on device",
         "while writing the failed ending (recording): OSError: [Errno 28] recording: no space"]
 
 

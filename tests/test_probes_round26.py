@@ -160,3 +160,27 @@ def test_a_variant_that_failed_before_its_first_step_says_so(tmp_path, capsys):
     assert (f"(no step of the hair of variant tracked ran: its summary.json in {out / 'tracked'} says so; the variants "
             f"before it (free) are in {out})") in err, err
     assert (out / "free" / "metrics.parquet").is_file() and not (out / "tracked" / "metrics.parquet").exists()
+
+
+def test_metrics_the_stream_cannot_take_are_written_with_the_table(tmp_path, monkeypatch):
+    """stream/metrics made immutable mid-run: the failed ending's metrics.parquet was not written
+    (its first act, flushing the rows since the last part into the stream, failed), and every
+    row of the run was lost though the run folder could take the table."""
+    import pandas as pd
+
+    from hairexp.outputs.metrics import MetricsTable
+
+    table = MetricsTable(tmp_path / "stream" / "metrics")
+    for k in range(2):
+        table.on_step({"step": k, "t": 0.1 * k}, None)
+    table.flush()
+    for k in range(2, 5):
+        table.on_step({"step": k, "t": 0.1 * k}, None)
+
+    def blocked():
+        raise PermissionError(1, "Operation not permitted", str(table.folder / "part-00001.parquet.tmp"))
+
+    monkeypatch.setattr(table, "flush", blocked)
+    table.write(tmp_path / "metrics.parquet")
+    df = pd.read_parquet(tmp_path / "metrics.parquet")
+    assert df["step"].tolist() == [0, 1, 2, 3, 4] and np.allclose(df["t"], [0.0, 0.1, 0.2, 0.3, 0.4])

@@ -589,8 +589,7 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
         attempt("frames", sinks.recorder.flush)
         kept = attempt("frames", sinks.recorder.align)   # every array the same frames, whatever was written
         attempt("frames", sinks.recorder.close)
-    attempt("metrics", sinks.table.flush)
-    df = None
+    df = None   # (``write`` flushes the rows since the last part first, or writes them with the parts)
     if sinks.table.steps:
         df = attempt("metrics.parquet", lambda: sinks.table.write(out / "metrics.parquet"))
         if df is not None:

@@ -111,7 +111,18 @@ class MetricsTable:
         The parts' column types are unified as one table of all rows would have them: a
         column missing from a part is null there, integers meeting floats become floats, and
         columns whose types cannot be unified are written as text."""
-        self.flush()
+        try:
+            self.flush()
+        except OSError:
+            if not self.rows:
+                raise
+            # the stream's folder cannot take the rows since the last part (made read-only or
+            # immutable mid-run), the run folder may: the whole table from the parts and these
+            # rows (a failed ending lost every row; independent probe of issue 12, round 26)
+            rows = self.frame()
+            atomic_write_bytes(Path(path), lambda f: rows.to_parquet(f))
+            self.written, self.written_parts = MetricColumns(Path(path)), -1
+            return self.written
         if self.written is not None and self.written.path == Path(path) and self.written_parts == len(self.parts) \
                 and not self.rows:
             return self.written    # already written, nothing new since
