@@ -11,6 +11,7 @@ The estimate (``estimate``, a pure function) is
                                                            crate layer's index of its time samples)
     disk   = (frames + 1) x (V + Vg) x DISK_BYTES_PER_VERTEX_FRAME + steps x DISK_BYTES_PER_STEP
            + with the recording on: RECORDING_BYTES + (frames + 1) x (V + Vg) x RECORDING_BYTES_PER_VERTEX_FRAME
+             + steps x RECORDING_BYTES_PER_STEP (+ (frames + 1) x RECORDING_BYTES_PER_TRACKED_FRAME tracked)
     time   = (steps + settle steps) x (SECONDS_PER_STEP + V x SECONDS_PER_VERTEX_STEP)
 
 (V hair vertices, Vg vertices of a simulated guide animation).  Frames and metrics rows are
@@ -49,8 +50,16 @@ DISK_BYTES_PER_STEP = 200
 #: 767 kB at 200 frames and 4.83 MB at 3,000, 16 B a vertex a frame over about 480 kB of metrics,
 #: layout and static entities; celia_smoke's (360 + 78 vertices, 30 frames) 649 kB.  It was left out,
 #: and an experiment's second variant was refused for want of disk after the first had run (round 24)
-RECORDING_BYTES = 500_000
+RECORDING_BYTES = 650_000
 RECORDING_BYTES_PER_VERTEX_FRAME = 16
+#: the recording's per-step plots (the metrics' scalars): goaling_smoke at 40 frames wrote 536 / 759 /
+#: 1,486 kB at dt 0.04 / 0.004 / 0.001 free (617 B a step), 756 / 1,012 kB at dt 0.04 / 0.004 tracked
+#: (709 B); a 4,000-step run's recording passed the estimate by 1.4 MB and filled the disk after
+#: every step had run (independent probe of issue 12, round 26).  Rounded up
+RECORDING_BYTES_PER_STEP = 720
+#: a tracked run's per-frame targets, clusters and constraint plots: goaling_smoke tracked wrote 3.5 kB
+#: a frame, free 1.5 kB (80 against 40 frames at dt 0.04); its base was 614 kB against free's 477 kB
+RECORDING_BYTES_PER_TRACKED_FRAME = 3_000
 SECONDS_PER_STEP = 4e-3
 SECONDS_PER_VERTEX_STEP = 1e-5
 #: runs with more steps (settle phases included), or estimated to take longer (s), are announced
@@ -253,7 +262,10 @@ def guard_run(cfg, n_vertices: int, steps_per_frame: int, run: bool = True) -> E
     est = estimate(n_vertices, frames, steps_per_frame, hair_settle if run else 0, gv, gsteps)
     if run and bool(getattr(getattr(cfg, "logging", None), "rerun", False)):
         vertices = float(n_vertices + int(g.count) * int(g.n_vertices))
-        est = replace(est, disk=est.disk + RECORDING_BYTES + (frames + 1.0) * vertices * RECORDING_BYTES_PER_VERTEX_FRAME)
+        tracked = str(_value(cfg.controller.name)) != "free"
+        per_frame = vertices * RECORDING_BYTES_PER_VERTEX_FRAME + (RECORDING_BYTES_PER_TRACKED_FRAME if tracked else 0)
+        est = replace(est, disk=est.disk + RECORDING_BYTES + (frames + 1.0) * per_frame
+                      + est.steps * RECORDING_BYTES_PER_STEP)
     keys = "scene.usd" if str(_value(cfg.scene.builder)) == "usd" else "scene.n_strands x scene.n_vertices"
     keys += ", frames, solver.dt" + (", scene.settle" if hair_settle else "")
     folder = run_folder() if run else None
