@@ -205,3 +205,35 @@ def test_the_disk_estimate_holds_a_recording_of_many_steps(tmp_path, monkeypatch
     written = sum(p.stat().st_size for p in out.rglob("*") if p.is_file())
     assert seen and written <= seen[0], (written, seen)
     assert (out / "recording.rrd").stat().st_size > 0.3 * seen[0]   # the recording is most of it
+
+
+def test_a_sweep_of_a_users_config_whose_jobs_cannot_be_composed_leaves_no_folder(tmp_path):
+    """hydra.sweeper.params in the user's own config with a value of the wrong type: exit 2, and
+    the sweep folder was left with .lock and multirun.yaml, which refused the next launch."""
+    conf = tmp_path / "cfg"
+    conf.mkdir()
+    (conf / "sw.yaml").write_text("defaults:\n  - config\n  - _self_\nhydra:\n  sweeper:\n    params:\n"
+                                  "      solver.dt: 0.04,abc\n")
+    out = tmp_path / "sweep"
+    p = run_cli(["-m", "--config-dir", str(conf), "--config-name", "sw", *SMALL, f"hydra.sweep.dir={out}"], tmp_path)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.strip().splitlines()[-1].startswith("hairexp: error: --config-name=sw: Error merging override "
+                                                        "solver.dt=abc"), p.stderr
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("arg, said", [
+    ("hydra.sweeper.params={solver.dt:'0.01,-1'}", "hydra.sweeper.params: Hydra takes the sweeper's params from a "
+                                                   "config file only"),
+    ("+hydra.sweeper.params.solver.dt='0.01,0.02'", "hydra.sweeper.params.solver.dt: Hydra takes the sweeper's "
+                                                    "params from a config file only"),
+    ("hydra.launcher.timeout=0", "hydra.launcher.timeout=0: the most seconds a job may run is a number > 0"),
+])
+def test_sweep_keys_hydra_cannot_use_are_refused_up_front(arg, said):
+    """Hydra's internals ("'NoneType' object has no attribute 'get'", "Unexpected type: None"), or
+    a timeout of 0 that stopped every job before it began (exit 3)."""
+    from hairexp.app import cli
+
+    assert cli.hydra_key_error([arg]) == said + (
+        " (hydra: sweeper: params: in your own config, --config-dir / --config-name); on the command line sweep a "
+        "key as key=a,b,c" if "params" in arg else ", or null for no limit")

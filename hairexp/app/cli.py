@@ -1503,6 +1503,14 @@ def _hydra_value_error(key: str, value) -> str | None:
     ``hydra.job.name=../../victim`` appended the run's log lines to a file two folders up), and
     ``hydra.launcher.n_jobs=0`` (joblib's ValueError traceback, a multirun.yaml left behind that
     refused the next launch; independent probe of issue 12, round 21)."""
+    if key == "hydra.launcher.timeout" and isinstance(value, (int, float)) and not isinstance(value, bool) and \
+            not value > 0:   # every job was stopped before it began, exit 3 (independent probe, round 26)
+        return f"{key}={value}: the most seconds a job may run is a number > 0, or null for no limit"
+    if key.lstrip("+~") == "hydra.sweeper.params" or key.lstrip("+~").startswith("hydra.sweeper.params."):
+        # Hydra 1.3 cannot merge it from the command line: "'NoneType' object has no attribute 'get'",
+        # "Unexpected type: None" (independent probe of issue 12, round 26)
+        return (f"{key.lstrip('+~')}: Hydra takes the sweeper's params from a config file only (hydra: sweeper: params: in your "
+                "own config, --config-dir / --config-name); on the command line sweep a key as key=a,b,c")
     if key == "hydra.launcher.n_jobs" and value == 0 and not isinstance(value, bool):
         return (f"{key}=0: the number of jobs run at once is a positive count (or -1 for one per core; joblib's "
                 "-n is cores + 1 - n)")

@@ -146,7 +146,11 @@ def unhold_unused() -> None:
     config; a folder holding only ``.lock`` was left; probe of issue 12, round 19)."""
     for folder in [f for f in _MADE] + [Path(f) for f in _LOCKED if Path(f) not in _MADE]:
         try:
-            if [p.name for p in folder.iterdir()] == [LOCK]:
+            names = {p.name for p in folder.iterdir()}
+            # Hydra's multirun.yaml, written as a sweep began, of a sweep whose jobs could not be composed
+            # (the user's hydra.sweeper.params): it blocked the next launch into the folder (round 26)
+            if LOCK in names and names <= {LOCK, "multirun.yaml"}:
+                (folder / "multirun.yaml").unlink(missing_ok=True)
                 (folder / LOCK).unlink()
                 if folder in _MADE:
                     folder.rmdir()
