@@ -237,3 +237,35 @@ def test_sweep_keys_hydra_cannot_use_are_refused_up_front(arg, said):
     assert cli.hydra_key_error([arg]) == said + (
         " (hydra: sweeper: params: in your own config, --config-dir / --config-name); on the command line sweep a "
         "key as key=a,b,c" if "params" in arg else ", or null for no limit")
+
+
+def test_a_disk_reserve_the_failed_ending_cannot_remove_is_said(tmp_path, monkeypatch):
+    """A run folder made immutable mid-run: the 128 kB .ending.reserve stayed, and no line said so
+    (the README says it is gone when the run ends)."""
+    from hairexp.app import run as run_mod
+    from hairexp.errors import SimulationError
+    from hairexp.outputs import folder
+
+    class Sinks:
+        progress = recorder = rerun = None
+        written = []
+        plain = {"experiment": None, "config": None}
+
+        class table:
+            steps = 0
+
+    (tmp_path / folder.RESERVE).write_bytes(b"\0" * 16)
+    real_unlink = type(tmp_path).unlink
+
+    def unlink(self, *a, **k):
+        if self.name == folder.RESERVE:
+            raise PermissionError(1, "Operation not permitted", str(self))
+        return real_unlink(self, *a, **k)
+
+    monkeypatch.setattr(type(tmp_path), "unlink", unlink)
+    monkeypatch.setattr(run_mod, "summarize", lambda *a, **k: {"status": "failed"})
+    exc = SimulationError("boom")
+    run_mod._end_unfinished(exc, Sinks, tmp_path, "s", "free", 0.0)
+    assert exc.__notes__ == [f"while writing the failed ending (.ending.reserve): PermissionError: [Errno 1] Operation "
+                             f"not permitted: '{tmp_path / folder.RESERVE}'"]
+    assert json.loads((tmp_path / "summary.json").read_text())["status"] == "failed"

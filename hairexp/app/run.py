@@ -43,7 +43,7 @@ from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
 from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, json_bytes, save_npy, write_json, write_npz
-from hairexp.outputs.folder import (REFUSED, STREAM, SUMMARY, claim, free_reserve, owner, refused_summary, remove_tmp,
+from hairexp.outputs.folder import (REFUSED, RESERVE, STREAM, SUMMARY, claim, free_reserve, owner, refused_summary, remove_tmp,
                                     reserve, used_entries)
 from hairexp.memory import release, release_every
 from hairexp.outputs.metrics import MetricsTable, measure
@@ -624,7 +624,7 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
             summary["frames_lost"] = lost
             held = f"frames 0..{kept - 1} of every array" if kept else "no frame"
             exc.add_note(f"stream/ holds {held}; the last {lost} frame(s) computed could not be written")
-    free_reserve(out)   # its room is the summary's
+    attempt(RESERVE, lambda: free_reserve(out, quiet=False))   # its room is the summary's
     attempt("summary.json", lambda: write_ending(out / SUMMARY, summary))
     stream = out / STREAM
     if stream.is_dir() and not any(p.is_file() for p in stream.rglob("*")):
