@@ -111,6 +111,10 @@ def entry() -> int:
     if shadowed is not None:
         print(shadowed, file=sys.stderr)
     sys.argv[1:] = cli.flags_first(sys.argv[1:])   # argparse takes no flag after the overrides
+    script = cli.shell_completion(sys.argv[1:])   # python -m hairexp's own (Hydra's: python script.py)
+    if script is not None:
+        print(script)
+        return 0
     sys.argv[1:], unread = cli.hydra_help_argv(sys.argv[1:])
     if unread:
         print(f"hairexp: warning: {' '.join(unread)} not used: --hydra-help prints Hydra's own help, which reads "

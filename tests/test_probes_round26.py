@@ -269,3 +269,21 @@ def test_a_disk_reserve_the_failed_ending_cannot_remove_is_said(tmp_path, monkey
     assert exc.__notes__ == [f"while writing the failed ending (.ending.reserve): PermissionError: [Errno 1] Operation "
                              f"not permitted: '{tmp_path / folder.RESERVE}'"]
     assert json.loads((tmp_path / "summary.json").read_text())["status"] == "failed"
+
+
+def test_shell_completion_completes_python_dash_m_hairexp(tmp_path, monkeypatch):
+    """Hydra's completion script fired only for ``python script.py`` and installed commands, and
+    its query of ``python -m hairexp experiment=go`` failed with "Error parsing override 'hairexp'"."""
+    from hairexp.app import cli
+
+    script = cli.shell_completion(["-sc", "install=bash"])
+    assert "_hairexp_completion()" in script and script.endswith("-F _hairexp_completion python python3")
+    assert cli.shell_completion(["--shell-completion=install=zsh"]).startswith("autoload -Uz bashcompinit")
+    assert "unset -f _hairexp_completion" in cli.shell_completion(["-sc", "uninstall=bash"])
+    monkeypatch.setenv("COMP_LINE", "/x/.venv/bin/python3.11 -m hairexp experiment=go")
+    assert cli.shell_completion(["-sc", "query=bash"]) is None
+    assert os.environ["COMP_LINE"] == "python hairexp experiment=go"
+    env = dict(os.environ, PYTHONPATH=str(REPO), COMP_LINE="python -m hairexp experiment=goaling_sm")
+    p = subprocess.run([sys.executable, "-m", "hairexp", "-sc", "query=bash"], cwd=tmp_path, env=env,
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and p.stdout.split() == ["experiment=goaling_smoke"], (p.stdout, p.stderr)

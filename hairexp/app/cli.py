@@ -817,6 +817,45 @@ def flags_first(argv: list[str]) -> list[str]:
     return flags + rest + last
 
 
+#: the shell function completing ``python -m hairexp ...`` from Hydra's answers (``shell_completion``)
+_COMPLETION = r"""_hairexp_completion()
+{
+    local words=($COMP_LINE)
+    if [[ ${#words[@]} -ge 3 && "${words[0]}" == *python* && "${words[1]}" == "-m" && "${words[2]}" == "hairexp" ]]; then
+        local choices
+        choices=$(COMP_POINT=$COMP_POINT COMP_LINE=$COMP_LINE ${words[0]} -m hairexp -sc query=bash 2>/dev/null)
+        COMPREPLY=($(compgen -o nospace -o default -W "$choices" -- "${words[$COMP_CWORD]}"))
+    fi
+}
+COMP_WORDBREAKS=${COMP_WORDBREAKS//=}
+complete -o nospace -o default -F _hairexp_completion python python3"""
+
+
+def shell_completion(argv: list[str]) -> str | None:
+    """What ``-sc install=bash`` / ``install=zsh`` / ``uninstall=...`` print for ``python -m
+    hairexp``, or None (left to Hydra).  Hydra's script completes ``python script.py`` and
+    installed commands only: for ``python -m hairexp`` it never fired, and a query's ``COMP_LINE``
+    of ``python -m hairexp experiment=go`` failed with "Error parsing override 'hairexp'"
+    (independent probe of issue 12, round 26).  A query's line is rewritten here (in this
+    process's environment) to the ``python <script> ...`` form Hydra reads."""
+    values = [argv[i + 1] if a in ("-sc", "--shell-completion") and i + 1 < len(argv) else a.split("=", 1)[1]
+              for i, a in enumerate(argv) if a in ("-sc", "--shell-completion") or a.startswith("--shell-completion=")]
+    if not values:
+        return None
+    value = values[-1]
+    if value.startswith("query="):
+        line = os.environ.get("COMP_LINE")
+        m = re.match(r"\s*\S*python[\d.]*\s+-m\s+hairexp(?=\s|$)", line or "")
+        if m is not None:
+            os.environ["COMP_LINE"] = "python hairexp" + line[m.end():]
+        return None
+    if value in ("install=bash", "install=zsh"):
+        return ("autoload -Uz bashcompinit && bashcompinit\n" if value.endswith("zsh") else "") + _COMPLETION
+    if value in ("uninstall=bash", "uninstall=zsh"):
+        return "complete -r python python3 2> /dev/null\nunset -f _hairexp_completion"
+    return None
+
+
 def hydra_help_argv(argv: list[str]) -> tuple[list[str], list[str]]:
     """(``argv`` without the overrides ``--hydra-help`` does not read, those overrides).  Hydra's
     own help composes Hydra's config alone, and refused ``experiment=goaling_smoke`` with "Could
