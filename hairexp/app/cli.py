@@ -189,8 +189,9 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
             res = outcome(out, "interrupted", signal_exit_code(signum), msg)
     except MemoryError as exc:   # numpy's ArrayMemoryError too: a size the checks did not foresee (probe, round 14)
         why = " ".join(str(exc).split()) or "an allocation failed"
-        print(f"hairexp: out of memory: {why} ({kept(out, 'partial metrics', exc)}); make the run smaller (scene.n_strands, "
-              "scene.n_vertices, guides.count, tracking.points_per_guide) or lower the setting that sized it",
+        print(f"hairexp: out of memory: {why} ({kept(out, 'partial metrics', exc)}); make the run smaller "
+              "(scene.n_strands, scene.n_vertices, guides.count, tracking.points_per_guide) or lower the setting that "
+              "sized it",
               file=sys.stderr)
         res = outcome(out, "failed", 3, f"out of memory: {why}")
     except Exception as exc:   # noqa: BLE001  (a bug: the traceback, exit 1; the sweep's other jobs go on)
@@ -821,7 +822,8 @@ def flags_first(argv: list[str]) -> list[str]:
 _COMPLETION = r"""_hairexp_completion()
 {
     local words=($COMP_LINE)
-    if [[ ${#words[@]} -ge 3 && "${words[0]}" == *python* && "${words[1]}" == "-m" && "${words[2]}" == "hairexp" ]]; then
+    if [[ ${#words[@]} -ge 3 && "${words[0]}" == *python* && "${words[1]}" == "-m" &&
+          "${words[2]}" == "hairexp" ]]; then
         local choices
         choices=$(COMP_POINT=$COMP_POINT COMP_LINE=$COMP_LINE ${words[0]} -m hairexp -sc query=bash 2>/dev/null)
         COMPREPLY=($(compgen -o nospace -o default -W "$choices" -- "${words[$COMP_CWORD]}"))
@@ -1548,8 +1550,9 @@ def _hydra_value_error(key: str, value) -> str | None:
     if key.lstrip("+~") == "hydra.sweeper.params" or key.lstrip("+~").startswith("hydra.sweeper.params."):
         # Hydra 1.3 cannot merge it from the command line: "'NoneType' object has no attribute 'get'",
         # "Unexpected type: None" (independent probe of issue 12, round 26)
-        return (f"{key.lstrip('+~')}: Hydra takes the sweeper's params from a config file only (hydra: sweeper: params: in your "
-                "own config, --config-dir / --config-name); on the command line sweep a key as key=a,b,c")
+        return (f"{key.lstrip('+~')}: Hydra takes the sweeper's params from a config file only (hydra: sweeper: "
+                "params: in your own config, --config-dir / --config-name); on the command line sweep a key as "
+                "key=a,b,c")
     if key == "hydra.launcher.n_jobs" and value == 0 and not isinstance(value, bool):
         return (f"{key}=0: the number of jobs run at once is a positive count (or -1 for one per core; joblib's "
                 "-n is cores + 1 - n)")

@@ -43,8 +43,8 @@ from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
 from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, json_bytes, save_npy, write_json, write_npz
-from hairexp.outputs.folder import (REFUSED, RESERVE, STREAM, SUMMARY, claim, free_reserve, owner, refused_summary, remove_tmp,
-                                    reserve, used_entries)
+from hairexp.outputs.folder import (REFUSED, RESERVE, STREAM, SUMMARY, claim, free_reserve, owner, refused_summary,
+                                    remove_tmp, reserve, used_entries)
 from hairexp.memory import release, release_every
 from hairexp.outputs.metrics import MetricsTable, measure
 from hairexp.outputs.progress import Progress, progress_enabled

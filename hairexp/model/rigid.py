@@ -73,7 +73,8 @@ class RigidMotion:
             speed = np.linalg.norm(np.diff(self.translations, axis=0), axis=1) / np.diff(self.times)
             # at the limit to round-off (100 m in 0.1 s is 1000.0000000000002 m/s: refused as "1000 m/s, more
             # than 1000 m/s"; independent probe of issue 12, round 26)
-            if speed.max() > MAX_SPEED * (1 + 1e-9):   # a 100 m jump between two USD samples "completed" at 299,900 % stretch
+            # a 100 m jump between two USD samples "completed" at 299,900 % stretch
+            if speed.max() > MAX_SPEED * (1 + 1e-9):
                 k = int(np.argmax(speed))
                 raise InputError(f"moves {speed[k]:.4g} m/s between keyframes {k} and {k + 1} (t = {self.times[k]:g} "
                                  f"and {self.times[k + 1]:g} s), more than {MAX_SPEED:g} m/s: a jump, or a unit "
