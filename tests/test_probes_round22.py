@@ -375,9 +375,12 @@ def test_overwrite_interrupted_before_the_run_began_leaves_the_previous_run_whol
     assert run_cli([*SMOKE, f"hydra.run.dir={out}"], tmp_path).returncode == 0
     before = {p.name: p.read_bytes() for p in (out / ".hydra").iterdir()}
     old = (out / "summary.json").read_bytes()
+    log = (out / "__main__.log").read_bytes()
     p = subprocess.run([sys.executable, "-c", SIGNAL_AFTER_RECORD, str(REPO / "hairexp" / "__main__.py"), *SMOKE,
                         "frames=3", "overwrite=true", f"hydra.run.dir={out}"], cwd=tmp_path, capture_output=True,
                        text=True, timeout=120, env=dict(os.environ, PYTHONPATH=str(REPO)))
+    # its log too: the launch's "[ERROR] interrupted" line stood under its "completed" one (round 27)
+    assert (out / "__main__.log").read_bytes() == log
     assert p.returncode == 143, p.stderr
     assert "partial results" not in p.stderr
     # the line says the folder is the previous run's (it was a bare "interrupted by SIGTERM"; round 26)

@@ -993,9 +993,10 @@ def used_dir_error(argv: list[str]) -> str | None:
     return None if refused is None else f"hairexp: error: {folder}: {refused}"
 
 
-#: (folder, {name: bytes}) of the ``.hydra/`` record of the run that ``overwrite=true`` is to replace,
-#: read before Hydra writes this launch's over it (``restore_previous_record``)
-_PREVIOUS_RECORD: tuple[Path, dict[str, bytes]] | None = None
+#: (folder, {name: bytes}, {log file: bytes}) of the ``.hydra/`` record and the job logs' sizes of the
+#: run that ``overwrite=true`` is to replace, read before Hydra writes this launch's over them
+#: (``restore_previous_record``)
+_PREVIOUS_RECORD: tuple[Path, dict[str, bytes], dict[Path, int]] | None = None
 
 
 def _keep_previous_record(folder: Path) -> None:
@@ -1003,9 +1004,10 @@ def _keep_previous_record(folder: Path) -> None:
     record = Path(folder) / ".hydra"
     try:
         files = {p.name: p.read_bytes() for p in record.iterdir() if p.is_file() and not p.is_symlink()}
+        logs = {p.resolve(): p.stat().st_size for p in Path(folder).glob("*.log") if p.is_file() and not p.is_symlink()}
     except OSError:
         return
-    _PREVIOUS_RECORD = (Path(folder).resolve(), files)
+    _PREVIOUS_RECORD = (Path(folder).resolve(), files, logs)
 
 
 def restore_previous_record(out) -> None:
@@ -1015,7 +1017,7 @@ def restore_previous_record(out) -> None:
     (its completed summary beside the other launch's config; independent probe of issue 12, round 23)."""
     if _PREVIOUS_RECORD is None or _this_runs(Path(out)):
         return
-    folder, files = _PREVIOUS_RECORD
+    folder, files, logs = _PREVIOUS_RECORD
     try:
         if Path(out).resolve() != folder or not used_entries(folder):
             return
@@ -1023,6 +1025,20 @@ def restore_previous_record(out) -> None:
             atomic_write_bytes(folder / ".hydra" / name, lambda f, data=data: f.write(data))
     except OSError as exc:
         to_log_files(f"{out}: cannot put the previous run's .hydra/ back: {exc}")
+        return
+    # and its log as it was: this launch's lines (its "interrupted" line under the previous run's
+    # "completed" one; independent probe of issue 12, round 27) are cut, and it writes no more there
+    root = logging.getLogger()
+    for h in [h for h in root.handlers if isinstance(h, logging.FileHandler)]:
+        if Path(h.baseFilename).resolve().parent == folder:
+            root.removeHandler(h)
+            h.close()
+    for log_file, size in logs.items():
+        try:
+            if log_file.is_file() and log_file.stat().st_size > size:
+                os.truncate(log_file, size)
+        except OSError:
+            pass
 
 
 def inside_run_error(folder: Path, key: str) -> str | None:
