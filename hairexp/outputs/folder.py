@@ -339,6 +339,9 @@ def overwrite_refusal(folder: Path) -> str | None:
     live = live_refusal(folder)
     if live is not None:
         return live
+    if (folder / "multirun.yaml").is_file():   # its jobs' files were named as foreign ones (round 27)
+        return ("it is a -m sweep's folder (multirun.yaml and its job folders): overwrite=true replaces a run's "
+                "folder, not a sweep's; choose another folder, or remove the sweep's")
     _, foreign = _removable(folder, top=True)
     if foreign:
         return ("overwrite=true removes only what a run wrote; the folder also holds "
