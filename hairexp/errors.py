@@ -61,6 +61,10 @@ MAX_COORDINATE = 1e4
 #: launched faster, is refused as a jump or a unit error (3 x the speed of sound; the stress
 #: matrix's fastest collider moves at 10 m/s)
 MAX_SPEED = 1e3
+#: s, the shortest step a simulation takes (``Simulator.step``): below it the inertia M/dt^2 of the
+#: step's objective overflows; solver.dt, scene.settle_dt and the step a frame is split into are
+#: checked against it with the config (a traceback after the settle phase; independent probe, round 27)
+MIN_STEP_DT = 1e-9
 
 
 def check_extent(points, where: str, counts=None, frame: int | None = None) -> None:

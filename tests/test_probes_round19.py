@@ -125,6 +125,7 @@ def test_one_note_per_os_error_whatever_file_it_names(tmp_path, monkeypatch):
     exc = SimulationError("boom")
     run_mod._end_unfinished(exc, Sinks, tmp_path, "s", "free", 0.0)
     assert exc.__notes__ == [
-        "while writing the failed ending (frames, metrics, metrics.parquet): OSError: [Errno 28] No space left on "
+        # (the table's flush is write's own first act since round 26: one part, metrics.parquet)
+        "while writing the failed ending (frames, metrics.parquet): OSError: [Errno 28] No space left on "
         f"device: '{tmp_path / 'positions.npy'}'",
         "while writing the failed ending (recording): PermissionError: [Errno 13] Permission denied: 'rec.rrd'"]

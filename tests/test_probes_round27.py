@@ -19,3 +19,49 @@ def test_overwrite_into_a_sweeps_folder_says_it_is_a_sweeps(tmp_path):
     assert overwrite_refusal(tmp_path) == ("it is a -m sweep's folder (multirun.yaml and its job folders): "
                                            "overwrite=true replaces a run's folder, not a sweep's; choose another "
                                            "folder, or remove the sweep's")
+
+
+def test_steps_below_the_shortest_are_refused_with_the_config():
+    """scene.settle_dt=1e-10, or fps=100000 with solver.dt=1e-10: a ValueError traceback from the
+    simulator's step after the checks had passed (exit 1)."""
+    from types import SimpleNamespace
+
+    import pytest
+
+    from hairexp.errors import InputError
+    from hairexp.physics.schedule import step_schedule
+    from hairexp.physics.settle import settle_step
+
+    with pytest.raises(InputError, match=r"must be at least 1e-09 and at most 1 \(seconds\), got 1e-10") as err:
+        settle_step(SimpleNamespace(settle_dt=1e-10))
+    assert err.value.where == "scene.settle_dt"
+    assert settle_step(SimpleNamespace(settle_dt=1e-9)) == 1e-9
+    with pytest.raises(InputError, match=r"splits a frame of 1e-05 s \(fps 100000\) into steps of 1e-10 s") as err:
+        step_schedule(1e5, 1e-10, 1)
+    assert err.value.where == "solver.dt"
+    assert step_schedule(1e5, 2e-9, 1) == (5000, pytest.approx(2e-9))
+
+
+def test_solver_dt_below_the_shortest_step_is_a_named_error(tmp_path):
+    from probe_helpers import SMALL, run_cli
+
+    p = run_cli([*SMALL, "solver.dt=1e-10", f"hydra.run.dir={tmp_path / 'r'}"], tmp_path)
+    assert p.returncode == 2 and p.stderr.strip().splitlines()[-1] == (
+        "hairexp: error: solver.dt: must be at least 1e-09 s (the inertia M/dt^2 overflows below it), got 1e-10"), \
+        p.stderr
+
+
+def test_a_summary_never_holds_a_bare_nan():
+    """A one-strand spreading run wrote "tip_variance_ratio": NaN, which strict JSON readers refuse."""
+    import math
+
+    import numpy as np
+
+    from hairexp.outputs.files import json_bytes
+
+    def strict(text):
+        return json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
+
+    d = strict(json_bytes({"a": math.nan, "b": [np.inf, 1.5, -math.inf], "c": np.float32("nan"),
+                           "d": np.array([1.0, np.nan]), "e": {"f": (np.float64(2.0), math.nan)}, "g": 3}))
+    assert d == {"a": None, "b": [None, 1.5, None], "c": None, "d": [1.0, None], "e": {"f": [2.0, None]}, "g": 3}

@@ -24,7 +24,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from hairexp.errors import InputError, finite_number
+from hairexp.errors import MIN_STEP_DT, InputError, finite_number
 from hairexp.model.dynamic_body import authoring_motion
 from hairexp.physics.simulator import Simulator
 
@@ -44,8 +44,9 @@ def settle_step(scene_cfg) -> float:
     not the run's dt, so that runs at different dt start from the same settled state (and large
     implicit Euler steps damp the sag's oscillation quickly)."""
     v = finite_number(getattr(scene_cfg, "settle_dt", 0.04), "scene.settle_dt")
-    if not 0 < v <= 1.0:   # 1e300 overflowed the first settle step (probe of issue 12, round 14)
-        raise InputError(f"must be > 0 and <= 1 (seconds), got {v}", "scene.settle_dt")
+    # 1e300 overflowed the first settle step (probe of issue 12, round 14); 1e-10: a traceback (round 27)
+    if not MIN_STEP_DT <= v <= 1.0:
+        raise InputError(f"must be at least {MIN_STEP_DT:g} and at most 1 (seconds), got {v}", "scene.settle_dt")
     return v
 
 

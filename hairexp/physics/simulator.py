@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from hairexp import tune_runtime
-from hairexp.errors import InputError, SimulationError, finite_number, integer, number
+from hairexp.errors import MIN_STEP_DT, InputError, SimulationError, finite_number, integer, number
 from hairexp.model.scene import Scene
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact, sweep_substeps
 from hairexp.physics.collisions import CollisionInfo, HairHair, StrainLimit, collision_stage, contact_velocities
@@ -110,8 +110,6 @@ class _NoColliders:
         self.strands, self.colliders, self.motion = scene.strands, [], scene.motion
 
 
-#: s, the shortest step ``Simulator.step`` takes
-MIN_STEP_DT = 1e-9
 #: the longest step ``Simulator.step`` takes (s): the command line's steps are at most a frame (fps >= 0.1)
 MAX_STEP_DT = 10.0
 #: solver.last_attempt_iterations at most (a step's last attempt with this many times the iterations)
@@ -152,6 +150,9 @@ def check_solver_config(s) -> None:
         dt = finite_number(s.dt, "solver.dt", "> 0")
         if dt <= 0:
             raise InputError(f"must be a finite number > 0, got {dt:g}", "solver.dt")
+        if dt < MIN_STEP_DT:
+            raise InputError(f"must be at least {MIN_STEP_DT:g} s (the inertia M/dt^2 overflows below it), got {dt:g}",
+                             "solver.dt")
     for key, lo in (("max_iterations", 1), ("max_backtracks", 0)):
         if hasattr(s, key):
             integer(getattr(s, key), f"solver.{key}", lo)
