@@ -111,7 +111,10 @@ def entry() -> int:
     if shadowed is not None:
         print(shadowed, file=sys.stderr)
     sys.argv[1:] = cli.flags_first(sys.argv[1:])   # argparse takes no flag after the overrides
-    script = cli.shell_completion(sys.argv[1:])   # python -m hairexp's own (Hydra's: python script.py)
+    script, bad_completion = cli.shell_completion(sys.argv[1:])   # python -m hairexp's own (Hydra's: python x.py)
+    if bad_completion is not None:
+        print(bad_completion, file=sys.stderr)
+        return 2
     if script is not None:
         print(script)
         return 0

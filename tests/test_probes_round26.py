@@ -276,12 +276,13 @@ def test_shell_completion_completes_python_dash_m_hairexp(tmp_path, monkeypatch)
     its query of ``python -m hairexp experiment=go`` failed with "Error parsing override 'hairexp'"."""
     from hairexp.app import cli
 
-    script = cli.shell_completion(["-sc", "install=bash"])
-    assert "_hairexp_completion()" in script and script.endswith("-F _hairexp_completion python python3")
-    assert cli.shell_completion(["--shell-completion=install=zsh"]).startswith("autoload -Uz bashcompinit")
-    assert "unset -f _hairexp_completion" in cli.shell_completion(["-sc", "uninstall=bash"])
+    script, bad = cli.shell_completion(["-sc", "install=bash"])
+    assert bad is None and "_hairexp_completion()" in script
+    assert script.endswith("complete -o default -F _hairexp_completion python python3")
+    assert cli.shell_completion(["--shell-completion=install=zsh"])[0].startswith("autoload -Uz bashcompinit")
+    assert "unset -f _hairexp_completion" in cli.shell_completion(["-sc", "uninstall=bash"])[0]
     monkeypatch.setenv("COMP_LINE", "/x/.venv/bin/python3.11 -m hairexp experiment=go")
-    assert cli.shell_completion(["-sc", "query=bash"]) is None
+    assert cli.shell_completion(["-sc", "query=bash"]) == (None, None)
     assert os.environ["COMP_LINE"] == "python hairexp experiment=go"
     env = dict(os.environ, PYTHONPATH=str(REPO), COMP_LINE="python -m hairexp experiment=goaling_sm")
     p = subprocess.run([sys.executable, "-m", "hairexp", "-sc", "query=bash"], cwd=tmp_path, env=env,

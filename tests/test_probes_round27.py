@@ -65,3 +65,54 @@ def test_a_summary_never_holds_a_bare_nan():
     d = strict(json_bytes({"a": math.nan, "b": [np.inf, 1.5, -math.inf], "c": np.float32("nan"),
                            "d": np.array([1.0, np.nan]), "e": {"f": (np.float64(2.0), math.nan)}, "g": 3}))
     assert d == {"a": None, "b": [None, 1.5, None], "c": None, "d": [1.0, None], "e": {"f": [2.0, None]}, "g": 3}
+
+
+def test_shell_completion_without_a_value_or_for_fish_is_one_line():
+    """``-sc`` alone: an IndexError traceback (exit 1); ``--shell-completion=``: argparse's usage;
+    ``install=fish``: Hydra's fish script, which never completes ``python -m hairexp``."""
+    from hairexp.app import cli
+
+    assert cli.shell_completion(["-sc"]) == (None, "hairexp: error: -sc: give one of install=bash, install=zsh, "
+                                                   "uninstall=bash, uninstall=zsh (or query=bash, which the shell asks)")
+    assert cli.shell_completion(["--shell-completion="])[1].startswith("hairexp: error: --shell-completion: give one")
+    assert cli.shell_completion(["-sc", "install=fish"])[1].startswith(
+        "hairexp: error: -sc install=fish: python -m hairexp completes in bash and zsh")
+    assert cli.shell_completion(["experiment=goaling"]) == (None, None)
+
+
+BASH_SESSION = r"""
+_mine() { COMPREPLY=(mine); }
+complete -F _mine python
+eval "$(PYTHONPATH={repo} {python} -m hairexp -sc install=bash)"
+t() { COMP_LINE="$1"; COMP_POINT=${#COMP_LINE}; COMPREPLY=(); _hairexp_completion; echo "${COMPREPLY[*]}"; }
+PATH={bindir}:$PATH
+t "python -m hairexp experiment=goaling_sm"
+t "python other.py x"
+eval "$(PYTHONPATH={repo} {python} -m hairexp -sc uninstall=bash)"
+complete -p python
+"""
+
+
+def test_bash_completion_completes_hairexp_and_hands_back_the_rest(tmp_path):
+    """In bash: a hairexp line completes with the shell's word breaks as they are (the ``=``
+    among them), another python line gets the completion python had, which uninstall puts back
+    (the install changed COMP_WORDBREAKS for every command and uninstall left python without one)."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    import pytest
+
+    from probe_helpers import REPO
+
+    if shutil.which("bash") is None:
+        pytest.skip("no bash")
+    py = tmp_path / "bin"
+    py.mkdir()
+    (py / "python").write_text(f'#!/bin/sh\nexec "{sys.executable}" "$@"\n')   # the line's "python" is this one
+    (py / "python").chmod(0o755)
+    script = BASH_SESSION.replace("{repo}", str(REPO)).replace("{python}", sys.executable).replace("{bindir}", str(py))
+    p = subprocess.run(["bash", "--norc", "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert p.stdout.splitlines() == ["goaling_smoke", "mine", "complete -F _mine python"], (p.stdout, p.stderr)

@@ -818,44 +818,72 @@ def flags_first(argv: list[str]) -> list[str]:
     return flags + rest + last
 
 
-#: the shell function completing ``python -m hairexp ...`` from Hydra's answers (``shell_completion``)
+#: the shell function completing ``python -m hairexp ...`` from Hydra's answers (``shell_completion``).
+#: The shell's word breaks are left as they are (with ``=`` among them the word completed is the part
+#: after the last ``=``: the answers are cut to it); a line that is not ``python -m hairexp`` goes to
+#: the completion ``python`` had before, which ``uninstall`` puts back
 _COMPLETION = r"""_hairexp_completion()
 {
     local words=($COMP_LINE)
     if [[ ${#words[@]} -ge 3 && "${words[0]}" == *python* && "${words[1]}" == "-m" &&
           "${words[2]}" == "hairexp" ]]; then
-        local choices
+        local cur="${COMP_LINE:0:$COMP_POINT}" choices prefix
+        [[ "$cur" =~ [[:space:]]$ ]] && cur="" || cur="${cur##*[[:space:]]}"
         choices=$(COMP_POINT=$COMP_POINT COMP_LINE=$COMP_LINE ${words[0]} -m hairexp -sc query=bash 2>/dev/null)
-        COMPREPLY=($(compgen -o nospace -o default -W "$choices" -- "${words[$COMP_CWORD]}"))
+        COMPREPLY=($(compgen -W "$choices" -- "$cur"))
+        if [[ "$COMP_WORDBREAKS" == *"="* && "$cur" == *"="* ]]; then
+            prefix="${cur%"${cur##*=}"}"
+            COMPREPLY=("${COMPREPLY[@]#"$prefix"}")
+        fi
+        compopt -o nospace 2> /dev/null
+    elif [[ -n "$_HAIREXP_OLD_PYTHON_FN" ]] && declare -F "$_HAIREXP_OLD_PYTHON_FN" > /dev/null; then
+        "$_HAIREXP_OLD_PYTHON_FN" "$@"
     fi
 }
-COMP_WORDBREAKS=${COMP_WORDBREAKS//=}
-complete -o nospace -o default -F _hairexp_completion python python3"""
+if [[ -z "${_HAIREXP_OLD_PYTHON+x}" ]]; then
+    _HAIREXP_OLD_PYTHON="$(complete -p python 2> /dev/null)"
+    _HAIREXP_OLD_PYTHON3="$(complete -p python3 2> /dev/null)"
+    _HAIREXP_OLD_PYTHON_FN="$(sed -n 's/.*-F \([^ ]*\).*/\1/p' <<< "$_HAIREXP_OLD_PYTHON")"
+fi
+complete -o default -F _hairexp_completion python python3"""
+
+#: what ``-sc uninstall=bash`` prints: the completions ``python`` and ``python3`` had back
+_UNCOMPLETION = r"""complete -r python python3 2> /dev/null
+[[ -n "$_HAIREXP_OLD_PYTHON" ]] && eval "$_HAIREXP_OLD_PYTHON"
+[[ -n "$_HAIREXP_OLD_PYTHON3" ]] && eval "$_HAIREXP_OLD_PYTHON3"
+unset -f _hairexp_completion
+unset _HAIREXP_OLD_PYTHON _HAIREXP_OLD_PYTHON3 _HAIREXP_OLD_PYTHON_FN"""
 
 
-def shell_completion(argv: list[str]) -> str | None:
-    """What ``-sc install=bash`` / ``install=zsh`` / ``uninstall=...`` print for ``python -m
-    hairexp``, or None (left to Hydra).  Hydra's script completes ``python script.py`` and
-    installed commands only: for ``python -m hairexp`` it never fired, and a query's ``COMP_LINE``
-    of ``python -m hairexp experiment=go`` failed with "Error parsing override 'hairexp'"
-    (independent probe of issue 12, round 26).  A query's line is rewritten here (in this
-    process's environment) to the ``python <script> ...`` form Hydra reads."""
-    values = [argv[i + 1] if a in ("-sc", "--shell-completion") and i + 1 < len(argv) else a.split("=", 1)[1]
-              for i, a in enumerate(argv) if a in ("-sc", "--shell-completion") or a.startswith("--shell-completion=")]
-    if not values:
-        return None
-    value = values[-1]
+def shell_completion(argv: list[str]) -> tuple[str | None, str | None]:
+    """(what ``-sc install=bash`` / ``install=zsh`` / ``uninstall=...`` print for ``python -m
+    hairexp``, or an error line; (None, None): left to Hydra).  Hydra's script completes ``python
+    script.py`` and installed commands only: for ``python -m hairexp`` it never fired, and a
+    query's ``COMP_LINE`` of ``python -m hairexp experiment=go`` failed with "Error parsing override
+    'hairexp'" (independent probe of issue 12, round 26).  A query's line is rewritten here (in this
+    process's environment) to the ``python <script> ...`` form Hydra reads.  Without a value, or
+    with another shell (Hydra's fish script completes ``python script.py`` only): an error (an
+    IndexError traceback, argparse's usage; round 27)."""
+    flags = [i for i, a in enumerate(argv) if a in ("-sc", "--shell-completion") or a.startswith("--shell-completion=")]
+    if not flags:
+        return None, None
+    i = flags[-1]
+    value = argv[i].split("=", 1)[1] if "=" in argv[i] else (argv[i + 1] if i + 1 < len(argv) else "")
+    shells = "install=bash, install=zsh, uninstall=bash, uninstall=zsh (or query=bash, which the shell asks)"
     if value.startswith("query="):
         line = os.environ.get("COMP_LINE")
         m = re.match(r"\s*\S*python[\d.]*\s+-m\s+hairexp(?=\s|$)", line or "")
         if m is not None:
             os.environ["COMP_LINE"] = "python hairexp" + line[m.end():]
-        return None
+        return None, None
     if value in ("install=bash", "install=zsh"):
-        return ("autoload -Uz bashcompinit && bashcompinit\n" if value.endswith("zsh") else "") + _COMPLETION
+        return ("autoload -Uz bashcompinit && bashcompinit\n" if value.endswith("zsh") else "") + _COMPLETION, None
     if value in ("uninstall=bash", "uninstall=zsh"):
-        return "complete -r python python3 2> /dev/null\nunset -f _hairexp_completion"
-    return None
+        return _UNCOMPLETION, None
+    if not value:
+        return None, f"hairexp: error: {argv[i].split('=')[0]}: give one of {shells}"
+    return None, (f"hairexp: error: {argv[i].split('=')[0]} {value}: python -m hairexp completes in bash and zsh: "
+                  f"{shells}")
 
 
 def hydra_help_argv(argv: list[str]) -> tuple[list[str], list[str]]:
