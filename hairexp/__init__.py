@@ -33,6 +33,28 @@ if _sys.argv[:1] == ["-m"]:
         if _signal.getsignal(_s) in (_signal.default_int_handler, _signal.SIG_DFL):
             _signal.signal(_s, _early_signal)
 
+
+def _fill_closed_std_fds() -> None:
+    """A standard descriptor (0, 1, 2) the command was started without (``>&- 2>&-``) is opened on
+    /dev/null, inheritable: else the next file opened took its number, close-on-exec, and a sweep's
+    worker processes started without their standard streams and died; the sweep ran nothing and
+    exited 1, saying a worker was killed (independent probe of issue 12, round 27).  Python's own
+    ``sys.stdout`` stays None (hairexp/app/streams.py guards it)."""
+    for fd in (0, 1, 2):
+        try:
+            _os.fstat(fd)
+        except OSError:
+            new = _os.open(_os.devnull, _os.O_RDWR)
+            if new != fd:
+                _os.dup2(new, fd)   # inheritable
+                _os.close(new)
+            else:
+                _os.set_inheritable(fd, True)
+
+
+if _sys.argv[:1] == ["-m"]:
+    _fill_closed_std_fds()
+
 # numpy/scipy's OpenBLAS threads and torch's OpenMP threads fight over the cores: with both
 # at 2 threads on the 2-core machines a step took 54 ms instead of 22 ms (experiments/
 # bench_free.py).  BLAS here only sees small vectors, so it gets one thread; torch keeps its

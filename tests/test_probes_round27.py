@@ -116,3 +116,28 @@ def test_bash_completion_completes_hairexp_and_hands_back_the_rest(tmp_path):
     p = subprocess.run(["bash", "--norc", "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=120,
                        env=dict(os.environ, PYTHONPATH=str(REPO)))
     assert p.stdout.splitlines() == ["goaling_smoke", "mine", "complete -F _mine python"], (p.stdout, p.stderr)
+
+
+def test_standard_descriptors_closed_at_launch_are_inherited_by_child_processes(tmp_path):
+    """``-m ... >&- 2>&-``: the first files opened took descriptors 1 and 2, close-on-exec, so the
+    sweep's workers started without standard streams and died (the sweep ran nothing, exit 1).
+    The package fills them with /dev/null, inheritable; a child process then writes through them."""
+    import os
+    import subprocess
+    import sys
+
+    from probe_helpers import REPO
+
+    report = tmp_path / "report.txt"
+    code = (f"import os, subprocess, sys; sys.argv[:1] = ['-m']; import hairexp; "
+            f"ok = [os.get_inheritable(fd) for fd in (1, 2)]; "
+            f"rc = subprocess.run([sys.executable, '-c', 'import os; os.write(1, b\"x\"); os.write(2, b\"y\")']).returncode; "
+            f"open({str(report)!r}, 'w').write(f'{{ok}} {{rc}}')")
+
+    def close_std():
+        os.close(1)
+        os.close(2)
+
+    p = subprocess.run([sys.executable, "-c", code], preexec_fn=close_std, timeout=60,
+                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+    assert p.returncode == 0 and report.read_text() == "[True, True] 0"
