@@ -72,6 +72,7 @@ import yaml
 from hydra.core.hydra_config import HydraConfig
 from hydra.errors import ConfigCompositionException, MissingConfigException, OverrideParseException, SearchPathException
 from omegaconf import DictConfig
+from omegaconf.errors import InterpolationResolutionError
 
 import hairexp.app.config  # noqa: F401  (registers the schema in the ConfigStore)
 from hairexp.app import cli
@@ -187,6 +188,12 @@ def entry() -> int:
         where = f"--config-name={names[-1]}: " if names else ""
         print(f"hairexp: error: {where}{first}", file=sys.stderr)
         unhold_unused()   # the run folder Hydra never wrote: not left holding only .lock
+        return 2
+    except InterpolationResolutionError as exc:
+        # a run folder's interpolation that fails as Hydra makes the folder: the default folder's
+        # experiment name that is no folder's name (a user's experiment file; a traceback; round 27)
+        print(f"hairexp: error: {cli.one_line(exc)}", file=sys.stderr)
+        unhold_unused()
         return 2
     except OSError as exc:
         # outside a run (a run's own write errors end it, hairexp/app/cli.py; the standard streams keep

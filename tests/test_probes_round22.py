@@ -167,7 +167,7 @@ def test_a_run_with_its_hydra_record_renamed_is_not_refused_as_another_runs(tmp_
 
 @pytest.mark.parametrize("args, said", [
     (["-m", "hydra.launcher.n_jobs=0"], "hydra.launcher.n_jobs=0: the number of jobs run at once is a positive count"),
-    (["--shell-completion"], "--shell-completion: Expecting one subcommand"),
+    (["--shell-completion"], "--shell-completion: give one of install=bash, install=zsh"),   # round 27: hairexp's line
     (["--experimental-rerun", "nothere.pickle"], "--experimental-rerun: File nothere.pickle does not exist"),
     # round 23
     (["--info", "nosuch"], "Error parsing override 'nosuch'"),

@@ -141,3 +141,25 @@ def test_standard_descriptors_closed_at_launch_are_inherited_by_child_processes(
     p = subprocess.run([sys.executable, "-c", code], preexec_fn=close_std, timeout=60,
                        env=dict(os.environ, PYTHONPATH=str(REPO)))
     assert p.returncode == 0 and report.read_text() == "[True, True] 0"
+
+
+def test_an_experiment_name_that_is_no_folder_name_is_refused_before_a_folder_is_made(tmp_path):
+    """A user's experiment file with ``experiment: ../../evil`` wrote its run (and a sweep's) two
+    folders above outputs/, exit 0."""
+    from probe_helpers import run_cli
+
+    conf = tmp_path / "cd" / "experiment"
+    conf.mkdir(parents=True)
+    (conf / "evil.yaml").write_text("# @package _global_\ndefaults:\n  - goaling_smoke\n  - _self_\n"
+                                    "experiment: ../../evil\nvariants: []\nframes: 2\nlogging:\n  rerun: false\n")
+    cwd = tmp_path / "a" / "b"
+    cwd.mkdir(parents=True)
+    for sweep in ([], ["-m", "solver.rtol=1e-5,1e-6"]):
+        p = run_cli([*sweep, "--config-dir", str(tmp_path / "cd"), "experiment=evil"], cwd)
+        assert p.returncode == 2, p.stderr
+        assert p.stderr.strip().splitlines()[-1] == (
+            "hairexp: error: ValueError raised while resolving interpolation: experiment: '../../evil' names the "
+            "default run folder (outputs/<experiment>/...): use letters, digits, _ . - (at most 200 bytes), not "
+            f"starting with . - or _ (key hydra.{'sweep' if sweep else 'run'}.dir)"), p.stderr
+        assert not any(tmp_path.rglob("summary.json")) and not any(tmp_path.rglob("multirun.yaml"))
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "cd"] and not any(cwd.iterdir())

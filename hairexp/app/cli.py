@@ -880,10 +880,10 @@ def shell_completion(argv: list[str]) -> tuple[str | None, str | None]:
         return ("autoload -Uz bashcompinit && bashcompinit\n" if value.endswith("zsh") else "") + _COMPLETION, None
     if value in ("uninstall=bash", "uninstall=zsh"):
         return _UNCOMPLETION, None
-    if not value:
-        return None, f"hairexp: error: {argv[i].split('=')[0]}: give one of {shells}"
-    return None, (f"hairexp: error: {argv[i].split('=')[0]} {value}: python -m hairexp completes in bash and zsh: "
-                  f"{shells}")
+    flag = argv[i].split("=")[0]
+    if value.split("=")[0] in ("install", "uninstall"):
+        return None, f"hairexp: error: {flag} {value}: python -m hairexp completes in bash and zsh: {shells}"
+    return None, f"hairexp: error: {flag}: give one of {shells}" + (f"; got {value!r}" if value else "")
 
 
 def hydra_help_argv(argv: list[str]) -> tuple[list[str], list[str]]:
@@ -1533,7 +1533,8 @@ def one_line(exc: BaseException) -> str:
     if said and said not in msg:
         msg += ": " + said
     # OmegaConf's tail (a user's config file with a wrong key or value: --config-dir): the key, not the types
-    msg = re.sub(r"\s*full_key: (\S+)\s+object_type=\S+", r" (key \1)", msg.split(" Config search path:")[0])
+    msg = re.sub(r"\s*full_key: (\S+)\s+(?:reference_type=\S+\s+)?object_type=\S+", r" (key \1)",
+                 msg.split(" Config search path:")[0])
     if "Cannot convert 'DictConfig' to string" in msg and "(key experiment)" in msg:
         # a user's experiment file without its package line: its keys landed under "experiment" (round 25)
         msg += (" (an experiment file sets the config's own keys: it begins with the line '# @package _global_', "

@@ -493,11 +493,22 @@ def check_sections(cfg) -> None:
                          f"{'it' if len(missing) == 1 else 'them'}: drop the ~ override", ", ".join(missing))
 
 
+#: a name that is a folder's name: a variant's, the experiment's (of the default run folders)
+SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+
+
 def _or_run(name) -> str:
     """The ``or_run`` resolver of conf/config.yaml's default run folders: the experiment's name, or
     ``run`` for a run without one (``oc.select`` keeps a null: ``outputs/None/...``; probe of
-    issue 12, round 13)."""
-    return "run" if name is None or str(name) in ("", "None") else str(name)
+    issue 12, round 13).  A name that is not a folder's name is refused: a user's experiment file
+    with ``experiment: ../../evil`` wrote its run two folders above outputs/ (independent probe of
+    issue 12, round 27)."""
+    if name is None or str(name) in ("", "None"):
+        return "run"
+    if not SAFE_NAME.match(str(name)) or len(str(name).encode()) > 200:
+        raise ValueError(f"experiment: {str(name)!r} names the default run folder (outputs/<experiment>/...): use "
+                         "letters, digits, _ . - (at most 200 bytes), not starting with . - or _")
+    return str(name)
 
 
 def register() -> None:

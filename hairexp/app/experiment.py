@@ -26,7 +26,7 @@ from omegaconf import OmegaConf
 
 from hairexp.app.assemble import check_config
 from hairexp.app.guard import planning
-from hairexp.app.config import check_bool, require_config, to_plain, unknown_key_hint
+from hairexp.app.config import SAFE_NAME, check_bool, require_config, to_plain, unknown_key_hint
 from hairexp.app.validate import validate_judge, validate_judge_controllers
 from hairexp.app.signals import InterruptSignals, note_late, take_late
 from hairexp.errors import InputError, Interrupted
@@ -41,7 +41,6 @@ log = logging.getLogger("hairexp")
 #: Figures of each variant copied into the experiment's summary.
 VARIANT_FIELDS = ("status", "steps", "iterations_mean", "iterations_max", "converged_fraction", "converged",
                   "unconverged_steps", "step_seconds_median", "stretch_max", "residual_rel_max", "wall_seconds")
-SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 #: names a variant's folder may not have: the experiment folder's own entries
 RESERVED_NAMES = {"stream", "summary", "metrics", "result", "recording", "guides", "comparison"}
 
