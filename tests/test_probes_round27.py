@@ -163,3 +163,19 @@ def test_an_experiment_name_that_is_no_folder_name_is_refused_before_a_folder_is
             f"starting with . - or _ (key hydra.{'sweep' if sweep else 'run'}.dir)"), p.stderr
         assert not any(tmp_path.rglob("summary.json")) and not any(tmp_path.rglob("multirun.yaml"))
         assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "cd"] and not any(cwd.iterdir())
+
+
+def test_an_interruption_between_variants_names_no_folder_that_is_not_there(tmp_path):
+    """A SIGINT as the free variant completed: "no step of the hair of variant tracked ran: its
+    summary.json in R/tracked says so", and R/tracked did not exist."""
+    from hairexp.app import cli
+    from hairexp.outputs.folder import owner
+
+    (tmp_path / "free").mkdir()
+    (tmp_path / "free" / "metrics.parquet").write_bytes(b"PAR1")
+    (tmp_path / "summary.json").write_text(json.dumps({"status": "interrupted", **owner()}))
+    exc = KeyboardInterrupt()
+    exc.run_folder = str(tmp_path / "tracked")
+    assert cli.kept(tmp_path, "partial results", exc) == (
+        f"no step of the hair of variant tracked ran: it had not begun (the experiment's summary.json in {tmp_path} "
+        f"says so); the variants before it (free) are in {tmp_path}")

@@ -274,7 +274,11 @@ def kept(out, what: str, exc: BaseException | None = None) -> str:
         if (Path(variant) / "metrics.parquet").is_file():
             return f"{what} in {variant}"
         before = sorted(p.parent.name for p in Path(out).glob("*/metrics.parquet"))
-        return (f"no step of the hair of variant {Path(variant).name} ran: its summary.json in {variant} says so"
+        name = Path(variant).name
+        # a signal between two variants: the next one had no folder yet (round 27: its summary.json was named)
+        said = (f"its summary.json in {variant} says so" if (Path(variant) / SUMMARY).is_file()
+                else f"it had not begun (the experiment's summary.json in {out} says so)")
+        return (f"no step of the hair of variant {name} ran: {said}"
                 + (f"; the variants before it ({', '.join(before)}) are in {out}" if before else ""))
     if not _this_runs(Path(out)):   # ended before the run claimed the folder: what is there is not its
         summary = Path(out) / SUMMARY   # (round 23: "partial results" of the old run)
