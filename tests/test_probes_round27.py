@@ -179,3 +179,21 @@ def test_an_interruption_between_variants_names_no_folder_that_is_not_there(tmp_
     assert cli.kept(tmp_path, "partial results", exc) == (
         f"no step of the hair of variant tracked ran: it had not begun (the experiment's summary.json in {tmp_path} "
         f"says so); the variants before it (free) are in {tmp_path}")
+
+
+def test_a_fan_measure_without_gaps_is_null_not_a_crash(tmp_path, caplog):
+    """One strand (or measure.axis along the hair): "ValueError: All-NaN slice encountered" after the
+    whole run, exit 1."""
+    import logging
+
+    from hairexp.app.config import compose_config
+    from hairexp.app.run import run
+
+    cfg = compose_config(["experiment=fanning_smoke", "variants=[]", "frames=3", "logging=off", "scene.n_strands=1"])
+    with caplog.at_level(logging.WARNING):
+        s = run(cfg, tmp_path / "r")
+    assert s["status"] == "completed"
+    fan = s["measures"]
+    assert fan["gap_ratio_max"] is None and fan["gap_ratio_max_time"] is None, fan
+    assert any("measure fan: no frame has gaps to measure" in r.getMessage() for r in caplog.records)
+    assert json.loads((tmp_path / "r" / "summary.json").read_text())["measures"]["gap_ratio_max"] is None

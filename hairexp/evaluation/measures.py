@@ -37,6 +37,7 @@ opens.  One clump in every frame means the hair never tore apart at that distanc
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +48,8 @@ from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from hairexp.errors import InputError
 from hairexp.evaluation.stylization import block_rail_measure
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -255,8 +258,13 @@ def fan(d: RunData, p) -> dict:
         r, sp = fan_gaps(lower_part_features(offsets, np.asarray(x), p.strand_fraction) @ axis)
         ratios.append(r)
         spreads.append(sp)
-    out = {"gap_ratio": ratios[f], "gap_ratio_max": float(np.nanmax(ratios)),
-           "gap_ratio_max_time": float(d.times[int(np.nanargmax(ratios))]), "spread": spreads[f],
+    gapped = np.isfinite(np.asarray(ratios, dtype=np.float64))
+    if not gapped.any():   # a ValueError traceback after the whole run (independent probe of issue 12, round 27)
+        log.warning("measure fan: no frame has gaps to measure: the strands' lower parts do not spread along "
+                    "measure.axis=%s (one strand, or an axis along the hair); gap_ratio is null", list(p.axis))
+    k = int(np.flatnonzero(gapped)[np.argmax(np.asarray(ratios)[gapped])]) if gapped.any() else None
+    out = {"gap_ratio": ratios[f], "gap_ratio_max": None if k is None else float(ratios[k]),
+           "gap_ratio_max_time": None if k is None else float(d.times[k]), "spread": spreads[f],
            "spread_rest": spreads[0], "time": float(d.times[f])}
     c = clumps(d, p)
     out.update(clumps=c["clumps"], clump_sizes=c["clump_sizes"], threshold=p.threshold)
