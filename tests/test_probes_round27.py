@@ -197,3 +197,22 @@ def test_a_fan_measure_without_gaps_is_null_not_a_crash(tmp_path, caplog):
     assert fan["gap_ratio_max"] is None and fan["gap_ratio_max_time"] is None, fan
     assert any("measure fan: no frame has gaps to measure" in r.getMessage() for r in caplog.records)
     assert json.loads((tmp_path / "r" / "summary.json").read_text())["measures"]["gap_ratio_max"] is None
+
+
+def test_overwrite_is_refused_when_the_stage_reads_a_file_of_the_run_it_would_remove(tmp_path):
+    """A stage outside the run folder that sublayers the previous run's result.usdc: overwrite=true
+    removed that run, then the stage did not open (both runs lost)."""
+    from hairexp.app.config import compose_config
+    from hairexp.app.run import inputs_inside
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "result.usda").write_text("#usda 1.0\n")
+    wrap = tmp_path / "wrap.usda"
+    wrap.write_text(f'#usda 1.0\n(\n    subLayers = [@{run / "result.usda"}@]\n)\n')
+    cfg = compose_config(["experiment=from_usd", f"scene.usd={wrap}"])
+    assert inputs_inside(cfg, run) == (
+        f"scene.usd={wrap} reads {run / 'result.usda'} (a sublayer, reference or asset of the stage), which lies "
+        "inside the run folder that overwrite=true would empty first; copy it elsewhere, or write the new run "
+        "into another folder")
+    assert inputs_inside(cfg, tmp_path / "other") is None

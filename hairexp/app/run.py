@@ -255,7 +255,26 @@ def inputs_inside(cfg, folder: Path) -> str | None:
         if p == root or root in p.parents:
             return (f"{key}={value} lies inside the run folder that overwrite=true would empty first; copy it "
                     "elsewhere, or write the new run into another folder")
+        if key == "scene.usd":   # a layer or asset the stage pulls in: its sublayer result.usdc (round 27)
+            for dep in _stage_files(str(p)):
+                q = Path(os.path.realpath(dep))
+                if q == root or root in q.parents:
+                    return (f"{key}={value} reads {dep} (a sublayer, reference or asset of the stage), which lies "
+                            "inside the run folder that overwrite=true would empty first; copy it elsewhere, or "
+                            "write the new run into another folder")
     return None
+
+
+def _stage_files(path: str) -> list[str]:
+    """The files the USD stage at ``path`` reads (its layers, and the assets they name), or [] when
+    it cannot be read (the run says why)."""
+    try:
+        from pxr import UsdUtils
+
+        layers, assets, _ = UsdUtils.ComputeAllDependencies(path)
+        return [layer.realPath for layer in layers if layer.realPath] + [a for a in assets if a]
+    except Exception:  # noqa: BLE001  (a stage that does not open is the run's error to say)
+        return []
 
 
 def run(cfg, out_dir: str | Path, on_checked=None) -> dict:
