@@ -413,6 +413,7 @@ def run_script(main) -> None:
     hairexp's ``Interrupted``) as one line and exit 128 + signal instead of a traceback from deep
     inside the run (probe of issue 12).  What the script wrote before stays."""
     from hairexp.app.streams import guard_streams, stdout_checked
+    from hairexp.errors import InputError
 
     guard_streams()   # a full or closed stdout (--help >/dev/full): one line and exit 4, not a traceback
     prog = Path(sys.argv[0]).stem
@@ -421,6 +422,9 @@ def run_script(main) -> None:
     except SystemExit as exc:   # argparse's --help (0) and usage errors (2)
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
         sys.exit(stdout_checked(code, prog))
+    except InputError as exc:   # a bad input met inside a run (accuracy --scenes from_usd: a traceback; round 27)
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        sys.exit(2)
     except KeyboardInterrupt as exc:   # hairexp.errors.Interrupted is one
         import signal as _signal
 

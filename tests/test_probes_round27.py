@@ -216,3 +216,23 @@ def test_overwrite_is_refused_when_the_stage_reads_a_file_of_the_run_it_would_re
         "inside the run folder that overwrite=true would empty first; copy it elsewhere, or write the new run "
         "into another folder")
     assert inputs_inside(cfg, tmp_path / "other") is None
+
+
+def test_a_scripts_bad_input_met_inside_a_run_is_one_line_exit_2(monkeypatch, capsys):
+    """``experiments.accuracy --scenes from_usd``: an InputError traceback (exit 1), the scene
+    needing a stage it was not given."""
+    import sys
+
+    import pytest
+
+    from experiments.common import run_script
+    from hairexp.errors import InputError
+
+    def main():
+        raise InputError("the path of a USD stage is required", "scene.usd")
+
+    monkeypatch.setattr(sys, "argv", ["/x/experiments/accuracy.py"])
+    with pytest.raises(SystemExit) as e:
+        run_script(main)
+    assert e.value.code == 2
+    assert capsys.readouterr().err == "accuracy: error: scene.usd: the path of a USD stage is required\n"
