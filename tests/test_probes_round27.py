@@ -236,3 +236,24 @@ def test_a_scripts_bad_input_met_inside_a_run_is_one_line_exit_2(monkeypatch, ca
         run_script(main)
     assert e.value.code == 2
     assert capsys.readouterr().err == "accuracy: error: scene.usd: the path of a USD stage is required\n"
+
+
+def test_settings_no_run_reads_are_said():
+    """guides.scale_* with rigid guides, solver.last_attempt_iterations with on_failure=warn and
+    logging.strict without a recording were taken without a word."""
+    from hairexp.app.config import compose_config
+    from hairexp.app.validate import unused_settings
+
+    cfg = compose_config(["experiment=goaling_smoke", "variants=[]", "solver.on_failure=warn", "logging.rerun=false",
+                          "guides.source=file", "guides.file=x.npz"])
+    keys = ["guides.scale_factors", "guides.layout_radius", "guides.keyframes", "solver.last_attempt_iterations",
+            "logging.strict"]
+    assert unused_settings([cfg], keys) == [
+        "guides.scale_factors (read with guides.source=scaled)",
+        "guides.layout_radius (read with a guide source that lays the guides out (not file or usd))",
+        "guides.keyframes (read with guides.source=keyframed)",
+        "solver.last_attempt_iterations (read with solver.on_failure=substep)",
+        "logging.strict (read with logging.rerun=true)"]
+    used = compose_config(["experiment=goaling_smoke", "variants=[]", "guides.source=scaled", "logging.rerun=true"])
+    assert unused_settings([used], ["guides.scale_factors", "guides.layout_radius", "logging.strict",
+                                    "solver.last_attempt_iterations"]) == []

@@ -240,6 +240,13 @@ KEY_USES = (
     ("collision.barrier_", _barrier, "collision.contact=barrier with collision.objects=true"),
     ("collision.friction_epsilon", _barrier, "collision.contact=barrier with collision.objects=true"),
     ("collision.contact", lambda c: bool(c.collision.objects), "collision.objects=true"),
+    # accepted without a word (independent probe of issue 12, round 27)
+    ("guides.scale_", lambda c: _c(c, "guides.source") == "scaled", "guides.source=scaled"),
+    ("guides.keyframes", lambda c: _c(c, "guides.source") == "keyframed", "guides.source=keyframed"),
+    ("guides.layout_radius", lambda c: _c(c, "guides.source") not in ("file", "usd"),
+     "a guide source that lays the guides out (not file or usd)"),
+    ("solver.last_attempt_iterations", lambda c: _c(c, "solver.on_failure") == "substep", "solver.on_failure=substep"),
+    ("logging.strict", lambda c: bool(c.logging.rerun), "logging.rerun=true"),
     ("scene.body.dynamic", lambda c: True, ""),
     ("scene.body.", lambda c: bool(c.scene.body.dynamic), "scene.body.dynamic=true"),
 )
