@@ -257,3 +257,23 @@ def test_settings_no_run_reads_are_said():
     used = compose_config(["experiment=goaling_smoke", "variants=[]", "guides.source=scaled", "logging.rerun=true"])
     assert unused_settings([used], ["guides.scale_factors", "guides.layout_radius", "logging.strict",
                                     "solver.last_attempt_iterations"]) == []
+
+
+def test_a_recording_cut_short_by_a_full_disk_names_it_wherever_it_is_checked(tmp_path, monkeypatch):
+    """An experiment's comparison.rrd on a full disk said only "the recording is incomplete (no rerun
+    stream footer at its end)"; a run's recording named the full disk."""
+    import errno
+
+    import pytest
+
+    from hairexp.outputs import rerun_sink
+
+    cut = tmp_path / "comparison.partial.rrd"
+    cut.write_bytes(b"RRF2" + b"\0" * 100)
+    with pytest.raises(OSError, match="the recording is incomplete") as e:
+        rerun_sink._check_complete(str(cut))
+    assert e.value.errno is None   # a disk with room: the file's own fault
+    monkeypatch.setattr(rerun_sink, "_free_bytes", lambda path: 0)
+    with pytest.raises(OSError, match=r"no space left on the device \(0 bytes free; .*no rerun stream footer") as e:
+        rerun_sink._check_complete(str(cut))
+    assert e.value.errno == errno.ENOSPC

@@ -665,11 +665,7 @@ class RerunSink:
         finally:
             finish_stream(self.rec, self.partial)
         if success:
-            try:
-                _check_complete(self.partial)
-            except OSError as exc:   # the writer stopped where the disk filled, without an error of its own
-                raise (_disk_error(self.partial, _size_capped(self.partial), _free_bytes(self.partial), str(exc))
-                       or exc) from None   # (round 25: the cause was not named)
+            _check_complete(self.partial)   # a full disk or the file-size limit named (round 25)
             os.replace(self.partial, self.path)
         elif os.path.isfile(self.partial):
             # a partial recording is kept as a valid recording of the steps done; one its writer could
@@ -711,4 +707,7 @@ def _check_complete(path: str) -> None:
     except OSError as exc:
         raise OSError(f"{path}: the recording cannot be read back ({exc})") from exc
     if FOOTER_MAGIC not in tail[-16:]:
-        raise OSError(f"{path}: the recording is incomplete (no rerun stream footer at its end)")
+        # the writer stopped where the disk filled, without an error of its own: the cause named (round
+        # 25, a run's recording; round 27, an experiment's comparison.rrd)
+        said = f"{path}: the recording is incomplete (no rerun stream footer at its end)"
+        raise _disk_error(path, _size_capped(path), _free_bytes(path), said) or OSError(said)
