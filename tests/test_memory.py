@@ -85,7 +85,7 @@ def test_a_pass_over_many_frames_releases(tmp_path, monkeypatch):
 
 def test_the_command_line_runs_its_exit_handlers_before_it_ends(tmp_path):
     """``python -m hairexp`` ends with os._exit after the atexit handlers and a flush of the
-    standard streams (hairexp/__main__.py ``exit_now``): a handler registered before the run
+    standard streams (hairexp/app/startup.py ``exit_now``): a handler registered before the run
     runs, text printed without a newline reaches the pipe, the exit code is the run's, and a bad
     input still exits 2 with its message."""
     import os

@@ -104,7 +104,7 @@ for attempt in (1, 2):
     except OSError as exc:
         print("attempt", attempt, round(time.monotonic() - t0, 1), exc, flush=True)
 print("abandoned", rerun_sink.abandoned(rec), flush=True)
-os._exit(0)   # as hairexp's entry point ends (hairexp/__main__.py exit_now): no teardown of the stream
+os._exit(0)   # as hairexp's entry point ends (hairexp/app/startup.py exit_now): no teardown of the stream
 """
     env = dict(os.environ, PYTHONPATH=str(REPO))
     p = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)

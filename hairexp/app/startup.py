@@ -92,3 +92,30 @@ def install(force: bool = False) -> bool:
             signal.signal(s, _handler)
             installed = True
     return installed
+
+
+def exit_now(code: int) -> None:
+    """End the process with ``code`` once its own work is done: the ``atexit`` handlers run
+    (logging's flush and close, the recording's), the standard streams flushed; then ``os._exit``,
+    without the interpreter's teardown of every module and object (``python -m hairexp`` and the
+    export's command; a signal during the export's 0.5 s of teardown killed it without a word:
+    the handlers are gone by then; independent probe of issue 12, round 27).  That teardown did nothing a
+    run needs and was the process's peak memory: measured on goaling_smoke (6 x 10 hair, 200
+    frames), the peak resident memory was 555.2 MB when the run ended and 560.6 MB after the
+    teardown (``ru_maxrss``), 5.3 MB for nothing (reports/bench_memory.md).  While another
+    non-daemon thread runs (a sweep's launcher: its executor is shut down by the interpreter's
+    own exit, before the threads are joined), the interpreter's exit is kept."""
+    import atexit
+
+    code = int(code or 0)
+    if any(t.is_alive() and not t.daemon for t in threading.enumerate() if t is not threading.main_thread()):
+        sys.exit(code)
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        if stream is None:   # started with the stream closed (`>&-`): Python has none (round 21: a traceback)
+            continue
+        try:
+            stream.flush()
+        except (OSError, ValueError):   # a closed or broken pipe: nothing more can be said
+            pass
+    os._exit(code)

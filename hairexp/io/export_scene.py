@@ -9,9 +9,10 @@ import warnings
 
 from hairexp.app.cli import one_line_warning
 from hairexp.app.export_scene import main
+from hairexp.app.startup import exit_now
 from hairexp.app.streams import guard_streams, stdout_checked
 
 if __name__ == "__main__":
     warnings.formatwarning = one_line_warning
     guard_streams()   # a full or closed stdout: one line, exit 4 (README "USD scenes")
-    sys.exit(stdout_checked(main(command=True), "hairexp"))
+    exit_now(stdout_checked(main(command=True), "hairexp"))   # without the interpreter's teardown
