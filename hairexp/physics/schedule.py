@@ -20,6 +20,6 @@ def step_schedule(fps: float, dt: float, frames: int) -> tuple[int, float]:
     frame_dt = 1.0 / fps
     n = max(1, int(math.ceil(frame_dt / dt - 1e-9)))
     if frame_dt / n < MIN_STEP_DT:   # fps=100000 with solver.dt=1e-10: a traceback from the guides' simulation
-        raise InputError(f"splits a frame of {frame_dt:g} s (fps {fps:g}) into steps of {frame_dt / n:.3g} s, below the "
-                         f"shortest step {MIN_STEP_DT:g} s, got {dt:g}", "solver.dt")
+        raise InputError(f"splits a frame of {frame_dt:g} s (fps {fps:g}) into steps of {frame_dt / n:.3g} s, below "
+                         f"the shortest step {MIN_STEP_DT:g} s, got {dt:g}", "solver.dt")
     return n, frame_dt / n
