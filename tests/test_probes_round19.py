@@ -125,7 +125,8 @@ def test_one_note_per_os_error_whatever_file_it_names(tmp_path, monkeypatch):
     exc = SimulationError("boom")
     run_mod._end_unfinished(exc, Sinks, tmp_path, "s", "free", 0.0)
     assert exc.__notes__ == [
-        # (the table's flush is write's own first act since round 26: one part, metrics.parquet)
-        "while writing the failed ending (frames, metrics.parquet): OSError: [Errno 28] No space left on "
-        f"device: '{tmp_path / 'positions.npy'}'",
-        "while writing the failed ending (recording): PermissionError: [Errno 13] Permission denied: 'rec.rrd'"]
+        # (the table's flush is write's own first act since round 26: one part, metrics.parquet; each part
+        # names its own file since round 28, positions.npy stood for every part)
+        "while writing the failed ending (frames (positions.npy), metrics.parquet): OSError: [Errno 28] No space "
+        "left on device",
+        "while writing the failed ending (recording (rec.rrd)): PermissionError: [Errno 13] Permission denied"]

@@ -266,8 +266,8 @@ def test_a_disk_reserve_the_failed_ending_cannot_remove_is_said(tmp_path, monkey
     monkeypatch.setattr(run_mod, "summarize", lambda *a, **k: {"status": "failed"})
     exc = SimulationError("boom")
     run_mod._end_unfinished(exc, Sinks, tmp_path, "s", "free", 0.0)
-    assert exc.__notes__ == [f"while writing the failed ending (.ending.reserve): PermissionError: [Errno 1] Operation "
-                             f"not permitted: '{tmp_path / folder.RESERVE}'"]
+    assert exc.__notes__ == ["while writing the failed ending (.ending.reserve): PermissionError: [Errno 1] Operation "
+                             "not permitted"]
     assert json.loads((tmp_path / "summary.json").read_text())["status"] == "failed"
 
 

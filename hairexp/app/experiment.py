@@ -175,6 +175,12 @@ def _checked_each(cfg, names: list[str]) -> tuple[list[str], list]:
                 raise
             raise InputError(f"{exc} (variants[{i}] {name}, checked before any variant runs)") from exc
     validate_judge_controllers(cfg, names, [_variant_facts(v)["controller"] for v in vcfgs])
+    spans = {name: (v.frames, v.fps) for name, v in zip(names, vcfgs)}
+    if len(set(spans.values())) > 1:   # taken without a word (independent probe of issue 12, round 28)
+        log.warning("the variants run different spans (%s): their measures, the judge and comparison.rrd compare "
+                    "them as if they ran the same; set frames and fps for the experiment, not in a variant",
+                    ", ".join(f"{n}: {f} frames at {'the stage' + chr(39) + 's' if r is None else r} fps"
+                              for n, (f, r) in spans.items()))
     return names, vcfgs
 
 

@@ -106,6 +106,9 @@ def main(argv: list[str] | None = None, command: bool = False) -> int:
     force = any(a in ("-f", "--force") for a in args)
     args = [a for a in args if a not in ("-f", "--force")]
     flag = next((a for a in args if a.startswith("-") and "=" not in a), None)
+    paths = [a for a in args if "=" not in a and not a.startswith("-")]
+    if flag is None and len(paths) == 1 and args and "=" in args[0]:   # the path after the overrides: taken
+        args = paths + [a for a in args if a != paths[0]]   # (it said the path was missing; probe, round 28)
     if not args or "=" in args[0] or flag is not None:
         why = ("the path of the stage to write is required" if flag is None
                else f"unknown option {flag} (the options are --force and --help)")

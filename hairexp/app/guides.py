@@ -195,7 +195,7 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
         anim = GuideAnimation(pos, anim.offsets, anim.fps, where="guides.edits", motion=scene.motion)
     anim.interpolation = str(getattr(cfg.guides.interpolation, "value", cfg.guides.interpolation))
     if str(getattr(cfg.controller.name, "value", cfg.controller.name)) != "free":
-        warn_far_guides(scene, anim)
+        warn_far_guides(scene, anim, frames)
     return anim
 
 
@@ -205,13 +205,14 @@ ROOT_DRIFT = 0.01
 MAX_ROOT_DRIFT = 0.5
 
 
-def warn_far_guides(scene, anim) -> None:
+def warn_far_guides(scene, anim, frames: int | None = None) -> None:
     """An InputError when a guide's root at frame 0 is farther from every hair root than the hair
     is long: the guides are likely in another space or unit than the hair (a guide file or stage
     made for another scene; it was a warning, and the run ended "completed" at 515 % stretch;
     a warning when they look authored tip to root).  Else, with a keyframed body, a warning when
     a guide's root leaves the body (farther than ROOT_DRIFT x the hair's length from where the
-    body carries its frame-0 root, at any frame), an InputError beyond MAX_ROOT_DRIFT x it."""
+    body carries its frame-0 root, at any frame of the run: 0..``frames``, not a longer file's later
+    frames, which it never reads; round 28), an InputError beyond MAX_ROOT_DRIFT x it."""
     s = scene.strands
     hair_roots = scene.initial_positions()[np.asarray(s.offsets[:-1])]
     length = float(np.sum(s.rest_lengths)) / max(1, len(s.offsets) - 1)
@@ -241,7 +242,7 @@ def warn_far_guides(scene, anim) -> None:
     local = (guide_roots - T0) @ R0
     tol = ROOT_DRIFT * length
     warned = False
-    for f in range(1, len(anim.frames)):
+    for f in range(1, len(anim.frames) if frames is None else min(len(anim.frames), int(frames) + 1)):
         R, T = motion.pose(f / fps)
         drift = np.linalg.norm(np.asarray(anim.frames[f])[np.asarray(anim.offsets[:-1])] - (local @ R.T + T), axis=1)
         if drift.max() > MAX_ROOT_DRIFT * length:   # guides made on another body motion (probe, round 12)

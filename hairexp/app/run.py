@@ -565,6 +565,16 @@ def to_log_files(message: str) -> None:
                 pass
 
 
+def _stored_rows(parts) -> str:
+    """The rows the parquet ``parts`` hold, from their footers ("?" when one cannot be read)."""
+    try:
+        import pyarrow.parquet as pq
+
+        return str(sum(pq.read_metadata(p).num_rows for p in parts))
+    except Exception:  # noqa: BLE001  (a part cut short by the full disk)
+        return "?"
+
+
 def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: str, controller: str,
                     t_start: float) -> None:
     """Write the ending of a run that did not complete; every step is tried, and a failure in
@@ -581,15 +591,19 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
             return fn()
         except BaseException as e2:   # noqa: BLE001  (the ending must go on)
             # an OSError is the same error whatever file it names (a full disk: positions.npy, then
-            # a metrics part, each named since files.naming): said once, with the first file
-            key = (f"{type(e2).__name__}: [Errno {e2.errno}] {e2.strerror}" if isinstance(e2, OSError) and e2.errno
-                   else f"{type(e2).__name__}: {e2}")
-            err = shown.setdefault(key, f"{type(e2).__name__}: {e2}")
+            # a metrics part, each named since files.naming): said once, each part with its own file
+            # (the first file stood for every part: "metrics.parquet ... '.../positions.npy'"; round 28)
+            named = isinstance(e2, OSError) and e2.errno
+            key = f"{type(e2).__name__}: [Errno {e2.errno}] {e2.strerror}" if named else f"{type(e2).__name__}: {e2}"
+            err = shown.setdefault(key, key)
             parts = failed.setdefault(key, [])
-            if what in parts:   # the frames' flush and close failed alike: said twice
+            if any(p == what or p.startswith(f"{what} (") for p in parts):   # the frames' flush and close failed alike
                 return None
             old = f"while writing the {status} ending ({', '.join(parts)}): {err}"
-            parts.append(what)
+            file = getattr(e2, "filename", None) if named else None
+            if isinstance(file, str) and os.path.isabs(file) and Path(file).is_relative_to(out):
+                file = Path(file).relative_to(out).as_posix()   # a file of the run folder, as the folder names it
+            parts.append(f"{what} ({file})" if isinstance(file, str) and file and file != what else what)
             note = f"while writing the {status} ending ({', '.join(parts)}): {err}"
             # one note per error, naming every part it stopped (a full disk gave four alike "also:" lines);
             # the console gets the notes under the error's own line ("also:"), the log files here
@@ -609,12 +623,19 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
         kept = attempt("frames", sinks.recorder.align)   # every array the same frames, whatever was written
         attempt("frames", sinks.recorder.close)
     df = None   # (``write`` flushes the rows since the last part first, or writes them with the parts)
+    metrics_where = None
     if sinks.table.steps:
         df = attempt("metrics.parquet", lambda: sinks.table.write(out / "metrics.parquet"))
         if df is not None:
             attempt("metrics", lambda: shutil.rmtree(out / STREAM / "metrics", ignore_errors=True))   # in the parquet now
         else:   # the parquet could not be written: the summary from the parts kept in stream/
             df = attempt("metrics", sinks.table.frame)
+            parts = sorted((out / STREAM / "metrics").glob("part-*.parquet"))
+            if parts:   # where the rows are, said (round 28: neither the summary nor the console did)
+                metrics_where = "stream/metrics/"
+                exc.add_note(f"metrics.parquet could not be written: {_stored_rows(parts)} of the {sinks.table.steps} "
+                             f"steps' metrics rows are in {metrics_where} (pandas.read_parquet reads the folder as "
+                             "one table)")
     if sinks.rerun is not None:
         attempt("recording", lambda: sinks.rerun.close(success=False, metrics=df))
     for p in sinks.written:   # files, and result.clips/ (a folder)
@@ -636,6 +657,8 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
         summary["unconverged_steps"] = int(summary.get("unconverged_steps", 0)) + 1
         summary["converged_fraction"] = float(summary.get("converged_fraction", 1.0)) * n / (n + 1)
         summary["failed_step"] = n + 1   # 1-based: the step after the last one in metrics.parquet
+    if metrics_where is not None:
+        summary["metrics_file"] = metrics_where   # the rows of metrics.parquet, which could not be written
     if kept is not None:
         summary["frames_kept"] = int(kept)   # stream/ holds frames 0..frames_kept-1 of every array
         lost = sinks.recorder.frames - int(kept)
