@@ -103,3 +103,24 @@ def test_the_exports_path_after_the_overrides_is_taken(tmp_path, capsys):
     out = tmp_path / "d.usda"
     assert main(["experiment=goaling_smoke", "variants=[]", "frames=3", str(out)]) == 0
     assert out.is_file() and capsys.readouterr().out.startswith(f"wrote {out}:")
+
+
+def test_the_frames_a_killed_jobs_stream_holds_are_counted(tmp_path):
+    """A sweep job ended by hydra.launcher.timeout: its failed summary had frames_kept null while
+    stream/ held 751 frames.  Counted from the files: the header's frames, or fewer where a
+    process killed mid-append left a file short."""
+    from hairexp.outputs.files import GrowingNpy, stream_frames
+
+    assert stream_frames(tmp_path) is None
+    pos = GrowingNpy(tmp_path / "positions.npy", (4, 3), np.float64)
+    times = GrowingNpy(tmp_path / "times.npy", (), np.float64)
+    for k in range(7):
+        pos.append(np.full((4, 3), k, dtype=np.float64))
+        times.append(np.float64(k))
+    pos.flush()
+    times.flush()
+    np.save(tmp_path / "masses.npy", np.ones(2))   # a constant: not a frame array
+    assert stream_frames(tmp_path) == 7
+    with open(tmp_path / "positions.npy", "r+b") as f:   # killed mid-append: the last frame half there
+        f.truncate(f.seek(0, 2) - 40)
+    assert stream_frames(tmp_path) == 6

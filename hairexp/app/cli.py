@@ -48,7 +48,7 @@ from hairexp.app.validate import unused_settings
 from hairexp.app.signals import SIGNALS, forward, take_late, worker_pids
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
-from hairexp.outputs.files import atomic_write_bytes, write_json
+from hairexp.outputs.files import atomic_write_bytes, stream_frames, write_json
 from hairexp.outputs.metrics import read_parts
 from hairexp.outputs.folder import (LOCK, RESERVE, RUN_DIRS, RUN_FILES, STREAM, SUMMARY, held_elsewhere, hold,
                                     hydra_link_refusal, note_job_logs, overwrite_refusal, owner, refused_summary,
@@ -461,6 +461,9 @@ def _end_killed_jobs(rows: list, signum: int | None, workers_gone: bool = False)
                         s.update(metrics_summary(done))
                     except (KeyError, ValueError, TypeError):   # parts of another layout: the status and error only
                         pass
+                kept = stream_frames(f / STREAM)   # as a failed run's ending says them (round 28: null)
+                if kept is not None:
+                    s["frames_kept"] = kept
                 write_json(f / SUMMARY, s)
                 (f / RESERVE).unlink(missing_ok=True)
             except OSError:

@@ -173,6 +173,29 @@ class GrowingNpy:
         self.f.close()
 
 
+#: the per-frame arrays ``ResultRecorder.log_frame`` streams (the other stream files are constants)
+FRAME_ARRAYS = ("positions", "times", "guide_positions", "targets", "com", "body_positions")
+
+
+def stream_frames(folder: Path) -> int | None:
+    """The frames every per-frame array of the stream ``folder`` holds whole (its header's count,
+    or fewer when the file ends before them: a process killed mid-append), or None without them.
+    For the ending of a job whose process was killed (``frames_kept``: it was null while stream/
+    held 751 frames; independent probe of issue 12, round 28)."""
+    counts = []
+    for name in FRAME_ARRAYS:
+        p = Path(folder) / f"{name}.npy"
+        if not p.is_file():
+            continue
+        try:
+            a = NpyFrames(p)
+            whole = (p.stat().st_size - a.offset) // a.frame_bytes if a.frame_bytes else len(a)
+        except (OSError, ValueError):
+            return None
+        counts.append(min(len(a), int(whole)))
+    return min(counts) if counts else None
+
+
 class ResultRecorder:
     """Streams the per-frame arrays of ``result.npz`` into ``folder`` (frame 0 is the initial
     state); memory holds only the frames since the last ``flush``."""
