@@ -124,3 +124,17 @@ def test_the_frames_a_killed_jobs_stream_holds_are_counted(tmp_path):
     with open(tmp_path / "positions.npy", "r+b") as f:   # killed mid-append: the last frame half there
         f.truncate(f.seek(0, 2) - 40)
     assert stream_frames(tmp_path) == 6
+
+
+@pytest.mark.parametrize("override, said", [
+    ("foo=1", "variants[0] (a): unknown key 'foo'"),
+    ("solver.dt=abc", "variants[0] (a): solver.dt=abc: Value 'abc' of type 'str' could not be converted to Float"),
+])
+def test_cfg_job_checks_a_variants_overrides_as_a_run_does(override, said):
+    """``--cfg job`` with a variant's ``foo=1`` printed the config, exit 0 (a run refuses it, exit 2)."""
+    from hairexp.app import cli
+
+    argv = ["--cfg", "job", "experiment=goaling_smoke", f'variants=[{{name: a, overrides: ["{override}"]}}]']
+    assert cli.config_error(argv).startswith(f"hairexp: error: {said}")
+    ok = ["--cfg", "job", "experiment=goaling_smoke", 'variants=[{name: a, overrides: ["solver.dt=0.02"]}]']
+    assert cli.config_error(ok) is None

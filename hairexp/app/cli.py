@@ -1499,6 +1499,21 @@ def _record_in_variant_error(argv: list[str], overrides: list[str]) -> str | Non
     return None
 
 
+def _variant_overrides_error(overrides: list[str]) -> str | None:
+    """Why a variant's own overrides cannot be applied (an unknown key, a wrong type), or None:
+    ``--cfg job`` checks them as a run does before it claims its folder (it printed the config of
+    a variant with ``foo=1`` or ``solver.dt=abc``, exit 0; independent probe of issue 12, round 28)."""
+    try:
+        cfg = compose_config(overrides)
+        for i, v in enumerate(cfg.get("variants") or []):
+            apply_overrides(cfg, list(v.overrides), f"variants[{i}] ({v.name})")
+    except InputError as exc:
+        return str(exc)
+    except Exception:  # noqa: BLE001  (compose_error's)
+        return None
+    return None
+
+
 def compose_error(overrides: list[str], input_errors: bool = True) -> str | None:
     """The message (without the ``hairexp: error:`` prefix) of ``overrides`` whose config cannot
     be composed, or None; ``input_errors=False``: hairexp's own checks (``InputError``: a ``+key``
@@ -1700,6 +1715,8 @@ def config_error(argv: list[str]) -> str | None:
     overrides = _plain_overrides(argv)
     if not multirun:
         msg = compose_error(overrides) or _record_in_variant_error(argv, overrides)
+        if msg is None and any(_flag(a) in ("--cfg", "-c") for a in argv):
+            msg = _variant_overrides_error(overrides)
         return None if msg is None else f"hairexp: error: {msg}"
     for job_overrides, swept in _sweep_jobs(overrides) or []:
         msg = compose_error(job_overrides, input_errors=False)
