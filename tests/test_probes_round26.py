@@ -100,10 +100,10 @@ def test_the_removal_check_finds_a_pinned_file_inside_a_folder(tmp_path, monkeyp
     (tmp_path / "free" / "stream").mkdir(parents=True)
     (tmp_path / "free" / "stream" / "x.npy").write_bytes(b"")
     (tmp_path / "summary.json").write_text("{}")
-    monkeypatch.setattr(folder, "_pinned", lambda p: "immutable (chattr +i)" if p.name == "x.npy" else None)
+    monkeypatch.setattr(folder, "pinned", lambda p: "immutable (chattr +i)" if p.name == "x.npy" else None)
     ours = [tmp_path / "free", tmp_path / "summary.json"]
     assert folder._unremovable(tmp_path, ours) == (tmp_path / "free" / "stream" / "x.npy", "immutable (chattr +i)")
-    monkeypatch.setattr(folder, "_pinned", lambda p: None)
+    monkeypatch.setattr(folder, "pinned", lambda p: None)
     assert folder._unremovable(tmp_path, ours) is None
 
 

@@ -51,7 +51,7 @@ from hairexp.errors import InputError, Interrupted, ScratchError, SimulationErro
 from hairexp.outputs.files import atomic_write_bytes, stream_frames, write_json
 from hairexp.outputs.metrics import read_parts
 from hairexp.outputs.folder import (LOCK, RESERVE, RUN_DIRS, RUN_FILES, STREAM, SUMMARY, held_elsewhere, hold,
-                                    hydra_link_refusal, note_job_logs, overwrite_refusal, owner, refused_summary,
+                                    hydra_link_refusal, note_job_logs, overwrite_refusal, owner, pinned, refused_summary,
                                     running_run, used_entries, used_refusal)
 
 log = logging.getLogger("hairexp")
@@ -567,7 +567,14 @@ def _unusable_folder(path: str) -> str | None:
                 return f"{probe} cannot be reached: permission denied"
         if not probe.is_dir():
             return f"{probe} is a file" if probe == p else f"{probe} is a file, not a folder to create it in"
-        tempfile.TemporaryDirectory(dir=probe, prefix=".hairexp-probe-").cleanup()
+        # append-only (chattr +a): the probe folder could not be removed, and TemporaryDirectory's clean-up
+        # recursed into a RecursionError traceback of 6,615 lines (independent probe of issue 12, round 29)
+        why = pinned(probe)
+        if why is not None and (probe == p or why.startswith("immutable")):
+            return f"{probe} is {why}: a run replaces and removes its files in its folder" if probe == p else \
+                f"{probe} is {why}: no folder can be made in it"
+        if why is None:   # (an append-only parent takes new folders: not tried, its probe could not be removed)
+            os.rmdir(tempfile.mkdtemp(dir=probe, prefix=".hairexp-probe-"))
         st = os.statvfs(probe)
         free = st.f_bavail * st.f_frsize
         if free < MIN_FREE_BYTES:   # Hydra's own .hydra/ writes would fail with a traceback, exit 1 (probe of issue 12)

@@ -28,6 +28,7 @@ from hairexp.app.config import compose_config
 from hairexp.app.signals import InterruptSignals, exit_code
 from hairexp.errors import InputError, Interrupted, ScratchError
 from hairexp.io.usd_write import FORMATS, write_scene_usd
+from hairexp.outputs.folder import pinned
 from hairexp.model.dynamic_body import authoring_motion
 
 log = logging.getLogger(__name__)
@@ -91,6 +92,10 @@ def check_writable(path, overwrite: bool = False) -> None:
         raise DestinationError(f"cannot write the USD stage: {why}", str(path))
     if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
         raise DestinationError("cannot write the USD stage: permission denied", str(path))
+    pinned_why = pinned(parent)
+    if pinned_why is not None:   # its temporary stage could not be renamed nor removed: left behind (round 29)
+        raise DestinationError(f"cannot write the USD stage: {parent} is {pinned_why} (the stage is written to a "
+                               "temporary file there, then renamed)", str(path))
     if p.suffix not in FORMATS:   # checked after the whole scene was built (probe, round 15)
         raise InputError(f"a USD file name ends with one of {', '.join(FORMATS)}", str(path))
     if (p.exists() or p.is_symlink()) and not overwrite:

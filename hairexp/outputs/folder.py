@@ -484,7 +484,7 @@ def claim(folder: Path, overwrite: bool = False) -> None:
 _FS_IOC_GETFLAGS, _FS_IMMUTABLE_FL, _FS_APPEND_FL = 0x80086601, 0x10, 0x20
 
 
-def _pinned(path: Path) -> str | None:
+def pinned(path: Path) -> str | None:
     """Why ``path`` (a file or folder, not followed if a link) is immutable or append-only, or None
     (also where the file system has no such flags)."""
     import fcntl
@@ -517,7 +517,7 @@ def _unremovable(folder: Path, ours: list[Path]) -> tuple[Path, str] | None:
     todo = [folder, *ours]
     while todo:
         p = todo.pop()
-        why = _pinned(p)
+        why = pinned(p)
         if why is None and p.is_dir() and not p.is_symlink():
             try:
                 entries = [] if p == folder else list(p.iterdir())
