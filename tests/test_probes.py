@@ -127,7 +127,7 @@ def test_run_dir_error_in_process(tmp_path, monkeypatch):
 
     def denied(*a, **k):
         raise PermissionError(13, "Permission denied")
-    monkeypatch.setattr(cli.tempfile, "TemporaryDirectory", denied)   # an unwritable folder, even as root
+    monkeypatch.setattr(cli.tempfile, "mkdtemp", denied)   # an unwritable folder, even as root
     msg = cli.run_dir_error([f"hydra.run.dir={tmp_path / 'run'}"])
     assert msg.startswith("hairexp: error: hydra.run.dir=") and "Permission denied" in msg, msg
 
