@@ -51,8 +51,8 @@ from hairexp.errors import InputError, Interrupted, ScratchError, SimulationErro
 from hairexp.outputs.files import atomic_write_bytes, stream_frames, write_json
 from hairexp.outputs.metrics import read_parts
 from hairexp.outputs.folder import (LOCK, RESERVE, RUN_DIRS, RUN_FILES, STREAM, SUMMARY, held_elsewhere, hold,
-                                    hydra_link_refusal, note_job_logs, overwrite_refusal, owner, pinned, refused_summary,
-                                    running_run, used_entries, used_refusal)
+                                    hydra_link_refusal, note_job_logs, overwrite_refusal, owner, pinned,
+                                    refused_summary, running_run, used_entries, used_refusal)
 
 log = logging.getLogger("hairexp")
 OUTCOME = Path(".hydra") / "outcome.json"
