@@ -583,8 +583,7 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
     status = "interrupted" if interrupted else "failed"
     error = (str(exc) if isinstance(exc, Interrupted) else "interrupted by SIGINT") if interrupted else str(exc)
 
-    failed: dict[str, list[str]] = {}   # an error -> the parts of the ending it stopped
-    shown: dict[str, str] = {}          # an error -> its text as first met
+    failed: dict[str, dict[str, str]] = {}   # an error -> the parts of the ending it stopped -> how each is said
 
     def attempt(what: str, fn):
         try:
@@ -595,16 +594,15 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
             # (the first file stood for every part: "metrics.parquet ... '.../positions.npy'"; round 28)
             named = isinstance(e2, OSError) and e2.errno
             key = f"{type(e2).__name__}: [Errno {e2.errno}] {e2.strerror}" if named else f"{type(e2).__name__}: {e2}"
-            err = shown.setdefault(key, key)
-            parts = failed.setdefault(key, [])
-            if any(p == what or p.startswith(f"{what} (") for p in parts):   # the frames' flush and close failed alike
+            parts = failed.setdefault(key, {})
+            if what in parts:   # the frames' flush and close failed alike: said twice
                 return None
-            old = f"while writing the {status} ending ({', '.join(parts)}): {err}"
+            old = f"while writing the {status} ending ({', '.join(parts.values())}): {key}"
             file = getattr(e2, "filename", None) if named else None
             if isinstance(file, str) and os.path.isabs(file) and Path(file).is_relative_to(out):
                 file = Path(file).relative_to(out).as_posix()   # a file of the run folder, as the folder names it
-            parts.append(f"{what} ({file})" if isinstance(file, str) and file and file != what else what)
-            note = f"while writing the {status} ending ({', '.join(parts)}): {err}"
+            parts[what] = f"{what} ({file})" if isinstance(file, str) and file and file != what else what
+            note = f"while writing the {status} ending ({', '.join(parts.values())}): {key}"
             # one note per error, naming every part it stopped (a full disk gave four alike "also:" lines);
             # the console gets the notes under the error's own line ("also:"), the log files here
             notes = getattr(exc, "__notes__", None)
@@ -612,7 +610,7 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
                 notes[notes.index(old)] = note
             else:
                 exc.add_note(note)
-            to_log_files(f"{out}: while writing the {status} ending ({what}): {err}")
+            to_log_files(f"{out}: while writing the {status} ending ({what}): {key}")
             return None
 
     if sinks.progress is not None:
