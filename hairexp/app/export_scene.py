@@ -138,11 +138,16 @@ def main(argv: list[str] | None = None, command: bool = False) -> int:
         startup.begun("the export", f"{args[0]} was written whole if the export said 'wrote {args[0]}'")
     code = _export(cfg, args[0], force, start)
     if command:
-        p = Path(args[0])
-        written = p.is_file() and p.stat().st_mtime >= start - 1
-        startup.ended(code, f"{args[0]} was written whole" if code == 0 or written
+        startup.ended(code, f"{args[0]} was written whole" if code == 0 or _written_since(args[0], start)
                       else f"nothing was written to {args[0]}")
     return code
+
+
+def _written_since(path: str, start: float) -> bool:
+    """Whether the stage at ``path`` was written by this export (begun at ``start``): a signal just
+    after the write (its file is renamed into place whole, or not at all)."""
+    p = Path(path)
+    return p.is_file() and p.stat().st_mtime >= start - 1
 
 
 def _export(cfg, path: str, force: bool, start: float) -> int:
@@ -157,10 +162,9 @@ def _export(cfg, path: str, force: bool, start: float) -> int:
                   f"(0..{frames})")
     except KeyboardInterrupt as exc:
         signum = exc.signum if isinstance(exc, Interrupted) else int(signal.SIGINT)
-        p = Path(path)
-        done = p.is_file() and p.stat().st_mtime >= start - 1   # the signal came just after the stage was written
         print(f"hairexp: interrupted by {signal.Signals(signum).name} "
-              + (f"after {path} was written" if done else f"while exporting; nothing was written to {path}"),
+              + (f"after {path} was written" if _written_since(path, start)
+                 else f"while exporting; nothing was written to {path}"),
               file=sys.stderr)
         return exit_code(signum)
     except (InputError, ValueError) as exc:
