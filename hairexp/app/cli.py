@@ -878,11 +878,11 @@ def shell_completion(argv: list[str]) -> tuple[str | None, str | None]:
     process's environment) to the ``python <script> ...`` form Hydra reads.  Without a value, or
     with another shell (Hydra's fish script completes ``python script.py`` only): an error (an
     IndexError traceback, argparse's usage; round 27)."""
-    flags = [i for i, a in enumerate(argv) if a in ("-sc", "--shell-completion") or a.startswith("--shell-completion=")]
+    flags = [a.split("=")[0] for a in argv if a in ("-sc", "--shell-completion") or a.startswith("--shell-completion=")]
     if not flags:
         return None, None
-    i = flags[-1]
-    value = argv[i].split("=", 1)[1] if "=" in argv[i] else (argv[i + 1] if i + 1 < len(argv) else "")
+    flag, values = flags[-1], flag_values(argv, "-sc", "--shell-completion")
+    value = values[-1] if values else ""
     shells = "install=bash, install=zsh, uninstall=bash, uninstall=zsh (or query=bash, which the shell asks)"
     if value.startswith("query="):
         line = os.environ.get("COMP_LINE")
@@ -894,7 +894,6 @@ def shell_completion(argv: list[str]) -> tuple[str | None, str | None]:
         return ("autoload -Uz bashcompinit && bashcompinit\n" if value.endswith("zsh") else "") + _COMPLETION, None
     if value in ("uninstall=bash", "uninstall=zsh"):
         return _UNCOMPLETION, None
-    flag = argv[i].split("=")[0]
     if value.split("=")[0] in ("install", "uninstall"):
         return None, f"hairexp: error: {flag} {value}: python -m hairexp completes in bash and zsh: {shells}"
     return None, f"hairexp: error: {flag}: give one of {shells}" + (f"; got {value!r}" if value else "")
