@@ -179,9 +179,13 @@ def _checked_each(cfg, names: list[str]) -> tuple[list[str], list]:
     if len(set(spans.values())) > 1:   # taken without a word (independent probe of issue 12, round 28)
         log.warning("the variants run different spans (%s): their measures, the judge and comparison.rrd compare "
                     "them as if they ran the same; set frames and fps for the experiment, not in a variant",
-                    ", ".join(f"{n}: {f} frames at {'the stage' + chr(39) + 's' if r is None else r} fps"
-                              for n, (f, r) in spans.items()))
+                    ", ".join(f"{n}: {f} frames at {_rate(r)} fps" for n, (f, r) in spans.items()))
     return names, vcfgs
+
+
+def _rate(fps) -> str:
+    """A variant's ``fps`` as said: null is the stage's rate (a USD scene)."""
+    return "the stage's" if fps is None else str(fps)
 
 
 def run_experiment(cfg, out_dir, on_checked=None) -> dict:

@@ -23,11 +23,11 @@ _ENDED_CODE: int | None = None
 #: whether the command's work has begun (``begun``): its own handlers were installed around it
 _BEGUN = False
 #: what the command's work is, and where its outcome is told, for a signal after it (``begun``, ``ended``)
-_WORK = "the run"
-_TOLD = "its run folder's summary.json says how the run ended"
+_WORK = _RUN = "the run"
+_TOLD = _RUN_TOLD = "its run folder's summary.json says how the run ended"
 
 
-def begun(work: str = "the run", told: str = "its run folder's summary.json says how the run ended") -> None:
+def begun(work: str = _RUN, told: str = _RUN_TOLD) -> None:
     """The command's work begins (its handlers go in place around it): a signal after they are
     removed and before ``ended`` is not one "while starting".  After a run ended as interrupted
     a third quick signal in that window said "interrupted while starting; nothing was run or
