@@ -166,7 +166,11 @@ def main(argv=None):
     ap.add_argument("folder")
     ap.add_argument("png", type=writable_file, help="the picture to write (its format from the suffix: .png, .pdf, .svg, ...)")
     args = ap.parse_args(argv)
-    if not (Path(args.folder) / "summary.json").is_file():
+    folder = Path(args.folder)
+    if not folder.is_dir():   # a run's summary.json given: it said "not a run folder (no summary.json)" (round 30)
+        ap.error(f"{args.folder}: " + ("is a file, not a folder: give the run folder that holds summary.json"
+                                      if folder.exists() else "does not exist"))
+    if not (folder / "summary.json").is_file():
         ap.error(f"{args.folder}: not a run folder (no summary.json)")
     try:
         from matplotlib.backend_bases import FigureCanvasBase

@@ -154,8 +154,10 @@ def entry() -> int:
     begun()   # from here a signal is the run's (its handlers), then one while the command ends
     try:
         # outside a run (composing, between sweep jobs) too; a sweep's running jobs are stopped first
-        with InterruptSignals(on_signal=cli.stop_sweep_jobs):
+        with InterruptSignals(on_signal=cli.stop_sweep_jobs) as signals:
             main()
+            if signals.lost() is not None and cli.SWEEP_DIR is not None:   # a sweep's main process runs no job
+                raise Interrupted(signals.lost())
     except BrokenProcessPool as exc:
         # a sweep worker killed (SIGKILL, the out-of-memory killer): joblib's traceback, exit 1, and its
         # job's summary left "running" (probe of issue 12, round 12); its job is ended as failed below

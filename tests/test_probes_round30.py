@@ -40,3 +40,85 @@ def test_roots_that_start_inside_a_collider_moving_with_them_are_allowed():
     with pytest.raises(InputError, match=r"collider 'head': the hair's roots go into it \(strand \d+ "
                                          r"root by [\d.]+ mm at t = 0\.[01]"):
         check_clear_roots(scene, int(cfg.frames), float(cfg.fps), 1)
+
+
+def test_a_signal_swallowed_where_it_landed_is_still_known():
+    """A Ctrl-C to a sweep's main process was lost under load (its Interrupted raised inside
+    joblib's waiting for the jobs): the sweep ran on, its next job started, exit 0 and no line
+    (round 30, 2 of 2 tries with a second sweep running).  The handler keeps what it raised, and
+    ``python -m hairexp`` raises it again when the sweep's launcher returns; a signal handled
+    where it landed is not raised again."""
+    import os
+    import signal
+
+    from hairexp.app.signals import InterruptSignals
+    from hairexp.errors import Interrupted
+
+    with InterruptSignals() as signals:
+        assert signals.lost() is None
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):   # the handler runs between bytecodes of the main thread
+                pass
+        except Interrupted:   # swallowed, as joblib's code did
+            pass
+        assert signals.lost() == signal.SIGTERM
+
+
+def test_a_sweep_stopped_before_its_jobs_run_marks_them(tmp_path, monkeypatch):
+    """The stop mark is written even when no job says "running" yet: a job still starting up
+    under load began after the Ctrl-C and ran to its end (round 30, sw2)."""
+    from hairexp.app import cli
+
+    monkeypatch.setattr(cli, "SWEEP_DIR", tmp_path)
+    cli.stop_sweep_jobs(2)
+    assert (tmp_path / cli.STOP_MARK).read_text() == "SIGINT\n"
+
+
+def test_a_folder_of_a_live_run_is_not_offered_to_overwrite(tmp_path):
+    """Two launches into one folder: the second was told to "set overwrite=true", which then
+    refused the live run ("replaces a finished run only"), and the listing showed the run's own
+    hidden reserve file (round 30, W1).  A killed run's folder still offers overwrite=true."""
+    import json
+    import os
+
+    from hairexp.outputs.folder import owner, used_refusal
+
+    (tmp_path / ".ending.reserve").write_bytes(b"\0" * 8)
+    (tmp_path / "stream").mkdir()
+    (tmp_path / "summary.json").write_text(json.dumps({"status": "running", **owner()}))
+    why = used_refusal(tmp_path)
+    assert why == (f"the run folder is not empty (stream, summary.json); it holds a run still running (pid "
+                   f"{os.getpid()}); a run folder belongs to one run: choose another folder (hydra.run.dir), or wait "
+                   "for that run to end (overwrite=true replaces a finished run only)")
+    dead = max(int(p) for p in os.listdir("/proc") if p.isdigit()) + 100000   # no such process
+    (tmp_path / "summary.json").write_text(json.dumps({"status": "running", "pid": dead, "host": owner()["host"]}))
+    assert used_refusal(tmp_path).endswith(f"it holds a run killed while running (pid {dead}); a run folder belongs to "
+                                           "one run: choose another folder (hydra.run.dir) or set overwrite=true to "
+                                           "replace the run in it")
+
+
+def test_scene_pictures_of_a_file_says_it_is_a_file(tmp_path, capsys):
+    """``scene_pictures <run>/summary.json out.png`` said "not a run folder (no summary.json)" (round 30, W3)."""
+    from experiments import scene_pictures
+
+    f = tmp_path / "summary.json"
+    f.write_text("{}")
+    with pytest.raises(SystemExit) as exc:
+        scene_pictures.main([str(f), str(tmp_path / "p.png")])
+    assert exc.value.code == 2
+    assert f"{f}: is a file, not a folder: give the run folder that holds summary.json" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        scene_pictures.main([str(tmp_path / "nope"), str(tmp_path / "p.png")])
+    assert "nope: does not exist" in capsys.readouterr().err
+
+
+def test_a_typo_in_a_users_config_file_gets_the_nearest_key():
+    """``scene: {n_strandz: 5}`` in a user's experiment file (``--config-dir``) said Hydra's line
+    only; the same typo on the command line names 'scene.n_strands' (round 30, W2)."""
+    from hairexp.app.cli import one_line
+
+    exc = Exception("In 'experiment/mine2': ConfigKeyError raised while composing config:\nKey 'n_strandz' not in "
+                    "'SceneConfig'\n    full_key: scene.n_strandz\n    object_type=SceneConfig")
+    assert one_line(exc) == ("In 'experiment/mine2': ConfigKeyError raised while composing config: Key 'n_strandz' "
+                             "not in 'SceneConfig' (key scene.n_strandz); did you mean 'scene.n_strands'?")

@@ -41,7 +41,7 @@ from hydra.experimental.callback import Callback
 
 from hairexp.app.assemble import check_config
 from hairexp.app.config import (CONF_DIR, check_bool_overrides, check_interpolations, check_keys, check_sections,
-                                compose_config)
+                                compose_config, unknown_key_hint)
 from hairexp.app.experiment import apply_overrides, run_experiment
 from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, metrics_summary, to_log_files, write_refused
 from hairexp.app.validate import unused_settings
@@ -1459,13 +1459,15 @@ def stop_sweep_jobs(signum: int) -> None:
     A job a worker starts meanwhile sees ``STOP_MARK`` and ends as interrupted without running.
     Nothing happens outside a sweep, or when no job is running."""
     sweep_dir = SWEEP_DIR
-    if sweep_dir is None or not _running_jobs(sweep_dir):
+    if sweep_dir is None:
         return
     name = signal.Signals(signum).name
     try:   # jobs the launcher starts from now on end at once (cli.job); removed on exit (clear_stop_mark)
         (sweep_dir / STOP_MARK).write_text(name + "\n")
-    except OSError:
-        pass
+    except OSError:   # also while no job says "running" yet: under load a job still starting up then
+        pass          # began after the signal and ran to its end (independent probe of issue 12, round 30)
+    if not _running_jobs(sweep_dir):
+        return
     if signum == signal.SIGINT:
         if not _wait_jobs(sweep_dir, SIGINT_GRACE_SECONDS):
             return
@@ -1567,6 +1569,10 @@ def one_line(exc: BaseException) -> str:
         # a user's experiment file without its package line: its keys landed under "experiment" (round 25)
         msg += (" (an experiment file sets the config's own keys: it begins with the line '# @package _global_', "
                 "as conf/experiment/*.yaml do)")
+    typo = re.search(r"Key '[^']+' not in '[^']+' \(key ([\w.\[\]]+)\)", msg)
+    if typo:   # a typo in a user's own config file got no hint where the command line's gets one (round 30)
+        hint = unknown_key_hint(typo.group(1))
+        msg += f"; {hint}" if hint else ""
     return msg
 
 

@@ -402,9 +402,14 @@ def used_refusal(folder: Path, used: list[Path] | None = None) -> str | None:
     used = used_entries(folder) if used is None else used
     if not used:
         return None
-    names = ", ".join(p.name for p in used[:6]) + (", ..." if len(used) > 6 else "")
-    state = running_state(folder)
-    held = f"; it holds {state}" if state else ""
+    shown = [p for p in used if not p.name.startswith(".")] or used   # not the run's own hidden reserve file
+    names = ", ".join(p.name for p in shown[:6]) + (", ..." if len(shown) > 6 else "")
+    found = running_run(folder)
+    held = f"; it holds {running_state(folder)}" if found else ""
+    if found is not None and found[0] in ("live", "elsewhere"):
+        # it advised overwrite=true, which then refused the live run (independent probe of issue 12, round 30)
+        return (f"the run folder is not empty ({names}){held}; a run folder belongs to one run: choose another "
+                "folder (hydra.run.dir), or wait for that run to end (overwrite=true replaces a finished run only)")
     return (f"the run folder is not empty ({names}){held}; a run folder belongs to one run: choose another folder "
             "(hydra.run.dir) or set overwrite=true to replace the run in it")
 
