@@ -122,3 +122,19 @@ def test_a_typo_in_a_users_config_file_gets_the_nearest_key():
                     "'SceneConfig'\n    full_key: scene.n_strandz\n    object_type=SceneConfig")
     assert one_line(exc) == ("In 'experiment/mine2': ConfigKeyError raised while composing config: Key 'n_strandz' "
                              "not in 'SceneConfig' (key scene.n_strandz); did you mean 'scene.n_strands'?")
+
+
+def test_a_run_taking_a_large_share_of_memory_is_announced(caplog):
+    """``scene.n_strands=200000`` (about 12 GB of 22 GB available; 20 steps in 4 minutes, under the
+    long-run bounds) started without a word (round 30); a run over a quarter of the available
+    memory is said with its estimate, one under it is not."""
+    import logging
+
+    from hairexp.app import guard
+
+    est = guard.estimate(2_000_000, 20, 1)
+    with caplog.at_level(logging.WARNING, logger="hairexp.app.guard"):
+        guard.check(est, "k", allow_large=False, available=5.0 * est.memory)
+        assert "large run" not in caplog.text
+        guard.check(est, "k", allow_large=False, available=2.0 * est.memory)
+    assert "large run: about 20 steps" in caplog.text and f"of {guard._size(2.0 * est.memory)} available" in caplog.text

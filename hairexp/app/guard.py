@@ -66,6 +66,8 @@ SECONDS_PER_VERTEX_STEP = 1e-5
 #: with a warning (a run of 1M vertices and 4,000 steps, about 5.6 h, was not: probe of issue 12)
 LONG_RUN_STEPS = 100_000
 LONG_RUN_SECONDS = 600.0
+#: a run estimated to take more than this share of the available memory is announced as large
+LARGE_RUN_SHARE = 0.25
 
 
 @dataclass(frozen=True)
@@ -213,9 +215,13 @@ def check(est: Estimate, keys: str, allow_large: bool, available: float | None, 
         refuse(f"the run would take roughly {_duration(est.seconds)} (about {est.total_steps:.3g} steps, "
                f"{est.settle_steps:.3g} of them settle and guide steps), more than {_duration(MAX_RUN_SECONDS)}; "
                "make it shorter or set guard.allow_large=true to run anyway", "time")
-    if est.total_steps > LONG_RUN_STEPS or est.seconds > LONG_RUN_SECONDS:
-        msg = (f"long run: about {est.total_steps:.3g} steps ({est.steps:.3g} recorded, {est.settle_steps:.3g} settle "
-               f"and guide steps), roughly {_duration(est.seconds)} ({keys}: {_size(est.memory)} of memory)")
+    # a run that fits but takes a large share of the memory is said too: 200,000 strands (about 12 GB of
+    # 22 GB available, 4 minutes for 20 steps) started without a word (independent probe of issue 12, round 30)
+    large = available is not None and est.memory > LARGE_RUN_SHARE * available
+    if est.total_steps > LONG_RUN_STEPS or est.seconds > LONG_RUN_SECONDS or large:
+        msg = (f"{'large' if large else 'long'} run: about {est.total_steps:.3g} steps ({est.steps:.3g} recorded, "
+               f"{est.settle_steps:.3g} settle and guide steps), roughly {_duration(est.seconds)} ({keys}: "
+               f"{_size(est.memory)} of memory" + (f", of {_size(available)} available)" if large else ")"))
         if msg not in _ANNOUNCED:   # once per process: an experiment checks each variant before any runs, then runs it
             _ANNOUNCED.add(msg)
             log.warning("%s", msg)
