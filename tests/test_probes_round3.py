@@ -400,7 +400,7 @@ def test_startup_handlers_only_for_the_command_line():
 
 
 @pytest.mark.parametrize("module, argv, needle", [
-    ("scene_pictures", ["/nonexistent", "/tmp/x.png"], "/nonexistent: not a run folder (no summary.json)"),
+    ("scene_pictures", ["/nonexistent", "/tmp/x.png"], "/nonexistent: does not exist"),
     ("integrator_verdicts", ["/nonexistent.json"], "/nonexistent.json: cannot read the report"),
     ("bench_scale", ["--one", "abc", "free"], "argument --one STRANDS: 'abc' is not a positive integer"),
 ])
