@@ -76,7 +76,7 @@ from omegaconf.errors import InterpolationResolutionError
 
 import hairexp.app.config  # noqa: F401  (registers the schema in the ConfigStore)
 from hairexp.app import cli
-from hairexp.app.signals import InterruptSignals, exit_code
+from hairexp.app.signals import InterruptSignals, exit_code, start_resource_tracker
 from hairexp.app.streams import guard_streams, stdout_checked
 from hairexp.app.startup import begun, ended, exit_now
 from hairexp.errors import Interrupted
@@ -151,6 +151,8 @@ def entry() -> int:
     # Hydra lets its exceptions through instead of printing them and exiting 1 itself: a config it
     # cannot compose is said below in one line (exit 2), and so is a sweep worker that was killed
     os.environ.setdefault("HYDRA_FULL_ERROR", "1")
+    if any(a in ("-m", "--multirun") for a in argv):   # a sweep: its launcher's helper must outlive a hangup
+        start_resource_tracker()
     begun()   # from here a signal is the run's (its handlers), then one while the command ends
     try:
         # outside a run (composing, between sweep jobs) too; a sweep's running jobs are stopped first

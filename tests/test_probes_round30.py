@@ -138,3 +138,29 @@ def test_a_run_taking_a_large_share_of_memory_is_announced(caplog):
         assert "large run" not in caplog.text
         guard.check(est, "k", allow_large=False, available=2.0 * est.memory)
     assert "large run: about 20 steps" in caplog.text and f"of {guard._size(2.0 * est.memory)} available" in caplog.text
+
+
+def test_a_sweeps_resource_tracker_outlives_a_hangup_of_the_group():
+    """SIGHUP or SIGQUIT to a sweep's whole process group (the terminal closed) killed joblib's
+    resource tracker, which ignores only SIGINT and SIGTERM: its relaunched successor printed 9
+    KeyError tracebacks after the sweep's closing line (round 31: 9 tracebacks before the fix, 0
+    after, by hand).  The sweep starts it with the other handled signals ignored, which it
+    inherits (SIGINT and SIGTERM it ignores itself, once it runs); the main process keeps its
+    own handlers."""
+    import signal
+    import subprocess
+    import sys
+
+    code = ("import signal\n"
+            "from hairexp.app.signals import start_resource_tracker\n"
+            "from joblib.externals.loky.backend import resource_tracker as r\n"
+            "before = signal.getsignal(signal.SIGHUP)\n"
+            "start_resource_tracker()\n"
+            "assert signal.getsignal(signal.SIGHUP) is before\n"
+            "st = open(f'/proc/{r._resource_tracker._pid}/status').read()\n"
+            "print(int(st.split('SigIgn:')[1].split()[0], 16))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    ignored = int(out.stdout.split()[-1])
+    for s in (signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2, signal.SIGXCPU):
+        assert ignored >> (s - 1) & 1, signal.Signals(s).name

@@ -227,7 +227,8 @@ def check_clear_roots(scene, frames: int, fps: float, steps_per_frame: int) -> N
     issue 12, round 29).  A root that starts inside a collider moving with it is the scalp under a
     head sphere (celia: 7 mm inside) and is allowed: only a root that goes deeper than it started,
     by more than the collider's thickness or 1 mm, is refused.  The poses are sampled at every
-    step (at most 2000 times); a dynamic body (``scene.body.dynamic``) moves as the run computes it and is not checked."""
+    step (at most 2000 times); a dynamic body (``scene.body.dynamic``) moves as the run computes
+    it and is not checked."""
     if not scene.colliders or scene.body is not None:
         return
     k = np.flatnonzero(scene.strands.kinematic)

@@ -211,3 +211,28 @@ def forward(signum: int, pids: list[int]) -> list[int]:
         except OSError:
             pass
     return sent
+
+
+def start_resource_tracker() -> None:
+    """Start the launcher's resource tracker (joblib's loky) now, with the handled signals other
+    than SIGINT and SIGTERM ignored while it is made, so that it inherits them ignored.  The
+    tracker ignores only SIGINT and SIGTERM itself: a SIGHUP or SIGQUIT to the whole process group
+    (the terminal closed) killed it, and its relaunched successor printed 9 KeyError tracebacks
+    after the sweep's closing line (independent probe of issue 12, round 31).  The workers are
+    started by the main process later, with its own handlers: not touched.  Nothing happens when
+    joblib is not installed or the tracker runs already."""
+    try:
+        from joblib.externals.loky.backend import resource_tracker
+    except ImportError:
+        return
+    quiet = [s for s in SIGNALS if s not in (signal.SIGINT, signal.SIGTERM)]
+    old = {}
+    try:
+        for s in quiet:
+            old[s] = signal.signal(s, signal.SIG_IGN)
+        resource_tracker.ensure_running()
+    except (OSError, ValueError):   # not the main thread, or the tracker could not start: loky tries again itself
+        pass
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
