@@ -164,3 +164,24 @@ def test_a_sweeps_resource_tracker_outlives_a_hangup_of_the_group():
     ignored = int(out.stdout.split()[-1])
     for s in (signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2, signal.SIGXCPU):
         assert ignored >> (s - 1) & 1, signal.Signals(s).name
+
+
+def test_a_reserve_that_cannot_be_removed_is_emptied(tmp_path, monkeypatch):
+    """A run folder made immutable mid-run (``chattr +i``): the 128 kB ``.ending.reserve`` could
+    not be removed and stayed whole (round 31, W2); its file can still be emptied, and is, and the
+    failed ending is still told that it could not be removed."""
+    from pathlib import Path
+
+    from hairexp.outputs import folder as fo
+
+    assert fo.reserve(tmp_path)
+    path = tmp_path / fo.RESERVE
+    assert path.stat().st_size == fo.RESERVE_BYTES
+
+    def refuse(self, missing_ok=False):
+        raise PermissionError(1, "Operation not permitted", str(self))
+
+    monkeypatch.setattr(Path, "unlink", refuse)
+    with pytest.raises(PermissionError):
+        fo.free_reserve(tmp_path, quiet=False)
+    assert path.stat().st_size == 0
