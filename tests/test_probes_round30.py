@@ -185,3 +185,24 @@ def test_a_reserve_that_cannot_be_removed_is_emptied(tmp_path, monkeypatch):
     with pytest.raises(PermissionError):
         fo.free_reserve(tmp_path, quiet=False)
     assert path.stat().st_size == 0
+
+
+def test_overwrite_of_a_sweep_jobs_folder_removes_its_outcome(tmp_path):
+    """``overwrite=true`` into a finished sweep job's folder left its ``.hydra/outcome.json``
+    ("interrupted", code 130) beside the new run's completed summary (round 31, A O3); a job's
+    own "running" outcome, written before it claims its folder, is kept."""
+    import json
+    import os
+
+    from hairexp.outputs.folder import OUTCOME, claim
+
+    (tmp_path / ".hydra").mkdir()
+    (tmp_path / OUTCOME).write_text(json.dumps({"status": "interrupted", "code": 130}))
+    (tmp_path / "summary.json").write_text(json.dumps({"status": "interrupted"}))
+    (tmp_path / "metrics.parquet").write_bytes(b"PAR1" + bytes(8) + b"PAR1")
+    claim(tmp_path, overwrite=True)
+    assert not (tmp_path / OUTCOME).exists() and not (tmp_path / "metrics.parquet").exists()
+    (tmp_path / "summary.json").write_text(json.dumps({"status": "completed"}))
+    (tmp_path / OUTCOME).write_text(json.dumps({"status": "running", "code": 1, "pid": os.getpid()}))
+    claim(tmp_path, overwrite=True)
+    assert json.loads((tmp_path / OUTCOME).read_text())["status"] == "running"

@@ -50,12 +50,11 @@ from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
 from hairexp.outputs.files import atomic_write_bytes, stream_frames, write_json
 from hairexp.outputs.metrics import read_parts
-from hairexp.outputs.folder import (LOCK, RESERVE, RUN_DIRS, RUN_FILES, STREAM, SUMMARY, held_elsewhere, hold,
+from hairexp.outputs.folder import (LOCK, OUTCOME, RESERVE, RUN_DIRS, RUN_FILES, STREAM, SUMMARY, held_elsewhere, hold,
                                     hydra_link_refusal, note_job_logs, overwrite_refusal, owner, pinned,
                                     refused_summary, running_run, used_entries, used_refusal)
 
 log = logging.getLogger("hairexp")
-OUTCOME = Path(".hydra") / "outcome.json"
 #: in a sweep folder while its main process stops the sweep: the signal's name (SIGTERM, SIGINT)
 STOP_MARK = ".hairexp-stopping"
 
@@ -135,7 +134,7 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
             # the folder says it too (it held Hydra's record and an empty log; independent probe, round 26)
             write_refused(cfg, out, msg, "interrupted", "the sweep was stopped before this job started: no step ran")
             return LAST
-        _write_outcome(out, outcome(out, "running", 1, "the job did not finish"))
+        _write_outcome(out, {**outcome(out, "running", 1, "the job did not finish"), "pid": os.getpid()})
     summary = None
     try:
         check_sections(cfg)   # a section deleted with ``~section``

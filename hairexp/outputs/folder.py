@@ -93,6 +93,20 @@ def hydra_link_refusal(folder: Path) -> str | None:
 HYDRA_RECORD = frozenset({"config.yaml", "hydra.yaml", "overrides.yaml"})
 
 
+#: a sweep job's outcome, in Hydra's record of the job (written by hairexp/app/cli.py ``job``)
+OUTCOME = Path(".hydra") / "outcome.json"
+
+
+def _own_outcome(folder: Path) -> bool:
+    """Whether ``folder``'s OUTCOME is this process's (a sweep job's "running" outcome, written
+    before the job claims its folder), not a previous job's."""
+    try:
+        d = json.loads((Path(folder) / OUTCOME).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(d, dict) and d.get("status") == "running" and d.get("pid") == os.getpid()
+
+
 def _hydras(p: Path) -> bool:
     """Hydra's own entries (``.hydra/``, the job's ``*.log``) and the launch's ``.lock``.  Hydra's
     record under another name (``hydra.output_subdir=rec``): a folder of only its files (the run
@@ -479,6 +493,11 @@ def claim(folder: Path, overwrite: bool = False) -> None:
             except OSError as exc:
                 _removal_failed(folder, p, exc)
         _drop_previous_log_lines(folder)
+        if not _own_outcome(folder):   # a sweep job's outcome in Hydra's record: the previous job's
+            try:                        # "interrupted" stood beside this run's completed summary (round 31)
+                (folder / OUTCOME).unlink(missing_ok=True)
+            except OSError as exc:
+                _removal_failed(folder, folder / OUTCOME, exc)
     folder.mkdir(parents=True, exist_ok=True)
     if refused_summary(folder / SUMMARY):   # a refused run's: replaced by this run's, and so are its log
         (folder / SUMMARY).unlink()          # lines (its "failed (exit 2)" line stood above this run's; round 19)
