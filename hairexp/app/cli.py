@@ -1455,16 +1455,18 @@ def stop_sweep_jobs(signum: int) -> None:
     (SIGTERM is forwarded to the worker processes; SIGINT only if the jobs did not react to a
     Ctrl-C of their own within SIGINT_GRACE_SECONDS) and waited for up to STOP_WAIT_SECONDS, so
     that each writes its own ``interrupted`` ending before the launcher tears the workers down.
-    A job a worker starts meanwhile sees ``STOP_MARK`` and ends as interrupted without running.
-    Nothing happens outside a sweep, or when no job is running."""
+    A job a worker starts meanwhile sees ``STOP_MARK`` and ends as interrupted without running;
+    the mark is written even while no job says "running" yet (under load, a job still starting up
+    began after the signal and ran to its end; independent probe of issue 12, round 30).  Nothing
+    happens outside a sweep; nothing more when no job is running."""
     sweep_dir = SWEEP_DIR
     if sweep_dir is None:
         return
     name = signal.Signals(signum).name
     try:   # jobs the launcher starts from now on end at once (cli.job); removed on exit (clear_stop_mark)
         (sweep_dir / STOP_MARK).write_text(name + "\n")
-    except OSError:   # also while no job says "running" yet: under load a job still starting up then
-        pass          # began after the signal and ran to its end (independent probe of issue 12, round 30)
+    except OSError:
+        pass
     if not _running_jobs(sweep_dir):
         return
     if signum == signal.SIGINT:
