@@ -323,11 +323,12 @@ def running_run(folder: Path) -> tuple[str, dict] | None:
     return ("live" if _alive(pid) else "killed"), s
 
 
-def running_state(folder: Path) -> str | None:
+def running_state(folder: Path, found: tuple[str, dict] | None = None) -> str | None:
     """What the ``summary.json`` of ``folder`` says of a run that never wrote its ending
     (``running_run``): ``"a run killed while running (pid N)"``, ``"a run still running (pid N)"``,
-    ``"a run still running or killed (pid N on HOST)"``; None when it is not such a run."""
-    found = running_run(folder)
+    ``"a run still running or killed (pid N on HOST)"``; None when it is not such a run.
+    ``found``: ``running_run(folder)`` when the caller has read it already."""
+    found = running_run(folder) if found is None else found
     if found is None:
         return None
     kind, s = found
@@ -344,7 +345,7 @@ def live_refusal(folder: Path) -> str | None:
     found = running_run(folder)
     if found is None or found[0] not in ("live", "elsewhere"):
         return None
-    return f"holds {running_state(folder)}: overwrite=true replaces a finished run only; wait for it to end or stop it first"
+    return f"holds {running_state(folder, found)}: overwrite=true replaces a finished run only; wait for it to end or stop it first"
 
 
 def overwrite_refusal(folder: Path) -> str | None:
@@ -424,7 +425,7 @@ def used_refusal(folder: Path, used: list[Path] | None = None) -> str | None:
     shown = [p for p in used if not p.name.startswith(".")] or used   # not the run's own hidden reserve file
     names = ", ".join(p.name for p in shown[:6]) + (", ..." if len(shown) > 6 else "")
     found = running_run(folder)
-    held = f"; it holds {running_state(folder)}" if found else ""
+    held = f"; it holds {running_state(folder, found)}" if found else ""
     if found is not None and found[0] in ("live", "elsewhere"):
         # it advised overwrite=true, which then refused the live run (independent probe of issue 12, round 30)
         return (f"the run folder is not empty ({names}){held}; a run folder belongs to one run: choose another "
