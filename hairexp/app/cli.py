@@ -952,13 +952,16 @@ def override_syntax_error(argv: list[str]) -> str | None:
 
     parser = OverridesParser.create()
     for i, arg in enumerate(argv):
-        if arg.startswith("-") or "=" not in arg or _is_value(argv, i):
+        if arg.startswith("-") or _is_value(argv, i):
             continue
         try:
             o = parser.parse_override(arg)
         except Exception as exc:  # noqa: BLE001  (Hydra's grammar errors)
             why = " ".join(str(exc).split()).split(" See https://")[0]
             why = re.sub(r"^.*?Exception: \S.*?\^ ", "", why)
+            if "=" not in arg:   # a word alone: after --info, Hydra printed its plugins first (round 31)
+                why = re.sub(r"^Error parsing override '.*?' ", "", why)
+                return f"hairexp: error: {arg}: not a valid override: {why} (an override is key=value)"
             key, value = arg.split("=", 1)
             dotted = re.sub(r"\[(\d+)\]", r".\1", key)
             if dotted != key:   # the key's syntax, not the value's: quoting the value did not help (probe, round 14)
