@@ -394,6 +394,10 @@ def _job_folders(root: Path) -> list[Path]:
     return sorted({h.parent for h in root.rglob(".hydra") if h.is_dir() and h.parent != root}, key=order)
 
 
+#: marks an outcome made up by ``sweep_outcomes`` for a job folder that held none (``_end_killed_jobs``)
+_NO_OUTCOME = "_no_outcome"
+
+
 def sweep_outcomes(sweep_dir: Path) -> list[tuple[str, str, dict]]:
     """(job folder name, its overrides, outcome) of every job folder of a sweep, in job order."""
     rows = []
@@ -403,6 +407,7 @@ def sweep_outcomes(sweep_dir: Path) -> list[tuple[str, str, dict]]:
             res = json.loads((d / OUTCOME).read_text())
         except (OSError, ValueError):
             res = outcome(d, "failed", 1, "the job left no outcome (it did not finish)")
+            res[_NO_OUTCOME] = True
         try:
             # Hydra's sweeper writes a job's booleans as Python's True / False: shown as they are typed
             overrides = " ".join(re.sub(r"=(True|False)$", lambda m: "=" + m.group(1).lower(), str(o))
@@ -426,9 +431,20 @@ def _end_killed_jobs(rows: list, signum: int | None, workers_gone: bool = False)
     stayed "running" with its ``.ending.reserve``): their summary and outcome are ended here as
     ``interrupted`` (the sweep was signalled) or ``failed``, saying that the process ended."""
     for name, _, res in rows:
+        d = SWEEP_DIR / name
+        if res.get(_NO_OUTCOME) and signum is not None and not (d / SUMMARY).exists():
+            # Hydra made the job's folder and the signal came before its run wrote anything: it said
+            # "failed (exit 1): the job left no outcome" (independent probe of issue 12, round 31)
+            sig = signal.Signals(signum).name
+            why = f"the sweep was stopped by {sig} before the job's run began"
+            write_refused(None, d, why, "interrupted", f"stopped by {sig} before the run claimed its folder: no step ran")
+            res.pop(_NO_OUTCOME)
+            res.update(status="interrupted", code=signal_exit_code(signum), message=why)
+            _write_outcome(d, res)
+            continue
+        res.pop(_NO_OUTCOME, None)
         if res.get("status") != "running":
             continue
-        d = SWEEP_DIR / name
         found = running_run(d)
         if found is None and workers_gone and not (d / SUMMARY).exists():
             # ended by the launcher before its run claimed its folder: said in the folder as such (round 24)
