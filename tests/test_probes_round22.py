@@ -170,7 +170,7 @@ def test_a_run_with_its_hydra_record_renamed_is_not_refused_as_another_runs(tmp_
     (["--shell-completion"], "--shell-completion: give one of install=bash, install=zsh"),   # round 27: hairexp's line
     (["--experimental-rerun", "nothere.pickle"], "--experimental-rerun: File nothere.pickle does not exist"),
     # round 23
-    (["--info", "nosuch"], "Error parsing override 'nosuch'"),
+    (["--info", "nosuch"], "nosuch: not a valid override: missing EQUAL"),   # round 31: before Hydra's 27 lines
     (["hydra.output_subdir=stream"], "hydra.output_subdir=stream: Hydra's record of the run (.hydra) goes in a folder"),
     (["hydra.output_subdir=.lock"], "hydra.output_subdir=.lock: Hydra's record"),
     (["hydra.job.name=" + "j" * 300], "hydra.job.name=jjjj"),
