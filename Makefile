@@ -21,8 +21,11 @@ setup: $(STAMP)
 goaling: $(STAMP)
 	$(VPY) -m hairexp experiment=goaling
 
+# the default suite in TEST_WORKERS processes (pytest-xdist; auto: one per CPU; 0: in this process)
+TEST_WORKERS ?= auto
+
 test: $(STAMP)
-	$(VPY) -m pytest
+	$(VPY) -m pytest -n $(TEST_WORKERS)
 
 test-slow: $(STAMP)
 	$(VPY) -m pytest -m slow
