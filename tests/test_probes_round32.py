@@ -50,3 +50,60 @@ def test_a_sweep_job_stopped_before_its_run_began_is_said_interrupted(tmp_path, 
     assert cli.exit_code() == 1
     assert "failed (exit 1): the job left no outcome" in capsys.readouterr().err
     assert not (lone / "0" / "summary.json").exists()
+
+
+def test_a_large_run_is_announced_once_though_the_memory_available_changed(caplog):
+    """A run of 200,000 strands said its "large run" line twice: its check before the folder is
+    claimed and its run both estimate it, and the memory available had changed between them, which
+    was in the line's text (round 32, weak f29 and f30)."""
+    import logging
+
+    from hairexp.app import guard
+
+    est = guard.Estimate(memory=12e9, disk=1e6, steps=20, settle_steps=0, seconds=240.0)
+    keys = "scene.n_strands x scene.n_vertices, frames, solver.dt (round 32)"
+    with caplog.at_level(logging.WARNING, logger="hairexp.app.guard"):
+        guard.check(est, keys, False, available=22e9)
+        guard.check(est, keys, False, available=21.5e9)
+    said = [r.getMessage() for r in caplog.records if keys in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("large run: about 20 steps") and "available" in said[0], said
+
+
+def test_tracking_variance_stiffness_names_its_whole_range():
+    """nan and inf said "must be >= 0, got inf" (round 32, weak t17 and nn03)."""
+    import pytest
+
+    from hairexp.app import compose_config
+    from hairexp.app.assemble import check_config
+    from hairexp.errors import InputError
+
+    for bad in ("nan", "inf", "-1", "1e12"):
+        cfg = compose_config(["experiment=goaling_smoke", "variants=[]", "controller=tracking",
+                              f"tracking.variance.stiffness={bad}"])
+        with pytest.raises(InputError, match=r"^tracking\.variance\.stiffness: must be a finite number from 0 to 1e\+09"):
+            check_config(cfg)
+
+
+def test_from_usd_names_an_fps_out_of_range_before_reading_the_stages_end(tmp_path):
+    """fps=0 and fps=-5 with a stage's frames: "endTimeCode 5 gives no frame after frame 0" (round
+    32, weak u38 and u46); the key and its range now, as for any run."""
+    import pytest
+    from pxr import Usd, UsdGeom
+
+    from hairexp.app import compose_config
+    from hairexp.app.assemble import check_config
+    from hairexp.errors import InputError
+
+    stage_file = tmp_path / "s.usda"
+    stage = Usd.Stage.CreateNew(str(stage_file))
+    stage.SetTimeCodesPerSecond(24)
+    stage.SetEndTimeCode(5)
+    curves = UsdGeom.BasisCurves.Define(stage, "/Hair")
+    curves.CreateTypeAttr("linear")
+    curves.CreateCurveVertexCountsAttr([3])
+    curves.CreatePointsAttr([(0, 0, 0), (0, 0, -0.05), (0, 0, -0.1)])
+    stage.GetRootLayer().Save()
+    for bad in ("0", "-5", "nan"):
+        cfg = compose_config(["experiment=from_usd", f"scene.usd={stage_file}", f"fps={bad}"])
+        with pytest.raises(InputError, match=r"^fps: must be a finite number from 0\.1 to 100000"):
+            check_config(cfg)

@@ -219,12 +219,15 @@ def check(est: Estimate, keys: str, allow_large: bool, available: float | None, 
     # 22 GB available, 4 minutes for 20 steps) started without a word (independent probe of issue 12, round 30)
     large = available is not None and est.memory > LARGE_RUN_SHARE * available
     if est.total_steps > LONG_RUN_STEPS or est.seconds > LONG_RUN_SECONDS or large:
-        msg = (f"{'large' if large else 'long'} run: about {est.total_steps:.3g} steps ({est.steps:.3g} recorded, "
-               f"{est.settle_steps:.3g} settle and guide steps), roughly {_duration(est.seconds)} ({keys}: "
-               f"{_size(est.memory)} of memory" + (f", of {_size(available)} available)" if large else ")"))
-        if msg not in _ANNOUNCED:   # once per process: an experiment checks each variant before any runs, then runs it
-            _ANNOUNCED.add(msg)
-            log.warning("%s", msg)
+        said = (f"{'large' if large else 'long'} run: about {est.total_steps:.3g} steps ({est.steps:.3g} recorded, "
+                f"{est.settle_steps:.3g} settle and guide steps), roughly {_duration(est.seconds)} ({keys}: "
+                f"{_size(est.memory)} of memory")
+        # once per process: an experiment checks each variant before any runs, then runs it; the memory
+        # available is not part of what was said (it changed between a run's check and its run, and a
+        # large run was announced twice; independent probe of issue 12, round 32)
+        if said not in _ANNOUNCED:
+            _ANNOUNCED.add(said)
+            log.warning("%s", said + (f", of {_size(available)} available)" if large else ")"))
 
 
 #: the long-run warnings (their text) and allow_large warnings already logged by this process

@@ -346,6 +346,10 @@ def stage_timing(cfg):
     stage, file = open_stage(cfg.scene.usd)
     tcps = stage_rate(stage, file)
     fps = tcps if cfg.fps is None else float(cfg.fps)
+    if cfg.fps is not None and not (math.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):
+        # fps=0 was said as "endTimeCode 5 gives no frame after frame 0" (independent probe of issue 12, round 32)
+        raise InputError(f"must be a finite number from {MIN_FPS:g} to {MAX_FPS:g} (frames per second), got {fps:g}",
+                         "fps")
     if cfg.fps is None and not MIN_FPS <= tcps <= MAX_FPS:   # it was reported as ``fps``, a key the user never set
         raise InputError(f"timeCodesPerSecond is {tcps:g}; with fps null (the stage's rate) it is the run's frame rate, "
                          f"which must be from {MIN_FPS:g} to {MAX_FPS:g}: fix the stage's rate or set fps", file)

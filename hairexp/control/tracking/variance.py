@@ -60,10 +60,10 @@ def check_variance_config(cfg) -> tuple[tuple, tuple]:
         if (v < 0).any() or (v > MAX_VARIANCE_SCALE).any():   # 1e300 diverged at the first step (round 14)
             raise InputError(f"must be >= 0 and <= {MAX_VARIANCE_SCALE:g} at every keyframe (a scale of the rest "
                              f"variance or of tracking.variance.stiffness), got {v.tolist()}", f"tracking.variance.{key}")
-    if isinstance(cfg.stiffness, bool) or not (cfg.stiffness >= 0 and np.isfinite(cfg.stiffness)):
-        raise InputError(f"must be >= 0, got {cfg.stiffness}", "tracking.variance.stiffness")
-    if cfg.stiffness > MAX_VARIANCE_STIFFNESS:   # 1e300 diverged at the first step (probe of issue 12, round 14)
-        raise InputError(f"must be <= {MAX_VARIANCE_STIFFNESS:g}, got {cfg.stiffness}", "tracking.variance.stiffness")
+    # nan and inf said "must be >= 0" (independent probe of issue 12, round 32): the whole range, as README says it
+    if isinstance(cfg.stiffness, bool) or not (np.isfinite(cfg.stiffness) and 0 <= cfg.stiffness <= MAX_VARIANCE_STIFFNESS):
+        raise InputError(f"must be a finite number from 0 to {MAX_VARIANCE_STIFFNESS:g} (J/m^4; 0 builds no penalty), "
+                         f"got {cfg.stiffness}", "tracking.variance.stiffness")
     return ks, vs
 
 
