@@ -107,3 +107,38 @@ def test_from_usd_names_an_fps_out_of_range_before_reading_the_stages_end(tmp_pa
         cfg = compose_config(["experiment=from_usd", f"scene.usd={stage_file}", f"fps={bad}"])
         with pytest.raises(InputError, match=r"^fps: must be a finite number from 0\.1 to 100000"):
             check_config(cfg)
+
+
+def test_a_metrics_parquet_that_appears_mid_run_is_left_as_it_is(tmp_path, monkeypatch):
+    """A user's file named metrics.parquet, made in the run folder while the run went on, was
+    replaced by the run's table, exit 0 and "completed" (round 32, bad G07 and G11); the result
+    files refused such a file already (``own_result``).  Now the run fails with the name taken, the
+    user's file is whole, and the run's rows stay in stream/metrics/ as the summary says."""
+    import json
+
+    import pandas as pd
+    import pytest
+
+    from hairexp.app import compose_config
+    from hairexp.app import run as run_module
+
+    out = tmp_path / "run"
+    theirs = out / "metrics.parquet"
+    real_release = run_module.release
+
+    def release_and_meddle():
+        if (out / "stream").is_dir() and not theirs.exists():
+            theirs.write_text("{}")   # another process's file, made mid-run
+        real_release()
+
+    monkeypatch.setattr(run_module, "release", release_and_meddle)
+    cfg = compose_config(["experiment=goaling_smoke", "variants=[]", "frames=3", "logging=off"])
+    with pytest.raises(OSError, match=r"metrics\.parquet: a file of that name appeared in the run folder"):
+        run_module.run(cfg, out)
+    assert theirs.read_text() == "{}"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "failed" and "appeared in the run folder" in summary["error"]
+    assert summary.get("metrics_file") == "stream/metrics/"
+    rows = pd.read_parquet(out / "stream" / "metrics")
+    assert len(rows) == summary["steps"] > 0
+    assert not (out / "result.npz").exists() and not list(out.rglob("*.tmp"))

@@ -228,11 +228,18 @@ def own_result(sinks, p: Path) -> None:
     (``claim``), so that is another process's, made while the run went on, and it is left as it
     is (a folder made at ``result.usdc`` mid-run was deleted with its contents; probe of issue
     12, round 12)."""
+    name_free(p)
+    sinks.written.append(p)
+
+
+def name_free(p: Path) -> None:
+    """An OSError when something is at ``p``, the name a file of this run is about to take: it is
+    another process's, made while the run went on (``own_result``; the run's metrics.parquet
+    replaced a user's file of that name, exit 0; independent probe of issue 12, round 32)."""
     if p.exists() or p.is_symlink():
         kind = "folder" if p.is_dir() and not p.is_symlink() else "file"
         raise OSError(f"{p}: a {kind} of that name appeared in the run folder while the run went on (not this "
                       "run's; left as it is), so the result cannot take its name")
-    sinks.written.append(p)
 
 
 #: the config's input files (a run reads them; ``inputs_inside``)
@@ -392,6 +399,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     # metrics.parquet first (a failed run keeps it too), then read back column by column: the
     # end of a run holds one column or one block of frames at a time, whatever its length
     release()
+    name_free(out / "metrics.parquet")
     df = table.write(out / "metrics.parquet")
     shutil.rmtree(out / STREAM / "metrics", ignore_errors=True)
     release()
@@ -623,7 +631,11 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
     df = None   # (``write`` flushes the rows since the last part first, or writes them with the parts)
     metrics_where = None
     if sinks.table.steps:
-        df = attempt("metrics.parquet", lambda: sinks.table.write(out / "metrics.parquet"))
+        mp = out / "metrics.parquet"
+        mine = sinks.table.written is not None and sinks.table.written.path == mp
+        # a file of that name that is not this run's is left as it is (name_free): the rows stay in stream/
+        taken = not mine and (mp.exists() or mp.is_symlink())
+        df = None if taken else attempt("metrics.parquet", lambda: sinks.table.write(mp))
         if df is not None:
             attempt("metrics", lambda: shutil.rmtree(out / STREAM / "metrics", ignore_errors=True))   # in the parquet now
         else:   # the parquet could not be written: the summary from the parts kept in stream/
