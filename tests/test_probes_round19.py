@@ -114,6 +114,7 @@ def test_one_note_per_os_error_whatever_file_it_names(tmp_path, monkeypatch):
 
         class table:
             steps = 3
+            written = None   # nothing written yet (the parquet named this run's own: round 32)
             flush = staticmethod(fail("part-00001.parquet"))
             write = staticmethod(lambda *a: fail("metrics.parquet")())
             frame = staticmethod(lambda: None)

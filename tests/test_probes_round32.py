@@ -142,3 +142,21 @@ def test_a_metrics_parquet_that_appears_mid_run_is_left_as_it_is(tmp_path, monke
     rows = pd.read_parquet(out / "stream" / "metrics")
     assert len(rows) == summary["steps"] > 0
     assert not (out / "result.npz").exists() and not list(out.rglob("*.tmp"))
+
+
+def test_a_hydra_key_typo_names_the_keys_there_and_plus_does_not_add_it():
+    """``hydra.foo=1`` got Hydra's "To append to your config use +hydra.foo=1", and following it
+    ran without a word (round 32, weak C08 and C11).  Now a key that is not in Hydra's schema is
+    refused with its node's keys and the nearest, with or without ``+`` / ``++``; a free dict of
+    Hydra's (``hydra.job.env_set``) still takes any key."""
+    msg = cli.hydra_key_error(["hydra.run.dri=/tmp/x"])
+    assert msg == "hydra.run.dri: not a key of Hydra's config: hydra.run has dir; did you mean hydra.run.dir?"
+    for arg in ("+hydra.foo=1", "++hydra.foo=1"):
+        msg = cli.hydra_key_error([arg])
+        assert msg is not None and msg.startswith("hydra.foo: not a key of Hydra's config (+ adds a key that nothing "
+                                                  "reads): hydra has "), msg
+    msg = cli.hydra_key_error(["++hydra.job.nmae=x"])
+    assert msg is not None and msg.endswith("did you mean hydra.job.name?")
+    for ok in (["+hydra.job.env_set.FOO=1"], ["++hydra.job.name=x"], ["hydra.job.name=x"], ["hydra/launcher=basic"]):
+        assert cli.hydra_key_error(ok) is None, ok
+    assert cli.config_error(["experiment=goaling_smoke", "+hydra.foo=1"]).startswith("hairexp: error: hydra.foo: ")

@@ -1501,7 +1501,7 @@ def stop_sweep_jobs(signum: int) -> None:
 
 
 def _hydra_arg(a: str) -> bool:
-    return a.startswith(("hydra.", "hydra/", "+hydra", "~hydra"))
+    return a.lstrip("+~").startswith(("hydra.", "hydra/"))   # ++hydra.* too (round 32)
 
 
 def _plain_overrides(argv: list[str]) -> list[str]:
@@ -1715,15 +1715,62 @@ def hydra_key_error(hydra_args: list[str]) -> str | None:
         bad = _hydra_value_error(o.get_key_element(), o.value()) if not o.is_sweep_override() else None
         if bad is not None:
             return bad
-    GlobalHydra.instance().clear()
-    try:
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            compose(config_name="config", overrides=plain, return_hydra_config=True)
-    except Exception as exc:  # noqa: BLE001  (Hydra's composition / validation error of its own keys)
-        return one_line(exc)
-    finally:
+    def composed(overrides):
         GlobalHydra.instance().clear()
+        try:
+            with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+                return compose(config_name="config", overrides=overrides, return_hydra_config=True)
+        finally:
+            GlobalHydra.instance().clear()
+
+    try:
+        composed(plain)
+    except Exception as exc:  # noqa: BLE001  (Hydra's composition / validation error of its own keys)
+        # a typo (hydra.foo=1, hydra.run.dri=x): Hydra said "To append to your config use +hydra.foo=1",
+        # which then ran without a word (independent probe of issue 12, round 32)
+        typo = re.match(r"Could not override '(hydra\.[\w.]+)'", str(exc))
+        if typo:
+            said = _unknown_hydra_key(typo.group(1), [a for a in plain if _key_of(a) != typo.group(1)], composed)
+            if said is not None:
+                return said
+        return one_line(exc)
+    # +hydra.<key> of a node of Hydra's schema that has no such key: Hydra adds it, and nothing reads it
+    added = [a for a, o in zip(hydra_args, parsed) if not o.is_sweep_override() and (o.is_add() or o.is_force_add())]
+    if added:
+        for a in added:
+            said = _unknown_hydra_key(_key_of(a), [p for p in plain if p not in added], composed, added=True)
+            if said is not None:
+                return said
     return None
+
+
+def _key_of(override: str) -> str:
+    """The key an override names (``+hydra.foo=1``: ``hydra.foo``)."""
+    return override.split("=", 1)[0].lstrip("+~")
+
+
+def _unknown_hydra_key(key: str, others: list[str], composed, added: bool = False) -> str | None:
+    """The error line for ``key``, a ``hydra.*`` key that Hydra's config (composed with the
+    overrides ``others`` by ``composed``) does not have under a node of its schema (a dataclass:
+    not a free dict such as ``hydra.job.env_set``), with its node's keys and the nearest; None when
+    the key is there, its node is a free dict, or the config cannot be composed."""
+    import difflib
+
+    from omegaconf import DictConfig, OmegaConf
+
+    try:
+        cfg = composed(others)
+    except Exception:  # noqa: BLE001  (another error of the command line: Hydra's own line)
+        return None
+    parent_key, _, leaf = key.rpartition(".")
+    parent = OmegaConf.select(cfg, parent_key, default=None)
+    if not isinstance(parent, DictConfig) or OmegaConf.get_type(parent) is dict or leaf in parent:
+        return None
+    keys = sorted(str(k) for k in parent.keys())
+    near = difflib.get_close_matches(leaf, keys, n=1, cutoff=0.6)
+    hint = f"; did you mean {parent_key}.{near[0]}?" if near else ""
+    how = " (+ adds a key that nothing reads)" if added else ""
+    return (f"{key}: not a key of Hydra's config{how}: {parent_key} has {', '.join(keys)}{hint}")
 
 
 def config_error(argv: list[str]) -> str | None:
