@@ -37,6 +37,14 @@ from hairexp.model.strands import check_folds, validate_polylines
 #: frames per second a guide animation and a run (hairexp/physics/schedule.py) may have: a guide
 #: file at 1e-9 froze the guides, fps=1e-3 failed after the guide simulation (probes of issue 12)
 MIN_FPS, MAX_FPS = 0.1, 1e5
+
+
+def check_fps(fps: float) -> None:
+    """An InputError naming ``fps`` when the run's frame rate is outside MIN_FPS .. MAX_FPS or not finite."""
+    if not (math.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):
+        raise InputError(f"must be a finite number from {MIN_FPS:g} to {MAX_FPS:g} (frames per second), got {fps}",
+                         "fps")
+
 #: how ``shape_at`` interpolates between frames (``guides.interpolation``)
 INTERPOLATIONS = ("catmull_rom", "linear")
 

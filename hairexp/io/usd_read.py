@@ -30,7 +30,7 @@ from hairexp.io.usd_colliders import read_colliders
 from hairexp.io.usd_layout import (COUNTS_TYPES, POINTS_TYPES, TOKEN_TYPES, check_transform_types, check_type,
                                    read_motion, time_label, world_transform)
 from hairexp.io.usd_layout import tf_message as _message
-from hairexp.guides.animation import MAX_FPS, MIN_FPS, GuideAnimation
+from hairexp.guides.animation import MAX_FPS, MIN_FPS, GuideAnimation, check_fps
 from hairexp.guides.store import FrameStore
 from hairexp.model.builders import build_collider, build_material, gravity
 from hairexp.model.scene import Scene
@@ -346,10 +346,8 @@ def stage_timing(cfg):
     stage, file = open_stage(cfg.scene.usd)
     tcps = stage_rate(stage, file)
     fps = tcps if cfg.fps is None else float(cfg.fps)
-    if cfg.fps is not None and not (math.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):
-        # fps=0 was said as "endTimeCode 5 gives no frame after frame 0" (independent probe of issue 12, round 32)
-        raise InputError(f"must be a finite number from {MIN_FPS:g} to {MAX_FPS:g} (frames per second), got {fps:g}",
-                         "fps")
+    if cfg.fps is not None:   # fps=0 was said as "endTimeCode 5 gives no frame after frame 0" (probe, round 32)
+        check_fps(fps)
     if cfg.fps is None and not MIN_FPS <= tcps <= MAX_FPS:   # it was reported as ``fps``, a key the user never set
         raise InputError(f"timeCodesPerSecond is {tcps:g}; with fps null (the stage's rate) it is the run's frame rate, "
                          f"which must be from {MIN_FPS:g} to {MAX_FPS:g}: fix the stage's rate or set fps", file)

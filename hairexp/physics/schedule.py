@@ -5,14 +5,12 @@ from __future__ import annotations
 import math
 
 from hairexp.errors import MIN_STEP_DT, InputError
-from hairexp.guides.animation import MAX_FPS, MIN_FPS
+from hairexp.guides.animation import check_fps
 
 
 def step_schedule(fps: float, dt: float, frames: int) -> tuple[int, float]:
     """Steps per frame and the step size that divides the frame interval evenly."""
-    if not (math.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):
-        raise InputError(f"must be a finite number from {MIN_FPS:g} to {MAX_FPS:g} (frames per second), got {fps}",
-                         "fps")
+    check_fps(fps)
     if not (dt > 0 and math.isfinite(dt)):
         raise InputError(f"must be a finite number > 0, got {dt}", "solver.dt")
     if frames < 1:
