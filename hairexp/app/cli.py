@@ -1736,11 +1736,10 @@ def hydra_key_error(hydra_args: list[str]) -> str | None:
         return one_line(exc)
     # +hydra.<key> of a node of Hydra's schema that has no such key: Hydra adds it, and nothing reads it
     added = [a for a, o in zip(hydra_args, parsed) if not o.is_sweep_override() and (o.is_add() or o.is_force_add())]
-    if added:
-        for a in added:
-            said = _unknown_hydra_key(_key_of(a), [p for p in plain if p not in added], composed, added=True)
-            if said is not None:
-                return said
+    for a in added:
+        said = _unknown_hydra_key(_key_of(a), [p for p in plain if p not in added], composed, added=True)
+        if said is not None:
+            return said
     return None
 
 
