@@ -160,3 +160,46 @@ def test_a_hydra_key_typo_names_the_keys_there_and_plus_does_not_add_it():
     for ok in (["+hydra.job.env_set.FOO=1"], ["++hydra.job.name=x"], ["hydra.job.name=x"], ["hydra/launcher=basic"]):
         assert cli.hydra_key_error(ok) is None, ok
     assert cli.config_error(["experiment=goaling_smoke", "+hydra.foo=1"]).startswith("hairexp: error: hydra.foo: ")
+
+
+def test_a_signal_handled_while_a_deferral_is_entered_is_kept_pending():
+    """A SIGTERM kept pending through the hair-hair kd-tree query (a C call of 25-60 s) was handled
+    as that call's MemoryError reached the run's ``except``, inside the entry of the ending's
+    ``signals.deferred()`` (a generator context manager then): it escaped the ending, which never
+    ran, and summary.json stayed "running" with exit 143 (round 33, bad M10).  A signal handled in
+    the frames that enter a deferral is kept as one inside it; elsewhere it is raised."""
+    import signal
+    import sys
+
+    import pytest
+
+    from hairexp.app.signals import InterruptSignals, _Deferred
+    from hairexp.errors import Interrupted
+
+    frames = {}
+
+    class Spy(InterruptSignals):
+        """Catches the frame of the deferral's entry that reads ``defer``."""
+
+        @property
+        def defer(self):
+            frames.setdefault("enter", sys._getframe(1))
+            return self.__dict__.get("_defer", False)
+
+        @defer.setter
+        def defer(self, value):
+            self.__dict__["_defer"] = value
+
+    spy = Spy()
+    with spy.deferred():
+        pass
+    enter = frames["enter"]
+    assert enter.f_code is _Deferred.__enter__.__code__
+    signals = InterruptSignals()
+    signals._handler(signal.SIGTERM, enter)   # handled as the block was entered: kept
+    assert signals.pending == signal.SIGTERM and signals.raised is None
+    with pytest.raises(Interrupted):
+        InterruptSignals()._handler(signal.SIGTERM, sys._getframe())   # anywhere else: raised
+    with pytest.raises(Interrupted):   # whole(): a signal kept while its block ran is raised after it
+        with signals.whole():
+            pass

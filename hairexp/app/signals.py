@@ -26,7 +26,6 @@ import os
 import signal
 import sys
 import threading
-from contextlib import contextmanager
 from pathlib import Path
 
 from hairexp import HANDLED_SIGNALS
@@ -55,7 +54,12 @@ class InterruptSignals:
         self.raised: int | None = None   # the signal this handler raised as Interrupted (``lost``)
 
     def _handler(self, signum, frame):
-        if self.defer:
+        if self.defer or (frame is not None and frame.f_code in _ENTERING):
+            # entering a deferral counts as deferred: a signal kept pending through a long C call
+            # (the hair-hair broad phase's kd-tree query) was handled as its MemoryError reached the
+            # run's ``except``, in the entry of the ending's ``deferred()``: it escaped the ending,
+            # which never ran, and summary.json was left "running" (independent probe of issue 12,
+            # round 33)
             self.pending = signum
             return
         if _in_finaliser(frame):
@@ -106,23 +110,39 @@ class InterruptSignals:
         self.old.clear()
         return False
 
-    @contextmanager
-    def deferred(self):
-        """Signals are remembered, not raised, inside this block."""
-        old, self.defer = self.defer, True
-        try:
-            yield self
-        finally:
-            self.defer = old
+    def deferred(self) -> "_Deferred":
+        """Signals are remembered, not raised, inside this block (and while it is entered)."""
+        return _Deferred(self)
 
-    @contextmanager
-    def whole(self):
+    def whole(self) -> "_Deferred":
         """The block runs to its end: a signal meanwhile is raised after it (unless signals are
         deferred around it)."""
-        with self.deferred():
-            yield self
-        if self.pending is not None and not self.defer:
-            raise Interrupted(self.pending)
+        return _Deferred(self, whole=True)
+
+
+class _Deferred:
+    """The block of ``InterruptSignals.deferred()`` / ``whole()``.  A class, not a generator: the
+    handler knows its entry's frames (``_ENTERING``), in which a signal is kept as in the block."""
+
+    __slots__ = ("signals", "whole", "old")
+
+    def __init__(self, signals: InterruptSignals, whole: bool = False):
+        self.signals, self.whole, self.old = signals, whole, False
+
+    def __enter__(self) -> InterruptSignals:
+        self.old, self.signals.defer = self.signals.defer, True
+        return self.signals
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        self.signals.defer = self.old
+        if self.whole and exc_type is None and self.signals.pending is not None and not self.signals.defer:
+            raise Interrupted(self.signals.pending)
+        return False
+
+
+#: the code of the calls that enter a deferral: a signal handled in one of them is kept pending
+_ENTERING = frozenset({InterruptSignals.deferred.__code__, InterruptSignals.whole.__code__,
+                       _Deferred.__init__.__code__, _Deferred.__enter__.__code__})
 
 
 #: signals that arrived after a run had written its completed ending (``note_late``)
