@@ -203,3 +203,58 @@ def test_a_signal_handled_while_a_deferral_is_entered_is_kept_pending():
     with pytest.raises(Interrupted):   # whole(): a signal kept while its block ran is raised after it
         with signals.whole():
             pass
+
+
+def test_guard_streams_points_the_console_log_handler_at_the_wrapped_stream(monkeypatch):
+    """A sweep job's worker process: Hydra's console handler was made on the bare stderr before the
+    job ran; it is pointed at the wrapped stream, whose write errors are kept (round 33)."""
+    import io
+    import logging
+    import sys
+
+    from hairexp.app import streams
+
+    class Full(io.StringIO):
+        def write(self, s):
+            raise OSError(28, "No space left on device")
+
+    bare = Full()
+    monkeypatch.setattr(sys, "stderr", bare)
+    monkeypatch.setattr(sys, "stdout", io.StringIO())
+    handler = logging.StreamHandler(bare)
+    log = logging.getLogger("hairexp.test_round33")
+    log.addHandler(handler)
+    try:
+        streams.guard_streams()
+        assert isinstance(sys.stderr, streams.Tolerant) and handler.stream is sys.stderr
+        sys.stderr.write("lost\n")   # kept, not raised
+        assert sys.stderr.error is not None and sys.stderr.error.errno == 28
+    finally:
+        log.removeHandler(handler)
+
+
+def test_a_joblib_sweep_with_stderr_on_a_full_device_runs_its_jobs(tmp_path):
+    """Every job of a joblib sweep failed with "[Errno 28] No space left on device" when stderr was
+    /dev/full (the progress bar's write in the worker), its outcome left "running"; a single run
+    and the basic launcher completed (round 33, bad io10 and io9)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from tests.probe_helpers import REPO
+
+    if not os.path.exists("/dev/full"):
+        import pytest
+
+        pytest.skip("no /dev/full on this system")
+    env = dict(os.environ, CI="1", PYTHONPATH=str(REPO))
+    with open("/dev/full", "w") as full:
+        p = subprocess.run([sys.executable, "-m", "hairexp", "-m", "experiment=goaling_smoke", "variants=[]",
+                            "logging.rerun=false", "frames=3", "solver.dt=0.04,-1", f"hydra.sweep.dir={tmp_path}"],
+                           cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=full, text=True, timeout=300)
+    assert p.returncode == 2   # the bad job's code; the good job completed
+    good = json.loads((tmp_path / "0" / "summary.json").read_text())
+    bad = json.loads((tmp_path / "1" / "summary.json").read_text())
+    assert good["status"] == "completed" and bad["status"] == "failed" and "solver.dt" in bad["error"]
+    assert json.loads((tmp_path / "0" / ".hydra" / "outcome.json").read_text())["status"] == "completed"

@@ -46,6 +46,7 @@ from hairexp.app.experiment import apply_overrides, run_experiment
 from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, metrics_summary, to_log_files, write_refused
 from hairexp.app.validate import unused_settings
 from hairexp.app.signals import SIGNALS, forward, take_late, worker_pids
+from hairexp.app.streams import guard_streams
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
 from hairexp.outputs.files import atomic_write_bytes, stream_frames, write_json
@@ -123,6 +124,10 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     # main process sets it in __main__.entry; a worker printed "--- Logging error ---" with a traceback
     # for each line, ~300 lines; independent probe of issue 12, round 22)
     logging.raiseExceptions = False
+    # a sweep's worker process: its standard streams as the main process's (a stderr to /dev/full or a
+    # closed pipe failed every job of a joblib sweep on the progress bar's first write, ENOSPC / EPIPE,
+    # where a single run and the basic launcher completed; independent probe of issue 12, round 33)
+    guard_streams()
     note_job_logs(Path(out))   # what its logs hold now is a previous run's (overwrite=true drops it)
     if sweep:
         stopped = _stopped_by(sweep_dir)

@@ -44,11 +44,25 @@ class Tolerant:
 
 
 def guard_streams() -> None:
-    """Wrap ``sys.stdout`` and ``sys.stderr`` (once)."""
+    """Wrap ``sys.stdout`` and ``sys.stderr`` (once), and point the logging handlers that write to
+    the bare streams (Hydra's console handler, made before a sweep job runs) at the wrapped ones."""
+    import logging
+
+    bare = {}   # id of a bare stream -> its wrapper
     if not isinstance(sys.stdout, Tolerant):
-        sys.stdout = Tolerant(sys.stdout)
+        old = sys.stdout
+        sys.stdout = bare[id(old)] = Tolerant(old)
     if not isinstance(sys.stderr, Tolerant):
-        sys.stderr = Tolerant(sys.stderr)
+        old = sys.stderr
+        sys.stderr = bare[id(old)] = Tolerant(old)
+    if not bare:
+        return
+    loggers = [logging.getLogger()] + [lg for lg in logging.root.manager.loggerDict.values()
+                                       if isinstance(lg, logging.Logger)]
+    for lg in loggers:
+        for h in lg.handlers:
+            if type(h) is logging.StreamHandler and id(getattr(h, "stream", None)) in bare:
+                h.setStream(bare[id(h.stream)])
 
 
 def stdout_checked(code: int, prog: str) -> int:
