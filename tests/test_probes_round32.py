@@ -258,3 +258,17 @@ def test_a_joblib_sweep_with_stderr_on_a_full_device_runs_its_jobs(tmp_path):
     bad = json.loads((tmp_path / "1" / "summary.json").read_text())
     assert good["status"] == "completed" and bad["status"] == "failed" and "solver.dt" in bad["error"]
     assert json.loads((tmp_path / "0" / ".hydra" / "outcome.json").read_text())["status"] == "completed"
+
+
+def test_a_variants_overrides_given_as_a_string_is_named_in_hairexps_words():
+    """``variants=[{name: a, overrides: "controller.name=free"}]`` said OmegaConf's "AnyNode is not a
+    ListConfig, list or tuple" (round 33, weak V09)."""
+    import pytest
+
+    from hairexp.app import compose_config
+    from hairexp.errors import InputError
+
+    for value in ('"controller.name=free"', "5"):
+        with pytest.raises(InputError, match=r"^variants \(its overrides\): a variant's overrides are a list of "
+                                             r"key=value strings"):
+            compose_config(["experiment=goaling_smoke", f"variants=[{{name: a, overrides: {value}}}]"])

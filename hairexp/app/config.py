@@ -731,6 +731,11 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
                 raise InputError(f"a variant is {{name: <identifier>, overrides: [key=value, ...]}} and variants is a "
                                  "list of them (variants='[{name: a, overrides: [controller.name=tracking]}]', or "
                                  f"variants=[] for the base run alone); got {given}", field_key or key) from exc
+            if field_key.rsplit(".", 1)[-1] == "overrides" and key.startswith("variants") and "ListConfig" in reason:
+                # a variant's overrides given as one string: OmegaConf's "AnyNode is not a ListConfig" (round 33)
+                raise InputError("a variant's overrides are a list of key=value strings, e.g. variants='[{name: a, "
+                                 "overrides: [controller.name=free]}]', not a single value",
+                                 "variants (its overrides)") from exc
             if "incompatible with type hint 'float'" in reason and "(int)" in reason:   # translations=[[0,0,0]]
                 reason += ("; write such a number as a float (0.0, not 0): inside a list of lists OmegaConf does "
                            "not turn an integer into a float")
