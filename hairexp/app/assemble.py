@@ -30,7 +30,7 @@ import numpy as np
 
 from hairexp.app.builders import build_scene
 from hairexp.app.config import require_config
-from hairexp.app.guard import guard_run
+from hairexp.app.guard import guard_hair_hair, guard_run
 from hairexp.app.guides import build_guides, check_simulated_guides, read_guide_file
 from hairexp.app.validate import late_keys, validate_config, validate_measure
 from hairexp.control import build_controller
@@ -144,6 +144,7 @@ def check_config(cfg) -> None:
     scene = build_scene(cfg.scene)
     if usd:
         guard_run(cfg, scene.strands.n_vertices, n_sub)
+    guard_hair_hair(cfg, scene.strands.rest, scene.strands.edges)
     validate_measure(cfg, scene)
     check_clear_start(scene, str(_value(cfg.collision.contact)))
     check_clear_roots(scene, int(cfg.frames), float(cfg.fps), n_sub)

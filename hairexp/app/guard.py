@@ -37,6 +37,8 @@ import math
 import os
 from dataclasses import dataclass, replace
 
+import numpy as np
+
 from hairexp.errors import InputError
 from hairexp.physics.settle import settle_seconds, settle_step
 
@@ -284,3 +286,55 @@ def guard_run(cfg, n_vertices: int, steps_per_frame: int, run: bool = True) -> E
     if _PLANNED is not None and run:
         _PLANNED.append(est.disk)
     return est
+
+
+#: bytes a candidate edge pair of the exact hair-hair broad phase takes at its peak (scipy's pair
+#: list, the index arrays, masks and closest-point parameters): measured 50-59 B on goaling's bundle
+#: (1,000 strands: +0.50 GB for 8.5 M pairs; 3,000: +3.85 GB for 76 M pairs), rounded up
+HAIR_HAIR_BYTES_PER_PAIR = 64
+#: pairs within a sphere of radius d per pair of the same cell of side d (uniform density: 4.19 / 2),
+#: calibrated against scipy's exact count_neighbors on goaling's bundle (1,000-30,000 strands: x 1.47)
+_PAIRS_PER_CELL_PAIR = 3.1
+
+
+def hair_hair_pairs(rest: np.ndarray, edges: np.ndarray, radius: float) -> float:
+    """About how many edge pairs the exact hair-hair broad phase (physics/collisions.py,
+    ``HairHair._box_pairs``) lists for the hair at ``rest``: boxes of the edges grown by
+    ``radius`` (thickness + skin), whose bounding spheres' centres are binned into cells of their
+    largest query distance; O(edges), where an exact count is quadratic in a dense bundle."""
+    a, b = rest[edges[:, 0]], rest[edges[:, 1]]
+    lo, hi = np.minimum(a, b) - 0.5 * radius, np.maximum(a, b) + 0.5 * radius
+    c, r = 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo, axis=1)
+    if len(c) < 2:
+        return 0.0
+    _, counts = np.unique(np.floor(c / (2.0 * float(r.max()))).astype(np.int64), axis=0, return_counts=True)
+    n = float(len(c))
+    return min(_PAIRS_PER_CELL_PAIR * float(np.sum(counts.astype(np.float64) ** 2)), n * (n - 1) / 2)
+
+
+def guard_hair_hair(cfg, rest: np.ndarray, edges: np.ndarray) -> None:
+    """Refuse exact hair-hair contact (``collision.hair_hair=true``, ``hair_hair_model=edges``) whose
+    broad phase cannot fit in memory, unless ``guard.allow_large`` (more than the machine's memory
+    and swap: always).  30,000 strands in goaling's 2 cm bundle started without a word and reached
+    12.4 GB before scipy's bad_alloc (about 7.6e9 pairs; independent probe of issue 12, round 33)."""
+    cc = cfg.collision
+    if not bool(cc.hair_hair) or str(_value(cc.hair_hair_model)) != "edges" or \
+            str(_value(cfg.controller.name)) == "skinned":
+        return
+    pairs = hair_hair_pairs(rest, edges, float(cc.hair_thickness) + float(cc.skin))
+    need = pairs * HAIR_HAIR_BYTES_PER_PAIR
+    available, total = available_memory(), total_memory()
+    allow = bool(getattr(getattr(cfg, "guard", None), "allow_large", False))
+    keys = "collision.hair_hair"
+    what = (f"exact hair-hair contact lists about {pairs:.3g} candidate edge pairs of this hair (edges whose boxes, "
+            f"grown by collision.hair_thickness + collision.skin, overlap), about {_size(need)} of memory")
+    fix = ("use collision.hair_hair_model=volume (the grid model, memory linear in the hair), fewer strands "
+           "(scene.n_strands) or a wider bundle")
+    if total is not None and need > total:
+        raise InputError(f"{what}, more than the machine has ({_size(total)} of memory and swap): {fix}", keys)
+    if available is not None and need > available:
+        if not allow:
+            raise InputError(f"{what} but {_size(available)} is available: {fix}, or set guard.allow_large=true to "
+                             "run anyway", keys)
+        log.warning("%s: %s but %s is available (guard.allow_large=true: running anyway)", keys, what,
+                    _size(available))
