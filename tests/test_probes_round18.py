@@ -360,6 +360,7 @@ def test_one_note_per_error_of_the_failed_ending(tmp_path, monkeypatch):
 
         class table:
             steps = 3
+            written = None   # nothing written yet (round 32)
             flush = write = staticmethod(lambda *a: fail())
             frame = staticmethod(lambda: None)
 
