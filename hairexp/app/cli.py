@@ -823,7 +823,7 @@ def duplicate_key_error(argv: list[str]) -> str | None:
     for i, arg in enumerate(argv):
         if arg.startswith("-") or "=" not in arg or _is_value(argv, i):
             continue
-        key = arg.split("=", 1)[0].lstrip("+~")
+        key = _key_of(arg)
         if not (key.startswith("hydra.") or key == "overwrite"):
             continue
         if key in seen:
@@ -1569,7 +1569,7 @@ def _list_key_error(overrides: list[str], exc: Exception) -> str | None:
     if m is None:
         return None
     for o in overrides:
-        key = o.split("=", 1)[0].lstrip("+~")
+        key = _key_of(o)
         parts = key.split(".")
         if m.group(1) in parts[1:]:
             at = parts.index(m.group(1), 1)

@@ -232,11 +232,16 @@ def own_result(sinks, p: Path) -> None:
     sinks.written.append(p)
 
 
+def _taken(p: Path) -> bool:
+    """Whether something (a file, a folder, a link, even a broken one) is at ``p``."""
+    return p.exists() or p.is_symlink()
+
+
 def name_free(p: Path) -> None:
     """An OSError when something is at ``p``, the name a file of this run is about to take: it is
     another process's, made while the run went on (``own_result``; the run's metrics.parquet
     replaced a user's file of that name, exit 0; independent probe of issue 12, round 32)."""
-    if p.exists() or p.is_symlink():
+    if _taken(p):
         kind = "folder" if p.is_dir() and not p.is_symlink() else "file"
         raise OSError(f"{p}: a {kind} of that name appeared in the run folder while the run went on (not this "
                       "run's; left as it is), so the result cannot take its name")
@@ -542,7 +547,7 @@ def write_refused(cfg, out, error: str, status: str = "failed",
     try:
         summary_path = out / SUMMARY
         if not out.is_dir() or used_entries(out) or (
-                (summary_path.exists() or summary_path.is_symlink()) and not refused_summary(summary_path)):
+                _taken(summary_path) and not refused_summary(summary_path)):
             return   # no folder (moved away mid-run, never made), or another run's (an earlier refusal's: replaced)
         try:
             plain = to_plain(cfg)
@@ -634,8 +639,7 @@ def _end_unfinished(exc: BaseException, sinks: _Sinks, out: Path, scene_name: st
         mp = out / "metrics.parquet"
         mine = sinks.table.written is not None and sinks.table.written.path == mp
         # a file of that name that is not this run's is left as it is (name_free): the rows stay in stream/
-        taken = not mine and (mp.exists() or mp.is_symlink())
-        df = None if taken else attempt("metrics.parquet", lambda: sinks.table.write(mp))
+        df = None if not mine and _taken(mp) else attempt("metrics.parquet", lambda: sinks.table.write(mp))
         if df is not None:
             attempt("metrics", lambda: shutil.rmtree(out / STREAM / "metrics", ignore_errors=True))   # in the parquet now
         else:   # the parquet could not be written: the summary from the parts kept in stream/
