@@ -314,3 +314,24 @@ def test_exact_hair_hair_that_cannot_fit_in_memory_is_refused_before_the_run():
         check_config(compose_config(base))
     check_config(compose_config(base + ["collision.hair_hair_model=volume"]))
     check_config(compose_config(base + ["controller=skinned"]))
+
+
+def test_hair_hair_over_the_available_memory_with_allow_large_warns_once(monkeypatch, caplog):
+    """guard.allow_large=true: the warning is said once, though a run's checks and an experiment's
+    both check the config (the allow_large warnings of the other estimates are said once alike)."""
+    import logging
+
+    from hairexp.app import compose_config, guard
+    from hairexp.app.assemble import check_config
+
+    monkeypatch.setattr(guard, "available_memory", lambda: 1e6)
+    monkeypatch.setattr(guard, "total_memory", lambda: 1e15)
+    monkeypatch.setattr(guard, "_ANNOUNCED", set())
+    cfg = compose_config(["experiment=goaling_smoke", "variants=[]", "collision.hair_hair=true", "scene.n_strands=300",
+                          "guard.allow_large=true"])
+    with caplog.at_level(logging.WARNING, logger="hairexp.app.guard"):
+        check_config(cfg)
+        check_config(cfg)
+    said = [r.getMessage() for r in caplog.records if "candidate edge pairs" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("collision.hair_hair: exact hair-hair contact lists about"), said
+    assert said[0].endswith("(guard.allow_large=true: running anyway)")

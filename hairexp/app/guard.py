@@ -40,6 +40,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from hairexp.errors import InputError
+from hairexp.physics.collisions import bounding_spheres, edge_boxes
 from hairexp.physics.settle import settle_seconds, settle_step
 
 log = logging.getLogger(__name__)
@@ -190,12 +191,8 @@ def check(est: Estimate, keys: str, allow_large: bool, available: float | None, 
     unless ``allow_large``; warn about a long run.  More than ``total`` bytes (the machine's memory
     and swap, ``total_memory``) is refused even with ``allow_large``: such a run can only end
     killed by the out-of-memory killer, its summary left running (probe of issue 12, round 13)."""
-    def refuse(msg: str, kind: str) -> None:   # an InputError, or with allow_large a warning
-        if not allow_large:
-            raise InputError(msg, keys)
-        if (keys, kind, folder) not in _ANNOUNCED:   # once a run: its checks and its run both estimate it
-            _ANNOUNCED.add((keys, kind, folder))
-            log.warning("%s: %s (guard.allow_large=true: running anyway)", keys, msg)
+    def refuse(msg: str, kind: str) -> None:
+        _refuse(msg, keys, kind, allow_large, folder)
 
     if allow_large and total is not None and est.memory > total:
         raise InputError(f"the run would need about {_size(est.memory)} of memory, more than the machine has "
@@ -230,6 +227,16 @@ def check(est: Estimate, keys: str, allow_large: bool, available: float | None, 
         if said not in _ANNOUNCED:
             _ANNOUNCED.add(said)
             log.warning("%s", said + (f", of {_size(available)} available)" if large else ")"))
+
+
+def _refuse(msg: str, keys: str, kind: str, allow_large: bool, folder: str | None = None) -> None:
+    """An InputError naming ``keys``, or with ``allow_large`` a warning, said once a run (its
+    checks and its run both estimate it)."""
+    if not allow_large:
+        raise InputError(msg, keys)
+    if (keys, kind, folder) not in _ANNOUNCED:
+        _ANNOUNCED.add((keys, kind, folder))
+        log.warning("%s: %s (guard.allow_large=true: running anyway)", keys, msg)
 
 
 #: the long-run warnings (their text) and allow_large warnings already logged by this process
@@ -302,9 +309,7 @@ def hair_hair_pairs(rest: np.ndarray, edges: np.ndarray, radius: float) -> float
     ``HairHair._box_pairs``) lists for the hair at ``rest``: boxes of the edges grown by
     ``radius`` (thickness + skin), whose bounding spheres' centres are binned into cells of their
     largest query distance; O(edges), where an exact count is quadratic in a dense bundle."""
-    a, b = rest[edges[:, 0]], rest[edges[:, 1]]
-    lo, hi = np.minimum(a, b) - 0.5 * radius, np.maximum(a, b) + 0.5 * radius
-    c, r = 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo, axis=1)
+    c, r = bounding_spheres(*edge_boxes(rest[edges[:, 0]], rest[edges[:, 1]], radius))
     if len(c) < 2:
         return 0.0
     _, counts = np.unique(np.floor(c / (2.0 * float(r.max()))).astype(np.int64), axis=0, return_counts=True)
@@ -333,8 +338,5 @@ def guard_hair_hair(cfg, rest: np.ndarray, edges: np.ndarray) -> None:
     if total is not None and need > total:
         raise InputError(f"{what}, more than the machine has ({_size(total)} of memory and swap): {fix}", keys)
     if available is not None and need > available:
-        if not allow:
-            raise InputError(f"{what} but {_size(available)} is available: {fix}, or set guard.allow_large=true to "
-                             "run anyway", keys)
-        log.warning("%s: %s but %s is available (guard.allow_large=true: running anyway)", keys, what,
-                    _size(available))
+        _refuse(f"{what} but {_size(available)} is available: {fix}, or set guard.allow_large=true to run anyway", keys,
+                "hair-hair memory", allow)

@@ -143,6 +143,16 @@ def object_positions(colliders, x0, x1, t0, t1, dt, movable, friction: bool = Tr
     return x1, contacts, per
 
 
+def edge_boxes(a: np.ndarray, b: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi): the axis-aligned boxes of the edges a[i] - b[i], grown by ``radius`` / 2 on every side."""
+    return np.minimum(a, b) - 0.5 * radius, np.maximum(a, b) + 0.5 * radius
+
+
+def bounding_spheres(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(centres, radii) of the spheres around the boxes ``lo``-``hi``."""
+    return 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo, axis=1)
+
+
 class HairHair:
     def __init__(self, strands, thickness: float, skin: float = 0.003):
         self.E = strands.edges
@@ -234,7 +244,7 @@ class HairHair:
         and their distances."""
         E = self.E
         a, b = X[E[:, 0]], X[E[:, 1]]
-        pairs = self._box_pairs(np.minimum(a, b) - 0.5 * radius, np.maximum(a, b) + 0.5 * radius)
+        pairs = self._box_pairs(*edge_boxes(a, b, radius))
         pairs = pairs[self._not_adjacent(pairs)]
         i, j = pairs[:, 0], pairs[:, 1]
         s, t = _closest_segment_params(a[i], b[i], a[j], b[j])
@@ -263,7 +273,7 @@ class HairHair:
         between classes; then the exact box test."""
         if len(lo) < 2:
             return np.zeros((0, 2), dtype=np.int64)
-        c, r = 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo, axis=1)
+        c, r = bounding_spheres(lo, hi)
         bounds = np.unique(np.quantile(r, CLASS_QUANTILES))
         cls = np.minimum(np.searchsorted(bounds, r), len(bounds) - 1)
         idx = np.arange(len(c))
