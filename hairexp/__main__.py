@@ -227,6 +227,16 @@ def entry() -> int:
         return 2
     except KeyboardInterrupt as exc:
         code = exit_code(exc.signum) if isinstance(exc, Interrupted) else 130
+        if cli.sweep_completed():
+            # the signal came as the last jobs ended: their lines said "2 of 2 jobs completed" on stdout
+            # and this one "interrupted" on stderr (independent probe of issue 12, round 34); exit 128 + n
+            # as a single run that had completed before its signal (cli._signalled_after)
+            name = signal.Signals(exc.signum if isinstance(exc, Interrupted) else signal.SIGINT).name
+            cli.clear_stop_mark()
+            cli.exit_code()
+            print(f"hairexp: {name} after every job of the sweep had completed; nothing was interrupted, their "
+                  f"results are whole", file=sys.stderr)
+            return code
         # outside a run (a run prints its own line): while the config was composed, or between sweep jobs
         what = str(exc) if isinstance(exc, Interrupted) and str(exc) else "interrupted by SIGINT"
         where = _say_in_run_folder(what)

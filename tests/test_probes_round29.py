@@ -11,17 +11,17 @@ def test_an_append_only_run_folder_is_one_line(tmp_path, monkeypatch):
     writability probe's folder could not be removed, and TemporaryDirectory's clean-up ended in a
     RecursionError traceback of 6,615 lines, exit 1, the probe folder left behind.  An append-only
     parent takes new folders: a run folder made in it is not refused."""
-    from hairexp.app import cli
+    from hairexp.outputs import folder as cli   # where the check lives (the command line imports it)
 
     run = tmp_path / "run"
     run.mkdir()
     monkeypatch.setattr(cli, "pinned", lambda p: "append-only (chattr +a)" if p == run else None)
-    assert cli._unusable_folder(str(run)) == (f"{run} is append-only (chattr +a): a run replaces and removes its "
+    assert cli.unusable_folder(str(run)) == (f"{run} is append-only (chattr +a): a run replaces and removes its "
                                               "files in its folder")
-    assert cli._unusable_folder(str(run / "outputs" / "x")) is None   # made inside it: not tried there
+    assert cli.unusable_folder(str(run / "outputs" / "x")) is None   # made inside it: not tried there
     assert list(run.iterdir()) == []
     monkeypatch.setattr(cli, "pinned", lambda p: "immutable (chattr +i)" if p == run else None)
-    assert cli._unusable_folder(str(run / "x")) == f"{run} is immutable (chattr +i): no folder can be made in it"
+    assert cli.unusable_folder(str(run / "x")) == f"{run} is immutable (chattr +i): no folder can be made in it"
 
 
 def test_an_export_into_an_append_only_folder_is_refused_before_it_writes(tmp_path, monkeypatch):

@@ -53,7 +53,8 @@ from hairexp.outputs.files import atomic_write_bytes, stream_frames, write_json
 from hairexp.outputs.metrics import read_parts
 from hairexp.outputs.folder import (LOCK, OUTCOME, RESERVE, RUN_DIRS, RUN_FILES, STREAM, SUMMARY, held_elsewhere, hold,
                                     hydra_link_refusal, note_job_logs, overwrite_refusal, owner, pinned,
-                                    refused_summary, running_run, used_entries, used_refusal)
+                                    refused_summary, reserved_part, running_run, unusable_folder, used_entries,
+                                    used_refusal)
 
 log = logging.getLogger("hairexp")
 #: in a sweep folder while its main process stops the sweep: the signal's name (SIGTERM, SIGINT)
@@ -494,6 +495,14 @@ def _end_killed_jobs(rows: list, signum: int | None, workers_gone: bool = False)
         _write_outcome(d, res)
 
 
+def sweep_completed() -> bool:
+    """True in a sweep whose every job has run and ended completed (its outcome in Hydra's record)."""
+    if SWEEP_DIR is None or not SWEEP_DIR.is_dir():
+        return False
+    rows = sweep_outcomes(SWEEP_DIR)
+    return bool(rows) and len(rows) >= (SWEEP_TOTAL or 0) and all(r[2].get("status") == "completed" for r in rows)
+
+
 def exit_code(signum: int | None = None, workers_gone: bool = False) -> int:
     """The process's exit code after Hydra returned: a single run's, or a sweep's (one line per
     job printed; the first failing job's code).  ``signum``: the signal that stopped the sweep;
@@ -522,11 +531,6 @@ def exit_code(signum: int | None = None, workers_gone: bool = False) -> int:
     return 0 if LAST is None else int(LAST["code"])
 
 
-#: free disk a run folder's filesystem must have before Hydra starts: Hydra's .hydra/ files, the
-#: running summary and the room held for the ending (hairexp/outputs/folder.py RESERVE_BYTES)
-MIN_FREE_BYTES = 256 << 10
-
-
 #: the smallest file-size limit (RLIMIT_FSIZE, ``ulimit -f``) a run starts under: Hydra's own
 #: .hydra/config.yaml (4-5 kB) and the run's summary.json (about 10 kB) must fit
 MIN_FILE_SIZE_LIMIT = 64 << 10
@@ -545,64 +549,6 @@ def file_size_limit_error(argv: list[str]) -> str | None:
     return (f"hairexp: error: the process's file-size limit (ulimit -f) is {soft} bytes, less than the "
             f"{MIN_FILE_SIZE_LIMIT >> 10} kB a run needs to write its first files (Hydra's .hydra/config.yaml, "
             "summary.json); raise it (ulimit -f unlimited)")
-
-
-#: names a run folder keeps for Hydra's record and the launch lock (hairexp/outputs/folder.py)
-RESERVED_NAMES = (".hydra", ".lock")
-
-
-def reserved_part(path: str) -> str | None:
-    """Why ``path`` cannot be a run, sweep or job folder when one of its parts is a name a run
-    folder keeps for itself (``.hydra``, ``.lock``), or None: a run in ``<dir>/.hydra`` was taken
-    for Hydra's record of ``<dir>``, which a later run then found empty and wrote into (probe of
-    issue 12, round 12)."""
-    bad = next((part for part in Path(path).parts if part in RESERVED_NAMES), None)
-    if bad is None:
-        return None
-    return f"its part {bad} is a name a run folder keeps for {'Hydra' if bad == '.hydra' else 'the launch lock'}"
-
-
-def _unusable_folder(path: str) -> str | None:
-    """Why ``path`` cannot be (or be made) a writable folder, or None.  Nothing is left behind:
-    writability is tried with a temporary folder, removed at once."""
-    p = Path(os.path.abspath(path))
-    reserved = reserved_part(path)
-    if reserved is not None:
-        return reserved
-    probe = p
-    try:
-        while True:   # the deepest part of the path that exists
-            try:
-                os.stat(probe)
-                break
-            except FileNotFoundError:
-                if os.path.islink(probe):   # mkdir then failed with FileExistsError's traceback (probe of issue 12)
-                    return f"{probe} is a symbolic link to {os.readlink(probe)}, which does not exist"
-                if probe.parent == probe:
-                    return f"{probe} does not exist"
-                probe = probe.parent
-            except NotADirectoryError:   # a file on the way: its parent exists
-                probe = probe.parent
-            except PermissionError:
-                return f"{probe} cannot be reached: permission denied"
-        if not probe.is_dir():
-            return f"{probe} is a file" if probe == p else f"{probe} is a file, not a folder to create it in"
-        # append-only (chattr +a): the probe folder could not be removed, and TemporaryDirectory's clean-up
-        # recursed into a RecursionError traceback of 6,615 lines (independent probe of issue 12, round 29)
-        why = pinned(probe)
-        if why is not None and (probe == p or why.startswith("immutable")):
-            return f"{probe} is {why}: a run replaces and removes its files in its folder" if probe == p else \
-                f"{probe} is {why}: no folder can be made in it"
-        if why is None:   # (an append-only parent takes new folders: not tried, its probe could not be removed)
-            os.rmdir(tempfile.mkdtemp(dir=probe, prefix=".hairexp-probe-"))
-        st = os.statvfs(probe)
-        free = st.f_bavail * st.f_frsize
-        if free < MIN_FREE_BYTES:   # Hydra's own .hydra/ writes would fail with a traceback, exit 1 (probe of issue 12)
-            return f"its disk has {free / 1024:.0f} kB free, less than the {MIN_FREE_BYTES >> 10} kB a run needs to start"
-    except OSError as exc:
-        why = exc.strerror or errno.errorcode.get(exc.errno or 0, type(exc).__name__)
-        return f"cannot create a folder in {probe}: {why}" if probe != p else f"cannot write in {p}: {why}"
-    return None
 
 
 def _default_dir(key: str) -> str | None:
@@ -1427,7 +1373,7 @@ def run_dir_error(argv: list[str]) -> str | None:
                     f"{missing} on the way and leave it empty; write the path without '..' "
                     f"({os.path.normpath(value) if '${' not in value else 'normalised'})")
         path = _static_part(value)
-        why = None if path is None else _unusable_folder(path)
+        why = None if path is None else unusable_folder(path)
         if why is not None:
             return f"hairexp: error: {key}={o.value()}: cannot be the run folder: {why}"
 
@@ -1435,7 +1381,7 @@ def run_dir_error(argv: list[str]) -> str | None:
                              for a in argv):
         default = _default_dir(key)
         path = None if default is None else _static_part(default)
-        why = None if path is None else _unusable_folder(path)
+        why = None if path is None else unusable_folder(path)
         if why is not None:
             return (f"hairexp: error: the default run folder {path.rstrip('/')}/... ({key}, under the working folder "
                     f"{os.getcwd()}) cannot be the run folder: {why}; run from a writable folder or set {key}")

@@ -773,7 +773,7 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
             raise
         key = unknown.group(1)
         inner = re.search(r"Key '([^']+)' not in '(\w+)'", str(exc.__cause__ or exc.__context__ or ""))
-        if inner and inner.group(1) != key.rsplit(".", 1)[-1]:
+        if inner and inner.group(1) not in key.split("."):
             # a key inside a record of the value (a variant's, an edit's, a collider's), named with the
             # record's fields (it said "variants: unknown key ...; did you mean 'variants'?")
             t = globals().get(inner.group(2))

@@ -12,7 +12,7 @@ import numpy as np
 from hairexp.app.config import GuidesConfig
 from hairexp.model.builders import check_counts
 from hairexp.errors import ExtentError, InputError, SimulationError, regular_file
-from hairexp.guides.animation import GuideAnimation, carried_guides, file_guides, rest_guides
+from hairexp.guides.animation import EDITS_MEMBER, GuideAnimation, carried_guides, file_guides, rest_guides
 from hairexp.guides.authoring import apply_edits, keyframed_positions
 from hairexp.guides.store import FrameStore
 from hairexp.model.dynamic_body import authoring_motion
@@ -93,7 +93,7 @@ def check_guide_file(path) -> None:
     try:
         with zipfile.ZipFile(path) as z:
             stems = (n[:-4] if n.endswith(".npy") else n for n in z.namelist())
-            others = sorted(n for n in stems if n not in GUIDE_FILE_KINDS)
+            others = sorted(n for n in stems if n not in GUIDE_FILE_KINDS and n != EDITS_MEMBER)
             headers = {}
             for name in GUIDE_FILE_KINDS:
                 if f"{name}.npy" not in z.namelist():
@@ -176,6 +176,14 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
                               "solver.dt, more solver.max_iterations, or another guides.source)") from exc
 
 
+def edits_summary(edits) -> str:
+    """``guides.edits`` in one line: each edit's kind, guides and key times."""
+    def one(e) -> str:
+        kind = str(getattr(e.kind, "value", e.kind))
+        return f"{kind} of guide {e.guide} keyed at {[float(t) for t in e.times]} s"
+    return f"{len(edits)} edit{'s' if len(edits) != 1 else ''}: " + "; ".join(one(e) for e in edits)
+
+
 def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     """The guide animation a run tracks and saves as guides.npz: the source's
     (``source_guides``) with the authored edits ``guides.edits`` applied in order
@@ -190,9 +198,17 @@ def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
         raise InputError(f"{str(exc).split(': ', 1)[1]}; these guides are built from scene.length, scene.root_center, "
                          "scene.root_radius x guides.layout_radius and the body's motion (scene.motion): check those "
                          "values", "guides") from exc
+    if cfg.guides.edits and anim.edits_applied:
+        logging.getLogger("hairexp").warning(
+            "guides.file=%s was saved by a run that had applied its guides.edits (%s); this run's %d guides.edits "
+            "are applied to it again: give guides.edits=[] to track the file as it is",
+            cfg.guides.file, anim.edits_applied, len(cfg.guides.edits))
     if cfg.guides.edits:
+        done = edits_summary(cfg.guides.edits)
         pos = apply_edits(anim.frames, anim.offsets, anim.fps, authoring_motion(scene.motion), cfg.guides.edits)
+        before = anim.edits_applied
         anim = GuideAnimation(pos, anim.offsets, anim.fps, where="guides.edits", motion=scene.motion)
+        anim.edits_applied = f"{before}; then {done}" if before else done
     anim.interpolation = str(getattr(cfg.guides.interpolation, "value", cfg.guides.interpolation))
     if str(getattr(cfg.controller.name, "value", cfg.controller.name)) != "free":
         warn_far_guides(scene, anim, frames)

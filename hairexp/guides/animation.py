@@ -67,6 +67,10 @@ class GuideAnimation:
     #: 2 (x_g - x_n) / tau - v_n doubled each jump of the targets' velocity and the hair rang between
     #: the stages (README "Tracking performance")
     interpolation: str = "catmull_rom"
+    #: a one-line account of the ``guides.edits`` already applied to these positions ("" for none):
+    #: saved in guides.npz (``EDITS_MEMBER``) so that a run tracking that file again with the
+    #: experiment's edits is warned that they are applied twice (probe of issue 12, round 34)
+    edits_applied: str = ""
 
     def __init__(self, positions, offsets, fps: float, where: str = "guides", motion=None):
         self.where, self.fps = where, fps
@@ -180,7 +184,8 @@ class GuideAnimation:
                 step = max(1, BLOCK_BYTES // max(1, 24 * self.frames.shape[1]))
                 for start in range(0, self.n_frames, step):
                     dst.write(np.ascontiguousarray(self.frames[start:start + step]))
-            for name, a in (("guide_offsets", self.offsets), ("fps", np.asarray(self.fps))):
+            extra = ((EDITS_MEMBER, np.asarray(self.edits_applied)),) if self.edits_applied else ()
+            for name, a in (("guide_offsets", self.offsets), ("fps", np.asarray(self.fps))) + extra:
                 with zf.open(f"{name}.npy", "w", force_zip64=True) as dst:
                     np.lib.format.write_array(dst, np.asanyarray(a), allow_pickle=False)
 
@@ -226,6 +231,9 @@ def rest_guides(scene_cfg, count: int, n_vertices: int, layout_radius: float) ->
     return np.concatenate([r0 + s[:, None] * d for r0 in roots])
 
 
+#: the optional member of a guide npz saying which guides.edits made it (a string; ``edits_applied``)
+EDITS_MEMBER = "edits_applied"
+
 #: how the files np.load reads begin: an npz is a zip archive, a .npy has its own magic
 ZIP_MAGIC, NPY_MAGIC = b"PK\x03\x04", b"\x93NUMPY"
 #: a zip archive with no member begins with its end-of-central-directory record
@@ -246,6 +254,23 @@ def npz_kind(path: Path, where: str) -> None:
     if not (head.startswith(ZIP_MAGIC) or head.startswith(NPY_MAGIC)):
         raise InputError(f"is not an npz file (a zip archive of .npy arrays, as np.savez writes): it begins "
                          f"with {head!r}", where)
+
+
+def unreadable_npz(path: Path, exc: BaseException) -> str:
+    """What is wrong with an npz that np.load could not read: a zip archive that ends early (a
+    copy or download cut short: its central directory, at the end, is missing), or whose members
+    are damaged (CRC, deflate or header errors), named as such with the reader's own words."""
+    import zipfile
+    import zlib
+
+    size = path.stat().st_size if path.exists() else 0
+    said = f"{type(exc).__name__}: {exc}"
+    if isinstance(exc, zipfile.BadZipFile) and "not a zip file" in str(exc):
+        return (f"is truncated or corrupt: it begins as an npz (a zip archive) but its end, the archive's "
+                f"directory, is missing ({size} bytes; a copy or download cut short?); the reader said {said}")
+    if isinstance(exc, (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError)):
+        return f"is corrupt or truncated: an array in it cannot be read ({size} bytes); the reader said {said}"
+    return f"cannot read guide animation: {said}"
 
 
 def file_guides(path, motion, frames: int | None = None, fps: float | None = None) -> GuideAnimation:
@@ -270,13 +295,17 @@ def file_guides(path, motion, frames: int | None = None, fps: float | None = Non
             if np.size(gfps) != 1:
                 raise InputError(f"fps must be one number, got an array of shape {np.shape(gfps)}", where)
             gfps = float(np.asarray(gfps).reshape(-1)[0])
+            edited = str(np.asarray(data[EDITS_MEMBER]).reshape(-1)[0]) \
+                if EDITS_MEMBER in data.files and np.asarray(data[EDITS_MEMBER]).dtype.kind == "U" \
+                and np.size(data[EDITS_MEMBER]) == 1 else ""
     except InputError:
         raise
     except Exception as exc:   # a truncated, corrupt or empty file: zipfile, pickle, EOF and shape errors
-        raise InputError(f"cannot read guide animation: {type(exc).__name__}: {exc}", where) from exc
+        raise InputError(unreadable_npz(path, exc), where) from exc
     if np.ndim(pos) == 3 and len(pos) and np.asarray(pos).dtype.kind in "iuf":   # kept out of memory for the run
         pos = FrameStore.of(np.asarray(pos, dtype=np.float64))
     anim = GuideAnimation(pos, off, gfps, where=str(path), motion=motion)
+    anim.edits_applied = edited
     if frames is not None and fps is not None and frames / fps > (anim.n_frames - 1) / anim.fps + 1e-9:
         raise InputError(f"has frames 0..{anim.n_frames - 1} ({(anim.n_frames - 1) / anim.fps:g} s at {anim.fps:g} fps) "
                          f"but the run needs {frames} frames at {fps:g} fps ({frames / fps:g} s)", where)

@@ -19,6 +19,7 @@ import json
 import os
 import shutil
 import socket
+import tempfile
 from pathlib import Path
 
 from hairexp.errors import InputError
@@ -587,3 +588,66 @@ def remove_tmp(folder: Path) -> None:
         for p in folder.rglob("*.tmp*"):
             if p.is_file():
                 p.unlink(missing_ok=True)
+
+
+#: free disk a run folder's filesystem must have before Hydra starts: Hydra's .hydra/ files, the
+#: running summary and the room held for the ending (hairexp/outputs/folder.py RESERVE_BYTES)
+MIN_FREE_BYTES = 256 << 10
+
+
+#: names a run folder keeps for Hydra's record and the launch lock (hairexp/outputs/folder.py)
+RESERVED_NAMES = (".hydra", ".lock")
+
+
+def reserved_part(path: str) -> str | None:
+    """Why ``path`` cannot be a run, sweep or job folder when one of its parts is a name a run
+    folder keeps for itself (``.hydra``, ``.lock``), or None: a run in ``<dir>/.hydra`` was taken
+    for Hydra's record of ``<dir>``, which a later run then found empty and wrote into (probe of
+    issue 12, round 12)."""
+    bad = next((part for part in Path(path).parts if part in RESERVED_NAMES), None)
+    if bad is None:
+        return None
+    return f"its part {bad} is a name a run folder keeps for {'Hydra' if bad == '.hydra' else 'the launch lock'}"
+
+
+def unusable_folder(path: str) -> str | None:
+    """Why ``path`` cannot be (or be made) a writable folder, or None.  Nothing is left behind:
+    writability is tried with a temporary folder, removed at once."""
+    p = Path(os.path.abspath(path))
+    reserved = reserved_part(path)
+    if reserved is not None:
+        return reserved
+    probe = p
+    try:
+        while True:   # the deepest part of the path that exists
+            try:
+                os.stat(probe)
+                break
+            except FileNotFoundError:
+                if os.path.islink(probe):   # mkdir then failed with FileExistsError's traceback (probe of issue 12)
+                    return f"{probe} is a symbolic link to {os.readlink(probe)}, which does not exist"
+                if probe.parent == probe:
+                    return f"{probe} does not exist"
+                probe = probe.parent
+            except NotADirectoryError:   # a file on the way: its parent exists
+                probe = probe.parent
+            except PermissionError:
+                return f"{probe} cannot be reached: permission denied"
+        if not probe.is_dir():
+            return f"{probe} is a file" if probe == p else f"{probe} is a file, not a folder to create it in"
+        # append-only (chattr +a): the probe folder could not be removed, and TemporaryDirectory's clean-up
+        # recursed into a RecursionError traceback of 6,615 lines (independent probe of issue 12, round 29)
+        why = pinned(probe)
+        if why is not None and (probe == p or why.startswith("immutable")):
+            return f"{probe} is {why}: a run replaces and removes its files in its folder" if probe == p else \
+                f"{probe} is {why}: no folder can be made in it"
+        if why is None:   # (an append-only parent takes new folders: not tried, its probe could not be removed)
+            os.rmdir(tempfile.mkdtemp(dir=probe, prefix=".hairexp-probe-"))
+        st = os.statvfs(probe)
+        free = st.f_bavail * st.f_frsize
+        if free < MIN_FREE_BYTES:   # Hydra's own .hydra/ writes would fail with a traceback, exit 1 (probe of issue 12)
+            return f"its disk has {free / 1024:.0f} kB free, less than the {MIN_FREE_BYTES >> 10} kB a run needs to start"
+    except OSError as exc:
+        why = exc.strerror or errno.errorcode.get(exc.errno or 0, type(exc).__name__)
+        return f"cannot create a folder in {probe}: {why}" if probe != p else f"cannot write in {p}: {why}"
+    return None
