@@ -358,7 +358,13 @@ class TRBDF2:
     -0.14 tracked), and the first stage's Hessian in the BDF2 stage (same M/h^2): as its first
     direction 3.34 -> 7.05 iterations, as every direction (chord) most steps do not converge.
     Even a first iterate 100 x closer than x_pred leaves 2.2 (free) and 2.7 (tracked) iterations
-    a stage: the stiff stretch springs, not the predictor, set the count."""
+    a stage: the stiff stretch springs, not the predictor, set the count.  A looser first stage
+    (2026-12-06, section 6 of the report: its rtol 0.3, the BDF2 stage's 1e-5) saves about one
+    evaluation a step (evaluations ratio 1.85 -> 1.61 free, 2.01 -> 1.78 tracked; end positions
+    within 2.4e-5 m of the converged run's), still far from 1.3; stopping it after one iteration
+    (a linearly implicit trapezoidal stage) diverges: 34.6 (free) and 48.6 (tracked) iterations in
+    the BDF2 stage, 0.29-0.51 m off, since the trapezoidal rule (|r| = 1) does not damp the stiff
+    modes its unconverged solve leaves."""
 
     name = "trbdf2"
     gamma = TRBDF2_GAMMA
