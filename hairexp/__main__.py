@@ -234,12 +234,18 @@ def entry() -> int:
             name = signal.Signals(exc.signum if isinstance(exc, Interrupted) else signal.SIGINT).name
             cli.clear_stop_mark()
             cli.exit_code()
-            print(f"hairexp: {name} after every job of the sweep had completed; nothing was interrupted, their "
-                  f"results are whole", file=sys.stderr)
+            # worded for either order: the signal may have come before the jobs' last steps, which then
+            # completed (it said "after every job had completed"; independent probe, round 35)
+            print(f"hairexp: {name}: every job of the sweep completed before it could be stopped; nothing was "
+                  f"interrupted, their results are whole", file=sys.stderr)
             return code
         # outside a run (a run prints its own line): while the config was composed, or between sweep jobs
         what = str(exc) if isinstance(exc, Interrupted) and str(exc) else "interrupted by SIGINT"
         where = _say_in_run_folder(what)
+        if where is None and cli.SWEEP_DIR is None and cli.LAST is None and unhold_unused():
+            # while Hydra started, before it wrote anything: a bare "interrupted by SIGTERM", and the run
+            # folder left holding only the launch's .lock (independent probe of issue 12, round 35)
+            where = "while starting; nothing was run or written"
         print(f"hairexp: {what}{f' ({where})' if where else ''}", file=sys.stderr)
         cli.clear_stop_mark()   # the launcher has torn its workers down
         cli.exit_code(exc.signum if isinstance(exc, Interrupted) else 2)   # a sweep's jobs so far

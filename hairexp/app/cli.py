@@ -44,8 +44,8 @@ from hairexp.app.config import (CONF_DIR, check_bool_overrides, check_interpolat
                                 compose_config, unknown_key_hint)
 from hairexp.app.experiment import apply_overrides, run_experiment
 from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, metrics_summary, to_log_files, write_refused
-from hairexp.app.validate import unused_settings
-from hairexp.app.signals import SIGNALS, forward, take_late, worker_pids
+from hairexp.app.validate import unused_settings, validate_config
+from hairexp.app.signals import SIGNALS, forward, take_late, watch_stop_file, worker_pids
 from hairexp.app.streams import guard_streams
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
@@ -131,6 +131,9 @@ def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overri
     guard_streams()
     note_job_logs(Path(out))   # what its logs hold now is a previous run's (overwrite=true drops it)
     if sweep:
+        # the sweep's stop mark is read between steps too: a signal forwarded while the job was starting
+        # could be lost (independent probe of issue 12, round 35)
+        watch_stop_file(None if sweep_dir is None else Path(sweep_dir) / STOP_MARK)
         stopped = _stopped_by(sweep_dir)
         if stopped is not None:
             msg = f"interrupted by {stopped} before the job started"
@@ -260,7 +263,8 @@ def _say_unused(cfg, overrides) -> None:
                 log.warning("variant %s: %s not used by it", v.name, ", ".join(own))
     unused = unused_settings(runs, keys)
     if not cfg.get("variants"):   # a judge compares an experiment's variants (silent; independent probe, round 22)
-        judged = [k for k in dict.fromkeys(k.lstrip("+~") for k in keys) if k in ("judge", "judge_tolerance")]
+        judged = [k for k in dict.fromkeys(k.lstrip("+~") for k in keys) if k in ("judge", "judge_tolerance")
+                  and not any(u.startswith(f"{k} (") for u in unused)]
         if judged:
             unused.append(f"{', '.join(judged)} (read with variants: a judge compares an experiment's variants; "
                           "variants=[] runs the base config alone)")
@@ -1484,8 +1488,12 @@ def _variant_overrides_error(overrides: list[str]) -> str | None:
     a variant with ``foo=1`` or ``solver.dt=abc``, exit 0; independent probe of issue 12, round 28)."""
     try:
         cfg = compose_config(overrides)
-        for i, v in enumerate(cfg.get("variants") or []):
-            apply_overrides(cfg, list(v.overrides), f"variants[{i}] ({v.name})")
+        runs = [apply_overrides(cfg, list(v.overrides), f"variants[{i}] ({v.name})")
+                for i, v in enumerate(cfg.get("variants") or [])]
+        # and their values' ranges, as a run checks them first (``solver.dt=-1`` was printed, exit 0;
+        # independent probe of issue 12, round 35): no file is read, nothing is built
+        for run in runs or [cfg]:
+            validate_config(run)
     except InputError as exc:
         return str(exc)
     except Exception:  # noqa: BLE001  (compose_error's)

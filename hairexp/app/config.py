@@ -481,6 +481,9 @@ def require_config(cfg, where: str) -> None:
     if missing:
         raise InputError(f"missing from the config given to {where} (compose it with hairexp.app.compose_config)",
                          ", ".join(missing))
+    # a key added under open_dict (cfg.solver.foo = 1) ran and was never refused (independent probe of
+    # issue 12, round 35): the command line and compose_config refused it
+    check_keys(cfg)
 
 
 def check_sections(cfg) -> None:

@@ -37,7 +37,7 @@ import numpy as np
 
 from hairexp.app.assemble import assemble, check_config
 from hairexp.app.config import to_plain
-from hairexp.app.signals import InterruptSignals, note_late
+from hairexp.app.signals import InterruptSignals, note_late, stop_requested
 from hairexp.errors import InputError, Interrupted, SimulationError
 from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
@@ -398,6 +398,9 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
                 with signals.whole():
                     sinks.flush()
                 last_flush, frames_since = time.monotonic(), 0
+        stop = stop_requested()   # a sweep stopped while its signal could be lost (hairexp/app/signals.py)
+        if stop is not None:      # after the step's row: it is kept with the others
+            raise Interrupted(stop)
     with signals.whole():
         sinks.flush(final=True)
     progress.close()

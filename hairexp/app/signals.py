@@ -42,6 +42,35 @@ SIGNALS = HANDLED_SIGNALS   # one list: the package's early handler (hairexp/__i
 REDELIVER_SECONDS = 0.01
 
 
+#: a file whose appearance stops a run as its signal would (a sweep's stop mark, which holds the
+#: signal's name: hairexp/app/cli.py STOP_MARK), or None; ``watch_stop_file``, ``stop_requested``
+_STOP_FILE: Path | None = None
+
+
+def watch_stop_file(path) -> None:
+    """Let ``stop_requested`` read ``path`` (None: nothing is watched).  A sweep job watches its
+    sweep's stop mark: the SIGTERM the main process forwards to the workers was lost when it came
+    while a job was starting (the job ran on for the whole STOP_WAIT_SECONDS and was killed, or
+    ran to its end; independent probe of issue 12, round 35); the mark, written before the
+    signal is forwarded, is read between steps."""
+    global _STOP_FILE
+    _STOP_FILE = None if path is None else Path(path)
+
+
+def stop_requested() -> int | None:
+    """The signal number named in the watched stop file, once it exists (SIGTERM if it names
+    none), else None.  A stat a call: cheap enough for every step."""
+    if _STOP_FILE is None:
+        return None
+    try:
+        name = _STOP_FILE.read_text().strip()
+    except FileNotFoundError:
+        return None
+    except OSError:
+        return int(signal.SIGTERM)
+    return int(getattr(signal, name, signal.SIGTERM)) if name.startswith("SIG") else int(signal.SIGTERM)
+
+
 class InterruptSignals:
     def __init__(self, on_signal=None):
         self.old: dict = {}

@@ -38,14 +38,14 @@ from hairexp.guides.authoring import check_edits
 from hairexp.model.builders import check_spin
 from hairexp.evaluation.measures import MEASURE_KEYS, collider_named
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR, make_integrator
-from hairexp.physics.simulator import MAX_ATOL, MAX_ITERATION_BUDGET, MAX_LAST_ATTEMPT, MAX_SUBSTEP_LEVELS, check_solver_config  # noqa: F401
+from hairexp.physics.simulator import (MAX_ATOL, MAX_BARRIER_DHAT, MAX_COLLISION_PASSES, MAX_ITERATION_BUDGET,  # noqa: F401
+                                       MAX_LAST_ATTEMPT, MAX_SKIN, MAX_SUBSTEP_LEVELS, MAX_TRAVEL_SUBSTEPS,
+                                       check_collision_config, check_solver_config)
 from hairexp.physics.strand_kernels import check_options
 
 
 #: guides.scale_factors at most this (a guide 1,000 times its length)
 MAX_SCALE_FACTOR = 1e3
-#: collision.barrier_dhat's bound (d_hat as a multiple of the contact thickness)
-MAX_BARRIER_DHAT = 10.0
 
 
 log = logging.getLogger("hairexp")
@@ -55,11 +55,6 @@ def _value(x):
     return getattr(x, "value", x)
 
 
-#: ``collision.max_passes`` at most this (each pass checks every vertex against every collider)
-MAX_COLLISION_PASSES = 1000
-#: ``collision.skin`` at most this (m): the hair-hair neighbour list holds every edge pair closer
-#: than hair_thickness + skin; beyond a metre it is every pair of a head of hair
-MAX_SKIN = 1.0
 #: ``tracking.krylov_max`` at most this: a KKT solve's GMRES keeps krylov_max basis rows as long
 #: as the hair's vertex coordinates (Celia: 188 kB a row); the default is 16
 MAX_KRYLOV = 1000
@@ -79,8 +74,6 @@ def keyframes(times, key_times: str, values: dict) -> None:
             number(x, f"{key}[{i}]")
 
 
-#: collision.max_travel_substeps at most (substeps of one step for a fast collider)
-MAX_TRAVEL_SUBSTEPS = 1024
 
 
 def _solver(s) -> None:
@@ -158,28 +151,7 @@ def _tracking(t) -> None:
 
 
 def _collision(c) -> None:
-    # m: 1e300 a traceback (round 14), 0.09 stretched a wisp 130 % apart (round 15); hair is 0.05-0.1 mm thick
-    number(c.hair_thickness, "collision.hair_thickness", lo=0, hi=0.01, lo_open=True)
-    number(c.skin, "collision.skin", lo=0, hi=MAX_SKIN)   # 1e300 overflowed the neighbour grid (probe, round 14)
-    integer(c.max_passes, "collision.max_passes", 1)
-    if c.max_passes > MAX_COLLISION_PASSES:   # hair resting on a surface counts in every pass: 1e9 never ended
-        raise InputError(f"must be <= {MAX_COLLISION_PASSES}, got {c.max_passes}", "collision.max_passes")
-    number(c.strain_limit, "collision.strain_limit", lo=0, hi=1, hi_open=True)
-    number(c.max_travel, "collision.max_travel", lo=0)
-    integer(c.max_travel_substeps, "collision.max_travel_substeps", 1)
-    if c.max_travel_substeps > MAX_TRAVEL_SUBSTEPS:   # each substep is a whole step's solve
-        raise InputError(f"must be <= {MAX_TRAVEL_SUBSTEPS}, got {c.max_travel_substeps}", "collision.max_travel_substeps")
-    number(c.volume_cell, "collision.volume_cell", lo=0, hi=1.0, lo_open=True)   # m: a cell of a metre holds a head of hair
-    number(c.volume_friction, "collision.volume_friction", lo=0, hi=1e6)   # 1/s
-    number(c.volume_pressure_speed, "collision.volume_pressure_speed", lo=0, hi=100.0)   # m/s; 1e300 overflowed
-    mode = str(_value(c.contact))
-    if mode not in ("barrier", "stage"):
-        raise InputError(f"unknown contact {mode!r} (barrier|stage)", "collision.contact")
-    # a fraction of the thickness: 1e6 made d_hat 2 km and every vertex a contact of every
-    # collider (the first step did not end in minutes; probe of issue 12)
-    number(c.barrier_dhat, "collision.barrier_dhat", lo=0, hi=MAX_BARRIER_DHAT, lo_open=True)
-    number(c.barrier_stiffness, "collision.barrier_stiffness", lo=0, hi=1e9, lo_open=True)
-    number(c.friction_epsilon, "collision.friction_epsilon", lo=0, hi=10.0, lo_open=True)   # m/s
+    check_collision_config(c)   # the Simulator checks the same (hairexp/physics/simulator.py)
 
 
 def _guides(cfg) -> None:
@@ -215,6 +187,10 @@ def _tracked(c) -> bool:
     return _c(c, "controller.name") == "tracking"
 
 
+def _simulates(c) -> bool:
+    return _c(c, "controller.name") != "skinned"
+
+
 def _barrier(c) -> bool:
     return bool(c.collision.objects) and _c(c, "collision.contact") == "barrier"
 
@@ -229,6 +205,11 @@ KEY_USES = (
      "controller.name=tracking with tracking.variance.stiffness > 0"),
     ("tracking.blend_width", lambda c: _tracked(c) and _c(c, "tracking.assignment") == "soft",
      "controller.name=tracking with tracking.assignment=soft"),
+    # the KKT solver's settings (accepted without a word; independent probe of issue 12, round 35)
+    ("tracking.krylov_", lambda c: _tracked(c) and _c(c, "tracking.kkt") != "reference" and _c(c, "tracking.schur") == "krylov",
+     "controller.name=tracking with tracking.schur=krylov and tracking.kkt=schur"),
+    ("tracking.schur", lambda c: _tracked(c) and _c(c, "tracking.kkt") != "reference",
+     "controller.name=tracking with tracking.kkt=schur"),
     ("tracking.", _tracked, "controller.name=tracking"),
     ("controller.attract_stiffness", lambda c: _c(c, "controller.name") == "attract", "controller.name=attract"),
     ("collision.volume_", lambda c: bool(c.collision.hair_hair) and _c(c, "collision.hair_hair_model") == "volume"
@@ -240,6 +221,15 @@ KEY_USES = (
     ("collision.barrier_", _barrier, "collision.contact=barrier with collision.objects=true"),
     ("collision.friction_epsilon", _barrier, "collision.contact=barrier with collision.objects=true"),
     ("collision.contact", lambda c: bool(c.collision.objects), "collision.objects=true"),
+    # the post-solve stage's strain limiter (round 35): built for the object stage or hair-hair contact
+    ("collision.strain_limit", lambda c: _simulates(c) and (
+        (bool(c.collision.objects) and _c(c, "collision.contact") != "barrier") or bool(c.collision.hair_hair)),
+     "collision.objects=true with collision.contact=stage, or collision.hair_hair=true"),
+    ("collision.max_travel_substeps", lambda c: _simulates(c) and bool(c.collision.objects)
+     and float(c.collision.max_travel) > 0, "collision.objects=true with collision.max_travel > 0"),
+    ("solver.max_substep_levels", lambda c: _c(c, "solver.on_failure") == "substep", "solver.on_failure=substep"),
+    ("judge_tolerance", lambda c: _c(c, "judge") == "variance_follows_targets",
+     "judge=variance_follows_targets, the one judge with a tolerance"),
     # accepted without a word (independent probe of issue 12, round 27)
     ("guides.scale_", lambda c: _c(c, "guides.source") == "scaled", "guides.source=scaled"),
     ("guides.keyframes", lambda c: _c(c, "guides.source") == "keyframed", "guides.source=keyframed"),
@@ -306,6 +296,8 @@ def _scene(cfg) -> None:
 
 #: m, the largest measure.tolerance: a hit is within the hair's thickness plus this
 MAX_CONTACT_TOLERANCE = 0.1
+#: m, the largest measure.cohesion_threshold (single-linkage distance of a clump)
+MAX_COHESION = 1.0
 
 
 def _measure(cfg) -> None:
@@ -318,7 +310,11 @@ def _measure(cfg) -> None:
     number(m.threshold, "measure.threshold", lo=0, lo_open=True)
     number(m.strand_fraction, "measure.strand_fraction", lo=0, hi=1, hi_open=True)
     number(m.min_share, "measure.min_share", lo=0, hi=1)
-    number(m.cohesion_threshold, "measure.cohesion_threshold", lo=0, lo_open=True)
+    if number(m.cohesion_threshold, "measure.cohesion_threshold", lo=0, lo_open=True) > MAX_COHESION:
+        # 1e300 made every strand one clump (independent probe of issue 12, round 35)
+        raise InputError(f"must be at most {MAX_COHESION:g} m (strands this close link into one clump; at a metre every "
+                         f"strand of a head of hair does; the default is 0.03), got {m.cohesion_threshold:g}",
+                         "measure.cohesion_threshold")
     number(m.cohesion_fraction, "measure.cohesion_fraction", lo=0, hi=1, hi_open=True)
     axis = [number(x, f"measure.axis[{i}]") for i, x in enumerate(m.axis)]
     if len(axis) != 3 or not any(axis):
@@ -332,7 +328,12 @@ def _measure(cfg) -> None:
         raise InputError(f"is after the run's last frame ({frames / fps:g} s), got {a0}", "measure.apex_from")
     number(m.rail_height, "measure.rail_height")
     number(m.rail_end, "measure.rail_end")
-    number(cfg.judge_tolerance, "judge_tolerance", lo=0, lo_open=True)
+    if number(cfg.judge_tolerance, "judge_tolerance", lo=0, lo_open=True) >= 1:
+        # a relative miss of the variance target: at 1 a variance of zero passes (1e9 passed an 80 % miss;
+        # independent probe of issue 12, round 35)
+        raise InputError(f"must be < 1 (the largest relative miss of a variance target the judge accepts: at 1 a "
+                         f"variance of zero would pass; the default is 0.35), got {cfg.judge_tolerance:g}",
+                         "judge_tolerance")
     if str(_value(m.name)) == "collider_contact" and not str(m.collider):
         raise InputError("measure.name=collider_contact needs the name of a collider", "measure.collider")
 

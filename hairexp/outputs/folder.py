@@ -155,10 +155,12 @@ def hold(folder: Path) -> bool:
     return True
 
 
-def unhold_unused() -> None:
+def unhold_unused() -> bool:
     """Remove the ``.lock`` of the folders ``hold`` locked that hold nothing else, and the folders
     it made for them: the launch ended before anything was written (Hydra could not compose the
-    config; a folder holding only ``.lock`` was left; probe of issue 12, round 19)."""
+    config; a folder holding only ``.lock`` was left; probe of issue 12, round 19).  Returns whether
+    every such folder held nothing else (nothing of the launch is left)."""
+    clean = True
     for folder in [f for f in _MADE] + [Path(f) for f in _LOCKED if Path(f) not in _MADE]:
         try:
             names = {p.name for p in folder.iterdir()}
@@ -169,8 +171,13 @@ def unhold_unused() -> None:
                 (folder / LOCK).unlink()
                 if folder in _MADE:
                     folder.rmdir()
-        except OSError:
+            else:
+                clean = False
+        except FileNotFoundError:
             pass
+        except OSError:
+            clean = False
+    return clean
 
 
 def _is_tmp(p: Path) -> bool:

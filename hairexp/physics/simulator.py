@@ -172,6 +172,64 @@ def check_solver_config(s) -> None:
                          "solver.max_substep_levels")
 
 
+#: collision.barrier_dhat's bound (d_hat as a multiple of the contact thickness)
+MAX_BARRIER_DHAT = 10.0
+#: ``collision.max_passes`` at most this (each pass checks every vertex against every collider)
+MAX_COLLISION_PASSES = 1000
+#: ``collision.skin`` at most this (m): the hair-hair neighbour list holds every edge pair closer
+#: than hair_thickness + skin; beyond a metre it is every pair of a head of hair
+MAX_SKIN = 1.0
+#: collision.max_travel_substeps at most (substeps of one step for a fast collider)
+MAX_TRAVEL_SUBSTEPS = 1024
+#: (key, lo, hi, lo_open) of the collision settings' numbers (m, 1/s, m/s; see ``check_collision_config``)
+_COLLISION_NUMBERS = (
+    # m: 1e300 a traceback (round 14), 0.09 stretched a wisp 130 % apart (round 15); hair is 0.05-0.1 mm thick
+    ("hair_thickness", 0, 0.01, True),
+    ("skin", 0, MAX_SKIN, False),   # 1e300 overflowed the neighbour grid (probe, round 14)
+    ("strain_limit", 0, 1, False),
+    ("max_travel", 0, None, False),
+    ("volume_cell", 0, 1.0, True),   # m: a cell of a metre holds a head of hair
+    ("volume_friction", 0, 1e6, False),   # 1/s
+    ("volume_pressure_speed", 0, 100.0, False),   # m/s; 1e300 overflowed
+    # a fraction of the thickness: 1e6 made d_hat 2 km and every vertex a contact of every
+    # collider (the first step did not end in minutes; probe of issue 12)
+    ("barrier_dhat", 0, MAX_BARRIER_DHAT, True),
+    ("barrier_stiffness", 0, 1e9, True),
+    ("friction_epsilon", 0, 10.0, True),   # m/s
+)
+
+
+def check_collision_config(c) -> None:
+    """The collision settings (``collision.*``: hairexp/app/config.py CollisionConfig, or any
+    object with its attributes) the collision stage and the barrier can run with, or an
+    InputError naming the key: checked by the config's validation and by ``Simulator`` itself
+    (the Python API took ``hair_thickness=10`` and moved hair 14.6 m in three "converged" steps,
+    and a dict failed with an AttributeError; independent probe of issue 12, round 35).
+    Attributes the object lacks are left out (their defaults apply)."""
+    if isinstance(c, (dict, str, bytes)) or not hasattr(c, "objects"):
+        raise InputError(f"must be a collision config (hairexp.app.config.CollisionConfig, or an object with its "
+                         f"attributes: objects, hair_hair, hair_thickness, ...) or None, got {type(c).__name__}",
+                         "collision")
+    for key, lo, hi, lo_open in _COLLISION_NUMBERS:
+        if hasattr(c, key):
+            number(getattr(c, key), f"collision.{key}", lo=lo, hi=hi, lo_open=lo_open,
+                   hi_open=key == "strain_limit")
+    if hasattr(c, "max_passes"):
+        integer(c.max_passes, "collision.max_passes", 1)
+        if c.max_passes > MAX_COLLISION_PASSES:   # hair resting on a surface counts in every pass: 1e9 never ended
+            raise InputError(f"must be <= {MAX_COLLISION_PASSES}, got {c.max_passes}", "collision.max_passes")
+    if hasattr(c, "max_travel_substeps"):
+        integer(c.max_travel_substeps, "collision.max_travel_substeps", 1)
+        if c.max_travel_substeps > MAX_TRAVEL_SUBSTEPS:   # each substep is a whole step's solve
+            raise InputError(f"must be <= {MAX_TRAVEL_SUBSTEPS}, got {c.max_travel_substeps}",
+                             "collision.max_travel_substeps")
+    for key, choices in (("contact", ("barrier", "stage")), ("hair_hair_model", ("edges", "volume"))):
+        if hasattr(c, key):
+            mode = str(_value(getattr(c, key)))
+            if mode not in choices:
+                raise InputError(f"unknown {key} {mode!r} ({'|'.join(choices)})", f"collision.{key}")
+
+
 class Simulator:
     def __init__(self, scene: Scene, solver_cfg, controller: Controller | None = None, collision_cfg=None,
                  integrator: str | None = None):
@@ -182,6 +240,8 @@ class Simulator:
         if not isinstance(scene, Scene):
             raise InputError(f"must be a Scene (hairexp.model.scene), got {type(scene).__name__}", "Simulator scene")
         check_solver_config(solver_cfg)
+        if collision_cfg is not None:
+            check_collision_config(collision_cfg)
         if controller is not None and not isinstance(controller, Controller):
             raise InputError(f"must be a Controller (hairexp.physics.controller; e.g. the app's build_controller), got "
                              f"{type(controller).__name__}", "Simulator controller")
