@@ -186,3 +186,15 @@ def test_unhold_unused_says_whether_nothing_of_the_launch_is_left(tmp_path, monk
     monkeypatch.setattr(folder, "_MADE", [])
     monkeypatch.setattr(folder, "_LOCKED", [str(used)])
     assert folder.unhold_unused() is False and (used / "result.npz").exists()
+
+
+def test_a_job_stops_watching_its_sweeps_stop_mark_when_it_ends(tmp_path):
+    """The watch outlived the job: a worker (or a process running jobs one after another) read a
+    former sweep's stop mark in its next run, which ended interrupted at its first step."""
+    from hairexp.app import cli
+    from hairexp.app.signals import stop_requested
+
+    (tmp_path / cli.STOP_MARK).write_text("SIGTERM\n")
+    res = cli.job(None, str(tmp_path / "2"), sweep=True, sweep_dir=str(tmp_path))   # cfg is never read
+    assert res["status"] == "interrupted"
+    assert (tmp_path / cli.STOP_MARK).exists() and stop_requested() is None

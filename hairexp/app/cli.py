@@ -113,6 +113,16 @@ def _job_label(out: str, sweep_dir: str | None) -> str:
 
 def job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overrides=(),
         cwd: str | None = None) -> dict:
+    """``_job``, with the sweep's stop mark watched while it runs (``watch_stop_file``): a worker
+    process runs the next job, or the main process goes on, with nothing watched."""
+    try:
+        return _job(cfg, out, sweep, sweep_dir, overrides, cwd)
+    finally:
+        watch_stop_file(None)
+
+
+def _job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overrides=(),
+         cwd: str | None = None) -> dict:
     """Run the experiment of ``cfg`` into ``out``; returns its outcome (never raises for a
     failing run, never exits).  A sweep job that starts after the sweep was stopped
     (``<sweep_dir>/STOP_MARK``, ``stop_sweep_jobs``) ends as interrupted without running.
