@@ -221,6 +221,20 @@ KEY_USES = (
     ("collision.barrier_", _barrier, "collision.contact=barrier with collision.objects=true"),
     ("collision.friction_epsilon", _barrier, "collision.contact=barrier with collision.objects=true"),
     ("collision.contact", lambda c: bool(c.collision.objects), "collision.objects=true"),
+    # accepted without a word (independent probe of issue 12, round 36)
+    ("collision.hair_thickness", lambda c: _simulates(c) and (
+        (bool(c.collision.hair_hair) and _c(c, "collision.hair_hair_model") == "edges") or _barrier(c)),
+     "collision.hair_hair=true with collision.hair_hair_model=edges, or collision.contact=barrier with "
+     "collision.objects=true"),
+    ("collision.friction", _barrier, "collision.contact=barrier with collision.objects=true (the stage always "
+     "applies each collider's friction)"),
+    ("collision.max_travel", lambda c: _simulates(c) and bool(c.collision.objects), "collision.objects=true"),
+    ("scene.settle_dt", lambda c: float(c.scene.settle) > 0, "scene.settle > 0"),
+    ("scene.usd_", lambda c: _c(c, "scene.builder") == "usd" or _c(c, "guides.source") == "usd",
+     "scene.builder=usd or guides.source=usd"),
+    ("solver.compile", lambda c: _c(c, "solver.derivatives") == "closed_form", "solver.derivatives=closed_form"),
+    ("solver.threads", lambda c: _c(c, "solver.kernels") == "numba" and _c(c, "solver.derivatives") == "closed_form",
+     "solver.kernels=numba with solver.derivatives=closed_form"),
     # the post-solve stage's strain limiter (round 35): built for the object stage or hair-hair contact
     ("collision.strain_limit", lambda c: _simulates(c) and (
         (bool(c.collision.objects) and _c(c, "collision.contact") != "barrier") or bool(c.collision.hair_hair)),
