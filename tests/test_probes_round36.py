@@ -35,3 +35,50 @@ def test_settings_no_run_reads_are_named(overrides, unused):
     key = overrides[-1].split("=", 1)[0]
     named = [u for u in unused_settings([cfg], [o.split("=", 1)[0] for o in overrides]) if u.startswith(f"{key} (")]
     assert bool(named) == unused, (overrides, named)
+
+
+def test_a_job_ended_by_its_launcher_leaves_no_temporary_file(tmp_path, monkeypatch, capsys):
+    """``hydra.launcher.timeout`` ended a job's worker while its variant wrote metrics.parquet: a
+    0-byte ``free/metrics.parquet.tmp`` stayed in the job's folder (round 36, weak; 1 of 3).  The
+    sweep's end (``_end_killed_jobs``) removes the run's ``*.tmp`` files where it writes the
+    ending; the rows are in ``stream/metrics/``, and a file of another name stays."""
+    import json
+    import signal
+    import socket
+    import subprocess
+
+    from hairexp.app import cli
+
+    gone = subprocess.Popen(["true"])
+    gone.wait()   # a process id that no longer runs
+    job = tmp_path / "0"
+    (job / ".hydra").mkdir(parents=True)
+    (job / ".hydra" / "overrides.yaml").write_text("- solver.rtol=1e-5\n")
+    cli._write_outcome(job, {**cli.outcome(job, "running", 1, "the job did not finish"), "pid": gone.pid})
+    running = {"status": "running", "pid": gone.pid, "host": socket.gethostname()}
+    (job / "summary.json").write_text(json.dumps(running))
+    free = job / "free"
+    (free / "stream" / "metrics").mkdir(parents=True)
+    (free / "summary.json").write_text(json.dumps(running))
+    (free / "metrics.parquet.tmp").write_bytes(b"")
+    (free / "notes.tmp.txt").write_text("the user's")
+    monkeypatch.setattr(cli, "SWEEP_DIR", tmp_path)
+    monkeypatch.setattr(cli, "SWEEP_TOTAL", 1)
+    assert cli.exit_code(signal.SIGTERM) == 143
+    assert "interrupted (exit 143)" in capsys.readouterr().err
+    assert not (free / "metrics.parquet.tmp").exists() and (free / "notes.tmp.txt").exists()
+    assert json.loads((free / "summary.json").read_text())["status"] == "interrupted"
+
+
+def test_a_job_folder_outside_the_sweep_and_shared_by_every_job_gets_both_reasons(tmp_path):
+    """``hydra.sweep.subdir=../out`` said only that every job would share the folder, and its advice
+    (``../${hydra.job.num}``) was then refused for lying outside the sweep folder (round 36, weak)."""
+    from hairexp.app import cli
+
+    base = ["-m", "experiment=goaling_smoke", "frames=5", "solver.rtol=1e-5,1e-6", f"hydra.sweep.dir={tmp_path / 's'}"]
+    msg = cli.used_dir_error(base + ["hydra.sweep.subdir=../out"])
+    assert "must lie inside the sweep folder" in msg and "must differ per job" in msg, msg
+    msg = cli.used_dir_error(base + ["hydra.sweep.subdir=../${hydra.job.num}"])
+    assert "must lie inside the sweep folder" in msg and "differ per job" not in msg, msg
+    msg = cli.used_dir_error(base + ["hydra.sweep.subdir=same"])
+    assert "every job of the sweep would write into the same folder" in msg, msg

@@ -501,6 +501,12 @@ def _end_killed_jobs(rows: list, signum: int | None, workers_gone: bool = False)
                     s["frames_kept"] = kept
                 write_json(f / SUMMARY, s)
                 (f / RESERVE).unlink(missing_ok=True)
+                # a file the run was writing when its process was ended (a 0-byte metrics.parquet.tmp
+                # under hydra.launcher.timeout; independent probe of issue 12, round 36): its rows are
+                # in stream/metrics/, which the summary names
+                for tmp in f.glob("*.tmp"):
+                    if tmp.is_file() and not tmp.is_symlink():
+                        tmp.unlink(missing_ok=True)
             except OSError:
                 pass
         # killed (the out-of-memory killer, a SIGKILL): a run that could not continue, exit 3 as an
@@ -1178,17 +1184,21 @@ def _used_sweep_dir_error(argv: list[str], parser) -> str | None:
     folder is one sweep's.  A second sweep into it replaced ``multirun.yaml`` and its report
     counted the first sweep's jobs as its own (probe of issue 12)."""
     subdir = _fixed_folder(argv, "hydra.sweep.subdir", parser)
-    if subdir is not None and (sweep_size(_plain_overrides(argv)) or 2) > 1:
+    same = subdir is not None and (sweep_size(_plain_overrides(argv)) or 2) > 1
+    sub = _given(argv, "hydra.sweep.subdir")
+    if sub is not None and (sub.startswith(("/", "~")) or ".." in Path(sub.replace("${", "").replace("}", "")).parts):
+        # the jobs ran outside the sweep folder, and the sweep's report counted them as not
+        # started (probe of issue 12, round 9); both reasons at once when both hold (``../out`` named
+        # only the shared folder, and its advice, ``../${hydra.job.num}``, was refused next; round 36)
+        return (f"hairexp: error: hydra.sweep.subdir={sub}: a job's folder must lie inside the sweep folder "
+                "(hydra.sweep.dir): a relative path without '..'; move the sweep with hydra.sweep.dir instead"
+                + ("; and it must differ per job: include ${hydra.job.num} (the default) or "
+                   "${hydra.job.override_dirname}" if same else ""))
+    if same:
         # every job in one folder: the second was refused and the report named the wrong job (probe of issue 12)
         return (f"hairexp: error: hydra.sweep.subdir={subdir}: every job of the sweep would write into the same "
                 "folder; a job's folder must differ per job: keep the default (${hydra.job.num}) or include "
                 "${hydra.job.num} or ${hydra.job.override_dirname} in it")
-    sub = _given(argv, "hydra.sweep.subdir")
-    if sub is not None and (sub.startswith(("/", "~")) or ".." in Path(sub.replace("${", "").replace("}", "")).parts):
-        # the jobs ran outside the sweep folder, and the sweep's report counted them as not
-        # started (probe of issue 12, round 9)
-        return (f"hairexp: error: hydra.sweep.subdir={sub}: a job's folder must lie inside the sweep folder "
-                "(hydra.sweep.dir): a relative path without '..'; move the sweep with hydra.sweep.dir instead")
     dup = _duplicate_sweep_value(argv, parser)   # the plainer case first: its message names the repeated value
     if dup is not None:
         return dup
