@@ -82,3 +82,39 @@ def test_a_job_folder_outside_the_sweep_and_shared_by_every_job_gets_both_reason
     assert "must lie inside the sweep folder" in msg and "differ per job" not in msg, msg
     msg = cli.used_dir_error(base + ["hydra.sweep.subdir=same"])
     assert "every job of the sweep would write into the same folder" in msg, msg
+
+
+def test_simulator_step_refuses_a_bad_dt_with_an_input_error():
+    """``Simulator.step(state, "0.01")`` (or 0, nan, -1) raised a plain ValueError where the README
+    promises InputError (a ValueError) at the API's entry points (round 37, weak)."""
+    import numpy as np
+
+    from hairexp.app.config import SolverConfig
+    from hairexp.errors import InputError
+    from hairexp.model import Material, RigidMotion, Scene, Strands
+    from hairexp.physics import Simulator
+
+    line = np.stack([np.zeros(10), -np.linspace(0.0, 0.2, 10), np.zeros(10)], 1)
+    strands = Strands.from_polylines(line, np.array([10]), 1e-4)
+    still = RigidMotion(np.zeros(1), np.zeros((1, 3)), np.zeros((1, 3)))
+    sim = Simulator(Scene("one", strands, Material(1e-4, 10.0, 1e-7), still, np.array([0.0, -9.81, 0.0]), line),
+                    SolverConfig())
+    for dt in (0.0, float("nan"), -1.0, "0.01", 1e9, 1e-300):
+        with pytest.raises(InputError, match=r"^Simulator.step: dt"):
+            sim.step(sim.initial_state(), dt)
+
+
+def test_a_collider_keyframe_that_is_not_finite_is_named_with_its_list_and_value():
+    """``scene.colliders.0.motion.times=[0,nan]`` said "keyframes contain NaN or inf", naming no
+    list and no value (round 37, weak)."""
+    import numpy as np
+
+    from hairexp.errors import InputError
+    from hairexp.model import RigidMotion
+
+    with pytest.raises(InputError) as err:
+        RigidMotion(np.array([0.0, np.nan]), np.zeros((2, 3)), np.zeros((2, 3)), where="scene.colliders[0].motion")
+    assert str(err.value) == "scene.colliders[0].motion.times: keyframe 1 is not finite: nan (NaN or inf)"
+    with pytest.raises(InputError) as err:
+        RigidMotion(np.array([0.0, 1.0]), np.array([[0.0, 0, 0], [np.inf, 0, 0]]), np.zeros((2, 3)), where="m")
+    assert str(err.value) == "m.translations: keyframe 1 is not finite: [inf, 0.0, 0.0] (NaN or inf)"

@@ -61,8 +61,12 @@ class RigidMotion:
         self.rotvecs = np.asarray(self.rotvecs, dtype=np.float64).reshape(K, 3) if K else np.zeros((0, 3))
         if K == 0:
             raise InputError("a rigid motion needs at least one keyframe", f"{self.where}.times")
-        if not (np.isfinite(self.times).all() and np.isfinite(self.translations).all() and np.isfinite(self.rotvecs).all()):
-            raise InputError("keyframes contain NaN or inf", self.where)
+        for name, a in (("times", self.times), ("translations", self.translations), ("rotations", self.rotvecs)):
+            bad = np.argwhere(~np.isfinite(a))
+            if bad.size:   # which list and which value (it said "keyframes contain NaN or inf"; probe of issue 12, round 37)
+                k = int(bad[0][0])
+                raise InputError(f"keyframe {k} is not finite: {a[k].tolist() if a.ndim > 1 else float(a[k])} (NaN or "
+                                 "inf)", f"{self.where}.{name}")
         far = np.flatnonzero(np.abs(self.translations).max(axis=1) > MAX_COORDINATE)
         if far.size:   # a body 1e20 m away at one time code ran to the end with unconverged steps (probe, round 12)
             k = int(far[0])

@@ -533,13 +533,13 @@ class Simulator:
                             f"got {type(state).__name__}")
         if (isinstance(dt, (bool, np.bool_)) or not isinstance(dt, (int, float, np.integer, np.floating))
                 or not (np.isfinite(dt) and dt > 0)):   # -0.01 stepped time backwards and said converged (probe of issue 12)
-            raise ValueError(f"Simulator.step: dt must be a finite number > 0 (s), got {dt!r}")
+            raise InputError(f"dt must be a finite number > 0 (s), got {dt!r}", "Simulator.step")
         if dt > MAX_STEP_DT:   # 1e9 "diverged ... try a smaller solver.dt" naming a substep's dt (probe, round 15)
-            raise ValueError(f"Simulator.step: dt={dt!r} s is above {MAX_STEP_DT:g} s: hair moves in milliseconds; a "
-                             "step of a frame (1/24 s) is the longest the integrators are meant for")
+            raise InputError(f"dt={dt!r} s is above {MAX_STEP_DT:g} s: hair moves in milliseconds; a step of a frame "
+                             "(1/24 s) is the longest the integrators are meant for", "Simulator.step")
         if dt < MIN_STEP_DT:   # 1e-300: the inertia M/dt^2 overflowed and the step "diverged" (probe of issue 12)
-            raise ValueError(f"Simulator.step: dt={dt!r} s is below {MIN_STEP_DT:g} s: the inertia term M/dt^2 then "
-                             "swamps every force in double precision (or overflows)")
+            raise InputError(f"dt={dt!r} s is below {MIN_STEP_DT:g} s: the inertia term M/dt^2 then swamps every force "
+                             "in double precision (or overflows)", "Simulator.step")
         if not isinstance(state.time, (int, float, np.integer, np.floating)) or not np.isfinite(state.time):
             raise ValueError(f"Simulator.step: the state's time must be a finite number (s), got {state.time!r}")
         shape = (self.scene.strands.n_vertices, 3)
