@@ -45,7 +45,7 @@ from hairexp.app.config import (CONF_DIR, check_bool_overrides, check_interpolat
 from hairexp.app.experiment import apply_overrides, run_experiment
 from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, metrics_summary, to_log_files, write_refused
 from hairexp.app.validate import unused_settings, validate_config
-from hairexp.app.signals import SIGNALS, forward, take_late, watch_stop_file, worker_pids
+from hairexp.app.signals import forward, read_stop_mark, take_late, watch_stop_file, worker_pids
 from hairexp.app.streams import guard_streams
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
@@ -329,13 +329,8 @@ def _signalled_after(out, signum: int, summary: dict) -> dict:
 
 def _stopped_by(sweep_dir) -> str | None:
     """The signal's name in ``<sweep_dir>/STOP_MARK``, or None."""
-    if sweep_dir is None:
-        return None
-    try:
-        name = (Path(sweep_dir) / STOP_MARK).read_text().strip()
-    except OSError:
-        return None
-    return name if name in {signal.Signals(s).name for s in SIGNALS} else "SIGTERM"
+    signum = None if sweep_dir is None else read_stop_mark(Path(sweep_dir) / STOP_MARK)
+    return None if signum is None else signal.Signals(signum).name
 
 
 def _signum(name: str) -> int:

@@ -57,18 +57,23 @@ def watch_stop_file(path) -> None:
     _STOP_FILE = None if path is None else Path(path)
 
 
-def stop_requested() -> int | None:
-    """The signal number named in the watched stop file, once it exists (SIGTERM if it names
-    none), else None.  A stat a call: cheap enough for every step."""
-    if _STOP_FILE is None:
-        return None
+def read_stop_mark(path) -> int | None:
+    """The signal a stop mark at ``path`` names (SIGTERM when it names none of ``SIGNALS`` or
+    cannot be read), or None when there is no mark."""
     try:
-        name = _STOP_FILE.read_text().strip()
+        name = Path(path).read_text().strip()
     except FileNotFoundError:
         return None
     except OSError:
         return int(signal.SIGTERM)
-    return int(getattr(signal, name, signal.SIGTERM)) if name.startswith("SIG") else int(signal.SIGTERM)
+    named = {signal.Signals(s).name: int(s) for s in SIGNALS}
+    return named.get(name, int(signal.SIGTERM))
+
+
+def stop_requested() -> int | None:
+    """The signal named in the watched stop file once it exists (``read_stop_mark``), else None.
+    A file read a call: cheap enough for every step."""
+    return None if _STOP_FILE is None else read_stop_mark(_STOP_FILE)
 
 
 class InterruptSignals:

@@ -295,9 +295,8 @@ def file_guides(path, motion, frames: int | None = None, fps: float | None = Non
             if np.size(gfps) != 1:
                 raise InputError(f"fps must be one number, got an array of shape {np.shape(gfps)}", where)
             gfps = float(np.asarray(gfps).reshape(-1)[0])
-            edited = str(np.asarray(data[EDITS_MEMBER]).reshape(-1)[0]) \
-                if EDITS_MEMBER in data.files and np.asarray(data[EDITS_MEMBER]).dtype.kind == "U" \
-                and np.size(data[EDITS_MEMBER]) == 1 else ""
+            note = np.asarray(data[EDITS_MEMBER]) if EDITS_MEMBER in data.files else np.asarray("")
+            edited = str(note.reshape(-1)[0]) if note.dtype.kind == "U" and note.size == 1 else ""
     except InputError:
         raise
     except Exception as exc:   # a truncated, corrupt or empty file: zipfile, pickle, EOF and shape errors
