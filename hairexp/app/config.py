@@ -311,6 +311,10 @@ class SolverConfig:
     # A string, not an Enum, checked by validate_config: an unknown name is an InputError naming
     # solver.integrator (exit 2), and the choices are the integrator registry's keys.
     integrator: str = DEFAULT_INTEGRATOR   # "trbdf2"
+    # a step in which the keyed roots' velocity jumps (scene.motion with linear keys) is one
+    # implicit Euler step and the integrator restarts after it (hairexp/physics/integrators.py,
+    # "Driver discontinuities"); false: the scheme steps through the jump
+    restart_at_jumps: bool = True
     # numba: stretch, bending, inertia and gravity by compiled per-strand kernels and a per-strand
     # banded Cholesky (hairexp/physics/strand_kernels.py; other terms stay on torch) | torch: every
     # term through torch and LAPACK's banded solve.  Strings checked by validate_config (InputError).

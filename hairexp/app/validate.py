@@ -241,6 +241,8 @@ KEY_USES = (
      "collision.objects=true with collision.contact=stage, or collision.hair_hair=true"),
     ("collision.max_travel_substeps", lambda c: _simulates(c) and bool(c.collision.objects)
      and float(c.collision.max_travel) > 0, "collision.objects=true with collision.max_travel > 0"),
+    ("solver.restart_at_jumps", lambda c: _c(c, "solver.integrator") != "implicit_euler" and not bool(c.scene.body.dynamic),
+     "a solver.integrator other than implicit_euler, without a dynamic body"),
     ("solver.max_substep_levels", lambda c: _c(c, "solver.on_failure") == "substep", "solver.on_failure=substep"),
     ("judge_tolerance", lambda c: _c(c, "judge") == "variance_follows_targets",
      "judge=variance_follows_targets, the one judge with a tolerance"),

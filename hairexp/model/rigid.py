@@ -34,6 +34,13 @@ def left_jacobian(r: np.ndarray) -> np.ndarray:
     return np.eye(3) + (1 - np.cos(th)) / th ** 2 * K + (th - np.sin(th)) / th ** 3 * K @ K
 
 
+#: s, relative: a keyframe this close to a step's start counts as at its start (``velocity_jumps``)
+TIME_TOL = 1e-9
+#: relative (to max(1, |v|) in m/s or rad/s): a velocity change at a key above this is a jump
+VELOCITY_JUMP_TOL = 1e-9
+#: a key counts as a velocity jump only if the segments on both sides span this many steps
+MIN_SEGMENT_STEPS = 2.0
+
 #: degrees, a keyframed rotation's angles at most this (also a guide edit's angle_deg bound, 100 turns)
 MAX_KEY_DEGREES = 36000.0
 
@@ -107,6 +114,40 @@ class RigidMotion:
     @staticmethod
     def static() -> "RigidMotion":
         return RigidMotion(np.zeros(1), np.zeros((1, 3)), np.zeros((1, 3)))
+
+    def velocity_jumps(self, t0: float, t1: float, since: float = -math.inf) -> bool:
+        """Whether the velocity (translational or angular) jumps at a keyframe in [t0, t1) after
+        ``since``: with linear interpolation, a key where the velocities of the segments before
+        and after it differ (the first and last keys against the stillness outside the keys);
+        cubic keys never jump (a spline with zero end velocities, held still outside).  Only keys
+        whose segments on both sides span at least ``MIN_SEGMENT_STEPS`` x (t1 - t0) count (the
+        stillness outside the keys is unbounded): keys as dense as the steps sample a motion (a USD
+        stage's time samples at every frame), and restarting at each would make every step a
+        restart.  Keys at or before ``since`` are left out: a run's initial state (t = 0) already
+        moves with the velocity after a key there.  A time integrator restarts at a jump
+        (hairexp/physics/integrators.py, "Driver discontinuities")."""
+        if self._rot is None or self.interpolation != "linear":
+            return False
+        ts = self.times
+        tol = TIME_TOL * max(1.0, abs(float(t0)), abs(float(t1)))
+        span = MIN_SEGMENT_STEPS * (float(t1) - float(t0)) - tol
+        for k in np.flatnonzero((ts >= t0 - tol) & (ts < t1 - tol) & (ts > since + tol)):
+            if (k > 0 and ts[k] - ts[k - 1] < span) or (k < len(ts) - 1 and ts[k + 1] - ts[k] < span):
+                continue
+            before = self._segment_velocity(k - 1)
+            after = self._segment_velocity(k)
+            scale = max(1.0, float(np.abs(before).max()), float(np.abs(after).max()))
+            if float(np.abs(after - before).max()) > VELOCITY_JUMP_TOL * scale:
+                return True
+        return False
+
+    def _segment_velocity(self, k: int) -> np.ndarray:
+        """(6,) angular and translational velocity of linear segment k (keys k, k + 1); zero
+        outside the keys."""
+        if k < 0 or k >= len(self.times) - 1:
+            return np.zeros(6)
+        w, v = self.velocity(0.5 * (self.times[k] + self.times[k + 1]))
+        return np.concatenate([w, v])
 
     def _clamp(self, t: float) -> tuple[float, bool]:
         lo, hi = self.times[0], self.times[-1]

@@ -117,6 +117,22 @@ that had had the filtered velocity all along:
   damping on every step;
 - generalized-alpha keeps its a_{n+1} (as after a collision).
 
+Driver discontinuities (``solver.restart_at_jumps``, on by default): a step in which the kinematic
+roots' prescribed velocity jumps (a linearly keyed ``scene.motion`` at an inner key, or at its
+first or last key where the motion starts or stops; ``RigidMotion.velocity_jumps``, a key in
+[t_n, t_n + dt)) is one implicit Euler step (``Restart``), and the scheme restarts after it (the
+next step is its first step: BDF2 and lmm2 start with implicit Euler, TR-BDF2 with an implicit
+Euler first stage, generalized-alpha from the equation of motion).  A velocity jump is an impulse
+the second-order schemes cannot resolve: it excites the stiff stretch modes, which TR-BDF2's
+trapezoidal stage (|r| = 1 on them) carries into the BDF2 stage, whose extrapolation then ends
+with nearly every edge compressed (Celia's benchmark jerk, 1.2 m/s from rest at 0.08 s: 7306 of
+7525 edges, median strain -1.5e-4; implicit Euler +5e-5), a near-buckling state where the
+PSD-clamped Hessian over-estimates the true curvature 3.3 x along the SQP's step and the solve
+converges linearly (50 iterations, then substeps; experiments/sqp_curvature.py).  Restarting a
+scheme at a discontinuity of its input is the standard remedy (as after a collision stage that
+moved vertices); the order is lost there in any case (``tests/test_integrator_order.py``).
+Dynamic bodies (simulated, not keyed) are not checked.
+
 The settle phase (hairexp/physics/settle.py) always uses implicit Euler: it exists to reach
 the equilibrium under gravity, which implicit Euler's damping reaches fastest, and runs with
 different integrators then start from the same state.
@@ -199,6 +215,23 @@ class ImplicitEuler:
         """A velocity filter (the hair volume) changed the end velocities by dv (V, 3) and moved
         no position (module doc, "Velocity filters"): nothing is carried here."""
         return history
+
+
+class Restart(ImplicitEuler):
+    """One implicit Euler step at a driver discontinuity (module doc, "Driver discontinuities"):
+    whatever the scheme, what it carries to the next step is the restart mark, so the next step is
+    the scheme's first step (``History.restart``; a History without x, v or a)."""
+
+    name = "restart"
+
+    def history(self, state, x_new, v_new, plan, dt):
+        return History(restart=True)
+
+    def after_collision(self, state, history, dx, dv, touched):
+        return History(restart=True)
+
+    def after_velocity_filter(self, state, history, dv):
+        return History(restart=True)
 
 
 def bdf2_coefficients(w: float) -> tuple[float, float, float]:

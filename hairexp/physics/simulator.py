@@ -48,7 +48,7 @@ from hairexp.physics.controller import Controller
 from hairexp.physics.hair_volume import HairVolume
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
 from hairexp.physics.info import CONVERGED, DIVERGED, MAX_ITERATIONS, SolveInfo, StepInfo
-from hairexp.physics.integrators import DEFAULT_INTEGRATOR, ImplicitEuler, make_integrator
+from hairexp.physics.integrators import DEFAULT_INTEGRATOR, ImplicitEuler, Restart, make_integrator
 from hairexp.physics.newton import NewtonOptions
 from hairexp.physics.objective import ImplicitEulerObjective
 from hairexp.physics.state import State
@@ -141,6 +141,9 @@ def check_solver_config(s) -> None:
                          f"dt, rtol, atol, max_iterations, ...), got {type(s).__name__}", "solver")
     make_integrator(getattr(s, "integrator", DEFAULT_INTEGRATOR))   # InputError naming solver.integrator
     check_options(getattr(s, "kernels", "numba"), getattr(s, "threads", "auto"))   # solver.kernels, solver.threads
+    if hasattr(s, "restart_at_jumps") and not isinstance(_value(s.restart_at_jumps), (bool, np.bool_)):
+        raise InputError(f"must be true or false, got {type(_value(s.restart_at_jumps)).__name__} "
+                         f"{_value(s.restart_at_jumps)!r:.40}", "solver.restart_at_jumps")
     # >= 1, or an absolute tolerance above hair's forces (mN), accepts the first iterate (probe of issue 12, round 14)
     rtol = number(s.rtol, "solver.rtol", lo=0, hi=1, hi_open=True)
     atol = number(getattr(s, "atol", 0.0), "solver.atol", lo=0, hi=MAX_ATOL)
@@ -250,6 +253,12 @@ class Simulator:
         if integrator is None:
             integrator = getattr(solver_cfg, "integrator", DEFAULT_INTEGRATOR)
         self.integrator = make_integrator(integrator)
+        #: a step where the keyed roots' velocity jumps is an implicit Euler step, and the scheme
+        #: restarts after it (``solver.restart_at_jumps``; not for implicit Euler itself, nor with a
+        #: dynamic body, whose motion is simulated)
+        self.restart_at_jumps = (bool(_value(getattr(solver_cfg, "restart_at_jumps", True)))
+                                 and type(self.integrator) is not ImplicitEuler and scene.body is None)
+        self._restart = Restart()
         self.controller = controller = Controller() if controller is None else controller
         s, m = scene.strands, scene.material
         terms = [Stretch(s.edges, s.rest_lengths, m.stretch_stiffness),
@@ -391,6 +400,10 @@ class Simulator:
         one solve.  A stage that did not converge is reported in that solve (recovery then
         retries the whole step) but the later stages still run, so the state ends at the step's
         time; a stage that diverged (a non-finite state) ends the attempt."""
+        if self.restart_at_jumps and self.scene.motion.velocity_jumps(state.time, state.time + dt, since=0.0):
+            # the roots' velocity jumps in this step: one implicit Euler step, then the scheme
+            # restarts (hairexp/physics/integrators.py, "Driver discontinuities")
+            return self._stage(state, dt, self._restart, dt)
         stages = getattr(self.integrator, "stages", None)
         if stages is None:
             return self._stage(state, dt, self.integrator, dt)
