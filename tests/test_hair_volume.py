@@ -179,9 +179,10 @@ def _jerked_wisp(colliders=(), direction=(0.0, -1.0, 0.0)):
     return build_scene(sc)
 
 
-def _sim(scene, integrator, volume: bool):
+def _sim(scene, integrator, volume: bool, restart_at_jumps: bool = True):
     solver = OmegaConf.structured(SolverConfig())
     solver.integrator = integrator
+    solver.restart_at_jumps = restart_at_jumps
     cc = OmegaConf.structured(CollisionConfig(hair_hair=volume, hair_hair_model="volume"))
     return Simulator(scene, solver, collision_cfg=cc)
 
@@ -246,9 +247,10 @@ def test_with_the_volume_a_run_stretches_the_hair_as_little_as_without(integrato
 
 def test_trbdf2_does_not_restart_after_the_velocity_filter():
     """The volume changes velocities only: TR-BDF2's next step starts with its trapezoidal stage
-    (the implicit Euler restart is for positions a collision moved)."""
+    (the implicit Euler restart is for positions a collision moved).  The jerk's velocity jumps
+    restart it too (``solver.restart_at_jumps``): off here, to see the filter alone."""
     scene = _jerked_wisp()
-    sim = _sim(scene, "trbdf2", True)
+    sim = _sim(scene, "trbdf2", True, restart_at_jumps=False)
     st = sim.initial_state()
     firsts, pressed = [], 0
     for _ in range(8):
@@ -256,6 +258,32 @@ def test_trbdf2_does_not_restart_after_the_velocity_filter():
         st, info = sim.step(st, DT)
         pressed += info.hair_contacts
     assert pressed > 0 and set(firsts) == {"Trapezoidal"}
+
+
+def test_the_volume_filters_a_restart_step_and_the_restart_stays_a_restart(monkeypatch):
+    """At the jerk's velocity jumps (0.08 s, 0.16 s) the step is one implicit Euler step (a stage
+    of its own): the volume filters it once, as the last stage of a step, and what the step
+    carries is the restart mark (the next step starts with an implicit Euler stage)."""
+    scene = _jerked_wisp()
+    sim = _sim(scene, "trbdf2", True)
+    calls = []
+    orig = HairVolume.apply
+
+    def counting(self, x, v, dt):
+        calls.append(dt)
+        return orig(self, x, v, dt)
+
+    monkeypatch.setattr(HairVolume, "apply", counting)
+    st, restarts = sim.initial_state(), 0
+    for _ in range(6):
+        n = len(calls)
+        jump = scene.motion.velocity_jumps(st.time, st.time + DT, since=0.0)
+        st, info = sim.step(st, DT)
+        assert info.converged and len(calls) == n + 1 and calls[-1] == DT   # once a step, over the step
+        if jump:
+            restarts += 1
+            assert st.history is not None and st.history.restart
+    assert restarts == 2
 
 
 @pytest.mark.parametrize("w", [1.0, 0.5, 2.0])

@@ -458,8 +458,8 @@ class Simulator:
                 # solve's positions; it moves no position, so the object contacts below see the
                 # solve's path, as without it
                 hh = None
-                if integ is getattr(self.integrator, "final_stage", integ):
-                    volume = self.hair_hair
+                if integ is getattr(self.integrator, "final_stage", integ) or integ is self._restart:
+                    volume = self.hair_hair   # the step's last stage (a restart step is one stage)
             if volume is not None:
                 tic = time.perf_counter()
                 v_filtered, pressed = volume.apply(x_solve, v_new, step_dt)
