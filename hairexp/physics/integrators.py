@@ -119,8 +119,10 @@ that had had the filtered velocity all along:
 
 Driver discontinuities (``solver.restart_at_jumps``, on by default): a step in which the kinematic
 roots' prescribed velocity jumps (a linearly keyed ``scene.motion`` at an inner key, or at its
-first or last key where the motion starts or stops; ``RigidMotion.velocity_jumps``, a key in
-[t_n, t_n + dt)) is one implicit Euler step (``Restart``), and the scheme restarts after it (the
+first or last key where the motion starts or stops; ``RigidMotion.velocity_jumps``: a key in
+[t_n, t_n + dt) after t = 0 whose segments on both sides span at least 2 steps, so that keys as
+dense as the steps, a USD stage's per-frame time samples, are stepped through as before) is one
+implicit Euler step (``Restart``), and the scheme restarts after it (the
 next step is its first step: BDF2 and lmm2 start with implicit Euler, TR-BDF2 with an implicit
 Euler first stage, generalized-alpha from the equation of motion).  A velocity jump is an impulse
 the second-order schemes cannot resolve: it excites the stiff stretch modes, which TR-BDF2's
