@@ -22,8 +22,11 @@ run in parallel (``prange``) without atomics.  The band is LAPACK's lower banded
 transposed, ``abT[j, d] = A[j + d, j]`` (``abT.T`` is what ``scipy.linalg.solveh_banded`` takes),
 so that one column's entries are contiguous.
 
-Everything is ``@njit(cache=True, error_model="numpy")``: the first run in a checkout compiles (a few seconds) and
-stores the machine code next to this file; later processes load it.  The per-block and per-element
+Everything is ``@njit(cache=True, error_model="numpy")``: the first run in a checkout compiles and
+stores the machine code next to this file; later processes load it.  Compiling is not cheap (a fresh
+clone, 2026-12-06, ``experiment=goaling_smoke frames=2``: the free step's kernels 48 s with
+``solver.threads=1`` and 45 s more for the 2-thread variants, the tracked SQP's 23 s and 28 s more;
+cached, the same runs start in 4-5 s).  The per-block and per-element
 helpers are ``inline="always"`` (numba inlines them into the loops over blocks before LLVM sees
 them): a call passes every array argument as its unpacked struct (data, shape, strides, ...), about
 a microsecond per block for ``strand_derivatives``' twenty arrays, and views made per block (a
