@@ -78,8 +78,9 @@ def test_the_jump_step_is_one_implicit_euler_step_and_the_scheme_restarts():
     states, infos = run_steps(sim, 2, DT)            # 0 -> 0.04: no jump
     assert states[-1].history is not None and states[-1].history.a is not None   # TR-BDF2's end acceleration
     before = states[-1]
+    assert [i.restarts for i in infos] == [0, 0]
     new, info = sim.step(before, DT)                  # 0.04 -> 0.06: the jump
-    assert info.converged
+    assert info.converged and info.restarts == 1      # metrics.parquet's ``restarts`` column
     assert isinstance(new.history, History) and new.history.restart and new.history.a is None
     # the same step taken by implicit Euler from the same state
     ref, _ = ie.step(before, DT)
@@ -87,7 +88,7 @@ def test_the_jump_step_is_one_implicit_euler_step_and_the_scheme_restarts():
     np.testing.assert_allclose(new.v, ref.v, rtol=0, atol=1e-10)
     # the next step is TR-BDF2 again, from its restart (implicit Euler first stage, then BDF2)
     nxt, info = sim.step(new, DT)
-    assert info.converged and nxt.history.a is not None and not nxt.history.restart
+    assert info.converged and info.restarts == 0 and nxt.history.a is not None and not nxt.history.restart
     assert not np.allclose(nxt.x, ie.step(new, DT)[0].x, rtol=0, atol=1e-9)
 
 
@@ -128,3 +129,12 @@ def test_a_non_boolean_restart_at_jumps_is_refused():
     scene = build_scene(scene_cfg(motion=JERK))
     with pytest.raises(InputError, match="solver.restart_at_jumps"):
         Simulator(scene, Cfg())
+
+
+def test_the_metrics_row_counts_the_restarts():
+    from hairexp.outputs.metrics import measure
+
+    sim = sim_of(integrator="trbdf2")
+    states, infos = run_steps(sim, 3, DT)
+    rows = [measure(sim.scene, st, inf, sim, k, k, "free") for k, (st, inf) in enumerate(zip(states[1:], infos))]
+    assert [r["restarts"] for r in rows] == [0, 0, 1]

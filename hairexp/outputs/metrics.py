@@ -47,6 +47,7 @@ def measure(scene: Scene, state: State, info: StepInfo, sim, step: int, frame: i
         "status": str(info.status), "converged": bool(info.converged), "iterations": info.iterations,
         "iterations_attempted": info.iterations_attempted,
         "backtracks": info.backtracks, "substeps": info.substeps, "recovered": bool(info.recovered),
+        "restarts": info.restarts,
         "grad_norm": info.grad_norm, "force_scale": info.force_scale,
         "residual_max": math.nan, "residual_rms": math.nan, "residual_rel_max": math.nan,
         "stretch_max": float(np.abs(eps).max()), "stretch_mean": float(np.abs(eps).mean()),

@@ -37,6 +37,7 @@ class SolveInfo:
     seconds: dict = field(default_factory=lambda: {"derivatives": 0.0, "assembly": 0.0, "solve": 0.0})
     tensions: dict = field(default_factory=dict)   # final stretch dual iterates (warm start of the next step)
     collision: object = None        # CollisionInfo of the collision stage that followed, if it ran
+    restart: bool = False           # an implicit Euler step at a driver's velocity jump (solver.restart_at_jumps)
 
     @property
     def converged(self) -> bool:
@@ -63,6 +64,7 @@ class StepInfo:
     collider_contacts: dict = field(default_factory=dict)   # collider name -> vertices corrected
     seconds: dict = field(default_factory=dict)   # derivatives, assembly, solve, collision, other, total
     iterations_attempted: int = 0    # all iterations done, including attempts that recovery replaced
+    restarts: int = 0                # (sub)steps taken as implicit Euler at a driver's velocity jump
 
     @property
     def converged(self) -> bool:

@@ -403,7 +403,9 @@ class Simulator:
         if self.restart_at_jumps and self.scene.motion.velocity_jumps(state.time, state.time + dt, since=0.0):
             # the roots' velocity jumps in this step: one implicit Euler step, then the scheme
             # restarts (hairexp/physics/integrators.py, "Driver discontinuities")
-            return self._stage(state, dt, self._restart, dt)
+            state, info = self._stage(state, dt, self._restart, dt)
+            info.restart = True
+            return state, info
         stages = getattr(self.integrator, "stages", None)
         if stages is None:
             return self._stage(state, dt, self.integrator, dt)
@@ -584,7 +586,7 @@ class Simulator:
                         grad_norm=last.grad_norm, force_scale=last.force_scale, constraint_norm=last.constraint_norm,
                         recovered=(len(infos) > n or self._last_attempts > 0) and all(i.converged for i in infos),
                         seconds=sec,
-                        iterations_attempted=self._attempted)
+                        iterations_attempted=self._attempted, restarts=sum(bool(i.restart) for i in infos))
         c = _sum_collisions([i.collision for i in infos if i.collision is not None])
         if c is not None:
             info.object_contacts, info.hair_contacts = c.object_contacts, c.hair_contacts
