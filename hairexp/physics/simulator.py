@@ -409,17 +409,18 @@ class Simulator:
         stages = getattr(self.integrator, "stages", None)
         if stages is None:
             return self._stage(state, dt, self.integrator, dt)
-        infos = []
-        for scheme, h in stages(state, dt):
-            state, info = self._stage(state, h, scheme, dt)
+        infos, plan = [], stages(state, dt)
+        for k, (scheme, h) in enumerate(plan):
+            state, info = self._stage(state, h, scheme, dt, last=k == len(plan) - 1)
             infos.append(info)
             if info.status == DIVERGED:    # a non-finite state: the attempt ends here
                 break
         return state, _merge_stages(infos)
 
-    def _stage(self, state: State, dt: float, integ, step_dt: float) -> tuple[State, SolveInfo]:
+    def _stage(self, state: State, dt: float, integ, step_dt: float, last: bool = True) -> tuple[State, SolveInfo]:
         """One stage of length dt with the scheme ``integ`` (the whole step for a one-stage
-        scheme), within a step of length ``step_dt``."""
+        scheme), within a step of length ``step_dt``; ``last``: the step's last stage (a velocity
+        filter, the hair volume, runs after it only)."""
         ctl = self.controller
         t_next = state.time + dt
         # 1. kinematics: the body's poses over the step (a dynamic block moves first, with the
@@ -460,8 +461,8 @@ class Simulator:
                 # solve's positions; it moves no position, so the object contacts below see the
                 # solve's path, as without it
                 hh = None
-                if integ is getattr(self.integrator, "final_stage", integ) or integ is self._restart:
-                    volume = self.hair_hair   # the step's last stage (a restart step is one stage)
+                if last:
+                    volume = self.hair_hair
             if volume is not None:
                 tic = time.perf_counter()
                 v_filtered, pressed = volume.apply(x_solve, v_new, step_dt)
