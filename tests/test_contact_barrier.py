@@ -533,7 +533,8 @@ def test_a_10_m_s_ball_through_hanging_hair_is_split_and_captures_nothing(mode):
 
 
 def test_max_travel_keys_are_checked():
-    from hairexp.app.validate import MAX_TRAVEL_SUBSTEPS, _collision
+    from hairexp.app.validate import _collision
+    from hairexp.physics.simulator import MAX_TRAVEL_SUBSTEPS
 
     for key, val in [("max_travel", -0.1), ("max_travel", float("nan")), ("max_travel_substeps", 0),
                      ("max_travel_substeps", MAX_TRAVEL_SUBSTEPS + 1)]:

@@ -38,9 +38,7 @@ from hairexp.guides.authoring import check_edits
 from hairexp.model.builders import check_spin
 from hairexp.evaluation.measures import MEASURE_KEYS, collider_named
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR, make_integrator
-from hairexp.physics.simulator import (MAX_ATOL, MAX_BARRIER_DHAT, MAX_COLLISION_PASSES, MAX_ITERATION_BUDGET,  # noqa: F401
-                                       MAX_LAST_ATTEMPT, MAX_SKIN, MAX_SUBSTEP_LEVELS, MAX_TRAVEL_SUBSTEPS,
-                                       check_collision_config, check_solver_config)
+from hairexp.physics.simulator import MAX_ATOL, MAX_ITERATION_BUDGET, MAX_LAST_ATTEMPT, MAX_SUBSTEP_LEVELS, check_collision_config, check_solver_config  # noqa: F401
 from hairexp.physics.strand_kernels import check_options
 
 
