@@ -40,8 +40,8 @@ from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 from hairexp.control.tracking.sqp import sqp_solve
 from hairexp.errors import InputError
+from hairexp.outputs.metrics import stretch
 from hairexp.physics.controller import scaled_iterations
-from hairexp.physics.energies import Stretch
 
 from experiments.common import celia_bench, check_reports, describe_run, md_table, positive_int
 
@@ -54,14 +54,6 @@ FD_STEP = 1e-6
 #: case -> overrides of the benchmarks' Celia config
 CASES = {"no_restart": ["solver.restart_at_jumps=false"], "default": [],
          "implicit_euler": ["solver.integrator=implicit_euler"]}
-
-
-def edge_strain(obj, xf: np.ndarray) -> np.ndarray:
-    """(E,) l / l0 - 1 of the stretch term's edges at the DOF vector ``xf``."""
-    st = next(t for t in obj.terms if isinstance(t, Stretch))
-    with torch.no_grad():
-        xs = obj.positions(xf)[st.stencil_t]
-        return (torch.linalg.vector_norm(xs[:, 1] - xs[:, 0], dim=-1) / st.l0 - 1.0).numpy()
 
 
 def tensions(obj):
@@ -117,7 +109,7 @@ def run_case(overrides: list[str], steps: int) -> dict:
         saved = tensions(obj)
         out = original(sim_, state, dt, t_next, motion)
         info = out[2]
-        s = edge_strain(obj, sim_.free_dofs(out[0]))
+        s = stretch(run.scene, out[0])
         solves.append({"t": t_next, "dt": dt, "iterations": info.iterations, "compressed": int((s < 0).sum()),
                        "edges": len(s), "strain_median": float(np.median(s)), "strain_min": float(s.min())})
         if info.iterations > SLOW and not probe:
@@ -127,7 +119,7 @@ def run_case(overrides: list[str], steps: int) -> dict:
             x, t, lam, _ = sqp_solve(obj, ctl, x0, it.t, it.lam, replace(opts, trace=None, max_iterations=PROBE_AT))
             x1, _, _, _ = sqp_solve(obj, ctl, x, t, lam, replace(opts, trace=None, max_iterations=1))
             d = x1 - x
-            s15 = edge_strain(obj, x)
+            s15 = stretch(run.scene, obj.full_positions(x))
             probe.update({"t": t_next, "dt": dt, "h": obj.dt, "iterations": info.iterations,
                           "compressed": int((s15 < 0).sum()), "edges": len(s15),
                           "strain_median": float(np.median(s15)),

@@ -127,7 +127,7 @@ next step is its first step: BDF2 and lmm2 start with implicit Euler, TR-BDF2 wi
 Euler first stage, generalized-alpha from the equation of motion).  A velocity jump is an impulse
 the second-order schemes cannot resolve: it excites the stiff stretch modes, which TR-BDF2's
 trapezoidal stage (|r| = 1 on them) carries into the BDF2 stage, whose extrapolation then ends
-with nearly every edge compressed (Celia's benchmark jerk, 1.2 m/s from rest at 0.08 s: 7306 of
+with nearly every edge compressed (Celia's benchmark jerk, 1.2 m/s from rest at 0.08 s: 7301 of
 7525 edges, median strain -1.5e-4; implicit Euler +5e-5), a near-buckling state where the
 PSD-clamped Hessian over-estimates the true curvature 3.3 x along the SQP's step and the solve
 converges linearly (50 iterations, then substeps; experiments/sqp_curvature.py).  Restarting a
