@@ -340,6 +340,49 @@ def test_krylov_schur_falls_back_to_the_exact_solve():
     assert kkt.stats["direct_solves"] == 2 and kkt.stats["krylov_solves"] == 1
 
 
+@pytest.mark.parametrize("case, system", [("unequal_strands_2_guides", "static"), ("wisp_3_guides", "sliding_structured"),
+                                          ("wisp_3_guides", "sliding_reg")])
+def test_compiled_arnoldi_loop_is_the_python_one(monkeypatch, case, system):
+    """The Krylov solve's Arnoldi loop compiled (``gmres_arnoldi``, numba, its products by the
+    interleaved solve) and in Python (the path without numba, its products by the banded solve):
+    the same iterations and residual estimates, the same solution to round-off.  The static case
+    has a candidate whose error estimate is not yet small (the residual estimate at tol, the error
+    not): the loop resumes from it, both ways."""
+    from hairexp.control.tracking import kkt as kkt_mod
+
+    _, sim = kkt_scene(case)
+    tr = sim.controller
+    ab, r_x, C, rng, K = kkt_system(sim, seed=0)
+    args = (None, None, None, None)
+    if system != "static":
+        args = (*structured_sliding_args(tr, rng, K), None)
+    if system == "sliding_reg":
+        reg = np.zeros(3 * K)
+        reg[:6] = 1e-3
+        args = (*args[:3], reg)
+    near = nearby_hessian(sim, 0, 1e-5)
+    out = {}
+    for compiled in (True, False):
+        monkeypatch.setattr(kkt_mod, "HAVE_NUMBA", compiled)
+        kkt = krylov_kkt(sim, krylov_max=30)
+        kkt.factor(near)
+        kkt.factor(ab)
+        sol = kkt.solve(r_x, C, *args)
+        assert kkt.stats["krylov_fallbacks"] == 0 and kkt.stats["direct_solves"] == 0
+        out[compiled] = (sol, list(kkt.history), kkt.stats["krylov_iterations"])
+    (sa, ha, na), (sb, hb, nb) = out[True], out[False]
+    assert na == nb == len(ha) == len(hb) >= 2
+    big = np.array(hb) > 1e-13      # the last estimates are round-off
+    np.testing.assert_allclose(np.array(ha)[big], np.array(hb)[big], rtol=1e-6)
+    if system == "static":
+        assert any(h <= kkt.krylov_tol for h in hb[:-1])    # a candidate iterated on
+    for name, a, b in zip(("dx", "dt", "lam"), sa, sb):
+        if b is None:
+            assert a is None
+            continue
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-11 * np.abs(b).max(), err_msg=name)
+
+
 @pytest.mark.parametrize("case", ["wisp_3_guides", "unequal_strands_2_guides"])
 def test_interleaved_substitution_is_the_banded_solve(case):
     """The Krylov products' strand-interleaved solve equals the per-strand banded solve (hinv),

@@ -42,6 +42,8 @@ the direct solves (round-off; tests/test_tracking_solver.py).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from hairexp.errors import InputError
@@ -407,30 +409,63 @@ class SchurKKT:
         W = self._W_buf
         Hh = np.zeros((kmax + 1, kmax))   # the Arnoldi relation M Z = V Hh
         R = np.zeros((kmax + 1, kmax))    # Hh rotated to upper triangular (Givens)
-        cs, sn = np.zeros(kmax), np.zeros(kmax)
         g = np.zeros(kmax + 1)            # Q^T |b| e1
         g[0] = bnorm
         V[0] = b / bnorm
-        if HAVE_NUMBA:
-            self._interleave()
-        for j in range(kmax):
+        cs, sn = np.zeros(kmax), np.zeros(kmax)   # the Givens rotations
+        hist = np.zeros(kmax)
+        if HAVE_NUMBA:    # the whole Arnoldi loop compiled (``gmres_arnoldi``): at Celia's size its Python
+            self._interleave()   # form spent about 1.4 ms a solve outside the products
+            vr, vw = ((self._v_rows, self._v_wts) if self._v_rows is not None
+                      else (np.zeros((0, 0, 0), dtype=np.int32), np.zeros((0, 0, 0))))
+            M0c = np.ascontiguousarray(M0)
+        j0 = 0
+        while True:   # Arnoldi iterations up to one whose residual estimate reaches tol, then the checks
+            if HAVE_NUMBA:
+                done, code = gmres_arnoldi(P[0], P[1], M0c, b, bnorm, tol, kmax, m, vr, vw, self._m_rows, self._m_wts,
+                                           self._L_il, self._inv_il, j0, V, Z, W, Hh, R, g, cs, sn, hist)
+            else:
+                done, code = self._arnoldi_python(P, M0, b, bnorm, tol, kmax, m, j0, V, Z, W, Hh, R, g, cs, sn, hist)
+            self.stats["krylov_iterations"] += int(done) - j0
+            self.history = hist[:done].tolist()
+            if code != ARNOLDI_CANDIDATE:
+                return None
+            j = int(done) - 1
+            hn = Hh[j + 1, j]
+            y = scipy.linalg.solve_triangular(R[:j + 1, :j + 1], g[:j + 1], check_finite=False)
+            zz = y @ Z[:j + 1]
+            # and the error: its estimate P^-1 (b - M z) (with a small residual alone, lam's
+            # relative error may be cond(S) x tol)
+            r = -(Hh[:j + 2, :j + 1] @ y) @ V[:j + 2]
+            r += b
+            if self._small(P, r, zz, tol, scales) or hn <= 1e-300 * bnorm:
+                # the true residual, without a further solve with H: S z = A W^T y
+                r = b - M0 @ zz
+                r[:m] -= self._A_il @ (y @ W[:j + 1])
+                # (its error estimate is bounded below by the products' round-off, cond(M) eps |z|,
+                # about what the direct solve's error is: a factor 100 of slack for it)
+                if float(np.linalg.norm(r)) <= tol * bnorm and self._small(P, r, zz, 100.0 * tol, scales):
+                    return zz, W[:j + 1], y
+                return None
+            if done >= kmax:   # the error estimate not yet small: iterate on, while there are iterations left
+                return None
+            j0 = int(done)
+
+    def _arnoldi_python(self, P, M0, b, bnorm, tol, kmax, m, j0, V, Z, W, Hh, R, g, cs, sn, hist):
+        """``gmres_arnoldi`` without numba (the products through ``_hinv_il``), from iteration j0."""
+        for j in range(j0, kmax):
             z = scipy.linalg.lu_solve(P, V[j], check_finite=False)
             Z[j] = z
             w = M0 @ z
-            if HAVE_NUMBA:     # W[j] = H^-1 A^T z_lam and A W[j] in one pass
-                Av = np.empty(m)
-                self._product(np.ascontiguousarray(z[:m]), W[j].reshape(self.nmax, self.S), Av)
-                w[:m] += Av
-            else:
-                W[j] = self._hinv_il(self._AT_il @ z[:m])
-                w[:m] += self._A_il @ W[j]
+            W[j] = self._hinv_il(self._AT_il @ z[:m])
+            w[:m] += self._A_il @ W[j]
             for _ in range(2):     # Gram-Schmidt, twice: the basis stays orthogonal to round-off
                 h = V[:j + 1] @ w
                 Hh[:j + 1, j] += h
                 w -= h @ V[:j + 1]
             hn = float(np.linalg.norm(w))
             if not np.isfinite(hn):      # a non-finite system (a diverging iterate): the direct solve says so
-                return None
+                return j, ARNOLDI_GAVE_UP
             Hh[j + 1, j] = hn
             V[j + 1] = w / hn if hn > 1e-300 * bnorm else 0.0
             col = Hh[:j + 2, j].copy()
@@ -442,27 +477,129 @@ class SchurKKT:
             R[:j + 2, j] = col
             g[j], g[j + 1] = cs[j] * g[j], -sn[j] * g[j]
             rel = abs(float(g[j + 1])) / bnorm
-            self.stats["krylov_iterations"] += 1
-            self.history.append(rel)
+            hist[j] = rel
             if rel <= tol or hn <= 1e-300 * bnorm:
-                y = scipy.linalg.solve_triangular(R[:j + 1, :j + 1], g[:j + 1], check_finite=False)
-                zz = y @ Z[:j + 1]
-                # and the error: its estimate P^-1 (b - M z) (with a small residual alone, lam's
-                # relative error may be cond(S) x tol)
-                r = -(Hh[:j + 2, :j + 1] @ y) @ V[:j + 2]
-                r += b
-                if self._small(P, r, zz, tol, scales) or hn <= 1e-300 * bnorm:
-                    # the true residual, without a further solve with H: S z = A W^T y
-                    r = b - M0 @ zz
-                    r[:m] -= self._A_il @ (y @ W[:j + 1])
-                    # (its error estimate is bounded below by the products' round-off, cond(M) eps |z|,
-                    # about what the direct solve's error is: a factor 100 of slack for it)
-                    if float(np.linalg.norm(r)) <= tol * bnorm and self._small(P, r, zz, 100.0 * tol, scales):
-                        return zz, W[:j + 1], y
-                    return None
+                return j + 1, ARNOLDI_CANDIDATE
             if j >= 2 and rel ** (kmax / (j + 1)) > tol:   # at this rate kmax iterations would not do
-                return None
-        return None
+                return j + 1, ARNOLDI_GAVE_UP
+        return kmax, ARNOLDI_GAVE_UP
+
+
+#: ``gmres_arnoldi``'s outcomes: the residual estimate reached the tolerance (or the basis broke
+#: down: the solution is in it), or the iteration gave up (its rate, kmax or a non-finite value)
+ARNOLDI_CANDIDATE, ARNOLDI_GAVE_UP = 0, 1
+
+
+@njit(cache=True, error_model="numpy")
+def lu_apply(lu, piv, b, out):
+    """out = M^-1 b from ``scipy.linalg.lu_factor``'s (lu, piv) of M (LAPACK getrs: the row
+    interchanges in order, then the unit lower and the upper triangle)."""
+    n = b.shape[0]
+    for i in range(n):
+        out[i] = b[i]
+    for i in range(n):
+        p = piv[i]
+        if p != i:
+            t = out[i]
+            out[i] = out[p]
+            out[p] = t
+    for i in range(n):
+        s = out[i]
+        for k in range(i):
+            s -= lu[i, k] * out[k]
+        out[i] = s
+    for i in range(n - 1, -1, -1):
+        s = out[i]
+        for k in range(i + 1, n):
+            s -= lu[i, k] * out[k]
+        out[i] = s / lu[i, i]
+
+
+@njit(cache=True, error_model="numpy")
+def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_wts, L, inv, j0, V, Z, W, Hh, R, g,
+                  cs, sn, hist):
+    """The Arnoldi loop of ``SchurKKT._krylov`` (GMRES, right-preconditioned, no restart, Givens
+    rotations; Saad 2003, "Iterative methods for sparse linear systems", Alg. 9.5) on the reduced
+    system M z = b, M z = M0 z + [A H^-1 A^T z[:m]; 0], preconditioner P = (lu, piv).  V[0] = b /
+    bnorm and g[0] = bnorm on entry.  From iteration j0 (0, or the one after a candidate whose
+    error estimate was not yet small: the earlier iterations' state in V, Z, W, Hh, R, g and the
+    Givens rotations cs, sn) it fills V, Z, W (rows H^-1 A^T Z[j, :m], strand-interleaved, from
+    ``schur_product_vertex`` when ``v_rows`` is not empty, else ``schur_product``), Hh, R, g, cs,
+    sn and hist (the relative residual estimate after each iteration).  Returns (iterations done,
+    ARNOLDI_CANDIDATE when the last one reached ``tol`` or broke down, else ARNOLDI_GAVE_UP: a
+    non-finite value, ``kmax`` reached, or a rate at which kmax iterations would not do), the
+    same decisions as ``SchurKKT._arnoldi_python``."""
+    n = b.shape[0]
+    nmax, S = inv.shape
+    w = np.empty(n)
+    h = np.empty(kmax + 1)
+    zl = np.empty(m)
+    Av = np.empty(m)
+    col = np.empty(kmax + 1)
+    per_vertex = v_rows.shape[0] > 0
+    for j in range(j0, kmax):
+        z = Z[j]
+        lu_apply(lu, piv, V[j], z)
+        for i in range(n):
+            s = 0.0
+            for k in range(n):
+                s += M0[i, k] * z[k]
+            w[i] = s
+        for i in range(m):
+            zl[i] = z[i]
+        x = W[j].reshape((nmax, S))
+        if per_vertex:
+            schur_product_vertex(v_rows, v_wts, zl, L, inv, x, Av)
+        else:
+            schur_product(m_rows, m_wts, zl, L, inv, x, Av)
+        for i in range(m):
+            w[i] += Av[i]
+        for _ in range(2):     # classical Gram-Schmidt, twice
+            for i in range(j + 1):
+                s = 0.0
+                for k in range(n):
+                    s += V[i, k] * w[k]
+                h[i] = s
+            for i in range(j + 1):
+                Hh[i, j] += h[i]
+                for k in range(n):
+                    w[k] -= h[i] * V[i, k]
+        s = 0.0
+        for k in range(n):
+            s += w[k] * w[k]
+        hn = math.sqrt(s)
+        if not np.isfinite(hn):
+            return j, ARNOLDI_GAVE_UP
+        Hh[j + 1, j] = hn
+        for k in range(n):
+            V[j + 1, k] = w[k] / hn if hn > 1e-300 * bnorm else 0.0
+        for i in range(j + 2):
+            col[i] = Hh[i, j]
+        for i in range(j):
+            a = cs[i] * col[i] + sn[i] * col[i + 1]
+            col[i + 1] = -sn[i] * col[i] + cs[i] * col[i + 1]
+            col[i] = a
+        rr = math.hypot(col[j], col[j + 1])
+        if rr > 0:
+            cs[j] = col[j] / rr
+            sn[j] = col[j + 1] / rr
+        else:
+            cs[j] = 1.0
+            sn[j] = 0.0
+        col[j] = rr
+        col[j + 1] = 0.0
+        for i in range(j + 2):
+            R[i, j] = col[i]
+        gj = g[j]
+        g[j] = cs[j] * gj
+        g[j + 1] = -sn[j] * gj
+        rel = abs(g[j + 1]) / bnorm
+        hist[j] = rel
+        if rel <= tol or hn <= 1e-300 * bnorm:
+            return j + 1, ARNOLDI_CANDIDATE
+        if j >= 2 and rel ** (kmax / (j + 1)) > tol:   # at this rate kmax iterations would not do
+            return j + 1, ARNOLDI_GAVE_UP
+    return kmax, ARNOLDI_GAVE_UP
 
 
 #: strands a block of ``interleave_factor``
