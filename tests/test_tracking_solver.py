@@ -257,10 +257,12 @@ def test_schur_kkt_refactors_for_a_new_hessian():
 
 
 def krylov_kkt(sim, **kw):
+    """The Krylov KKT solve, by default to 1e-12 (the direct solves' residual: these tests compare
+    the paths to round-off; the default tracking.krylov_tol is 1e-6)."""
     from hairexp.control.tracking.kkt import SchurKKT
 
     return SchurKKT(sim.scene.strands, sim.controller.cons, sim.objective.assembler.bandwidth, sim.objective.kernels,
-                    schur="krylov", **kw)
+                    schur="krylov", **{"krylov_tol": 1e-12, **kw})
 
 
 def nearby_hessian(sim, seed, scale):
@@ -524,6 +526,7 @@ def test_krylov_and_exact_schur_give_the_same_trajectory():
     for mode in ("exact", "krylov"):
         cfg = goaling_like("sliding")
         cfg.tracking.schur = mode
+        cfg.tracking.krylov_tol = 1e-12      # the direct solves' residual (the default's: below)
         _, _, sim = build_tracked(cfg)
         states, infos = run_steps(sim, 8)
         assert all(i.converged for i in infos)

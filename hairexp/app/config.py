@@ -258,10 +258,10 @@ class TrackingConfig:
     # how kkt=schur treats S = A H^-1 A^T (hairexp/control/tracking/kkt.py SchurKKT): krylov (the
     # reduced system by GMRES to the relative residual and error krylov_tol, preconditioned by the
     # last S built, which is rebuilt when a solve needs more than krylov_max iterations; Celia's
-    # tracked step 0.8 x exact's, the same SQP iterations: reports/bench_tracking.md) | exact (S
+    # tracked step 0.66 x exact's, the same SQP iterations: reports/bench_tracking.md) | exact (S
     # built at every SQP iteration)
     schur: SchurSolve = SchurSolve.krylov
-    krylov_tol: float = 1e-12
+    krylov_tol: float = 1e-6     # (1e-12: the direct solves' residual, round-off; see kkt.KRYLOV_TOL)
     krylov_max: int = 16
     rtol: float = 1e-5                 # |grad_x L| <= atol + rtol * force scale
     atol: float = 1e-10

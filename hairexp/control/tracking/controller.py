@@ -12,7 +12,7 @@ import numpy as np
 from hairexp.errors import InputError
 from hairexp.control.tracking.constraints import TrackingConstraints
 from hairexp.control.tracking.correspondence import build_correspondence
-from hairexp.control.tracking.kkt import SCHUR_MODES, SchurKKT
+from hairexp.control.tracking.kkt import KRYLOV_TOL, SCHUR_MODES, SchurKKT
 from hairexp.control.tracking.sqp import SQPOptions, sqp_solve
 from hairexp.control.tracking.variance import VarianceControl
 from hairexp.guides.animation import GuideAnimation
@@ -105,7 +105,7 @@ class TrackingController(Controller):
     def bind(self, sim) -> None:
         t = self.tcfg
         self.kkt = SchurKKT(self.scene.strands, self.cons, sim.objective.assembler.bandwidth, sim.objective.kernels,
-                            schur=str(_v(getattr(t, "schur", "krylov"))), krylov_tol=float(getattr(t, "krylov_tol", 1e-12)),
+                            schur=str(_v(getattr(t, "schur", "krylov"))), krylov_tol=float(getattr(t, "krylov_tol", KRYLOV_TOL)),
                             krylov_max=int(getattr(t, "krylov_max", 16)))
 
     def initial_control(self) -> TrackingIterates:
