@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
@@ -486,3 +488,54 @@ def test_strain_limit_holds_against_random_moving_colliders():
             assert any(through), f"strain {strain.max():.3g} with no edge through a collider ({list(shapes)})"
             threaded += 1
     assert threaded <= 2
+
+
+def test_known_distances_give_the_same_contact_response():
+    """The object stage's path test computes each collider's distance of the end points; without a
+    contact they are x1's and stand in for ``Collider.distance`` in the inelastic response and the
+    penetration check (``dist``/``dist_out``): the same velocities as evaluating them again, and
+    the distances collision_stage hands out are those at its returned x1, with or without a
+    contact."""
+    from hairexp.physics.collisions import collision_stage, contact_velocities
+
+    rng = np.random.default_rng(5)
+    motion = RigidMotion(np.array([0.0, 1.0]), np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]]),
+                         np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.3]]))
+    ball = Sphere("ball", motion, thickness=0.002, friction=0.4, radius=0.05)
+    wall = Plane("wall", RigidMotion.static(), thickness=0.001, friction=0.2)
+    cols = [ball, wall]
+    t1 = 0.5
+    # points on the ball's shell and on the plane's, and free ones; movable but for two
+    R, T = motion.pose(t1)
+    dirs = rng.normal(size=(40, 3))
+    dirs /= np.linalg.norm(dirs, axis=1)[:, None]
+    on_ball = (dirs * (0.05 + 0.002)) @ R.T + T
+    on_wall = np.c_[rng.uniform(-1, 1, 20), np.full(20, 0.001), rng.uniform(-1, 1, 20)]
+    free = rng.uniform(0.2, 0.4, (30, 3))
+    x1 = np.vstack([on_ball, on_wall, free])
+    movable = np.ones(len(x1), dtype=bool)
+    movable[[3, 50]] = False
+    v1 = rng.normal(size=x1.shape)
+    dist = [c.distance(x1[movable], t1) for c in cols]
+    assert any((d < c.shell_tolerance()).sum() > 10 for d, c in zip(dist, cols))   # vertices on both shells
+    a = contact_velocities(cols, x1, v1.copy(), t1, movable)
+    b = contact_velocities(cols, x1, v1.copy(), t1, movable, dist=dist)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, v1)     # the response did act
+    # the stage: a path that ends clear of both (no contact), and one that ends inside the ball
+    sc = SimpleNamespace(colliders=cols, strands=SimpleNamespace(kinematic=~movable))
+    cc = OmegaConf.structured(CollisionConfig())
+    x0 = x1 + np.array([0.0, 0.01, 0.0])
+    clear0, clear1 = free + 0.001, free + 0.002
+    kin = np.zeros(len(free), dtype=bool)
+    contacts = []
+    for y0, y1, km in ((clear0, clear1, kin), (x0, x1 - 0.01 * np.vstack([dirs, np.zeros((50, 3))]), ~movable)):
+        sc.strands.kinematic = km
+        out: list = []
+        xe, _, info = collision_stage(cc, sc, None, y0, y1, 0.4, t1, 0.1, dist_out=out)
+        assert len(out) == len(cols)
+        for d, c in zip(out, cols):
+            np.testing.assert_array_equal(d, c.distance(xe[~km], t1))
+        assert info.penetration_max == max(float(np.maximum(-d, 0.0).max(initial=0.0)) for d in out)
+        contacts.append(info.object_contacts)
+    assert contacts[0] == 0 and contacts[1] > 0

@@ -72,9 +72,13 @@ class Collider:
         """Signed distance minus thickness: < 0 means too close or inside."""
         return self.sdf_body(self.to_body(x, t)) - self.thickness
 
+    def shell_tolerance(self) -> float:
+        """m: a ``distance`` below this is on the shell (``on_shell``)."""
+        return 1e-3 * max(self.thickness, 1e-3) + 1e-9
+
     def on_shell(self, x: np.ndarray, t: float) -> np.ndarray:
         """(n,) bool: points on (or within) the thickness shell, i.e. in contact."""
-        return self.distance(x, t) < 1e-3 * max(self.thickness, 1e-3) + 1e-9
+        return self.distance(x, t) < self.shell_tolerance()
 
     def normal(self, x: np.ndarray, t: float) -> np.ndarray:
         R, _ = self.motion.pose(t)

@@ -64,19 +64,28 @@ class CollisionInfo:
     per_collider: dict = field(default_factory=dict)
 
 
-def object_stage(colliders, x0, x1, t0, t1, dt, movable):
-    """Returns corrected (x1, v1, contacts, contacts per collider)."""
-    x1, contacts, per = object_positions(colliders, x0, x1, t0, t1, dt, movable)
-    return x1, contact_velocities(colliders, x1, (x1 - x0) / dt, t1, movable), contacts, per
+def object_stage(colliders, x0, x1, t0, t1, dt, movable, dist_out: list | None = None):
+    """Returns corrected (x1, v1, contacts, contacts per collider).  ``dist_out``: a list that
+    gets, when there was no contact (x1 is the input's), each collider's signed distance minus
+    thickness of the movable vertices at x1 and t1 (``Collider.distance``), which the path test
+    computed; left empty otherwise."""
+    dist: list = []
+    x1, contacts, per = object_positions(colliders, x0, x1, t0, t1, dt, movable, dist_out=dist)
+    known = dist if contacts == 0 else None
+    if dist_out is not None and known is not None:
+        dist_out.extend(known)
+    return x1, contact_velocities(colliders, x1, (x1 - x0) / dt, t1, movable, dist=known), contacts, per
 
 
-def object_positions(colliders, x0, x1, t0, t1, dt, movable, friction: bool = True):
+def object_positions(colliders, x0, x1, t0, t1, dt, movable, friction: bool = True, dist_out: list | None = None):
     """Positions of the object response: paths x0 (at t0) -> x1 (at t1) are stopped where
     they first come within a collider's thickness, keep their tangential rest (friction,
     surface spin over ``dt``), and end outside.  ``friction=False``: the tangential rest is
     kept whole (the strain limiter's moves are a projection, not motion over the step: Coulomb
     friction on them, scaled by their normal part, stalled the limiter on a curved surface).
-    Returns (x1, contacts, per collider)."""
+    Returns (x1, contacts, per collider).  ``dist_out``: a list that gets each collider's d1 (the
+    end points' signed distance minus thickness, at the x1 that collider saw: all of them x1's
+    when there was no contact)."""
     x1 = x1.copy()
     contacts = 0
     idx = np.flatnonzero(movable)
@@ -87,6 +96,8 @@ def object_positions(colliders, x0, x1, t0, t1, dt, movable, friction: bool = Tr
         th = col.thickness
         d0 = col.sdf_body(X0) - th
         d1 = col.sdf_body(X1) - th
+        if dist_out is not None:
+            dist_out.append(d1)
         D = X1 - X0
         L = np.linalg.norm(D, axis=1)
         cand = (d1 < 0) | (d0 - L < 0)
@@ -380,12 +391,14 @@ class HairHair:
         return v1, int((I > 0).sum())
 
 
-def contact_velocities(colliders, x1, v1, t1, movable):
+def contact_velocities(colliders, x1, v1, t1, movable, dist: list | None = None):
     """Inelastic contact: vertices on a collider's shell get no approaching normal velocity
-    relative to the surface, and Coulomb friction on the tangential one."""
+    relative to the surface, and Coulomb friction on the tangential one.  ``dist``: each
+    collider's ``distance`` of the movable vertices at (x1, t1), when known (``object_stage``)."""
     near = np.flatnonzero(movable)
-    for col in colliders:
-        c = near[col.on_shell(x1[near], t1)]
+    for i, col in enumerate(colliders):
+        shell = col.on_shell(x1[near], t1) if dist is None else dist[i] < col.shell_tolerance()
+        c = near[shell]
         if c.size:
             n = col.normal(x1[c], t1)
             vs = col.surface_velocity(x1[c], t1)
@@ -482,9 +495,13 @@ def limit_strain(limiter: StrainLimit, colliders, x1, t1, movable):
     return x1, limited, rounds
 
 
-def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter: StrainLimit | None = None):
+def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter: StrainLimit | None = None,
+                    dist_out: list | None = None):
     """Filter (x1, v1) for contacts.  Returns (x1, v1, CollisionInfo).  With ``limiter``, a
-    step with object contacts ends with strain limiting (``StrainLimit``).  ``hh``: the edge
+    step with object contacts ends with strain limiting (``StrainLimit``).  ``dist_out``: a list
+    that gets each collider's ``distance`` of the movable vertices at the returned x1 and t1 when
+    the stage knows them without another evaluation (its last pass had no object contact and
+    nothing moved after it; the object contacts' path test computed them), else stays empty.  ``hh``: the edge
     contacts (``HairHair``) or None.  The volume model (``collision.hair_hair_model=volume``,
     hairexp/physics/hair_volume.py) is not a pass of this stage: it filters the scheme's end
     velocities and moves no position, so the Simulator applies it (``Simulator._stage``) and
@@ -493,8 +510,10 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
     info = CollisionInfo()
     movable = ~scene.strands.kinematic
     v1 = (x1 - x0) / dt
+    dist = None            # each collider's distance at the current x1, when the object pass computed it
     for p in range(max(1, cfg.max_passes)):
         n_obj = n_hh = 0
+        dist = None
         if hh is not None:
             Ys = hh.frames(x0, x1)
             pairs, how = hh.neighbours(Ys)
@@ -504,7 +523,9 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
             v1, n_hh = hh.impulses(x1, v1, near, dt, x0)
             x1 = np.where(movable[:, None], x0 + dt * v1, x1)
         if scene.colliders:
-            x1, v1, n_obj, per = object_stage(scene.colliders, x0, x1, t0, t1, dt, movable)
+            found: list = []
+            x1, v1, n_obj, per = object_stage(scene.colliders, x0, x1, t0, t1, dt, movable, dist_out=found)
+            dist = found if n_obj == 0 else None
             for k, c in per.items():
                 info.per_collider[k] = info.per_collider.get(k, 0) + c
         info.object_contacts += n_obj
@@ -515,10 +536,15 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
     if limiter is not None and info.object_contacts > 0:
         x1, info.strain_limited, info.limit_rounds = limit_strain(limiter, scene.colliders, x1, t1, movable)
         v1 = contact_velocities(scene.colliders, x1, (x1 - x0) / dt, t1, movable)
+        dist = None
     if hh is not None:
         hh.end_step(x0, x1)
     if scene.colliders:
-        pen = [np.maximum(-c.distance(x1[movable], t1), 0.0).max(initial=0.0) for c in scene.colliders]
+        if dist is None:
+            dist = [c.distance(x1[movable], t1) for c in scene.colliders]
+        pen = [np.maximum(-d, 0.0).max(initial=0.0) for d in dist]
         info.penetration_max = float(max(pen))
+        if dist_out is not None:
+            dist_out.extend(dist)
     info.seconds = time.perf_counter() - tic
     return x1, v1, info

@@ -59,13 +59,55 @@ from hairexp.physics.kernels import njit
 MAX_CELLS = 20_000_000
 
 @njit(cache=True)
-def _cell_weights(x, origin, inv_h, i0, f):
+def _lower_corner(x, h, origin):
+    """origin = the points' minimum per axis - h (a cell of margin)."""
+    for a in range(3):
+        lo = x[0, a]
+        for v in range(1, x.shape[0]):
+            lo = min(lo, x[v, a])
+        origin[a] = lo - h
+
+
+@njit(cache=True)
+def _cell_weights(x, origin, inv_h, i0, f, top):
+    """Per point its lower cell index i0 and fraction f in the cell of the grid at ``origin``;
+    top = the largest i0 per axis."""
+    for a in range(3):
+        top[a] = 0
     for v in range(x.shape[0]):
         for a in range(3):
             g = (x[v, a] - origin[a]) * inv_h
             k = math.floor(g)
             i0[v, a] = k
             f[v, a] = g - k
+            top[a] = max(top[a], k)
+
+
+@njit(cache=True)
+def _filter(v, vg, pv, gp, movable, blend, dtc2, cap, out):
+    """``HairVolume.apply``'s update of each movable vertex's velocity (out = v elsewhere):
+    friction out += blend (vg - out), then the pressure's dv = dtc2 grad p capped at ``cap`` in
+    norm; returns the movable vertices with p > 0 (when there is pressure)."""
+    pressed = 0
+    for i in range(v.shape[0]):
+        for a in range(3):
+            out[i, a] = v[i, a]
+        if not movable[i]:
+            continue
+        if blend > 0:
+            for a in range(3):
+                out[i, a] += blend * (vg[i, a] - out[i, a])
+        if dtc2 != 0.0:
+            d0 = dtc2 * gp[i, 0]
+            d1 = dtc2 * gp[i, 1]
+            d2 = dtc2 * gp[i, 2]
+            s = min(1.0, cap / max(math.sqrt(d0 * d0 + d1 * d1 + d2 * d2), 1e-300))
+            out[i, 0] += d0 * s
+            out[i, 1] += d1 * s
+            out[i, 2] += d2 * s
+            if pv[i] > 0:
+                pressed += 1
+    return pressed
 
 
 @njit(cache=True)
@@ -142,11 +184,12 @@ class HairVolume:
         """(origin (3,), lower cell index (V, 3), fraction in the cell (V, 3), dims (3,), cells)."""
         h = self.cell
         x = np.ascontiguousarray(x, dtype=np.float64)
-        origin = x.min(axis=0) - h
+        origin, top = np.empty(3), np.empty(3, dtype=np.int64)
         i0 = np.empty(x.shape, dtype=np.int64)
         f = np.empty(x.shape)
-        _cell_weights(x, origin, 1.0 / h, i0, f)
-        dims = (i0.max(axis=0) + 2).astype(np.int64)
+        _lower_corner(x, h, origin)
+        _cell_weights(x, origin, 1.0 / h, i0, f, top)
+        dims = top + 2
         n = int(np.prod(dims.astype(np.float64)))
         if n > MAX_CELLS:
             raise SimulationError(f"hair volume grid of {dims.tolist()} cells (collision.volume_cell = {h:g} m) is too "
@@ -169,19 +212,13 @@ class HairVolume:
 
     def apply(self, x: np.ndarray, v: np.ndarray, dt: float) -> tuple[np.ndarray, int]:
         """(v after friction and pressure, number of free vertices in over-dense cells)."""
+        v = np.ascontiguousarray(v, dtype=np.float64)
         vg, pv, gp = self.fields(x, v)
-        fv = self.movable
-        out = np.array(v, dtype=np.float64)
+        out = np.empty_like(v)
         blend = 1.0 - math.exp(-self.friction * dt)
-        if blend > 0:
-            out[fv] += blend * (vg[fv] - out[fv])
-        pressed = 0
-        if self.c2 > 0:
-            dv = -dt * self.c2 * gp[fv]
-            # at most a cell per step: an explicit pressure step is stable below that (CFL), and
-            # hair crushed far past rho_0 (p >> 1) is spread over several steps, not shot out
-            n = np.linalg.norm(dv, axis=1)
-            cap = self.cell / dt
-            out[fv] += dv * np.minimum(1.0, cap / np.maximum(n, 1e-300))[:, None]
-            pressed = int(np.count_nonzero(fv & (pv > 0)))
-        return out, pressed
+        # the pressure's dv = -dt c^2 grad p, at most a cell per step: an explicit pressure step is
+        # stable below that (CFL), and hair crushed far past rho_0 (p >> 1) is spread over several
+        # steps, not shot out
+        dtc2 = -dt * self.c2 if self.c2 > 0 else 0.0
+        pressed = _filter(v, vg, pv, gp, self.movable, blend, dtc2, self.cell / dt, out)
+        return out, int(pressed)

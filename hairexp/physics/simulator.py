@@ -468,9 +468,10 @@ class Simulator:
                 v_filtered, pressed = volume.apply(x_solve, v_new, step_dt)
                 dv_volume = v_filtered - v_new
                 t_volume = time.perf_counter() - tic
+            dist: list = []       # the colliders' distances at x_new, when the stage computed them
             if self.collide_objects or hh is not None:
                 x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_new,
-                                                        state.time, t_next, dt, self.limiter)
+                                                        state.time, t_next, dt, self.limiter, dist_out=dist)
                 if type(integ) is ImplicitEuler:
                     v_new = v_stage
                 else:
@@ -492,7 +493,8 @@ class Simulator:
                 tic = time.perf_counter()
                 v_end = v_new + dv_volume
                 if sc.colliders:
-                    v_end = contact_velocities(sc.colliders, x_new, v_end, t_next, ~self.scene.strands.kinematic)
+                    v_end = contact_velocities(sc.colliders, x_new, v_end, t_next, ~self.scene.strands.kinematic,
+                                               dist=dist or None)
                 history = integ.after_velocity_filter(state, history, v_end - v_new)
                 v_new = v_end
                 cinfo.hair_contacts += pressed
