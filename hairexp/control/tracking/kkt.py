@@ -484,16 +484,27 @@ class SchurKKT:
             g[j], g[j + 1] = cs[j] * g[j], -sn[j] * g[j]
             rel = abs(float(g[j + 1])) / bnorm
             hist[j] = rel
-            if rel <= tol or hn <= 1e-300 * bnorm:
-                return j + 1, ARNOLDI_CANDIDATE
-            if j >= 2 and rel ** (kmax / (j + 1)) > tol:   # at this rate kmax iterations would not do
-                return j + 1, ARNOLDI_GAVE_UP
+            out = arnoldi_outcome(rel, hn, bnorm, tol, j, kmax)
+            if out >= 0:
+                return j + 1, out
         return kmax, ARNOLDI_GAVE_UP
 
 
 #: ``gmres_arnoldi``'s outcomes: the residual estimate reached the tolerance (or the basis broke
 #: down: the solution is in it), or the iteration gave up (its rate, kmax or a non-finite value)
 ARNOLDI_CANDIDATE, ARNOLDI_GAVE_UP = 0, 1
+
+
+@njit(cache=True, error_model="numpy")
+def arnoldi_outcome(rel, hn, bnorm, tol, j, kmax):
+    """After Arnoldi iteration j with relative residual estimate ``rel`` and new basis norm
+    ``hn``: ARNOLDI_CANDIDATE (the estimate reached tol, or the basis broke down), ARNOLDI_GAVE_UP
+    (at this rate kmax iterations would not do), or -1 (iterate on)."""
+    if rel <= tol or hn <= 1e-300 * bnorm:
+        return ARNOLDI_CANDIDATE
+    if j >= 2 and rel ** (kmax / (j + 1)) > tol:
+        return ARNOLDI_GAVE_UP
+    return -1
 
 
 @njit(cache=True, error_model="numpy")
@@ -601,10 +612,9 @@ def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_
         g[j + 1] = -sn[j] * gj
         rel = abs(g[j + 1]) / bnorm
         hist[j] = rel
-        if rel <= tol or hn <= 1e-300 * bnorm:
-            return j + 1, ARNOLDI_CANDIDATE
-        if j >= 2 and rel ** (kmax / (j + 1)) > tol:   # at this rate kmax iterations would not do
-            return j + 1, ARNOLDI_GAVE_UP
+        out = arnoldi_outcome(rel, hn, bnorm, tol, j, kmax)
+        if out >= 0:
+            return j + 1, out
     return kmax, ARNOLDI_GAVE_UP
 
 
