@@ -1006,3 +1006,27 @@ def test_last_attempt_with_more_iterations_is_the_run_with_that_budget():
     assert extra >= 2   # the budget mattered (steps 6 and 11 take 4 iterations)
     without = run(1, 1)
     assert any(not i.converged for _, i in without)   # and without the last attempt those steps fail
+
+
+def test_distinct_columns_finds_columns_equal_up_to_scale():
+    """``distinct_columns``: per strand, columns equal up to scale (same non-zero pattern, ratios
+    within 1e-13) share one distinct column, scaled by their first non-zero entry; other columns
+    get their own, sorted by their first non-zero row; empty columns have base -1."""
+    from hairexp.control.tracking.kkt import distinct_columns
+
+    rng = np.random.default_rng(2)
+    AT = np.zeros((3, 10, 6))
+    w = rng.uniform(1.0, 2.0, (3, 3))
+    AT[:, 4:7, 0] = w
+    AT[:, 4:7, 1] = -2.5 * w                       # column 0 scaled
+    AT[:, 4:7, 2] = w * (1 + np.array([0.0, 1e-9, 0.0]))   # not within 1e-13: its own
+    AT[:, 1:3, 3] = 0.7                            # another support, earlier rows
+    AT[:, 4:8, 5] = 1.0                            # another pattern
+    Bt, first, base, scale = distinct_columns(AT)
+    assert Bt.shape == (3, 4, 10)
+    for s in range(3):
+        assert base[s, 4] == -1 and scale[s, 4] == 0.0
+        assert base[s, 0] == base[s, 1] and len({base[s, r] for r in (0, 2, 3, 5)}) == 4
+        assert list(first[s]) == sorted(first[s]) and first[s, 0] == 1
+        for r in (0, 1, 2, 3, 5):
+            np.testing.assert_allclose(scale[s, r] * Bt[s, base[s, r]], AT[s, :, r], rtol=1e-15, atol=0)

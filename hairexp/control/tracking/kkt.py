@@ -752,16 +752,21 @@ def distinct_columns(AT: np.ndarray):
         has = nz.any(axis=1)
         lead = np.where(has, c[np.arange(R), nz.argmax(axis=1)], 1.0)  # the first non-zero entry
         u = c / lead[:, None]
-        mine = []
+        # same[r, q]: column r equals column q up to scale (the same non-zero pattern, and
+        # np.allclose(u[r], u[q], rtol=1e-13, atol=0)), all pairs at once (a pair by pair loop of
+        # np.allclose took 5.2 s of Celia's 46 s experiment)
+        same = ((nz[:, None, :] == nz[None, :, :]).all(-1)
+                & (np.abs(u[:, None, :] - u[None, :, :]) <= 1e-13 * np.abs(u[None, :, :])).all(-1))
+        mine = []                                                       # the distinct columns' indices
         for r in np.flatnonzero(has):
-            for b, v in enumerate(mine):
-                if np.array_equal(nz[r], v != 0) and np.allclose(u[r], v, rtol=1e-13, atol=0.0):
-                    break
+            hit = np.flatnonzero(same[r, mine]) if mine else ()
+            if len(hit):
+                b = int(hit[0])
             else:
                 b = len(mine)
-                mine.append(u[r])
+                mine.append(r)
             base[s, r], scale[s, r] = b, lead[r]
-        cols.append(mine)
+        cols.append([u[r] for r in mine])
     Rb = max(1, max(len(m) for m in cols))
     Bt = np.zeros((S, Rb, n))
     first = np.full((S, Rb), -1, dtype=np.int64)
