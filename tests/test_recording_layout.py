@@ -268,10 +268,12 @@ def test_frame_columns_count_each_entitys_own_rows(tmp_path):
     assert rows["/small"] == [25, 25, 10]
 
 
-def test_frame_columns_send_every_frame_as_logged_in_a_few_chunks(tmp_path):
+@pytest.mark.parametrize("lengths", ["varying", "equal"])
+def test_frame_columns_send_every_frame_as_logged_in_a_few_chunks(tmp_path, lengths):
     """The frames' columns (``FrameColumns``): rows sent in chunks of at most ``max_frames``
-    read back equal to what was logged, strips of varying counts and lengths included, and a
-    buffer once sent is not written again (rerun may still hold it)."""
+    read back equal to what was logged, strips of varying counts and lengths included (equal
+    lengths take the SDK's array path: one (strips, points, 3) array a chunk), and a buffer once
+    sent is not written again (rerun may still hold it)."""
     import rerun as rr
     from rerun.chunk import RrdReader
 
@@ -292,7 +294,8 @@ def test_frame_columns_send_every_frame_as_logged_in_a_few_chunks(tmp_path):
     logged = {}
     for f in range(20):
         cols.frame(f, 0.04 * f)
-        strips = [rng.random((int(rng.integers(2, 6)), 3)).astype(np.float32) for _ in range(int(rng.integers(1, 4)))]
+        n = (lambda: 4) if lengths == "equal" else (lambda: int(rng.integers(2, 6)))
+        strips = [rng.random((n(), 3)).astype(np.float32) for _ in range(int(rng.integers(1, 4)))]
         pts = rng.random((4, 3)).astype(np.float32)
         cols.add("/s", rr.LineStrips3D, dict(radii=0.01), strips=strips)
         cols.add("/p", rr.Points3D, None, positions=pts)
