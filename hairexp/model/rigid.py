@@ -34,6 +34,20 @@ def left_jacobian(r: np.ndarray) -> np.ndarray:
     return np.eye(3) + (1 - np.cos(th)) / th ** 2 * K + (th - np.sin(th)) / th ** 3 * K @ K
 
 
+def exp_so3(r: np.ndarray) -> np.ndarray:
+    """The rotation matrix of rotation vector r (Rodrigues: I + sin(th)/th K + (1 - cos th)/th^2 K^2,
+    with (1 - cos th) = 2 sin^2(th / 2), and its series below th = 1e-6)."""
+    x, y, z = float(r[0]), float(r[1]), float(r[2])
+    th = math.sqrt(x * x + y * y + z * z)
+    if th < 1e-6:
+        a, b = 1.0 - th * th / 6.0, 0.5 - th * th / 24.0
+    else:
+        s = math.sin(0.5 * th)
+        a, b = math.sin(th) / th, 2.0 * s * s / (th * th)
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + a * K + b * (K @ K)
+
+
 #: s, relative: a keyframe this close to a step's start counts as at its start (``velocity_jumps``)
 TIME_TOL = 1e-9
 #: relative (to max(1, |v|) in m/s or rad/s): a velocity change at a key above this is a jump
@@ -108,6 +122,10 @@ class RigidMotion:
         else:
             self._pos = None
             self._rot = Slerp(self.times, rots)
+            # the same interpolation without scipy's per-call overhead (``_pose``; about 0.1 ms a
+            # call, a step asks several times): R(t) = R_k exp(alpha log(R_k^T R_k+1))
+            self._key_R = rots.as_matrix()
+            self._key_rel = (rots[:-1].inv() * rots[1:]).as_rotvec()
         self._rots = rots
         self._cache: dict = {}
 
@@ -183,8 +201,11 @@ class RigidMotion:
             T = np.array([np.interp(tc, self.times, self.translations[:, c]) for c in range(3)])
         if self.interpolation == "cubic":
             R = Rotation.from_rotvec(self._rot(tc)).as_matrix()
-        else:
-            R = self._rot(tc).as_matrix().reshape(3, 3)
+        else:   # scipy's Slerp, its segment choice included (a key ends the segment before it)
+            ts = self.times
+            k = 0 if tc == ts[0] else min(max(int(np.searchsorted(ts, tc)) - 1, 0), len(ts) - 2)
+            alpha = (tc - ts[k]) / (ts[k + 1] - ts[k])
+            R = self._key_R[k] @ exp_so3(self._key_rel[k] * alpha)
         return R, np.asarray(T, dtype=np.float64)
 
     def velocity(self, t: float) -> tuple[np.ndarray, np.ndarray]:
