@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import copy
 import logging
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Iterator
 
 import numpy as np
+from omegaconf import OmegaConf
 
 from hairexp.app.builders import build_scene
 from hairexp.app.config import require_config
@@ -178,7 +180,7 @@ def _assemble_scene(cfg, settle: bool):
     check_clear_start(scene, str(_value(cfg.collision.contact)))
     check_clear_roots(scene, int(cfg.frames), float(cfg.fps), n_sub)
     if settle:
-        scene = settle_scene(scene, cfg)   # scene.settle > 0: start from the hair at rest under gravity
+        scene = _settled(scene, cfg)   # scene.settle > 0: start from the hair at rest under gravity
     guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
     # the config's warnings once everything was built from it: a refused run printed them above its
     # error line (the error is what to mend)
@@ -188,6 +190,43 @@ def _assemble_scene(cfg, settle: bool):
         log.warning("solver.dt=%g s is longer than a frame (1/fps = %.4g s): each step is one frame, %.4g s",
                     float(cfg.solver.dt), frame, dt)
     return cfg, scene, guides, n_sub, dt
+
+
+#: The last settled scene, by the config it was settled from, while ``shared_settle`` is on
+#: (``_settled``); None: off
+_SETTLED: dict | None = None
+
+
+@contextmanager
+def shared_settle():
+    """Within it (an experiment's variants, ``run_experiment``), ``assemble`` settles a scene once
+    for runs with the same scene, solver and collision settings (``_settled``)."""
+    global _SETTLED
+    before, _SETTLED = _SETTLED, {} if _SETTLED is None else _SETTLED
+    try:
+        yield
+    finally:
+        _SETTLED = before
+
+
+def _settled(scene, cfg):
+    """``settle_scene(scene, cfg)``, which reads the scene (built from ``cfg.scene``), ``cfg.solver``
+    and ``cfg.collision``: within ``shared_settle``, a run whose three groups are those of the last
+    run settled there (an experiment's variants that differ in their controller) gets a copy of
+    its settled scene instead of settling again (Celia: 1.3-1.9 s a variant).  A USD stage is read
+    from a file that may change between runs: always settled."""
+    if _SETTLED is None or str(_value(cfg.scene.builder)) == "usd":
+        return settle_scene(scene, cfg)
+    key = OmegaConf.to_yaml(OmegaConf.create({"scene": cfg.scene, "solver": cfg.solver, "collision": cfg.collision}))
+    hit = _SETTLED.get(key)
+    if hit is None:
+        hit = settle_scene(scene, cfg)
+        _SETTLED.clear()
+        _SETTLED[key] = hit
+    elif float(cfg.scene.settle) > 0:
+        log.info("settle hair (%s): the settled state of the last run with the same scene, solver and collision "
+                 "settings", scene.name)
+    return copy.deepcopy(hit)
 
 
 def check_clear_start(scene, contact: str) -> None:

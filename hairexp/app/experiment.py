@@ -24,7 +24,7 @@ from pathlib import Path
 import yaml
 from omegaconf import OmegaConf
 
-from hairexp.app.assemble import check_config
+from hairexp.app.assemble import check_config, shared_settle
 from hairexp.app.guard import planning
 from hairexp.app.config import SAFE_NAME, check_bool, require_config, to_plain, unknown_key_hint
 from hairexp.app.validate import validate_judge, validate_judge_controllers
@@ -232,7 +232,8 @@ def _experiment(cfg, out: Path, on_checked) -> dict:
         try:
             if signals.pending is not None:
                 raise Interrupted(signals.pending)
-            _run_variants(out, names, vcfgs, summary, measures, facts, t0)
+            with shared_settle():   # variants that differ in their controller settle once
+                _run_variants(out, names, vcfgs, summary, measures, facts, t0)
             judge = plain["judge"]
             if judge != "none":
                 ok, details = JUDGES[judge](measures, facts, float(cfg.judge_tolerance))

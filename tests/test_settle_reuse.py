@@ -1,0 +1,47 @@
+"""An experiment's variants settle once (``hairexp.app.assemble._settled``, within
+``shared_settle``, which ``run_experiment`` opens): a run whose scene, solver and collision
+settings are those of the last run settled there starts from a copy of its settled scene; any
+difference in them settles again; outside it every run settles."""
+
+from __future__ import annotations
+
+import importlib
+
+import numpy as np
+
+from hairexp.app import compose_config
+
+assemble_mod = importlib.import_module("hairexp.app.assemble")
+
+BASE = ["experiment=goaling_smoke", "variants=[]", "frames=2", "scene.settle=0.4"]
+
+
+def test_variants_that_differ_in_their_controller_settle_once(monkeypatch):
+    calls = []
+    real = assemble_mod.settle_scene
+
+    def counting(scene, cfg):
+        calls.append(float(cfg.solver.rtol))
+        return real(scene, cfg)
+
+    monkeypatch.setattr(assemble_mod, "settle_scene", counting)
+    assemble_mod.assemble(compose_config([*BASE, "controller=free"]))      # outside: not kept
+    assemble_mod.assemble(compose_config([*BASE, "controller=free"]))
+    assert len(calls) == 2 and assemble_mod._SETTLED is None
+    calls.clear()
+    with assemble_mod.shared_settle():
+        free = assemble_mod.assemble(compose_config([*BASE, "controller=free"]))
+        tracked = assemble_mod.assemble(compose_config([*BASE, "controller=tracking"]))
+    assert len(calls) == 1
+    a, b = free.scene, tracked.scene
+    assert float(free.cfg.scene.settle) > 0
+    np.testing.assert_array_equal(a.initial_positions(), b.initial_positions())
+    assert not np.shares_memory(a.root_body, b.root_body)          # a copy: neither run can change the other's
+    # the settled state is the one a fresh settle gives
+    again = assemble_mod.assemble(compose_config([*BASE, "controller=tracking"]))
+    np.testing.assert_array_equal(again.scene.initial_positions(), b.initial_positions())
+    assert len(calls) == 2
+    with assemble_mod.shared_settle():   # a solver setting the settle reads: settled again
+        assemble_mod.assemble(compose_config([*BASE, "controller=tracking"]))
+        assemble_mod.assemble(compose_config([*BASE, "controller=tracking", "solver.rtol=1e-6"]))
+    assert calls == [1e-5, 1e-5, 1e-5, 1e-6]
