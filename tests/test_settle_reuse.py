@@ -45,3 +45,30 @@ def test_variants_that_differ_in_their_controller_settle_once(monkeypatch):
         assemble_mod.assemble(compose_config([*BASE, "controller=tracking"]))
         assemble_mod.assemble(compose_config([*BASE, "controller=tracking", "solver.rtol=1e-6"]))
     assert calls == [1e-5, 1e-5, 1e-5, 1e-6]
+
+
+def test_variants_share_one_guide_simulation_attached_to_their_own_body(monkeypatch):
+    """Simulated guides (``guides.source=simulated``) are simulated once within
+    ``shared_settle`` for runs with equal settings; each run's animation is a copy attached to its
+    own scene's body motion, equal to a fresh simulation; a different guides key simulates again."""
+    calls = []
+    real = assemble_mod.source_guides
+
+    def counting(cfg, scene, frames, fps):
+        calls.append(int(cfg.guides.n_vertices))
+        return real(cfg, scene, frames, fps)
+
+    monkeypatch.setattr(assemble_mod, "source_guides", counting)
+    sim = [*BASE, "guides.source=simulated", "guides.count=2", "guides.n_vertices=6"]
+    with assemble_mod.shared_settle():
+        a = assemble_mod.assemble(compose_config([*sim, "controller=free"]))
+        b = assemble_mod.assemble(compose_config([*sim, "controller=tracking"]))
+        assemble_mod.assemble(compose_config([*sim, "controller=tracking", "guides.n_vertices=7"]))
+    assert calls == [6, 7]
+    fresh = assemble_mod.assemble(compose_config([*sim, "controller=tracking"]))
+    assert calls == [6, 7, 6]
+    assert b.guides.motion is b.scene.motion and a.guides.motion is a.scene.motion
+    assert not np.shares_memory(a.guides.frames, b.guides.frames)
+    np.testing.assert_array_equal(b.guides.frames, fresh.guides.frames)
+    for t in (0.0, 0.03, 0.07):
+        np.testing.assert_array_equal(b.guides.shape_at(t), fresh.guides.shape_at(t))

@@ -33,7 +33,7 @@ from omegaconf import OmegaConf
 from hairexp.app.builders import build_scene
 from hairexp.app.config import require_config
 from hairexp.app.guard import guard_hair_hair, guard_run
-from hairexp.app.guides import build_guides, check_simulated_guides, read_guide_file
+from hairexp.app.guides import build_guides, check_simulated_guides, read_guide_file, source_guides
 from hairexp.app.validate import late_keys, validate_config, validate_measure
 from hairexp.control import build_controller
 from hairexp.errors import InputError
@@ -181,7 +181,7 @@ def _assemble_scene(cfg, settle: bool):
     check_clear_roots(scene, int(cfg.frames), float(cfg.fps), n_sub)
     if settle:
         scene = _settled(scene, cfg)   # scene.settle > 0: start from the hair at rest under gravity
-    guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
+    guides = build_guides(cfg, scene, cfg.frames, cfg.fps, source_of=_shared_source)
     # the config's warnings once everything was built from it: a refused run printed them above its
     # error line (the error is what to mend)
     late_keys(cfg)
@@ -192,21 +192,47 @@ def _assemble_scene(cfg, settle: bool):
     return cfg, scene, guides, n_sub, dt
 
 
-#: The last settled scene, by the config it was settled from, while ``shared_settle`` is on
-#: (``_settled``); None: off
+#: The last settled scene and the last simulated guides, by the config they were made from, while
+#: ``shared_settle`` is on (``_settled``, ``_shared_source``); None: off
 _SETTLED: dict | None = None
 
 
 @contextmanager
 def shared_settle():
-    """Within it (an experiment's variants, ``run_experiment``), ``assemble`` settles a scene once
-    for runs with the same scene, solver and collision settings (``_settled``)."""
+    """Within it (an experiment's variants, ``run_experiment``), ``assemble`` settles a scene and
+    simulates its guides once for runs with the same settings (``_settled``, ``_shared_source``)."""
     global _SETTLED
     before, _SETTLED = _SETTLED, {} if _SETTLED is None else _SETTLED
     try:
         yield
     finally:
         _SETTLED = before
+
+
+def _shared_source(cfg, scene, frames, fps):
+    """``source_guides(cfg, scene, frames, fps)``; within ``shared_settle``, simulated guides
+    (``guides.source=simulated``, which read ``cfg.guides``, the scene built from ``cfg.scene``,
+    ``cfg.solver``, ``cfg.collision``, frames and fps) made once for runs whose settings are equal
+    (Celia: 1.3-1.5 s a variant), each run getting a copy; other sources are read or built anew."""
+    source = str(_value(cfg.guides.source))
+    if _SETTLED is None or source != "simulated" or str(_value(cfg.scene.builder)) == "usd":
+        return source_guides(cfg, scene, frames, fps)
+    key = "guides\n" + OmegaConf.to_yaml(OmegaConf.create(
+        {"guides": cfg.guides, "scene": cfg.scene, "solver": cfg.solver, "collision": cfg.collision,
+         "frames": int(frames), "fps": float(fps)}))
+    hit = _SETTLED.get(key)
+    if hit is None:
+        hit = source_guides(cfg, scene, frames, fps)
+        for k in [k for k in _SETTLED if k.startswith("guides\n")]:
+            del _SETTLED[k]
+        _SETTLED[key] = hit
+    else:
+        log.info("guides (%s): the simulated guides of the last run with the same settings", scene.name)
+    # a copy attached to this run's body motion (a dynamic body's is the run's own, live object)
+    out = copy.deepcopy(hit, None if hit.motion is None else {id(hit.motion): scene.motion})
+    if out.motion is not None:
+        out.attach(scene.motion)
+    return out
 
 
 def _settled(scene, cfg):
@@ -221,7 +247,8 @@ def _settled(scene, cfg):
     hit = _SETTLED.get(key)
     if hit is None:
         hit = settle_scene(scene, cfg)
-        _SETTLED.clear()
+        for k in [k for k in _SETTLED if not k.startswith("guides\n")]:
+            del _SETTLED[k]
         _SETTLED[key] = hit
     elif float(cfg.scene.settle) > 0:
         log.info("settle hair (%s): the settled state of the last run with the same scene, solver and collision "

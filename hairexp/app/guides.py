@@ -184,13 +184,15 @@ def edits_summary(edits) -> str:
     return f"{len(edits)} edit{'s' if len(edits) != 1 else ''}: " + "; ".join(one(e) for e in edits)
 
 
-def build_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
+def build_guides(cfg, scene, frames: int, fps: float, source_of=None) -> GuideAnimation:
     """The guide animation a run tracks and saves as guides.npz: the source's
     (``source_guides``) with the authored edits ``guides.edits`` applied in order
     (``authoring.apply_edits``; paper 4: the artist edits a coarse best-guess guide simulation by
-    keyframing; ``source=keyframed`` keys the guides directly)."""
+    keyframing; ``source=keyframed`` keys the guides directly).  ``source_of``: a stand-in for
+    ``source_guides`` with its arguments (``hairexp.app.assemble``: an experiment's variants share
+    one guide simulation)."""
     try:
-        anim = source_guides(cfg, scene, frames, fps)
+        anim = (source_of or source_guides)(cfg, scene, frames, fps)
     except ExtentError as exc:
         if exc.where != "guides":
             raise
