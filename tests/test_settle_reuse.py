@@ -27,7 +27,7 @@ def test_variants_that_differ_in_their_controller_settle_once(monkeypatch):
     monkeypatch.setattr(assemble_mod, "settle_scene", counting)
     assemble_mod.assemble(compose_config([*BASE, "controller=free"]))      # outside: not kept
     assemble_mod.assemble(compose_config([*BASE, "controller=free"]))
-    assert len(calls) == 2 and assemble_mod._SETTLED is None
+    assert len(calls) == 2 and assemble_mod._SHARED is None
     calls.clear()
     with assemble_mod.shared_settle():
         free = assemble_mod.assemble(compose_config([*BASE, "controller=free"]))

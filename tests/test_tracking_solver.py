@@ -406,7 +406,7 @@ def test_interleaved_substitution_is_the_banded_solve(case):
     pad[kkt._il_of_dof] = False
     assert pad.any() != uniform and np.all(got[pad] == 0.0)
     # the fused product with S (A^T v, the interleaved solve, A x) against the S built
-    from hairexp.control.tracking.kkt import schur_product
+    from hairexp.control.tracking.kkt import schur_product, schur_product_vertex
 
     assert kkt.fresh and kkt.Smat is not None
     kkt._interleave()
@@ -420,7 +420,7 @@ def test_interleaved_substitution_is_the_banded_solve(case):
         # the per-vertex lists (the Krylov solve's product) give the same sums in the same order
         assert kkt._v_rows is not None
         x2, Sv2 = np.empty_like(x), np.empty_like(Sv)
-        kkt._product(v, x2, Sv2)
+        schur_product_vertex(kkt._v_rows, kkt._v_wts, v, kkt._L_il, kkt._inv_il, x2, Sv2)
         np.testing.assert_allclose(Sv2, Sv, rtol=1e-14, atol=0)
         np.testing.assert_allclose(x2, x, rtol=1e-14, atol=1e-300)
 

@@ -192,21 +192,33 @@ def _assemble_scene(cfg, settle: bool):
     return cfg, scene, guides, n_sub, dt
 
 
-#: The last settled scene and the last simulated guides, by the config they were made from, while
-#: ``shared_settle`` is on (``_settled``, ``_shared_source``); None: off
-_SETTLED: dict | None = None
+#: While ``shared_settle`` is on: per kind ("settle", "guides") the last one made and the settings
+#: it was made from, (key, value) (``_shared``); None: off
+_SHARED: dict | None = None
 
 
 @contextmanager
 def shared_settle():
     """Within it (an experiment's variants, ``run_experiment``), ``assemble`` settles a scene and
     simulates its guides once for runs with the same settings (``_settled``, ``_shared_source``)."""
-    global _SETTLED
-    before, _SETTLED = _SETTLED, {} if _SETTLED is None else _SETTLED
+    global _SHARED
+    before, _SHARED = _SHARED, {} if _SHARED is None else _SHARED
     try:
         yield
     finally:
-        _SETTLED = before
+        _SHARED = before
+
+
+def _shared(kind: str, groups: dict, make):
+    """(value, reused): the last ``kind`` made within ``shared_settle`` when it was made from the
+    same ``groups`` (config groups and values, compared as YAML), else ``make()``, kept as the last."""
+    key = OmegaConf.to_yaml(OmegaConf.create(groups))
+    held = _SHARED.get(kind)
+    if held is not None and held[0] == key:
+        return held[1], True
+    value = make()
+    _SHARED[kind] = (key, value)
+    return value, False
 
 
 def _shared_source(cfg, scene, frames, fps):
@@ -215,18 +227,12 @@ def _shared_source(cfg, scene, frames, fps):
     ``cfg.solver``, ``cfg.collision``, frames and fps) made once for runs whose settings are equal
     (Celia: 1.3-1.5 s a variant), each run getting a copy; other sources are read or built anew."""
     source = str(_value(cfg.guides.source))
-    if _SETTLED is None or source != "simulated" or str(_value(cfg.scene.builder)) == "usd":
+    if _SHARED is None or source != "simulated" or str(_value(cfg.scene.builder)) == "usd":
         return source_guides(cfg, scene, frames, fps)
-    key = "guides\n" + OmegaConf.to_yaml(OmegaConf.create(
-        {"guides": cfg.guides, "scene": cfg.scene, "solver": cfg.solver, "collision": cfg.collision,
-         "frames": int(frames), "fps": float(fps)}))
-    hit = _SETTLED.get(key)
-    if hit is None:
-        hit = source_guides(cfg, scene, frames, fps)
-        for k in [k for k in _SETTLED if k.startswith("guides\n")]:
-            del _SETTLED[k]
-        _SETTLED[key] = hit
-    else:
+    hit, reused = _shared("guides", {"guides": cfg.guides, "scene": cfg.scene, "solver": cfg.solver,
+                                     "collision": cfg.collision, "frames": int(frames), "fps": float(fps)},
+                          lambda: source_guides(cfg, scene, frames, fps))
+    if reused:
         log.info("guides (%s): the simulated guides of the last run with the same settings", scene.name)
     # a copy attached to this run's body motion (a dynamic body's is the run's own, live object)
     out = copy.deepcopy(hit, None if hit.motion is None else {id(hit.motion): scene.motion})
@@ -241,16 +247,11 @@ def _settled(scene, cfg):
     run settled there (an experiment's variants that differ in their controller) gets a copy of
     its settled scene instead of settling again (Celia: 1.3-1.9 s a variant).  A USD stage is read
     from a file that may change between runs: always settled."""
-    if _SETTLED is None or str(_value(cfg.scene.builder)) == "usd":
+    if _SHARED is None or str(_value(cfg.scene.builder)) == "usd":
         return settle_scene(scene, cfg)
-    key = OmegaConf.to_yaml(OmegaConf.create({"scene": cfg.scene, "solver": cfg.solver, "collision": cfg.collision}))
-    hit = _SETTLED.get(key)
-    if hit is None:
-        hit = settle_scene(scene, cfg)
-        for k in [k for k in _SETTLED if not k.startswith("guides\n")]:
-            del _SETTLED[k]
-        _SETTLED[key] = hit
-    elif float(cfg.scene.settle) > 0:
+    hit, reused = _shared("settle", {"scene": cfg.scene, "solver": cfg.solver, "collision": cfg.collision},
+                          lambda: settle_scene(scene, cfg))
+    if reused and float(cfg.scene.settle) > 0:
         log.info("settle hair (%s): the settled state of the last run with the same scene, solver and collision "
                  "settings", scene.name)
     return copy.deepcopy(hit)

@@ -370,14 +370,6 @@ class SchurKKT:
             return M
         return np.block([[M, -Bmat], [Bmat.T, np.diag(D)]])
 
-    def _product(self, v: np.ndarray, x: np.ndarray, Av: np.ndarray) -> None:
-        """x = H^-1 A^T v (strand-interleaved, (nmax, S)) and Av = A x with the interleaved factor
-        (``schur_product_vertex`` with the per-vertex lists, else ``schur_product``)."""
-        if self._v_rows is not None:
-            schur_product_vertex(self._v_rows, self._v_wts, v, self._L_il, self._inv_il, x, Av)
-        else:
-            schur_product(self._m_rows, self._m_wts, v, self._L_il, self._inv_il, x, Av)
-
     def _small(self, P, r, z, tol, scales) -> bool:
         """The error estimate P^-1 r of z = (lam, dt) (r = b - M z, P the preconditioner's LU)
         within tol (|lam| + scale) and tol (|dt| + scale), block by block: their units differ, and
