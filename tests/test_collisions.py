@@ -534,8 +534,48 @@ def test_known_distances_give_the_same_contact_response():
         out: list = []
         xe, _, info = collision_stage(cc, sc, None, y0, y1, 0.4, t1, 0.1, dist_out=out)
         assert len(out) == len(cols)
-        for d, c in zip(out, cols):
-            np.testing.assert_array_equal(d, c.distance(xe[~km], t1))
+        for d, c in zip(out, cols):   # (the path test's compiled pass: to round-off)
+            np.testing.assert_allclose(d, c.distance(xe[~km], t1), rtol=0, atol=1e-15)
         assert info.penetration_max == max(float(np.maximum(-d, 0.0).max(initial=0.0)) for d in out)
         contacts.append(info.object_contacts)
     assert contacts[0] == 0 and contacts[1] > 0
+
+
+@pytest.mark.parametrize("shape", ["sphere", "capsule", "box", "cylinder", "plane"])
+def test_compiled_path_test_equals_the_shapes_array_form(shape):
+    """``path_test`` (one compiled pass for the five shapes) returns what ``Collider.to_body`` and
+    ``sdf_body`` give, for points inside, on and outside each shape (every face, edge and cap
+    region of box, capsule and cylinder), under a moving pose with rotation, with a subset of the
+    vertices; and a subclass that defines its own ``sdf_body`` keeps it."""
+    from hairexp.model.colliders import SHAPES
+    from hairexp.physics import collisions as col_mod
+
+    if not col_mod.HAVE_NUMBA:
+        pytest.skip("numba not installed: path_test is the array form")
+    rng = np.random.default_rng(7)
+    motion = RigidMotion(times=np.array([0.0, 1.0]), translations=np.array([[0.1, -0.2, 0.3], [0.4, 0.1, -0.2]]),
+                         rotvecs=np.array([[0.3, -0.5, 0.2], [1.1, 0.4, -0.7]]), interpolation="linear")
+    params = {"sphere": dict(radius=0.1), "capsule": dict(radius=0.05, half_length=0.1),
+              "box": dict(half_extents=(0.1, 0.05, 0.2)), "cylinder": dict(radius=0.08, half_height=0.06),
+              "plane": {}}[shape]
+    col = SHAPES[shape](name=shape, motion=motion, thickness=0.003, **params)
+    x0 = motion.transform(rng.uniform(-0.3, 0.3, size=(400, 3)), 0.25)
+    x1 = x0 + rng.normal(scale=0.05, size=x0.shape)
+    x1[:20] = x0[:20]          # paths of length 0
+    idx = np.sort(rng.choice(400, size=300, replace=False))
+    got = col_mod.path_test(col, x0, x1, idx, 0.25, 0.29)
+    X0, X1 = col.to_body(x0[idx], 0.25), col.to_body(x1[idx], 0.29)
+    want = (X0, X1, col.sdf_body(X0) - col.thickness, col.sdf_body(X1) - col.thickness,
+            np.linalg.norm(X1 - X0, axis=1))
+    for g, w in zip(got, want):
+        assert g.shape == w.shape
+        np.testing.assert_allclose(g, w, rtol=0, atol=1e-15)
+    d = want[2]
+    assert (d < 0).any() and (d > 0).any()           # points on both sides of the shell
+
+    class Shifted(type(col)):
+        def sdf_body(self, X):
+            return super().sdf_body(X) + 1.0
+
+    other = Shifted(name="shifted", motion=motion, thickness=0.003, **params)
+    np.testing.assert_allclose(col_mod.path_test(other, x0, x1, idx, 0.25, 0.29)[2], want[2] + 1.0, atol=1e-15)

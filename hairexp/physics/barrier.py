@@ -61,6 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from hairexp.physics.collisions import path_test
 from hairexp.physics.contact_geometry import EdgeGaps, advance, edge_distance_hessian, sdf_normal_hessian, shape_normal
 from hairexp.physics.newton import NewtonOptions, newton_solve
 
@@ -118,15 +119,17 @@ def sweep_substeps(colliders, x: np.ndarray, free: np.ndarray, t0: float, dt: fl
     splits a step.  1: no split."""
     if fraction <= 0 or not colliders:
         return 1
-    xf = x[free]
+    idx = np.flatnonzero(free) if free.dtype == bool else np.asarray(free)
     n = 1
     for c in colliders:
         thin = thin_size(c)
         if not np.isfinite(thin) or thin <= 0:
             continue
-        X0, X1 = c.to_body(xf, t0), c.to_body(xf, t0 + dt)
-        L = np.linalg.norm(X1 - X0, axis=1)
-        reach = 0.5 * (c.sdf_body(X0) + c.sdf_body(X1) - L) <= c.thickness
+        (R0, T0), (R1, T1) = c.motion.pose(t0), c.motion.pose(t0 + dt)
+        if np.array_equal(R0, R1) and np.array_equal(T0, T1):
+            continue          # still over the step: every segment has length 0
+        _, _, d0, d1, L = path_test(c, x, x, idx, t0, t0 + dt)     # d: minus the thickness
+        reach = 0.5 * (d0 + d1 - L) <= 0.0
         if not reach.any():
             continue
         sweep = float(L[reach].max())

@@ -25,6 +25,7 @@ their vertices' displacements can close it.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -32,7 +33,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from hairexp.model.colliders import Box, Capsule, Cylinder, Plane, Sphere
 from hairexp.physics.edge_ccd import _closest_segment_params, edge_edge_ccd
+from hairexp.physics.kernels import HAVE_NUMBA, njit
 
 #: Conservative-advancement iterations and tolerance (fraction of the thickness or 1e-6 m).
 CA_ITERATIONS, CA_TOL = 40, 1e-6
@@ -91,15 +94,11 @@ def object_positions(colliders, x0, x1, t0, t1, dt, movable, friction: bool = Tr
     idx = np.flatnonzero(movable)
     per = {}
     for col in colliders:
-        X0 = col.to_body(x0[idx], t0)
-        X1 = col.to_body(x1[idx], t1)
+        X0, X1, d0, d1, L = path_test(col, x0, x1, idx, t0, t1)
         th = col.thickness
-        d0 = col.sdf_body(X0) - th
-        d1 = col.sdf_body(X1) - th
         if dist_out is not None:
             dist_out.append(d1)
         D = X1 - X0
-        L = np.linalg.norm(D, axis=1)
         cand = (d1 < 0) | (d0 - L < 0)
         if not cand.any():
             per[col.name] = 0
@@ -152,6 +151,80 @@ def object_positions(colliders, x0, x1, t0, t1, dt, movable, friction: bool = Tr
         contacts += h.size
         per[col.name] = int(h.size)
     return x1, contacts, per
+
+
+def _shape_code(col) -> tuple[int, np.ndarray]:
+    """(code, parameters) of a collider whose signed distance ``_path_test`` has compiled: its
+    class exactly one of the shapes (a subclass may define another ``sdf_body``); code -1: none."""
+    kind = type(col)
+    if kind is Sphere:
+        return 0, np.array([col.radius], dtype=np.float64)
+    if kind is Capsule:
+        return 1, np.array([col.radius, col.half_length], dtype=np.float64)
+    if kind is Box:
+        return 2, np.asarray(col.half_extents, dtype=np.float64).reshape(3)
+    if kind is Cylinder:
+        return 3, np.array([col.radius, col.half_height], dtype=np.float64)
+    if kind is Plane:
+        return 4, np.zeros(1)
+    return -1, np.zeros(1)
+
+
+def path_test(col, x0, x1, idx, t0, t1):
+    """(X0, X1, d0, d1, L) of the paths x0[idx] (at t0) -> x1[idx] (at t1) against ``col``: the
+    end points in its body frame, their signed distances minus its thickness and the paths'
+    lengths there; ``Collider.to_body`` and ``sdf_body`` (hairexp/model/colliders.py), in one
+    compiled pass for the five shapes (``_path_test``; Celia's object stage spent 3.2 ms a call in
+    the array form on 7,525 vertices and two colliders, 2026-12-06)."""
+    code, prm = _shape_code(col)
+    if code < 0 or not HAVE_NUMBA:
+        X0 = col.to_body(x0[idx], t0)
+        X1 = col.to_body(x1[idx], t1)
+        d0 = col.sdf_body(X0) - col.thickness
+        d1 = col.sdf_body(X1) - col.thickness
+        return X0, X1, d0, d1, np.linalg.norm(X1 - X0, axis=1)
+    R0, T0 = col.motion.pose(t0)
+    R1, T1 = col.motion.pose(t1)
+    n = idx.size
+    X0, X1 = np.empty((n, 3)), np.empty((n, 3))
+    d0, d1, L = np.empty(n), np.empty(n), np.empty(n)
+    _path_test(np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(x1, dtype=np.float64),
+               idx.astype(np.int64, copy=False), R0, T0, R1, T1, code, prm, float(col.thickness), X0, X1, d0, d1, L)
+    return X0, X1, d0, d1, L
+
+
+@njit(cache=True, error_model="numpy")
+def _sdf(code, p, a, b, c):
+    """Signed distance of the body-frame point (a, b, c) to shape ``code`` (``_shape_code``), as
+    the shapes' ``sdf_body``."""
+    if code == 0:      # sphere
+        return math.sqrt(a * a + b * b + c * c) - p[0]
+    if code == 1:      # capsule along y
+        qb = b - min(max(b, -p[1]), p[1])
+        return math.sqrt(a * a + qb * qb + c * c) - p[0]
+    if code == 2:      # box
+        qa, qb, qc = abs(a) - p[0], abs(b) - p[1], abs(c) - p[2]
+        ma, mb, mc = max(qa, 0.0), max(qb, 0.0), max(qc, 0.0)
+        return math.sqrt(ma * ma + mb * mb + mc * mc) + min(max(qa, max(qb, qc)), 0.0)
+    if code == 3:      # cylinder along y
+        da = math.sqrt(a * a + c * c) - p[0]
+        db = abs(b) - p[1]
+        ma, mb = max(da, 0.0), max(db, 0.0)
+        return min(max(da, db), 0.0) + math.sqrt(ma * ma + mb * mb)
+    return b           # plane y = 0
+
+
+@njit(cache=True, error_model="numpy")
+def _path_test(x0, x1, idx, R0, T0, R1, T1, code, p, th, X0, X1, d0, d1, L):
+    for k in range(idx.shape[0]):
+        i = idx[k]
+        for j in range(3):
+            X0[k, j] = (x0[i, 0] - T0[0]) * R0[0, j] + (x0[i, 1] - T0[1]) * R0[1, j] + (x0[i, 2] - T0[2]) * R0[2, j]
+            X1[k, j] = (x1[i, 0] - T1[0]) * R1[0, j] + (x1[i, 1] - T1[1]) * R1[1, j] + (x1[i, 2] - T1[2]) * R1[2, j]
+        d0[k] = _sdf(code, p, X0[k, 0], X0[k, 1], X0[k, 2]) - th
+        d1[k] = _sdf(code, p, X1[k, 0], X1[k, 1], X1[k, 2]) - th
+        e0, e1, e2 = X1[k, 0] - X0[k, 0], X1[k, 1] - X0[k, 1], X1[k, 2] - X0[k, 2]
+        L[k] = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
 
 
 def edge_boxes(a: np.ndarray, b: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
