@@ -34,6 +34,7 @@ class SolveInfo:
     grad_norm: float = 0.0          # final |grad H| (free) or |grad L| (SQP)
     force_scale: float = 0.0        # what the gradient is compared against
     constraint_norm: float = 0.0    # SQP only: max |C|
+    secant_updates: int = 0         # SQP only: iterations whose Hessian model got the secant correction
     seconds: dict = field(default_factory=lambda: {"derivatives": 0.0, "assembly": 0.0, "solve": 0.0})
     tensions: dict = field(default_factory=dict)   # final stretch dual iterates (warm start of the next step)
     collision: object = None        # CollisionInfo of the collision stage that followed, if it ran

@@ -88,7 +88,8 @@ class TrackingController(Controller):
         self.opts = SQPOptions(rtol=tcfg.rtol, atol=tcfg.atol, ctol=tcfg.ctol_rel * self.hair_length,
                                max_iterations=tcfg.max_iterations, kkt=str(_v(tcfg.kkt)),
                                nonmonotone=int(getattr(tcfg, "nonmonotone", 5)),
-                               exact_compression=bool(getattr(tcfg, "exact_compression", False)))
+                               exact_compression=bool(getattr(tcfg, "exact_compression", False)),
+                               secant=bool(getattr(tcfg, "secant", True)))
         # elastic mode (paper 3.4 has none): when a step's SQP fails against an obstacle, the
         # clusters it could not reach are relaxed to penalties rho/2 |C_k|^2 and the step is solved
         # again; rho_k = elastic_stiffness x cluster mass / dt^2 (N/m)

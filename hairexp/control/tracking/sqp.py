@@ -43,6 +43,10 @@ MERIT_ETA = 1e-4
 MU_FACTOR, MU_MARGIN = 1.5, 1e-12
 #: Backtracking factor.
 BACKTRACK = 0.5
+#: ``secant_correction``: the model's curvature along the last step is corrected where the true
+#: one is below this fraction of it, and kept at least SECANT_FLOOR of it (positive definite)
+SECANT_RATIO, SECANT_FLOOR = 0.5, 0.1
+SECANT_UPPER = np.inf
 
 
 @dataclass
@@ -69,27 +73,72 @@ class SQPOptions:
     #: (0.10-0.11 off), the solves' own strain 2e-4 (README "Tracking performance")
     exact_compression: bool = False
     exact_when: str = "tail"
+    #: the secant correction of the Hessian model along the last step (``secant_correction``):
+    #: where the true curvature s^T y of the objective along the last step s is below
+    #: SECANT_RATIO x the model's s^T B s, the model's curvature along s is lowered to
+    #: max(s^T y, SECANT_FLOOR s^T B s) by a rank-one term (``tracking.secant``)
+    secant: bool = True
     #: a list to record the iterations in (experiments/sqp_trace.py): each solve appends a list,
     #: and each iteration a dict of its step length, residuals and tolerances; None: no record
     trace: list | None = None
 
 
-def woodbury(solve, U: np.ndarray, step: tuple, zero_c: np.ndarray) -> tuple:
-    """The KKT step with U U^T added to the Hessian block, from solves without it.
+def woodbury(solve, U: np.ndarray, step: tuple, zero_c: np.ndarray, signs: np.ndarray | None = None) -> tuple:
+    """The KKT step with U diag(signs) U^T (signs: default all 1) added to the Hessian block,
+    from solves without it.
 
     ``solve(r_x, C)`` is linear: (dx, dt, lam) = s(b) = -K^-1 b for the right-hand side
-    b = (r_x, C, 0).  With K + U~ U~^T (U~ = U padded with zeros outside the x block), the
-    Sherman-Morrison-Woodbury identity gives s'(b) = s(b) + S_U (I - U^T S_U)^-1 U^T s(b)_x,
-    S_U the solves of U's columns."""
+    b = (r_x, C, 0).  With K + U~ D U~^T (U~ = U padded with zeros outside the x block, D =
+    diag(signs)), the Sherman-Morrison-Woodbury identity gives
+    s'(b) = s(b) + S_U (D^-1 - U^T S_U)^-1 U^T s(b)_x, S_U the solves of U's columns."""
     cols = [solve(U[:, j], zero_c) for j in range(U.shape[1])]
     SU = np.stack([c[0] for c in cols], 1)
     dx, dt, lam = step
-    coef = np.linalg.solve(np.eye(U.shape[1]) - U.T @ SU, U.T @ dx)
+    Dinv = np.eye(U.shape[1]) if signs is None else np.diag(1.0 / np.asarray(signs, dtype=np.float64))
+    coef = np.linalg.solve(Dinv - U.T @ SU, U.T @ dx)
     dx = dx + SU @ coef
     lam = lam + np.stack([c[2] for c in cols], 1) @ coef
     if dt is not None:
         dt = dt + np.stack([c[1] for c in cols], 1) @ coef
     return dx, dt, lam
+
+
+def band_product(ab: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """B v for the symmetric band B in LAPACK's lower storage (ab[d, j] = B[j + d, j])."""
+    out = ab[0] * v
+    for d in range(1, ab.shape[0]):
+        n = v.size - d
+        out[d:] += ab[d, :n] * v[:n]
+        out[:-d] += ab[d, :n] * v[d:]
+    return out
+
+
+def secant_correction(Bs: np.ndarray, s: np.ndarray, y: np.ndarray):
+    """(column u, sign) of a rank-one term -beta u u^T (u = B s) that sets the model's curvature
+    along the last step s to max(s^T y, SECANT_FLOOR s^T B s) where the true curvature s^T y
+    (y: the change of the objective's gradient over s) is below SECANT_RATIO s^T B s; None
+    otherwise.
+
+    The SQP's Hessian model B is positive definite by construction (the compressed springs'
+    negative transverse stiffness clamped, bending by Gauss-Newton); where the hair buckles the
+    step's objective curves far less, or negatively, along the step.  Measured in stylization's
+    slow solves (the block's fall at 4.8 s, 2026-12-06): along an SQP step that was 99.9 %
+    out of the wisp's plane, model 5.8e-9 against true -1.3e-9 (bending's Gauss-Newton 5.2e-9
+    against -0.7e-9, stretch 3.7e-10 against -9.3e-10): the iterates crept from the saddle by a
+    factor 1 + |true| / model = 1.23 an iteration, for 30 and more iterations, and where the true
+    curvature was a fifth of the model's the gradient fell by only 0.8 an iteration.  B - beta
+    (B s)(B s)^T changes B only along s in B's metric (the first half of a BFGS update): with
+    beta = (s^T B s - k) / (s^T B s)^2 its curvature along s is k, and it stays positive
+    definite for k > 0 (Sherman-Morrison: 1 - beta s^T B s = k / s^T B s); the floor keeps it
+    so where the true curvature is negative, where the step along s grows 1 / SECANT_FLOOR
+    times instead of 1 + |true| / model.  Nocedal & Wright 2006, 6.1 (BFGS), 18.3 (quasi-Newton
+    approximations of the Lagrangian's Hessian, here of its x block: A is constant)."""
+    km = float(s @ Bs)
+    kt = float(s @ y)
+    if not (km > 0.0 and np.isfinite(kt)) or SECANT_RATIO * km <= kt <= SECANT_UPPER * km:
+        return None
+    k = max(kt, SECANT_FLOOR * km)
+    return Bs, -(km - k) / km ** 2
 
 
 def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, opts: SQPOptions,
@@ -129,6 +178,7 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
     recent: list[tuple[float, np.ndarray]] = []   # (f, C) of the last iterates: the non-monotone reference
     tail = opts.exact_compression and opts.exact_when == "always"
     alpha = 0.0
+    last = None        # (x, gradient of H + P) at the previous iterate: the secant pair's ends
     while True:
         ev = obj.evaluate(x, need_hessian=True)
         if obj.contact is not None:   # the contact's friction lag moved with the evaluation
@@ -174,6 +224,8 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
         hp = tracker.penalty_hessian(x)
         if hp is not None:
             ev.banded[0] += hp[0]    # the variance penalty's positive curvature (diagonal)
+        s_prev = None if last is None else (x - last[0], g - last[1])
+        last = (x, g)
         fallback = None
         if tail:
             if opts.kkt == "reference":   # its solve takes the band as it is: the sum only where definite
@@ -204,8 +256,23 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
                 # relative tolerance bounds the change's error, not lam's (|g| ~ |A^T lam| >> the residual)
                 shift = lam
                 dx, dt, lam_new = solve(r_x, C if reg is None else C - reg * lam, r_t if sliding else None)   # r_t = B^T lam
-            if hp is not None and hp[1].shape[1]:
-                dx, dt, lam_new = woodbury(solve, hp[1], (dx, dt, lam_new), np.zeros_like(C))
+            U = hp[1] if hp is not None and hp[1].shape[1] else None
+            signs = None
+            curv = None
+            if opts.secant and s_prev is not None and fallback is None and obj.contact is None:
+                sv, yv = s_prev
+                Bs = band_product(ev.banded, sv)
+                if U is not None:
+                    Bs += U @ (U.T @ sv)
+                corr = secant_correction(Bs, sv, yv)
+                curv = (float(sv @ yv), float(sv @ Bs))
+                if corr is not None:
+                    info.secant_updates += 1
+                    signs = np.ones(1 if U is None else U.shape[1] + 1)
+                    signs[-1] = corr[1]
+                    U = corr[0][:, None] if U is None else np.column_stack([U, corr[0]])
+            if U is not None:
+                dx, dt, lam_new = woodbury(solve, U, (dx, dt, lam_new), np.zeros_like(C), signs)
         except np.linalg.LinAlgError:
             # a singular KKT matrix (e.g. two clusters' constraints that coincide): the step fails
             # as a solve, and the Simulator's recovery (substeps) or its failure policy takes over
@@ -251,7 +318,7 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
             record.append({"alpha": alpha, "grad": gnorm, "grad_tol": gtol,
                            "constraint": cmax, "constraint_tol": opts.ctol,
                            "t_residual": float(np.abs(r_t).max(initial=0.0)) if sliding else 0.0,
-                           "backtracks": bt})
+                           "backtracks": bt, "curvature": curv})
         if alpha == 0.0:
             info.status = LINE_SEARCH_FAILED
             break
