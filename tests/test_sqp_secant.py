@@ -36,31 +36,62 @@ def test_band_product_equals_the_dense_product():
 
 @pytest.mark.parametrize("ratio", [-0.8, 0.05, 0.3])
 def test_correction_sets_the_curvature_along_the_step_and_stays_definite(ratio):
-    """Where s^T y < SECANT_RATIO s^T B s: B' = B + sign u u^T has s^T B' s = max(s^T y, floor),
+    """Where s^T y < SECANT_RATIO s^T B s: B' = B + U D U^T has s^T B' s = max(s^T y, floor),
     is positive definite, and acts as B on every vector B-orthogonal to s."""
     rng = np.random.default_rng(1)
     n = 20
     B, _ = _band(rng, n, 5)
-    s = rng.normal(size=n)
-    km = s @ B @ s
+    s = rng.normal(size=(n, 1))
+    km = float(s[:, 0] @ B @ s[:, 0])
     y = B @ s * ratio                 # s^T y = ratio km
-    u, sign = S.secant_correction(B @ s, s, y)
-    Bc = B + sign * np.outer(u, u)
-    np.testing.assert_allclose(s @ Bc @ s, max(ratio, S.SECANT_FLOOR) * km, rtol=1e-10)
+    U, signs = S.secant_correction(B @ s, s, y)
+    Bc = B + U @ np.diag(signs) @ U.T
+    np.testing.assert_allclose(s[:, 0] @ Bc @ s[:, 0], max(ratio, S.SECANT_FLOOR) * km, rtol=1e-10)
     assert np.linalg.eigvalsh(Bc).min() > 0
     v = rng.normal(size=n)
-    v -= (v @ B @ s) / km * s          # B-orthogonal to s
+    v -= (v @ B @ s[:, 0]) / km * s[:, 0]          # B-orthogonal to s
     np.testing.assert_allclose(Bc @ v, B @ v, rtol=1e-10, atol=1e-10)
+
+
+def test_correction_over_several_steps_sets_the_curvature_on_their_span():
+    """With two steps: on their span the corrected model's curvature is the secant one where that
+    is below SECANT_RATIO of the model's (clamped at the floor) and B's elsewhere; B-orthogonal
+    vectors see B; nearly parallel steps are one direction."""
+    rng = np.random.default_rng(4)
+    n = 16
+    B, _ = _band(rng, n, 4)
+    Hm = rng.normal(size=(n, n))
+    H = 0.5 * (Hm + Hm.T)                       # an indefinite "true" Hessian
+    Sx = rng.normal(size=(n, 2))
+    U, signs = S.secant_correction(B @ Sx, Sx, H @ Sx)
+    Bc = B + U @ np.diag(signs) @ U.T
+    assert np.linalg.eigvalsh(Bc).min() > 0
+    G, M = Sx.T @ B @ Sx, Sx.T @ H @ Sx
+    w, V = np.linalg.eigh(G)
+    R = V / np.sqrt(w)
+    lam, Q = np.linalg.eigh(R.T @ M @ R)
+    Z = Sx @ R @ Q                              # B-orthonormal, M-diagonal directions of the span
+    want = np.where(lam < S.SECANT_RATIO, np.maximum(lam, S.SECANT_FLOOR), 1.0)
+    np.testing.assert_allclose(np.diag(Z.T @ Bc @ Z), want, rtol=1e-9, atol=1e-12)
+    v = rng.normal(size=n)
+    v -= Sx @ np.linalg.solve(G, Sx.T @ B @ v)   # B-orthogonal to the span
+    np.testing.assert_allclose(Bc @ v, B @ v, rtol=1e-9, atol=1e-9)
+    # a repeated step: its span is one direction, corrected as the single step is
+    twice = np.column_stack([Sx[:, 0], Sx[:, 0]])
+    U2, s2 = S.secant_correction(B @ twice, twice, -(B @ twice))
+    assert U2.shape[1] == 1
+    U1, s1 = S.secant_correction(B @ twice[:, :1], twice[:, :1], -(B @ twice[:, :1]))
+    np.testing.assert_allclose(U2 @ np.diag(s2) @ U2.T, U1 @ np.diag(s1) @ U1.T, rtol=1e-8, atol=1e-10)
 
 
 def test_no_correction_where_the_model_curvature_is_not_too_large():
     rng = np.random.default_rng(2)
     B, _ = _band(rng, 10, 3)
-    s = rng.normal(size=10)
-    for ratio in (S.SECANT_RATIO, 1.0, 3.0):
+    s = rng.normal(size=(10, 1))
+    for ratio in (1.001 * S.SECANT_RATIO, 1.0, 3.0):
         assert S.secant_correction(B @ s, s, ratio * (B @ s)) is None
-    assert S.secant_correction(B @ s, s, np.full(10, np.nan)) is None
-    assert S.secant_correction(np.zeros(10), np.zeros(10), np.zeros(10)) is None
+    assert S.secant_correction(B @ s, s, np.full((10, 1), np.nan)) is None
+    assert S.secant_correction(np.zeros((10, 1)), np.zeros((10, 1)), np.zeros((10, 1))) is None
 
 
 def test_signed_woodbury_matches_the_dense_kkt_solve():
