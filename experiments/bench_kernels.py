@@ -129,8 +129,11 @@ def schur_phases(run, state, repeats: int) -> dict:
     begin(run, obj, state)
     ctl.begin(state.time + run.dt, run.scene.motion)
     ev = obj.evaluate(obj.initial_guess())
+    # both in the exact mode (S built at every factorisation): the run's own ``ctl.kkt`` is in the
+    # default krylov mode, whose factor does not build S
     kkts = {"torch": SchurKKT(run.scene.strands, ctl.cons, obj.assembler.bandwidth),
-            "numba": ctl.kkt}
+            "numba": SchurKKT(run.scene.strands, ctl.cons, obj.assembler.bandwidth, kernels=obj.kernels)}
+    assert kkts["numba"].kernels is not None and kkts["numba"].mode == kkts["torch"].mode == "exact"
     rng = np.random.default_rng(0)
     C = 1e-3 * rng.normal(size=3 * ctl.cons.K)
     times = {k: {"factor": [], "solve": []} for k in kkts}
