@@ -1,5 +1,5 @@
 """The SQP's secant correction of its Hessian model along the last step (hairexp/control/
-tracking/sqp.py ``secant_correction``): the band product, the rank-one term's curvature and
+tracking/sqp.py ``secant_correction``): the band product (hairexp/physics/assembly.py), the rank-one term's curvature and
 definiteness, the signed Woodbury solve, and what it does to a solve whose model overestimates
 the curvature (a buckling wisp: stylization's block falling off its rail)."""
 
@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from hairexp.control.tracking import sqp as S
+from hairexp.physics.assembly import band_product
 
 
 def _band(rng, n, bw):
@@ -31,7 +32,7 @@ def test_band_product_equals_the_dense_product():
     for n, bw in ((1, 0), (7, 2), (30, 8)):
         B, ab = _band(rng, n, min(bw, n - 1))
         v = rng.normal(size=n)
-        np.testing.assert_allclose(S.band_product(ab, v), B @ v, rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(band_product(ab, v), B @ v, rtol=1e-13, atol=1e-13)
 
 
 @pytest.mark.parametrize("ratio", [-0.8, 0.05, 0.3])

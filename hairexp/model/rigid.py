@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import CubicSpline
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 from hairexp.errors import MAX_COORDINATE, MAX_SPEED, InputError, real_array
 
@@ -114,16 +114,15 @@ class RigidMotion:
             raise InputError(f"the rotation at keyframe {k} turns {turn[k]:.6g} rad, more than {MAX_KEY_DEGREES:g} degrees "
                              "(100 turns): a unit error (hairexp reads radians in rotation vectors)", f"{self.where}.rotvecs")
         rots = Rotation.from_rotvec(self.rotvecs)
-        if K == 1:
-            self._pos = self._rot = None
-        elif self.interpolation == "cubic":
+        self._static = K == 1
+        self._pos = self._rot = None
+        if K > 1 and self.interpolation == "cubic":
             self._pos = CubicSpline(self.times, self.translations, bc_type="clamped")
             self._rot = CubicSpline(self.times, self.rotvecs, bc_type="clamped")
-        else:
-            self._pos = None
-            self._rot = Slerp(self.times, rots)
-            # the same interpolation without scipy's per-call overhead (``_pose``; about 0.1 ms a
-            # call, a step asks several times): R(t) = R_k exp(alpha log(R_k^T R_k+1))
+        elif K > 1:
+            # scipy's Slerp without its per-call overhead (``_pose``; about 0.1 ms a call, a step
+            # asks several times): R(t) = R_k exp(alpha log(R_k^T R_k+1)); ``velocity`` takes the
+            # segments' rates from the same relative rotation vectors
             self._key_R = rots.as_matrix()
             self._key_rel = (rots[:-1].inv() * rots[1:]).as_rotvec()
         self._rots = rots
@@ -144,7 +143,7 @@ class RigidMotion:
         restart.  Keys at or before ``since`` are left out: a run's initial state (t = 0) already
         moves with the velocity after a key there.  A time integrator restarts at a jump
         (hairexp/physics/integrators.py, "Driver discontinuities")."""
-        if self._rot is None or self.interpolation != "linear":
+        if self._static or self.interpolation != "linear":
             return False
         ts = self.times
         tol = TIME_TOL * max(1.0, abs(float(t0)), abs(float(t1)))
@@ -192,7 +191,7 @@ class RigidMotion:
         return hit[0].copy(), hit[1].copy()
 
     def _pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
-        if self._rot is None:
+        if self._static:
             return self._rots[0].as_matrix(), self.translations[0].copy()
         tc, _ = self._clamp(t)
         if self._pos is not None:
@@ -213,7 +212,7 @@ class RigidMotion:
 
         For linear interpolation, at a keyframe the velocity of the *following* segment is
         returned (right-continuous)."""
-        if self._rot is None:
+        if self._static:
             return np.zeros(3), np.zeros(3)
         tc, outside = self._clamp(t)
         if outside or (self.interpolation == "linear" and t >= self.times[-1]):
@@ -224,8 +223,7 @@ class RigidMotion:
             return left_jacobian(self._rot(tc)) @ self._rot(tc, 1), Tdot
         k = int(np.clip(np.searchsorted(self.times, tc, side="right") - 1, 0, len(self.times) - 2))
         dt = self.times[k + 1] - self.times[k]
-        rel = (self._rots[k].inv() * self._rots[k + 1]).as_rotvec() / dt  # body-frame rate of this segment
-        w = self._rots[k].as_matrix() @ rel
+        w = self._key_R[k] @ (self._key_rel[k] / dt)   # the segment's body-frame rate, in the world
         if self.interpolation == "linear":
             Tdot = (self.translations[k + 1] - self.translations[k]) / dt
         return w, Tdot

@@ -86,6 +86,16 @@ class BandedAssembler:
         return (L + sp.triu(L.T, k=1)).tocsc()
 
 
+def band_product(ab: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """B v for the symmetric band B in LAPACK's lower storage (ab[d, j] = B[j + d, j])."""
+    out = ab[0] * v
+    for d in range(1, ab.shape[0]):
+        n = v.size - d
+        out[d:] += ab[d, :n] * v[:n]
+        out[:-d] += ab[d, :n] * v[d:]
+    return out
+
+
 def banded_solve(ab: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """Solve with the lower banded SPD matrix ``ab``; if Cholesky fails (round-off made the
     matrix indefinite), retry with a small diagonal shift."""

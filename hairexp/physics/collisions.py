@@ -598,7 +598,7 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
         if scene.colliders:
             found: list = []
             x1, v1, n_obj, per = object_stage(scene.colliders, x0, x1, t0, t1, dt, movable, dist_out=found)
-            dist = found if n_obj == 0 else None
+            dist = found or None    # (filled only when the pass had no contact)
             for k, c in per.items():
                 info.per_collider[k] = info.per_collider.get(k, 0) + c
         info.object_contacts += n_obj

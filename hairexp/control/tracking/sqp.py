@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hairexp.physics.assembly import band_product
 from hairexp.physics.info import CONVERGED, DIVERGED, LINE_SEARCH_FAILED, MAX_ITERATIONS, SINGULAR, SolveInfo
 from hairexp.control.tracking.kkt import reference_solve
 
@@ -104,16 +105,6 @@ def woodbury(solve, U: np.ndarray, step: tuple, zero_c: np.ndarray, signs: np.nd
     if dt is not None:
         dt = dt + np.stack([c[1] for c in cols], 1) @ coef
     return dx, dt, lam
-
-
-def band_product(ab: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """B v for the symmetric band B in LAPACK's lower storage (ab[d, j] = B[j + d, j])."""
-    out = ab[0] * v
-    for d in range(1, ab.shape[0]):
-        n = v.size - d
-        out[d:] += ab[d, :n] * v[:n]
-        out[:-d] += ab[d, :n] * v[d:]
-    return out
 
 
 def secant_correction(BS: np.ndarray, S: np.ndarray, Y: np.ndarray):
