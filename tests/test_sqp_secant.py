@@ -27,12 +27,22 @@ def _band(rng, n, bw):
     return B, ab
 
 
-def test_band_product_equals_the_dense_product():
+def test_band_product_equals_the_dense_product(monkeypatch):
+    from hairexp.physics import assembly, bandchol
+    calls = []
+    compiled = bandchol.band_product_lt
+    monkeypatch.setattr(bandchol, "band_product_lt", lambda *a: (calls.append(1), compiled(*a)))
     rng = np.random.default_rng(0)
     for n, bw in ((1, 0), (7, 2), (30, 8)):
         B, ab = _band(rng, n, min(bw, n - 1))
         v = rng.normal(size=n)
         np.testing.assert_allclose(band_product(ab, v), B @ v, rtol=1e-13, atol=1e-13)
+        # the compiled kernels' layout: ab as the transposed view of a C-order (N, bw + 1) array
+        abT = np.ascontiguousarray(ab.T)
+        assert abT.T.T.flags.c_contiguous
+        calls.clear()
+        np.testing.assert_allclose(band_product(abT.T, v), B @ v, rtol=1e-13, atol=1e-13)
+        assert len(calls) == (1 if assembly.HAVE_NUMBA else 0)   # the transposed view took the compiled product
 
 
 @pytest.mark.parametrize("ratio", [-0.8, 0.05, 0.3])

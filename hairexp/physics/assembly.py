@@ -16,6 +16,9 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
 
+from hairexp.physics import bandchol
+from hairexp.physics.kernels import HAVE_NUMBA
+
 
 @dataclass
 class _Scatter:
@@ -87,7 +90,13 @@ class BandedAssembler:
 
 
 def band_product(ab: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """B v for the symmetric band B in LAPACK's lower storage (ab[d, j] = B[j + d, j])."""
+    """B v for the symmetric band B in LAPACK's lower storage (ab[d, j] = B[j + d, j]).  When
+    ``ab`` is the transposed view of a C-order (N, bw + 1) array (the compiled kernels' band,
+    ``bandchol``'s layout) the product is compiled (``bandchol.band_product_lt``)."""
+    if HAVE_NUMBA and ab.T.flags.c_contiguous and ab.dtype == np.float64 and v.ndim == 1:
+        out = np.empty(ab.shape[1])
+        bandchol.band_product_lt(ab.T, np.ascontiguousarray(v, dtype=np.float64), out)
+        return out
     out = ab[0] * v
     for d in range(1, ab.shape[0]):
         n = v.size - d

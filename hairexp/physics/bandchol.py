@@ -241,3 +241,22 @@ def schur_parallel(L, Bt, first, dof_off, out):
     hairexp/control/tracking/kkt.py)."""
     for s in prange(Bt.shape[0]):
         schur_block(s, L, Bt, first, dof_off, out)
+
+
+@njit(cache=True, error_model="numpy")
+def band_product_lt(A, v, out):
+    """out = A v for the symmetric band in this module's storage (A[j, d] = A[j + d, j], (N, bw + 1),
+    C order): each column's entries are read once, contiguously, for both triangles (numpy on
+    LAPACK's (bw + 1, N) view reads them with a stride of bw + 1 doubles, 2 x each: 0.79 ms at
+    Celia's size against 0.22 here, 2026-12-06)."""
+    N, bw1 = A.shape
+    for j in range(N):
+        out[j] = A[j, 0] * v[j]
+    for j in range(N):
+        vj = v[j]
+        acc = 0.0
+        for a in range(1, min(bw1, N - j)):
+            l = A[j, a]
+            out[j + a] += l * vj
+            acc += l * v[j + a]
+        out[j] += acc
