@@ -268,16 +268,18 @@ def test_frame_columns_count_each_entitys_own_rows(tmp_path):
     assert rows["/small"] == [25, 25, 10]
 
 
+@pytest.mark.parametrize("form", ["list", "joined"])
 @pytest.mark.parametrize("lengths", ["varying", "equal"])
-def test_frame_columns_send_every_frame_as_logged_in_a_few_chunks(tmp_path, lengths):
+def test_frame_columns_send_every_frame_as_logged_in_a_few_chunks(tmp_path, lengths, form):
     """The frames' columns (``FrameColumns``): rows sent in chunks of at most ``max_frames``
     read back equal to what was logged, strips of varying counts and lengths included (equal
-    lengths take the SDK's array path: one (strips, points, 3) array a chunk), and a buffer once
-    sent is not written again (rerun may still hold it)."""
+    lengths take the SDK's array path: one (strips, points, 3) array a chunk), given as a list of
+    arrays or joined (``Strips``: one array and the lengths), and a buffer once sent is not
+    written again (rerun may still hold it)."""
     import rerun as rr
     from rerun.chunk import RrdReader
 
-    from hairexp.outputs.rerun_sink import FrameColumns, _Rows
+    from hairexp.outputs.rerun_sink import FrameColumns, Strips, _Rows
 
     rows = _Rows()
     rows.append(np.ones((3, 2)))
@@ -297,7 +299,8 @@ def test_frame_columns_send_every_frame_as_logged_in_a_few_chunks(tmp_path, leng
         n = (lambda: 4) if lengths == "equal" else (lambda: int(rng.integers(2, 6)))
         strips = [rng.random((n(), 3)).astype(np.float32) for _ in range(int(rng.integers(1, 4)))]
         pts = rng.random((4, 3)).astype(np.float32)
-        cols.add("/s", rr.LineStrips3D, dict(radii=0.01), strips=strips)
+        given = strips if form == "list" else Strips(np.concatenate(strips), np.array([len(a) for a in strips]))
+        cols.add("/s", rr.LineStrips3D, dict(radii=0.01), strips=given)
         cols.add("/p", rr.Points3D, None, positions=pts)
         logged[f] = (strips, pts)
         cols.send_if_due()

@@ -45,6 +45,7 @@ import shutil
 import sys
 import time
 import uuid
+from typing import NamedTuple
 from array import array
 
 import numpy as np
@@ -359,6 +360,15 @@ class _Rows:
         return out
 
 
+class Strips(NamedTuple):
+    """Line strips given as one (P, 3) array of their points, one strip after another, and each
+    strip's point count: ``FrameColumns.add``'s ``strips`` field without the list of arrays (the
+    hair's 301 strips were split from one array a frame only to be joined again: 0.37 s of Celia's
+    run, 2026-12-06)."""
+    points: np.ndarray
+    lengths: np.ndarray
+
+
 class FrameColumns:
     """The frames' entities as columns (``RecordingStream.send_columns``): per entity, its rows
     since the last send on the ``frame`` and ``sim_time`` timelines, sent as one chunk each.
@@ -395,7 +405,10 @@ class FrameColumns:
             raise ValueError(f"{path}: fields {sorted(fields)} differ from this entity's {sorted(e['fields'])}")
         n = None
         for k, v in fields.items():
-            if k == "strips":
+            if k == "strips" and isinstance(v, Strips):   # already one array: no split and re-join
+                e["strip_length"].extend(v.lengths)
+                m, v = len(v.lengths), np.asarray(v.points)
+            elif k == "strips":
                 e["strip_length"].extend(len(s) for s in v)
                 m, v = len(v), (np.concatenate(v) if len(v) else np.empty((0, 3), np.float32))
             else:
@@ -474,6 +487,7 @@ class RerunSink:
         self.columns = FrameColumns(self.rec)
         self.scene = scene
         self.offsets = scene.strands.offsets
+        self.strip_lengths = np.diff(self.offsets)
         self.bounds = layout.Bounds()          # of everything drawn, over the whole run
         self.ranges: dict[str, tuple[float, float]] = {}   # metric -> (min, max) of its finite values
         self.t_end = 0.0
@@ -517,6 +531,7 @@ class RerunSink:
         tracker = controller if controller is not None and controller.cluster_of_vertex() is not None else None
         self.tracker = tracker
         self.guide_offsets = guides.offsets
+        self.guide_lengths = np.diff(self.guide_offsets)
         if tracker is not None:
             K = tracker.cons.K
             rng = np.random.default_rng(7)
@@ -532,23 +547,33 @@ class RerunSink:
             self.rec.log("/clusters/variance_ratio", rr.SeriesLines(names=[f"cluster {k}" for k in range(K)],
                                                                     colors=self.cluster_colors), static=True)
 
+    def _quaternion(self, key: str, R: np.ndarray) -> np.ndarray:
+        """Rotation matrix R as a quaternion (x, y, z, w), the last one of ``key`` again while R
+        is the same (a still collider's or body's pose: scipy's from_matrix took 0.31 s of Celia's run)."""
+        from scipy.spatial.transform import Rotation
+
+        cache = self.__dict__.setdefault("_quats", {})
+        b = np.ascontiguousarray(R, dtype=np.float64).tobytes()
+        hit = cache.get(key)
+        if hit is None or hit[0] != b:
+            hit = cache[key] = (b, Rotation.from_matrix(R).as_quat())
+        return hit[1]
+
     def log_frame(self, frame: int, state, obs: dict | None = None, motion=None) -> None:
         """One frame; ``motion``: the body's poses at ``state.time`` (``Simulator.motion_of``),
         default the scene's motion.  The frame goes to the entities' columns (``FrameColumns``),
         sent as one chunk per entity every FRAME_CHUNK_BYTES, FRAME_CHUNK_FRAMES or FLUSH_SECONDS."""
-        from scipy.spatial.transform import Rotation
-
         obs = obs or {}
         cols = self.columns
         cols.frame(frame, float(state.time))
         x = state.x.astype(np.float32)
         cols.add("/world/hair", rr.LineStrips3D, dict(radii=self.radius, colors=[[200, 150, 90]]),
-                 strips=np.split(x, self.offsets[1:-1]))
+                 strips=Strips(x, self.strip_lengths))
         cols.add("/world/roots", rr.Points3D, dict(radii=1.5 * self.radius, colors=[[60, 60, 200]]),
                  positions=x[self.scene.strands.kinematic])
         R, T = (motion or self.scene.motion).pose(state.time)
         cols.add("/world/body", rr.Transform3D, None, translation=np.asarray(T, np.float64)[None],
-                 quaternion=Rotation.from_matrix(R).as_quat()[None])   # x, y, z, w
+                 quaternion=self._quaternion("/world/body", R)[None])   # x, y, z, w
         self.t_end = max(self.t_end, float(state.time))
         self.bounds.add(state.x)
         self.bounds.add_sphere(T, np.sqrt(3) * self.body_half)
@@ -557,11 +582,11 @@ class RerunSink:
             if np.isfinite(c.bounding_radius()):   # a plane is unbounded: it does not frame the view
                 self.bounds.add_sphere(Tc, c.bounding_radius())
             cols.add(f"/world/colliders/{c.name}", rr.Transform3D, None, translation=np.asarray(Tc, np.float64)[None],
-                     quaternion=Rotation.from_matrix(Rc).as_quat()[None])
+                     quaternion=self._quaternion(f"/world/colliders/{c.name}", Rc)[None])
         if obs.get("guides") is not None:
             self.bounds.add(obs["guides"])
             cols.add("/world/guides", rr.LineStrips3D, dict(radii=1.5 * self.radius, colors=[[230, 60, 60]]),
-                     strips=np.split(obs["guides"].astype(np.float32), self.guide_offsets[1:-1]))
+                     strips=Strips(obs["guides"].astype(np.float32), self.guide_lengths))
         if getattr(self, "tracker", None) is not None and obs.get("com") is not None:
             tr = self.tracker
             # the overlays have a 3D view of their own ("tracking"): cluster colours as points on
