@@ -425,6 +425,49 @@ def test_interleaved_substitution_is_the_banded_solve(case):
         np.testing.assert_allclose(x2, x, rtol=1e-14, atol=1e-300)
 
 
+@pytest.mark.parametrize("case", ["wisp_3_guides", "unequal_strands_2_guides"])
+def test_interleaved_factor_is_the_block_factor_bit_for_bit(case):
+    """``SchurKKT.factor`` on the compiled path factors all strands at once, interleaved
+    (``interleave_band``, ``factor_interleaved``): the factor equals bandchol's per-block one,
+    interleaved (``interleave_factor``), bit for bit, and its layout (``LT``) is that factor; a
+    strand whose band is not positive definite takes the fallback band as ``kernels.factor``
+    does (the strand's rows of the fallback), the factor then the per-block one."""
+    from hairexp.control.tracking.kkt import interleave_factor
+
+    _, sim = kkt_scene(case)
+    ab, r_x, _, _, _ = kkt_system(sim, seed=5)
+    kkt = krylov_kkt(sim)
+    if kkt.kernels is None:
+        pytest.skip("the compiled kernels are off (no numba)")
+    ab = np.ascontiguousarray(ab.T).T               # the kernels' band: a view of a C-order (N, bw + 1)
+    kkt.factor(ab)                                  # the first factor builds S (from ``LT``)
+    kkt.factor(ab)
+    assert kkt._L_il is not None and kkt._LT is None   # interleaved, bandchol's layout not made
+    ref = kkt.kernels.factor(ab)
+    L, inv = np.empty_like(kkt._L_il), np.empty_like(kkt._inv_il)
+    interleave_factor(ref, kkt._dof_off, kkt.nmax, L, inv)
+    assert np.array_equal(kkt._L_il[:, 1:], L[:, 1:]) and np.array_equal(kkt._inv_il, inv)
+    blk = kkt.kernels.blk_dof
+    for a, b in zip(blk[:-1], blk[1:]):   # the factor's entries inside each block (the rest is never read)
+        for j in range(a, b):
+            m = min(ref.shape[1], b - j)
+            assert np.array_equal(kkt.LT[j, :m], ref[j, :m])
+    np.testing.assert_array_equal(kkt.hinv(r_x), kkt.kernels.cho_solve(ref, r_x))
+    # strand 1's band made indefinite: the fallback band is taken on its rows, as kernels.factor does
+    bad = ab.copy()
+    s0, s1 = kkt.dof_off[1], kkt.dof_off[2]
+    bad[0, s0:s1] = -1.0
+    fallback = ab.copy()
+    kkt.factor(bad, fallback)
+    assert kkt._LT is not None and kkt._L_il is None   # the interleaved factor declined: kernels.factor's
+    ref = kkt.kernels.factor(bad, fallback)
+    assert kkt.kernels.fell_back >= 1
+    np.testing.assert_array_equal(kkt.hinv(r_x), kkt.kernels.cho_solve(ref, r_x))
+    kkt._interleave()
+    interleave_factor(ref, kkt._dof_off, kkt.nmax, L, inv)
+    assert np.array_equal(kkt._L_il[:, 1:], L[:, 1:]) and np.array_equal(kkt._inv_il, inv)
+
+
 def test_krylov_schur_needs_a_known_mode():
     _, sim = kkt_scene("wisp_3_guides")
     from hairexp.control.tracking.kkt import SchurKKT
