@@ -558,3 +558,40 @@ def test_trbdf2_substep_recovery_is_two_half_steps(monkeypatch):
     stepping dt/2 twice; the carried acceleration is the second half step's."""
     _, _, rec, _, end = recovered_step("trbdf2", monkeypatch)
     assert np.array_equal(rec.history.a, end.history.a)
+
+
+# -- the first stage's tolerance (solver.stage_rtol) ------------------------------------------
+def _solve_rtols(monkeypatch, integrator: str, **kw) -> list[float]:
+    """The rtol of every Newton solve of one step of the swung chain (``chain_scene``)."""
+    from hairexp.physics import controller as controller_module
+
+    seen = []
+    real = controller_module.newton_solve
+
+    def spy(obj, x0, opts):
+        seen.append(opts.rtol)
+        return real(obj, x0, opts)
+
+    monkeypatch.setattr(controller_module, "newton_solve", spy)
+    sim = Simulator(chain_scene(), solver(integrator, **kw))
+    st, _ = sim.step(sim.initial_state(), DT)    # a first step: TR-BDF2's trapezoidal stage, then BDF2
+    seen.clear()
+    st, info = sim.step(st, DT)
+    assert info.converged
+    return seen
+
+
+def test_first_stage_is_solved_to_stage_rtol_and_the_step_end_to_rtol(monkeypatch):
+    """TR-BDF2's trapezoidal stage (the intermediate point) takes max(rtol, solver.stage_rtol),
+    its BDF2 stage (the step's end) rtol; a one-stage scheme and a stage_rtol below rtol change
+    nothing; a solver config without the key solves every stage to rtol."""
+    assert _solve_rtols(monkeypatch, "trbdf2", rtol=1e-6, stage_rtol=1e-3) == [1e-3, 1e-6]
+    assert _solve_rtols(monkeypatch, "trbdf2", rtol=1e-6, stage_rtol=1e-8) == [1e-6, 1e-6]
+    assert _solve_rtols(monkeypatch, "implicit_euler", rtol=1e-6, stage_rtol=1e-3) == [1e-6]
+    assert _solve_rtols(monkeypatch, "trbdf2", rtol=1e-6) == [1e-6, 1e-6]
+
+
+@pytest.mark.parametrize("bad", [-1e-3, 1.0, float("nan"), "x"])
+def test_stage_rtol_out_of_range_is_an_input_error_naming_the_key(bad):
+    with pytest.raises(InputError, match="solver.stage_rtol"):
+        Simulator(chain_scene(), solver("trbdf2", stage_rtol=bad))

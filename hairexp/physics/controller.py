@@ -30,11 +30,18 @@ from hairexp.physics.newton import newton_solve
 
 
 def scaled_iterations(opts, sim):
-    """``opts`` (a solver's options with ``max_iterations``) with the simulator's iteration budget
-    applied: ``sim.iteration_scale`` times the iterations during a step's last attempt
-    (``solver.last_attempt_iterations``), ``opts`` itself otherwise."""
+    """``opts`` (a solver's options with ``max_iterations`` and ``rtol``) for this solve: with the
+    simulator's iteration budget applied (``sim.iteration_scale`` times the iterations during a
+    step's last attempt, ``solver.last_attempt_iterations``) and, in a stage before a multi-stage
+    scheme's last (``sim.stage_tolerance``: ``solver.stage_rtol``), rtol at least that; ``opts``
+    itself otherwise."""
     scale = int(getattr(sim, "iteration_scale", 1))
-    return opts if scale <= 1 else replace(opts, max_iterations=scale * opts.max_iterations)
+    if scale > 1:
+        opts = replace(opts, max_iterations=scale * opts.max_iterations)
+    loose = getattr(sim, "stage_tolerance", None)
+    if loose is not None and loose > opts.rtol:
+        opts = replace(opts, rtol=loose)
+    return opts
 
 
 class Controller:

@@ -146,6 +146,8 @@ def check_solver_config(s) -> None:
                          f"{_value(s.restart_at_jumps)!r:.40}", "solver.restart_at_jumps")
     # >= 1, or an absolute tolerance above hair's forces (mN), accepts the first iterate (probe of issue 12, round 14)
     rtol = number(s.rtol, "solver.rtol", lo=0, hi=1, hi_open=True)
+    if hasattr(s, "stage_rtol"):
+        number(s.stage_rtol, "solver.stage_rtol", lo=0, hi=1, hi_open=True)
     atol = number(getattr(s, "atol", 0.0), "solver.atol", lo=0, hi=MAX_ATOL)
     if rtol == 0 and atol == 0:
         raise InputError("solver.rtol and solver.atol are both 0: no step can converge; give one > 0", "solver.rtol")
@@ -277,6 +279,11 @@ class Simulator:
                                                 primal_dual=str(_value(solver_cfg.stretch_hessian)) == "primal_dual",
                                                 kernels=kernels, threads=threads)
         self.newton = NewtonOptions(solver_cfg.rtol, solver_cfg.atol, solver_cfg.max_iterations, solver_cfg.max_backtracks)
+        #: the rtol of a multi-stage scheme's stages before the last (``solver.stage_rtol``): the
+        #: controllers' solves take max(their rtol, this) while ``stage_tolerance`` holds it (``_stage``,
+        #: ``controller.scaled_iterations``)
+        self.stage_rtol = float(_value(getattr(solver_cfg, "stage_rtol", solver_cfg.rtol)))
+        self.stage_tolerance = None
         self.on_failure = str(_value(solver_cfg.on_failure))
         #: the solves' iteration budget, as a multiple of their max_iterations (the controllers
         #: read it); above 1 only during a step's last attempt (``solver.last_attempt_iterations``)
@@ -439,7 +446,13 @@ class Simulator:
                                       plan)
             if self.contact is not None:   # collider poses at t_next, a feasible start
                 begin_contact_step(self.contact, self.objective, state.x, state.time, t_next, dt, self.newton)
-        x_new, control, info = ctl.solve(self, state, dt, t_next, motion)
+        # a stage before the step's last is the scheme's intermediate point (TR-BDF2's x_g): solved
+        # to solver.stage_rtol, the step's end to rtol (README "The first stage's tolerance")
+        self.stage_tolerance = None if last else self.stage_rtol
+        try:
+            x_new, control, info = ctl.solve(self, state, dt, t_next, motion)
+        finally:
+            self.stage_tolerance = None
         # 3. velocities (the integrator's), its history, and the hair's force on a dynamic body
         v_new = integ.velocity(x_new, state, plan)
         history = integ.history(state, x_new, v_new, plan, dt)
