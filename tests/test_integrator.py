@@ -560,7 +560,7 @@ def test_trbdf2_substep_recovery_is_two_half_steps(monkeypatch):
     assert np.array_equal(rec.history.a, end.history.a)
 
 
-# -- the first stage's tolerance (solver.stage_rtol) ------------------------------------------
+# -- the first stage's tolerance (solver.stage_rtol_factor) -----------------------------------
 def _solve_rtols(monkeypatch, integrator: str, **kw) -> list[float]:
     """The rtol of every Newton solve of one step of the swung chain (``chain_scene``)."""
     from hairexp.physics import controller as controller_module
@@ -581,17 +581,21 @@ def _solve_rtols(monkeypatch, integrator: str, **kw) -> list[float]:
     return seen
 
 
-def test_first_stage_is_solved_to_stage_rtol_and_the_step_end_to_rtol(monkeypatch):
-    """TR-BDF2's trapezoidal stage (the intermediate point) takes max(rtol, solver.stage_rtol),
-    its BDF2 stage (the step's end) rtol; a one-stage scheme and a stage_rtol below rtol change
-    nothing; a solver config without the key solves every stage to rtol."""
-    assert _solve_rtols(monkeypatch, "trbdf2", rtol=1e-6, stage_rtol=1e-3) == [1e-3, 1e-6]
-    assert _solve_rtols(monkeypatch, "trbdf2", rtol=1e-6, stage_rtol=1e-8) == [1e-6, 1e-6]
-    assert _solve_rtols(monkeypatch, "implicit_euler", rtol=1e-6, stage_rtol=1e-3) == [1e-6]
+def test_first_stage_is_solved_to_the_stage_factor_times_rtol_and_the_step_end_to_rtol(monkeypatch):
+    """TR-BDF2's trapezoidal stage (the intermediate point) takes solver.stage_rtol_factor x rtol,
+    at most STAGE_RTOL_CAP, its BDF2 stage (the step's end) rtol; a one-stage scheme and a factor
+    of 1 change nothing; a solver config without the key solves every stage to rtol."""
+    from hairexp.physics.controller import STAGE_RTOL_CAP
+
+    got = _solve_rtols(monkeypatch, "trbdf2", rtol=1e-6, stage_rtol_factor=100.0)
+    assert np.allclose(got, [1e-4, 1e-6], rtol=1e-12, atol=0)
+    assert _solve_rtols(monkeypatch, "trbdf2", rtol=1e-3, stage_rtol_factor=1e4) == [STAGE_RTOL_CAP, 1e-3]
+    assert _solve_rtols(monkeypatch, "trbdf2", rtol=1e-6, stage_rtol_factor=1.0) == [1e-6, 1e-6]
+    assert _solve_rtols(monkeypatch, "implicit_euler", rtol=1e-6, stage_rtol_factor=100.0) == [1e-6]
     assert _solve_rtols(monkeypatch, "trbdf2", rtol=1e-6) == [1e-6, 1e-6]
 
 
-@pytest.mark.parametrize("bad", [-1e-3, 1.0, float("nan"), "x"])
-def test_stage_rtol_out_of_range_is_an_input_error_naming_the_key(bad):
-    with pytest.raises(InputError, match="solver.stage_rtol"):
-        Simulator(chain_scene(), solver("trbdf2", stage_rtol=bad))
+@pytest.mark.parametrize("bad", [0.5, -1.0, 1e9, float("nan"), "x"])
+def test_stage_rtol_factor_out_of_range_is_an_input_error_naming_the_key(bad):
+    with pytest.raises(InputError, match="solver.stage_rtol_factor"):
+        Simulator(chain_scene(), solver("trbdf2", stage_rtol_factor=bad))

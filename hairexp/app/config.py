@@ -298,10 +298,11 @@ class ControllerConfig:
 class SolverConfig:
     dt: float = 0.04                  # s; the frame interval is split into ceil(1/(fps dt)) steps
     rtol: float = 1e-5                # |grad H| <= atol + rtol * force scale
-    # the rtol of a multi-stage scheme's stages before its last (TR-BDF2's trapezoidal or restart
-    # stage), for Newton and the SQP alike; the last stage (the step's end) keeps rtol (and
-    # tracking.rtol); never tighter than those (README "Time integrators", "The first stage's tolerance")
-    stage_rtol: float = 1e-3
+    # a multi-stage scheme's stages before its last (TR-BDF2's trapezoidal or restart stage) are
+    # solved to this many times the solver's own rtol (Newton's rtol, the SQP's tracking.rtol), at
+    # most 0.1; the last stage (the step's end) to rtol itself; 1: every stage alike (README "Time
+    # integrators", "The first stage's tolerance")
+    stage_rtol_factor: float = 100.0
     atol: float = 1e-10
     max_iterations: int = 30
     max_backtracks: int = 30

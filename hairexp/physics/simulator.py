@@ -146,8 +146,8 @@ def check_solver_config(s) -> None:
                          f"{_value(s.restart_at_jumps)!r:.40}", "solver.restart_at_jumps")
     # >= 1, or an absolute tolerance above hair's forces (mN), accepts the first iterate (probe of issue 12, round 14)
     rtol = number(s.rtol, "solver.rtol", lo=0, hi=1, hi_open=True)
-    if hasattr(s, "stage_rtol"):
-        number(s.stage_rtol, "solver.stage_rtol", lo=0, hi=1, hi_open=True)
+    if hasattr(s, "stage_rtol_factor"):
+        number(s.stage_rtol_factor, "solver.stage_rtol_factor", lo=1, hi=MAX_STAGE_RTOL_FACTOR)
     atol = number(getattr(s, "atol", 0.0), "solver.atol", lo=0, hi=MAX_ATOL)
     if rtol == 0 and atol == 0:
         raise InputError("solver.rtol and solver.atol are both 0: no step can converge; give one > 0", "solver.rtol")
@@ -176,6 +176,9 @@ def check_solver_config(s) -> None:
                          f"{2 ** MAX_SUBSTEP_LEVELS} at {MAX_SUBSTEP_LEVELS}), got {s.max_substep_levels}",
                          "solver.max_substep_levels")
 
+
+#: solver.stage_rtol_factor at most this (rtol x the factor is capped at STAGE_RTOL_CAP anyway)
+MAX_STAGE_RTOL_FACTOR = 1e6
 
 #: collision.barrier_dhat's bound (d_hat as a multiple of the contact thickness)
 MAX_BARRIER_DHAT = 10.0
@@ -279,10 +282,11 @@ class Simulator:
                                                 primal_dual=str(_value(solver_cfg.stretch_hessian)) == "primal_dual",
                                                 kernels=kernels, threads=threads)
         self.newton = NewtonOptions(solver_cfg.rtol, solver_cfg.atol, solver_cfg.max_iterations, solver_cfg.max_backtracks)
-        #: the rtol of a multi-stage scheme's stages before the last (``solver.stage_rtol``): the
-        #: controllers' solves take max(their rtol, this) while ``stage_tolerance`` holds it (``_stage``,
+        #: a multi-stage scheme's stages before the last are solved to this many times each solver's
+        #: rtol (``solver.stage_rtol_factor``; a config without the key: 1): the controllers' solves
+        #: read it from ``stage_tolerance`` while a stage before the last runs (``_stage``,
         #: ``controller.scaled_iterations``)
-        self.stage_rtol = float(_value(getattr(solver_cfg, "stage_rtol", solver_cfg.rtol)))
+        self.stage_rtol_factor = float(_value(getattr(solver_cfg, "stage_rtol_factor", 1.0)))
         self.stage_tolerance = None
         self.on_failure = str(_value(solver_cfg.on_failure))
         #: the solves' iteration budget, as a multiple of their max_iterations (the controllers
@@ -447,8 +451,8 @@ class Simulator:
             if self.contact is not None:   # collider poses at t_next, a feasible start
                 begin_contact_step(self.contact, self.objective, state.x, state.time, t_next, dt, self.newton)
         # a stage before the step's last is the scheme's intermediate point (TR-BDF2's x_g): solved
-        # to solver.stage_rtol, the step's end to rtol (README "The first stage's tolerance")
-        self.stage_tolerance = None if last else self.stage_rtol
+        # to solver.stage_rtol_factor x rtol, the step's end to rtol (README "The first stage's tolerance")
+        self.stage_tolerance = None if last or self.stage_rtol_factor == 1.0 else self.stage_rtol_factor
         try:
             x_new, control, info = ctl.solve(self, state, dt, t_next, motion)
         finally:
