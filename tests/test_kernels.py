@@ -430,6 +430,10 @@ def test_thread_choice(monkeypatch):
     assert bandchol.pick_threads("auto") == 1
     monkeypatch.setattr(os, "getloadavg", lambda: (0.2, 0.2, 0.2))
     assert bandchol.pick_threads("auto") == 2
+    # a small scene keeps 1 thread on an idle machine (auto only): the parallel regions cost more
+    n = bandchol.AUTO_MIN_VERTICES
+    assert bandchol.pick_threads("auto", vertices=n - 1) == 1 and bandchol.pick_threads("auto", vertices=n) == 2
+    assert bandchol.pick_threads("2", vertices=10) == 2
     monkeypatch.setattr(os, "getloadavg", lambda: (2.5, 2.5, 2.5))   # our own 2 threads: keep them
     assert bandchol.pick_threads("auto", current=2) == 2 and bandchol.pick_threads("auto", current=1) == 1
     monkeypatch.setattr(os, "getloadavg", lambda: (3.5, 3.5, 3.5))   # and another busy process: back to 1

@@ -32,13 +32,21 @@ AUTO_IDLE_CORES = 0.75
 #: s between two re-decisions of ``auto`` (the load average itself moves over a minute).
 AUTO_RECHECK_S = 2.0
 THREAD_CHOICES = ("auto", "1", "2")
+#: ``solver.threads=auto`` keeps 1 thread below this many free vertices: a parallel region's start
+#: costs more than half a small scene's kernel.  Measured 2026-12-06, whole free steps, 2 threads over
+#: 1 (interleaved in one process, idle machine): 800 vertices (goaling, spreading) 1.54 and 1.52 x the
+#: time (tracked 1.09 and 1.12), 1,300: 1.07, 2,600: 0.95, 5,200: 0.82, 7,826 (Celia): 0.79.
+AUTO_MIN_VERTICES = 2000
 
 
-def pick_threads(setting="auto", current: int | None = None) -> int:
+def pick_threads(setting="auto", current: int | None = None, vertices: int | None = None) -> int:
     """Threads for the kernels: ``1`` or ``2`` as asked (at most the usable cores), ``auto``: 2
-    when the process may use >= 2 cores and the load average says one is idle, else 1;
-    ``current``: the threads ``auto`` runs with now (their own load is allowed for)."""
+    when the process may use >= 2 cores, the load average says one is idle and the scene has at
+    least ``AUTO_MIN_VERTICES`` free ``vertices`` (None: not known), else 1; ``current``: the
+    threads ``auto`` runs with now (their own load is allowed for)."""
     setting = str(getattr(setting, "value", setting))
+    if setting == "auto" and vertices is not None and vertices < AUTO_MIN_VERTICES:
+        return 1
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # pragma: no cover - not Linux

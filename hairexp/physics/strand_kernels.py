@@ -127,7 +127,8 @@ class StrandKernels:
             if not _group(np.asarray(t.stencil), free_slot, blk_vert)[3]:
                 return None
         gravity = len(external) == 1 and type(external[0]) is Gravity
-        k = cls(st[0], be[0], gravity, free_slot, free_vertices, bandwidth, blk_vert, pick_threads(threads))
+        k = cls(st[0], be[0], gravity, free_slot, free_vertices, bandwidth, blk_vert,
+                pick_threads(threads, vertices=n_free))
         k.thread_setting = str(getattr(threads, "value", threads))
         return k
 
@@ -138,7 +139,7 @@ class StrandKernels:
         now = time.monotonic()
         if self.thread_setting == "auto" and now - self._checked >= AUTO_RECHECK_S:
             self._checked = now
-            self.threads = pick_threads("auto", self.threads)
+            self.threads = pick_threads("auto", self.threads, vertices=len(self.free_vertices))
 
     @property
     def parallel(self) -> bool:
