@@ -647,39 +647,18 @@ def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_
 
 
 @njit(cache=True, error_model="numpy")
-def interleave_factor(LT, dof_off, nmax, out, inv):
-    """The factor ``LT`` (N, bw + 1) (bandchol's layout: LT[j, a] = L[j + a, j]) strand-interleaved:
-    out[j, a, s] = LT[dof_off[s] + j, a] for the band inside strand s, 0 elsewhere, and inv[j, s] =
-    1 / L[j, j] (1 on the padding rows j >= the strand's DOFs): a strand is a column of a
-    (nmax, S) array, so one substitution runs over all strands at once (``solve_interleaved``).
-    Strand by strand: each strand's rows of LT are read once, contiguously, and its writes (a
-    stride of S doubles) stay within the cache lines the neighbouring strands fill next (at
-    Celia's size 0.22 ms against 0.39 for a row-major pass over blocks of 64 strands, whose inner
-    loop gathered LT with a stride of a strand, 2026-12-06)."""
-    S = dof_off.shape[0] - 1
-    bw1 = LT.shape[1]
-    for s in range(S):
-        d0 = dof_off[s]
-        n = dof_off[s + 1] - d0
-        for j in range(nmax):
-            if j < n:
-                inv[j, s] = 1.0 / LT[d0 + j, 0]
-                out[j, 0, s] = 0.0       # not read (the diagonal is ``inv``)
-                for a in range(1, bw1):
-                    out[j, a, s] = LT[d0 + j, a] if j + a < n else 0.0
-            else:
-                inv[j, s] = 1.0
-                for a in range(bw1):
-                    out[j, a, s] = 0.0
-
-
-@njit(cache=True, error_model="numpy")
-def interleave_band(AT, dof_off, blk_end, nmax, out):
-    """The band ``AT`` (N, bw + 1) (bandchol's layout, AT[j, a] = A[j + a, j]) strand-interleaved
-    for ``factor_interleaved``: out[j, a, s] = AT[dof_off[s] + j, a] where DOF j + a lies in DOF
-    j's block (``blk_end``: (N,) the end of each DOF's block, bandchol's blocks; the band's
-    entries across a block's end are never written by the assembly), 0 elsewhere; the padding
-    rows j >= the strand's DOFs are the identity (pivot 1)."""
+def _interleave_rows(AT, dof_off, blk_end, nmax, out, inv, factor):
+    """Rows of the band storage ``AT`` (N, bw + 1) (bandchol's layout: AT[j, a] = A[j + a, j])
+    strand-interleaved: out[j, a, s] = AT[dof_off[s] + j, a], a strand a column of a (nmax, S)
+    array (``solve_interleaved``, ``factor_interleaved``).  ``factor``: AT is a factor
+    (``interleave_factor``): entries past the strand's end are 0, inv[j, s] = 1 / L[j, j] (1 on the
+    padding rows j >= the strand's DOFs), out[j, 0, s] = 0 (not read); else a band
+    (``interleave_band``): entries past the end of DOF j's block (``blk_end``: (N,)) are 0 and the
+    padding rows are the identity (pivot 1); ``inv`` is not touched.  Strand by strand: each
+    strand's rows of AT are read once, contiguously, and its writes (a stride of S doubles) stay
+    within the cache lines the neighbouring strands fill next (at Celia's size 0.22 ms against 0.39
+    for a row-major pass over blocks of 64 strands, whose inner loop gathered AT with a stride of a
+    strand, 2026-12-06)."""
     S = dof_off.shape[0] - 1
     bw1 = AT.shape[1]
     for s in range(S):
@@ -687,13 +666,39 @@ def interleave_band(AT, dof_off, blk_end, nmax, out):
         n = dof_off[s + 1] - d0
         for j in range(nmax):
             if j < n:
-                e = blk_end[d0 + j] - d0
-                for a in range(bw1):
+                if factor:
+                    e = n
+                    inv[j, s] = 1.0 / AT[d0 + j, 0]
+                    out[j, 0, s] = 0.0
+                else:
+                    e = blk_end[d0 + j] - d0
+                    out[j, 0, s] = AT[d0 + j, 0]
+                for a in range(1, bw1):
                     out[j, a, s] = AT[d0 + j, a] if j + a < e else 0.0
             else:
-                out[j, 0, s] = 1.0
+                if factor:
+                    inv[j, s] = 1.0
+                out[j, 0, s] = 0.0 if factor else 1.0
                 for a in range(1, bw1):
                     out[j, a, s] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def interleave_factor(LT, dof_off, nmax, out, inv):
+    """The factor ``LT`` (N, bw + 1) strand-interleaved (``_interleave_rows``): out[j, a, s] =
+    LT[dof_off[s] + j, a] for the band inside strand s, 0 elsewhere, and inv[j, s] = 1 / L[j, j]
+    (1 on the padding rows)."""
+    _interleave_rows(LT, dof_off, dof_off, nmax, out, inv, True)
+
+
+@njit(cache=True, error_model="numpy")
+def interleave_band(AT, dof_off, blk_end, nmax, out):
+    """The band ``AT`` (N, bw + 1) strand-interleaved for ``factor_interleaved``
+    (``_interleave_rows``): out[j, a, s] = AT[dof_off[s] + j, a] where DOF j + a lies in DOF j's
+    block (``blk_end``: (N,) the end of each DOF's block, bandchol's blocks; the band's entries
+    across a block's end are never written by the assembly), 0 elsewhere; the padding rows j >= the
+    strand's DOFs are the identity (pivot 1)."""
+    _interleave_rows(AT, dof_off, blk_end, nmax, out, out[0], False)
 
 
 @njit(cache=True, error_model="numpy")
