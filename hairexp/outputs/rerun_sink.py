@@ -486,8 +486,8 @@ class RerunSink:
         self.flushed = time.monotonic()
         self.columns = FrameColumns(self.rec)
         self.scene = scene
-        self.offsets = scene.strands.offsets
-        self.strip_lengths = np.diff(self.offsets)
+        self.strip_lengths = scene.strands.counts     # the hair's strips (``Strips``)
+        self._quats: dict = {}                         # key -> (rotation matrix bytes, quaternion) (``_quaternion``)
         self.bounds = layout.Bounds()          # of everything drawn, over the whole run
         self.ranges: dict[str, tuple[float, float]] = {}   # metric -> (min, max) of its finite values
         self.t_end = 0.0
@@ -530,8 +530,7 @@ class RerunSink:
             self.rec.log(path, arch, static=True)
         tracker = controller if controller is not None and controller.cluster_of_vertex() is not None else None
         self.tracker = tracker
-        self.guide_offsets = guides.offsets
-        self.guide_lengths = np.diff(self.guide_offsets)
+        self.guide_lengths = np.diff(guides.offsets)
         if tracker is not None:
             K = tracker.cons.K
             rng = np.random.default_rng(7)
@@ -552,11 +551,10 @@ class RerunSink:
         is the same (a still collider's or body's pose: scipy's from_matrix took 0.31 s of Celia's run)."""
         from scipy.spatial.transform import Rotation
 
-        cache = self.__dict__.setdefault("_quats", {})
         b = np.ascontiguousarray(R, dtype=np.float64).tobytes()
-        hit = cache.get(key)
+        hit = self._quats.get(key)
         if hit is None or hit[0] != b:
-            hit = cache[key] = (b, Rotation.from_matrix(R).as_quat())
+            hit = self._quats[key] = (b, Rotation.from_matrix(R).as_quat())
         return hit[1]
 
     def log_frame(self, frame: int, state, obs: dict | None = None, motion=None) -> None:

@@ -205,8 +205,12 @@ class SchurKKT:
         jj, aa = np.meshgrid(np.arange(nmax), np.arange(bandwidth + 1), indexing="ij")
         self._il_cut = (jj + aa >= nmax) & (aa > 0)                                   # (nmax, bw + 1)
         self.kernels = None
+        self._dof_off = np.ascontiguousarray(self.dof_off, dtype=np.int64)
         if kernels is not None and np.isin(self.dof_off, kernels.blk_dof).all():
             self.kernels = kernels
+            # ``_factor_interleaved``: each DOF's block end, and each strand's pivots' outcome
+            self._blk_end = np.repeat(kernels.blk_dof[1:], np.diff(kernels.blk_dof)).astype(np.int64)
+            self._ok_il = np.empty(S, dtype=np.bool_)
             self._Bt, self._first, self._base, self._scale = distinct_columns(AT)
             # strands with the same constraint rows, summed together before the scatter into S
             g_rows, g_of = np.unique(self._rows, axis=0, return_inverse=True)
@@ -214,7 +218,6 @@ class SchurKKT:
             self._g_rows = np.ascontiguousarray(g_rows, dtype=np.int64)
             self._g_strands = order.astype(np.int64)
             self._g_ptr = np.searchsorted(g_of.ravel()[order], np.arange(len(g_rows) + 1)).astype(np.int64)
-            self._dof_off = np.ascontiguousarray(self.dof_off, dtype=np.int64)
 
     def factor(self, ab: np.ndarray, fallback: np.ndarray | None = None) -> None:
         """Factor H (lower band ``ab``) and, in the exact mode (or when there is no S yet),
@@ -225,10 +228,11 @@ class SchurKKT:
         self._L_il = None
         self._LT = None
         self._solves = 0          # solves on this factor
-        if self.kernels is not None and HAVE_NUMBA and self._factor_interleaved(ab):
-            pass   # the factor strand-interleaved; bandchol's layout (``LT``) made only when asked for
-        elif self.kernels is not None:
-            self._LT = self.kernels.factor(ab, fallback)
+        if self.kernels is not None:
+            # the factor strand-interleaved, bandchol's layout (``LT``) made only when asked for; a
+            # band not positive definite on some strand: the per-block factor with its fallback or shift
+            if not self._factor_interleaved(ab):
+                self._LT = self.kernels.factor(ab, fallback)
         else:
             for band in (ab,) if fallback is None else (ab, fallback):
                 try:
@@ -247,14 +251,7 @@ class SchurKKT:
         """The factor of ``ab`` strand-interleaved (``interleave_band``, ``factor_interleaved``),
         straight into the buffers the Krylov products read; False (nothing kept) when a strand's
         band is not positive definite: ``kernels.factor`` then takes its fallback band or shift."""
-        bw1 = ab.shape[0]
-        buf = getattr(self, "_il_buf", None)
-        if buf is None or buf[0].shape != (self.nmax, bw1, self.S):
-            buf = self._il_buf = (np.empty((self.nmax, bw1, self.S)), np.empty((self.nmax, self.S)))
-        if getattr(self, "_blk_end", None) is None:
-            blk = self.kernels.blk_dof
-            self._blk_end = np.repeat(blk[1:], np.diff(blk)).astype(np.int64)
-            self._ok_il = np.empty(self.S, dtype=np.bool_)
+        buf = self._il_buffers(ab.shape[0])
         AT = ab.T if ab.T.flags.c_contiguous else np.ascontiguousarray(ab.T)
         interleave_band(AT, self._dof_off, self._blk_end, self.nmax, buf[0])
         factor_interleaved(buf[0], buf[1], self._ok_il)
@@ -263,12 +260,21 @@ class SchurKKT:
         self._L_il, self._inv_il = buf
         return True
 
+    def _il_buffers(self, bw1: int) -> tuple:
+        """(L, inv): the interleaved factor's buffers, (nmax, bw1, S) and (nmax, S), kept from factor to
+        factor (at 10,000 strands 49 MB, above malloc's mmap threshold: fresh zeroed pages every time
+        otherwise)."""
+        buf = getattr(self, "_il_buf", None)
+        if buf is None or buf[0].shape != (self.nmax, bw1, self.S):
+            buf = self._il_buf = (np.empty((self.nmax, bw1, self.S)), np.empty((self.nmax, self.S)))
+        return buf
+
     @property
     def LT(self) -> np.ndarray:
         """The current factor in bandchol's layout (N, bw + 1) (the compiled path)."""
         if self._LT is None:
             self._LT = np.zeros((self.N, self._L_il.shape[1]))
-            deinterleave_factor(self._L_il, self._inv_il, self._dof_off, self._LT)
+            deinterleave_factor(self._L_il, self._dof_off, self._LT)
         return self._LT
 
     @property
@@ -332,22 +338,16 @@ class SchurKKT:
             # one strand-by-strand pass (``interleave_factor``) for equal and unequal strands alike: a plain
             # transpose reads each strand's rows with a stride of nmax (bw + 1) doubles, one TLB miss an
             # element from about 2,000 strands (10,000 strands: 38 ms a factor, 5 times the per-strand cost
-            # at 1,000; the strand-by-strand pass 12 ms, 2026-12-06); the buffers are reused from factor to factor (at 10,000 strands 49 MB, above
-            # malloc's mmap threshold: fresh zeroed pages every time otherwise)
-            buf = getattr(self, "_il_buf", None)
-            if buf is None or buf[0].shape != (self.nmax, bw1, self.S):
-                buf = self._il_buf = (np.empty((self.nmax, bw1, self.S)), np.empty((self.nmax, self.S)))
-            self._L_il, self._inv_il = buf
+            # at 1,000; the strand-by-strand pass 12 ms, 2026-12-06), into buffers kept between factors
+            self._L_il, self._inv_il = self._il_buffers(bw1)
             if HAVE_NUMBA:
-                interleave_factor(LT, np.ascontiguousarray(self.dof_off, dtype=np.int64), self.nmax, self._L_il,
-                                  self._inv_il)
+                interleave_factor(LT, self._dof_off, self.nmax, self._L_il, self._inv_il)
             elif self._uniform and bw1 == self._il_cut.shape[1]:    # every strand nmax DOFs: a transpose, and the band cut at each strand's end
                 self._L_il[...] = LT.reshape(self.S, self.nmax, bw1).transpose(1, 2, 0)
                 self._L_il[self._il_cut] = 0.0
                 self._inv_il[...] = 1.0 / self._L_il[:, 0, :]
             else:
-                interleave_factor(LT, np.ascontiguousarray(self.dof_off, dtype=np.int64), self.nmax, self._L_il,
-                                  self._inv_il)
+                interleave_factor(LT, self._dof_off, self.nmax, self._L_il, self._inv_il)
 
     def hinv(self, r: np.ndarray) -> np.ndarray:
         if self.kernels is not None:
@@ -742,7 +742,7 @@ def factor_interleaved(L, inv, ok):
 
 
 @njit(cache=True, error_model="numpy")
-def deinterleave_factor(L, inv, dof_off, LT):
+def deinterleave_factor(L, dof_off, LT):
     """bandchol's factor layout LT (N, bw + 1) from the interleaved factor of
     ``factor_interleaved`` (entries across a block's end: 0, never read)."""
     S = dof_off.shape[0] - 1
