@@ -579,3 +579,122 @@ def test_compiled_path_test_equals_the_shapes_array_form(shape):
 
     other = Shifted(name="shifted", motion=motion, thickness=0.003, **params)
     np.testing.assert_allclose(col_mod.path_test(other, x0, x1, idx, 0.25, 0.29)[2], want[2] + 1.0, atol=1e-15)
+
+
+# --- the compiled broad phase and CCD (hairexp/physics/broad_phase.py) against the numpy/scipy paths
+
+
+def _pair_set(pairs):
+    return set(map(tuple, np.sort(np.asarray(pairs), 1).tolist()))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_grid_pairs_equal_the_kdtree_pairs(seed):
+    """Every overlapping box pair once, the same set as the cKDTree path: boxes of mixed sizes
+    (a few 30 x larger, as swept boxes of a violent step), boxes that only touch on a face
+    (closed boxes: touching counts in both), and with edges, the adjacent ones left out."""
+    from hairexp.physics.broad_phase import grid_pairs
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 2500))
+    c = rng.uniform(-0.1, 0.1, (n, 3))
+    ext = rng.uniform(0, 0.01, (n, 3)) * (1 + 30 * (rng.random((n, 1)) < 0.02))
+    lo, hi = c - ext, c + ext
+    if seed % 2 == 0:   # half the boxes end exactly where the other half begins
+        hi[: n // 2, 0] = 0.0
+        lo[n // 2:, 0] = 0.0
+    got = grid_pairs(lo, hi)
+    assert len(got) == len(_pair_set(got))                       # each pair once
+    assert np.all(got[:, 0] < got[:, 1])
+    assert _pair_set(got) == _pair_set(HairHair._box_pairs(lo, hi))
+    E = np.stack([np.arange(n), (np.arange(n) + 1) % n], 1)      # a ring: box k and k + 1 are adjacent
+    hh = HairHair(SimpleNamespace(edges=E, inverse_masses=np.ones(n)), 1e-3)
+    ref = HairHair._box_pairs(lo, hi)
+    assert _pair_set(grid_pairs(lo, hi, E)) == _pair_set(ref[hh._not_adjacent(ref)])
+
+
+def test_grid_pairs_degenerate_inputs():
+    """No box, one box, identical boxes, points (zero extent) and a box far from the rest."""
+    from hairexp.physics.broad_phase import grid_pairs
+
+    assert grid_pairs(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0, 2)
+    assert grid_pairs(np.zeros((1, 3)), np.ones((1, 3))).shape == (0, 2)
+    lo = np.zeros((4, 3))
+    assert _pair_set(grid_pairs(lo, lo.copy())) == {(i, j) for i in range(4) for j in range(i + 1, 4)}
+    lo = np.array([[0.0, 0, 0], [0.5, 0, 0], [1e3, 1e3, 1e3]])
+    hi = lo + np.array([[0.6, 0.1, 0.1], [0.1, 0.1, 0.1], [0.1, 0.1, 0.1]])
+    assert _pair_set(grid_pairs(lo, hi)) == {(0, 1)}
+
+
+def test_compiled_ccd_and_reachable_equal_the_numpy_ones():
+    """``edge_edge_ccd_pairs`` finds the same hits as ``edge_ccd.edge_edge_ccd`` on 19,900
+    random moving edge pairs (about a tenth of them hit), with times and segment parameters to
+    round-off; ``reachable`` keeps the same pairs as ``filter_reachable``'s numpy path."""
+    import hairexp.physics.collisions as collisions
+    from hairexp.physics.broad_phase import edge_edge_ccd_pairs
+    from hairexp.physics.edge_ccd import BISECTIONS, edge_edge_ccd
+
+    rng = np.random.default_rng(3)
+    V = 400
+    x0 = rng.uniform(-0.02, 0.02, (V, 3))
+    d = 0.01 * rng.standard_normal((V, 3))
+    E = np.stack([np.arange(0, V, 2), np.arange(1, V, 2)], 1).astype(np.int64)
+    pairs = np.array([(i, j) for i in range(len(E)) for j in range(i + 1, len(E))], dtype=np.int64)
+    i, j = pairs[:, 0], pairs[:, 1]
+    hit_r, s_r, wa_r, wb_r = edge_edge_ccd(x0[E[i, 0]], x0[E[i, 1]], x0[E[j, 0]], x0[E[j, 1]],
+                                           d[E[i, 0]], d[E[i, 1]], d[E[j, 0]], d[E[j, 1]], 1e-3)
+    P = len(pairs)
+    hit, s, wa, wb = np.empty(P, bool), np.empty(P), np.empty(P), np.empty(P)
+    edge_edge_ccd_pairs(x0, d, E, pairs, 1e-3, BISECTIONS, hit, s, wa, wb)
+    assert 500 < hit.sum() < P and np.array_equal(hit, hit_r)
+    for a, b in ((s, s_r), (wa, wa_r), (wb, wb_r)):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    hh = HairHair(SimpleNamespace(edges=E, inverse_masses=np.ones(V)), 2e-3)
+    got = hh.filter_reachable(x0, x0 + d, pairs)
+    assert 0 < len(got) < P
+    saved = collisions.HAVE_NUMBA
+    try:
+        collisions.HAVE_NUMBA = False
+        want = hh.filter_reachable(x0, x0 + d, pairs)
+    finally:
+        collisions.HAVE_NUMBA = saved
+    np.testing.assert_array_equal(got, want)
+
+
+def test_swept_boxes_bound_every_instant():
+    """``swept_boxes`` equals the numpy min / max over the edges' ends at the given instants."""
+    from hairexp.physics.broad_phase import swept_boxes
+
+    rng = np.random.default_rng(5)
+    Ys = rng.normal(size=(3, 50, 3))
+    E = np.stack([np.arange(49), np.arange(1, 50)], 1).astype(np.int64)
+    lo, hi = swept_boxes(Ys, E, 0.25)
+    P = np.stack([Y[E[:, k]] for Y in Ys for k in (0, 1)], 1)
+    np.testing.assert_array_equal(lo, P.min(1) - 0.25)
+    np.testing.assert_array_equal(hi, P.max(1) + 0.25)
+
+
+def test_near_pairs_compiled_equal_numpy():
+    """``HairHair.near_pairs`` (the neighbour list's build) gives the same pairs and distances
+    with the compiled grid and distances as with the cKDTree and numpy path."""
+    import hairexp.physics.collisions as collisions
+
+    rng = np.random.default_rng(11)
+    n, k = 40, 12
+    roots = rng.uniform(-0.01, 0.01, (n, 2))
+    pts = np.concatenate([np.c_[np.full(k, r[0]), -np.linspace(0, 0.1, k), np.full(k, r[1])] for r in roots])
+    pts += 5e-4 * rng.normal(size=pts.shape)
+    s = Strands.from_polylines(pts, [k] * n, 1e-3)
+    hh = HairHair(s, thickness=0.001)
+    got_p, got_d = hh.near_pairs(pts, 0.004)
+    saved = collisions.HAVE_NUMBA
+    try:
+        collisions.HAVE_NUMBA = False
+        want_p, want_d = hh.near_pairs(pts, 0.004)
+    finally:
+        collisions.HAVE_NUMBA = saved
+    assert len(got_p) > 100
+    got = dict(zip(map(tuple, np.sort(got_p, 1).tolist()), got_d))
+    want = dict(zip(map(tuple, np.sort(want_p, 1).tolist()), want_d))
+    assert got.keys() == want.keys()
+    np.testing.assert_allclose([got[p] for p in want], [want[p] for p in want], rtol=0, atol=1e-15)

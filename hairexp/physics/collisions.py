@@ -34,7 +34,8 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from hairexp.model.colliders import Box, Capsule, Cylinder, Plane, Sphere
-from hairexp.physics.edge_ccd import _closest_segment_params, edge_edge_ccd
+from hairexp.physics.broad_phase import edge_edge_ccd_pairs, grid_pairs, pair_distances, reachable, swept_boxes
+from hairexp.physics.edge_ccd import BISECTIONS, _closest_segment_params, edge_edge_ccd
 from hairexp.physics.kernels import HAVE_NUMBA, njit
 
 #: Conservative-advancement iterations and tolerance (fraction of the thickness or 1e-6 m).
@@ -328,11 +329,13 @@ class HairHair:
         and their distances."""
         E = self.E
         a, b = X[E[:, 0]], X[E[:, 1]]
-        pairs = self._box_pairs(*edge_boxes(a, b, radius))
-        pairs = pairs[self._not_adjacent(pairs)]
-        i, j = pairs[:, 0], pairs[:, 1]
-        s, t = _closest_segment_params(a[i], b[i], a[j], b[j])
-        d = np.linalg.norm(a[i] + s[:, None] * (b[i] - a[i]) - a[j] - t[:, None] * (b[j] - a[j]), axis=1)
+        pairs = self._pairs(*edge_boxes(a, b, radius))
+        if HAVE_NUMBA:
+            d = pair_distances(np.ascontiguousarray(X, dtype=np.float64), E, pairs)
+        else:
+            i, j = pairs[:, 0], pairs[:, 1]
+            s, t = _closest_segment_params(a[i], b[i], a[j], b[j])
+            d = np.linalg.norm(a[i] + s[:, None] * (b[i] - a[i]) - a[j] - t[:, None] * (b[j] - a[j]), axis=1)
         keep = d < radius
         return pairs[keep], d[keep]
 
@@ -340,8 +343,18 @@ class HairHair:
         """Non-adjacent edge pairs whose boxes around the edges' positions ``Xs`` (grown by
         h / 2) overlap."""
         E = self.E
+        if HAVE_NUMBA:
+            return self._pairs(*swept_boxes(np.ascontiguousarray(np.stack(Xs), dtype=np.float64), E, 0.5 * self.h))
         P = np.stack([X[E[:, k]] for X in Xs for k in (0, 1)], 1)
-        pairs = self._box_pairs(P.min(1) - 0.5 * self.h, P.max(1) + 0.5 * self.h)
+        return self._pairs(P.min(1) - 0.5 * self.h, P.max(1) + 0.5 * self.h)
+
+    def _pairs(self, lo, hi):
+        """Pairs of edges whose boxes ``lo``, ``hi`` overlap and that share no vertex: the
+        compiled grid (hairexp/physics/broad_phase.py), or without numba the cKDTree queries
+        (``_box_pairs``)."""
+        if HAVE_NUMBA:
+            return grid_pairs(lo, hi, self.E)
+        pairs = self._box_pairs(lo, hi)
         return pairs[self._not_adjacent(pairs)]
 
     def _not_adjacent(self, pairs):
@@ -388,6 +401,9 @@ class HairHair:
         if len(pairs) == 0:
             return pairs
         E = self.E
+        if HAVE_NUMBA:
+            return pairs[reachable(np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(x1, dtype=np.float64),
+                                   E, np.ascontiguousarray(pairs, dtype=np.int64), self.h)]
         i, j = pairs[:, 0], pairs[:, 1]
         a0, a1, b0, b1 = x0[E[i, 0]], x0[E[i, 1]], x0[E[j, 0]], x0[E[j, 1]]
         s, t = _closest_segment_params(a0, a1, b0, b1)
@@ -415,8 +431,14 @@ class HairHair:
         target = np.zeros(len(pairs))
         if x0 is not None:
             d = x1 - x0
-            hit, _, wa_c, wb_c = edge_edge_ccd(x0[E[i, 0]], x0[E[i, 1]], x0[E[j, 0]], x0[E[j, 1]],
-                                               d[E[i, 0]], d[E[i, 1]], d[E[j, 0]], d[E[j, 1]], 0.1 * self.h)
+            if HAVE_NUMBA:
+                hit, wa_c, wb_c = np.empty(len(pairs), dtype=bool), np.empty(len(pairs)), np.empty(len(pairs))
+                edge_edge_ccd_pairs(np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(d, dtype=np.float64),
+                                    E, np.ascontiguousarray(pairs, dtype=np.int64), 0.1 * self.h, BISECTIONS, hit,
+                                    np.empty(len(pairs)), wa_c, wb_c)
+            else:
+                hit, _, wa_c, wb_c = edge_edge_ccd(x0[E[i, 0]], x0[E[i, 1]], x0[E[j, 0]], x0[E[j, 1]],
+                                                   d[E[i, 0]], d[E[i, 1]], d[E[j, 0]], d[E[j, 1]], 0.1 * self.h)
             if hit.any():
                 pa = x0[E[i, 0]] + wa_c[:, None] * (x0[E[i, 1]] - x0[E[i, 0]])
                 pb = x0[E[j, 0]] + wb_c[:, None] * (x0[E[j, 1]] - x0[E[j, 0]])
