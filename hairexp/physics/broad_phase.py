@@ -93,10 +93,12 @@ def swept_boxes(Ys, E, pad):
     return lo, hi
 
 
-def grid_pairs(lo: np.ndarray, hi: np.ndarray, edges: np.ndarray | None = None) -> np.ndarray:
+def grid_pairs(lo: np.ndarray, hi: np.ndarray, edges: np.ndarray | None = None,
+               active: np.ndarray | None = None) -> np.ndarray:
     """(P, 2) int64 pairs (i < j) of the axis-aligned boxes ``lo``, ``hi`` (n, 3) that overlap
-    (closed boxes: touching counts), in the grid's order (the same for the same input); with ``edges`` (n, 2), pairs of boxes whose edges
-    share a vertex are left out."""
+    (closed boxes: touching counts), in the grid's order (the same for the same input).  With
+    ``edges`` (n, 2), pairs of boxes whose edges share a vertex are left out; with ``active``
+    (n,) bool, only pairs with at least one active box are reported."""
     n = len(lo)
     if n < 2:
         return np.zeros((0, 2), dtype=np.int64)
@@ -104,11 +106,12 @@ def grid_pairs(lo: np.ndarray, hi: np.ndarray, edges: np.ndarray | None = None) 
     hi = np.ascontiguousarray(hi, dtype=np.float64)
     c, org, nc = _grid_setup(lo, hi, float(MAX_ENTRIES_PER_BOX))
     E = np.zeros((0, 2), dtype=np.int64) if edges is None else np.ascontiguousarray(edges, dtype=np.int64)
-    return _grid_pairs(lo, hi, org, 1.0 / c, nc, E, edges is not None)
+    act = np.ones(n, dtype=np.bool_) if active is None else np.ascontiguousarray(active, dtype=np.bool_)
+    return _grid_pairs(lo, hi, org, 1.0 / c, nc, E, edges is not None, act)
 
 
 @njit(cache=True)
-def _grid_pairs(lo, hi, org, inv_c, nc, E, skip_adjacent):
+def _grid_pairs(lo, hi, org, inv_c, nc, E, skip_adjacent, active):
     n = lo.shape[0]
     r0 = np.empty((n, 3), dtype=np.int64)
     r1 = np.empty((n, 3), dtype=np.int64)
@@ -170,7 +173,10 @@ def _grid_pairs(lo, hi, org, inv_c, nc, E, skip_adjacent):
         while e < total and K[e] == key:
             e += 1
         for p in range(s, e):
+            ap = active[I[p]]
             for q in range(p + 1, e):
+                if not (ap or active[I[q]]):
+                    continue
                 if (B[p, 0] > B[q, 3] or B[q, 0] > B[p, 3] or B[p, 1] > B[q, 4] or B[q, 1] > B[p, 4]
                         or B[p, 2] > B[q, 5] or B[q, 2] > B[p, 5]):
                     continue

@@ -13,7 +13,8 @@ Hair against hair: pairs whose edges meet during the step (exact continuous edge
 the linear motion, ``edge_ccd``) get inelastic impulses; edges within the hair thickness at the
 end of the step get repulsion impulses.  Impulses act at the closest points with barycentric weights,
 so they are equal and opposite (linear momentum is conserved).  Adjacent edges of a strand are
-excluded.  Passes repeat up to ``max_passes``.
+excluded.  Passes repeat up to ``max_passes``; a later pass tests only the edge pairs with an edge
+whose vertices the pass before moved or slowed (the others would get no impulse again).
 
 The hair-hair broad phase (``HairHair.neighbours``) works in a frame that co-moves with the
 hair (the best-fit rigid motion of each step removed, so distances are unchanged and a
@@ -238,6 +239,11 @@ def bounding_spheres(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.nda
     return 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo, axis=1)
 
 
+def _of_active(pairs, active):
+    """The pairs with at least one edge in ``active`` (None: all)."""
+    return pairs if active is None else pairs[active[pairs[:, 0]] | active[pairs[:, 1]]]
+
+
 class HairHair:
     def __init__(self, strands, thickness: float, skin: float = 0.003):
         self.E = strands.edges
@@ -290,7 +296,7 @@ class HairHair:
         it) for the next one."""
         self._frame, self._frame_x = self.frame_at(x0, x1, 1.0), x1.copy()
 
-    def neighbours(self, Ys):
+    def neighbours(self, Ys, active=None):
         """Edge pairs that can come within the thickness h during the step, from positions
         ``Ys`` along the step (start, middle, end) in the list frame (``frames``).  Returns
         (pairs, how the broad phase ran: "reused", "rebuilt" or "swept").
@@ -305,6 +311,9 @@ class HairHair:
         Violent motion (a vertex moves more than skin / 2 within the step): swept boxes of the
         edges over the step, grown by h / 2; pairs whose boxes overlap.
 
+        ``active`` (E,) bool: only pairs with at least one active edge (the collision stage's
+        later passes: the edges whose vertices its last pass moved).
+
         The step's path is checked at three instants; between them the list frame turns
         smoothly (slerp), which the check does not bound exactly."""
         E = self.E
@@ -313,16 +322,16 @@ class HairHair:
             moved = np.max([np.einsum("ij,ij->i", Y - ref, Y - ref) for Y in Ys], axis=0)
             if float(moved.max()) < (0.5 * self.skin) ** 2:
                 m = np.sqrt(np.maximum(moved[E[:, 0]], moved[E[:, 1]]))
-                return pairs[dist - m[pairs[:, 0]] - m[pairs[:, 1]] < self.h], "reused"
+                return _of_active(pairs[dist - m[pairs[:, 0]] - m[pairs[:, 1]] < self.h], active), "reused"
         ref = Ys[-1]
         moved = np.max([np.linalg.norm(Y - ref, axis=1) for Y in Ys], axis=0)
         if float(moved.max()) < 0.5 * self.skin:
             pairs, dist = self.near_pairs(ref, self.h + self.skin)
             self._list = (pairs, dist, ref.copy())
             m = np.maximum(moved[E[:, 0]], moved[E[:, 1]])
-            return pairs[dist - m[pairs[:, 0]] - m[pairs[:, 1]] < self.h], "rebuilt"
+            return _of_active(pairs[dist - m[pairs[:, 0]] - m[pairs[:, 1]] < self.h], active), "rebuilt"
         self._list = None
-        return self.swept_pairs(Ys), "swept"
+        return self.swept_pairs(Ys, active), "swept"
 
     def near_pairs(self, X, radius: float):
         """Non-adjacent edge pairs whose segments in positions X are closer than ``radius``,
@@ -339,23 +348,23 @@ class HairHair:
         keep = d < radius
         return pairs[keep], d[keep]
 
-    def swept_pairs(self, Xs):
+    def swept_pairs(self, Xs, active=None):
         """Non-adjacent edge pairs whose boxes around the edges' positions ``Xs`` (grown by
         h / 2) overlap."""
         E = self.E
         if HAVE_NUMBA:
-            return self._pairs(*swept_boxes(np.ascontiguousarray(np.stack(Xs), dtype=np.float64), E, 0.5 * self.h))
+            return self._pairs(*swept_boxes(np.ascontiguousarray(np.stack(Xs), dtype=np.float64), E, 0.5 * self.h), active)
         P = np.stack([X[E[:, k]] for X in Xs for k in (0, 1)], 1)
-        return self._pairs(P.min(1) - 0.5 * self.h, P.max(1) + 0.5 * self.h)
+        return self._pairs(P.min(1) - 0.5 * self.h, P.max(1) + 0.5 * self.h, active)
 
-    def _pairs(self, lo, hi):
+    def _pairs(self, lo, hi, active=None):
         """Pairs of edges whose boxes ``lo``, ``hi`` overlap and that share no vertex: the
         compiled grid (hairexp/physics/broad_phase.py), or without numba the cKDTree queries
         (``_box_pairs``)."""
         if HAVE_NUMBA:
-            return grid_pairs(lo, hi, self.E)
+            return grid_pairs(lo, hi, self.E, active)
         pairs = self._box_pairs(lo, hi)
-        return pairs[self._not_adjacent(pairs)]
+        return _of_active(pairs[self._not_adjacent(pairs)], active)
 
     def _not_adjacent(self, pairs):
         """Mask: the two edges share no vertex (adjacent edges of a strand are excluded)."""
@@ -606,17 +615,20 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
     movable = ~scene.strands.kinematic
     v1 = (x1 - x0) / dt
     dist = None            # each collider's distance at the current x1, when the object pass computed it
+    active = None          # edges whose vertices the last pass moved (None: the first pass, every edge)
     for p in range(max(1, cfg.max_passes)):
         n_obj = n_hh = 0
         dist = None
+        x_pass, v_pass = x1, v1.copy()
         if hh is not None:
             Ys = hh.frames(x0, x1)
-            pairs, how = hh.neighbours(Ys)
+            pairs, how = hh.neighbours(Ys, active)
             info.broad_phases[how] = info.broad_phases.get(how, 0) + 1
             near = hh.filter_reachable(x0, x1, pairs)
             info.candidates = max(info.candidates, len(near))
             v1, n_hh = hh.impulses(x1, v1, near, dt, x0)
-            x1 = np.where(movable[:, None], x0 + dt * v1, x1)
+            hit = movable & np.any(v1 != v_pass, axis=1)      # the vertices an impulse reached
+            x1 = np.where(hit[:, None], x0 + dt * v1, x1)
         if scene.colliders:
             found: list = []
             x1, v1, n_obj, per = object_stage(scene.colliders, x0, x1, t0, t1, dt, movable, dist_out=found)
@@ -628,6 +640,12 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
         info.passes = p + 1
         if n_obj + n_hh == 0:
             break
+        if hh is not None:
+            # the next pass tests only pairs with an edge whose vertices this pass moved or slowed: the
+            # others' paths x0 -> x1 and velocities are unchanged, and this pass gave them no impulse
+            # (else their vertices would have changed), so they would get none again
+            moved = np.any(x1 != x_pass, axis=1) | np.any(v1 != v_pass, axis=1)
+            active = moved[hh.E[:, 0]] | moved[hh.E[:, 1]]
     if limiter is not None and info.object_contacts > 0:
         x1, info.strain_limited, info.limit_rounds = limit_strain(limiter, scene.colliders, x1, t1, movable)
         v1 = contact_velocities(scene.colliders, x1, (x1 - x0) / dt, t1, movable)
