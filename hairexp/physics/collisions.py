@@ -19,8 +19,9 @@ whose vertices the pass before moved or slowed (the others would get no impulse 
 The hair-hair broad phase (``HairHair.neighbours``) works in a frame that co-moves with the
 hair (the best-fit rigid motion of each step removed, so distances are unchanged and a
 swinging groom is nearly still), keeps a Verlet neighbour list there while the motion is calm,
-and falls back to swept boxes on violent steps; boxes are paired with ``scipy.spatial.cKDTree``
-queries.  ``filter_reachable`` then drops pairs whose start distance exceeds h plus the most
+and falls back to swept boxes on violent steps; boxes are paired on a uniform grid
+(hairexp/physics/broad_phase.py, compiled; without numba ``scipy.spatial.cKDTree`` queries).
+``filter_reachable`` then drops pairs whose start distance exceeds h plus the most
 their vertices' displacements can close it.
 """
 
