@@ -9,9 +9,11 @@ the two boxes' common cell range (max of their first cells on each axis), so eac
 pair comes out once, with no set to merge.  The cell's side is the median of the boxes' largest
 extents, doubled while the entries would exceed ``MAX_ENTRIES_PER_BOX`` per box (a few very large
 swept boxes).  Edge pairs that share a vertex (adjacent edges of a strand) are skipped in the
-same pass.  At Celia's 7,525 edges: about 2-3 ms, against 65 ms for ``scipy.spatial.cKDTree``
-queries by radius class (the same pairs; ``HairHair._box_pairs_kdtree`` keeps that path where
-numba is missing, and tests/test_collisions.py compares the two).
+same pass.  On the 117 box sets of the Celia benchmark's jerk with hair-hair (7,525 edges, 8,000 to
+128,000 overlapping pairs) it takes 0.115 x the time of the ``scipy.spatial.cKDTree`` queries by
+radius class it replaced (the same pairs; both timed in one process, 2026-12-06;
+``HairHair._box_pairs`` keeps that path where numba is missing, and tests/test_collisions.py
+compares the two).
 
 ``reachable``: the exact conservative test of ``HairHair.filter_reachable`` pair by pair.
 """
@@ -229,6 +231,18 @@ def segment_params(p1x, p1y, p1z, q1x, q1y, q1z, p2x, p2y, p2z, q2x, q2y, q2z):
     return s, t
 
 
+@njit(cache=True, inline="always")
+def segment_distance(X, a0, a1, b0, b1):
+    """Distance between the segments X[a0] X[a1] and X[b0] X[b1] (``segment_params``)."""
+    s, t = segment_params(X[a0, 0], X[a0, 1], X[a0, 2], X[a1, 0], X[a1, 1], X[a1, 2],
+                          X[b0, 0], X[b0, 1], X[b0, 2], X[b1, 0], X[b1, 1], X[b1, 2])
+    dd = 0.0
+    for c in range(3):
+        g = X[a0, c] + s * (X[a1, c] - X[a0, c]) - X[b0, c] - t * (X[b1, c] - X[b0, c])
+        dd += g * g
+    return math.sqrt(dd)
+
+
 @njit(cache=True)
 def reachable(x0, x1, E, pairs, h):
     """(P,) mask: pairs whose distance at x0 minus the most their vertices' displacements
@@ -239,12 +253,6 @@ def reachable(x0, x1, E, pairs, h):
         i = pairs[k, 0]
         j = pairs[k, 1]
         a0, a1, b0, b1 = E[i, 0], E[i, 1], E[j, 0], E[j, 1]
-        s, t = segment_params(x0[a0, 0], x0[a0, 1], x0[a0, 2], x0[a1, 0], x0[a1, 1], x0[a1, 2],
-                              x0[b0, 0], x0[b0, 1], x0[b0, 2], x0[b1, 0], x0[b1, 1], x0[b1, 2])
-        dd = 0.0
-        for c in range(3):
-            g = x0[a0, c] + s * (x0[a1, c] - x0[a0, c]) - x0[b0, c] - t * (x0[b1, c] - x0[b0, c])
-            dd += g * g
         D = 0.0
         for va in (a0, a1):
             for vb in (b0, b1):
@@ -253,7 +261,7 @@ def reachable(x0, x1, E, pairs, h):
                     g = (x1[va, c] - x0[va, c]) - (x1[vb, c] - x0[vb, c])
                     w += g * g
                 D = max(D, math.sqrt(w))
-        keep[k] = math.sqrt(dd) - D < h
+        keep[k] = segment_distance(x0, a0, a1, b0, b1) - D < h
     return keep
 
 
@@ -359,12 +367,5 @@ def pair_distances(X, E, pairs):
     P = pairs.shape[0]
     out = np.empty(P)
     for k in range(P):
-        a0, a1, b0, b1 = E[pairs[k, 0], 0], E[pairs[k, 0], 1], E[pairs[k, 1], 0], E[pairs[k, 1], 1]
-        s, t = segment_params(X[a0, 0], X[a0, 1], X[a0, 2], X[a1, 0], X[a1, 1], X[a1, 2],
-                              X[b0, 0], X[b0, 1], X[b0, 2], X[b1, 0], X[b1, 1], X[b1, 2])
-        dd = 0.0
-        for c in range(3):
-            g = X[a0, c] + s * (X[a1, c] - X[a0, c]) - X[b0, c] - t * (X[b1, c] - X[b0, c])
-            dd += g * g
-        out[k] = math.sqrt(dd)
+        out[k] = segment_distance(X, E[pairs[k, 0], 0], E[pairs[k, 0], 1], E[pairs[k, 1], 0], E[pairs[k, 1], 1])
     return out
