@@ -620,8 +620,8 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
     for p in range(max(1, cfg.max_passes)):
         n_obj = n_hh = 0
         dist = None
-        x_pass, v_pass = x1, v1.copy()
         if hh is not None:
+            x_pass, v_pass = x1, v1.copy()
             Ys = hh.frames(x0, x1)
             pairs, how = hh.neighbours(Ys, active)
             info.broad_phases[how] = info.broad_phases.get(how, 0) + 1
