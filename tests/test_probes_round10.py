@@ -244,7 +244,10 @@ def test_a_failed_runs_aggregates_count_the_failed_step(tmp_path):
 
 def test_an_interrupted_variant_keeps_its_figures_in_the_experiment_summary(tmp_path):
     run = tmp_path / "exp"
+    # the first variant is short (3 frames), the second long enough to be interrupted while it streams
     p = subprocess.Popen(PY + ["experiment=goaling_smoke", "frames=1500", "logging.rerun=false",
+                               "variants=[{name: free, overrides: ['controller.name=free', 'frames=3']}, "
+                               "{name: tracked, overrides: ['controller.name=tracking']}]",
                                f"hydra.run.dir={run}"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                          text=True, env=ENV)
     try:
