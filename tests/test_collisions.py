@@ -740,3 +740,35 @@ def test_later_passes_test_only_pairs_the_last_pass_changed(monkeypatch):
     np.testing.assert_allclose(xb, xa, rtol=0, atol=1e-12)
     np.testing.assert_allclose(vb, va, rtol=0, atol=1e-10)
     assert seen["active"][0] == seen["all"][0] and sum(seen["active"][1:]) < sum(seen["all"][1:])
+
+
+def test_list_frame_kernels_equal_scipy_and_numpy():
+    """The list frame's pieces: ``rotation_matrix`` is scipy's ``Rotation.from_rotvec`` (tiny,
+    ordinary and near-half-turn angles), ``centred_cross`` the numpy centroids and cross
+    covariance, and ``HairHair.frames`` the same positions with and without the kernels."""
+    import hairexp.physics.collisions as collisions
+    from scipy.spatial.transform import Rotation
+    from hairexp.physics.broad_phase import centred_cross, rotation_matrix
+
+    rng = np.random.default_rng(8)
+    for scale in (0.0, 1e-12, 1e-9, 1e-7, 1e-3, 0.5, 2.0, np.pi - 1e-9):
+        rv = rng.normal(size=3)
+        rv *= scale / np.linalg.norm(rv)
+        np.testing.assert_allclose(rotation_matrix(rv), Rotation.from_rotvec(rv).as_matrix(), rtol=0, atol=1e-15)
+    x0, x1 = rng.normal(size=(500, 3)), rng.normal(size=(500, 3))
+    c0, c1, H = centred_cross(x0, x1)
+    np.testing.assert_allclose(c0, x0.mean(0), atol=1e-15)
+    np.testing.assert_allclose(c1, x1.mean(0), atol=1e-15)
+    np.testing.assert_allclose(H, (x0 - x0.mean(0)).T @ (x1 - x1.mean(0)), atol=1e-12)
+    E = np.stack([np.arange(499), np.arange(1, 500)], 1)
+    R = Rotation.from_rotvec([0.1, 0.4, -0.2]).as_matrix()
+    y1 = x0 @ R.T + 0.3 + 1e-3 * x1
+    got = HairHair(SimpleNamespace(edges=E, inverse_masses=np.ones(500)), 1e-3).frames(x0, y1)
+    saved = collisions.HAVE_NUMBA
+    try:
+        collisions.HAVE_NUMBA = False
+        want = HairHair(SimpleNamespace(edges=E, inverse_masses=np.ones(500)), 1e-3).frames(x0, y1)
+    finally:
+        collisions.HAVE_NUMBA = saved
+    for a, b in zip(got, want):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-13)

@@ -369,3 +369,51 @@ def pair_distances(X, E, pairs):
     for k in range(P):
         out[k] = segment_distance(X, E[pairs[k, 0], 0], E[pairs[k, 0], 1], E[pairs[k, 1], 0], E[pairs[k, 1], 1])
     return out
+
+
+# --- the hair-hair list frame (``HairHair.frames``): the Kabsch fit's sums and the positions mapped
+
+
+@njit(cache=True)
+def centred_cross(x0, x1):
+    """(c0, c1, H): the centroids of x0 and x1 (V, 3) and H = (x0 - c0)^T (x1 - c1) (3, 3), in two
+    passes over the vertices."""
+    V = x0.shape[0]
+    c0 = np.zeros(3)
+    c1 = np.zeros(3)
+    for i in range(V):
+        for d in range(3):
+            c0[d] += x0[i, d]
+            c1[d] += x1[i, d]
+    for d in range(3):
+        c0[d] /= V
+        c1[d] /= V
+    H = np.zeros((3, 3))
+    for i in range(V):
+        for a in range(3):
+            p = x0[i, a] - c0[a]
+            for b in range(3):
+                H[a, b] += p * (x1[i, b] - c1[b])
+    return c0, c1, H
+
+
+def rotation_matrix(rv: np.ndarray) -> np.ndarray:
+    """The rotation by the rotation vector ``rv`` (Rodrigues' formula; scipy's
+    ``Rotation.from_rotvec(rv).as_matrix()`` to round-off, without its per-call overhead)."""
+    th = float(np.linalg.norm(rv))
+    K = np.array([[0.0, -rv[2], rv[1]], [rv[2], 0.0, -rv[0]], [-rv[1], rv[0], 0.0]])
+    if th < 1e-8:     # the series to second order: its error th^3 / 6 is below round-off
+        return np.eye(3) + K + 0.5 * (K @ K)
+    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / (th * th)) * (K @ K)
+
+
+@njit(cache=True)
+def frame_positions(x0, x1, s, A, b, Y):
+    """Y[k] = ((1 - s[k]) x0 + s[k] x1) A[k]^T + b[k] for each instant k."""
+    for k in range(s.shape[0]):
+        for i in range(x0.shape[0]):
+            p0 = (1 - s[k]) * x0[i, 0] + s[k] * x1[i, 0]
+            p1 = (1 - s[k]) * x0[i, 1] + s[k] * x1[i, 1]
+            p2 = (1 - s[k]) * x0[i, 2] + s[k] * x1[i, 2]
+            for d in range(3):
+                Y[k, i, d] = A[k, d, 0] * p0 + A[k, d, 1] * p1 + A[k, d, 2] * p2 + b[k, d]

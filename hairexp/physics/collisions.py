@@ -36,7 +36,8 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from hairexp.model.colliders import Box, Capsule, Cylinder, Plane, Sphere
-from hairexp.physics.broad_phase import edge_edge_ccd_pairs, grid_pairs, pair_distances, reachable, swept_boxes
+from hairexp.physics.broad_phase import (centred_cross, edge_edge_ccd_pairs, frame_positions, grid_pairs, pair_distances,
+                                         reachable, rotation_matrix, swept_boxes)
 from hairexp.physics.edge_ccd import BISECTIONS, _closest_segment_params, edge_edge_ccd
 from hairexp.physics.kernels import HAVE_NUMBA, njit
 
@@ -266,17 +267,23 @@ class HairHair:
         if self._frame_x is None or self._frame_x.shape != x0.shape or not np.array_equal(self._frame_x, x0):
             self._frame, self._frame_x, self._list = (np.eye(3), np.zeros(3)), x0.copy(), None
         kab = self._kabsch(x0, x1)
-        Ys = []
-        for s_ in (0.0, 0.5, 1.0):
-            As, bs = self._map_at(kab, s_)
-            Ys.append(((1 - s_) * x0 + s_ * x1) @ As.T + bs)
-        return tuple(Ys)
+        maps = [self._map_at(kab, s_) for s_ in (0.0, 0.5, 1.0)]
+        if HAVE_NUMBA:
+            Ys = np.empty((3,) + x0.shape)
+            frame_positions(np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(x1, dtype=np.float64),
+                            np.array([0.0, 0.5, 1.0]), np.stack([m[0] for m in maps]), np.stack([m[1] for m in maps]), Ys)
+            return tuple(Ys)
+        return tuple(((1 - s_) * x0 + s_ * x1) @ As.T + bs for s_, (As, bs) in zip((0.0, 0.5, 1.0), maps))
 
     @staticmethod
     def _kabsch(x0, x1):
         """(c0, c1, rotation vector of R): the best-fit rigid motion x1 - c1 ~ R (x0 - c0)."""
-        c0, c1 = x0.mean(0), x1.mean(0)
-        U, _, Vt = np.linalg.svd((x0 - c0).T @ (x1 - c1))
+        if HAVE_NUMBA:
+            c0, c1, H = centred_cross(np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(x1, dtype=np.float64))
+        else:
+            c0, c1 = x0.mean(0), x1.mean(0)
+            H = (x0 - c0).T @ (x1 - c1)
+        U, _, Vt = np.linalg.svd(H)
         R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
         return c0, c1, Rotation.from_matrix(R).as_rotvec()
 
@@ -284,7 +291,7 @@ class HairHair:
         """(A, b): the list frame at instant s of the step, Y = A x + b."""
         A, b = self._frame
         c0, c1, rv = kab
-        Rs = Rotation.from_rotvec(s * rv).as_matrix()
+        Rs = rotation_matrix(s * rv)
         cs = (1 - s) * c0 + s * c1
         return A @ Rs.T, b + A @ (c0 - Rs.T @ cs)
 
