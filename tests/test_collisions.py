@@ -743,18 +743,24 @@ def test_later_passes_test_only_pairs_the_last_pass_changed(monkeypatch):
 
 
 def test_list_frame_kernels_equal_scipy_and_numpy():
-    """The list frame's pieces: ``rotation_matrix`` is scipy's ``Rotation.from_rotvec`` (tiny,
-    ordinary and near-half-turn angles), ``centred_cross`` the numpy centroids and cross
+    """The list frame's pieces: ``rotation_matrix`` and ``rotation_vector`` are scipy's
+    ``Rotation.from_rotvec`` and ``as_rotvec`` (tiny, ordinary and near-half-turn angles, a half
+    turn), ``centred_cross`` the numpy centroids and cross
     covariance, and ``HairHair.frames`` the same positions with and without the kernels."""
     import hairexp.physics.collisions as collisions
     from scipy.spatial.transform import Rotation
-    from hairexp.physics.broad_phase import centred_cross, rotation_matrix
+    from hairexp.physics.broad_phase import centred_cross, rotation_matrix, rotation_vector
 
     rng = np.random.default_rng(8)
-    for scale in (0.0, 1e-12, 1e-9, 1e-7, 1e-3, 0.5, 2.0, np.pi - 1e-9):
-        rv = rng.normal(size=3)
-        rv *= scale / np.linalg.norm(rv)
-        np.testing.assert_allclose(rotation_matrix(rv), Rotation.from_rotvec(rv).as_matrix(), rtol=0, atol=1e-15)
+    for scale in (0.0, 1e-12, 1e-9, 1e-7, 1e-3, 0.5, 2.0, np.pi - 1e-7):
+        for _ in range(50):
+            rv = rng.normal(size=3)
+            rv *= scale / np.linalg.norm(rv)
+            np.testing.assert_allclose(rotation_matrix(rv), Rotation.from_rotvec(rv).as_matrix(), rtol=0, atol=1e-15)
+            R = Rotation.from_rotvec(rv).as_matrix()
+            np.testing.assert_allclose(rotation_vector(R), Rotation.from_matrix(R).as_rotvec(), rtol=0, atol=1e-12)
+    R = np.diag([1.0, -1.0, -1.0])                       # a half turn: rv and -rv are the same rotation
+    np.testing.assert_allclose(Rotation.from_rotvec(rotation_vector(R)).as_matrix(), R, atol=1e-15)
     x0, x1 = rng.normal(size=(500, 3)), rng.normal(size=(500, 3))
     c0, c1, H = centred_cross(x0, x1)
     np.testing.assert_allclose(c0, x0.mean(0), atol=1e-15)

@@ -407,6 +407,32 @@ def rotation_matrix(rv: np.ndarray) -> np.ndarray:
     return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / (th * th)) * (K @ K)
 
 
+def rotation_vector(R: np.ndarray) -> np.ndarray:
+    """The rotation vector of the rotation matrix R (its unit quaternion by Shepperd's method, the
+    largest of 1 + trace and 1 + 2 R_ii - trace under the root, then 2 atan2(|v|, w) v / |v| with
+    w >= 0; scipy's ``Rotation.from_matrix(R).as_rotvec()`` to round-off, without its per-call
+    overhead)."""
+    t = R[0, 0] + R[1, 1] + R[2, 2]
+    k = int(np.argmax([R[0, 0], R[1, 1], R[2, 2], t]))
+    q = np.empty(4)          # (x, y, z, w)
+    if k == 3:
+        q[3] = 1.0 + t
+        q[0], q[1], q[2] = R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]
+    else:
+        i, j, m = k, (k + 1) % 3, (k + 2) % 3
+        q[i] = 1.0 - t + 2.0 * R[i, i]
+        q[j] = R[j, i] + R[i, j]
+        q[m] = R[m, i] + R[i, m]
+        q[3] = R[m, j] - R[j, m]
+    q /= np.linalg.norm(q)
+    if q[3] < 0:
+        q = -q
+    v = float(np.linalg.norm(q[:3]))
+    if v < 1e-300:
+        return np.zeros(3)
+    return (2.0 * math.atan2(v, q[3]) / v) * q[:3]
+
+
 @njit(cache=True)
 def frame_positions(x0, x1, s, A, b, Y):
     """Y[k] = ((1 - s[k]) x0 + s[k] x1) A[k]^T + b[k] for each instant k."""

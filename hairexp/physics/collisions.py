@@ -33,11 +33,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from hairexp.model.colliders import Box, Capsule, Cylinder, Plane, Sphere
 from hairexp.physics.broad_phase import (centred_cross, edge_edge_ccd_pairs, frame_positions, grid_pairs, pair_distances,
-                                         reachable, rotation_matrix, swept_boxes)
+                                         reachable, rotation_matrix, rotation_vector, swept_boxes)
 from hairexp.physics.edge_ccd import BISECTIONS, _closest_segment_params, edge_edge_ccd
 from hairexp.physics.kernels import HAVE_NUMBA, njit
 
@@ -285,7 +284,7 @@ class HairHair:
             H = (x0 - c0).T @ (x1 - c1)
         U, _, Vt = np.linalg.svd(H)
         R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
-        return c0, c1, Rotation.from_matrix(R).as_rotvec()
+        return c0, c1, rotation_vector(R)
 
     def _map_at(self, kab, s: float):
         """(A, b): the list frame at instant s of the step, Y = A x + b."""
