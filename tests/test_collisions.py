@@ -778,3 +778,35 @@ def test_list_frame_kernels_equal_scipy_and_numpy():
         collisions.HAVE_NUMBA = saved
     for a, b in zip(got, want):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize("with_start", [True, False])
+def test_compiled_impulses_equal_the_numpy_ones(with_start):
+    """``HairHair.impulses`` compiled (``broad_phase.contact_impulses``) and in numpy: the same
+    pairs given impulses and the same velocities (to round-off) on a dense random wisp whose
+    edges cross during the step (CCD hits) and end within the thickness (repulsion), some of
+    them at the roots (infinite mass)."""
+    import hairexp.physics.collisions as collisions
+
+    rng = np.random.default_rng(4)
+    n, k = 30, 10
+    pts = np.concatenate([np.c_[np.full(k, x), -np.linspace(0, 0.05, k), np.full(k, z)]
+                          for x, z in rng.uniform(-0.004, 0.004, (n, 2))])
+    s = Strands.from_polylines(pts, [k] * n, 1e-3)
+    hh = HairHair(s, thickness=0.002)
+    x0 = pts.copy()
+    v = 0.05 * rng.normal(size=x0.shape)
+    v[s.kinematic] = 0.0
+    x1 = x0 + DT * v
+    pairs = hh.filter_reachable(x0, x1, hh.swept_pairs((x0, 0.5 * (x0 + x1), x1)))
+    start = x0 if with_start else None
+    got_v, got_n = hh.impulses(x1, v.copy(), pairs, DT, start)
+    saved = collisions.HAVE_NUMBA
+    try:
+        collisions.HAVE_NUMBA = False
+        want_v, want_n = hh.impulses(x1, v.copy(), pairs, DT, start)
+    finally:
+        collisions.HAVE_NUMBA = saved
+    assert got_n == want_n > 20
+    np.testing.assert_allclose(got_v, want_v, rtol=0, atol=1e-13)
+    assert np.abs(got_v - v).max() > 1e-3      # the impulses did something

@@ -443,3 +443,99 @@ def frame_positions(x0, x1, s, A, b, Y):
             p2 = (1 - s[k]) * x0[i, 2] + s[k] * x1[i, 2]
             for d in range(3):
                 Y[k, i, d] = A[k, d, 0] * p0 + A[k, d, 1] * p1 + A[k, d, 2] * p2 + b[k, d]
+
+
+@njit(cache=True)
+def contact_impulses(x1, v1, x0, E, pairs, hit, wa_c, wb_c, inv_m, h, dt, repulsion):
+    """``HairHair.impulses`` after its CCD (``hit``, ``wa_c``, ``wb_c`` per pair; x0 None-free:
+    pass hit all False without a start), with the same formulas in the same order: the contact
+    normal and weights of each pair (the CCD's hit, else the end-of-step proximity within h),
+    the inelastic / repulsion impulse, its Jacobi division by the largest contact count among the
+    pair's vertices and its cap; the impulses are added to v1 in place in pair order.  Returns the
+    number of pairs given an impulse."""
+    P = pairs.shape[0]
+    act = np.zeros(P, dtype=np.bool_)
+    nrm = np.zeros((P, 3))
+    W = np.zeros((P, 4))
+    tgt = np.zeros(P)
+    for k in range(P):
+        a0, a1, b0, b1 = E[pairs[k, 0], 0], E[pairs[k, 0], 1], E[pairs[k, 1], 0], E[pairs[k, 1], 1]
+        if hit[k]:
+            wa, wb = wa_c[k], wb_c[k]
+            n = np.empty(3)
+            for c in range(3):
+                pa = x0[a0, c] + wa * (x0[a1, c] - x0[a0, c])
+                pb = x0[b0, c] + wb * (x0[b1, c] - x0[b0, c])
+                n[c] = pa - pb                                   # the side a started on
+            if math.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]) < 1e-12:
+                ux, uy, uz = x0[a1, 0] - x0[a0, 0], x0[a1, 1] - x0[a0, 1], x0[a1, 2] - x0[a0, 2]
+                wx, wy, wz = x0[b1, 0] - x0[b0, 0], x0[b1, 1] - x0[b0, 1], x0[b1, 2] - x0[b0, 2]
+                cr0, cr1, cr2 = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
+                side = (cr0 * (x1[a0, 0] - x1[b0, 0]) + cr1 * (x1[a0, 1] - x1[b0, 1])
+                        + cr2 * (x1[a0, 2] - x1[b0, 2]))
+                sg = 1.0 if side < 0 else -1.0
+                n[0], n[1], n[2] = cr0 * sg, cr1 * sg, cr2 * sg
+            nrm[k, 0], nrm[k, 1], nrm[k, 2] = n[0], n[1], n[2]
+            tgt[k] = repulsion * h / dt
+            act[k] = True
+        else:
+            wa, wb = segment_params(x1[a0, 0], x1[a0, 1], x1[a0, 2], x1[a1, 0], x1[a1, 1], x1[a1, 2],
+                                    x1[b0, 0], x1[b0, 1], x1[b0, 2], x1[b1, 0], x1[b1, 1], x1[b1, 2])
+            dd = 0.0
+            for c in range(3):
+                g = (x1[a0, c] + wa * (x1[a1, c] - x1[a0, c])) - (x1[b0, c] + wb * (x1[b1, c] - x1[b0, c]))
+                nrm[k, c] = g
+                dd += g * g
+            dist = math.sqrt(dd)
+            if not dist < h:
+                continue
+            tgt[k] = repulsion * (h - dist) / dt
+            act[k] = True
+        W[k, 0], W[k, 1], W[k, 2], W[k, 3] = 1 - wa, wa, -(1 - wb), -wb
+    V = v1.shape[0]
+    imp = np.zeros(P)
+    dvn = np.zeros(P)
+    count = np.zeros(V, dtype=np.int64)
+    for k in range(P):
+        if not act[k]:
+            continue
+        ln = max(math.sqrt(nrm[k, 0] ** 2 + nrm[k, 1] ** 2 + nrm[k, 2] ** 2), 1e-300)
+        for c in range(3):
+            nrm[k, c] /= ln
+        vv = (E[pairs[k, 0], 0], E[pairs[k, 0], 1], E[pairs[k, 1], 0], E[pairs[k, 1], 1])
+        vn = 0.0
+        for c in range(3):
+            s = 0.0
+            for m in range(4):
+                s += W[k, m] * v1[vv[m], c]
+            vn += s * nrm[k, c]
+        dvn[k] = max(tgt[k] - vn, 0.0)                      # stop approach, then separate gently
+        den = 0.0
+        for m in range(4):
+            den += W[k, m] ** 2 * inv_m[vv[m]]
+        imp[k] = dvn[k] / den if den > 0 else 0.0
+        if imp[k] > 0:
+            for m in range(4):
+                count[vv[m]] += 1
+    given = 0
+    for k in range(P):
+        if not act[k] or not imp[k] > 0:
+            continue
+        vv = (E[pairs[k, 0], 0], E[pairs[k, 0], 1], E[pairs[k, 1], 0], E[pairs[k, 1], 1])
+        cmax = 1
+        for m in range(4):
+            cmax = max(cmax, count[vv[m]])
+        I = imp[k] / cmax
+        vmax = 0.0
+        for m in range(4):
+            vmax = max(vmax, abs(W[k, m]) * inv_m[vv[m]])
+        vmax *= I
+        if vmax > dvn[k]:
+            I = I * dvn[k] / max(vmax, 1e-300)
+        if I > 0:
+            given += 1
+        for m in range(4):
+            f = W[k, m] * inv_m[vv[m]] * I
+            for c in range(3):
+                v1[vv[m], c] += f * nrm[k, c]
+    return given

@@ -35,7 +35,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hairexp.model.colliders import Box, Capsule, Cylinder, Plane, Sphere
-from hairexp.physics.broad_phase import (centred_cross, edge_edge_ccd_pairs, frame_positions, grid_pairs, pair_distances,
+from hairexp.physics.broad_phase import (centred_cross, contact_impulses, edge_edge_ccd_pairs, frame_positions, grid_pairs, pair_distances,
                                          reachable, rotation_matrix, rotation_vector, swept_boxes)
 from hairexp.physics.edge_ccd import BISECTIONS, _closest_segment_params, edge_edge_ccd
 from hairexp.physics.kernels import HAVE_NUMBA, njit
@@ -438,6 +438,18 @@ class HairHair:
         if len(pairs) == 0:
             return v1, 0
         E = self.E
+        if HAVE_NUMBA:   # the same steps compiled (hairexp/physics/broad_phase.py)
+            P = len(pairs)
+            pairs = np.ascontiguousarray(pairs, dtype=np.int64)
+            x1c = np.ascontiguousarray(x1, dtype=np.float64)
+            x0c = x1c if x0 is None else np.ascontiguousarray(x0, dtype=np.float64)
+            hit, wa_c, wb_c = np.zeros(P, dtype=bool), np.zeros(P), np.zeros(P)
+            if x0 is not None:
+                edge_edge_ccd_pairs(x0c, x1c - x0c, E, pairs, 0.1 * self.h, BISECTIONS, hit, np.empty(P), wa_c, wb_c)
+            v1 = np.ascontiguousarray(v1, dtype=np.float64)
+            given = contact_impulses(x1c, v1, x0c, E, pairs, hit, wa_c, wb_c,
+                                     np.ascontiguousarray(self.inv_m, dtype=np.float64), self.h, dt, REPULSION)
+            return v1, int(given)
         i, j = pairs[:, 0], pairs[:, 1]
         verts = np.stack([E[i, 0], E[i, 1], E[j, 0], E[j, 1]], 1)
         hit = np.zeros(len(pairs), dtype=bool)
@@ -447,14 +459,8 @@ class HairHair:
         target = np.zeros(len(pairs))
         if x0 is not None:
             d = x1 - x0
-            if HAVE_NUMBA:
-                hit, wa_c, wb_c = np.empty(len(pairs), dtype=bool), np.empty(len(pairs)), np.empty(len(pairs))
-                edge_edge_ccd_pairs(np.ascontiguousarray(x0, dtype=np.float64), np.ascontiguousarray(d, dtype=np.float64),
-                                    E, np.ascontiguousarray(pairs, dtype=np.int64), 0.1 * self.h, BISECTIONS, hit,
-                                    np.empty(len(pairs)), wa_c, wb_c)
-            else:
-                hit, _, wa_c, wb_c = edge_edge_ccd(x0[E[i, 0]], x0[E[i, 1]], x0[E[j, 0]], x0[E[j, 1]],
-                                                   d[E[i, 0]], d[E[i, 1]], d[E[j, 0]], d[E[j, 1]], 0.1 * self.h)
+            hit, _, wa_c, wb_c = edge_edge_ccd(x0[E[i, 0]], x0[E[i, 1]], x0[E[j, 0]], x0[E[j, 1]],
+                                               d[E[i, 0]], d[E[i, 1]], d[E[j, 0]], d[E[j, 1]], 0.1 * self.h)
             if hit.any():
                 pa = x0[E[i, 0]] + wa_c[:, None] * (x0[E[i, 1]] - x0[E[i, 0]])
                 pb = x0[E[j, 0]] + wb_c[:, None] * (x0[E[j, 1]] - x0[E[j, 0]])
