@@ -35,8 +35,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hairexp.model.colliders import Box, Capsule, Cylinder, Plane, Sphere
-from hairexp.physics.broad_phase import (centred_cross, contact_impulses, edge_edge_ccd_pairs, frame_positions, grid_pairs, pair_distances,
-                                         reachable, rotation_matrix, rotation_vector, swept_boxes)
+from hairexp.physics.broad_phase import (centred_cross, contact_impulses, edge_edge_ccd_pairs, frame_positions,
+                                         grid_pairs, pair_distances, reachable, rotation_matrix, rotation_vector,
+                                         swept_boxes)
 from hairexp.physics.edge_ccd import BISECTIONS, _closest_segment_params, edge_edge_ccd
 from hairexp.physics.kernels import HAVE_NUMBA, njit
 
