@@ -614,7 +614,8 @@ def test_grid_pairs_equal_the_kdtree_pairs(seed):
 
 
 def test_grid_pairs_degenerate_inputs():
-    """No box, one box, identical boxes, points (zero extent) and a box far from the rest."""
+    """No box, one box, identical boxes, points (zero extent) and a box far from the rest; a
+    non-finite bound is refused (its cell index would be undefined)."""
     from hairexp.physics.broad_phase import grid_pairs
 
     assert grid_pairs(np.zeros((0, 3)), np.zeros((0, 3))).shape == (0, 2)
@@ -624,6 +625,9 @@ def test_grid_pairs_degenerate_inputs():
     lo = np.array([[0.0, 0, 0], [0.5, 0, 0], [1e3, 1e3, 1e3]])
     hi = lo + np.array([[0.6, 0.1, 0.1], [0.1, 0.1, 0.1], [0.1, 0.1, 0.1]])
     assert _pair_set(grid_pairs(lo, hi)) == {(0, 1)}
+    hi[1, 0] = np.nan
+    with pytest.raises(ValueError, match="finite"):
+        grid_pairs(lo, hi)
 
 
 def test_compiled_ccd_and_reachable_equal_the_numpy_ones():

@@ -117,6 +117,8 @@ def grid_pairs(lo: np.ndarray, hi: np.ndarray, edges: np.ndarray | None = None,
         return np.zeros((0, 2), dtype=np.int64)
     lo = np.ascontiguousarray(lo, dtype=np.float64)
     hi = np.ascontiguousarray(hi, dtype=np.float64)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        raise ValueError("grid_pairs: box bounds must be finite (the grid's cells are indexed by them)")
     c, org, nc = _grid_setup(lo, hi, float(MAX_ENTRIES_PER_BOX))
     E = np.zeros((0, 2), dtype=np.int64) if edges is None else np.ascontiguousarray(edges, dtype=np.int64)
     act = np.ones(n, dtype=np.bool_) if active is None else np.ascontiguousarray(active, dtype=np.bool_)
