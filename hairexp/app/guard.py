@@ -297,7 +297,10 @@ def guard_run(cfg, n_vertices: int, steps_per_frame: int, run: bool = True) -> E
 
 #: bytes a candidate edge pair of the exact hair-hair broad phase takes at its peak (scipy's pair
 #: list, the index arrays, masks and closest-point parameters): measured 50-59 B on goaling's bundle
-#: (1,000 strands: +0.50 GB for 8.5 M pairs; 3,000: +3.85 GB for 76 M pairs), rounded up
+#: (1,000 strands: +0.50 GB for 8.5 M pairs; 3,000: +3.85 GB for 76 M pairs), rounded up.  The
+#: compiled grid (physics/broad_phase.py, since 2026-12-06) holds at most 48 B a pair (its doubling
+#: buffer of int64 pairs, up to twice the pairs, and the trimmed copy it returns): the bound stays
+#: conservative
 HAIR_HAIR_BYTES_PER_PAIR = 64
 #: pairs within a sphere of radius d per pair of the same cell of side d (uniform density: 4.19 / 2),
 #: calibrated against scipy's exact count_neighbors on goaling's bundle (1,000-30,000 strands: x 1.47)
@@ -306,7 +309,7 @@ _PAIRS_PER_CELL_PAIR = 3.1
 
 def hair_hair_pairs(rest: np.ndarray, edges: np.ndarray, radius: float) -> float:
     """About how many edge pairs the exact hair-hair broad phase (physics/collisions.py,
-    ``HairHair._box_pairs``) lists for the hair at ``rest``: boxes of the edges grown by
+    ``HairHair._pairs``) lists for the hair at ``rest``: boxes of the edges grown by
     ``radius`` (thickness + skin), whose bounding spheres' centres are binned into cells of their
     largest query distance; O(edges), where an exact count is quadratic in a dense bundle."""
     c, r = bounding_spheres(*edge_boxes(rest[edges[:, 0]], rest[edges[:, 1]], radius))
