@@ -41,17 +41,11 @@ from hairexp.physics.kernels import njit
 MAX_ENTRIES_PER_BOX = 27
 
 
-def grid_cell(lo: np.ndarray, hi: np.ndarray) -> tuple[float, np.ndarray]:
-    """(cell side, origin) of the grid for boxes ``lo``, ``hi`` (n, 3): the median of the boxes'
-    largest extents, doubled while the entries exceed ``MAX_ENTRIES_PER_BOX`` x n or the cell
-    count overflows 2^60."""
-    c, org, _ = _grid_setup(np.ascontiguousarray(lo, dtype=np.float64), np.ascontiguousarray(hi, dtype=np.float64),
-                            float(MAX_ENTRIES_PER_BOX))
-    return c, org
-
-
 @njit(cache=True)
 def _grid_setup(lo, hi, max_per_box):
+    """(cell side, origin, cells per axis) of the grid for boxes ``lo``, ``hi`` (n, 3): the side
+    is the median of the boxes' largest extents, doubled while the entries exceed ``max_per_box``
+    x n or the cell count overflows 2^60."""
     n = lo.shape[0]
     org = np.empty(3)
     top = np.empty(3)
@@ -475,20 +469,18 @@ def contact_impulses(x1, v1, x0, E, pairs, hit, wa_c, wb_c, inv_m, h, dt, repuls
         a0, a1, b0, b1 = E[pairs[k, 0], 0], E[pairs[k, 0], 1], E[pairs[k, 1], 0], E[pairs[k, 1], 1]
         if hit[k]:
             wa, wb = wa_c[k], wb_c[k]
-            n = np.empty(3)
             for c in range(3):
                 pa = x0[a0, c] + wa * (x0[a1, c] - x0[a0, c])
                 pb = x0[b0, c] + wb * (x0[b1, c] - x0[b0, c])
-                n[c] = pa - pb                                   # the side a started on
-            if math.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]) < 1e-12:
+                nrm[k, c] = pa - pb                              # the side a started on
+            if math.sqrt(nrm[k, 0] ** 2 + nrm[k, 1] ** 2 + nrm[k, 2] ** 2) < 1e-12:
                 ux, uy, uz = x0[a1, 0] - x0[a0, 0], x0[a1, 1] - x0[a0, 1], x0[a1, 2] - x0[a0, 2]
                 wx, wy, wz = x0[b1, 0] - x0[b0, 0], x0[b1, 1] - x0[b0, 1], x0[b1, 2] - x0[b0, 2]
                 cr0, cr1, cr2 = uy * wz - uz * wy, uz * wx - ux * wz, ux * wy - uy * wx
                 side = (cr0 * (x1[a0, 0] - x1[b0, 0]) + cr1 * (x1[a0, 1] - x1[b0, 1])
                         + cr2 * (x1[a0, 2] - x1[b0, 2]))
                 sg = 1.0 if side < 0 else -1.0
-                n[0], n[1], n[2] = cr0 * sg, cr1 * sg, cr2 * sg
-            nrm[k, 0], nrm[k, 1], nrm[k, 2] = n[0], n[1], n[2]
+                nrm[k, 0], nrm[k, 1], nrm[k, 2] = cr0 * sg, cr1 * sg, cr2 * sg
             tgt[k] = repulsion * h / dt
             act[k] = True
         else:

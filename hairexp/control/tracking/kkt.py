@@ -170,6 +170,7 @@ class SchurKKT:
         self._A_il = A_pad[:, il_dof.ravel()].tocsr()
         self._AT_il = self._A_il.T.tocsr()
         self._L_il = None                     # the factor interleaved, built on the first product
+        self._il_buf = None                   # its buffers, kept from factor to factor (``_il_buffers``)
         self._LT = self._cb = None            # the factor in bandchol's / LAPACK's layout (``LT``, ``cb``)
         # A^T's rows in the interleaved order as (position, membership) lists, padded with weight 0
         # (``schur_product``: A^T v, the solve and A x in one pass)
@@ -264,7 +265,7 @@ class SchurKKT:
         """(L, inv): the interleaved factor's buffers, (nmax, bw1, S) and (nmax, S), kept from factor to
         factor (at 10,000 strands 49 MB, above malloc's mmap threshold: fresh zeroed pages every time
         otherwise)."""
-        buf = getattr(self, "_il_buf", None)
+        buf = self._il_buf
         if buf is None or buf[0].shape != (self.nmax, bw1, self.S):
             buf = self._il_buf = (np.empty((self.nmax, bw1, self.S)), np.empty((self.nmax, self.S)))
         return buf
