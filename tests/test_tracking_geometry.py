@@ -254,6 +254,42 @@ def test_batched_frames_equal_single_frames():
     np.testing.assert_allclose(vertex_tangents(Ps[0]), Tb[0], rtol=0, atol=1e-15)
 
 
+@pytest.mark.parametrize("shape", [(3, 10), (1, 2), (4, 3), (2, 31)])
+def test_compiled_frames_equal_numpy_frames_bit_for_bit(shape):
+    """The tracking targets' compiled transport (``constraints.transport_frames``) performs
+    ``parallel_transport_batch``'s operations in its order: the same bits, on guides of 2 to 31
+    vertices; and ``BodyCarriedFrames.frames_all`` with it equals each guide framed on its own
+    (the root normal carried by the body and turned onto the root tangent, guide by guide)."""
+    from hairexp.control.tracking.constraints import transport_frames
+    from hairexp.guides.frames import BodyCarriedFrames
+
+    G, n = shape
+    rng = np.random.default_rng(G * 100 + n)
+    Ps = np.stack([bent_polyline(n, int(rng.integers(1000)), edge=0.03, max_turn=1.2) for _ in range(G)])
+    n0 = rng.normal(size=(G, 3))
+    for U, V in zip(parallel_transport_batch(Ps, n0), transport_frames(Ps, n0)):
+        assert np.array_equal(U, V)
+    rest = [bent_polyline(n, s, edge=0.03) for s in range(G)]
+    bf = BodyCarriedFrames(rest, Rotation.from_rotvec([0.1, -0.4, 0.2]).as_matrix())
+    R = Rotation.from_rotvec([0.7, 0.2, -0.3]).as_matrix()
+    cur = [P + 0.01 * rng.normal(size=P.shape) for P in rest]
+    got = bf.frames_all(cur, R, batch=transport_frames)
+    for g, P in enumerate(cur):
+        n_root = transport(R @ bf.n_body[g], R @ bf.t_body[g], vertex_tangents(P)[0])
+        for U, V in zip(parallel_transport_batch(P[None], n_root[None]), got[g]):
+            assert np.array_equal(U[0], V)
+
+
+def test_numpy_target_tangents_equal_the_spline_module():
+    """The targets' numpy Catmull-Rom tangents (``TrackingConstraints.targets`` hands them to the
+    compiled curve evaluation) equal ``spline.tangents`` (torch) bit for bit."""
+    from hairexp.control.tracking.constraints import _tangents_numpy
+
+    for n in (2, 3, 7):
+        P, s = curves(K=4, n=n, seed=n)
+        assert np.array_equal(_tangents_numpy(P.numpy(), s.numpy()), spline.tangents(P, s).numpy())
+
+
 # ---------------------------------------------------------------------------------------------
 # Correspondence (3.1)
 # ---------------------------------------------------------------------------------------------

@@ -89,17 +89,22 @@ class BodyCarriedFrames:
         """(T, N, B), each (n, 3), along guide g's vertices P (n, 3) under body rotation R."""
         return self.frames_all([P], R, [g])[0]
 
-    def frames_all(self, guides: list[np.ndarray], R: np.ndarray, ids=None) -> list:
+    def frames_all(self, guides: list[np.ndarray], R: np.ndarray, ids=None, batch=None) -> list:
         """``frames`` of several guides (guide ids[i], default i, along guides[i]) under body
         rotation R; the guides with the same vertex count are transported together (the same
-        values as one by one: every operation is per guide)."""
+        values as one by one: every operation is per guide).  ``batch``: the transport of a
+        group, ``parallel_transport_batch`` or a function with its signature and values (the
+        tracking targets pass a compiled one, hairexp/control/tracking/constraints.py)."""
         ids = range(len(guides)) if ids is None else ids
-        n0 = [transport(R @ self.n_body[g], R @ self.t_body[g], vertex_tangents(P)[0])  # body frame, turned onto the root tangent
-              for g, P in zip(ids, guides)]
+        batch = parallel_transport_batch if batch is None else batch
+        # body frame, turned onto the root tangent (all guides in one ``transport``: per row, the same values)
+        first = np.stack([P[1] - P[0] for P in guides])
+        t_root = first / np.linalg.norm(first, axis=-1, keepdims=True)    # vertex_tangents(P)[0]
+        n0 = transport(np.stack([R @ self.n_body[g] for g in ids]), np.stack([R @ self.t_body[g] for g in ids]), t_root)
         out = [None] * len(guides)
         for n in sorted({len(P) for P in guides}):
             sel = [i for i, P in enumerate(guides) if len(P) == n]
-            T, N, B = parallel_transport_batch(np.stack([guides[i] for i in sel]), np.stack([n0[i] for i in sel]))
+            T, N, B = batch(np.stack([guides[i] for i in sel]), np.stack([n0[i] for i in sel]))
             for j, i in enumerate(sel):
                 out[i] = (T[j], N[j], B[j])
         return out

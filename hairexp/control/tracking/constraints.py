@@ -36,9 +36,9 @@ import torch
 from hairexp.model.scene import Scene
 from hairexp.guides import spline
 from hairexp.control.tracking.correspondence import Correspondence, closest_points_on_polyline
-from hairexp.guides.frames import BodyCarriedFrames
+from hairexp.guides.frames import BodyCarriedFrames, parallel_transport_batch
 from hairexp.guides.animation import GuideAnimation
-from hairexp.physics.kernels import njit
+from hairexp.physics.kernels import HAVE_NUMBA, njit
 
 
 @njit(cache=True, error_model="numpy")
@@ -79,6 +79,73 @@ def _targets_into(P, s, m, tk, ks, add, derivatives, c, d1, d2):
                     d2[r, x] = b
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _cross3(a0, a1, a2, b0, b1, b2):
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@njit(cache=True, error_model="numpy")
+def _transport_into(P, n0, T, N, B):
+    """``hairexp.guides.frames.parallel_transport_batch`` compiled, into T, N, B (G, n, 3): the
+    same operations in the same order (vertex tangents by central differences, the root normal
+    projected, each next normal transported by Rodrigues' formula from tangent to tangent and
+    re-projected), so the same values; the targets are re-framed at every stage of a tracked
+    step, where numpy's per-vertex loop over 3-vectors cost 1.4 ms at Celia's 3 x 10 vertices."""
+    G, n = P.shape[0], P.shape[1]
+    for g in range(G):
+        for i in range(n):
+            lo, hi = (0, 1) if i == 0 else ((n - 2, n - 1) if i == n - 1 else (i - 1, i + 1))
+            t0, t1, t2 = P[g, hi, 0] - P[g, lo, 0], P[g, hi, 1] - P[g, lo, 1], P[g, hi, 2] - P[g, lo, 2]
+            nrm = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+            T[g, i, 0], T[g, i, 1], T[g, i, 2] = t0 / nrm, t1 / nrm, t2 / nrm
+        d = n0[g, 0] * T[g, 0, 0] + n0[g, 1] * T[g, 0, 1] + n0[g, 2] * T[g, 0, 2]
+        v0, v1, v2 = n0[g, 0] - d * T[g, 0, 0], n0[g, 1] - d * T[g, 0, 1], n0[g, 2] - d * T[g, 0, 2]
+        nrm = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        N[g, 0, 0], N[g, 0, 1], N[g, 0, 2] = v0 / nrm, v1 / nrm, v2 / nrm
+        for i in range(1, n):
+            a0, a1, a2 = T[g, i - 1, 0], T[g, i - 1, 1], T[g, i - 1, 2]
+            c0, c1, c2 = T[g, i, 0], T[g, i, 1], T[g, i, 2]
+            w0, w1, w2 = N[g, i - 1, 0], N[g, i - 1, 1], N[g, i - 1, 2]
+            b0, b1, b2 = _cross3(a0, a1, a2, c0, c1, c2)
+            c = a0 * c0 + a1 * c1 + a2 * c2
+            x0, x1, x2 = _cross3(b0, b1, b2, w0, w1, w2)
+            bv = b0 * w0 + b1 * w1 + b2 * w2
+            v0 = w0 * c + x0 + b0 * bv / (1.0 + c)
+            v1 = w1 * c + x1 + b1 * bv / (1.0 + c)
+            v2 = w2 * c + x2 + b2 * bv / (1.0 + c)
+            d = v0 * c0 + v1 * c1 + v2 * c2
+            v0, v1, v2 = v0 - d * c0, v1 - d * c1, v2 - d * c2
+            nrm = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            N[g, i, 0], N[g, i, 1], N[g, i, 2] = v0 / nrm, v1 / nrm, v2 / nrm
+        for i in range(n):
+            B[g, i, 0], B[g, i, 1], B[g, i, 2] = _cross3(T[g, i, 0], T[g, i, 1], T[g, i, 2],
+                                                         N[g, i, 0], N[g, i, 1], N[g, i, 2])
+
+
+def transport_frames(P: np.ndarray, n0: np.ndarray):
+    """``parallel_transport_batch(P, n0)`` through the compiled ``_transport_into`` (P (G, n, 3),
+    n0 (G, 3) -> T, N, B each (G, n, 3)); the numpy function itself without numba or for a guide
+    of fewer than 2 vertices."""
+    if not HAVE_NUMBA or P.shape[1] < 2:
+        return parallel_transport_batch(P, n0)
+    P = np.ascontiguousarray(P, dtype=np.float64)
+    T, N, B = np.empty_like(P), np.empty_like(P), np.empty_like(P)
+    _transport_into(P, np.ascontiguousarray(n0, dtype=np.float64), T, N, B)
+    return T, N, B
+
+
+def _tangents_numpy(P: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """``hairexp.guides.spline.tangents`` on numpy arrays (the same operations, so the same
+    values): the Catmull-Rom tangents dP/dt at the knots, P (..., n, 3), s (n,)."""
+    m = np.empty_like(P)
+    ds = s[1:] - s[:-1]
+    m[..., 0, :] = (P[..., 1, :] - P[..., 0, :]) / ds[0]
+    m[..., -1, :] = (P[..., -1, :] - P[..., -2, :]) / ds[-1]
+    if P.shape[-2] > 2:
+        m[..., 1:-1, :] = (P[..., 2:, :] - P[..., :-2, :]) / (s[2:] - s[:-2])[:, None]
+    return m
+
+
 @dataclass
 class TargetCurves:
     """Target curves at one time: control points (K, n, 3) per cluster on its guide's knots."""
@@ -115,6 +182,7 @@ class TrackingConstraints:
         G = guides.n_guides
         rest = guides.guides(guides.rest)
         self.knots = [spline.rest_arclength(P) for P in rest]
+        self._knots_np = [np.ascontiguousarray(s.numpy(), dtype=np.float64) for s in self.knots]
         self.root_frames = BodyCarriedFrames(rest, scene.motion.pose(0.0)[0])
         com = self.com(scene.initial_positions()[free].reshape(-1))
         self.t_rest = np.zeros(K)
@@ -175,14 +243,14 @@ class TrackingConstraints:
     def _frames(self, shape: np.ndarray, t: float, motion=None):
         """Parallel-transported frames of every guide at time t: list of (T, N, B)."""
         R, _ = (motion or self.scene.motion).pose(t)
-        return self.root_frames.frames_all(list(self.guides.guides(shape)), R)
+        return self.root_frames.frames_all(list(self.guides.guides(shape)), R, batch=transport_frames)
 
     def targets(self, t: float, motion=None) -> TargetCurves:
         """The target curves at time t; ``motion``: the body's poses at t (a dynamic body's step
         window), default the scene's motion."""
         shape = self.guides.shape_at(t, motion)
         frames = self._frames(shape, t, motion)
-        ctrl, clusters = [], []
+        ctrl, clusters, curves = [], [], []
         for g, P in enumerate(self.guides.guides(shape)):
             ks, beta, off = self.blend[g]
             T, N, B = frames[g]
@@ -192,7 +260,12 @@ class TrackingConstraints:
                 Q = beta[:, None, None] * Q       # Catmull-Rom is linear in its control points
             ctrl.append(torch.as_tensor(Q))
             clusters.append(ks)
-        return TargetCurves(ctrl, self.knots, clusters, shape)
+            if ks.size:
+                s = self._knots_np[g]
+                curves.append((Q, s, _tangents_numpy(Q, s), np.ascontiguousarray(ks, dtype=np.int64)))
+        tg = TargetCurves(ctrl, self.knots, clusters, shape)
+        self._np_curves = (tg, curves)    # ``_numpy_curves``: built here, without torch's tangents
+        return tg
 
     def _numpy_curves(self, tg: TargetCurves) -> list:
         """Per guide (control points, knots, tangents, clusters) as numpy arrays, for the target
