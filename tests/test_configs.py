@@ -192,3 +192,29 @@ def test_sweep_launchers_compose(launcher, key, value):
     assert key in cfg.hydra.launcher
     if value is not None:
         assert cfg.hydra.launcher[key] == value
+
+
+def test_compositions_share_the_config_store_without_changing_it():
+    """Hydra's repository copies share the ConfigStore (``config._share_config_store``: --help
+    listed the groups through 80 deep copies of the schema).  Sharing is safe only if composing
+    never writes into the store: its schema nodes are the same after compositions with overrides,
+    a refused one included, and a composition after them equals one made before."""
+    import copy
+
+    from hydra.core.config_store import ConfigStore
+
+    from hairexp.app.config import compose_config
+
+    cs = ConfigStore.instance()
+    assert copy.deepcopy(cs) is cs
+
+    def snapshot(node):
+        return {k: snapshot(v) if isinstance(v, dict) else OmegaConf.to_yaml(v.node) for k, v in node.items()}
+
+    before = snapshot(cs.repo)
+    first = OmegaConf.to_yaml(compose_config(["experiment=goaling_smoke"]))
+    compose_config(["experiment=splitting_smoke", "solver.dt=0.02", "scene.n_strands=7", "controller=free"])
+    with pytest.raises(Exception):
+        compose_config(["experiment=goaling_smoke", "solver.dt=fast"])
+    assert snapshot(cs.repo) == before
+    assert OmegaConf.to_yaml(compose_config(["experiment=goaling_smoke"])) == first

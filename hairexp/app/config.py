@@ -527,9 +527,21 @@ def _or_run(name) -> str:
     return str(name)
 
 
+def _share_config_store(self, memo):
+    """``ConfigStore.__deepcopy__``: the store itself.  Hydra deep-copies its config repository
+    for every composition and for every config group ``--help`` lists (80 times), and the
+    repository's structured-config source holds the ConfigStore singleton: each copy was a copy of
+    this schema (about 700,000 ``deepcopy`` calls for ``--help``, 6.3 of its 7.2 s under a profiler;
+    0.2 s a composition).  The source only reads the store, and every schema node is stored at
+    import (``register``), so the copies and the singleton hold the same configs."""
+    return self
+
+
 def register() -> None:
     if not OmegaConf.has_resolver("or_run"):
         OmegaConf.register_new_resolver("or_run", _or_run)
+    if "__deepcopy__" not in vars(ConfigStore):
+        ConfigStore.__deepcopy__ = _share_config_store
     cs = ConfigStore.instance()
     cs.store(name="base_config", node=Config)
     cs.store(group="scene", name="base_scene", node=SceneConfig)
