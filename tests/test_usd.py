@@ -271,3 +271,73 @@ def test_export_scene_command(tmp_path, capsys):
     assert export_main([str(tmp_path / "bad.usda"), "experiment=goaling", "variants=[]", "scene.length=-1"]) == 2
     assert "hairexp: error: scene.length" in capsys.readouterr().err
     assert not (tmp_path / "bad.usda").exists()
+
+
+def in_centimetres(path, out) -> None:
+    """The stage at ``path`` (metres) rewritten in centimetres as Maya writes them: metersPerUnit
+    0.01 and every length times 100 (curve points at every time, the transforms' translations,
+    the colliders' radius, height, size and hairexp:thickness); rotations and Cube scales as they were."""
+    from pxr import Gf, Sdf
+
+    stage = Usd.Stage.Open(str(path))
+    stage.GetRootLayer().Export(str(out))
+    stage = Usd.Stage.Open(str(out))
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    for prim in stage.Traverse():
+        for attr in prim.GetAttributes():
+            name = attr.GetName()
+            times = [Usd.TimeCode.Default()] + [Usd.TimeCode(t) for t in attr.GetTimeSamples()]
+            for tc in times:
+                v = attr.Get(tc)
+                if v is None or (tc.IsDefault() and not attr.HasAuthoredValue()):
+                    continue
+                if name == "points":
+                    attr.Set(type(v)([p * 100.0 for p in v]), tc)
+                elif name == "xformOp:transform":
+                    M = Gf.Matrix4d(v)
+                    M.SetRow(3, Gf.Vec4d(M[3][0] * 100, M[3][1] * 100, M[3][2] * 100, 1.0))
+                    attr.Set(M, tc)
+                elif name.startswith("xformOp:translate"):
+                    attr.Set(v * 100.0, tc)
+                elif name in ("radius", "height", "size", "hairexp:thickness"):
+                    attr.Set(v * 100.0, tc)
+                elif name in ("extent", "widths"):
+                    attr.Set(type(v)([e * 100.0 for e in v]), tc)
+    stage.GetRootLayer().Save()
+
+
+def test_a_stage_in_centimetres_reads_as_the_same_scene_in_metres(tmp_path):
+    """metersPerUnit 0.01 (Maya's centimetres): the hair, guides, body motion and every collider's
+    size and motion read as from the same stage in metres, to float32 round-off of the points."""
+    path, cm = tmp_path / "scene.usda", tmp_path / "scene_cm.usda"
+    write_stage(path, source_cfg())
+    in_centimetres(path, cm)
+    assert UsdGeom.GetStageMetersPerUnit(Usd.Stage.Open(str(cm))) == 0.01
+    (cfg, s1, g1), (cfg2, s2, g2) = read(path), read(cm)
+    assert (cfg2.frames, cfg2.fps) == (cfg.frames, cfg.fps)
+    np.testing.assert_allclose(s2.root_body, s1.root_body, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(s2.strands.rest, s1.strands.rest, rtol=0, atol=1e-8)
+    assert float(np.abs(s2.strands.rest).max()) < 2.0     # metres (the scene is 1 m across), not centimetres
+    for f in range(cfg.frames + 1):
+        np.testing.assert_allclose(g2.positions[f], g1.positions[f], rtol=0, atol=1e-8)
+    times = np.linspace(-0.04, 0.3, 35)
+    assert_same_motion(s1.motion, s2.motion, times, tol=1e-12)
+    assert [c.name for c in s2.colliders] == [c.name for c in s1.colliders]
+    for c1, c2 in zip(s1.colliders, s2.colliders):
+        assert type(c2) is type(c1)
+        for k in ("radius", "half_length", "half_height", "spin", "thickness", "friction"):
+            if hasattr(c1, k):
+                assert getattr(c2, k) == pytest.approx(getattr(c1, k), rel=1e-12), (c1.name, k)
+        if isinstance(c1, Box):
+            np.testing.assert_allclose(c2.half_extents, c1.half_extents, rtol=1e-12)
+        assert_same_motion(c1.motion, c2.motion, times, tol=1e-12)
+
+
+@pytest.mark.parametrize("mpu", [0.0, -0.01, float("inf"), float("nan")])
+def test_a_stage_whose_meters_per_unit_is_no_length_is_refused(tmp_path, mpu):
+    path = tmp_path / "scene.usda"
+    write_stage(path, source_cfg())
+    edit_stage(path, lambda s: UsdGeom.SetStageMetersPerUnit(s, mpu))
+    with pytest.raises(InputError, match=r"metersPerUnit is .*; it must be a number > 0") as info:
+        read(path)
+    assert info.value.where == f"scene.usd={path}"

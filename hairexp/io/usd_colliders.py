@@ -21,7 +21,7 @@ from pxr import Sdf, Tf, Usd, UsdGeom
 
 from hairexp.errors import InputError
 from hairexp.io.usd_layout import (COLLIDER_DEFAULTS, COLLIDERS, FRICTION, NAME, NUMBER_TYPES, PLANE_SIZE, SPIN, THICKNESS,
-                                   TOKEN_TYPES, check_type, read_motion, set_transform)
+                                   TOKEN_TYPES, check_type, read_motion, set_transform, stage_units)
 from hairexp.model.colliders import Box, Capsule, Cylinder, Plane, Sphere
 
 SUPPORTED = ("Sphere", "Cube", "Cylinder", "Capsule", "Plane")
@@ -58,6 +58,16 @@ def _number(prim, name: str, where: str, positive: bool = False, default=None) -
     if not math.isfinite(value) or value < 0 or (positive and value == 0):
         raise InputError(f"{name} must be a finite number {'> 0' if positive else '>= 0'}, got {value}", where)
     return value
+
+
+def _length(prim, name: str, where: str, positive: bool = False, default=None) -> float:
+    """``_number`` for a length, in metres: the stage's value (authored, or the schema's fallback)
+    times the stage's metres per unit (``stage_units``); hairexp's own ``default`` is in metres."""
+    value = _number(prim, name, where, positive, default)
+    attr = prim.GetAttribute(name)
+    if default is not None and not (attr and (attr.HasAuthoredValue() or attr.GetNumTimeSamples())):
+        return value
+    return value * stage_units(prim.GetStage())
 
 
 def _spin(prim, where: str) -> float:
@@ -99,24 +109,24 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
             raise InputError(f"unsupported collider type {kind or '(typeless)'}; use {', '.join(SUPPORTED)}", where)
         motion, scale = read_motion(prim, tcps, where, allow_scale=kind == "Cube")
         common = dict(name=_name(prim, where), motion=motion, where=where,
-                      thickness=_number(prim, THICKNESS, where, default=COLLIDER_DEFAULTS[THICKNESS]),
+                      thickness=_length(prim, THICKNESS, where, default=COLLIDER_DEFAULTS[THICKNESS]),
                       friction=_number(prim, FRICTION, where, default=COLLIDER_DEFAULTS[FRICTION]))
         if kind != "Cylinder" and prim.GetAttribute(SPIN).HasAuthoredValue():
             raise InputError(f"{SPIN} applies to Cylinder colliders only", where)
         if kind == "Sphere":
-            out.append(Sphere(radius=_number(prim, "radius", where, positive=True), **common))
+            out.append(Sphere(radius=_length(prim, "radius", where, positive=True), **common))
         elif kind == "Cube":
-            half = 0.5 * _number(prim, "size", where, positive=True) * scale
+            half = 0.5 * _length(prim, "size", where, positive=True) * scale
             out.append(Box(half_extents=tuple(float(h) for h in half), **common))
         elif kind == "Cylinder":
             _axis_y(prim, where)
-            out.append(Cylinder(radius=_number(prim, "radius", where, positive=True),
-                                half_height=0.5 * _number(prim, "height", where, positive=True),
+            out.append(Cylinder(radius=_length(prim, "radius", where, positive=True),
+                                half_height=0.5 * _length(prim, "height", where, positive=True),
                                 spin=_spin(prim, where), **common))
         elif kind == "Capsule":
             _axis_y(prim, where)
-            out.append(Capsule(radius=_number(prim, "radius", where, positive=True),
-                               half_length=0.5 * _number(prim, "height", where, positive=True), **common))
+            out.append(Capsule(radius=_length(prim, "radius", where, positive=True),
+                               half_length=0.5 * _length(prim, "height", where, positive=True), **common))
         else:
             _axis_y(prim, where)
             out.append(Plane(**common))

@@ -2,7 +2,8 @@
 hairexp's rigid poses (README "USD scenes").
 
 Input layout, read by ``experiment=from_usd`` and written by ``write_scene_usd``: metres
-(metersPerUnit 1), Y up, time code f is frame f, timeCodesPerSecond is the frame rate::
+(metersPerUnit 1; a stage in other units is read in metres: ``stage_units``), Y up, time code f is
+frame f, timeCodesPerSecond is the frame rate::
 
     /Root                 Xform
     /Root/Body            Xform: the rigid body the hair roots on, its transform time-sampled
@@ -154,13 +155,29 @@ def check_transform_types(prim, where: str) -> None:
         p = p.GetParent()
 
 
+def stage_units(stage) -> float:
+    """Metres per unit of the stage's lengths: its ``metersPerUnit`` where authored (0.01 for a
+    stage in centimetres, as Maya writes them), else 1 (USD's fallback is 0.01, but a stage that
+    does not say is read in metres, hairexp's own unit).  ``open_stage`` has checked it is a
+    finite number > 0."""
+    return float(UsdGeom.GetStageMetersPerUnit(stage)) if UsdGeom.StageHasAuthoredMetersPerUnit(stage) else 1.0
+
+
 def world_transform(xformable, tc, where: str) -> Gf.Matrix4d:
     """``ComputeLocalToWorldTransform(tc)``, with a Tf error (a value USD cannot compute a
-    transform from: see ``check_transform_types``) an InputError naming ``where`` and the time."""
+    transform from: see ``check_transform_types``) an InputError naming ``where`` and the time.
+    In metres: on a stage in other units (``stage_units`` s), the translation times s (the
+    transform from the prim's space in metres to the world's in metres: the rotation and any
+    scale are unit-free)."""
     try:
-        return xformable.ComputeLocalToWorldTransform(tc)
+        M = xformable.ComputeLocalToWorldTransform(tc)
     except Tf.ErrorException as exc:
         raise InputError(f"cannot compute the transform at {time_label(tc)}: {tf_message(exc)}", where) from None
+    s = stage_units(xformable.GetPrim().GetStage())
+    if s != 1.0:
+        M = Gf.Matrix4d(M)
+        M.SetRow(3, Gf.Vec4d(M[3][0] * s, M[3][1] * s, M[3][2] * s, M[3][3]))
+    return M
 
 
 def time_label(tc) -> str:

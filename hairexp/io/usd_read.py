@@ -28,7 +28,7 @@ from pxr import Sdf, Tf, Usd, UsdGeom
 from hairexp.errors import InputError, check_extent, regular_file
 from hairexp.io.usd_colliders import read_colliders
 from hairexp.io.usd_layout import (COUNTS_TYPES, POINTS_TYPES, TOKEN_TYPES, check_transform_types, check_type,
-                                   read_motion, time_label, world_transform)
+                                   read_motion, stage_units, time_label, world_transform)
 from hairexp.io.usd_layout import tf_message as _message
 from hairexp.guides.animation import MAX_FPS, MIN_FPS, GuideAnimation, check_fps
 from hairexp.guides.store import FrameStore
@@ -70,9 +70,11 @@ def open_stage(path: str) -> tuple[Usd.Stage, str]:
         log.warning("%s: USD: %s", where, line)
     _open.clear()
     _open[path] = stage
-    if UsdGeom.StageHasAuthoredMetersPerUnit(stage) and abs(UsdGeom.GetStageMetersPerUnit(stage) - 1.0) > 1e-12:
-        raise InputError(f"metersPerUnit is {UsdGeom.GetStageMetersPerUnit(stage):g}; hairexp reads metres "
-                         "(metersPerUnit = 1)", where)
+    if UsdGeom.StageHasAuthoredMetersPerUnit(stage):
+        mpu = UsdGeom.GetStageMetersPerUnit(stage)
+        if not (isinstance(mpu, float) and math.isfinite(mpu) and mpu > 0):
+            raise InputError(f"metersPerUnit is {mpu!r}; it must be a number > 0 (metres per unit of the stage's "
+                             "lengths: 1 metres, 0.01 centimetres)", where)
     if UsdGeom.GetStageUpAxis(stage) != UsdGeom.Tokens.y:
         raise InputError(f"upAxis is {UsdGeom.GetStageUpAxis(stage)}; hairexp scenes are Y up "
                          "(scene.gravity points along -Y)", where)
@@ -186,7 +188,8 @@ def read_curves(prim, tc, where: str) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(f"has no points at {time_label(tc)}", where)
     if counts is None or len(counts) == 0:
         raise InputError(f"has no curveVertexCounts at {time_label(tc)}", where)
-    return pts, counts
+    s = stage_units(prim.GetStage())
+    return (pts * s if s != 1.0 else pts), counts
 
 
 def rest_time(attr) -> Usd.TimeCode:
