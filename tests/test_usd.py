@@ -341,3 +341,41 @@ def test_a_stage_whose_meters_per_unit_is_no_length_is_refused(tmp_path, mpu):
     with pytest.raises(InputError, match=r"metersPerUnit is .*; it must be a number > 0") as info:
         read(path)
     assert info.value.where == f"scene.usd={path}"
+
+
+def test_a_z_up_stage_reads_as_the_same_scene_turned_to_y_up(tmp_path):
+    """upAxis Z (Blender's stages): the world is turned by -90 degrees about X to hairexp's Y up.
+    The test stage made Z up by turning its whole /Root by +90 degrees about X (its up, +Y, now
+    along +Z, and upAxis Z) reads as the Y-up stage: hair, guides, body and collider motions
+    within round-off.  Each prim's own axes are not turned: the capsule along its own Y stays one."""
+    import shutil
+
+    from pxr import Gf
+
+    path, zup = tmp_path / "scene.usda", tmp_path / "scene_zup.usda"
+    write_stage(path, source_cfg())
+    shutil.copyfile(path, zup)
+
+    def turn(stage):
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+        op = UsdGeom.Xformable(stage.GetPrimAtPath("/Root")).AddTransformOp()
+        op.Set(Gf.Matrix4d(1, 0, 0, 0, 0, 0, 1, 0, 0, -1, 0, 0, 0, 0, 0, 1))   # (x, y, z) -> (x, -z, y)
+    edit_stage(zup, turn)
+
+    def guides_in_usd_world(p):   # frame 0's guide points in the stage's own world (USD's view, no turn)
+        stage = Usd.Stage.Open(str(p))
+        pts = np.array(UsdGeom.BasisCurves(stage.GetPrimAtPath("/Root/Guides")).GetPointsAttr().Get(0))
+        M = np.array(UsdGeom.Xformable(stage.GetPrimAtPath("/Root/Guides")).ComputeLocalToWorldTransform(0))
+        return pts @ M[:3, :3] + M[3, :3]
+    a, b = guides_in_usd_world(path), guides_in_usd_world(zup)
+    np.testing.assert_allclose(b, np.stack([a[:, 0], -a[:, 2], a[:, 1]], 1), rtol=0, atol=1e-7)   # up is Z there
+    assert np.ptp(a[:, 1]) > 0.05   # the guides hang: a real turn, not a no-op
+    (cfg, s1, g1), (cfg2, s2, g2) = read(path), read(zup)
+    np.testing.assert_allclose(s2.strands.rest, s1.strands.rest, rtol=0, atol=1e-12)
+    for f in range(cfg.frames + 1):
+        np.testing.assert_allclose(g2.positions[f], g1.positions[f], rtol=0, atol=1e-12)
+    times = np.linspace(-0.04, 0.3, 35)
+    assert_same_motion(s1.motion, s2.motion, times, tol=1e-12)
+    assert [type(c) for c in s2.colliders] == [type(c) for c in s1.colliders]
+    for c1, c2 in zip(s1.colliders, s2.colliders):
+        assert_same_motion(c1.motion, c2.motion, times, tol=1e-12)

@@ -2,8 +2,9 @@
 hairexp's rigid poses (README "USD scenes").
 
 Input layout, read by ``experiment=from_usd`` and written by ``write_scene_usd``: metres
-(metersPerUnit 1; a stage in other units is read in metres: ``stage_units``), Y up, time code f is
-frame f, timeCodesPerSecond is the frame rate::
+(metersPerUnit 1; a stage in other units is read in metres: ``stage_units``), Y up (a Z-up stage
+is turned to Y up: ``world_transform``), time code f is frame f, timeCodesPerSecond is the frame
+rate::
 
     /Root                 Xform
     /Root/Body            Xform: the rigid body the hair roots on, its transform time-sampled
@@ -163,20 +164,32 @@ def stage_units(stage) -> float:
     return float(UsdGeom.GetStageMetersPerUnit(stage)) if UsdGeom.StageHasAuthoredMetersPerUnit(stage) else 1.0
 
 
+#: A Z-up stage's world turned to hairexp's Y up: the rotation by -90 degrees about X, (x, y, z) ->
+#: (x, z, -y), as a USD (row-vector) matrix: its up axis becomes +Y, its +Y becomes -Z
+Z_UP_TO_Y_UP = Gf.Matrix4d(1, 0, 0, 0, 0, 0, -1, 0, 0, 1, 0, 0, 0, 0, 0, 1)
+
+
 def world_transform(xformable, tc, where: str) -> Gf.Matrix4d:
     """``ComputeLocalToWorldTransform(tc)``, with a Tf error (a value USD cannot compute a
-    transform from: see ``check_transform_types``) an InputError naming ``where`` and the time.
-    In metres: on a stage in other units (``stage_units`` s), the translation times s (the
-    transform from the prim's space in metres to the world's in metres: the rotation and any
-    scale are unit-free)."""
+    transform from: see ``check_transform_types``) an InputError naming ``where`` and the time;
+    to hairexp's world (metres, Y up):
+
+    * on a stage in other units (``stage_units`` s) the translation times s: the transform from
+      the prim's space in metres to the world's in metres (rotation and any scale are unit-free;
+      the points of a prim are read times s, ``usd_read.read_curves``);
+    * on a Z-up stage (``upAxis`` Z, as Blender writes them) then turned by ``Z_UP_TO_Y_UP``: the
+      world is turned, each prim's own space is not (a Capsule along its own Y stays one)."""
     try:
         M = xformable.ComputeLocalToWorldTransform(tc)
     except Tf.ErrorException as exc:
         raise InputError(f"cannot compute the transform at {time_label(tc)}: {tf_message(exc)}", where) from None
-    s = stage_units(xformable.GetPrim().GetStage())
+    stage = xformable.GetPrim().GetStage()
+    s = stage_units(stage)
     if s != 1.0:
         M = Gf.Matrix4d(M)
         M.SetRow(3, Gf.Vec4d(M[3][0] * s, M[3][1] * s, M[3][2] * s, M[3][3]))
+    if UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z:
+        M = M * Z_UP_TO_Y_UP
     return M
 
 

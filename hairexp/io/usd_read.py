@@ -75,9 +75,9 @@ def open_stage(path: str) -> tuple[Usd.Stage, str]:
         if not (isinstance(mpu, float) and math.isfinite(mpu) and mpu > 0):
             raise InputError(f"metersPerUnit is {mpu!r}; it must be a number > 0 (metres per unit of the stage's "
                              "lengths: 1 metres, 0.01 centimetres)", where)
-    if UsdGeom.GetStageUpAxis(stage) != UsdGeom.Tokens.y:
-        raise InputError(f"upAxis is {UsdGeom.GetStageUpAxis(stage)}; hairexp scenes are Y up "
-                         "(scene.gravity points along -Y)", where)
+    if UsdGeom.GetStageUpAxis(stage) not in (UsdGeom.Tokens.y, UsdGeom.Tokens.z):
+        raise InputError(f"upAxis is {UsdGeom.GetStageUpAxis(stage)}; USD stages are Y or Z up "
+                         "(a Z-up stage is turned to hairexp's Y up)", where)
     return stage, where
 
 
