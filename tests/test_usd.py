@@ -379,3 +379,42 @@ def test_a_z_up_stage_reads_as_the_same_scene_turned_to_y_up(tmp_path):
     assert [type(c) for c in s2.colliders] == [type(c) for c in s1.colliders]
     for c1, c2 in zip(s1.colliders, s2.colliders):
         assert_same_motion(c1.motion, c2.motion, times, tol=1e-12)
+
+
+def test_hair_in_several_curve_prims_reads_as_one(tmp_path, caplog):
+    """scene.usd_hair naming a parent prim: every active BasisCurves under it is hair, in the
+    stage's order, each with its own transform (a group exported with an offset of its own).
+    The test stage's hair split into two such groups under a Scope reads as the one-prim hair
+    (rest positions within float32 round-off of the moved group); an inactive third group is
+    said and not used."""
+    from pxr import Gf, Vt
+
+    path = tmp_path / "scene.usda"
+    write_stage(path, source_cfg())
+    stage = Usd.Stage.Open(str(path))
+    hair = UsdGeom.BasisCurves(stage.GetPrimAtPath("/Root/Body/Hair"))
+    P = np.array(hair.GetPointsAttr().Get(), dtype=np.float64)
+    counts = np.array(hair.GetCurveVertexCountsAttr().Get())
+    cut = int(counts[:2].sum())
+    UsdGeom.Scope.Define(stage, "/Root/Body/Groups")
+    shift = np.array([0.01, -0.02, 0.03])
+    for name, pts, cnt, move in (("a", P[:cut], counts[:2], None), ("b", P[cut:], counts[2:], shift),
+                                 ("c", P[:cut], counts[:2], None)):
+        g = UsdGeom.BasisCurves.Define(stage, f"/Root/Body/Groups/{name}")
+        g.CreateTypeAttr("linear")
+        g.CreateCurveVertexCountsAttr(Vt.IntArray([int(c) for c in cnt]))
+        if move is not None:
+            g.AddTranslateOp().Set(Gf.Vec3d(*move))
+            pts = pts - move
+        g.CreatePointsAttr(Vt.Vec3fArray([Gf.Vec3f(*p) for p in pts]))
+    stage.GetPrimAtPath("/Root/Body/Groups/c").SetActive(False)
+    stage.GetRootLayer().Save()
+    _, one, _ = read(path)
+    with caplog.at_level(logging.WARNING):
+        _, groups, _ = read(path, **{"scene.usd_hair": "/Root/Body/Groups"})
+    assert "inactive hair curves not used: /Root/Body/Groups/c" in caplog.text
+    np.testing.assert_array_equal(groups.strands.offsets, one.strands.offsets)
+    # group b's points were stored as float32 after the shift: a float32 ulp at 0.3 m is 3e-8
+    np.testing.assert_allclose(groups.strands.rest, one.strands.rest, rtol=0, atol=6e-8)
+    np.testing.assert_allclose(groups.root_body, one.root_body, rtol=0, atol=6e-8)
+    assert not np.array_equal(groups.strands.rest, one.strands.rest)   # group b really went through its transform

@@ -185,8 +185,16 @@ def test_too_few_guide_frames(stage, tmp_path):
 
 
 def test_prim_of_the_wrong_type(stage, tmp_path):
-    assert_failed_run(usd_cfg(stage, **{"scene.usd_hair": BODY}), tmp_path / "run", f"scene.usd={stage}:{BODY}",
-                      r"is a Xform, expected BasisCurves \(the detail hair\)")
+    ball = "/Root/Colliders/ball"
+    assert_failed_run(usd_cfg(stage, **{"scene.usd_hair": ball}), tmp_path / "run", f"scene.usd={stage}:{ball}",
+                      r"is a Sphere with no active BasisCurves under it; scene.usd_hair names the detail hair")
+
+
+def test_a_hair_parent_that_holds_the_guides_is_refused(stage, tmp_path):
+    """scene.usd_hair may name a prim holding the hair curves; one that holds the guides too (the
+    stage's root) would have read the guides' first frame as hair."""
+    assert_failed_run(usd_cfg(stage, **{"scene.usd_hair": "/Root"}), tmp_path / "run", f"scene.usd={stage}:/Root",
+                      r"holds the guides \(/Root/Guides, scene.usd_guides\)")
 
 
 def test_missing_file(tmp_path):

@@ -230,14 +230,34 @@ def check_hair_rides_body(hair, body, where: str, body_path: str) -> None:
         p = p.GetParent()
 
 
-def build_usd_scene(cfg):
-    """The Scene of ``scene.usd`` (builder ``usd``); see the module doc."""
-    stage, file = open_stage(cfg.usd)
-    tcps = stage_rate(stage, file)
-    body = get_prim(stage, cfg.usd_body, file, "the rigid body", "scene.usd_body", UsdGeom.Xformable)
-    motion, _ = read_motion(body, tcps, f"{file}:{cfg.usd_body}")
-    hair = get_prim(stage, cfg.usd_hair, file, "the detail hair", "scene.usd_hair", UsdGeom.BasisCurves)
-    where = f"{file}:{cfg.usd_hair}"
+def hair_prims(stage, cfg, file: str) -> list:
+    """The detail hair's BasisCurves prims: ``scene.usd_hair`` itself, or, where it names a parent
+    (an Xform or Scope: hair exported as several curve sets, one per description or clump), every
+    active BasisCurves under it in the stage's order (inactive ones are said, not used)."""
+    root = get_prim(stage, cfg.usd_hair, file, "the detail hair", "scene.usd_hair")
+    if root.IsA(UsdGeom.BasisCurves):
+        return [root]
+    guides = Sdf.Path(cfg.usd_guides) if str(cfg.usd_guides).startswith("/") else None
+    if guides is not None and guides.HasPrefix(root.GetPath()) and stage.GetPrimAtPath(guides):
+        # the guides' frame 0 would have been read as hair
+        raise InputError(f"holds the guides ({cfg.usd_guides}, scene.usd_guides): scene.usd_hair names the detail "
+                         "hair's own BasisCurves or a prim holding only hair curves", f"{file}:{cfg.usd_hair}")
+    prims, off = [], []
+    for p in Usd.PrimRange(root, Usd.PrimAllPrimsPredicate):   # an inactive prim's children are not on the stage
+        if p.IsA(UsdGeom.BasisCurves):
+            (prims if p.IsActive() else off).append(p)
+    if off:
+        log.warning("%s:%s: inactive hair curves not used: %s", file, cfg.usd_hair, ", ".join(str(p.GetPath()) for p in off))
+    if not prims:
+        raise InputError(f"is a {root.GetTypeName() or 'typeless prim'} with no active BasisCurves under it; "
+                         "scene.usd_hair names the detail hair: a BasisCurves, or a prim holding them",
+                         f"{file}:{cfg.usd_hair}")
+    return prims
+
+
+def read_hair(hair, body, cfg, file: str) -> tuple[np.ndarray, np.ndarray]:
+    """(points in the body's space at rest, curveVertexCounts) of one hair prim, checked."""
+    where = f"{file}:{hair.GetPath()}"
     check_curve_types(hair, where)   # before the samples are counted and the rest time chosen
     tc = rest_time(UsdGeom.BasisCurves(hair).GetPointsAttr())
     samples = UsdGeom.BasisCurves(hair).GetPointsAttr().GetTimeSamples()
@@ -255,7 +275,19 @@ def build_usd_scene(cfg):
     t0 = Usd.TimeCode(0) if tc.IsDefault() else tc
     rel = (world_transform(UsdGeom.Xformable(hair), t0, where)
            * world_transform(UsdGeom.Xformable(body), t0, f"{file}:{cfg.usd_body}").GetInverse())
-    body_pts = pts if np.allclose(np.array(rel), np.eye(4), rtol=0, atol=1e-12) else apply(pts, rel)
+    return (pts if np.allclose(np.array(rel), np.eye(4), rtol=0, atol=1e-12) else apply(pts, rel)), counts
+
+
+def build_usd_scene(cfg):
+    """The Scene of ``scene.usd`` (builder ``usd``); see the module doc."""
+    stage, file = open_stage(cfg.usd)
+    tcps = stage_rate(stage, file)
+    body = get_prim(stage, cfg.usd_body, file, "the rigid body", "scene.usd_body", UsdGeom.Xformable)
+    motion, _ = read_motion(body, tcps, f"{file}:{cfg.usd_body}")
+    parts = [read_hair(h, body, cfg, file) for h in hair_prims(stage, cfg, file)]
+    body_pts = np.concatenate([p for p, _ in parts]) if len(parts) > 1 else parts[0][0]
+    counts = np.concatenate([c for _, c in parts]) if len(parts) > 1 else parts[0][1]
+    where = f"{file}:{cfg.usd_hair}"
     material = build_material(cfg.hair)
     strands = Strands.from_polylines(motion.transform(body_pts, 0.0), counts, material.linear_density, where=where)
     colliders = read_colliders(stage, cfg.usd_colliders, tcps, file)
