@@ -11,7 +11,7 @@ import logging
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
-from pxr import Usd, UsdGeom
+from pxr import Sdf, Usd, UsdGeom
 from usd_helpers import (COLLIDERS, FRAMES, GUIDE_VERTICES, MOTION, N_GUIDES, N_STRANDS, N_VERTICES, edit_stage,
                          scene_overrides, set_colliders, source_cfg, usd_cfg, vec3f, write_stage)
 
@@ -418,3 +418,51 @@ def test_hair_in_several_curve_prims_reads_as_one(tmp_path, caplog):
     np.testing.assert_allclose(groups.strands.rest, one.strands.rest, rtol=0, atol=6e-8)
     np.testing.assert_allclose(groups.root_body, one.root_body, rtol=0, atol=6e-8)
     assert not np.array_equal(groups.strands.rest, one.strands.rest)   # group b really went through its transform
+
+
+def test_colliders_along_any_axis(tmp_path):
+    """A Capsule, Cylinder or Plane lies along its ``axis`` X, Y or Z (USD's fallback is Z): the
+    distances read back are the analytic ones of the shape along that axis (a moving and turning
+    prim included), the Plane's half space is below the plane normal to its axis, and a
+    Cylinder's spin turns about its axis."""
+    from pxr import Gf
+    from scipy.spatial.transform import Rotation
+
+    path = tmp_path / "scene.usda"
+    write_stage(path, source_cfg(colliders=[]))
+    stage = Usd.Stage.Open(str(path))
+    UsdGeom.Scope.Define(stage, "/Root/Colliders")
+    R1 = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    cap = UsdGeom.Capsule.Define(stage, "/Root/Colliders/cap")            # axis not authored: Z
+    cap.CreateRadiusAttr(0.05), cap.CreateHeightAttr(0.2)
+    op = cap.AddTransformOp()
+    m0, m1 = np.eye(4), np.eye(4)
+    m0[3, :3] = [0.4, -0.3, 0.2]
+    m1[:3, :3], m1[3, :3] = R1.T, [0.5, -0.3, 0.1]    # USD rows: the linear part transposed
+    op.Set(Gf.Matrix4d(m0.tolist()), 0), op.Set(Gf.Matrix4d(m1.tolist()), 4)
+    cyl = UsdGeom.Cylinder.Define(stage, "/Root/Colliders/wheel")
+    cyl.CreateAxisAttr("X"), cyl.CreateRadiusAttr(0.1), cyl.CreateHeightAttr(0.04)
+    cyl.AddTranslateOp().Set(Gf.Vec3d(-0.5, -0.2, 0.0))
+    cyl.GetPrim().CreateAttribute("hairexp:spin", Sdf.ValueTypeNames.Double, custom=True).Set(3.0)
+    ground = UsdGeom.Plane.Define(stage, "/Root/Colliders/ground")
+    ground.CreateAxisAttr("Z")
+    ground.AddTranslateOp().Set(Gf.Vec3d(0.0, 0.0, -0.7))
+    stage.GetRootLayer().Save()
+    _, scene, _ = read(path)
+    by = {c.name: c for c in scene.colliders}
+    assert isinstance(by["cap"], Capsule) and isinstance(by["wheel"], Cylinder) and isinstance(by["ground"], Plane)
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-1.0, 1.0, size=(400, 3))
+    for k, (R, T) in ((0, (np.eye(3), m0[3, :3])), (4, (R1, m1[3, :3]))):
+        t = k / FPS
+        u = (x - T) @ R                                   # the prim's own coordinates
+        zc = np.clip(u[:, 2], -0.1, 0.1)                  # the capsule's segment along its own Z
+        want = np.linalg.norm(u - np.stack([0 * zc, 0 * zc, zc], 1), axis=1) - 0.05
+        np.testing.assert_allclose(by["cap"].distance(x, t) + by["cap"].thickness, want, rtol=0, atol=1e-12)
+    u = x - [-0.5, -0.2, 0.0]
+    d = np.stack([np.hypot(u[:, 1], u[:, 2]) - 0.1, np.abs(u[:, 0]) - 0.02], 1)
+    want = np.minimum(d.max(1), 0.0) + np.linalg.norm(np.maximum(d, 0.0), axis=1)
+    np.testing.assert_allclose(by["wheel"].distance(x, 0.0) + by["wheel"].thickness, want, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(by["wheel"].surface_velocity(x, 0.0),
+                               3.0 * np.cross([1.0, 0.0, 0.0], u * [0.0, 1.0, 1.0]), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(by["ground"].distance(x, 0.0) + by["ground"].thickness, x[:, 2] + 0.7, rtol=0, atol=1e-12)

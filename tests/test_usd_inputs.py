@@ -95,8 +95,8 @@ def add_mesh_collider(stage):
     UsdGeom.Mesh.Define(stage, "/Root/Colliders/rock")
 
 
-def capsule_along_z(stage):
-    UsdGeom.Capsule.Define(stage, "/Root/Colliders/pole").CreateAxisAttr("Z")
+def capsule_along_w(stage):
+    UsdGeom.Capsule.Define(stage, "/Root/Colliders/pole").CreateAxisAttr("W")
 
 
 def animate_hair_transform(stage):
@@ -151,7 +151,7 @@ CASES = {  # name: (edit, prim, message regex)
     "body_sheared": (body_matrix_at(5, SHEAR), BODY, r"transform at time code 5 is not rigid: it shears"),
     "x_up": (lambda s: s.SetMetadata("upAxis", "X"), None, r"upAxis is X; USD stages are Y or Z up"),
     "mesh_collider": (add_mesh_collider, "/Root/Colliders/rock", r"unsupported collider type Mesh"),
-    "capsule_axis": (capsule_along_z, "/Root/Colliders/pole", r"axis is Z"),
+    "capsule_axis": (capsule_along_w, "/Root/Colliders/pole", r"axis is 'W'; a Capsule lies along X, Y or Z"),
     "negative_radius": (set_attr("/Root/Colliders/ball", "radius", -1.0), "/Root/Colliders/ball",
                         r"radius must be a finite number > 0, got -1"),
     "nan_friction": (set_attr("/Root/Colliders/ball", "hairexp:friction", float("nan")), "/Root/Colliders/ball",

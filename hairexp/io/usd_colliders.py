@@ -3,9 +3,12 @@
 * sphere: Sphere ``radius``;
 * box: Cube of ``size`` 2 whose transform scales by ``half_extents`` (in general half extents
   = size / 2 x the scale);
-* cylinder: Cylinder, ``axis`` Y, ``radius``, ``height`` = 2 x half_height, ``hairexp:spin`` (rad/s);
-* capsule: Capsule, ``axis`` Y, ``radius``, ``height`` = 2 x half_length (the cylindrical part);
-* plane: Plane, ``axis`` Y: the half space below the prim's y = 0.
+* cylinder: Cylinder, ``axis`` (written Y; read X, Y or Z), ``radius``, ``height`` = 2 x
+  half_height, ``hairexp:spin`` (rad/s, about the axis);
+* capsule: Capsule, ``axis`` (as the cylinder's), ``radius``, ``height`` = 2 x half_length (the
+  cylindrical part);
+* plane: Plane, ``axis`` (as the cylinder's): the half space below the plane through the prim's
+  origin, normal to its axis (written Y: below the prim's y = 0).
 
 Each has the custom attributes ``hairexp:thickness`` (m) and ``hairexp:friction`` (defaults
 0.002 and 0.3, as in the config), and a rigid transform, time-sampled when the collider moves
@@ -16,8 +19,11 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 
+import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom
+from scipy.spatial.transform import Rotation
 
 from hairexp.errors import InputError
 from hairexp.io.usd_layout import (COLLIDER_DEFAULTS, COLLIDERS, FRICTION, NAME, NUMBER_TYPES, PLANE_SIZE, SPIN, THICKNESS,
@@ -77,12 +83,27 @@ def _spin(prim, where: str) -> float:
     return float(value)
 
 
-def _axis_y(prim, where: str) -> None:
+#: The fixed rotation of the prim's space that takes hairexp's collider axis (its own Y) onto the
+#: prim's ``axis``: X by -90 degrees about Z, Z by +90 degrees about X (column vectors).
+AXIS_TURNS = {"X": np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+              "Y": np.eye(3),
+              "Z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])}
+
+
+def _along_axis(prim, motion, where: str):
+    """The collider's motion with its own Y turned onto the prim's ``axis`` (X, Y or Z; USD's
+    fallback for Capsule, Cylinder and Plane is Z): each keyframe's rotation R becomes R Q
+    (``AXIS_TURNS``).  Between keyframes the motion is linear (slerp), and slerp(R_a Q, R_b Q) =
+    slerp(R_a, R_b) Q, so the turned motion is the prim's at every time."""
     check_type(prim.GetAttribute("axis"), TOKEN_TYPES, where)
     axis = prim.GetAttribute("axis").Get()
-    if axis != UsdGeom.Tokens.y:
-        raise InputError(f"axis is {axis}; hairexp's {prim.GetTypeName()} colliders lie along Y "
-                         "(rotate the prim instead)", where)
+    if axis not in AXIS_TURNS:
+        raise InputError(f"axis is {axis!r}; a {prim.GetTypeName()} lies along X, Y or Z", where)
+    if axis == "Y":
+        return motion
+    Q = AXIS_TURNS[axis]
+    rots = [(Rotation.from_rotvec(r) * Rotation.from_matrix(Q)).as_rotvec() for r in motion.rotvecs]
+    return replace(motion, rotvecs=np.asarray(rots))
 
 
 def read_colliders(stage, path: str, tcps: float, file: str) -> list:
@@ -119,16 +140,16 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
             half = 0.5 * _length(prim, "size", where, positive=True) * scale
             out.append(Box(half_extents=tuple(float(h) for h in half), **common))
         elif kind == "Cylinder":
-            _axis_y(prim, where)
+            common["motion"] = _along_axis(prim, motion, where)
             out.append(Cylinder(radius=_length(prim, "radius", where, positive=True),
                                 half_height=0.5 * _length(prim, "height", where, positive=True),
                                 spin=_spin(prim, where), **common))
         elif kind == "Capsule":
-            _axis_y(prim, where)
+            common["motion"] = _along_axis(prim, motion, where)
             out.append(Capsule(radius=_length(prim, "radius", where, positive=True),
                                half_length=0.5 * _length(prim, "height", where, positive=True), **common))
         else:
-            _axis_y(prim, where)
+            common["motion"] = _along_axis(prim, motion, where)
             out.append(Plane(**common))
     return out
 
