@@ -466,3 +466,47 @@ def test_colliders_along_any_axis(tmp_path):
     np.testing.assert_allclose(by["wheel"].surface_velocity(x, 0.0),
                                3.0 * np.cross([1.0, 0.0, 0.0], u * [0.0, 1.0, 1.0]), rtol=0, atol=1e-12)
     np.testing.assert_allclose(by["ground"].distance(x, 0.0) + by["ground"].thickness, x[:, 2] + 0.7, rtol=0, atol=1e-12)
+
+
+def test_scaled_collider_prims_read_with_their_sizes(tmp_path):
+    """A collider prim scaled by its transform (as DCC artists size primitives): a Sphere scaled
+    alike on its three axes, a Capsule scaled across its axis alike and along it by another
+    factor, a Plane scaled any way; the sizes read are the attributes times the scales.  A Sphere
+    scaled unevenly is refused, naming the scale."""
+    from pxr import Gf
+
+    path = tmp_path / "scene.usda"
+    write_stage(path, source_cfg(colliders=[]))
+    stage = Usd.Stage.Open(str(path))
+    UsdGeom.Scope.Define(stage, "/Root/Colliders")
+    ball = UsdGeom.Sphere.Define(stage, "/Root/Colliders/ball")
+    ball.CreateRadiusAttr(1.0)
+    ball.AddTranslateOp().Set(Gf.Vec3d(0.0, -0.5, 0.4))
+    ball.AddRotateXYZOp().Set(Gf.Vec3f(10.0, 20.0, 30.0))
+    ball.AddScaleOp().Set(Gf.Vec3f(0.05, 0.05, 0.05))
+    pole = UsdGeom.Capsule.Define(stage, "/Root/Colliders/pole")
+    pole.CreateAxisAttr("X"), pole.CreateRadiusAttr(1.0), pole.CreateHeightAttr(1.0)
+    pole.AddTranslateOp().Set(Gf.Vec3d(0.0, -0.2, -0.4))
+    pole.AddScaleOp().Set(Gf.Vec3f(0.3, 0.02, 0.02))
+    ground = UsdGeom.Plane.Define(stage, "/Root/Colliders/ground")
+    ground.CreateAxisAttr("Y")
+    ground.AddTranslateOp().Set(Gf.Vec3d(0.0, -0.9, 0.0))
+    ground.AddScaleOp().Set(Gf.Vec3f(7.0, 1.0, 3.0))
+    stage.GetRootLayer().Save()
+    _, scene, _ = read(path)
+    by = {c.name: c for c in scene.colliders}
+    assert by["ball"].radius == pytest.approx(0.05, rel=1e-6)
+    assert by["pole"].radius == pytest.approx(0.02, rel=1e-6) and by["pole"].half_length == pytest.approx(0.15, rel=1e-6)
+    x = np.random.default_rng(5).uniform(-1.0, 1.0, size=(300, 3))
+    np.testing.assert_allclose(by["ball"].distance(x, 0.0) + by["ball"].thickness,
+                               np.linalg.norm(x - [0.0, -0.5, 0.4], axis=1) - 0.05, rtol=0, atol=1e-7)
+    u = x - [0.0, -0.2, -0.4]
+    xc = np.clip(u[:, 0], -0.15, 0.15)
+    np.testing.assert_allclose(by["pole"].distance(x, 0.0) + by["pole"].thickness,
+                               np.linalg.norm(u - np.stack([xc, 0 * xc, 0 * xc], 1), axis=1) - 0.02, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(by["ground"].distance(x, 0.0) + by["ground"].thickness, x[:, 1] + 0.9, rtol=0, atol=1e-12)
+
+    edit_stage(path, lambda s: UsdGeom.Xformable(s.GetPrimAtPath("/Root/Colliders/ball")).GetOrderedXformOps()[2].Set(
+        Gf.Vec3f(0.05, 0.06, 0.05)))
+    with pytest.raises(InputError, match=r"scales by \[0.05.*a Sphere collider may be scaled only alike along X, Y, Z"):
+        read(path)

@@ -106,6 +106,18 @@ def _along_axis(prim, motion, where: str):
     return replace(motion, rotvecs=np.asarray(rots))
 
 
+def _uniform(scale, axes: tuple, prim, where: str, why: str) -> float:
+    """The prim's scale along ``axes`` (its transform's, constant in time: ``read_motion``), which
+    must agree (to 1e-6: USD stores float scales), as one number: the factor of the sizes across
+    them (a Sphere's radius; a Capsule's or Cylinder's radius across its axis)."""
+    vals = np.asarray(scale, dtype=np.float64)[list(axes)]
+    if np.abs(vals - vals.mean()).max() > 1e-6 * vals.max():
+        raise InputError(f"its transform scales by {np.asarray(scale).tolist()}: a {prim.GetTypeName()} collider may be "
+                         f"scaled only alike along {', '.join('XYZ'[i] for i in axes)} ({why}); put the sizes in its "
+                         "attributes", where)
+    return float(vals.mean())
+
+
 def read_colliders(stage, path: str, tcps: float, file: str) -> list:
     """The colliders under ``path``: none when the prim does not exist at the default path
     ``/Root/Colliders`` (a stage without colliders); a ``scene.usd_colliders`` set to another path
@@ -128,26 +140,29 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
         kind = prim.GetTypeName()
         if kind not in SUPPORTED:
             raise InputError(f"unsupported collider type {kind or '(typeless)'}; use {', '.join(SUPPORTED)}", where)
-        motion, scale = read_motion(prim, tcps, where, allow_scale=kind == "Cube")
+        motion, scale = read_motion(prim, tcps, where, allow_scale=True)
         common = dict(name=_name(prim, where), motion=motion, where=where,
                       thickness=_length(prim, THICKNESS, where, default=COLLIDER_DEFAULTS[THICKNESS]),
                       friction=_number(prim, FRICTION, where, default=COLLIDER_DEFAULTS[FRICTION]))
         if kind != "Cylinder" and prim.GetAttribute(SPIN).HasAuthoredValue():
             raise InputError(f"{SPIN} applies to Cylinder colliders only", where)
         if kind == "Sphere":
-            out.append(Sphere(radius=_length(prim, "radius", where, positive=True), **common))
+            s = _uniform(scale, (0, 1, 2), prim, where, "a Sphere stays a sphere")
+            out.append(Sphere(radius=s * _length(prim, "radius", where, positive=True), **common))
         elif kind == "Cube":
             half = 0.5 * _length(prim, "size", where, positive=True) * scale
             out.append(Box(half_extents=tuple(float(h) for h in half), **common))
-        elif kind == "Cylinder":
+        elif kind in ("Cylinder", "Capsule"):
             common["motion"] = _along_axis(prim, motion, where)
-            out.append(Cylinder(radius=_length(prim, "radius", where, positive=True),
-                                half_height=0.5 * _length(prim, "height", where, positive=True),
-                                spin=_spin(prim, where), **common))
-        elif kind == "Capsule":
-            common["motion"] = _along_axis(prim, motion, where)
-            out.append(Capsule(radius=_length(prim, "radius", where, positive=True),
-                               half_length=0.5 * _length(prim, "height", where, positive=True), **common))
+            a = "XYZ".index(str(prim.GetAttribute("axis").Get()))
+            s_r = _uniform(scale, tuple(i for i in range(3) if i != a), prim, where,
+                           f"its cross-section stays round (the axis is {'XYZ'[a]})")
+            radius = s_r * _length(prim, "radius", where, positive=True)
+            half = 0.5 * float(scale[a]) * _length(prim, "height", where, positive=True)
+            if kind == "Cylinder":
+                out.append(Cylinder(radius=radius, half_height=half, spin=_spin(prim, where), **common))
+            else:
+                out.append(Capsule(radius=radius, half_length=half, **common))
         else:
             common["motion"] = _along_axis(prim, motion, where)
             out.append(Plane(**common))

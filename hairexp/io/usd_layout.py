@@ -273,7 +273,7 @@ def read_motion(prim, tcps: float, where: str, allow_scale: bool = False) -> tup
             # (a rigid prim's scale is 1 within RIGID_TOL at every time, checked above: its round-off may
             # differ between samples; the body was refused as "a collider" for 1.0000001; round 23)
             raise InputError(f"the scale changes at {time_label(tc)} ({scale0.tolist()} -> {scale.tolist()}); "
-                             "a Cube collider's scale is its size, which cannot change", where)
+                             "a collider's scale is part of its size, which cannot change", where)
         rots.append(Rotation.from_matrix(R).as_rotvec())
         trans.append(T)
     secs = [0.0] if isinstance(times[0], Usd.TimeCode) else [t / tcps for t in times]
