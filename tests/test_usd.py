@@ -510,3 +510,31 @@ def test_scaled_collider_prims_read_with_their_sizes(tmp_path):
         Gf.Vec3f(0.05, 0.06, 0.05)))
     with pytest.raises(InputError, match=r"scales by \[0.05.*a Sphere collider may be scaled only alike along X, Y, Z"):
         read(path)
+
+
+def test_a_stage_without_a_body_prim(tmp_path):
+    """scene.usd_body=none: the hair is read in the stage's world at rest and moved by the config's
+    scene.motion.  Under an animated prim it is refused (that prim is its body); with the body
+    prim's transform made still, the hair reads where the stage puts it and the motion is the
+    config's."""
+    from hairexp.model.builders import build_motion
+
+    path = tmp_path / "scene.usda"
+    write_stage(path, source_cfg())
+    with pytest.raises(InputError, match=r"the transform of /Root/Body is animated: .*scene.usd_body=none, moves "
+                                         r"with scene.motion only"):
+        read(path, **{"scene.usd_body": "none"})
+    _, with_body, _ = read(path)
+
+    def still_body(stage):
+        for op in UsdGeom.Xformable(stage.GetPrimAtPath("/Root/Body")).GetOrderedXformOps():
+            v = op.Get(0)
+            op.GetAttr().Clear()
+            op.Set(v)
+    edit_stage(path, still_body)
+    cfg, scene, _ = read(path, **{"scene.usd_body": "none"})
+    np.testing.assert_allclose(scene.strands.rest, with_body.strands.rest, rtol=0, atol=1e-12)
+    want = build_motion(cfg.scene.motion)
+    assert_same_motion(want, scene.motion, np.linspace(0.0, 0.3, 7))
+    np.testing.assert_allclose(scene.motion.transform(scene.root_body, 0.0), with_body.motion.transform(with_body.root_body, 0.0),
+                               rtol=0, atol=1e-12)

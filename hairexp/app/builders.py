@@ -26,7 +26,7 @@ def build_scene(cfg) -> Scene:
     """The Scene of ``cfg`` (the ``scene`` config group), at rest and unsettled."""
     builder = str(getattr(cfg.builder, "value", cfg.builder))
     if builder == "usd":  # a user's USD stage (pxr is imported only then)
-        from hairexp.io.usd_read import build_usd_scene
+        from hairexp.io.usd_read import build_usd_scene, no_body
 
         if not str(cfg.usd or "").strip():   # the error first: the warnings spoke of a stage there is not (round 24)
             raise InputError("the path of a USD stage is required (scene.builder=usd or guides.source=usd)",
@@ -36,7 +36,7 @@ def build_scene(cfg) -> Scene:
             logging.getLogger("hairexp").warning(
                 "%s not used: the hair comes from the stage scene.usd (these keys shape the hair of the procedural "
                 "builders, scene.builder=wisp or ponytail)", ", ".join(unused) + (" is" if len(unused) == 1 else " are"))
-        if changed_keys(cfg, SceneConfig(), ("motion",)):   # ignored without a word (probe, round 14); the
+        if changed_keys(cfg, SceneConfig(), ("motion",)) and not no_body(cfg):   # ignored without a word (probe, round 14); the
             # config's colliders are added to the stage's (README), so they are not said here (round 15)
             logging.getLogger("hairexp").warning(
                 "scene.motion is not used: the body's motion comes from the stage scene.usd (its prim scene.usd_body)")

@@ -184,7 +184,7 @@ class SceneConfig:
     settle_dt: float = 0.04             # s, the settle phase's step (fixed: the same settled state at every run dt)
     # builder usd / guides.source usd: the stage and its prims (README "USD scenes")
     usd: str = ""                       # path of a .usda/.usdc/.usd stage
-    usd_body: str = "/Root/Body"        # Xform, transform time-sampled
+    usd_body: str = "/Root/Body"        # Xform, transform time-sampled; none: no body prim, scene.motion moves the hair
     usd_hair: str = "/Root/Body/Hair"   # BasisCurves at rest, body space
     usd_guides: str = "/Root/Guides"    # BasisCurves, world space, one time sample per frame
     usd_colliders: str = "/Root/Colliders"  # optional: Sphere, Cube, Cylinder, Capsule, Plane children

@@ -32,7 +32,7 @@ from hairexp.io.usd_layout import (COUNTS_TYPES, POINTS_TYPES, TOKEN_TYPES, chec
 from hairexp.io.usd_layout import tf_message as _message
 from hairexp.guides.animation import MAX_FPS, MIN_FPS, GuideAnimation, check_fps
 from hairexp.guides.store import FrameStore
-from hairexp.model.builders import build_collider, build_material, gravity
+from hairexp.model.builders import build_collider, build_material, build_motion, gravity
 from hairexp.model.scene import Scene
 from hairexp.model.strands import N_ROOT_VERTICES, Strands, check_folds, validate_polylines
 
@@ -217,13 +217,17 @@ def check_hair_rides_body(hair, body, where: str, body_path: str) -> None:
     dropped without a word (probe of issue 12)."""
     shared = set()
     p = body
-    while p and p.IsValid():
+    while p is not None and p and p.IsValid():
         shared.add(p.GetPath())
         p = p.GetParent()
     p = hair
     while p and p.IsValid() and p.GetPath() not in shared:
         xf = UsdGeom.Xformable(p)
         if xf and xf.TransformMightBeTimeVarying():
+            if body is None:
+                raise InputError(f"the transform of {p.GetPath()} is animated: the hair is read at rest and, with "
+                                 "scene.usd_body=none, moves with scene.motion only; name the animated prim as the "
+                                 "body (scene.usd_body), or remove the animation", where)
             raise InputError(f"the transform of {p.GetPath()} is animated: the hair is read at rest and moves with "
                              f"the body ({body_path}) only; animate the body's transform instead, or remove the "
                              "animation", where)
@@ -271,21 +275,34 @@ def read_hair(hair, body, cfg, file: str) -> tuple[np.ndarray, np.ndarray]:
     check_extent(pts, where, counts)
     check_folds(pts, counts, where)   # after the extent: a point 1e30 away is a unit error, not a fold
     check_hair_rides_body(hair, body, where, cfg.usd_body)
-    # hair space -> body space at the rest time (identity for hair authored under the body)
+    # hair space -> body space at the rest time (identity for hair authored under the body); no body
+    # prim (scene.usd_body=none): hair space -> world (``build_usd_scene`` takes it to scene.motion's body)
     t0 = Usd.TimeCode(0) if tc.IsDefault() else tc
-    rel = (world_transform(UsdGeom.Xformable(hair), t0, where)
-           * world_transform(UsdGeom.Xformable(body), t0, f"{file}:{cfg.usd_body}").GetInverse())
+    rel = world_transform(UsdGeom.Xformable(hair), t0, where)
+    if body is not None:
+        rel = rel * world_transform(UsdGeom.Xformable(body), t0, f"{file}:{cfg.usd_body}").GetInverse()
     return (pts if np.allclose(np.array(rel), np.eye(4), rtol=0, atol=1e-12) else apply(pts, rel)), counts
+
+
+def no_body(cfg) -> bool:
+    """``scene.usd_body=none`` (or empty): the stage has no body prim; the hair is read in world
+    space and moved by the config's ``scene.motion``."""
+    return str(cfg.usd_body).strip().lower() in ("", "none", "null")
 
 
 def build_usd_scene(cfg):
     """The Scene of ``scene.usd`` (builder ``usd``); see the module doc."""
     stage, file = open_stage(cfg.usd)
     tcps = stage_rate(stage, file)
-    body = get_prim(stage, cfg.usd_body, file, "the rigid body", "scene.usd_body", UsdGeom.Xformable)
-    motion, _ = read_motion(body, tcps, f"{file}:{cfg.usd_body}")
+    if no_body(cfg):   # a groom on no moving prim: the config's scene.motion carries it (still by default)
+        body, motion = None, build_motion(cfg.motion)
+    else:
+        body = get_prim(stage, cfg.usd_body, file, "the rigid body", "scene.usd_body", UsdGeom.Xformable)
+        motion, _ = read_motion(body, tcps, f"{file}:{cfg.usd_body}")
     parts = [read_hair(h, body, cfg, file) for h in hair_prims(stage, cfg, file)]
     body_pts = np.concatenate([p for p, _ in parts]) if len(parts) > 1 else parts[0][0]
+    if body is None:   # the stage's world at rest -> scene.motion's body space at t = 0
+        body_pts = motion.to_body(body_pts, 0.0)
     counts = np.concatenate([c for _, c in parts]) if len(parts) > 1 else parts[0][1]
     where = f"{file}:{cfg.usd_hair}"
     material = build_material(cfg.hair)
