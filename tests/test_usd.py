@@ -538,3 +538,36 @@ def test_a_stage_without_a_body_prim(tmp_path):
     assert_same_motion(want, scene.motion, np.linspace(0.0, 0.3, 7))
     np.testing.assert_allclose(scene.motion.transform(scene.root_body, 0.0), with_body.motion.transform(with_body.root_body, 0.0),
                                rtol=0, atol=1e-12)
+
+
+def test_colliders_grouped_at_any_depth(tmp_path, caplog):
+    """Colliders may sit in groups (Xform, Scope, typeless prims) under scene.usd_colliders, at any
+    depth; a group's transform moves its colliders; an inactive one is said and not used; two of
+    one name (in two groups) are refused, naming both."""
+    from pxr import Gf
+
+    path = tmp_path / "scene.usda"
+    write_stage(path, source_cfg(colliders=[]))
+    stage = Usd.Stage.Open(str(path))
+    UsdGeom.Scope.Define(stage, "/Root/Colliders")
+    grp = UsdGeom.Xform.Define(stage, "/Root/Colliders/props")
+    grp.AddTranslateOp().Set(Gf.Vec3d(0.0, -0.5, 0.0))
+    UsdGeom.Sphere.Define(stage, "/Root/Colliders/props/ball").CreateRadiusAttr(0.05)
+    stage.DefinePrim("/Root/Colliders/props/more")                         # typeless group
+    cap = UsdGeom.Capsule.Define(stage, "/Root/Colliders/props/more/pole")
+    cap.CreateAxisAttr("Y"), cap.CreateRadiusAttr(0.02), cap.CreateHeightAttr(0.2)
+    cap.AddTranslateOp().Set(Gf.Vec3d(0.3, 0.0, 0.0))
+    off = UsdGeom.Sphere.Define(stage, "/Root/Colliders/props/more/off")
+    off.CreateRadiusAttr(0.05)
+    off.GetPrim().SetActive(False)
+    stage.GetRootLayer().Save()
+    with caplog.at_level(logging.WARNING):
+        _, scene, _ = read(path)
+    assert "inactive collider prim(s) not used: /Root/Colliders/props/more/off" in caplog.text
+    by = {c.name: c for c in scene.colliders}
+    assert sorted(by) == ["ball", "pole"]
+    np.testing.assert_allclose(by["ball"].motion.pose(0.0)[1], [0.0, -0.5, 0.0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(by["pole"].motion.pose(0.0)[1], [0.3, -0.5, 0.0], rtol=0, atol=1e-12)
+    edit_stage(path, lambda s: UsdGeom.Sphere.Define(s, "/Root/Colliders/props/more/ball").CreateRadiusAttr(0.01))
+    with pytest.raises(InputError, match=r"a second collider named 'ball' \(the first is /Root/Colliders/props/ball\)"):
+        read(path)

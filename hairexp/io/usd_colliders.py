@@ -118,6 +118,10 @@ def _uniform(scale, axes: tuple, prim, where: str, why: str) -> float:
     return float(vals.mean())
 
 
+#: Prim types that group colliders (their children are read as colliders or groups in turn).
+GROUPS = ("Xform", "Scope", "")
+
+
 def read_colliders(stage, path: str, tcps: float, file: str) -> list:
     """The colliders under ``path``: none when the prim does not exist at the default path
     ``/Root/Colliders`` (a stage without colliders); a ``scene.usd_colliders`` set to another path
@@ -131,17 +135,34 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
     if root.GetTypeName() in SUPPORTED:   # one collider named instead of their parent: it ran with none
         raise InputError(f"is a {root.GetTypeName()}: scene.usd_colliders names the parent of the colliders (a Scope "
                          f"or Xform), each collider a child prim of it ({path}/<name>)", f"{file}:{path}")
-    out = []
-    off = [str(c.GetPath()) for c in root.GetAllChildren() if not c.IsActive()]
+    out, seen = [], {}
+    prims, off = [], []
+    it = iter(Usd.PrimRange(root, Usd.PrimAllPrimsPredicate))
+    next(it)   # the root itself
+    for prim in it:   # children, and the children of groups (Xform, Scope, typeless) below them
+        if not prim.IsActive():
+            off.append(str(prim.GetPath()))
+            it.PruneChildren()
+        elif prim.GetTypeName() in GROUPS:
+            continue
+        else:
+            prims.append(prim)
+            it.PruneChildren()   # a collider's own children are not colliders
     if off:   # USD's way to switch a prim off; it was dropped without a word (probe of issue 12, round 12)
         logging.getLogger("hairexp").warning("%s: inactive collider prim(s) not used: %s", file, ", ".join(off))
-    for prim in root.GetChildren():
+    for prim in prims:
         where = f"{file}:{prim.GetPath()}"
         kind = prim.GetTypeName()
         if kind not in SUPPORTED:
-            raise InputError(f"unsupported collider type {kind or '(typeless)'}; use {', '.join(SUPPORTED)}", where)
+            raise InputError(f"unsupported collider type {kind}; use {', '.join(SUPPORTED)} (grouped in Xform or "
+                             "Scope prims at any depth)", where)
         motion, scale = read_motion(prim, tcps, where, allow_scale=True)
-        common = dict(name=_name(prim, where), motion=motion, where=where,
+        name = _name(prim, where)
+        if name in seen:   # two groups' prims of one name: ``measure.collider`` could not tell them apart
+            raise InputError(f"a second collider named {name!r} (the first is {seen[name]}): give one a custom string "
+                             f"{NAME}", where)
+        seen[name] = prim.GetPath()
+        common = dict(name=name, motion=motion, where=where,
                       thickness=_length(prim, THICKNESS, where, default=COLLIDER_DEFAULTS[THICKNESS]),
                       friction=_number(prim, FRICTION, where, default=COLLIDER_DEFAULTS[FRICTION]))
         if kind != "Cylinder" and prim.GetAttribute(SPIN).HasAuthoredValue():
