@@ -571,3 +571,15 @@ def test_colliders_grouped_at_any_depth(tmp_path, caplog):
     edit_stage(path, lambda s: UsdGeom.Sphere.Define(s, "/Root/Colliders/props/more/ball").CreateRadiusAttr(0.01))
     with pytest.raises(InputError, match=r"a second collider named 'ball' \(the first is /Root/Colliders/props/ball\)"):
         read(path)
+
+
+def test_a_length_error_on_a_stage_in_other_units_names_the_unit(tmp_path):
+    """A stage whose metersPerUnit makes its hair microscopic: the zero-length edge it then has is
+    said with the unit that made it so."""
+    path = tmp_path / "scene.usda"
+    write_stage(path, source_cfg())
+    edit_stage(path, lambda s: UsdGeom.SetStageMetersPerUnit(s, 1e-9))
+    with pytest.raises(InputError, match=r"zero-length edge .*\(the stage's lengths are read in metres: its values x "
+                                         r"its metersPerUnit 1e-09\)") as info:
+        read(path)
+    assert info.value.where == f"scene.usd={path}:/Root/Body/Hair"

@@ -271,9 +271,10 @@ def read_hair(hair, body, cfg, file: str) -> tuple[np.ndarray, np.ndarray]:
             "its animation is not used (animate the body, %s, or the guides instead)", where, len(samples),
             "the default value" if tc.IsDefault() else "time code 0", cfg.usd_body)
     pts, counts = read_curves(hair, tc, where)
-    validate_polylines(pts, counts, where, min_vertices=N_ROOT_VERTICES + 1, folds=False)  # before any transform
-    check_extent(pts, where, counts)
-    check_folds(pts, counts, where)   # after the extent: a point 1e30 away is a unit error, not a fold
+    with units_hint(hair.GetStage()):
+        validate_polylines(pts, counts, where, min_vertices=N_ROOT_VERTICES + 1, folds=False)  # before any transform
+        check_extent(pts, where, counts)
+        check_folds(pts, counts, where)   # after the extent: a point 1e30 away is a unit error, not a fold
     check_hair_rides_body(hair, body, where, cfg.usd_body)
     # hair space -> body space at the rest time (identity for hair authored under the body); no body
     # prim (scene.usd_body=none): hair space -> world (``build_usd_scene`` takes it to scene.motion's body)
@@ -282,6 +283,27 @@ def read_hair(hair, body, cfg, file: str) -> tuple[np.ndarray, np.ndarray]:
     if body is not None:
         rel = rel * world_transform(UsdGeom.Xformable(body), t0, f"{file}:{cfg.usd_body}").GetInverse()
     return (pts if np.allclose(np.array(rel), np.eye(4), rtol=0, atol=1e-12) else apply(pts, rel)), counts
+
+
+class units_hint:
+    """An InputError raised inside (a length check: a zero-length edge, a point or translation
+    too far from the origin) says the stage's unit when it is not the metre: a stage of
+    metersPerUnit 1e-9 had 'a zero-length edge' of 1e-11 m."""
+
+    def __init__(self, stage):
+        self.s = stage_units(stage)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        if exc is None or not isinstance(exc, InputError) or self.s == 1.0:
+            return False
+        text = str(exc)
+        if exc.where and text.startswith(f"{exc.where}: "):
+            text = text[len(exc.where) + 2:]
+        raise type(exc)(f"{text} (the stage's lengths are read in metres: its values x its metersPerUnit "
+                        f"{self.s:g})", exc.where) from exc
 
 
 def no_body(cfg) -> bool:
@@ -298,7 +320,8 @@ def build_usd_scene(cfg):
         body, motion = None, build_motion(cfg.motion)
     else:
         body = get_prim(stage, cfg.usd_body, file, "the rigid body", "scene.usd_body", UsdGeom.Xformable)
-        motion, _ = read_motion(body, tcps, f"{file}:{cfg.usd_body}")
+        with units_hint(stage):
+            motion, _ = read_motion(body, tcps, f"{file}:{cfg.usd_body}")
     parts = [read_hair(h, body, cfg, file) for h in hair_prims(stage, cfg, file)]
     body_pts = np.concatenate([p for p, _ in parts]) if len(parts) > 1 else parts[0][0]
     if body is None:   # the stage's world at rest -> scene.motion's body space at t = 0
@@ -306,7 +329,8 @@ def build_usd_scene(cfg):
     counts = np.concatenate([c for _, c in parts]) if len(parts) > 1 else parts[0][1]
     where = f"{file}:{cfg.usd_hair}"
     material = build_material(cfg.hair)
-    strands = Strands.from_polylines(motion.transform(body_pts, 0.0), counts, material.linear_density, where=where)
+    with units_hint(stage):
+        strands = Strands.from_polylines(motion.transform(body_pts, 0.0), counts, material.linear_density, where=where)
     colliders = read_colliders(stage, cfg.usd_colliders, tcps, file)
     colliders += [build_collider(c, i) for i, c in enumerate(getattr(cfg, "colliders", []) or [])]
     return Scene(cfg.name, strands, material, motion, gravity(cfg.gravity), body_pts, colliders)
@@ -380,13 +404,15 @@ def read_guides(cfg, scene, frames: int, fps: float):
         elif len(pts) != n0:
             raise InputError(f"time code {f} has {len(pts)} points, time code 0 has {n0}: the guide topology "
                              "must stay the same in every frame", where)
-        validate_polylines(pts, counts, f"{where} frame {f}", min_vertices=2, folds=False)   # finite, to transform
+        with units_hint(stage):
+            validate_polylines(pts, counts, f"{where} frame {f}", min_vertices=2, folds=False)   # finite, to transform
         X = apply(pts, world_transform(xf, Usd.TimeCode(f), where))
         if frames_pos is None:
             frames_pos = FrameStore(X.shape)
         frames_pos.append(X)
     offsets = np.concatenate([[0], np.cumsum(counts0)])
-    return GuideAnimation(frames_pos, offsets, tcps, where=where, motion=scene.motion)   # extent, folds: checked there
+    with units_hint(stage):
+        return GuideAnimation(frames_pos, offsets, tcps, where=where, motion=scene.motion)   # extent, folds: checked there
 
 
 def stage_timing(cfg):
