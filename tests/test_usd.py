@@ -583,3 +583,38 @@ def test_a_length_error_on_a_stage_in_other_units_names_the_unit(tmp_path):
                                          r"its metersPerUnit 1e-09\)") as info:
         read(path)
     assert info.value.where == f"scene.usd={path}:/Root/Body/Hair"
+
+
+def test_guides_in_several_curve_prims_read_as_one(tmp_path):
+    """scene.usd_guides naming a parent: its BasisCurves (one prim a guide, as some exporters write
+    them, each with its own transform) read as the one-prim guides, frame by frame; a parent that
+    also holds the hair is refused."""
+    from pxr import Gf, Vt
+
+    path = tmp_path / "scene.usda"
+    write_stage(path, source_cfg())
+    stage = Usd.Stage.Open(str(path))
+    attr = UsdGeom.BasisCurves(stage.GetPrimAtPath("/Root/Guides")).GetPointsAttr()
+    counts = np.array(UsdGeom.BasisCurves(stage.GetPrimAtPath("/Root/Guides")).GetCurveVertexCountsAttr().Get())
+    UsdGeom.Scope.Define(stage, "/Root/GuideSet")
+    off = np.concatenate([[0], np.cumsum(counts)])
+    shift = np.array([0.0, 0.25, 0.0])
+    for g in range(len(counts)):
+        c = UsdGeom.BasisCurves.Define(stage, f"/Root/GuideSet/g{g}")
+        c.CreateTypeAttr("linear")
+        c.CreateCurveVertexCountsAttr(Vt.IntArray([int(counts[g])]))
+        if g == 1:
+            c.AddTranslateOp().Set(Gf.Vec3d(*shift))
+        pa = c.CreatePointsAttr()
+        for t in attr.GetTimeSamples():
+            P = np.array(attr.Get(t), dtype=np.float64)[off[g]:off[g + 1]] - (shift if g == 1 else 0.0)
+            pa.Set(Vt.Vec3fArray([Gf.Vec3f(*p) for p in P]), t)
+    stage.GetRootLayer().Save()
+    cfg, _, one = read(path)
+    _, _, split = read(path, **{"scene.usd_guides": "/Root/GuideSet"})
+    np.testing.assert_array_equal(split.offsets, one.offsets)
+    assert split.n_frames == one.n_frames
+    for f in range(cfg.frames + 1):
+        np.testing.assert_allclose(split.positions[f], one.positions[f], rtol=0, atol=6e-8)   # float32 after the shift
+    with pytest.raises(InputError, match=r"holds the detail hair \(/Root/Body/Hair, scene.usd_hair\)"):
+        read(path, **{"scene.usd_guides": "/Root"})

@@ -376,41 +376,69 @@ def guide_frames(attr, where: str) -> int:
     return len(have)
 
 
-def read_guides(cfg, scene, frames: int, fps: float):
-    """Guide animation of ``scene.usd_guides`` (world space, one time sample per frame)."""
-    stage, file = open_stage(cfg.scene.usd)
+def guide_prims(stage, cfg, file: str) -> list:
+    """The guides' BasisCurves prims: ``scene.usd_guides`` itself, or, where it names a parent, every
+    active BasisCurves under it in the stage's order (guides exported one prim each)."""
     path = cfg.scene.usd_guides
     # a stage without guides (hair and body only) is also simulated with guides.source=rigid (the rest
     # guides carried by the body): said, since a free run also draws and saves guides (probe, round 18)
-    prim = get_prim(stage, path, file, "the guides", "scene.usd_guides", UsdGeom.BasisCurves,
+    root = get_prim(stage, path, file, "the guides", "scene.usd_guides",
                     hint="; a stage without guides runs with guides.source=rigid (the rest guides carried by the body)")
-    where = f"{file}:{path}"
-    check_curve_types(prim, where)   # before the time samples are checked
-    curves = UsdGeom.BasisCurves(prim)
-    n = guide_frames(curves.GetPointsAttr(), where)
+    if root.IsA(UsdGeom.BasisCurves):
+        return [root]
+    hair = Sdf.Path(cfg.scene.usd_hair) if str(cfg.scene.usd_hair).startswith("/") else None
+    prims = [p for p in Usd.PrimRange(root) if p.IsA(UsdGeom.BasisCurves)]
+    if hair is not None and any(p.GetPath().HasPrefix(hair) or hair.HasPrefix(p.GetPath()) for p in prims):
+        raise InputError(f"holds the detail hair ({cfg.scene.usd_hair}, scene.usd_hair): scene.usd_guides names the "
+                         "guides' own BasisCurves or a prim holding only guide curves", f"{file}:{path}")
+    if not prims:
+        raise InputError(f"is a {root.GetTypeName() or 'typeless prim'} with no active BasisCurves under it; "
+                         "scene.usd_guides names the guides: a BasisCurves, or a prim holding them", f"{file}:{path}")
+    return prims
+
+
+def read_guides(cfg, scene, frames: int, fps: float):
+    """Guide animation of ``scene.usd_guides`` (world space, one time sample per frame; several
+    prims under a parent: their curves in the stage's order)."""
+    stage, file = open_stage(cfg.scene.usd)
+    path = cfg.scene.usd_guides
+    prims = guide_prims(stage, cfg, file)
     tcps = stage_rate(stage, file)
-    if frames / fps > (n - 1) / tcps + 1e-9:
-        raise InputError(f"guides have time samples for frames 0..{n - 1} ({(n - 1) / tcps:g} s at {tcps:g} fps) "
-                         f"but the run needs {frames} frames at {fps:g} fps ({frames / fps:g} s)", where)
-    xf = UsdGeom.Xformable(prim)
+    n = None
+    for prim in prims:
+        where = f"{file}:{prim.GetPath()}"
+        check_curve_types(prim, where)   # before the time samples are checked
+        n_p = guide_frames(UsdGeom.BasisCurves(prim).GetPointsAttr(), where)
+        if frames / fps > (n_p - 1) / tcps + 1e-9:
+            raise InputError(f"guides have time samples for frames 0..{n_p - 1} ({(n_p - 1) / tcps:g} s at {tcps:g} fps) "
+                             f"but the run needs {frames} frames at {fps:g} fps ({frames / fps:g} s)", where)
+        n = n_p if n is None else min(n, n_p)
     frames_pos = None   # a FrameStore: frame by frame to a temporary file
+    first: list = []    # per prim: (counts, points) of time code 0
     for f in range(n):
-        pts, counts = read_curves(prim, Usd.TimeCode(f), where)
-        if f == 0:
-            counts0, n0 = counts, len(pts)
-        elif not np.array_equal(counts, counts0):
-            raise InputError(f"curveVertexCounts change at time code {f}: the guide topology must stay the same "
-                             "in every frame", where)
-        elif len(pts) != n0:
-            raise InputError(f"time code {f} has {len(pts)} points, time code 0 has {n0}: the guide topology "
-                             "must stay the same in every frame", where)
-        with units_hint(stage):
-            validate_polylines(pts, counts, f"{where} frame {f}", min_vertices=2, folds=False)   # finite, to transform
-        X = apply(pts, world_transform(xf, Usd.TimeCode(f), where))
+        parts, all_counts = [], []
+        for i, prim in enumerate(prims):
+            where = f"{file}:{prim.GetPath()}"
+            pts, counts = read_curves(prim, Usd.TimeCode(f), where)
+            if f == 0:
+                first.append((counts, len(pts)))
+            elif not np.array_equal(counts, first[i][0]):
+                raise InputError(f"curveVertexCounts change at time code {f}: the guide topology must stay the same "
+                                 "in every frame", where)
+            elif len(pts) != first[i][1]:
+                raise InputError(f"time code {f} has {len(pts)} points, time code 0 has {first[i][1]}: the guide "
+                                 "topology must stay the same in every frame", where)
+            with units_hint(stage):
+                validate_polylines(pts, counts, f"{where} frame {f}", min_vertices=2, folds=False)   # finite, to transform
+            parts.append(apply(pts, world_transform(UsdGeom.Xformable(prim), Usd.TimeCode(f), where)))
+            all_counts.append(counts)
+        X = np.concatenate(parts) if len(parts) > 1 else parts[0]
         if frames_pos is None:
             frames_pos = FrameStore(X.shape)
+            counts0 = np.concatenate(all_counts) if len(all_counts) > 1 else all_counts[0]
         frames_pos.append(X)
     offsets = np.concatenate([[0], np.cumsum(counts0)])
+    where = f"{file}:{path}"
     with units_hint(stage):
         return GuideAnimation(frames_pos, offsets, tcps, where=where, motion=scene.motion)   # extent, folds: checked there
 
