@@ -560,6 +560,8 @@ def test_colliders_grouped_at_any_depth(tmp_path, caplog):
     off = UsdGeom.Sphere.Define(stage, "/Root/Colliders/props/more/off")
     off.CreateRadiusAttr(0.05)
     off.GetPrim().SetActive(False)
+    stage.CreateClassPrim("/Root/Colliders/props/proto").SetTypeName("Sphere")   # a class: no prim of the scene
+    stage.OverridePrim("/Root/Colliders/props/later").SetTypeName("Capsule")     # an over without a def: neither
     stage.GetRootLayer().Save()
     with caplog.at_level(logging.WARNING):
         _, scene, _ = read(path)

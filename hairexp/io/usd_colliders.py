@@ -143,6 +143,8 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
         if not prim.IsActive():
             off.append(str(prim.GetPath()))
             it.PruneChildren()
+        elif prim.IsAbstract() or not prim.IsDefined():   # a class or an over: no prim of the scene
+            it.PruneChildren()
         elif prim.GetTypeName() in GROUPS:
             continue
         else:

@@ -248,7 +248,7 @@ def hair_prims(stage, cfg, file: str) -> list:
                          "hair's own BasisCurves or a prim holding only hair curves", f"{file}:{cfg.usd_hair}")
     prims, off = [], []
     for p in Usd.PrimRange(root, Usd.PrimAllPrimsPredicate):   # an inactive prim's children are not on the stage
-        if p.IsA(UsdGeom.BasisCurves):
+        if p.IsA(UsdGeom.BasisCurves) and p.IsDefined() and not p.IsAbstract():   # not an over or a class
             (prims if p.IsActive() else off).append(p)
     if off:
         log.warning("%s:%s: inactive hair curves not used: %s", file, cfg.usd_hair, ", ".join(str(p.GetPath()) for p in off))
