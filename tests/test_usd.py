@@ -562,10 +562,12 @@ def test_colliders_grouped_at_any_depth(tmp_path, caplog):
     off.GetPrim().SetActive(False)
     stage.CreateClassPrim("/Root/Colliders/props/proto").SetTypeName("Sphere")   # a class: no prim of the scene
     stage.OverridePrim("/Root/Colliders/props/later").SetTypeName("Capsule")     # an over without a def: neither
+    stage.DefinePrim("/Root/Colliders/rock").CreateAttribute("radius", Sdf.ValueTypeNames.Double).Set(0.1)  # typeless
     stage.GetRootLayer().Save()
     with caplog.at_level(logging.WARNING):
         _, scene, _ = read(path)
     assert "inactive collider prim(s) not used: /Root/Colliders/props/more/off" in caplog.text
+    assert "no collider type and hold none (Sphere, Cube, Cylinder, Capsule, Plane), not used: /Root/Colliders/rock" in caplog.text
     by = {c.name: c for c in scene.colliders}
     assert sorted(by) == ["ball", "pole"]
     np.testing.assert_allclose(by["ball"].motion.pose(0.0)[1], [0.0, -0.5, 0.0], rtol=0, atol=1e-12)

@@ -136,7 +136,7 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
         raise InputError(f"is a {root.GetTypeName()}: scene.usd_colliders names the parent of the colliders (a Scope "
                          f"or Xform), each collider a child prim of it ({path}/<name>)", f"{file}:{path}")
     out, seen = [], {}
-    prims, off = [], []
+    prims, off, empty = [], [], []
     it = iter(Usd.PrimRange(root, Usd.PrimAllPrimsPredicate))
     next(it)   # the root itself
     for prim in it:   # children, and the children of groups (Xform, Scope, typeless) below them
@@ -146,12 +146,17 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
         elif prim.IsAbstract() or not prim.IsDefined():   # a class or an over: no prim of the scene
             it.PruneChildren()
         elif prim.GetTypeName() in GROUPS:
+            if not prim.GetAllChildren():   # a typeless "def ball { double radius }" read as nothing: said
+                empty.append(str(prim.GetPath()))
             continue
         else:
             prims.append(prim)
             it.PruneChildren()   # a collider's own children are not colliders
     if off:   # USD's way to switch a prim off; it was dropped without a word (probe of issue 12, round 12)
         logging.getLogger("hairexp").warning("%s: inactive collider prim(s) not used: %s", file, ", ".join(off))
+    if empty:
+        logging.getLogger("hairexp").warning("%s: prim(s) under the colliders that are no collider type and hold none "
+                                             "(%s), not used: %s", file, ", ".join(SUPPORTED), ", ".join(empty))
     for prim in prims:
         where = f"{file}:{prim.GetPath()}"
         kind = prim.GetTypeName()
