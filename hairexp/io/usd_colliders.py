@@ -90,15 +90,20 @@ AXIS_TURNS = {"X": np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
               "Z": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])}
 
 
-def _along_axis(prim, motion, where: str):
-    """The collider's motion with its own Y turned onto the prim's ``axis`` (X, Y or Z; USD's
-    fallback for Capsule, Cylinder and Plane is Z): each keyframe's rotation R becomes R Q
-    (``AXIS_TURNS``).  Between keyframes the motion is linear (slerp), and slerp(R_a Q, R_b Q) =
-    slerp(R_a, R_b) Q, so the turned motion is the prim's at every time."""
+def _axis(prim, where: str) -> str:
+    """The prim's ``axis``: X, Y or Z (USD's fallback for Capsule, Cylinder and Plane is Z)."""
     check_type(prim.GetAttribute("axis"), TOKEN_TYPES, where)
     axis = prim.GetAttribute("axis").Get()
     if axis not in AXIS_TURNS:
         raise InputError(f"axis is {axis!r}; a {prim.GetTypeName()} lies along X, Y or Z", where)
+    return str(axis)
+
+
+def _along_axis(motion, axis: str):
+    """The collider's motion with its own Y turned onto the prim's ``axis`` (``_axis``): each
+    keyframe's rotation R becomes R Q (``AXIS_TURNS``).  Between keyframes the motion is linear
+    (slerp), and slerp(R_a Q, R_b Q) = slerp(R_a, R_b) Q, so the turned motion is the prim's at
+    every time."""
     if axis == "Y":
         return motion
     Q = AXIS_TURNS[axis]
@@ -181,8 +186,9 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
             half = 0.5 * _length(prim, "size", where, positive=True) * scale
             out.append(Box(half_extents=tuple(float(h) for h in half), **common))
         elif kind in ("Cylinder", "Capsule"):
-            common["motion"] = _along_axis(prim, motion, where)
-            a = "XYZ".index(str(prim.GetAttribute("axis").Get()))
+            axis = _axis(prim, where)
+            common["motion"] = _along_axis(motion, axis)
+            a = "XYZ".index(axis)
             s_r = _uniform(scale, tuple(i for i in range(3) if i != a), prim, where,
                            f"its cross-section stays round (the axis is {'XYZ'[a]})")
             radius = s_r * _length(prim, "radius", where, positive=True)
@@ -192,7 +198,7 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
             else:
                 out.append(Capsule(radius=radius, half_length=half, **common))
         else:
-            common["motion"] = _along_axis(prim, motion, where)
+            common["motion"] = _along_axis(motion, _axis(prim, where))
             out.append(Plane(**common))
     return out
 

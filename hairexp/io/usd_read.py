@@ -217,7 +217,7 @@ def check_hair_rides_body(hair, body, where: str, body_path: str) -> None:
     dropped without a word (probe of issue 12)."""
     shared = set()
     p = body
-    while p is not None and p and p.IsValid():
+    while p and p.IsValid():
         shared.add(p.GetPath())
         p = p.GetParent()
     p = hair
@@ -234,29 +234,37 @@ def check_hair_rides_body(hair, body, where: str, body_path: str) -> None:
         p = p.GetParent()
 
 
-def hair_prims(stage, cfg, file: str) -> list:
-    """The detail hair's BasisCurves prims: ``scene.usd_hair`` itself, or, where it names a parent
-    (an Xform or Scope: hair exported as several curve sets, one per description or clump), every
-    active BasisCurves under it in the stage's order (inactive ones are said, not used)."""
-    root = get_prim(stage, cfg.usd_hair, file, "the detail hair", "scene.usd_hair")
+def curve_prims(root, key: str, what: str, noun: str, where: str) -> list:
+    """``root`` itself if it is a BasisCurves, else every active BasisCurves under it in the stage's
+    order (inactive ones are said, not used, as ``noun`` curves; classes and overs are no prims of
+    the scene); none is an InputError naming ``key`` (``scene.usd_hair`` or ``scene.usd_guides``)
+    and ``what`` it names."""
     if root.IsA(UsdGeom.BasisCurves):
         return [root]
-    guides = Sdf.Path(cfg.usd_guides) if str(cfg.usd_guides).startswith("/") else None
-    if guides is not None and guides.HasPrefix(root.GetPath()) and stage.GetPrimAtPath(guides):
-        # the guides' frame 0 would have been read as hair
-        raise InputError(f"holds the guides ({cfg.usd_guides}, scene.usd_guides): scene.usd_hair names the detail "
-                         "hair's own BasisCurves or a prim holding only hair curves", f"{file}:{cfg.usd_hair}")
     prims, off = [], []
     for p in Usd.PrimRange(root, Usd.PrimAllPrimsPredicate):   # an inactive prim's children are not on the stage
         if p.IsA(UsdGeom.BasisCurves) and p.IsDefined() and not p.IsAbstract():   # not an over or a class
             (prims if p.IsActive() else off).append(p)
     if off:
-        log.warning("%s:%s: inactive hair curves not used: %s", file, cfg.usd_hair, ", ".join(str(p.GetPath()) for p in off))
+        log.warning("%s: inactive %s curves not used: %s", where, noun, ", ".join(str(p.GetPath()) for p in off))
     if not prims:
         raise InputError(f"is a {root.GetTypeName() or 'typeless prim'} with no active BasisCurves under it; "
-                         "scene.usd_hair names the detail hair: a BasisCurves, or a prim holding them",
-                         f"{file}:{cfg.usd_hair}")
+                         f"{key} names {what}: a BasisCurves, or a prim holding them", where)
     return prims
+
+
+def hair_prims(stage, cfg, file: str) -> list:
+    """The detail hair's BasisCurves prims (``curve_prims``): ``scene.usd_hair`` itself, or the
+    curves under the parent it names (hair exported as several curve sets, one per description or
+    clump)."""
+    root = get_prim(stage, cfg.usd_hair, file, "the detail hair", "scene.usd_hair")
+    guides = Sdf.Path(cfg.usd_guides) if str(cfg.usd_guides).startswith("/") else None
+    if (not root.IsA(UsdGeom.BasisCurves) and guides is not None and guides.HasPrefix(root.GetPath())
+            and stage.GetPrimAtPath(guides)):
+        # the guides' frame 0 would have been read as hair
+        raise InputError(f"holds the guides ({cfg.usd_guides}, scene.usd_guides): scene.usd_hair names the detail "
+                         "hair's own BasisCurves or a prim holding only hair curves", f"{file}:{cfg.usd_hair}")
+    return curve_prims(root, "scene.usd_hair", "the detail hair", "hair", f"{file}:{cfg.usd_hair}")
 
 
 def read_hair(hair, body, cfg, file: str) -> tuple[np.ndarray, np.ndarray]:
@@ -377,23 +385,19 @@ def guide_frames(attr, where: str) -> int:
 
 
 def guide_prims(stage, cfg, file: str) -> list:
-    """The guides' BasisCurves prims: ``scene.usd_guides`` itself, or, where it names a parent, every
-    active BasisCurves under it in the stage's order (guides exported one prim each)."""
+    """The guides' BasisCurves prims (``curve_prims``): ``scene.usd_guides`` itself, or the curves
+    under the parent it names (guides exported one prim each)."""
     path = cfg.scene.usd_guides
     # a stage without guides (hair and body only) is also simulated with guides.source=rigid (the rest
     # guides carried by the body): said, since a free run also draws and saves guides (probe, round 18)
     root = get_prim(stage, path, file, "the guides", "scene.usd_guides",
                     hint="; a stage without guides runs with guides.source=rigid (the rest guides carried by the body)")
-    if root.IsA(UsdGeom.BasisCurves):
-        return [root]
+    prims = curve_prims(root, "scene.usd_guides", "the guides", "guide", f"{file}:{path}")
     hair = Sdf.Path(cfg.scene.usd_hair) if str(cfg.scene.usd_hair).startswith("/") else None
-    prims = [p for p in Usd.PrimRange(root) if p.IsA(UsdGeom.BasisCurves)]
-    if hair is not None and any(p.GetPath().HasPrefix(hair) or hair.HasPrefix(p.GetPath()) for p in prims):
+    if (not root.IsA(UsdGeom.BasisCurves) and hair is not None
+            and any(p.GetPath().HasPrefix(hair) or hair.HasPrefix(p.GetPath()) for p in prims)):
         raise InputError(f"holds the detail hair ({cfg.scene.usd_hair}, scene.usd_hair): scene.usd_guides names the "
                          "guides' own BasisCurves or a prim holding only guide curves", f"{file}:{path}")
-    if not prims:
-        raise InputError(f"is a {root.GetTypeName() or 'typeless prim'} with no active BasisCurves under it; "
-                         "scene.usd_guides names the guides: a BasisCurves, or a prim holding them", f"{file}:{path}")
     return prims
 
 
