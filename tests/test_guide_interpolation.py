@@ -77,3 +77,64 @@ def test_config_key_reaches_the_animation():
         cfg = compose_config(["experiment=goaling_smoke", "frames=3", f"guides.interpolation={value}"])
         cfg, scene, _ = assemble_scene(cfg, settle=False)
         assert build_guides(cfg, scene, 3, float(cfg.fps)).interpolation == value
+
+
+def _frame_by_frame(P, offsets, where="guides"):
+    """The checks GuideAnimation made before they were batched: every frame on its own."""
+    from hairexp.errors import check_extent
+    from hairexp.model.strands import check_folds, validate_polylines
+
+    counts = np.diff(offsets)
+    for f, X in enumerate(P):
+        X, _ = validate_polylines(X, counts, f"{where} frame {f}", min_vertices=2, folds=False)
+        check_extent(X, where, counts, frame=f)
+        check_folds(X, counts, f"{where} frame {f}")
+
+
+@pytest.mark.parametrize("defect", ["nan", "zero_edge", "fold", "far", "near_limits"])
+@pytest.mark.parametrize("store", [False, True])
+def test_batched_frame_checks_refuse_what_frame_by_frame_checks_refuse(defect, store):
+    """The guide frames are checked a block at a time (``suspect_frames``) and only suspect frames
+    one by one: the same error, naming the same (first) bad frame, as checking every frame; and a
+    frame near the limits (an edge just over MIN_EDGE_LENGTH, a turn just under MAX_TURN_DEG) passes."""
+    from hairexp.errors import InputError
+    from hairexp.guides.store import FrameStore
+    from hairexp.model.strands import MAX_TURN_DEG, MIN_EDGE_LENGTH, suspect_frames
+
+    rng = np.random.default_rng(7)
+    G, Vg, F = 3, 5, 1400
+    offsets = np.arange(G + 1) * Vg
+    base = np.zeros((G * Vg, 3))
+    for g in range(G):
+        base[g * Vg:(g + 1) * Vg] = [0.1 * g, 0, 0] + np.outer(np.arange(Vg), [0.0, -0.02, 0.0])
+    P = base[None] + 1e-3 * rng.normal(size=(F, 1, 3))   # each frame moved rigidly
+    bad_frames = [1033, 1200]
+    for f in bad_frames:
+        if defect == "nan":
+            P[f, 7, 1] = np.nan
+        elif defect == "zero_edge":
+            P[f, 8] = P[f, 7]
+        elif defect == "fold":
+            P[f, 9] = P[f, 7] + [0.0, 1e-3, 0.0]
+        elif defect == "far":
+            P[f, 3, 0] = 2e4
+        else:   # passes: an edge of 1.5 x MIN_EDGE_LENGTH, a turn of MAX_TURN_DEG - 0.01 degrees
+            P[f, 1] = P[f, 0] + [0.0, -1.5 * MIN_EDGE_LENGTH, 0.0]
+            a = np.radians(MAX_TURN_DEG - 0.01)   # the last edge of guide 2 turned back from straight down by a
+            P[f, 14] = P[f, 13] + 0.02 * np.array([np.sin(a), -np.cos(a), 0.0])
+    try:
+        _frame_by_frame(P, offsets)
+        expected = None
+    except InputError as exc:
+        expected = str(exc)
+    positions = FrameStore.of(P) if store else P
+    assert suspect_frames(P[bad_frames], np.diff(offsets)).all()   # the defects are found by the batch
+    assert not suspect_frames(P[:1000], np.diff(offsets)).any()
+    if expected is None:
+        GuideAnimation(positions, offsets, 25.0)
+        assert defect == "near_limits"
+    else:
+        assert f"frame {bad_frames[0]}" in expected
+        with pytest.raises(InputError) as got:
+            GuideAnimation(positions, offsets, 25.0)
+        assert str(got.value) == expected

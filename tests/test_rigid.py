@@ -78,3 +78,30 @@ def test_static_motion_is_identity():
     m = RigidMotion.static()
     np.testing.assert_array_equal(m.transform(X, 3.0), X)
     np.testing.assert_array_equal(m.point_velocity(X, 3.0), 0.0)
+
+
+@pytest.mark.parametrize("interp,K", CASES + [("cubic", 1), ("linear", 1)])
+def test_poses_are_pose_at_every_time_bit_for_bit(interp, K):
+    """``poses`` (all times at once: guide animations, the roots' collider check) gives ``pose``'s
+    values exactly, inside, at and outside the keys."""
+    m = motion(interp, K) if K > 1 else RigidMotion(np.zeros(1), [[0.1, 0.2, 0.3]], [[0.3, -0.2, 0.1]], interp)
+    ts = np.concatenate([np.linspace(m.times[0] - 0.3, m.times[-1] + 0.3, 97), m.times])
+    R, T = m.poses(ts)
+    assert R.shape == (len(ts), 3, 3) and T.shape == (len(ts), 3)
+    for i, t in enumerate(ts):
+        R1, T1 = m.pose(t)
+        assert np.array_equal(R[i], R1) and np.array_equal(T[i], T1), (i, t)
+
+
+def test_poses_of_small_turns_and_bad_times():
+    """The series branch of exp_so3 (turns below 1e-6 rad) batched as one by one; non-finite times
+    are an InputError naming the argument."""
+    from hairexp.errors import InputError
+
+    m = RigidMotion([0.0, 1.0], np.zeros((2, 3)), [[0.0, 0.0, 0.0], [3e-7, -2e-7, 1e-7]], "linear")
+    ts = np.linspace(0.0, 1.0, 11)
+    R, _ = m.poses(ts)
+    for i, t in enumerate(ts):
+        assert np.array_equal(R[i], m.pose(t)[0])
+    with pytest.raises(InputError, match="RigidMotion.poses: times"):
+        m.poses([0.0, float("nan")])

@@ -39,6 +39,7 @@ from hairexp.control import build_controller
 from hairexp.errors import InputError
 from hairexp.guides.animation import GuideAnimation
 from hairexp.model.builders import check_counts
+from hairexp.model.rigid import motion_poses
 from hairexp.model.scene import Scene
 from hairexp.physics.controller import Controller
 from hairexp.physics.info import StepInfo
@@ -287,6 +288,10 @@ def check_clear_start(scene, contact: str) -> None:
                              getattr(c, "where", None) or f"scene.colliders[{i}]")
 
 
+#: root positions checked together by ``check_clear_roots`` (samples x roots)
+ROOT_CHECK_POINTS = 1 << 16
+
+
 def check_clear_roots(scene, frames: int, fps: float, steps_per_frame: int) -> None:
     """InputError naming the collider when the body carries a root vertex into it during the run.
     The roots are kinematic: a root driven into a collider pins its strand inside it, and neither
@@ -305,15 +310,22 @@ def check_clear_roots(scene, frames: int, fps: float, steps_per_frame: int) -> N
     n = int(frames) * int(steps_per_frame)   # every step, or 2000 even samples of a longer run (a few ms each)
     ts = np.linspace(0.0, int(frames) / float(fps), min(n, 2000) + 1)
     X = scene.root_body[k]
+    block = max(1, ROOT_CHECK_POINTS // len(k))   # samples a block: the roots' positions of a block at once
     for i, c in enumerate(scene.colliders):
         d0 = None
-        for t in ts:
-            d = c.sdf_body(c.to_body(scene.motion.transform(X, float(t)), float(t)))
+        for a in range(0, len(ts), block):
+            tb = ts[a:a + block]
+            Rb, Tb = motion_poses(scene.motion, tb)   # the body's poses, then the collider's
+            Rc, Tc = motion_poses(c.motion, tb)
+            W = np.matmul(X[None], np.swapaxes(Rb, 1, 2)) + Tb[:, None, :]
+            D = c.sdf_body(np.matmul(W - Tc[:, None, :], Rc).reshape(-1, 3)).reshape(len(tb), len(k))
             if d0 is None:
-                d0 = np.minimum(d, 0.0)
-            deeper = d0 - d - max(float(c.thickness), 1e-3)
-            j = int(np.argmax(deeper))
-            if deeper[j] > 0:
+                d0 = np.minimum(D[0], 0.0)
+            deeper = d0[None] - D - max(float(c.thickness), 1e-3)
+            hit = np.flatnonzero((deeper > 0).any(axis=1))
+            if hit.size:   # the first sample where a root went deeper
+                r = int(hit[0])
+                t, d, j = tb[r], D[r], int(np.argmax(deeper[r]))
                 v = int(k[j])
                 s_ = int(scene.strands.strand_of_vertex[v])
                 raise InputError(f"collider {c.name!r}: the hair's roots go into it (strand {s_} "

@@ -17,6 +17,7 @@ from hairexp.guides.authoring import apply_edits, keyframed_positions
 from hairexp.guides.store import FrameStore
 from hairexp.model.dynamic_body import authoring_motion
 from hairexp.model.scene import Scene
+from hairexp.model.rigid import motion_poses
 from hairexp.model.strands import Strands
 from hairexp.physics.schedule import step_schedule
 from hairexp.physics.settle import settle_seconds, settle_state, settle_step, settled_scene
@@ -260,9 +261,10 @@ def warn_far_guides(scene, anim, frames: int | None = None) -> None:
     local = (guide_roots - T0) @ R0
     tol = ROOT_DRIFT * length
     warned = False
-    for f in range(1, len(anim.frames) if frames is None else min(len(anim.frames), int(frames) + 1)):
-        R, T = motion.pose(f / fps)
-        drift = np.linalg.norm(np.asarray(anim.frames[f])[np.asarray(anim.offsets[:-1])] - (local @ R.T + T), axis=1)
+    n = len(anim.frames) if frames is None else min(len(anim.frames), int(frames) + 1)
+    roots = np.asarray(anim.offsets[:-1])
+    for f, R, T, P in _frames_with_poses(anim, motion, 1, n):
+        drift = np.linalg.norm(P[roots] - (local @ R.T + T), axis=1)
         if drift.max() > MAX_ROOT_DRIFT * length:   # guides made on another body motion (probe, round 12)
             g = int(np.argmax(drift))
             raise InputError(f"guide {g}'s root is {drift[g]:.3g} m from where the body carries it at frame {f} "
@@ -277,3 +279,19 @@ def warn_far_guides(scene, anim, frames: int | None = None) -> None:
                 "%g of the hair's length): the guides do not ride the body, and the tracking will pull the hair near "
                 "its roots after them; check that the guides were made with this body motion", g, drift[g], f, f / fps,
                 ROOT_DRIFT)
+
+
+#: frames read and posed together by ``_frames_with_poses``
+POSE_BLOCK = 256
+
+
+def _frames_with_poses(anim, motion, start: int, stop: int):
+    """(f, R, T, frame f's positions) for frames start..stop - 1 of ``anim``, the body's poses at
+    f / fps computed a block of frames at a time (``motion_poses``)."""
+    fps = float(anim.fps)
+    for a in range(start, stop, POSE_BLOCK):
+        fs = np.arange(a, min(a + POSE_BLOCK, stop))
+        R, T = motion_poses(motion, fs / fps)
+        P = np.asarray(anim.frames[int(fs[0]):int(fs[-1]) + 1])
+        for i, f in enumerate(fs):
+            yield int(f), R[i], T[i], P[i]

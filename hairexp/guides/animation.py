@@ -31,7 +31,8 @@ import numpy as np
 from hairexp.errors import InputError, check_extent, real_array, regular_file
 from hairexp.guides.store import BLOCK_BYTES, FrameStore
 from hairexp.model.dynamic_body import authoring_motion
-from hairexp.model.strands import check_folds, validate_polylines
+from hairexp.model.rigid import motion_poses
+from hairexp.model.strands import check_folds, suspect_frames, validate_polylines
 
 
 #: frames per second a guide animation and a run (hairexp/physics/schedule.py) may have: a guide
@@ -44,6 +45,9 @@ def check_fps(fps: float) -> None:
     if not (math.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):
         raise InputError(f"must be a finite number from {MIN_FPS:g} to {MAX_FPS:g} (frames per second), got {fps}",
                          "fps")
+
+#: frames of an in-memory animation checked together (``suspect_frames``)
+CHECK_BLOCK = 512
 
 #: how ``shape_at`` interpolates between frames (``guides.interpolation``)
 INTERPOLATIONS = ("catmull_rom", "linear")
@@ -99,13 +103,23 @@ class GuideAnimation:
             raise InputError(f"fps must be a number from {MIN_FPS:g} to {MAX_FPS:g} (frames per second), "
                              f"got {self.fps!r}", self.where)
         self.fps = float(self.fps)
-        for f, P in enumerate(self.frames):
-            P, _ = validate_polylines(P, counts, f"{self.where} frame {f}", min_vertices=2, folds=False)
-            check_extent(P, self.where, counts, frame=f)   # a point 1e30 away: a unit error, not a fold
-            check_folds(P, counts, f"{self.where} frame {f}")
+        self._check_frame(0, self.frames[0], counts)
+        n = len(self.frames)
+        block = self.frames.per_block if isinstance(self.frames, FrameStore) else CHECK_BLOCK
+        for a in range(1, n, block):   # the other frames a block at a time; those that may fail one by one
+            P = np.asarray(self.frames[a:min(a + block, n)])
+            for i in np.flatnonzero(suspect_frames(P, counts)):
+                self._check_frame(a + int(i), P[i], counts)
         self._rest = np.array(self.frames[0])
         self._body_cache: dict[int, np.ndarray] = {}
         self.attach(motion)
+
+    def _check_frame(self, f: int, P, counts) -> None:
+        """InputError naming frame f of the guides for non-finite points, wrong shapes or counts,
+        zero-length edges, points past MAX_COORDINATE or folds."""
+        P, _ = validate_polylines(P, counts, f"{self.where} frame {f}", min_vertices=2, folds=False)
+        check_extent(P, self.where, counts, frame=f)   # a point 1e30 away: a unit error, not a fold
+        check_folds(P, counts, f"{self.where} frame {f}")
 
     @property
     def positions(self) -> np.ndarray:
@@ -317,12 +331,15 @@ def carried_guides(g, body: np.ndarray, offsets: np.ndarray, motion, frames: int
     carried by ``motion`` (``rigid``), scaled about their roots by ``g.scale_times``/``g.scale_factors``
     (``scaled``)."""
     store = FrameStore(body.shape)
-    for f in range(frames + 1):
-        t = f / fps
-        X = body
-        if scaled:   # guides.scale_times/scale_factors: checked in hairexp/app/validate.py
-            s = float(np.interp(t, g.scale_times, g.scale_factors))
-            roots = np.repeat(body[offsets[:-1]], g.n_vertices, axis=0)
-            X = roots + s * (body - roots)
-        store.append(motion.transform(X, t))
+    roots = np.repeat(body[offsets[:-1]], g.n_vertices, axis=0) if scaled else None
+    for start in range(0, frames + 1, store.per_block):   # the poses a block at a time
+        fs = np.arange(start, min(start + store.per_block, frames + 1))
+        R, T = motion_poses(motion, fs / fps)
+        for i, f in enumerate(fs):
+            X = body
+            if scaled:   # guides.scale_times/scale_factors: checked in hairexp/app/validate.py
+                s = float(np.interp(f / fps, g.scale_times, g.scale_factors))
+                X = roots + s * (body - roots)
+            store.append(X @ R[i].T + T[i])   # motion.transform(X, f / fps)
     return store
+

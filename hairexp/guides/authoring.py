@@ -54,7 +54,7 @@ from scipy.spatial.transform import Rotation
 
 from hairexp.errors import MAX_COORDINATE, InputError
 from hairexp.guides.store import FrameStore
-from hairexp.model.rigid import MAX_KEY_DEGREES
+from hairexp.model.rigid import MAX_KEY_DEGREES, motion_poses
 from hairexp.model.strands import validate_polylines
 
 #: Largest turn (degrees) of a guide's first edge away from its rest direction, in the body frame.
@@ -276,7 +276,7 @@ def apply_edits(positions, offsets: np.ndarray, fps: float, motion, edits):
     for start in range(0, n, BLOCK_FRAMES):
         P = np.array(positions[start:start + BLOCK_FRAMES], dtype=np.float64)
         times = np.arange(start, start + len(P)) / fps
-        R = np.stack([motion.pose(t)[0] for t in times])          # (n, 3, 3) body -> world
+        R = motion_poses(motion, times)[0]          # (n, 3, 3) body -> world
         for op in ops:
             op(P, times, R)
         turn.add(P, R, start)
