@@ -814,3 +814,36 @@ def test_compiled_impulses_equal_the_numpy_ones(with_start):
     assert got_n == want_n > 20
     np.testing.assert_allclose(got_v, want_v, rtol=0, atol=1e-13)
     assert np.abs(got_v - v).max() > 1e-3      # the impulses did something
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_compiled_strain_limit_sweeps_equal_the_numpy_sweeps(seed):
+    """``StrainLimit.apply``'s compiled sweeps (``limit_sweeps``: strand by strand) move every
+    vertex bit for bit as the numpy sweeps (all strands' k-th edges at once) do, with strands of
+    different lengths, pinned vertices (two pinned ends of an edge both move) and edges both
+    stretched and crushed; the count of edges outside is the same."""
+    from hairexp.physics.collisions import StrainLimit
+    from hairexp.physics.kernels import HAVE_NUMBA
+
+    if not HAVE_NUMBA:
+        pytest.skip("numba not importable: only the numpy sweeps run")
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(3, 14, size=9)
+    pts = []
+    for k, c in enumerate(counts):
+        pts.append(np.c_[np.full(c, 0.01 * k), -0.01 * np.arange(c), np.zeros(c)])
+    s = Strands.from_polylines(np.concatenate(pts), counts, 1e-3)
+    x = s.rest + rng.normal(scale=0.003, size=s.rest.shape)   # edges up to +-60 % off their rest length
+    x[s.kinematic] = s.rest[s.kinematic]
+    x[s.offsets[3]:s.offsets[4]] = s.rest[s.offsets[3]:s.offsets[4]]   # one strand within the limit: not visited
+    pinned = rng.random(len(x)) < 0.2
+    for pin in (None, pinned):
+        lim = StrainLimit(s, 0.1)
+        a, b = x.copy(), x.copy()
+        lim.compiled = False
+        na = lim.apply(a, pin)
+        lim.compiled = True
+        nb = lim.apply(b, pin)
+        assert na == nb > 0
+        assert np.array_equal(a, b)
+        assert not np.array_equal(a, x)

@@ -546,6 +546,10 @@ class StrainLimit:
         local = E[:, 0] - strands.offsets[self.strand]
         self.order = [np.flatnonzero(local == k) for k in range(int(local.max()) + 1)] if len(E) else []
         self.sweeps = sweeps
+        # each strand's edges root to tip (CSR: strand s owns edge_of[edge_ptr[s]:edge_ptr[s + 1]]), for the kernel
+        self.edge_of = np.lexsort((local, self.strand)).astype(np.int64) if len(E) else np.zeros(0, np.int64)
+        self.edge_ptr = np.concatenate([[0], np.cumsum(np.bincount(self.strand, minlength=strands.n_strands))]).astype(np.int64)
+        self.compiled = HAVE_NUMBA   # ``limit_sweeps``; False: the numpy sweeps (the reference the tests compare)
 
     def apply(self, x: np.ndarray, pinned: np.ndarray | None = None) -> int:
         """Clamps the edge lengths of x in place; returns how many edges were outside.
@@ -558,8 +562,12 @@ class StrainLimit:
         over = int(np.sum(outside))
         if over == 0:
             return 0
-        active = np.zeros(int(self.strand.max()) + 1, dtype=bool)
+        active = np.zeros(len(self.edge_ptr) - 1, dtype=bool)
         active[self.strand[outside]] = True
+        if self.compiled:
+            limit_sweeps(x, np.ascontiguousarray(w, dtype=np.float64), self.w, self.E, self.L, self.Lmin,
+                         self.edge_ptr, self.edge_of, active, self.sweeps)
+            return over
         order = [g for g in (g[active[self.strand[g]]] for g in self.order) if g.size]
         for _ in range(self.sweeps):
             for group in order + order[::-1]:
@@ -578,6 +586,40 @@ class StrainLimit:
                 x[a[k]] += wa[k, None] * corr
                 x[b[k]] -= wb[k, None] * corr
         return over
+
+
+@njit(cache=True)
+def limit_sweeps(x, w, w_all, E, L, Lmin, edge_ptr, edge_of, active, sweeps):
+    """``StrainLimit.apply``'s sweeps, compiled: each active strand's edges root to tip and back,
+    ``sweeps`` times, one strand after another.  The numpy sweeps visit all strands' k-th edges
+    at once; strands share no vertex, so the order within a strand is the same and the results
+    are bit for bit the same (tests/test_collisions.py).  ``w``: inverse masses with the pinned
+    vertices at 0; ``w_all``: without the pins (two pinned ends both move)."""
+    for s in range(len(active)):
+        if not active[s]:
+            continue
+        a0, a1 = edge_ptr[s], edge_ptr[s + 1]
+        for _ in range(sweeps):
+            for back in range(2):
+                for jj in range(a1 - a0):
+                    e = edge_of[a1 - 1 - jj] if back else edge_of[a0 + jj]
+                    a, b = E[e, 0], E[e, 1]
+                    dx, dy, dz = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
+                    n = math.sqrt(dx * dx + dy * dy + dz * dz)
+                    excess = max(n - L[e], 0.0) + min(n - Lmin[e], 0.0)
+                    wa, wb = w[a], w[b]
+                    if wa + wb == 0 and w_all[a] + w_all[b] > 0:
+                        wa, wb = w_all[a], w_all[b]
+                    ws = wa + wb
+                    if excess != 0 and ws > 0 and n > 0:
+                        c = excess / (n * ws)
+                        cx, cy, cz = c * dx, c * dy, c * dz
+                        x[a, 0] += wa * cx
+                        x[a, 1] += wa * cy
+                        x[a, 2] += wa * cz
+                        x[b, 0] -= wb * cx
+                        x[b, 1] -= wb * cy
+                        x[b, 2] -= wb * cz
 
 
 def limit_strain(limiter: StrainLimit, colliders, x1, t1, movable):
