@@ -393,6 +393,20 @@ def _pressed_strand(shape: str, degrees: float):
     return scene, x0, x1
 
 
+def _deepest_edge(scene, x, t) -> float:
+    """m: the deepest point of an edge with a free vertex inside a collider's thickness shell
+    (``contact_geometry.EdgeGaps``: the segment's closest point), 0 if none."""
+    from hairexp.physics.contact_geometry import EdgeGaps
+
+    s = scene.strands
+    mov = ~(s.kinematic[s.edges[:, 0]] & s.kinematic[s.edges[:, 1]])
+    deep = 0.0
+    for c in scene.colliders:
+        d = EdgeGaps(c, *c.motion.pose(t)).edge_gaps(x[s.edges[mov, 0]], x[s.edges[mov, 1]])
+        deep = max(deep, float(np.maximum(-d, 0.0).max(initial=0.0)))
+    return deep
+
+
 @pytest.mark.parametrize("shape, degrees", [("rim", 25.0), ("rim", 45.0), ("groove", 45.0), ("groove", 70.0)])
 def test_strain_limit_holds_on_a_rising_rim_and_groove(shape, degrees):
     """Issue 14's goblet defect: with ``tracking.exact_compression=true`` Celia's tracked hair ended a
@@ -421,6 +435,8 @@ def test_strain_limit_holds_on_a_rising_rim_and_groove(shape, degrees):
         on = free & c.on_shell(out, DT)                      # no approaching velocity at the contacts
         vn = np.sum((v[on] - c.surface_velocity(out[on], DT)) * c.normal(out[on], DT), axis=1)
         assert vn.min(initial=0.0) >= -1e-9
+    # nor any edge, to the shells' tolerance (the rim's were 6-8 mm inside before the edge response)
+    assert _deepest_edge(scene, out, DT) <= max(c.shell_tolerance() for c in scene.colliders)
 
 
 def _random_moving_collider(rng, shape: str, i: int):
@@ -523,14 +539,15 @@ def test_known_distances_give_the_same_contact_response():
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, v1)     # the response did act
     # the stage: a path that ends clear of both (no contact), and one that ends inside the ball
-    sc = SimpleNamespace(colliders=cols, strands=SimpleNamespace(kinematic=~movable))
+    sc = SimpleNamespace(colliders=cols, strands=SimpleNamespace(kinematic=~movable, edges=np.zeros((0, 2), dtype=np.int64),
+                                                                inverse_masses=np.ones(len(x1))))   # loose points: no edges
     cc = OmegaConf.structured(CollisionConfig())
     x0 = x1 + np.array([0.0, 0.01, 0.0])
     clear0, clear1 = free + 0.001, free + 0.002
     kin = np.zeros(len(free), dtype=bool)
     contacts = []
     for y0, y1, km in ((clear0, clear1, kin), (x0, x1 - 0.01 * np.vstack([dirs, np.zeros((50, 3))]), ~movable)):
-        sc.strands.kinematic = km
+        sc.strands.kinematic, sc.strands.inverse_masses = km, np.ones(len(km))
         out: list = []
         xe, _, info = collision_stage(cc, sc, None, y0, y1, 0.4, t1, 0.1, dist_out=out)
         assert len(out) == len(cols)
@@ -847,3 +864,45 @@ def test_compiled_strain_limit_sweeps_equal_the_numpy_sweeps(seed):
         assert na == nb > 0
         assert np.array_equal(a, b)
         assert not np.array_equal(a, x)
+
+
+@pytest.mark.parametrize("off", [0.0, 0.001])
+@pytest.mark.parametrize("shape", ["sphere", "capsule", "box", "cylinder"])
+def test_an_edge_across_a_collider_between_its_vertices_is_pushed_out(shape, off):
+    """A collider that rises into a hanging strand between two of its vertices (every vertex stays
+    outside): the vertex response sees nothing and the edge runs through the shape; with
+    ``collision.edge_response`` (the default) the stage pushes the edge out: no point of any edge
+    deeper than the shell's tolerance, no vertex inside, edge lengths nearly kept (the push
+    turns the edge and its neighbours), the roots unmoved."""
+    from hairexp.physics.collisions import collision_stage
+
+    kw = {"sphere": dict(radius=0.006), "capsule": dict(radius=0.004, half_length=0.02),
+          "box": dict(half_extents=[0.004, 0.004, 0.02]), "cylinder": dict(radius=0.004, half_height=0.02)}[shape]
+    n = 12
+    probe = make_scene([], None, n_strands=1, n_vertices=n, length=0.22, direction=[0.0, -1.0, 0.0], root_radius=1e-5)
+    X = probe.strands.rest
+    mid = 0.5 * (X[6] + X[7])   # between vertices 6 and 7 (edge 0.02 m)
+    # the shape lies across the strand (its long axis along z), its centre on the edge's midpoint, moved in
+    # from 1 cm to the side (x) over the step, so that the vertices' paths never come within its shell
+    rot = (90.0, 0.0, 0.0) if shape in ("capsule", "cylinder") else (0.0, 0.0, 0.0)
+    # (off 0: the edge through the shape's centre or axis, where the closest point has no normal)
+    cfg = _rising(collider(shape, thickness=0.001, friction=0.0, **kw), tuple(mid + [0.012, 0.0, 0.0]),
+                  tuple(mid + [off, 0.0, 0.0]), rot, rot)
+    scene = make_scene([cfg], None, n_strands=1, n_vertices=n, length=0.22, direction=[0.0, -1.0, 0.0], root_radius=1e-5)
+    col, s = scene.colliders[0], scene.strands
+    x0 = s.rest.copy()
+    free = ~s.kinematic
+    assert col.distance(x0[free], 0.0).min() > 0 and col.distance(x0[free], DT).min() > 0
+    results = {}
+    for on in (False, True):
+        cc = OmegaConf.structured(CollisionConfig(objects=True, hair_hair=False, edge_response=on))
+        out, v, info = collision_stage(cc, scene, None, x0, x0.copy(), 0.0, DT, DT)
+        results[on] = (_deepest_edge(scene, out, DT), info)
+        assert col.distance(out[free], DT).min() >= -1e-9
+        assert np.array_equal(out[s.kinematic], x0[s.kinematic])
+        if on:
+            strain = np.abs(np.linalg.norm(out[s.edges[:, 1]] - out[s.edges[:, 0]], axis=1) / s.rest_lengths - 1)
+            assert strain.max() < 0.2
+    assert results[False][0] > 1e-3 and results[False][1].edge_contacts == 0   # 1-6 mm through the shape without it
+    assert results[True][0] <= col.shell_tolerance() and results[True][1].edge_contacts > 0
+    assert results[True][1].object_contacts >= results[True][1].edge_contacts

@@ -365,6 +365,9 @@ class CollisionConfig:
     skin: float = 0.003               # m, hair-hair neighbour-list skin: the list is reused while no vertex moves skin/2
     max_passes: int = 3
     strain_limit: float = 0.0         # > 0: after object contacts, edge lengths are clamped to (1 -+ this) x rest
+    # the post-solve stage also tests edges (not only vertices) against the colliders and pushes
+    # out those that dip into one between their vertices (hairexp/physics/collisions.py edge_response)
+    edge_response: bool = True
     # hair_hair's model: edges (edge-edge contacts) | volume (grid friction and pressure,
     # hairexp/physics/hair_volume.py; linear in the vertices, but strands may pass through each other)
     hair_hair_model: HairHairModel = HairHairModel.edges
