@@ -649,7 +649,7 @@ def _way_out(col, gaps, P: np.ndarray, e: np.ndarray, depth: np.ndarray) -> np.n
     return M[np.arange(len(P)), np.argmax(phi, axis=1)]
 
 
-def edge_response(colliders, E: np.ndarray, w: np.ndarray, x1, t1, movable):
+def edge_response(colliders, E: np.ndarray, w: np.ndarray, x1, t1, movable, dist: list | None = None):
     """Edges against the colliders at t1: an edge whose end points are both outside a collider's
     thickness shell but whose segment dips into it (a ball or a rim between two vertices, a box
     corner: the object response tests vertices only) is pushed out along the normal at its
@@ -661,23 +661,33 @@ def edge_response(colliders, E: np.ndarray, w: np.ndarray, x1, t1, movable):
     followed by the object response to the moves at t1 (no friction, as the strain limiter's), so
     that a push cannot move a vertex into a collider; the rounds (at most EDGE_ROUNDS) end when no
     edge is deeper than the collider's shell tolerance.  Edges with an end point inside (a root
-    under the scalp) are left to the vertex response.  Returns (x1, edges pushed, summed over the
-    rounds)."""
+    under the scalp) are left to the vertex response.  ``dist``: each collider's distance
+    (``Collider.distance``) of the movable vertices at x1, when known (the object pass's path
+    test), for the first round.  Returns (x1, edges pushed, summed over the rounds)."""
     a_all, b_all = E[:, 0], E[:, 1]
     w = np.where(movable, w, 0.0)
     mov = movable[a_all] | movable[b_all]
     pushed_total = 0
-    for _ in range(EDGE_ROUNDS):
+    fixed = np.flatnonzero(~movable)
+    for r in range(EDGE_ROUNDS):
         before = x1.copy()
         pushed = 0
-        for col in colliders:
+        half = 0.5 * np.linalg.norm(x1[b_all] - x1[a_all], axis=1)
+        reach = float(half.max(initial=0.0))
+        for i, col in enumerate(colliders):
             R, T = col.motion.pose(t1)
             gaps = EdgeGaps(col, R, T)
-            g = gaps.vertex_gaps(x1)
             tol = col.shell_tolerance()
-            half = 0.5 * np.linalg.norm(x1[b_all] - x1[a_all], axis=1)
-            cand = np.flatnonzero(mov & (g[a_all] > -tol) & (g[b_all] > -tol)
-                                  & (np.minimum(g[a_all], g[b_all]) - half < tol))
+            if r == 0 and dist is not None:   # the path test's distances of the movable vertices
+                g = np.empty(len(x1))
+                g[movable] = dist[i]
+                g[fixed] = gaps.vertex_gaps(x1[fixed])
+            else:
+                g = gaps.vertex_gaps(x1)
+            if g.min(initial=np.inf) - reach >= tol:   # no edge reaches the shell (phi is 1-Lipschitz)
+                continue
+            ga, gb = g[a_all], g[b_all]
+            cand = np.flatnonzero(mov & (ga > -tol) & (gb > -tol) & (np.minimum(ga, gb) - half < tol))
             if cand.size == 0:
                 continue
             a, b = a_all[cand], b_all[cand]
@@ -798,7 +808,7 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
     edges = bool(getattr(cfg, "edge_response", True)) and bool(scene.colliders)
     if edges:
         x1, info.edge_contacts = edge_response(scene.colliders, scene.strands.edges, scene.strands.inverse_masses,
-                                               x1, t1, movable)
+                                               x1, t1, movable, dist)
         if info.edge_contacts:
             info.object_contacts += info.edge_contacts
             v1 = contact_velocities(scene.colliders, x1, (x1 - x0) / dt, t1, movable)
