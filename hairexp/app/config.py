@@ -284,6 +284,10 @@ class TrackingConfig:
     # metrics.parquet: relaxed_clusters, relaxed_slack_rel_max; summary.json: relaxed_steps, relaxed_slack_rel_max
     elastic: bool = True
     elastic_stiffness: float = 1000.0
+    # after the post-solve collision stage moved vertices (collision.contact=stage), the constraints
+    # are restored by the smallest mass-weighted move (post-stabilisation), then the colliders'
+    # response to it (hairexp/physics/simulator.py _restore; false: left as the stage leaves them)
+    restore: bool = True
     max_guide_distance: float = 0.0    # m; > 0: a strand whose RMS distance (eq. 1) to every guide exceeds it is an error
     variance: VarianceConfig = field(default_factory=VarianceConfig)
 

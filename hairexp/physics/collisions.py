@@ -70,6 +70,7 @@ class CollisionInfo:
     strain_limited: int = 0           # edges over the strain limit after the contacts, shortened
     limit_rounds: int = 0             # rounds of strain limiting and object response (limit_strain)
     edge_contacts: int = 0            # edges pushed out of a collider's shell (edge_response; also in object_contacts)
+    restored: int = 0                 # rounds of the controller's constraints restored after the stage (Simulator._restore)
     candidates: int = 0               # most hair-hair edge pairs that reached the narrow phase in a pass
     seconds: float = 0.0
     per_collider: dict = field(default_factory=dict)

@@ -66,6 +66,7 @@ class StepInfo:
     seconds: dict = field(default_factory=dict)   # derivatives, assembly, solve, collision, other, total
     iterations_attempted: int = 0    # all iterations done, including attempts that recovery replaced
     restarts: int = 0                # (sub)steps taken as implicit Euler at a driver's velocity jump
+    restored: int = 0                # rounds that moved the hair back onto the controller's constraints after the collision stage
 
     @property
     def converged(self) -> bool:

@@ -43,7 +43,8 @@ from hairexp import tune_runtime
 from hairexp.errors import MIN_STEP_DT, InputError, SimulationError, finite_number, integer, number
 from hairexp.model.scene import Scene
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact, sweep_substeps
-from hairexp.physics.collisions import CollisionInfo, HairHair, StrainLimit, collision_stage, contact_velocities
+from hairexp.physics.collisions import (CollisionInfo, HairHair, StrainLimit, collision_stage, contact_velocities,
+                                        edge_response, limit_strain, object_positions)
 from hairexp.physics.controller import Controller
 from hairexp.physics.hair_volume import HairVolume
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
@@ -60,6 +61,9 @@ COMPILE_MIN_VERTICES = 4000
 #: A vertex the collision stage moved by more than this (m) or whose velocity it changed by more
 #: than this (m/s) is "touched" (round-off of the stage's x0 + dt v is far below both).
 TOUCH_TOL_X, TOUCH_TOL_V = 1e-12, 1e-9
+#: most rounds of the controller's constraints restored after the collision stage, each followed by
+#: the colliders' response to the move (``Simulator._restore``)
+RESTORE_ROUNDS = 8
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +97,7 @@ def _sum_collisions(cis: list):
     c.penetration_max = max(ci.penetration_max for ci in cis)
     c.strain_limited = sum(ci.strain_limited for ci in cis)
     c.limit_rounds = sum(ci.limit_rounds for ci in cis)
+    c.restored = sum(ci.restored for ci in cis)
     c.passes = sum(ci.passes for ci in cis)
     c.seconds = sum(ci.seconds for ci in cis)
     for ci in cis:
@@ -501,6 +506,8 @@ class Simulator:
                     dv = np.where(touched[:, None], v_stage - v_new, 0.0)
                     v_new = v_new + dv
                     history = integ.after_collision(state, history, dx, dv, touched)
+                if np.any(x_new != x_solve):   # the stage moved vertices: the controller's constraints back
+                    x_new, cinfo.restored = self._restore(x_new, control, t_next, sc.colliders)
             else:
                 cinfo = CollisionInfo()
             if volume is not None:
@@ -525,6 +532,32 @@ class Simulator:
             if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()):  # never return a non-finite state
                 info.status = DIVERGED
         return State(t_next, x_new, v_new, info.tensions, control, body, history), info
+
+    def _restore(self, x: np.ndarray, control, t1: float, colliders) -> tuple[np.ndarray, int]:
+        """Post-stabilisation after the collision stage: the controller moves the positions back
+        onto its constraints (``Controller.restore``: the tracking's smallest mass-weighted move,
+        a fraction of a millimetre after a contact), then the colliders' vertex and edge responses
+        to that move (at t1, without friction: a projection, as the strain limiter's) and, with
+        ``collision.strain_limit``, the limiter's rounds, in rounds until the constraints hold (at
+        most RESTORE_ROUNDS; non-penetration and the strain limit win where all cannot hold).  Velocities are the stage's: the move is a projection, not motion.  Returns
+        (positions, rounds that moved them)."""
+        movable = ~self.scene.strands.kinematic
+        rounds = 0
+        for rounds in range(RESTORE_ROUNDS):
+            xr = self.controller.restore(self, x, control)
+            if xr is None:
+                return x, rounds
+            if colliders:
+                moved = movable & np.any(xr != x, axis=1)
+                xr, _, _ = object_positions(colliders, x, xr, t1, t1, 0.0, moved, friction=False)
+                edges = bool(getattr(self.collision_cfg, "edge_response", True))
+                if edges:
+                    xr, _ = edge_response(colliders, self.scene.strands.edges, self.scene.strands.inverse_masses, xr,
+                                          t1, movable)
+                if self.limiter is not None:   # the move's strain as well (the limiter's rounds end with the contacts)
+                    xr, _, _ = limit_strain(self.limiter, colliders, xr, t1, movable, edges)
+            x = xr
+        return x, rounds + 1
 
     def _advance(self, state: State, dt: float, level: int) -> tuple[State, list[SolveInfo]]:
         new, info = self._attempt(state, dt)
@@ -611,6 +644,7 @@ class Simulator:
         if c is not None:
             info.object_contacts, info.hair_contacts = c.object_contacts, c.hair_contacts
             info.penetration_max = c.penetration_max
+            info.restored = c.restored
             info.collider_contacts.update(c.per_collider)
         if info.recovered or (n > 1 and all(i.converged for i in infos)):
             info.status = CONVERGED

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 
 from hairexp.errors import InputError
 from hairexp.control.tracking.constraints import TrackingConstraints
@@ -99,6 +100,9 @@ class TrackingController(Controller):
         self.cluster_mass = free_mass / max(self.cons.K, 1)
         self.tg = None
         self.time = None
+        # tracking.restore: the constraints restored after the post-solve collision stage (``restore``)
+        self.restore_constraints = bool(getattr(tcfg, "restore", True))
+        self._restore_factor = None   # (M^-1 of the free DOFs, Cholesky of A M^-1 A^T): A is constant
         self._kv = self._vbar = None
         self.m_g_norm = scene.free_weight_norm()
 
@@ -138,6 +142,36 @@ class TrackingController(Controller):
             else:
                 relaxed = None
         return obj.positions(xf).numpy(), TrackingIterates(tk, lam, relaxed), info
+
+    def restore(self, sim, x: np.ndarray, control) -> np.ndarray | None:
+        """Post-stabilisation of the constraints (Cline and Pai 2003) after the post-solve
+        collision stage moved vertices: the smallest mass-weighted move back onto C = 0 (eq. 3;
+        C = A x_f - c_hat is linear in x with the constant COM Jacobian A, so one projection
+        dx_f = -M^-1 A^T (A M^-1 A^T)^-1 C restores it exactly), the targets' parameters t kept
+        at the solve's.  Clusters the elastic mode relaxed keep their centres of mass.  None when
+        every constraint holds within ``ctol`` (or A M^-1 A^T is singular)."""
+        if not self.restore_constraints or control is None or self.tg is None:
+            return None
+        free = sim.objective.free_vertices
+        C = self.cons.residual(x[free].reshape(-1), self.tg, control.t)
+        if control.relaxed is not None:
+            C[control.relaxed] = 0.0
+        if np.abs(C).max(initial=0.0) <= self.opts.ctol:
+            return None
+        if self._restore_factor is None:
+            minv = np.repeat(1.0 / self.scene.strands.masses[free], 3)
+            S = np.asarray((self.cons.A.multiply(minv[None, :]).tocsr() @ self.cons.AT).toarray())
+            try:
+                self._restore_factor = (minv, scipy.linalg.cho_factor(S))
+            except np.linalg.LinAlgError:
+                self._restore_factor = (minv, None)
+        minv, fac = self._restore_factor
+        if fac is None:
+            return None
+        y = scipy.linalg.cho_solve(fac, C.reshape(-1))
+        out = x.copy()
+        out[free] -= (minv * (self.cons.AT @ y)).reshape(-1, 3)
+        return out
 
     def unreachable(self, xf: np.ndarray, tk: np.ndarray, lam: np.ndarray) -> np.ndarray:
         """(K,) bool: the clusters a failed SQP left off target (|C_k| > ctol), or if none, the
