@@ -556,6 +556,12 @@ class StrainLimit:
         self.edge_ptr = np.concatenate([[0], np.cumsum(np.bincount(self.strand, minlength=strands.n_strands))]).astype(np.int64)
         self.compiled = HAVE_NUMBA   # ``limit_sweeps``; False: the numpy sweeps (the reference the tests compare)
 
+    def outside(self, x: np.ndarray) -> bool:
+        """Whether an edge of x is outside the limit (``apply`` would move something)."""
+        E = self.E
+        n = np.linalg.norm(x[E[:, 1]] - x[E[:, 0]], axis=1)
+        return bool(np.any((n > self.L * (1 + 1e-9)) | (n < self.Lmin * (1 - 1e-9))))
+
     def apply(self, x: np.ndarray, pinned: np.ndarray | None = None) -> int:
         """Clamps the edge lengths of x in place; returns how many edges were outside.
         ``pinned`` vertices (in contact with a collider) do not move: their neighbours come
@@ -650,7 +656,8 @@ def _way_out(col, gaps, P: np.ndarray, e: np.ndarray, depth: np.ndarray) -> np.n
     return M[np.arange(len(P)), np.argmax(phi, axis=1)]
 
 
-def edge_response(colliders, E: np.ndarray, w: np.ndarray, x1, t1, movable, dist: list | None = None):
+def edge_response(colliders, E: np.ndarray, w: np.ndarray, x1, t1, movable, dist: list | None = None,
+                  only: np.ndarray | None = None):
     """Edges against the colliders at t1: an edge whose end points are both outside a collider's
     thickness shell but whose segment dips into it (a ball or a rim between two vertices, a box
     corner: the object response tests vertices only) is pushed out along the normal at its
@@ -664,13 +671,19 @@ def edge_response(colliders, E: np.ndarray, w: np.ndarray, x1, t1, movable, dist
     edge is deeper than the collider's shell tolerance.  Edges with an end point inside (a root
     under the scalp) are left to the vertex response.  ``dist``: each collider's distance
     (``Collider.distance``) of the movable vertices at x1, when known (the object pass's path
-    test), for the first round.  Returns (x1, edges pushed, summed over the rounds)."""
+    test), for the first round.  ``only``: (V,) bool, the vertices whose edges to test in the
+    first round (the others' edges are known to be clear: the strain limiter's rounds pass the
+    vertices they moved); later rounds test the edges of the vertices the pushes moved.  Returns
+    (x1, edges pushed, summed over the rounds)."""
     a_all, b_all = E[:, 0], E[:, 1]
     w = np.where(movable, w, 0.0)
     mov = movable[a_all] | movable[b_all]
     pushed_total = 0
     fixed = np.flatnonzero(~movable)
+    test = mov if only is None else mov & (only[a_all] | only[b_all])
     for r in range(EDGE_ROUNDS):
+        if not test.any():
+            break
         before = x1.copy()
         pushed = 0
         half = 0.5 * np.linalg.norm(x1[b_all] - x1[a_all], axis=1)
@@ -688,7 +701,7 @@ def edge_response(colliders, E: np.ndarray, w: np.ndarray, x1, t1, movable, dist
             if g.min(initial=np.inf) - reach >= tol:   # no edge reaches the shell (phi is 1-Lipschitz)
                 continue
             ga, gb = g[a_all], g[b_all]
-            cand = np.flatnonzero(mov & (ga > -tol) & (gb > -tol) & (np.minimum(ga, gb) - half < tol))
+            cand = np.flatnonzero(test & (ga > -tol) & (gb > -tol) & (np.minimum(ga, gb) - half < tol))
             if cand.size == 0:
                 continue
             a, b = a_all[cand], b_all[cand]
@@ -721,6 +734,8 @@ def edge_response(colliders, E: np.ndarray, w: np.ndarray, x1, t1, movable, dist
         pushed_total += pushed
         moved = movable & np.any(x1 != before, axis=1)
         x1, _, _ = object_positions(colliders, before, x1, t1, t1, 0.0, moved, friction=False)
+        moved |= movable & np.any(x1 != before, axis=1)
+        test = mov & (moved[a_all] | moved[b_all])
     return x1, pushed_total
 
 
@@ -751,8 +766,9 @@ def limit_strain(limiter: StrainLimit, colliders, x1, t1, movable, edges: bool =
         limited += n
         check = movable & (changed | np.any(x1 != before, axis=1))
         x1, _, _ = object_positions(colliders, before, x1, t1, t1, 0.0, check, friction=False)
-        if edges:
-            x1, _ = edge_response(colliders, limiter.E, limiter.w, x1, t1, movable)
+        if edges:   # the edges of the vertices this round moved (the others' were clear after the last)
+            x1, _ = edge_response(colliders, limiter.E, limiter.w, x1, t1, movable,
+                                  only=np.any(x1 != before, axis=1) | (changed if rounds == 1 else False))
         changed = np.any(np.abs(x1 - before) > LIMIT_TOL, axis=1)
         if n == 0 and not changed.any():
             break

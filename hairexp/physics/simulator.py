@@ -507,7 +507,9 @@ class Simulator:
                     v_new = v_new + dv
                     history = integ.after_collision(state, history, dx, dv, touched)
                 if np.any(x_new != x_solve):   # the stage moved vertices: the controller's constraints back
+                    tic = time.perf_counter()
                     x_new, cinfo.restored = self._restore(x_new, control, t_next, sc.colliders)
+                    cinfo.seconds += time.perf_counter() - tic
             else:
                 cinfo = CollisionInfo()
             if volume is not None:
@@ -554,8 +556,8 @@ class Simulator:
                 if edges:
                     xr, _ = edge_response(colliders, self.scene.strands.edges, self.scene.strands.inverse_masses, xr,
                                           t1, movable)
-                if self.limiter is not None:   # the move's strain as well (the limiter's rounds end with the contacts)
-                    xr, _, _ = limit_strain(self.limiter, colliders, xr, t1, movable, edges)
+                if self.limiter is not None and self.limiter.outside(xr):   # the move's strain as well (the
+                    xr, _, _ = limit_strain(self.limiter, colliders, xr, t1, movable, edges)   # rounds end with the contacts)
             x = xr
         return x, rounds + 1
 
