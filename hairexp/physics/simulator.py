@@ -541,8 +541,9 @@ class Simulator:
         a fraction of a millimetre after a contact), then the colliders' vertex and edge responses
         to that move (at t1, without friction: a projection, as the strain limiter's) and, with
         ``collision.strain_limit``, the limiter's rounds, in rounds until the constraints hold (at
-        most RESTORE_ROUNDS; non-penetration and the strain limit win where all cannot hold).  Velocities are the stage's: the move is a projection, not motion.  Returns
-        (positions, rounds that moved them)."""
+        most RESTORE_ROUNDS; non-penetration and the strain limit win where all cannot hold).
+        Velocities are the stage's: the move is a projection, not motion.  Returns (positions,
+        rounds that moved them)."""
         movable = ~self.scene.strands.kinematic
         rounds = 0
         for rounds in range(RESTORE_ROUNDS):
@@ -556,8 +557,9 @@ class Simulator:
                 if edges:
                     xr, _ = edge_response(colliders, self.scene.strands.edges, self.scene.strands.inverse_masses, xr,
                                           t1, movable)
-                if self.limiter is not None and self.limiter.outside(xr):   # the move's strain as well (the
-                    xr, _, _ = limit_strain(self.limiter, colliders, xr, t1, movable, edges)   # rounds end with the contacts)
+                if self.limiter is not None and self.limiter.outside(xr):
+                    # the move's strain as well (the limiter's rounds end with the contacts' response)
+                    xr, _, _ = limit_strain(self.limiter, colliders, xr, t1, movable, edges)
             x = xr
         return x, rounds + 1
 
