@@ -307,7 +307,7 @@ def check_clear_roots(scene, frames: int, fps: float, steps_per_frame: int) -> N
     k = np.flatnonzero(scene.strands.kinematic)
     if k.size == 0:
         return
-    n = int(frames) * int(steps_per_frame)   # every step, or 2000 even samples of a longer run (a few ms each)
+    n = int(frames) * int(steps_per_frame)   # every step, or 2000 even samples of a longer run
     ts = np.linspace(0.0, int(frames) / float(fps), min(n, 2000) + 1)
     X = scene.root_body[k]
     block = max(1, ROOT_CHECK_POINTS // len(k))   # samples a block: the roots' positions of a block at once

@@ -24,6 +24,14 @@ MIN_EDGE_LENGTH = 1e-9
 MAX_TURN_DEG = 175.0
 
 
+def within_curves(offsets: np.ndarray, n_steps: int) -> np.ndarray:
+    """(n_steps,) bool: which steps between consecutive packed points (curve offsets ``offsets``)
+    are edges of a curve, not the step from one curve's last vertex to the next curve's first."""
+    within = np.ones(n_steps, dtype=bool)
+    within[offsets[1:-1] - 1] = False
+    return within
+
+
 def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_vertices: int = 2,
                        folds: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Check packed polylines and return them as float64 ``(V,3)`` and int64 counts.
@@ -52,8 +60,7 @@ def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_v
         s = int(np.searchsorted(offsets, v, side="right") - 1)
         raise InputError(f"curve {s} vertex {v - offsets[s]} is not finite: {points[v].tolist()}", where)
     seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    within = np.ones(len(seg), dtype=bool)
-    within[offsets[1:-1] - 1] = False  # the step from the last vertex of one curve to the next curve
+    within = within_curves(offsets, len(seg))
     short = within & (seg < MIN_EDGE_LENGTH)
     if short.any():
         e = int(np.flatnonzero(short)[0])
@@ -77,8 +84,7 @@ def suspect_frames(frames: np.ndarray, counts: np.ndarray) -> np.ndarray:
         bad = ~np.isfinite(P).all(axis=(1, 2)) | (np.abs(P) > 0.999 * MAX_COORDINATE).any(axis=(1, 2))
         d = np.diff(P, axis=1)
         seg = np.sqrt((d * d).sum(-1))                       # (F, V - 1)
-        within = np.ones(seg.shape[1], dtype=bool)
-        within[offsets[1:-1] - 1] = False
+        within = within_curves(offsets, seg.shape[1])
         bad |= (within & ~(seg > 2.0 * MIN_EDGE_LENGTH)).any(axis=1)
         u = d / np.maximum(seg, 1e-300)[..., None]
         cos = (u[:, :-1] * u[:, 1:]).sum(-1)                 # (F, V - 2)
@@ -93,8 +99,7 @@ def check_folds(points: np.ndarray, counts: np.ndarray, where: str) -> None:
     told as "try a smaller solver.dt"; probe of issue 12).  ``points`` finite, no zero-length edge."""
     offsets = np.concatenate([[0], np.cumsum(counts)])
     seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    within = np.ones(len(seg), dtype=bool)
-    within[offsets[1:-1] - 1] = False
+    within = within_curves(offsets, len(seg))
     d = np.diff(points, axis=0) / np.maximum(seg, 1e-300)[:, None]
     cos = (d[:-1] * d[1:]).sum(1)
     fold = within[:-1] & within[1:] & (cos < np.cos(np.radians(MAX_TURN_DEG)))

@@ -556,11 +556,15 @@ class StrainLimit:
         self.edge_ptr = np.concatenate([[0], np.cumsum(np.bincount(self.strand, minlength=strands.n_strands))]).astype(np.int64)
         self.compiled = HAVE_NUMBA   # ``limit_sweeps``; False: the numpy sweeps (the reference the tests compare)
 
-    def outside(self, x: np.ndarray) -> bool:
-        """Whether an edge of x is outside the limit (``apply`` would move something)."""
+    def _outside(self, x: np.ndarray) -> np.ndarray:
+        """(E,) bool: the edges of x outside the limit."""
         E = self.E
         n = np.linalg.norm(x[E[:, 1]] - x[E[:, 0]], axis=1)
-        return bool(np.any((n > self.L * (1 + 1e-9)) | (n < self.Lmin * (1 - 1e-9))))
+        return (n > self.L * (1 + 1e-9)) | (n < self.Lmin * (1 - 1e-9))
+
+    def outside(self, x: np.ndarray) -> bool:
+        """Whether an edge of x is outside the limit (``apply`` would move something)."""
+        return bool(self._outside(x).any())
 
     def apply(self, x: np.ndarray, pinned: np.ndarray | None = None) -> int:
         """Clamps the edge lengths of x in place; returns how many edges were outside.
@@ -568,8 +572,7 @@ class StrainLimit:
         to them, instead of the limiter pulling them into the collider.  The sweeps visit only the
         strands with an edge outside (the others' edges would not move)."""
         E, w = self.E, self.w if pinned is None else np.where(pinned, 0.0, self.w)
-        n = np.linalg.norm(x[E[:, 1]] - x[E[:, 0]], axis=1)
-        outside = (n > self.L * (1 + 1e-9)) | (n < self.Lmin * (1 - 1e-9))
+        outside = self._outside(x)
         over = int(np.sum(outside))
         if over == 0:
             return 0
@@ -766,9 +769,9 @@ def limit_strain(limiter: StrainLimit, colliders, x1, t1, movable, edges: bool =
         limited += n
         check = movable & (changed | np.any(x1 != before, axis=1))
         x1, _, _ = object_positions(colliders, before, x1, t1, t1, 0.0, check, friction=False)
-        if edges:   # the edges of the vertices this round moved (the others' were clear after the last)
+        if edges:   # the edges of the vertices this round moved (the others' were clear after the last); all at first
             x1, _ = edge_response(colliders, limiter.E, limiter.w, x1, t1, movable,
-                                  only=np.any(x1 != before, axis=1) | (changed if rounds == 1 else False))
+                                  only=movable if rounds == 1 else np.any(x1 != before, axis=1))
         changed = np.any(np.abs(x1 - before) > LIMIT_TOL, axis=1)
         if n == 0 and not changed.any():
             break
@@ -823,15 +826,16 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
             moved = np.any(x1 != x_pass, axis=1) | np.any(v1 != v_pass, axis=1)
             active = moved[hh.E[:, 0]] | moved[hh.E[:, 1]]
     edges = bool(getattr(cfg, "edge_response", True)) and bool(scene.colliders)
+    moved_after = False    # whether the edge response or the limiter moved x1 after the passes
     if edges:
         x1, info.edge_contacts = edge_response(scene.colliders, scene.strands.edges, scene.strands.inverse_masses,
                                                x1, t1, movable, dist)
-        if info.edge_contacts:
-            info.object_contacts += info.edge_contacts
-            v1 = contact_velocities(scene.colliders, x1, (x1 - x0) / dt, t1, movable)
-            dist = None
+        info.object_contacts += info.edge_contacts
+        moved_after = info.edge_contacts > 0
     if limiter is not None and info.object_contacts > 0:
         x1, info.strain_limited, info.limit_rounds = limit_strain(limiter, scene.colliders, x1, t1, movable, edges)
+        moved_after = True
+    if moved_after:   # the velocities of the final positions, once
         v1 = contact_velocities(scene.colliders, x1, (x1 - x0) / dt, t1, movable)
         dist = None
     if hh is not None:

@@ -545,6 +545,7 @@ class Simulator:
         Velocities are the stage's: the move is a projection, not motion.  Returns (positions,
         rounds that moved them)."""
         movable = ~self.scene.strands.kinematic
+        edges = bool(getattr(self.collision_cfg, "edge_response", True))
         rounds = 0
         for rounds in range(RESTORE_ROUNDS):
             xr = self.controller.restore(self, x, control)
@@ -553,7 +554,6 @@ class Simulator:
             if colliders:
                 moved = movable & np.any(xr != x, axis=1)
                 xr, _, _ = object_positions(colliders, x, xr, t1, t1, 0.0, moved, friction=False)
-                edges = bool(getattr(self.collision_cfg, "edge_response", True))
                 if edges:
                     xr, _ = edge_response(colliders, self.scene.strands.edges, self.scene.strands.inverse_masses, xr,
                                           t1, movable)
