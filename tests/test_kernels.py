@@ -504,3 +504,35 @@ def test_newton_predicts_the_last_evaluation():
     assert not _likely_converged([1e-2, 1e-4], 1.0, 1e-9)
     assert not _likely_converged([1e-2, 1e-4], 0.5, 1e-7)    # shortened step: no rate
     assert not _likely_converged([1e-4], 1.0, 1.0)
+
+
+@pytest.mark.parametrize("kind", ["straight", "bent", "mixed"])
+def test_metrics_potential_energy_by_the_kernels_is_the_terms_totals(kind):
+    """outputs.metrics.energies sums stretch and bending with the compiled kernel when the run has
+    one (StrandKernels.elastic_energies), and gravity in numpy (Gravity.total_numpy): the same
+    joules as the torch terms' totals, at a state off the rest shape (roots included)."""
+    from hairexp.outputs.metrics import energies
+    from hairexp.physics.state import State
+
+    scene = polyline_scene(strands_of(kind), gravity=(0.0, -9.81, 0.0))
+    sims = {k: Simulator(scene, solver_cfg(kernels=k)) for k in ("numba", "torch")}
+    assert sims["numba"].objective.kernels is not None and sims["torch"].objective.kernels is None
+    rng = np.random.default_rng(4)
+    x = scene.strands.rest + 4e-3 * rng.normal(size=scene.strands.rest.shape)
+    v = 0.1 * rng.normal(size=x.shape)
+    st = State(x=x, v=v, time=0.0)
+    kin_k, pot_k = energies(scene, st, sims["numba"])
+    kin_t, pot_t = energies(scene, st, sims["torch"])
+    with torch.no_grad():
+        xt = torch.from_numpy(x)
+        ref = sum(float(t.total(xt)) for t in sims["torch"].terms + sims["torch"].external
+                  if t.name in ("stretch", "bending", "gravity"))
+        elastic = sum(float(t.total(xt)) for t in sims["torch"].terms if t.name in ("stretch", "bending"))
+    assert elastic > 1e-6 * abs(ref)   # the elastic part is not lost in gravity's
+    gravity = [t for t in sims["torch"].external if t.name == "gravity"]
+    assert len(gravity) == 1 and gravity[0].total_numpy(x) == pytest.approx(float(gravity[0].total(xt)), rel=1e-14)
+    assert pot_t == pytest.approx(ref, rel=1e-13, abs=1e-13 * elastic)
+    assert pot_k == pytest.approx(ref, rel=1e-12, abs=1e-12 * elastic)
+    assert kin_k == kin_t
+    with pytest.raises(ValueError, match="shape"):
+        sims["numba"].objective.kernels.elastic_energies(x[:-1])

@@ -29,9 +29,21 @@ def energies(scene: Scene, state: State, sim) -> tuple[float, float]:
     import torch
 
     kin = 0.5 * float(np.sum(scene.strands.masses[:, None] * state.v ** 2))
-    x = torch.from_numpy(state.x)
-    with torch.no_grad():
-        pot = sum(float(t.total(x)) for t in sim.terms + sim.external if t.name in ("stretch", "bending", "gravity"))
+    terms = [t for t in sim.terms + sim.external if t.name in ("stretch", "bending", "gravity")]
+    pot = 0.0
+    kern = getattr(getattr(sim, "objective", None), "kernels", None)
+    if kern is not None and any(kern.handles(t) for t in terms):   # the compiled sums (2.7 -> 0.1 ms at Celia's size)
+        stretch, bending = kern.elastic_energies(state.x)
+        pot += (stretch if any(t is kern.stretch for t in terms) else 0.0)
+        pot += (bending if any(t is kern.bending for t in terms) else 0.0)
+        terms = [t for t in terms if not kern.handles(t)]
+    for t in [t for t in terms if hasattr(t, "total_numpy")]:   # gravity
+        pot += t.total_numpy(state.x)
+        terms.remove(t)
+    if terms:
+        x = torch.from_numpy(state.x)
+        with torch.no_grad():
+            pot += sum(float(t.total(x)) for t in terms)
     return kin, pot
 
 

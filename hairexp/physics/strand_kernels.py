@@ -182,6 +182,19 @@ class StrandKernels:
         s = out.sum(axis=0)
         return float(s[0]), float(s[1]), float(s[2]), float(s[3])
 
+    def elastic_energies(self, x: np.ndarray) -> tuple[float, float]:
+        """(stretch, bending) energies in J of the full positions x (V, 3): the terms' ``total``
+        (the metrics' potential energy, hairexp/outputs/metrics.py), by the line search's kernel."""
+        Y = np.ascontiguousarray(x, dtype=np.float64)
+        if Y.shape != self._Y.shape:
+            raise ValueError(f"elastic_energies: positions of shape {Y.shape}, the kernels have {self._Y.shape}")
+        out = np.empty((len(self.blk_dof) - 1, 4))
+        zero = self._zero_dofs
+        kernels.energies_serial(Y, zero, zero, zero, zero, self.free_vertices, self.blk_dof, self.e_ptr, self.e_idx,
+                                self.edges, self.k_l0, self.l0, self.b_ptr, self.b_idx, self.bends, self.w,
+                                self.s_rest, self.e_rest, self.b_rest, out)
+        return float(out[:, 1].sum()), float(out[:, 2].sum())
+
     def tensions(self, obj, xf: np.ndarray, step: np.ndarray | None) -> np.ndarray:
         """(E,) tensions at y(xf), linearised along ``step`` (None: exact), as ``Stretch``."""
         Y = self._points(obj, xf)
