@@ -43,6 +43,47 @@ def test_restore_is_the_smallest_mass_weighted_move_onto_the_constraints():
     assert ctl.restore(sim, xr, it) is None   # on the constraints: nothing to do
 
 
+def test_restore_with_pinned_vertices_moves_only_the_others():
+    """With vertices pinned (the ones a collider or the strain limiter placed): they stay exactly,
+    the constraints hold after the move, and the move is the smallest mass-weighted one through
+    the other vertices (dx = W A^T y, W = M^-1 with the pinned rows zero).  A cluster left with
+    less than RESTORE_MIN_SHARE of its weight unpinned moves all its vertices instead."""
+    from hairexp.control.tracking.controller import RESTORE_MIN_SHARE
+
+    run = _run(["frames=2"])
+    sim, ctl = run.simulator, run.controller
+    ctl.begin(0.04, None)
+    free = sim.objective.free_vertices
+    x = run.initial_state().x.copy()
+    it = ctl.initial_control()
+    rng = np.random.default_rng(2)
+    x[free[::5]] += rng.normal(scale=1e-3, size=x[free[::5]].shape)
+    A = ctl.cons.A.toarray()
+    member = np.abs(A[0::3]).reshape(ctl.cons.K, -1, 3)[:, :, 0] > 0   # (K, free vertices)
+    pinned = np.zeros(len(x), dtype=bool)
+    pinned[free[::3]] = True
+    k = int(member.sum(axis=1).argmax())                 # one cluster with all but one vertex pinned
+    pinned[free[member[k]][:-1]] = True
+    xr = ctl.restore(sim, x, it, pinned)
+    assert xr is not None
+    C = ctl.cons.residual(xr[free].reshape(-1), ctl.tg, it.t)
+    assert np.abs(C).max() <= 1e-12
+    weight = np.abs(A[0::3, 0::3])                       # (K, free vertices) mass weights
+    share = (weight * ~pinned[free]).sum(axis=1) / weight.sum(axis=1)
+    low = share < RESTORE_MIN_SHARE
+    assert low[k] and low.sum() < ctl.cons.K
+    held = pinned[free] & ~member[low].any(axis=0)      # pinned, in no low cluster
+    moved = np.any(xr != x, axis=1)[free]
+    assert held.any() and not moved[held].any()          # they stay exactly
+    assert moved[member[k]].all()                        # the nearly pinned cluster moves all its vertices
+    # the smallest W-weighted move: dx in the range of W A^T
+    w = np.where(np.repeat(held, 3), 0.0, np.repeat(1.0 / run.scene.strands.masses[free], 3))
+    dx = (xr - x)[free].reshape(-1)
+    WAT = A.T * w[:, None]
+    y, *_ = np.linalg.lstsq(WAT, dx, rcond=None)
+    np.testing.assert_allclose(WAT @ y, dx, rtol=0, atol=1e-12 * np.abs(dx).max())
+
+
 @pytest.mark.parametrize("restore", [True, False])
 def test_contact_frames_keep_the_constraints_with_the_restore(restore):
     """Goaling tracked through its first contact with the wheel (0.92 s): with the restore every

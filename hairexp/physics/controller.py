@@ -77,7 +77,7 @@ class Controller:
         """Per-state quantities for the metrics and the recording (scalars become columns)."""
         return {}
 
-    def restore(self, sim, x: np.ndarray, control) -> np.ndarray | None:
+    def restore(self, sim, x: np.ndarray, control, pinned: np.ndarray | None = None) -> np.ndarray | None:
         """Positions x (V, 3) moved back onto the controller's constraints of the stage just
         solved (``control``: its iterates), after the collision stage moved vertices off them, or
         None where nothing needs to move (no constraints, or they hold)."""

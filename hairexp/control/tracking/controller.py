@@ -29,6 +29,9 @@ def _v(x):
 #: the SQP's own ctol (1e-9 L) the rounds chased what the strain limiter and the contacts undo:
 #: goaling's restores took a third of its stepping time, 40 ms each
 RESTORE_TOL = 1e-8
+#: ``restore``: a cluster moves only its unpinned vertices while they carry at least this share of
+#: its centre's mass weight (else all of its vertices move)
+RESTORE_MIN_SHARE = 0.25
 
 
 @dataclass
@@ -150,13 +153,17 @@ class TrackingController(Controller):
                 relaxed = None
         return obj.positions(xf).numpy(), TrackingIterates(tk, lam, relaxed), info
 
-    def restore(self, sim, x: np.ndarray, control) -> np.ndarray | None:
+    def restore(self, sim, x: np.ndarray, control, pinned: np.ndarray | None = None) -> np.ndarray | None:
         """Post-stabilisation of the constraints (Cline and Pai 2003) after the post-solve
         collision stage moved vertices: the smallest mass-weighted move back onto C = 0 (eq. 3;
         C = A x_f - c_hat is linear in x with the constant COM Jacobian A, so one projection
-        dx_f = -M^-1 A^T (A M^-1 A^T)^-1 C restores it exactly), the targets' parameters t kept
-        at the solve's.  Clusters the elastic mode relaxed keep their centres of mass.  None when
-        every constraint holds within RESTORE_TOL of the hair length (or A M^-1 A^T is singular)."""
+        dx_f = -W A^T (A W A^T)^-1 C restores it exactly, W = M^-1), the targets' parameters t kept
+        at the solve's.  ``pinned``: (V,) bool, vertices the move leaves in place (W's rows zero:
+        the ones a collider or the strain limiter placed, which the move would push back into
+        them); a cluster keeping less than RESTORE_MIN_SHARE of its mass weight free of pins
+        moves all its vertices (no large move of a few).  Clusters the elastic mode relaxed keep
+        their centres of mass.  None when every constraint holds within RESTORE_TOL of the hair
+        length (or A W A^T is singular)."""
         if not self.restore_constraints or control is None or self.tg is None:
             return None
         free = sim.objective.free_vertices
@@ -173,6 +180,18 @@ class TrackingController(Controller):
             except np.linalg.LinAlgError:
                 self._restore_factor = (minv, None)
         minv, fac = self._restore_factor
+        if pinned is not None and pinned[free].any():
+            held = np.repeat(pinned[free], 3)
+            share = self.cons.A @ (~held).astype(np.float64)   # (3K,) each row's weight on unpinned DOFs
+            low = np.abs(share) < RESTORE_MIN_SHARE * np.asarray(abs(self.cons.A).sum(axis=1)).ravel()
+            if low.any():   # those clusters' DOFs move after all
+                held &= np.asarray(abs(self.cons.A[low]).sum(axis=0)).ravel() == 0
+            w = np.where(held, 0.0, minv)
+            try:
+                fac = scipy.linalg.cho_factor(np.asarray((self.cons.A.multiply(w[None, :]).tocsr() @ self.cons.AT).toarray()))
+                minv = w
+            except np.linalg.LinAlgError:
+                pass   # the unpinned move
         if fac is None:
             return None
         y = scipy.linalg.cho_solve(fac, C.reshape(-1))
