@@ -80,7 +80,9 @@ class Controller:
     def restore(self, sim, x: np.ndarray, control, pinned: np.ndarray | None = None) -> np.ndarray | None:
         """Positions x (V, 3) moved back onto the controller's constraints of the stage just
         solved (``control``: its iterates), after the collision stage moved vertices off them, or
-        None where nothing needs to move (no constraints, or they hold)."""
+        None where nothing needs to move (no constraints, or they hold).  ``pinned``: (V,) bool or
+        None, vertices a collider or the strain limiter placed, which the move should leave where
+        they are (``Simulator._restore`` passes them; a controller may ignore them)."""
         return None
 
     def control_effort(self, sim, state) -> float | None:
