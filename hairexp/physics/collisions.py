@@ -704,7 +704,9 @@ def edge_response(colliders, E: np.ndarray, w: np.ndarray, x1, t1, movable, dist
             if g.min(initial=np.inf) - reach >= tol:   # no edge reaches the shell (phi is 1-Lipschitz)
                 continue
             ga, gb = g[a_all], g[b_all]
-            cand = np.flatnonzero(test & (ga > -tol) & (gb > -tol) & (np.minimum(ga, gb) - half < tol))
+            # phi is 1-Lipschitz: along an edge of length 2 half it is >= (ga + gb) / 2 - half, so only
+            # an edge with that bound below -tol can dip deeper than the shell's tolerance
+            cand = np.flatnonzero(test & (ga > -tol) & (gb > -tol) & (0.5 * (ga + gb) - half < -tol))
             if cand.size == 0:
                 continue
             a, b = a_all[cand], b_all[cand]
