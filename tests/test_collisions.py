@@ -12,6 +12,7 @@ from helpers import run_steps
 
 from hairexp.app.config import ColliderConfig, CollisionConfig, SceneConfig, SolverConfig
 from hairexp.physics.collisions import HairHair, object_stage
+from hairexp.physics.kernels import HAVE_NUMBA
 from hairexp.model.colliders import Cylinder, Plane, Sphere
 import hairexp.physics.simulator as simulator_module
 from hairexp.physics.simulator import Simulator
@@ -906,3 +907,41 @@ def test_an_edge_across_a_collider_between_its_vertices_is_pushed_out(shape, off
     assert results[False][0] > 1e-3 and results[False][1].edge_contacts == 0   # 1-6 mm through the shape without it
     assert results[True][0] <= col.shell_tolerance() and results[True][1].edge_contacts > 0
     assert results[True][1].object_contacts >= results[True][1].edge_contacts
+    if HAVE_NUMBA:   # the numpy path (candidates, path tests, sweeps) gives the compiled one's pushes
+        import hairexp.physics.collisions as collisions_module
+
+        saved = collisions_module.HAVE_NUMBA
+        try:
+            collisions_module.HAVE_NUMBA = False
+            out_np, _, info_np = collision_stage(cc, scene, None, x0, x0.copy(), 0.0, DT, DT)
+        finally:
+            collisions_module.HAVE_NUMBA = saved
+        np.testing.assert_allclose(out_np, out, rtol=0, atol=1e-12)
+        assert info_np.edge_contacts == results[True][1].edge_contacts
+
+
+@pytest.mark.skipif(not HAVE_NUMBA, reason="numba not installed")
+def test_edge_candidates_kernel_is_the_numpy_selection():
+    """collisions._edge_candidates (edge_response's compiled candidate pass) selects exactly the
+    edges of the numpy expression: tested, both gaps above -tol, (g_a + g_b)/2 - half below -tol;
+    on random strands whose gaps straddle the thresholds."""
+    from hairexp.physics.collisions import _edge_candidates
+
+    rng = np.random.default_rng(3)
+    V = 400
+    x = rng.normal(scale=0.01, size=(V, 3))
+    E = np.stack([np.arange(V - 1), np.arange(1, V)], axis=1)
+    E = E[rng.random(len(E)) < 0.9]
+    a, b = E[:, 0], E[:, 1]
+    tol = 2e-6
+    half = 0.5 * np.linalg.norm(x[b] - x[a], axis=1)
+    for trial in range(5):
+        g = rng.uniform(-0.5, 1.5, size=V) * half.mean()
+        g[rng.random(V) < 0.1] = -tol   # on the threshold
+        test = rng.random(len(E)) < 0.8
+        ga, gb = g[a], g[b]
+        ref = np.flatnonzero(test & (ga > -tol) & (gb > -tol) & (0.5 * (ga + gb) - half < -tol))
+        out = np.empty(len(E), dtype=np.int64)
+        n = _edge_candidates(x, a, b, g, test, tol, out)
+        assert 0 < ref.size < test.sum()
+        np.testing.assert_array_equal(out[:n], ref)
