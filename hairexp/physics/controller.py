@@ -85,6 +85,12 @@ class Controller:
         they are (``Simulator._restore`` passes them; a controller may ignore them)."""
         return None
 
+    def restore_unmet(self, sim, x: np.ndarray, control):
+        """The iterates ``control`` after ``restore``'s rounds ended with its constraints not met
+        at x (non-penetration and the strain limit won): marked so, for the metrics.  The
+        default leaves them as they are."""
+        return control
+
     def control_effort(self, sim, state) -> float | None:
         """|F_c| / |m g| of the control force at ``state``, or None where it has none."""
         return None

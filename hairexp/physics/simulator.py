@@ -512,7 +512,7 @@ class Simulator:
                     # the constraints again): goaling tracked 0.59 -> 0.39 s of collision time, the
                     # residual unchanged (5.9e-9 -> 5.4e-9 L)
                     tic = time.perf_counter()
-                    x_new, cinfo.restored = self._restore(x_new, control, t_next, sc.colliders,
+                    x_new, cinfo.restored, control = self._restore(x_new, control, t_next, sc.colliders,
                                                                          np.any(x_new != x_solve, axis=1))
                     cinfo.seconds += time.perf_counter() - tic
             else:
@@ -541,7 +541,7 @@ class Simulator:
         return State(t_next, x_new, v_new, info.tensions, control, body, history), info
 
     def _restore(self, x: np.ndarray, control, t1: float, colliders, placed: np.ndarray | None = None
-                 ) -> tuple[np.ndarray, int]:
+                 ) -> tuple[np.ndarray, int, object]:
         """Post-stabilisation after the collision stage: the controller moves the positions back
         onto its constraints (``Controller.restore``: the tracking's smallest mass-weighted move,
         a fraction of a millimetre after a contact), then the colliders' vertex and edge responses
@@ -552,7 +552,9 @@ class Simulator:
         the next moves: the move goes through the others, so the responses do not undo it (the
         plain alternation lost about 5x of the residual a round: goaling 5.4e-9 L after 8 rounds
         against 4.7e-13 L now, in 8 rounds in all instead of 25).  Velocities are the stage's: the
-        move is a projection, not motion.  Returns (positions, rounds that moved them)."""
+        move is a projection, not motion.  Returns (positions, rounds that moved them, the
+        controller's iterates: where the rounds ran out, with the constraints left unmet marked by
+        ``Controller.restore_unmet``)."""
         movable = ~self.scene.strands.kinematic
         edges = bool(getattr(self.collision_cfg, "edge_response", True))
         rounds = 0
@@ -560,7 +562,7 @@ class Simulator:
         for rounds in range(RESTORE_ROUNDS):
             xr = self.controller.restore(self, x, control, pinned)
             if xr is None:
-                return x, rounds
+                return x, rounds, control
             xp = xr
             if colliders:
                 moved = movable & np.any(xr != x, axis=1)
@@ -573,7 +575,9 @@ class Simulator:
                     xr, _, _ = limit_strain(self.limiter, colliders, xr, t1, movable, edges)
             pinned |= np.any(xr != xp, axis=1)   # placed by a collider or the limiter: the next move keeps them
             x = xr
-        return x, rounds + 1
+        if self.controller.restore(self, x, control, pinned) is None:   # the last round met them
+            return x, rounds + 1, control
+        return x, rounds + 1, self.controller.restore_unmet(self, x, control)
 
     def _advance(self, state: State, dt: float, level: int) -> tuple[State, list[SolveInfo]]:
         new, info = self._attempt(state, dt)
