@@ -960,8 +960,11 @@ def test_nonmonotone_merit_search_cuts_the_contact_steps_iterations(monkeypatch)
     search (``tracking.nonmonotone=1``) alternated full and 1/8-1/16 steps for tens of
     iterations (measured: 65, 40 and 76 SQP iterations in three steps, 6-12 before); measuring
     the decrease from the largest merit of the last 5 iterates (the default) takes at most 18.
-    The monotone search also ran one solve to the iteration limit (50), redone as substeps; with
-    the default every solve converges (the same convergence test).  Before the contact both
+    The monotone search then also ran one solve to the iteration limit (50), redone as substeps.
+    Since the restore after the contact stage pins the vertices the stage placed (2026-12-07) the
+    contact states differ and the monotone search no longer meets its limit here (49, 37, 55, 30,
+    46, 37, 23 iterations in the contact steps, 406 in all against the default's 10-17 and 226);
+    with the default every solve converges (the same convergence test).  Before the contact both
     follow the same trajectory to within the solves' tolerance.  The guides interpolated linearly
     between frames, as when this was measured: with the default Catmull-Rom interpolation the
     monotone search no longer meets a solve at its limit here (the targets' velocity no longer jumps
@@ -985,10 +988,10 @@ def test_nonmonotone_merit_search_cuts_the_contact_steps_iterations(monkeypatch)
         failed = [c for c in rec.calls if c[0] != "converged"]
         runs[m] = (np.array(states), np.array(its), r.controller.hair_length, failed)
     (xa, ia, L, fa), (xb, ib, _, fb) = runs[1], runs[5]
-    assert not fb and len(fa) >= 1, (fa, fb)   # monotone: a solve at the iteration limit (redone as substeps)
+    assert not fb, fb              # the default: every solve converges
     assert len(ia) == len(ib) == 31
     contact = slice(22, 31)        # steps ending at 0.92 ... 1.24 s
-    assert ia[contact].max() >= 60 and ib[contact].max() <= 25, (ia[contact], ib[contact])
+    assert ib[contact].max() <= 25 and ia[contact].max() >= 2 * ib[contact].max(), (ia[contact], ib[contact])
     assert ib.sum() < 0.8 * ia.sum()
     assert np.abs(xa[:22] - xb[:22]).max() <= 1e-6 * L
 
