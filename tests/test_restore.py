@@ -134,3 +134,21 @@ def test_clusters_the_restore_cannot_bring_back_are_reported_relaxed():
             assert np.array_equal(off, state.control.relaxed)
             assert m["relaxed_slack_rel_max"] == pytest.approx(np.linalg.norm(C, axis=1).max() / ctl.hair_length)
     assert relaxed_steps and min(relaxed_steps) >= 20   # only at the contact
+
+
+def test_a_run_with_relaxed_steps_says_so(tmp_path, caplog):
+    """The run's summary counts the steps with clusters left off target and the run ends with a
+    warning naming them (goaling with hard assignment through its first wheel contact)."""
+    import logging
+
+    from hairexp.app.config import compose_config
+    from hairexp.app.run import run
+
+    cfg = compose_config(["experiment=goaling", "variants=[]", "controller.name=tracking", "frames=24",
+                          "tracking.assignment=hard", "logging.rerun=false", "logging.progress=false"])
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        s = run(cfg, tmp_path / "run")
+    assert s["status"] == "completed" and s["relaxed_steps"] >= 1 and s["relaxed_slack_rel_max"] > 1e-6
+    assert s["residual_rel_max"] <= 1e-6
+    said = [r.getMessage() for r in caplog.records if "left off their targets" in r.getMessage()]
+    assert len(said) == 1 and f"in {s['relaxed_steps']} of {s['steps']} steps" in said[0]

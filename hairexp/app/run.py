@@ -471,6 +471,12 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
         log.warning("%s: the hair stretched by %.1f %% (stretch_max in summary.json; more than %g %%): forces far "
                     "beyond the hair's (guides that leave the hair's roots, a collider dragging it, extreme gravity or "
                     "stiffness); look at the run before using it", out, 100 * summary["stretch_max"], 100 * STRETCH_WARN)
+    if summary.get("relaxed_steps"):
+        log.warning("%s: in %d of %d steps up to %d clusters were left off their targets, by up to %.2g of the hair "
+                    "length (relaxed_steps and relaxed_slack_rel_max in summary.json, relaxed_clusters in "
+                    "metrics.parquet): a target the hair could not reach outside the colliders and within the strain "
+                    "limit", out, summary["relaxed_steps"], summary["steps"], summary["relaxed_clusters_max"],
+                    summary["relaxed_slack_rel_max"])
     if not summary["converged"]:
         log.warning("%s: %d of %d steps did not converge; the results are kept and summary.json says converged: "
                     "false (on_unconverged=fail makes this an error)", out, summary["unconverged_steps"],
