@@ -86,8 +86,8 @@ class Controller:
         return None
 
     def restore_unmet(self, sim, x: np.ndarray, control):
-        """The iterates ``control`` after ``restore``'s rounds ended with its constraints not met
-        at x (non-penetration and the strain limit won): marked so, for the metrics.  The
+        """The iterates ``control`` after ``restore``'s rounds ran out at x: the constraints x
+        leaves unmet (non-penetration and the strain limit won) marked so, for the metrics.  The
         default leaves them as they are."""
         return control
 
