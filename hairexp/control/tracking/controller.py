@@ -117,7 +117,8 @@ class TrackingController(Controller):
         self.time = None
         # tracking.restore: the constraints restored after the post-solve collision stage (``restore``)
         self.restore_constraints = bool(getattr(tcfg, "restore", True))
-        self._restore_factor = None   # (M^-1 of the free DOFs, Cholesky of A M^-1 A^T): A is constant
+        # (M^-1 of the free DOFs, Cholesky of A M^-1 A^T or None, |A|'s row sums): A is constant
+        self._restore_factor = None
         self._kv = self._vbar = None
         self.m_g_norm = scene.free_weight_norm()
 
@@ -177,32 +178,36 @@ class TrackingController(Controller):
             C[control.relaxed] = 0.0
         if np.abs(C).max(initial=0.0) <= RESTORE_TOL * self.hair_length:
             return None
+        A = self.cons.A
         if self._restore_factor is None:
             minv = np.repeat(1.0 / self.scene.strands.masses[free], 3)
-            S = np.asarray((self.cons.A.multiply(minv[None, :]).tocsr() @ self.cons.AT).toarray())
-            try:
-                self._restore_factor = (minv, scipy.linalg.cho_factor(S))
-            except np.linalg.LinAlgError:
-                self._restore_factor = (minv, None)
-        minv, fac = self._restore_factor
+            self._restore_factor = (minv, self._restore_cholesky(minv), np.asarray(abs(A).sum(axis=1)).ravel())
+        minv, fac, row_weight = self._restore_factor
         if pinned is not None and pinned[free].any():
             held = np.repeat(pinned[free], 3)
-            share = self.cons.A @ (~held).astype(np.float64)   # (3K,) each row's weight on unpinned DOFs
-            low = np.abs(share) < RESTORE_MIN_SHARE * np.asarray(abs(self.cons.A).sum(axis=1)).ravel()
+            share = A @ (~held).astype(np.float64)   # (3K,) each row's weight on unpinned DOFs
+            low = np.abs(share) < RESTORE_MIN_SHARE * row_weight
             if low.any():   # those clusters' DOFs move after all
-                held &= np.asarray(abs(self.cons.A[low]).sum(axis=0)).ravel() == 0
+                held &= np.asarray(abs(A[low]).sum(axis=0)).ravel() == 0
             w = np.where(held, 0.0, minv)
-            try:
-                fac = scipy.linalg.cho_factor(np.asarray((self.cons.A.multiply(w[None, :]).tocsr() @ self.cons.AT).toarray()))
-                minv = w
-            except np.linalg.LinAlgError:
-                pass   # the unpinned move
+            fac_w = self._restore_cholesky(w)
+            if fac_w is not None:   # else the unpinned move
+                minv, fac = w, fac_w
         if fac is None:
             return None
         y = scipy.linalg.cho_solve(fac, C.reshape(-1))
         out = x.copy()
         out[free] -= (minv * (self.cons.AT @ y)).reshape(-1, 3)
         return out
+
+    def _restore_cholesky(self, w: np.ndarray):
+        """cho_factor of A W A^T (W = diag(w), inverse masses of the DOFs that may move), or None
+        where it is singular."""
+        try:
+            S = (self.cons.A.multiply(w[None, :]).tocsr() @ self.cons.AT).toarray()
+            return scipy.linalg.cho_factor(np.asarray(S))
+        except np.linalg.LinAlgError:
+            return None
 
     def restore_unmet(self, sim, x: np.ndarray, control):
         """After the restore's last round (``Simulator._restore``): the iterates with the clusters
