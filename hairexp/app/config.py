@@ -372,6 +372,10 @@ class CollisionConfig:
     # the post-solve stage also tests edges (not only vertices) against the colliders and pushes
     # out those that dip into one between their vertices (hairexp/physics/collisions.py edge_response)
     edge_response: bool = True
+    # stage: the stage's object contacts become penalty planes of a second solve of the step, whose
+    # result goes through the stage again (hairexp/physics/contact_planes.py): the hair wraps around
+    # the collider in the solve instead of being stretched by the stage's moves
+    resolve: bool = False
     # hair_hair's model: edges (edge-edge contacts) | volume (grid friction and pressure,
     # hairexp/physics/hair_volume.py; linear in the vertices, but strands may pass through each other)
     hair_hair_model: HairHairModel = HairHairModel.edges

@@ -71,18 +71,26 @@ class CollisionInfo:
     limit_rounds: int = 0             # rounds of strain limiting and object response (limit_strain)
     edge_contacts: int = 0            # edges pushed out of a collider's shell (edge_response; also in object_contacts)
     restored: int = 0                 # rounds of the controller's constraints restored after the stage (Simulator._restore)
+    resolved: int = 0                 # contact planes of the step's second solve (collision.resolve, Simulator._resolve_contacts)
     candidates: int = 0               # most hair-hair edge pairs that reached the narrow phase in a pass
     seconds: float = 0.0
     per_collider: dict = field(default_factory=dict)
 
 
-def object_stage(colliders, x0, x1, t0, t1, dt, movable, dist_out: list | None = None):
+def object_stage(colliders, x0, x1, t0, t1, dt, movable, dist_out: list | None = None, discrete: bool = False):
     """Returns corrected (x1, v1, contacts, contacts per collider).  ``dist_out``: a list that
     gets, when there was no contact (x1 is the input's), each collider's signed distance minus
     thickness of the movable vertices at x1 and t1 (``Collider.distance``), which the path test
-    computed; left empty otherwise."""
+    computed; left empty otherwise.  ``discrete``: the end points alone are tested and projected
+    onto the shells (no path, no positional friction; the velocities' inelastic contact and
+    Coulomb friction as always): after a solve that saw the contacts (``collision.resolve``), whose
+    end points left a collider's surface along it, where a straight path x0 -> x1 would cut
+    through the collider and be stopped inside it."""
     dist: list = []
-    x1, contacts, per = object_positions(colliders, x0, x1, t0, t1, dt, movable, dist_out=dist)
+    if discrete:
+        x1, contacts, per = object_positions(colliders, x1, x1, t1, t1, 0.0, movable, friction=False, dist_out=dist)
+    else:
+        x1, contacts, per = object_positions(colliders, x0, x1, t0, t1, dt, movable, dist_out=dist)
     known = dist if contacts == 0 else None
     if dist_out is not None and known is not None:
         dist_out.extend(known)
@@ -808,7 +816,7 @@ def limit_strain(limiter: StrainLimit, colliders, x1, t1, movable, edges: bool =
 
 
 def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter: StrainLimit | None = None,
-                    dist_out: list | None = None):
+                    dist_out: list | None = None, discrete: bool = False):
     """Filter (x1, v1) for contacts.  Returns (x1, v1, CollisionInfo).  With ``limiter``, a
     step with object contacts ends with strain limiting (``StrainLimit``).  ``dist_out``: a list
     that gets each collider's ``distance`` of the movable vertices at the returned x1 and t1 when
@@ -817,7 +825,8 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
     contacts (``HairHair``) or None.  The volume model (``collision.hair_hair_model=volume``,
     hairexp/physics/hair_volume.py) is not a pass of this stage: it filters the scheme's end
     velocities and moves no position, so the Simulator applies it (``Simulator._stage``) and
-    these passes see the solve's path."""
+    these passes see the solve's path.  ``discrete``: the object passes test the end points only
+    (``object_stage``)."""
     tic = time.perf_counter()
     info = CollisionInfo()
     movable = ~scene.strands.kinematic
@@ -839,7 +848,8 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
             x1 = np.where(hit[:, None], x0 + dt * v1, x1)
         if scene.colliders:
             found: list = []
-            x1, v1, n_obj, per = object_stage(scene.colliders, x0, x1, t0, t1, dt, movable, dist_out=found)
+            x1, v1, n_obj, per = object_stage(scene.colliders, x0, x1, t0, t1, dt, movable, dist_out=found,
+                                              discrete=discrete)
             dist = found or None    # (filled only when the pass had no contact)
             for k, c in per.items():
                 info.per_collider[k] = info.per_collider.get(k, 0) + c

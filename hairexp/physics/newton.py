@@ -130,5 +130,5 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         # gradient and Hessian together: a separate gradient-only check would repeat most of
         # the derivative work on every iterate that is not yet converged
         ev, p = _evaluate(obj, x, not _likely_converged(norms, alpha, opts.atol + opts.rtol * ev.force_scale))
-        if obj.contact is not None:
+        if obj.contact is not None and getattr(obj.contact, "lagged", True):
             f = obj.value(x)   # the contact's friction lag moved with the evaluation

@@ -45,6 +45,7 @@ from hairexp.model.scene import Scene
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact, sweep_substeps
 from hairexp.physics.collisions import (CollisionInfo, HairHair, StrainLimit, collision_stage, contact_velocities,
                                         edge_response, limit_strain, object_positions)
+from hairexp.physics.contact_planes import stage_planes
 from hairexp.physics.controller import Controller
 from hairexp.physics.hair_volume import HairVolume
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
@@ -61,6 +62,9 @@ COMPILE_MIN_VERTICES = 4000
 #: A vertex the collision stage moved by more than this (m) or whose velocity it changed by more
 #: than this (m/s) is "touched" (round-off of the stage's x0 + dt v is far below both).
 TOUCH_TOL_X, TOUCH_TOL_V = 1e-12, 1e-9
+#: collision.resolve: solves of a stage with contact planes at most (the first, then one for each
+#: growth of the active set; ``Simulator._resolve_contacts``)
+RESOLVE_ROUNDS = 4
 #: most rounds of the controller's constraints restored after the collision stage, each followed by
 #: the colliders' response to the move (``Simulator._restore``)
 RESTORE_ROUNDS = 8
@@ -322,6 +326,9 @@ class Simulator:
         # a step in which a collider sweeps over hair by more than max_travel of its thinnest size
         # is split into equal substeps (``sweep_substeps``), in either contact mode
         self.sweep_colliders = list(scene.colliders) if (self.contact is not None or self.collide_objects) else []
+        #: collision.resolve: the stage's object contacts as planes of a second solve (``_resolve_contacts``)
+        self.resolve = bool(self.collide_objects and _value(getattr(cc, "resolve", False)))
+        self.resolve_failures = 0
         self.max_travel = float(getattr(cc, "max_travel", 0.0)) if cc is not None else 0.0
         self.max_travel_substeps = int(getattr(cc, "max_travel_substeps", 1)) if cc is not None else 1
         self._free_mask = ~s.kinematic
@@ -494,6 +501,35 @@ class Simulator:
             if self.collide_objects or hh is not None:
                 x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_new,
                                                         state.time, t_next, dt, self.limiter, dist_out=dist)
+                if self.resolve and cinfo.object_contacts > 0 and sc.colliders:
+                    # the stage's contacts as planes of a second solve (hairexp/physics/contact_planes.py),
+                    # then the stage again on its result
+                    again = self._resolve_contacts(state, dt, t_next, motion, x_new, x_solve, sc.colliders)
+                    if again is not None:
+                        x_solve, control, info2, planes = again
+                        info.iterations += info2.iterations
+                        info.backtracks += info2.backtracks
+                        for k, v in info2.seconds.items():
+                            info.seconds[k] = info.seconds.get(k, 0.0) + v
+                        info.tensions = info2.tensions
+                        info.grad_norm, info.force_scale = info2.grad_norm, info2.force_scale
+                        info.constraint_norm = info2.constraint_norm
+                        v_new = integ.velocity(x_solve, state, plan)
+                        history = integ.history(state, x_solve, v_new, plan, dt)
+                        if body is not None:
+                            body = self.body.with_hair_force(body, self.root_force(x_solve))
+                        first = cinfo
+                        dist = []
+                        x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_solve,
+                                                                state.time, t_next, dt, self.limiter, dist_out=dist,
+                                                                discrete=True)
+                        cinfo.seconds += first.seconds
+                        cinfo.resolved = len(planes)
+                        # the contact frames are those the first stage found (the re-solve leaves its
+                        # contacts on the shell, where the second corrects micrometres)
+                        cinfo.object_contacts = max(cinfo.object_contacts, first.object_contacts)
+                        for k, c in first.per_collider.items():
+                            cinfo.per_collider[k] = max(cinfo.per_collider.get(k, 0), c)
                 if type(integ) is ImplicitEuler:
                     v_new = v_stage
                 else:
@@ -539,6 +575,62 @@ class Simulator:
             if not (np.isfinite(x_new).all() and np.isfinite(v_new).all()):  # never return a non-finite state
                 info.status = DIVERGED
         return State(t_next, x_new, v_new, info.tensions, control, body, history), info
+
+    def _inertia(self) -> np.ndarray:
+        """(V,) each vertex's m / h^2 of the current stage (0 for the kinematic ones)."""
+        obj = self.objective
+        inertia = np.zeros(self.scene.strands.n_vertices)
+        inertia[obj.free_vertices] = np.asarray(obj.mass_diag).reshape(-1, 3).min(axis=1)
+        return inertia
+
+    def _resolve_contacts(self, state: State, dt: float, t_next: float, motion, x_stage: np.ndarray,
+                          x_first: np.ndarray, colliders):
+        """The stage's contacts (positions ``x_stage``, corrected from the solve's ``x_first``) as
+        penalty planes of a second solve of the same stage from x_first (``collision.resolve``,
+        hairexp/physics/contact_planes.py).  Where that solve leaves a vertex without a plane inside
+        a collider, or a plane holds hair beyond the surface it was taken at (``ContactPlanes.stale``),
+        every plane is taken again at its positions (the set only grows) and the stage solved again
+        from there, up to RESOLVE_ROUNDS solves: a sequence of linearised contact constraints, as
+        an SQP linearises its constraints at each iterate.  Returns (positions, controller iterates,
+        SolveInfo of all the solves, planes), or None when there is no plane or a solve did not
+        converge to finite positions (the stage's result stands, counted in ``resolve_failures``)."""
+        obj = self.objective
+        s = self.scene.strands
+        movable = ~s.kinematic
+        inertia = self._inertia()
+        planes = stage_planes(colliders, x_stage, t_next, s.edges, movable, s.free_slot, inertia, x_first)
+        if planes is None:
+            return None
+        start, total = x_first, None
+        for _ in range(RESOLVE_ROUNDS):
+            obj.contact, obj.x_start = planes, start[obj.free_vertices].reshape(-1)
+            try:
+                x2, control2, info2 = self.controller.solve(self, state, dt, t_next, motion)
+            finally:
+                obj.contact, obj.x_start = None, None
+            if total is not None:
+                info2.iterations += total.iterations
+                info2.backtracks += total.backtracks
+                for k, v in total.seconds.items():
+                    info2.seconds[k] = info2.seconds.get(k, 0.0) + v
+            total = info2
+            if not info2.converged or not np.isfinite(x2).all():
+                self.resolve_failures += 1
+                return None
+            # vertices the planes left inside a collider's shell (an active set to grow), or planes
+            # that hold hair off the surface (taken where it has slid past): the planes taken again
+            # at these positions, and the stage solved again from them
+            inside = np.zeros(len(x2), dtype=bool)
+            for col in colliders:
+                inside[movable] |= col.distance(x2[movable], t_next) < -col.shell_tolerance()
+            inside[planes.vertices()] = False
+            if not inside.any() and not planes.stale(colliders, x2, t_next).any():
+                break
+            again = stage_planes(colliders, x2, t_next, s.edges, movable, s.free_slot, inertia, keep=planes)
+            if again is None:
+                break
+            planes, start = again, x2
+        return x2, control2, total, planes
 
     def _restore(self, x: np.ndarray, control, t1: float, colliders, placed: np.ndarray | None = None
                  ) -> tuple[np.ndarray, int, object]:

@@ -190,7 +190,7 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
     pairs: list = []   # the last SECANT_MEMORY (step, gradient change) pairs
     while True:
         ev = obj.evaluate(x, need_hessian=True)
-        if obj.contact is not None:   # the contact's friction lag moved with the evaluation
+        if obj.contact is not None and getattr(obj.contact, "lagged", True):   # the contact's friction lag moved with the evaluation
             f, C = merit_parts(x, t)
             recent.clear()            # earlier merits were of another lag's objective: not comparable
         sec["derivatives"] += ev.seconds["derivatives"]
@@ -270,7 +270,7 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
             U = hp[1] if hp is not None and hp[1].shape[1] else None
             signs = None
             curv = None
-            if opts.secant and pairs and fallback is None and obj.contact is None:
+            if opts.secant and pairs and fallback is None and (obj.contact is None or not getattr(obj.contact, "lagged", True)):
                 Sm = np.column_stack([p_[0] for p_ in pairs])
                 Ym = np.column_stack([p_[1] for p_ in pairs])
                 BS = np.column_stack([band_product(ev.banded, Sm[:, j]) for j in range(Sm.shape[1])])

@@ -1,0 +1,216 @@
+"""The collision stage's contacts taken back into the solve (``collision.resolve``).
+
+The post-solve stage (hairexp/physics/collisions.py) puts vertices that the solve drove into a
+collider back on its surface, but the solve never saw the collider: the rest of the strand
+finished its move, so the edges next to a contact stretch (up to the strain limiter's clamp,
+10 % by default), and the next step's solve starts from that strain.  With ``collision.resolve``
+the stage's contacts become one-sided linear constraints of the step, enforced by a stiff
+quadratic penalty, and the step is solved again:
+
+    g_i(x) = d_i + n_i . (y_i(x) - p_i) >= 0,      E_c(x) = sum_i k_i / 2 min(0, g_i(x))^2,
+
+for every hair edge (a, b) with a movable end that is within ``NEAR`` of a collider's thickness
+shell after the stage, at the collider's end-of-step pose: y_i(x) = (1 - s_i) x_a + s_i x_b is the
+edge's closest point to the collider after the stage (parameter s_i, position p_i there), n_i the
+collider's outward normal at it and d_i its distance to the shell (the stage's output: >= 0 up to
+round-off).  A vertex contact is the end point of its edges (s = 0 or 1), an edge that dips into
+a collider between its vertices its interior point (the stage's edge response).
+The plane is the first-order model of the shell at p_i (a penalty on the signed distance
+linearised about the stage's point, as the linearised contact constraints of an active-set
+method, e.g. Otaduy et al. 2009, "Implicit contact handling for deformable objects").  The
+stiffness is ``STIFFNESS`` times the vertex's inertia m / h^2 of the step: a penalty force F
+leaves the vertex F / k inside the plane, i.e. about 1 / STIFFNESS of the step's displacement.
+The Hessian k n n^T is taken wherever g < ``margin`` (a plane about to be met is in the model
+before the iterate crosses it; an inactive plane's curvature only shortens steps toward it), so
+it is positive semi-definite and Newton's step and the SQP's stay descent directions.
+
+The re-solved positions then go through the collision stage again, which places the small
+penetrations the penalty leaves (about a micrometre) and applies the inelastic contact and
+Coulomb friction to the velocities: the hair wraps around the collider in the solve instead of
+being stretched by the stage.  Interface: the objective's ``contact`` hooks
+(hairexp/physics/objective.py, as the barrier's ObjectContact): ``energy``, ``add_to``,
+``update_lag``, ``max_step``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hairexp.physics.contact_geometry import EdgeGaps
+
+#: penalty stiffness / the vertex's inertia m / h^2 of the step
+STIFFNESS = 1e4
+#: the penalty's layer delta above each plane, as a fraction of the collider's thickness
+LAYER = 0.25
+#: vertices within this many shell tolerances plus this fraction of the collider's thickness
+#: of its shell after the stage get a plane (the placed ones are on it)
+NEAR = 0.5
+
+
+class ContactPlanes:
+    """One-sided penalty planes on points of hair edges (see the module doc).
+
+    ``edges`` (n, 2) vertex indices, ``s`` (n,) the points' parameters along them, ``normals``
+    (n, 3) unit outward normals, ``points`` (n, 3) the planes' points, ``gaps`` (n,) the points'
+    distances to the shell there, ``stiffness`` (n,) N/m; ``free_slot`` (V,) the free index of
+    each vertex, -1 for a kinematic one (hairexp/model/strands.py)."""
+
+    def __init__(self, edges, s, normals, points, gaps, stiffness, free_slot, delta, collider=0):
+        self.e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        s = np.asarray(s, dtype=np.float64)
+        self.w = np.stack([1.0 - s, s], axis=1)                                # (n, 2)
+        self.n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+        self.c = np.asarray(gaps, dtype=np.float64) - np.einsum("ij,ij->i", self.n, np.asarray(points, dtype=np.float64))
+        self.k = np.asarray(stiffness, dtype=np.float64)
+        self.slot = np.asarray(free_slot)[self.e]                              # (n, 2), -1: kinematic
+        self.delta = np.broadcast_to(np.asarray(delta, dtype=np.float64), self.k.shape).copy()
+        self.collider = np.broadcast_to(np.asarray(collider, dtype=np.int64), self.k.shape).copy()
+
+    def __len__(self) -> int:
+        return len(self.e)
+
+    def vertices(self) -> np.ndarray:
+        """The vertices with a plane of their own (s = 0 on a degenerate edge (v, v))."""
+        return np.unique(self.e[self.e[:, 0] == self.e[:, 1], 0])
+
+    def gap(self, x: np.ndarray) -> np.ndarray:
+        """g_i(x) (n,) for full positions x (V, 3)."""
+        y = self.w[:, 0, None] * x[self.e[:, 0]] + self.w[:, 1, None] * x[self.e[:, 1]]
+        return self.c + np.einsum("ij,ij->i", self.n, y)
+
+    def stale(self, colliders, x: np.ndarray, t: float) -> np.ndarray:
+        """(n,) bool: planes the positions x (V, 3) press on (g < delta) whose edge is farther than
+        ``NEAR`` from its collider's shell at time t: a supporting plane that holds hair which
+        has slid past the part of the surface it was taken at (off a curved surface, round a
+        box's edge), where the surface itself would let it go."""
+        out = np.zeros(len(self.e), dtype=bool)
+        on = self.gap(x) < self.delta
+        for i, col in enumerate(colliders):
+            sel = np.flatnonzero(on & (self.collider == i))
+            if sel.size == 0:
+                continue
+            gp = EdgeGaps(col, *col.motion.pose(t))
+            d = gp.edge_gaps(x[self.e[sel, 0]], x[self.e[sel, 1]])
+            out[sel] = d > col.shell_tolerance() + NEAR * col.thickness
+        return out
+
+    # -- the penalty psi(g): C^2, one-sided ----------------------------------------------
+    def psi(self, g: np.ndarray, sel=slice(None)):
+        """(psi, psi', psi'') of the planes ``sel`` at their gaps g: psi'' = k below the plane,
+        falling linearly to 0 over the layer of width delta above it, 0 beyond (module doc)."""
+        k, dl = self.k[sel], self.delta[sel]
+        u = np.clip(dl - g, 0.0, None)                       # depth below the layer's top
+        inside = g < 0.0
+        e = np.where(inside, k * dl * dl / 6.0 - 0.5 * k * dl * g + 0.5 * k * g * g, k * u ** 3 / (6.0 * dl))
+        d1 = np.where(inside, -0.5 * k * dl + k * g, -k * u * u / (2.0 * dl))
+        d2 = np.where(inside, k, k * u / dl)
+        return e, d1, d2
+
+    # -- the objective's contact hooks ------------------------------------------------------
+    #: no lagged quantity: the solvers' values need not be re-taken after an evaluation
+    lagged = False
+
+    def energy(self, x: np.ndarray) -> float:
+        return float(self.psi(self.gap(x))[0].sum())
+
+    def add_to(self, x: np.ndarray, grad: np.ndarray, ab: np.ndarray | None) -> float:
+        """Add the gradient to ``grad`` (N,) and the Hessian to the lower band ``ab`` (bw + 1, N)
+        of the free DOFs; returns the norm of the penalty force."""
+        g = self.gap(x)
+        on = g < self.delta
+        if not on.any():
+            return 0.0
+        _, d1, d2 = self.psi(g[on], on)
+        n, w, slot = self.n[on], self.w[on], self.slot[on]
+        f = d1[:, None] * n                                                     # dE/dy, (m, 3)
+        norm = 0.0
+        for j in range(2):
+            free = slot[:, j] >= 0
+            fj = w[free, j, None] * f[free]
+            np.add.at(grad, (3 * slot[free, j, None] + np.arange(3)).ravel(), fj.ravel())
+            norm += float(np.sum(fj * fj))
+        if ab is not None:
+            kn = d2[:, None, None] * n[:, :, None] * n[:, None, :]               # (m, 3, 3)
+            for i in range(2):
+                for j in range(2):
+                    pair = (slot[:, i] >= 0) & (slot[:, j] >= 0) & (slot[:, i] >= slot[:, j]) & (w[:, i] * w[:, j] != 0)
+                    if i != j:
+                        pair &= slot[:, i] != slot[:, j]
+                    if not pair.any():
+                        continue
+                    blk = (w[pair, i] * w[pair, j])[:, None, None] * kn[pair]
+                    ri, cj = 3 * slot[pair, i], 3 * slot[pair, j]
+                    for a in range(3):
+                        for b in range(3):
+                            d = ri + a - (cj + b)   # H[row, col] in the lower band at (row - col, col)
+                            low = d >= 0
+                            np.add.at(ab, (d[low], (cj + b)[low]), blk[low, a, b])
+        return float(np.sqrt(norm))
+
+    def update_lag(self, x: np.ndarray) -> None:
+        """No lagged quantities (friction stays in the collision stage)."""
+
+    def max_step(self, x: np.ndarray, p: np.ndarray) -> float:
+        """The penalty is finite everywhere: no step bound."""
+        return 1.0
+
+
+def stage_planes(colliders, x: np.ndarray, t: float, edges: np.ndarray, movable: np.ndarray, free_slot: np.ndarray,
+                 inertia: np.ndarray, x_first: np.ndarray | None = None,
+                 keep: "ContactPlanes | None" = None) -> ContactPlanes | None:
+    """Planes at positions x (V, 3) and time t (the collision stage's output), or None when there
+    is none: one at every movable vertex within ``NEAR`` of a collider's shell there, or inside
+    the shell at ``x_first`` (the solve's positions the stage corrected: the stage may leave a vertex
+    whose path met the moving collider a few millimetres off its end-of-step shell), and one at the
+    interior closest point of every edge within ``NEAR`` of the shell there (the edge response's).
+    ``inertia`` (V,): each vertex's m / h^2 of the step (0 for the kinematic ones).  ``keep``:
+    planes whose vertices and edges get one again, taken at x, wherever they are (the active set
+    of a solve only grows: a plane dropped because the hair sat beyond ``NEAR`` let it fall back
+    in the next solve)."""
+    E = np.asarray(edges)
+    E = E[movable[E[:, 0]] | movable[E[:, 1]]]
+    idx = np.flatnonzero(movable)
+    out = {k: [] for k in "esnpdmlc"}
+
+    def add(e, s_, n, p, d, m):
+        layer = np.full(len(e), LAYER * col.thickness)
+        # the plane's zero a layer inside the shell: the penalty's layer is the shell's outer delta,
+        # where the stage counts a contact (its inelastic contact and friction on the velocities)
+        for k, v in zip("esnpdmlc", (e, s_, n, p, d + layer, m, layer, np.full(len(e), ci))):
+            out[k].append(v)
+
+    for ci, col in enumerate(colliders):
+        gp = EdgeGaps(col, *col.motion.pose(t))
+        near = col.shell_tolerance() + NEAR * col.thickness
+        gv = gp.vertex_gaps(x)
+        sel = gv[idx] < near
+        if x_first is not None:
+            sel |= gp.vertex_gaps(x_first[idx]) < near
+        kept_v = kept_e = None
+        if keep is not None:
+            mine = keep.collider == ci
+            vtx = mine & (keep.e[:, 0] == keep.e[:, 1])
+            kept_v = np.zeros(len(x), dtype=bool)
+            kept_v[keep.e[vtx, 0]] = True
+            sel |= kept_v[idx]
+            kept_e = {tuple(e) for e in keep.e[mine & ~vtx].tolist()}
+        v = idx[sel]
+        if v.size:
+            add(np.stack([v, v], axis=1), np.zeros(v.size), col.normal(x[v], t), x[v], gv[v], STIFFNESS * inertia[v])
+        forced = np.zeros(len(E), dtype=bool)
+        if kept_e:
+            forced = np.array([tuple(e) in kept_e for e in E.tolist()], dtype=bool)
+        cand = np.flatnonzero((gp.edge_lower_bound(x[E[:, 0]], x[E[:, 1]], gv[E[:, 0]], gv[E[:, 1]]) < near) | forced)
+        if cand.size == 0:
+            continue
+        d, s_, n = gp.edge_gaps(x[E[cand, 0]], x[E[cand, 1]], normals=True)
+        use = ((d < near) | forced[cand]) & (s_ > 0.0) & (s_ < 1.0)
+        if not use.any():
+            continue
+        e, s_ = E[cand[use]], s_[use]
+        m = np.where(movable[e], inertia[e], np.inf).min(axis=1)
+        add(e, s_, n[use], (1.0 - s_)[:, None] * x[e[:, 0]] + s_[:, None] * x[e[:, 1]], d[use], STIFFNESS * m)
+    if not out["e"]:
+        return None
+    c = {k: np.concatenate(v) for k, v in out.items()}
+    return ContactPlanes(c["e"], c["s"], c["n"], c["p"], c["d"], c["m"], free_slot, c["l"], c["c"])

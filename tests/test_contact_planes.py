@@ -1,0 +1,169 @@
+"""The stage's contacts as penalty planes of a second solve (``collision.resolve``,
+hairexp/physics/contact_planes.py): the C^2 one-sided penalty and its derivatives against torch
+autograd and finite differences, the band assembly against a dense Hessian, the planes the stage's
+output gives, and steps against moving colliders with the strain limiter off: nothing inside, the
+edges next to a contact stretched far less than by the stage alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from helpers import run_steps, scene_cfg
+from test_contact_barrier import SHAPES, collider_cfg, min_edge_gap
+
+from hairexp.app.builders import build_scene
+from hairexp.app.config import CollisionConfig, SolverConfig
+from hairexp.physics.assembly import BandedAssembler
+from hairexp.physics.contact_planes import ContactPlanes, stage_planes
+from hairexp.physics.simulator import Simulator
+
+
+def random_planes(seed=0, n=12, V=10):
+    """Planes on random points of a chain of V vertices (vertex 0 kinematic), some vertex planes
+    (degenerate edges (v, v)), some on edge interiors, gaps straddling the layer."""
+    rng = np.random.default_rng(seed)
+    x = np.cumsum(rng.normal(size=(V, 3)) * 0.01, axis=0)
+    a = rng.integers(0, V - 1, size=n)
+    vertex = rng.random(n) < 0.5
+    e = np.stack([a, np.where(vertex, a, a + 1)], axis=1)
+    s = np.where(vertex, 0.0, rng.random(n))
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    y = (1 - s)[:, None] * x[e[:, 0]] + s[:, None] * x[e[:, 1]]
+    delta = np.full(n, 5e-4)
+    gaps = rng.uniform(-2e-3, 1.5e-3, size=n)      # below the plane, in the layer and beyond it
+    kin = np.zeros(V, bool)
+    kin[0] = True
+    slot = np.where(kin, -1, np.cumsum(~kin) - 1)
+    k = rng.uniform(1e3, 1e4, size=n)
+    return ContactPlanes(e, s, nrm, y, gaps, k, slot, delta), x, kin
+
+
+def torch_energy(P: ContactPlanes, x: torch.Tensor) -> torch.Tensor:
+    """The penalty in torch, written from the module doc's formula: the autograd reference."""
+    e = torch.as_tensor(P.e)
+    w = torch.as_tensor(P.w)
+    y = w[:, :1] * x[e[:, 0]] + w[:, 1:] * x[e[:, 1]]
+    g = torch.as_tensor(P.c) + (torch.as_tensor(P.n) * y).sum(1)
+    k, dl = torch.as_tensor(P.k), torch.as_tensor(P.delta)
+    below = k * dl ** 2 / 6 - k * dl * g / 2 + k * g ** 2 / 2
+    layer = k * (dl - g).clamp_min(0) ** 3 / (6 * dl)
+    return torch.where(g < 0, below, layer).sum()
+
+
+def test_penalty_is_c2_and_one_sided():
+    P, x, _ = random_planes()
+    k, dl = P.k[:1], P.delta[:1]
+    sel = slice(0, 1)
+    for g0 in (0.0, float(dl[0])):           # the two joints of the piecewise form
+        h = 1e-9
+        vals = [P.psi(np.array([g0 + s * h]), sel) for s in (-1, 1)]
+        for a, b in zip(*vals):   # each within the next derivative's bound over 2h (psi''' <= k / delta)
+            assert np.allclose(a, b, rtol=0.0, atol=4 * h * float(k[0]) / float(dl[0]))
+    e, d1, d2 = P.psi(np.array([2 * dl[0], -1e-3]), slice(0, 1))
+    assert e[0] == d1[0] == d2[0] == 0.0      # beyond the layer: nothing
+    assert d1[1] < 0 and d2[1] == k[0]        # below the plane: pushed out, curvature k
+
+
+def test_gradient_and_hessian_vs_autograd_and_fd():
+    P, x, kin = random_planes(seed=3)
+    X = torch.tensor(x, requires_grad=True)
+    E = torch_energy(P, X)
+    assert np.isclose(float(E.detach()), P.energy(x), rtol=1e-12)
+    (gt,) = torch.autograd.grad(E, X, create_graph=True)
+    free = np.flatnonzero(~kin)
+    N = 3 * len(free)
+    grad, ab = np.zeros(N), np.zeros((9, N))
+    P.add_to(x, grad, ab)
+    assert np.allclose(grad, gt.detach().numpy()[free].ravel(), rtol=1e-10, atol=1e-12)
+    Ht = np.stack([torch.autograd.grad(gt.reshape(-1)[i], X, retain_graph=True)[0].numpy().ravel()
+                   for i in range(3 * len(x))])
+    dof = (3 * free[:, None] + np.arange(3)).ravel()
+    H = BandedAssembler.to_sparse(ab).toarray()
+    assert np.allclose(H, Ht[np.ix_(dof, dof)], rtol=1e-9, atol=1e-9 * P.k.max())
+    # and the energy's own finite differences
+    h = 1e-7
+    for i in (3, 7, 14):
+        xp, xm = x.copy(), x.copy()
+        xp.reshape(-1)[i] += h
+        xm.reshape(-1)[i] -= h
+        fd = (P.energy(xp) - P.energy(xm)) / (2 * h)
+        assert np.isclose(fd, gt.detach().numpy().reshape(-1)[i], rtol=1e-5, atol=1e-6)
+    assert np.all(np.linalg.eigvalsh(H) > -1e-9 * P.k.max())   # positive semi-definite
+
+
+@pytest.mark.parametrize("shape", list(SHAPES))
+def test_stage_planes_cover_the_touching_vertices_and_are_conservative(shape):
+    """Every vertex on the shell gets a plane through it with the shape's normal, its zero a layer
+    inside the shell; on a convex shape a point on the tangent plane's far side is outside the
+    shell (the plane is a supporting one)."""
+    col = SHAPES[shape]()
+    rng = np.random.default_rng(1)
+    R, T = col.motion.pose(0.0)
+    pts = rng.normal(size=(200, 3)) * 0.06
+    d = col.distance(pts, 0.0)
+    n = col.normal(pts, 0.0)
+    on = pts - d[:, None] * n                        # projected onto the shell
+    x = np.concatenate([np.zeros((1, 3)) + 1.0, on])   # vertex 0: a far kinematic root
+    V = len(x)
+    edges = np.stack([np.arange(V - 1), np.arange(1, V)], 1)
+    kin = np.zeros(V, bool)
+    kin[0] = True
+    slot = np.where(kin, -1, np.cumsum(~kin) - 1)
+    P = stage_planes([col], x, 0.0, edges, ~kin, slot, np.ones(V))
+    touching = np.flatnonzero(col.distance(x, 0.0) < col.shell_tolerance())
+    assert set(touching[touching > 0]) <= set(P.vertices())
+    vp = P.e[:, 0] == P.e[:, 1]
+    # g = distance + delta (the plane's zero a layer inside the shell): delta at a vertex on the shell
+    assert np.allclose(P.gap(x)[vp], col.distance(x[P.e[vp, 0]], 0.0) + P.delta[vp], atol=1e-9)
+    assert np.all(np.abs(P.gap(x)[vp] - P.delta[vp]) < 1e-6)
+    # conservative: points pushed along each vertex plane's tangent and out stay outside the shell
+    vp = np.flatnonzero(P.e[:, 0] == P.e[:, 1])
+    t = np.cross(P.n[vp], rng.normal(size=(len(vp), 3)))
+    y = x[P.e[vp, 0]] + 0.01 * t + 1e-4 * P.n[vp]
+    assert np.all(col.distance(y, 0.0) > 0)
+
+
+def resolve_cfg(**kw):
+    return OmegaConf.structured(CollisionConfig(contact="stage", strain_limit=0.0, **kw))
+
+
+@pytest.mark.parametrize("shape,speed", [("sphere", 0.5), ("capsule", 0.5), ("box", 0.3)])
+def test_resolve_keeps_edges_unstretched_against_a_moving_collider(shape, speed):
+    """A collider driven into hanging hair, stage mode without the strain limiter: with the
+    contacts re-solved no edge sample ends inside and the edge strain stays below 2 % (issue 14);
+    the stage alone stretches the edges next to its contacts many times more."""
+    kw = dict(radius=0.02, half_length=0.04, half_extents=(0.02, 0.02, 0.02), thickness=0.002, friction=0.3)
+    col = collider_cfg(shape, [0.0, 0.4], [[0.0, -0.1, -0.1], [0.0, -0.1, -0.1 + 0.4 * speed]],
+                       rot=(0.0, 0.0, 90.0) if shape == "capsule" else (0.0, 0.0, 0.0), **kw)
+    sc = scene_cfg(n_strands=4, n_vertices=8)
+    sc.colliders = [col]
+    scene = build_scene(sc)
+    worst = {}
+    for resolve in (False, True):
+        sim = Simulator(scene, OmegaConf.structured(SolverConfig()), collision_cfg=resolve_cfg(resolve=resolve))
+        states, infos = run_steps(sim, 10, 0.04)
+        strain, touched = 0.0, 0
+        for st, info in zip(states[1:], infos):
+            assert info.converged, (resolve, st.time, info.status)
+            assert min_edge_gap(sim, st.x, st.time) > -1e-6
+            touched += info.object_contacts
+            strain = max(strain, float(np.abs(np.linalg.norm(np.diff(st.x.reshape(4, 8, 3), axis=1), axis=2).ravel()
+                                              / scene.strands.rest_lengths - 1).max()))
+        assert touched > 0
+        worst[resolve] = strain
+        if resolve:
+            assert sim.resolve_failures == 0
+    assert worst[True] < 0.02, worst
+    assert worst[True] < 0.5 * worst[False], worst
+
+
+def test_resolve_is_off_by_default_and_only_with_object_contact():
+    assert CollisionConfig().resolve is False
+    sc = scene_cfg(n_strands=2, n_vertices=6)
+    scene = build_scene(sc)     # no colliders: nothing to re-solve
+    sim = Simulator(scene, OmegaConf.structured(SolverConfig()), collision_cfg=resolve_cfg(resolve=True))
+    assert sim.resolve is False
