@@ -374,8 +374,9 @@ class CollisionConfig:
     edge_response: bool = True
     # stage: the stage's object contacts become penalty planes of a second solve of the step, whose
     # result goes through the stage again (hairexp/physics/contact_planes.py): the hair wraps around
-    # the collider in the solve instead of being stretched by the stage's moves
-    resolve: bool = False
+    # the collider in the solve instead of being stretched by the stage's moves (false: the stage's
+    # corrections stand, as before 2026-12-07, the ablation with strain_limit)
+    resolve: bool = True
     # hair_hair's model: edges (edge-edge contacts) | volume (grid friction and pressure,
     # hairexp/physics/hair_volume.py; linear in the vertices, but strands may pass through each other)
     hair_hair_model: HairHairModel = HairHairModel.edges
