@@ -244,8 +244,11 @@ def test_cli_bad_stage_exits_2_with_one_line(stage, tmp_path, case):
 def test_guides_that_leave_the_body_are_said_and_the_stretch_too(stage, tmp_path, caplog):
     """Guides made with another motion of the body (its transform moved 5 cm at frames 3..5, the
     guides left as they were) pull the hair after them: the run warns that a guide's root leaves
-    the body, naming the first such frame, and that the hair stretched beyond 20 % (both used to
-    pass in silence, exit 0; probe of issue 12)."""
+    the body, naming the first such frame, and, where the hair stretched beyond 20 %, says so
+    (both used to pass in silence, exit 0; probe of issue 12).  The stretch came from the
+    post-solve stage dragging the pulled hair over the sphere: with the contact planes (the
+    default since 2026-12-07) the hair follows within 0.1 %, and the stage alone
+    (``collision.resolve=false``) still stretches it by 85 %, which the run reports."""
     import logging
 
     def shift(st):
@@ -265,7 +268,12 @@ def test_guides_that_leave_the_body_are_said_and_the_stretch_too(stage, tmp_path
         summary = run(usd_cfg(stage), tmp_path / "run")
     said = [r.getMessage() for r in caplog.records]
     assert any("from where the body carries it at frame 3" in m and "do not ride the body" in m for m in said), said
-    assert summary["stretch_max"] > 0.2   # the guides' roots 5 cm off the hair's: 206 % when written
+    assert summary["stretch_max"] < 0.01 and not any("the hair stretched by" in m for m in said), said
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        summary = run(usd_cfg(stage, **{"collision.resolve": False}), tmp_path / "stage_alone")
+    said = [r.getMessage() for r in caplog.records]
+    assert summary["stretch_max"] > 0.2   # the stage alone: 206 % when written, 85 % on 2026-12-07
     assert any("the hair stretched by" in m for m in said), said
 
 
