@@ -8,8 +8,11 @@ the tracked controller (``variants=[] controller.name=tracking``):
 * variance: ``tracking.variance.stiffness=0,<on>`` (paper 3.3; on = the scene's value, or 5);
 * hessian: ``solver.stretch_hessian=primal_dual,penalty`` (how the stretch Hessian is made PSD);
 * collisions: ``collision.objects=false,true``;
-* contact: ``collision.contact=stage,barrier`` (object contact after the solve with the strain
-  limiter, or inside it as an IPC barrier, hairexp/physics/barrier.py; issue 14);
+* contact: ``collision.contact=stage,barrier`` (object contact after the solve, its contacts
+  solved again as penalty planes by default, or inside the solve as an IPC barrier,
+  hairexp/physics/barrier.py; issue 14);
+* planes: ``collision.resolve=false,true`` (the post-solve stage alone, no strain limiter, or its
+  contacts solved again as penalty planes, hairexp/physics/contact_planes.py; issue 14);
 * line search: ``tracking.nonmonotone=1,5`` (the SQP's monotone or non-monotone merit search).
 
 The table gives each run's iterations, converged fraction, step time, stretch, residual and
@@ -35,6 +38,7 @@ COMPARISONS = {
     "hessian": ["solver.stretch_hessian=primal_dual,penalty"],
     "collisions": ["collision.objects=false,true"],
     "contact": ["collision.contact=stage,barrier"],
+    "planes": ["collision.resolve=false,true"],
     "line_search": ["tracking.nonmonotone=1,5"],
 }
 SCENES = ["goaling", "splitting", "spreading", "stylization", "celia"]
