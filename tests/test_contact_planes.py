@@ -191,3 +191,56 @@ def test_goaling_hard_keeps_its_constraints_and_edges_through_the_wheel_contact(
         assert np.abs(stretch(run.scene, state.x)).max() < 0.02, step
         contacts += info.object_contacts
     assert contacts > 0 and run.simulator.resolve_failures == 0
+
+
+def _goaling_cfg(*extra):
+    from hairexp.app.config import compose_config
+
+    return compose_config(["experiment=goaling", "variants=[]", "controller.name=tracking", "frames=25",
+                           "logging.rerun=false", "logging.progress=false", *extra])
+
+
+def test_the_run_folder_counts_the_steps_solved_again_and_the_fallbacks(tmp_path, caplog, monkeypatch):
+    """metrics.parquet has each step's contact planes and fallbacks, summary.json the steps with
+    planes and the steps that fell back to the stage's result; a fallback is warned about at the
+    run's end.  Goaling tracked through its first wheel contacts: planes, no fallback; the same
+    with the second solve made to fail (its controller solve reports max_iterations): every
+    contact step falls back, counted and said."""
+    import logging
+
+    import pandas as pd
+
+    from hairexp.app.run import run
+    from hairexp.physics import simulator as sim_mod
+    from hairexp.physics.info import MAX_ITERATIONS
+
+    s = run(_goaling_cfg(), tmp_path / "ok")
+    df = pd.read_parquet(tmp_path / "ok" / "metrics.parquet")
+    assert s["contact_plane_steps"] == int((df["contact_planes"] > 0).sum()) > 0
+    assert s["resolve_fallback_steps"] == 0 and df["resolve_fallbacks"].sum() == 0
+    assert (df.loc[df["contact_planes"] > 0, "object_contacts"] > 0).all()
+
+    real = sim_mod.Simulator._resolve_contacts
+
+    def failing(self, *a, **k):
+        solve = self.controller.solve
+
+        def unconverged(*b, **kw):
+            x, c, info = solve(*b, **kw)
+            info.status = MAX_ITERATIONS
+            return x, c, info
+
+        self.controller.solve = unconverged
+        try:
+            return real(self, *a, **k)
+        finally:
+            self.controller.solve = solve
+
+    monkeypatch.setattr(sim_mod.Simulator, "_resolve_contacts", failing)
+    with caplog.at_level(logging.WARNING, logger="hairexp"):
+        s = run(_goaling_cfg(), tmp_path / "fallback")
+    df = pd.read_parquet(tmp_path / "fallback" / "metrics.parquet")
+    assert s["resolve_fallback_steps"] == int((df["resolve_fallbacks"] > 0).sum()) > 0
+    assert s["contact_plane_steps"] == 0
+    said = [r.getMessage() for r in caplog.records if "second solve with the contact planes" in r.getMessage()]
+    assert len(said) == 1 and f"in {s['resolve_fallback_steps']} of {s['steps']} steps" in said[0]

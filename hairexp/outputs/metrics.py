@@ -67,6 +67,7 @@ def measure(scene: Scene, state: State, info: StepInfo, sim, step: int, frame: i
         "constraint_norm": info.constraint_norm,
         "contacts": info.object_contacts + info.hair_contacts, "object_contacts": info.object_contacts,
         "hair_contacts": info.hair_contacts, "penetration_max": info.penetration_max,
+        "contact_planes": info.contact_planes, "resolve_fallbacks": info.resolve_fallbacks,
         "kinetic_energy": kin, "potential_energy": pot,
         "step_seconds": sec.get("total", 0.0),
         "t_derivatives": sec.get("derivatives", 0.0), "t_assembly": sec.get("assembly", 0.0),

@@ -72,6 +72,7 @@ class CollisionInfo:
     edge_contacts: int = 0            # edges pushed out of a collider's shell (edge_response; also in object_contacts)
     restored: int = 0                 # rounds of the controller's constraints restored after the stage (Simulator._restore)
     resolved: int = 0                 # contact planes of the step's second solve (collision.resolve, Simulator._resolve_contacts)
+    resolve_failed: int = 0           # 1: that second solve did not converge and the stage's result stood
     candidates: int = 0               # most hair-hair edge pairs that reached the narrow phase in a pass
     seconds: float = 0.0
     per_collider: dict = field(default_factory=dict)

@@ -67,6 +67,8 @@ class StepInfo:
     iterations_attempted: int = 0    # all iterations done, including attempts that recovery replaced
     restarts: int = 0                # (sub)steps taken as implicit Euler at a driver's velocity jump
     restored: int = 0                # rounds that moved the hair back onto the controller's constraints after the collision stage
+    contact_planes: int = 0          # contact planes of the second solve (collision.resolve), summed over substeps
+    resolve_fallbacks: int = 0       # (sub)steps whose second solve failed: the collision stage's result stood
 
     @property
     def converged(self) -> bool:

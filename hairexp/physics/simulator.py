@@ -102,6 +102,8 @@ def _sum_collisions(cis: list):
     c.strain_limited = sum(ci.strain_limited for ci in cis)
     c.limit_rounds = sum(ci.limit_rounds for ci in cis)
     c.restored = sum(ci.restored for ci in cis)
+    c.resolved = sum(ci.resolved for ci in cis)
+    c.resolve_failed = sum(ci.resolve_failed for ci in cis)
     c.passes = sum(ci.passes for ci in cis)
     c.seconds = sum(ci.seconds for ci in cis)
     for ci in cis:
@@ -506,7 +508,9 @@ class Simulator:
                     # then the stage again on its result; at the step's end only: a scheme's intermediate
                     # point is not a result and the next stage solves again (Celia tracked, SQP iterations
                     # a step 6.31 -> 6.05, contact steps 5.1 -> 2.8 x the others' time, 2026-12-07)
+                    failures = self.resolve_failures
                     again = self._resolve_contacts(state, dt, t_next, motion, x_new, x_solve, sc.colliders)
+                    cinfo.resolve_failed = int(self.resolve_failures > failures)
                     if again is not None:
                         x_solve, control, info2, planes = again
                         info.iterations += info2.iterations
@@ -762,6 +766,7 @@ class Simulator:
             info.object_contacts, info.hair_contacts = c.object_contacts, c.hair_contacts
             info.penetration_max = c.penetration_max
             info.restored = c.restored
+            info.contact_planes, info.resolve_fallbacks = c.resolved, c.resolve_failed
             info.collider_contacts.update(c.per_collider)
         if info.recovered or (n > 1 and all(i.converged for i in infos)):
             info.status = CONVERGED
