@@ -331,6 +331,7 @@ class Simulator:
         #: collision.resolve: the stage's object contacts as planes of a second solve (``_resolve_contacts``)
         self.resolve = bool(self.collide_objects and _value(getattr(cc, "resolve", False)))
         self.resolve_failures = 0
+        self._resolve_spent = None   # the SolveInfo of a failed second solve (``_resolve_contacts``)
         self.max_travel = float(getattr(cc, "max_travel", 0.0)) if cc is not None else 0.0
         self.max_travel_substeps = int(getattr(cc, "max_travel_substeps", 1)) if cc is not None else 1
         self._free_mask = ~s.kinematic
@@ -508,9 +509,12 @@ class Simulator:
                     # then the stage again on its result; at the step's end only: a scheme's intermediate
                     # point is not a result and the next stage solves again (Celia tracked, SQP iterations
                     # a step 6.31 -> 6.05, contact steps 5.1 -> 2.8 x the others' time, 2026-12-07)
-                    failures = self.resolve_failures
+                    failures, self._resolve_spent = self.resolve_failures, None
                     again = self._resolve_contacts(state, dt, t_next, motion, x_new, x_solve, sc.colliders)
                     cinfo.resolve_failed = int(self.resolve_failures > failures)
+                    if self._resolve_spent is not None:   # a failed second solve: the stage's result stands
+                        info.iterations += self._resolve_spent.iterations
+                        info.backtracks += self._resolve_spent.backtracks
                     if again is not None:
                         x_solve, control, info2, planes = again
                         info.iterations += info2.iterations
@@ -622,6 +626,7 @@ class Simulator:
             total = info2
             if not info2.converged or not np.isfinite(x2).all():
                 self.resolve_failures += 1
+                self._resolve_spent = total   # its iterations were done: the step counts them
                 return None
             # vertices the planes left inside a collider's shell (an active set to grow), or planes
             # that hold hair off the surface (taken where it has slid past): the planes taken again
