@@ -58,8 +58,10 @@ RECORDING_BYTES_PER_VERTEX_FRAME = 16
 #: the recording's per-step plots (the metrics' scalars): goaling_smoke at 40 frames wrote 536 / 759 /
 #: 1,486 kB at dt 0.04 / 0.004 / 0.001 free (617 B a step), 756 / 1,012 kB at dt 0.04 / 0.004 tracked
 #: (709 B); a 4,000-step run's recording passed the estimate by 1.4 MB and filled the disk after
-#: every step had run (independent probe of issue 12, round 26).  Rounded up
-RECORDING_BYTES_PER_STEP = 720
+#: every step had run (independent probe of issue 12, round 26).  Rounded up; then 760 since the two
+#: contact-plane columns (2026-12-07): goaling_smoke tracked at dt 0.001 wrote 1,138,143 B against an
+#: estimate of 1,138,120 with 720, the timings' compression varying by some bytes from run to run
+RECORDING_BYTES_PER_STEP = 760
 #: a tracked run's per-frame targets, clusters and constraint plots: goaling_smoke tracked wrote 3.5 kB
 #: a frame, free 1.5 kB (80 against 40 frames at dt 0.04); its base was 614 kB against free's 477 kB
 RECORDING_BYTES_PER_TRACKED_FRAME = 3_000
