@@ -20,6 +20,28 @@ from hairexp.physics import bandchol
 from hairexp.physics.kernels import HAVE_NUMBA
 
 
+def add_pair_blocks(grad: np.ndarray, ab: np.ndarray | None, slot: np.ndarray, g: np.ndarray,
+                    H: np.ndarray | None = None) -> np.ndarray:
+    """Add two-vertex elements' gradients g (n, 6) and Hessians H (n, 6, 6) to the free DOFs'
+    gradient ``grad`` (N,) and lower band ``ab`` (bw + 1, N) (None: the gradient only), in place;
+    ``slot`` (n, 2): the elements' vertices' free slots, -1 for a kinematic one (nothing added for
+    it).  The two vertices may be one (an element (v, v) whose second half is zero).  Returns the
+    gradient's contribution (N,).  The contact terms' assembly (hairexp/physics/barrier.py,
+    contact_planes.py): their elements change every evaluation, so no precomputed pattern."""
+    dof = (3 * slot[:, :, None] + np.arange(3)).reshape(-1, 6)          # negative for kinematic vertices
+    ok = np.repeat(slot >= 0, 3, axis=1)
+    contrib = np.bincount(np.where(ok, dof, 0)[ok], weights=g[ok], minlength=len(grad))
+    grad += contrib
+    if ab is not None:
+        N = ab.shape[1]
+        ii = np.broadcast_to(dof[:, :, None], H.shape)
+        jj = np.broadcast_to(dof[:, None, :], H.shape)
+        m = np.broadcast_to(ok[:, :, None] & ok[:, None, :], H.shape) & (ii >= jj)
+        flat = (ii[m] - jj[m]) * N + jj[m]
+        ab += np.bincount(flat, weights=H[m], minlength=ab.size).reshape(ab.shape)
+    return contrib
+
+
 @dataclass
 class _Scatter:
     hess_src: np.ndarray   # (n_sel,) flat index into the (n, 3k * 3k) element Hessians

@@ -61,6 +61,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from hairexp.physics.assembly import add_pair_blocks
 from hairexp.physics.collisions import path_test
 from hairexp.physics.contact_geometry import EdgeGaps, advance, edge_distance_hessian, sdf_normal_hessian, shape_normal
 from hairexp.physics.newton import NewtonOptions, newton_solve
@@ -459,20 +460,7 @@ class ObjectContact:
         idx, g, H = self.derivatives(x, ab is not None)
         if idx.size == 0:
             return 0.0
-        E = self.E[idx]
-        slot = self.free_slot[E]                                            # (n, 2)
-        dof = (3 * slot[:, :, None] + np.arange(3)).reshape(-1, 6)          # negative for roots
-        ok = np.repeat(slot >= 0, 3, axis=1)
-        gd = np.where(ok, dof, 0)
-        contrib = np.bincount(gd[ok], weights=g[ok], minlength=len(grad))
-        grad += contrib
-        if ab is not None:
-            N = ab.shape[1]
-            ii = np.broadcast_to(dof[:, :, None], H.shape)
-            jj = np.broadcast_to(dof[:, None, :], H.shape)
-            m = np.broadcast_to(ok[:, :, None] & ok[:, None, :], H.shape) & (ii >= jj)
-            flat = (ii[m] - jj[m]) * N + jj[m]
-            ab += np.bincount(flat, weights=H[m], minlength=ab.size).reshape(ab.shape)
+        contrib = add_pair_blocks(grad, ab, self.free_slot[self.E[idx]], g, H)
         return float(np.linalg.norm(contrib))
 
     # -- line-search filter -----------------------------------------------------------------
@@ -673,11 +661,8 @@ def begin_contact_step(contact: ObjectContact, objective, x_n: np.ndarray, t0: f
     tried: the 10 m/s ball then carried the struck strands 0.4 m ahead of itself every step, they
     stayed trapped in front of it with 11,000 % strain, and Newton stalled (reports/contact.md)."""
     contact.begin(x_n, t0, t1, dt)
-    md = getattr(objective, "mass_diag", None)
-    if md is not None:
-        vm = np.zeros(len(contact.kinematic))
-        vm[objective.free_vertices] = np.asarray(md, dtype=np.float64).reshape(-1, 3).min(axis=1)
-        contact.vertex_mass = vm
+    if getattr(objective, "mass_diag", None) is not None:
+        contact.vertex_mass = objective.vertex_inertia()
     m = contact.sub_intervals(x_n)
     contact.stats.sub_intervals = m
     x = np.asarray(x_n, dtype=np.float64)

@@ -5,24 +5,29 @@ collider back on its surface, but the solve never saw the collider: the rest of 
 finished its move, so the edges next to a contact stretch (up to the strain limiter's clamp,
 10 % by default), and the next step's solve starts from that strain.  With ``collision.resolve``
 the stage's contacts become one-sided linear constraints of the step, enforced by a stiff
-quadratic penalty, and the step is solved again:
+penalty, and the step is solved again:
 
-    g_i(x) = d_i + n_i . (y_i(x) - p_i) >= 0,      E_c(x) = sum_i k_i / 2 min(0, g_i(x))^2,
+    g_i(x) = d_i + delta_i + n_i . (y_i(x) - p_i) >= 0,      E_c(x) = sum_i psi_i(g_i(x)),
 
-for every hair edge (a, b) with a movable end that is within ``NEAR`` of a collider's thickness
-shell after the stage, at the collider's end-of-step pose: y_i(x) = (1 - s_i) x_a + s_i x_b is the
-edge's closest point to the collider after the stage (parameter s_i, position p_i there), n_i the
-collider's outward normal at it and d_i its distance to the shell (the stage's output: >= 0 up to
-round-off).  A vertex contact is the end point of its edges (s = 0 or 1), an edge that dips into
-a collider between its vertices its interior point (the stage's edge response).
-The plane is the first-order model of the shell at p_i (a penalty on the signed distance
-linearised about the stage's point, as the linearised contact constraints of an active-set
-method, e.g. Otaduy et al. 2009, "Implicit contact handling for deformable objects").  The
-stiffness is ``STIFFNESS`` times the vertex's inertia m / h^2 of the step: a penalty force F
-leaves the vertex F / k inside the plane, i.e. about 1 / STIFFNESS of the step's displacement.
-The Hessian k n n^T is taken wherever g < ``margin`` (a plane about to be met is in the model
-before the iterate crosses it; an inactive plane's curvature only shortens steps toward it), so
-it is positive semi-definite and Newton's step and the SQP's stay descent directions.
+on every movable vertex within ``NEAR`` of a collider's thickness shell after the stage (or
+inside it in the solve's result the stage corrected), and on the interior closest point of every
+edge within ``NEAR`` of it (an edge that dips into a collider between its vertices: the stage's
+edge response), at the collider's end-of-step pose: y_i(x) is the vertex, or (1 - s_i) x_a +
+s_i x_b for the edge's point at parameter s_i, p_i its position after the stage, n_i the
+collider's outward normal there and d_i its distance to the shell.  The plane is the first-order
+model of the shell at p_i, a supporting plane of the five convex shapes (a penalty on the signed
+distance linearised about the stage's point, as the linearised contact constraints of an
+active-set method, e.g. Otaduy et al. 2009, "Implicit contact handling for deformable objects").
+
+psi is C^2 and one-sided: psi'' = k below the plane (g < 0), falling linearly to 0 over a layer of
+width delta = ``LAYER`` x the collider's thickness above it, 0 beyond (``ContactPlanes.psi``).  The
+plane's zero sits delta inside the shell, so that hair the penalty holds ends within the shell's
+outer delta, where the stage counts a contact and applies its inelastic contact and friction to
+the velocities.  k is ``STIFFNESS`` times the point's inertia m / h^2 of the step: a penalty force F
+leaves it about F / k below the plane's layer, about 1 / STIFFNESS of the step's displacement.  The
+Hessian psi'' (w w^T) (x) (n n^T), w = (1 - s, s), is positive semi-definite: Newton's step and
+the SQP's stay descent directions (taking it on the planes above their layer too stalled Newton
+on hair leaving a collider, whose steps along n it cut by the stiffness).
 
 The re-solved positions then go through the collision stage again, which places the small
 penetrations the penalty leaves (about a micrometre) and applies the inelastic contact and
@@ -36,6 +41,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from hairexp.physics.assembly import add_pair_blocks
 from hairexp.physics.contact_geometry import EdgeGaps
 
 #: penalty stiffness / the vertex's inertia m / h^2 of the step
@@ -51,8 +57,9 @@ class ContactPlanes:
     """One-sided penalty planes on points of hair edges (see the module doc).
 
     ``edges`` (n, 2) vertex indices, ``s`` (n,) the points' parameters along them, ``normals``
-    (n, 3) unit outward normals, ``points`` (n, 3) the planes' points, ``gaps`` (n,) the points'
-    distances to the shell there, ``stiffness`` (n,) N/m; ``free_slot`` (V,) the free index of
+    (n, 3) unit outward normals, ``points`` (n, 3) the planes' points, ``gaps`` (n,) g there (the
+    points' distances to the shell plus ``delta``), ``stiffness`` (n,) N/m, ``delta`` (n,) m the
+    penalty's layers, ``collider`` (n,) each plane's collider; ``free_slot`` (V,) the free index of
     each vertex, -1 for a kinematic one (hairexp/model/strands.py)."""
 
     def __init__(self, edges, s, normals, points, gaps, stiffness, free_slot, delta, collider=0):
@@ -121,31 +128,15 @@ class ContactPlanes:
         if not on.any():
             return 0.0
         _, d1, d2 = self.psi(g[on], on)
-        n, w, slot = self.n[on], self.w[on], self.slot[on]
-        f = d1[:, None] * n                                                     # dE/dy, (m, 3)
-        norm = 0.0
-        for j in range(2):
-            free = slot[:, j] >= 0
-            fj = w[free, j, None] * f[free]
-            np.add.at(grad, (3 * slot[free, j, None] + np.arange(3)).ravel(), fj.ravel())
-            norm += float(np.sum(fj * fj))
-        if ab is not None:
-            kn = d2[:, None, None] * n[:, :, None] * n[:, None, :]               # (m, 3, 3)
-            for i in range(2):
-                for j in range(2):
-                    pair = (slot[:, i] >= 0) & (slot[:, j] >= 0) & (slot[:, i] >= slot[:, j]) & (w[:, i] * w[:, j] != 0)
-                    if i != j:
-                        pair &= slot[:, i] != slot[:, j]
-                    if not pair.any():
-                        continue
-                    blk = (w[pair, i] * w[pair, j])[:, None, None] * kn[pair]
-                    ri, cj = 3 * slot[pair, i], 3 * slot[pair, j]
-                    for a in range(3):
-                        for b in range(3):
-                            d = ri + a - (cj + b)   # H[row, col] in the lower band at (row - col, col)
-                            low = d >= 0
-                            np.add.at(ab, (d[low], (cj + b)[low]), blk[low, a, b])
-        return float(np.sqrt(norm))
+        n, w = self.n[on], self.w[on]
+        ge = (w[:, :, None] * (d1[:, None] * n)[:, None, :]).reshape(-1, 6)   # dE/dx of the two ends
+        H = None
+        if ab is not None:   # psi'' (w w^T) (x) (n n^T)
+            H = np.einsum("m,mi,mj,mk,ml->mikjl", d2, w, w, n, n).reshape(-1, 6, 6)
+        slot = self.slot[on]
+        add_pair_blocks(grad, ab, slot, ge, H)
+        free = np.repeat(slot >= 0, 3, axis=1)
+        return float(np.sqrt(np.sum(ge[free] ** 2)))   # the planes' forces on the free ends, each counted alone
 
     def update_lag(self, x: np.ndarray) -> None:
         """No lagged quantities (friction stays in the collision stage)."""

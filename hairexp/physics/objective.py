@@ -120,6 +120,13 @@ class ImplicitEulerObjective:
         for t in self._dual_terms:
             t.tension = None if not tensions or tensions.get(t.name) is None else torch.as_tensor(tensions[t.name])
 
+    def vertex_inertia(self) -> np.ndarray:
+        """(V,) each vertex's inertia m / h^2 of the step (``begin_step``; 0 for the kinematic ones):
+        the contacts' mass scale (the barrier's curvature bound, the contact planes' stiffness)."""
+        out = np.zeros(len(self.x_full))
+        out[self.free_vertices] = np.asarray(self.mass_diag, dtype=np.float64).reshape(-1, 3).min(axis=1)
+        return out
+
     # -- dual iterates (primal-dual stretch Hessian, see energies.Stretch) ----------------
     @property
     def _dual_terms(self):

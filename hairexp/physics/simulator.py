@@ -90,6 +90,20 @@ def _merge_stages(infos: list[SolveInfo]) -> SolveInfo:
     return out
 
 
+def _after(earlier: SolveInfo, later: SolveInfo) -> SolveInfo:
+    """Two solves of one stage, one after the other (the contact planes' second solve,
+    ``Simulator._resolve_contacts``), as one: ``later`` with ``earlier``'s iterations, backtracks
+    and seconds added, its residuals and warm start, and ``earlier``'s status where that did not
+    converge (recovery then retries the step, as for one solve that failed)."""
+    if not earlier.converged:
+        later.status = earlier.status
+    later.iterations += earlier.iterations
+    later.backtracks += earlier.backtracks
+    for k, v in earlier.seconds.items():
+        later.seconds[k] = later.seconds.get(k, 0.0) + v
+    return later
+
+
 def _sum_collisions(cis: list):
     """Several collision stages' ``CollisionInfo`` as one (counts and seconds summed, the deepest
     penetration, contacts per collider summed), or None for none."""
@@ -517,13 +531,7 @@ class Simulator:
                         info.backtracks += self._resolve_spent.backtracks
                     if again is not None:
                         x_solve, control, info2, planes = again
-                        info.iterations += info2.iterations
-                        info.backtracks += info2.backtracks
-                        for k, v in info2.seconds.items():
-                            info.seconds[k] = info.seconds.get(k, 0.0) + v
-                        info.tensions = info2.tensions
-                        info.grad_norm, info.force_scale = info2.grad_norm, info2.force_scale
-                        info.constraint_norm = info2.constraint_norm
+                        info = _after(info, info2)
                         v_new = integ.velocity(x_solve, state, plan)
                         history = integ.history(state, x_solve, v_new, plan, dt)
                         if body is not None:
@@ -586,13 +594,6 @@ class Simulator:
                 info.status = DIVERGED
         return State(t_next, x_new, v_new, info.tensions, control, body, history), info
 
-    def _inertia(self) -> np.ndarray:
-        """(V,) each vertex's m / h^2 of the current stage (0 for the kinematic ones)."""
-        obj = self.objective
-        inertia = np.zeros(self.scene.strands.n_vertices)
-        inertia[obj.free_vertices] = np.asarray(obj.mass_diag).reshape(-1, 3).min(axis=1)
-        return inertia
-
     def _resolve_contacts(self, state: State, dt: float, t_next: float, motion, x_stage: np.ndarray,
                           x_first: np.ndarray, colliders):
         """The stage's contacts (positions ``x_stage``, corrected from the solve's ``x_first``) as
@@ -607,7 +608,7 @@ class Simulator:
         obj = self.objective
         s = self.scene.strands
         movable = ~s.kinematic
-        inertia = self._inertia()
+        inertia = obj.vertex_inertia()
         planes = stage_planes(colliders, x_stage, t_next, s.edges, movable, s.free_slot, inertia, x_first)
         if planes is None:
             return None
@@ -618,12 +619,7 @@ class Simulator:
                 x2, control2, info2 = self.controller.solve(self, state, dt, t_next, motion)
             finally:
                 obj.contact, obj.x_start = None, None
-            if total is not None:
-                info2.iterations += total.iterations
-                info2.backtracks += total.backtracks
-                for k, v in total.seconds.items():
-                    info2.seconds[k] = info2.seconds.get(k, 0.0) + v
-            total = info2
+            total = info2 if total is None else _after(total, info2)
             if not info2.converged or not np.isfinite(x2).all():
                 self.resolve_failures += 1
                 self._resolve_spent = total   # its iterations were done: the step counts them
