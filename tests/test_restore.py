@@ -91,8 +91,9 @@ def test_restore_with_pinned_vertices_moves_only_the_others():
 @pytest.mark.parametrize("restore", [True, False])
 def test_contact_frames_keep_the_constraints_with_the_restore(restore):
     """Goaling tracked through its first contact with the wheel (0.92 s): with the restore every
-    frame's residual stays <= 1e-6 of the hair length (the contact frames' were 1e-4-4e-3 L
-    without it), the strain within the limiter's 0.1 and no vertex inside the wheel."""
+    frame's residual stays <= 1e-6 of the hair length, the strain within 0.1 and no vertex inside
+    the wheel.  Without it the stage's last moves leave the contact frames off target (1e-4-4e-3 L
+    with the stage alone; 2.2e-6 L with the contact planes, whose hair the stage moves micrometres)."""
     run = _run(["frames=27", f"tracking.restore={str(restore).lower()}"])
     wheel = run.scene.colliders[0]
     L = run.controller.hair_length
@@ -111,7 +112,7 @@ def test_contact_frames_keep_the_constraints_with_the_restore(restore):
     if restore:
         assert worst <= 1e-6 and restored > 0
     else:
-        assert worst > 1e-5 and restored == 0
+        assert worst > 1e-6 and restored == 0
 
 
 def test_clusters_the_restore_cannot_bring_back_are_reported_relaxed():

@@ -78,7 +78,8 @@ class CollisionInfo:
     per_collider: dict = field(default_factory=dict)
 
 
-def object_stage(colliders, x0, x1, t0, t1, dt, movable, dist_out: list | None = None, discrete: bool = False):
+def object_stage(colliders, x0, x1, t0, t1, dt, movable, dist_out: list | None = None, discrete: bool = False,
+                 push: np.ndarray | None = None):
     """Returns corrected (x1, v1, contacts, contacts per collider).  ``dist_out``: a list that
     gets, when there was no contact (x1 is the input's), each collider's signed distance minus
     thickness of the movable vertices at x1 and t1 (``Collider.distance``), which the path test
@@ -86,7 +87,7 @@ def object_stage(colliders, x0, x1, t0, t1, dt, movable, dist_out: list | None =
     onto the shells (no path, no positional friction; the velocities' inelastic contact and
     Coulomb friction as always): after a solve that saw the contacts (``collision.resolve``), whose
     end points left a collider's surface along it, where a straight path x0 -> x1 would cut
-    through the collider and be stopped inside it."""
+    through the collider and be stopped inside it.  ``push``: see ``contact_velocities``."""
     dist: list = []
     if discrete:
         x1, contacts, per = object_positions(colliders, x1, x1, t1, t1, 0.0, movable, friction=False, dist_out=dist)
@@ -95,7 +96,7 @@ def object_stage(colliders, x0, x1, t0, t1, dt, movable, dist_out: list | None =
     known = dist if contacts == 0 else None
     if dist_out is not None and known is not None:
         dist_out.extend(known)
-    return x1, contact_velocities(colliders, x1, (x1 - x0) / dt, t1, movable, dist=known), contacts, per
+    return x1, contact_velocities(colliders, x1, (x1 - x0) / dt, t1, movable, dist=known, push=push), contacts, per
 
 
 def object_positions(colliders, x0, x1, t0, t1, dt, movable, friction: bool = True, dist_out: list | None = None):
@@ -523,24 +524,39 @@ class HairHair:
         return v1, int((I > 0).sum())
 
 
-def contact_velocities(colliders, x1, v1, t1, movable, dist: list | None = None):
+def contact_velocities(colliders, x1, v1, t1, movable, dist: list | None = None, push: np.ndarray | None = None):
     """Inelastic contact: vertices on a collider's shell get no approaching normal velocity
-    relative to the surface, and Coulomb friction on the tangential one.  ``dist``: each
-    collider's ``distance`` of the movable vertices at (x1, t1), when known (``object_stage``)."""
+    relative to the surface, and Coulomb friction on the tangential one: its velocity change at
+    most the friction coefficient times the normal one (the approaching velocity removed here, plus
+    ``push`` (colliders, V) m/s, the normal velocity each collider's contact forces in the solve gave
+    each vertex: ``collision.resolve``'s planes, which leave no approaching velocity for the stage
+    to remove).  A vertex a collider's planes press (push > 0) is in contact with it even a little
+    off its shell (a plane is the surface's tangent at the stage's point, NEAR), and keeps no
+    normal velocity relative to it either way: force only at zero gap velocity (the push-out of a
+    vertex that started inside is not a bounce).
+    ``dist``: each collider's ``distance`` of the movable vertices at (x1, t1), when known
+    (``object_stage``)."""
     near = np.flatnonzero(movable)
     for i, col in enumerate(colliders):
         shell = col.on_shell(x1[near], t1) if dist is None else dist[i] < col.shell_tolerance()
+        pressed = None if push is None else push[i]
+        if pressed is not None:
+            shell |= pressed[near] > 0.0
         c = near[shell]
         if c.size:
             n = col.normal(x1[c], t1)
             vs = col.surface_velocity(x1[c], t1)
             vr = v1[c] - vs
             vn = np.sum(vr * n, axis=1)
-            neg = vn < 0
+            jn = np.maximum(-vn, 0.0) if pressed is None else np.maximum(-vn, 0.0) + pressed[c]
             vt = vr - vn[:, None] * n
             tn = np.linalg.norm(vt, axis=1)
-            f = np.where(neg & (tn > 0), np.maximum(0.0, 1.0 - col.friction * (-vn) / np.maximum(tn, 1e-300)), 1.0)
-            v1[c] = vs + vt * f[:, None] + np.maximum(vn, 0.0)[:, None] * n
+            f = np.where((jn > 0) & (tn > 0), np.maximum(0.0, 1.0 - col.friction * jn / np.maximum(tn, 1e-300)), 1.0)
+            # a vertex the solve's contact forces press (push > 0) ends on the surface: no normal velocity
+            # relative to it either way (force > 0 only at zero gap velocity; the push-out of a vertex
+            # that started inside is not a bounce)
+            vn_out = np.maximum(vn, 0.0) if pressed is None else np.where(pressed[c] > 0.0, 0.0, np.maximum(vn, 0.0))
+            v1[c] = vs + vt * f[:, None] + vn_out[:, None] * n
     return v1
 
 
@@ -817,7 +833,7 @@ def limit_strain(limiter: StrainLimit, colliders, x1, t1, movable, edges: bool =
 
 
 def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter: StrainLimit | None = None,
-                    dist_out: list | None = None, discrete: bool = False):
+                    dist_out: list | None = None, discrete: bool = False, push: np.ndarray | None = None):
     """Filter (x1, v1) for contacts.  Returns (x1, v1, CollisionInfo).  With ``limiter``, a
     step with object contacts ends with strain limiting (``StrainLimit``).  ``dist_out``: a list
     that gets each collider's ``distance`` of the movable vertices at the returned x1 and t1 when
@@ -827,7 +843,8 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
     hairexp/physics/hair_volume.py) is not a pass of this stage: it filters the scheme's end
     velocities and moves no position, so the Simulator applies it (``Simulator._stage``) and
     these passes see the solve's path.  ``discrete``: the object passes test the end points only
-    (``object_stage``)."""
+    (``object_stage``).  ``push``: the normal velocity (colliders, V) m/s the solve's contact forces
+    gave the vertices, which bounds their Coulomb friction as well (``contact_velocities``)."""
     tic = time.perf_counter()
     info = CollisionInfo()
     movable = ~scene.strands.kinematic
@@ -850,7 +867,7 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
         if scene.colliders:
             found: list = []
             x1, v1, n_obj, per = object_stage(scene.colliders, x0, x1, t0, t1, dt, movable, dist_out=found,
-                                              discrete=discrete)
+                                              discrete=discrete, push=push)
             dist = found or None    # (filled only when the pass had no contact)
             for k, c in per.items():
                 info.per_collider[k] = info.per_collider.get(k, 0) + c
@@ -876,7 +893,7 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
         x1, info.strain_limited, info.limit_rounds = limit_strain(limiter, scene.colliders, x1, t1, movable, edges)
         moved_after = True
     if moved_after:   # the velocities of the final positions, once
-        v1 = contact_velocities(scene.colliders, x1, (x1 - x0) / dt, t1, movable)
+        v1 = contact_velocities(scene.colliders, x1, (x1 - x0) / dt, t1, movable, push=push)
         dist = None
     if hh is not None:
         hh.end_step(x0, x1)

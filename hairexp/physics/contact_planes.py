@@ -7,7 +7,7 @@ finished its move, so the edges next to a contact stretch (up to the strain limi
 the stage's contacts become one-sided linear constraints of the step, enforced by a stiff
 penalty, and the step is solved again:
 
-    g_i(x) = d_i + delta_i + n_i . (y_i(x) - p_i) >= 0,      E_c(x) = sum_i psi_i(g_i(x)),
+    g_i(x) = d_i + n_i . (y_i(x) - p_i) >= 0,      E_c(x) = sum_i k_i / 2 min(g_i(x), 0)^2,
 
 on every movable vertex within ``NEAR`` of a collider's thickness shell after the stage (or
 inside it in the solve's result the stage corrected), and on the interior closest point of every
@@ -19,18 +19,24 @@ model of the shell at p_i, a supporting plane of the five convex shapes (a penal
 distance linearised about the stage's point, as the linearised contact constraints of an
 active-set method, e.g. Otaduy et al. 2009, "Implicit contact handling for deformable objects").
 
-psi is C^2 and one-sided: psi'' = k below the plane (g < 0), falling linearly to 0 over a layer of
-width delta = ``LAYER`` x the collider's thickness above it, 0 beyond (``ContactPlanes.psi``).  The
-plane's zero sits delta inside the shell, so that hair the penalty holds ends within the shell's
-outer delta, where the stage counts a contact and applies its inelastic contact and friction to
-the velocities.  k is ``STIFFNESS`` times the point's inertia m / h^2 of the step: a penalty force F
-leaves it about F / k below the plane's layer, about 1 / STIFFNESS of the step's displacement.  The
-Hessian psi'' (w w^T) (x) (n n^T), w = (1 - s, s), is positive semi-definite: Newton's step and
-the SQP's stay descent directions (taking it on the planes above their layer too stalled Newton
-on hair leaving a collider, whose steps along n it cut by the stiffness).
+The penalty (``ContactPlanes.psi``) is the one-sided quadratic psi(g) = k/2 min(g, 0)^2 (C^1; the
+exterior quadratic penalty of constrained optimisation, Nocedal and Wright 2006, 17.1): its force
+grows linearly with the depth g < 0 below the shell's surface, so the Newton model of a point in
+contact is exact once the set of pressed planes is found, and hair the penalty holds ends F / k
+inside the shell (k = ``STIFFNESS`` times the point's inertia m / h^2 of the step: about
+1 / STIFFNESS of the step's displacement), where the stage counts a contact and applies its
+inelastic contact and Coulomb friction to the velocities.  A C^2 form tried first (psi'' rising
+linearly over a layer of a quarter thickness above the plane's zero) converged linearly: its force
+grows with the depth squared in the layer, where lightly pressed hair rests, and Newton's iterates
+on a square law halve the distance to the root each time (goaling tracked 4-6 SQP iterations a
+solve at a constant set of pressed planes; with the quadratic 8.25 -> 7.86 SQP iterations a step,
+27.0 -> 23.6 in its contact steps, reports/contact.md).  The Hessian k (w w^T) (x) (n n^T),
+w = (1 - s, s), on the pressed planes is positive semi-definite: Newton's step and the SQP's stay
+descent directions (taking it on the planes not pressed too stalled Newton on hair leaving a
+collider, whose steps along n it cut by the stiffness).
 
 The re-solved positions then go through the collision stage again, which places the small
-penetrations the penalty leaves (about a micrometre) and applies the inelastic contact and
+penetrations the penalty leaves (micrometres) and applies the inelastic contact and
 Coulomb friction to the velocities: the hair wraps around the collider in the solve instead of
 being stretched by the stage.  Interface: the objective's ``contact`` hooks
 (hairexp/physics/objective.py, as the barrier's ObjectContact): ``energy``, ``add_to``,
@@ -46,8 +52,6 @@ from hairexp.physics.contact_geometry import EdgeGaps
 
 #: penalty stiffness / the vertex's inertia m / h^2 of the step
 STIFFNESS = 1e4
-#: the penalty's layer delta above each plane, as a fraction of the collider's thickness
-LAYER = 0.25
 #: vertices within this many shell tolerances plus this fraction of the collider's thickness
 #: of its shell after the stage get a plane (the placed ones are on it)
 NEAR = 0.5
@@ -58,11 +62,11 @@ class ContactPlanes:
 
     ``edges`` (n, 2) vertex indices, ``s`` (n,) the points' parameters along them, ``normals``
     (n, 3) unit outward normals, ``points`` (n, 3) the planes' points, ``gaps`` (n,) g there (the
-    points' distances to the shell plus ``delta``), ``stiffness`` (n,) N/m, ``delta`` (n,) m the
-    penalty's layers, ``collider`` (n,) each plane's collider; ``free_slot`` (V,) the free index of
-    each vertex, -1 for a kinematic one (hairexp/model/strands.py)."""
+    points' distances to the shell), ``stiffness`` (n,) N/m, ``collider`` (n,) each plane's
+    collider; ``free_slot`` (V,) the free index of each vertex, -1 for a kinematic one
+    (hairexp/model/strands.py)."""
 
-    def __init__(self, edges, s, normals, points, gaps, stiffness, free_slot, delta, collider=0):
+    def __init__(self, edges, s, normals, points, gaps, stiffness, free_slot, collider=0):
         self.e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
         s = np.asarray(s, dtype=np.float64)
         self.w = np.stack([1.0 - s, s], axis=1)                                # (n, 2)
@@ -70,7 +74,6 @@ class ContactPlanes:
         self.c = np.asarray(gaps, dtype=np.float64) - np.einsum("ij,ij->i", self.n, np.asarray(points, dtype=np.float64))
         self.k = np.asarray(stiffness, dtype=np.float64)
         self.slot = np.asarray(free_slot)[self.e]                              # (n, 2), -1: kinematic
-        self.delta = np.broadcast_to(np.asarray(delta, dtype=np.float64), self.k.shape).copy()
         self.collider = np.broadcast_to(np.asarray(collider, dtype=np.int64), self.k.shape).copy()
 
     def __len__(self) -> int:
@@ -86,12 +89,12 @@ class ContactPlanes:
         return self.c + np.einsum("ij,ij->i", self.n, y)
 
     def stale(self, colliders, x: np.ndarray, t: float) -> np.ndarray:
-        """(n,) bool: planes the positions x (V, 3) press on (g < delta) whose edge is farther than
+        """(n,) bool: planes the positions x (V, 3) press on (g < 0) whose edge is farther than
         ``NEAR`` from its collider's shell at time t: a supporting plane that holds hair which
         has slid past the part of the surface it was taken at (off a curved surface, round a
         box's edge), where the surface itself would let it go."""
         out = np.zeros(len(self.e), dtype=bool)
-        on = self.gap(x) < self.delta
+        on = self.gap(x) < 0.0
         for i, col in enumerate(colliders):
             sel = np.flatnonzero(on & (self.collider == i))
             if sel.size == 0:
@@ -101,17 +104,24 @@ class ContactPlanes:
             out[sel] = d > col.shell_tolerance() + NEAR * col.thickness
         return out
 
-    # -- the penalty psi(g): C^2, one-sided ----------------------------------------------
+    # -- the penalty psi(g): one-sided quadratic ---------------------------------------------
     def psi(self, g: np.ndarray, sel=slice(None)):
-        """(psi, psi', psi'') of the planes ``sel`` at their gaps g: psi'' = k below the plane,
-        falling linearly to 0 over the layer of width delta above it, 0 beyond (module doc)."""
-        k, dl = self.k[sel], self.delta[sel]
-        u = np.clip(dl - g, 0.0, None)                       # depth below the layer's top
-        inside = g < 0.0
-        e = np.where(inside, k * dl * dl / 6.0 - 0.5 * k * dl * g + 0.5 * k * g * g, k * u ** 3 / (6.0 * dl))
-        d1 = np.where(inside, -0.5 * k * dl + k * g, -k * u * u / (2.0 * dl))
-        d2 = np.where(inside, k, k * u / dl)
-        return e, d1, d2
+        """(psi, psi', psi'') of the planes ``sel`` at their gaps g: k/2 g^2, k g, k below the
+        plane (g < 0), 0 on and beyond it (module doc)."""
+        k = self.k[sel]
+        u = np.minimum(g, 0.0)
+        return 0.5 * k * u * u, k * u, np.where(g < 0.0, k, 0.0)
+
+    def vertex_forces(self, x: np.ndarray, n_colliders: int) -> np.ndarray:
+        """(n_colliders, V) the magnitudes (N) of each collider's planes' normal forces on each
+        vertex of x (V, 3): an edge point's force shared by its ends by the weights w.  The collision
+        stage's Coulomb friction is bounded by them (``contact_velocities``' ``push``)."""
+        f = -self.psi(self.gap(x))[1]                    # >= 0
+        V = len(x)
+        out = np.zeros((n_colliders, V))
+        for j in range(2):
+            np.add.at(out, (self.collider, self.e[:, j]), self.w[:, j] * f)
+        return out
 
     # -- the objective's contact hooks ------------------------------------------------------
     #: no lagged quantity: the solvers' values need not be re-taken after an evaluation
@@ -124,7 +134,7 @@ class ContactPlanes:
         """Add the gradient to ``grad`` (N,) and the Hessian to the lower band ``ab`` (bw + 1, N)
         of the free DOFs; returns the norm of the penalty force."""
         g = self.gap(x)
-        on = g < self.delta
+        on = g < 0.0
         if not on.any():
             return 0.0
         _, d1, d2 = self.psi(g[on], on)
@@ -161,13 +171,10 @@ def stage_planes(colliders, x: np.ndarray, t: float, edges: np.ndarray, movable:
     E = np.asarray(edges)
     E = E[movable[E[:, 0]] | movable[E[:, 1]]]
     idx = np.flatnonzero(movable)
-    out = {k: [] for k in "esnpdmlc"}
+    out = {k: [] for k in "esnpdmc"}
 
     def add(e, s_, n, p, d, m):
-        layer = np.full(len(e), LAYER * col.thickness)
-        # the plane's zero a layer inside the shell: the penalty's layer is the shell's outer delta,
-        # where the stage counts a contact (its inelastic contact and friction on the velocities)
-        for k, v in zip("esnpdmlc", (e, s_, n, p, d + layer, m, layer, np.full(len(e), ci))):
+        for k, v in zip("esnpdmc", (e, s_, n, p, d, m, np.full(len(e), ci))):
             out[k].append(v)
 
     for ci, col in enumerate(colliders):
@@ -204,4 +211,4 @@ def stage_planes(colliders, x: np.ndarray, t: float, edges: np.ndarray, movable:
     if not out["e"]:
         return None
     c = {k: np.concatenate(v) for k, v in out.items()}
-    return ContactPlanes(c["e"], c["s"], c["n"], c["p"], c["d"], c["m"], free_slot, c["l"], c["c"])
+    return ContactPlanes(c["e"], c["s"], c["n"], c["p"], c["d"], c["m"], free_slot, c["c"])

@@ -538,9 +538,14 @@ class Simulator:
                             body = self.body.with_hair_force(body, self.root_force(x_solve))
                         first = cinfo
                         dist = []
+                        # the planes' normal forces bound the friction of the vertices they press
+                        # (they leave no approaching velocity for the stage's inelastic contact):
+                        # the velocity they gave, h^2 / h_v F / m in the scheme's v = (x - x_ref) / h_v
+                        push = (planes.vertex_forces(x_solve, len(sc.colliders)) * (plan.h ** 2 / plan.h_v)
+                                / self.scene.strands.masses)
                         x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_solve,
                                                                 state.time, t_next, dt, self.limiter, dist_out=dist,
-                                                                discrete=True)
+                                                                discrete=True, push=push)
                         cinfo.seconds += first.seconds
                         cinfo.resolved = len(planes)
                         # the contact frames are those the first stage found (the re-solve leaves its
