@@ -18,7 +18,11 @@ the default TR-BDF2, runs phases 1-4 once per stage, ``Simulator._attempt``):
    it moved or whose velocity it changed take its positions and velocities, and the
    integrator adjusts its history to them (``after_collision``).  The hair volume
    (``collision.hair_hair_model=volume``) is a velocity filter before the object contacts, after
-   a step's last stage: it changes the end velocities only (``after_velocity_filter``);
+   a step's last stage: it changes the end velocities only (``after_velocity_filter``).
+   With ``collision.resolve`` (the default) the solve of 2. already carries planes for the hair
+   resting on a collider (``_resting_planes``), and at the step's last stage the stage's contacts
+   that those did not hold are solved again as planes (``_resolve_contacts``,
+   hairexp/physics/contact_planes.py), the stage then run on the end points only;
 5. recovery (``_advance``): a step that diverged or did not converge is retried as two half
    steps from the same State (``solver.on_failure=substep``, recursively), kept and flagged
    (``warn``), or stops the run (``fail``).  A non-finite state is never returned.
@@ -45,7 +49,7 @@ from hairexp.model.scene import Scene
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact, sweep_substeps
 from hairexp.physics.collisions import (CollisionInfo, HairHair, StrainLimit, collision_stage, contact_velocities,
                                         edge_response, limit_strain, object_positions)
-from hairexp.physics.contact_planes import stage_planes
+from hairexp.physics.contact_planes import NEAR, stage_planes
 from hairexp.physics.controller import Controller
 from hairexp.physics.hair_volume import HairVolume
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
@@ -65,6 +69,9 @@ TOUCH_TOL_X, TOUCH_TOL_V = 1e-12, 1e-9
 #: collision.resolve: solves of a stage with contact planes at most (the first, then one for each
 #: growth of the active set; ``Simulator._resolve_contacts``)
 RESOLVE_ROUNDS = 4
+#: collision.resolve: a first solve with the resting hair's planes stands when the stage after it moved
+#: no vertex by more than this fraction of the thinnest collider's thickness (``Simulator._stage_kept``)
+KEPT_MOVE = 0.01
 #: most rounds of the controller's constraints restored after the collision stage, each followed by
 #: the colliders' response to the move (``Simulator._restore``)
 RESTORE_ROUNDS = 8
@@ -482,10 +489,17 @@ class Simulator:
         # a stage before the step's last is the scheme's intermediate point (TR-BDF2's x_g): solved
         # to solver.stage_rtol_factor x rtol, the step's end to rtol (README "The first stage's tolerance")
         self.stage_tolerance = None if last or self.stage_rtol_factor == 1.0 else self.stage_rtol_factor
+        # collision.resolve: the hair resting on a collider keeps its planes in the first solve of the
+        # step's last stage (``_resting_planes``); a second solve only where they did not hold
+        carried = self._resting_planes(state, t_next) if self.resolve and ctl.simulates else None
+        if carried is not None:
+            self.objective.contact = carried
         try:
             x_new, control, info = ctl.solve(self, state, dt, t_next, motion)
         finally:
             self.stage_tolerance = None
+            if carried is not None:
+                self.objective.contact = None
         # 3. velocities (the integrator's), its history, and the hair's force on a dynamic body
         v_new = integ.velocity(x_new, state, plan)
         history = integ.history(state, x_new, v_new, plan, dt)
@@ -516,15 +530,23 @@ class Simulator:
                 t_volume = time.perf_counter() - tic
             dist: list = []       # the colliders' distances at x_new, when the stage computed them
             if self.collide_objects or hh is not None:
+                push = None if carried is None else self._plane_push(carried, x_new, plan, len(sc.colliders))
                 x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_new,
-                                                        state.time, t_next, dt, self.limiter, dist_out=dist)
-                if self.resolve and last and cinfo.object_contacts > 0 and sc.colliders:
+                                                        state.time, t_next, dt, self.limiter, dist_out=dist, push=push)
+                if (last and carried is not None and cinfo.object_contacts > 0 and cinfo.edge_contacts == 0
+                        and self._planes_hold(carried, x_solve, sc.colliders, t_next)
+                        and self._stage_kept(x_new, x_solve, sc.colliders)):
+                    # the resting hair's planes held it, no edge dipped into a collider between its
+                    # vertices and the stage moved nothing more than the micrometres the penalty
+                    # leaves: the first solve is the step's (no second solve)
+                    cinfo.resolved = len(carried)
+                elif self.resolve and last and cinfo.object_contacts > 0 and sc.colliders:
                     # the stage's contacts as planes of a second solve (hairexp/physics/contact_planes.py),
                     # then the stage again on its result; at the step's end only: a scheme's intermediate
                     # point is not a result and the next stage solves again (Celia tracked, SQP iterations
                     # a step 6.31 -> 6.05, contact steps 5.1 -> 2.8 x the others' time, 2026-12-07)
                     failures, self._resolve_spent = self.resolve_failures, None
-                    again = self._resolve_contacts(state, dt, t_next, motion, x_new, x_solve, sc.colliders)
+                    again = self._resolve_contacts(state, dt, t_next, motion, x_new, x_solve, sc.colliders, carried)
                     cinfo.resolve_failed = int(self.resolve_failures > failures)
                     if self._resolve_spent is not None:   # a failed second solve: the stage's result stands
                         info.iterations += self._resolve_spent.iterations
@@ -541,8 +563,7 @@ class Simulator:
                         # the planes' normal forces bound the friction of the vertices they press
                         # (they leave no approaching velocity for the stage's inelastic contact):
                         # the velocity they gave, h^2 / h_v F / m in the scheme's v = (x - x_ref) / h_v
-                        push = (planes.vertex_forces(x_solve, len(sc.colliders)) * (plan.h ** 2 / plan.h_v)
-                                / self.scene.strands.masses)
+                        push = self._plane_push(planes, x_solve, plan, len(sc.colliders))
                         x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_solve,
                                                                 state.time, t_next, dt, self.limiter, dist_out=dist,
                                                                 discrete=True, push=push)
@@ -599,11 +620,65 @@ class Simulator:
                 info.status = DIVERGED
         return State(t_next, x_new, v_new, info.tensions, control, body, history), info
 
+    def _resting_planes(self, state: State, t_next: float):
+        """Planes for the first solve of a step's last stage (``collision.resolve``): on the hair
+        resting on a collider, the movable vertices within ``NEAR`` of its shell on either side at
+        the stage's start positions and its end pose, sliding over its surface by less than that in
+        the stage, and the edges they end (``stage_planes`` at the start positions).  Hair lying
+        on a collider then needs no second solve each step (a strand dropped on a plane, bdf2, 50
+        steps: 666 -> 248 Newton iterations, the same end state).  Hair that slides faster over the
+        surface (the spinning wheel of goaling) or is further off gets none: planes taken where it
+        is now would hold it off the surface where it arrives (goaling tracked 8.14 / 42 -> 8.32 /
+        51 SQP iterations a step with planes on every vertex near a shell), and a vertex deeper
+        inside (a collider that moved onto it) could get a plane of the far side of a thin one.  None when no vertex
+        qualifies."""
+        cols = self.scene.colliders
+        if not cols:
+            return None
+        s = self.scene.strands
+        movable = np.flatnonzero(~s.kinematic)
+        dt = t_next - state.time
+        resting = np.zeros(len(state.x), dtype=bool)
+        for col in cols:
+            near = col.shell_tolerance() + NEAR * col.thickness
+            c = movable[np.abs(col.distance(state.x[movable], t_next)) < near]
+            if c.size:
+                slide = np.linalg.norm(state.v[c] - col.surface_velocity(state.x[c], t_next), axis=1) * dt
+                resting[c[slide < near]] = True
+        if not resting.any():
+            return None
+        return stage_planes(cols, state.x, t_next, s.edges, resting, s.free_slot, self.objective.vertex_inertia())
+
+    def _planes_hold(self, planes, x: np.ndarray, colliders, t: float) -> bool:
+        """Whether the solve's positions x (V, 3) with ``planes`` need no further solve: no movable
+        vertex without a plane inside a collider's shell, and no plane holding hair beyond the
+        surface it was taken at (``ContactPlanes.stale``)."""
+        movable = ~self.scene.strands.kinematic
+        inside = np.zeros(len(x), dtype=bool)
+        for col in colliders:
+            inside[movable] |= col.distance(x[movable], t) < -col.shell_tolerance()
+        inside[planes.vertices()] = False
+        return not inside.any() and not planes.stale(colliders, x, t).any()
+
+    @staticmethod
+    def _stage_kept(x_stage: np.ndarray, x_solve: np.ndarray, colliders) -> bool:
+        """Whether the collision stage moved no vertex of the solve's positions by more than
+        ``KEPT_MOVE`` of the thinnest collider's thickness (the penalty's micrometres)."""
+        tol = KEPT_MOVE * min(c.thickness for c in colliders) + 1e-9
+        return bool(np.abs(x_stage - x_solve).max(initial=0.0) <= tol)
+
+    def _plane_push(self, planes, x: np.ndarray, plan, n_colliders: int) -> np.ndarray:
+        """(colliders, V) m/s: the normal velocity the planes' forces at x gave each vertex in the
+        stage's scheme, h^2 / h_v F / m (v = (x - x_ref) / h_v), which bounds the stage's Coulomb
+        friction (``contact_velocities``; the planes leave it no approaching velocity to remove)."""
+        return planes.vertex_forces(x, n_colliders) * (plan.h ** 2 / plan.h_v) / self.scene.strands.masses
+
     def _resolve_contacts(self, state: State, dt: float, t_next: float, motion, x_stage: np.ndarray,
-                          x_first: np.ndarray, colliders):
+                          x_first: np.ndarray, colliders, keep=None):
         """The stage's contacts (positions ``x_stage``, corrected from the solve's ``x_first``) as
         penalty planes of a second solve of the same stage from x_first (``collision.resolve``,
-        hairexp/physics/contact_planes.py).  Where that solve leaves a vertex without a plane inside
+        hairexp/physics/contact_planes.py); ``keep``: the resting hair's planes of the first solve
+        (``_resting_planes``), taken again with them.  Where that solve leaves a vertex without a plane inside
         a collider, or a plane holds hair beyond the surface it was taken at (``ContactPlanes.stale``),
         every plane is taken again at its positions (the set only grows) and the stage solved again
         from there, up to RESOLVE_ROUNDS solves: a sequence of linearised contact constraints, as
@@ -614,7 +689,7 @@ class Simulator:
         s = self.scene.strands
         movable = ~s.kinematic
         inertia = obj.vertex_inertia()
-        planes = stage_planes(colliders, x_stage, t_next, s.edges, movable, s.free_slot, inertia, x_first)
+        planes = stage_planes(colliders, x_stage, t_next, s.edges, movable, s.free_slot, inertia, x_first, keep=keep)
         if planes is None:
             return None
         start, total = x_first, None
@@ -632,11 +707,7 @@ class Simulator:
             # vertices the planes left inside a collider's shell (an active set to grow), or planes
             # that hold hair off the surface (taken where it has slid past): the planes taken again
             # at these positions, and the stage solved again from them
-            inside = np.zeros(len(x2), dtype=bool)
-            for col in colliders:
-                inside[movable] |= col.distance(x2[movable], t_next) < -col.shell_tolerance()
-            inside[planes.vertices()] = False
-            if not inside.any() and not planes.stale(colliders, x2, t_next).any():
+            if self._planes_hold(planes, x2, colliders, t_next):
                 break
             again = stage_planes(colliders, x2, t_next, s.edges, movable, s.free_slot, inertia, keep=planes)
             if again is None:
