@@ -247,3 +247,85 @@ def test_the_run_folder_counts_the_steps_solved_again_and_the_fallbacks(tmp_path
     assert s["contact_plane_steps"] == 0
     said = [r.getMessage() for r in caplog.records if "second solve with the contact planes" in r.getMessage()]
     assert len(said) == 1 and f"in {s['resolve_fallback_steps']} of {s['steps']} steps" in said[0]
+
+
+def test_plane_friction_derivatives_vs_autograd():
+    """The resting contact's friction (``ContactPlanes.set_friction``, collision.plane_friction):
+    mu lam f0(|T^T (y - y_n - dc)|) with the normal forces lam held (the lag), both branches of f0
+    (slip below and above eps): gradient and Hessian against torch autograd, the Hessian PSD."""
+    from hairexp.physics.barrier import f0_friction  # noqa: F401  (the formula the torch form restates)
+
+    P, x, kin = random_planes(seed=5, n=16)
+    rng = np.random.default_rng(7)
+    cols = [SimpleCollider(0.4, spin=3.0)]
+    x_n = x + rng.normal(size=x.shape) * 2e-4       # slips of 0.1-2.5 mm (the spin adds some)
+    lam = rng.uniform(0.0, 2.0, size=len(P))
+    lam[::4] = 0.0                                   # planes without a normal force: no friction
+    P.set_friction(cols, x_n, 0.0, 0.04, 0.02, lam)   # eps = 0.8 mm: slips on both sides of it
+    assert P.lagged and P._fric is not None and len(P._fric[0]) == int((lam > 0).sum())
+    sel, mu, T, y_n, dc, eps = P._fric
+    r = np.linalg.norm(np.einsum("nij,ni->nj", T, (P.w[sel, 0, None] * x[P.e[sel, 0]] + P.w[sel, 1, None]
+                                                   * x[P.e[sel, 1]]) - y_n - dc), axis=1)
+    assert (r < eps).any() and (r > eps).any()       # both branches of f0
+
+    def energy(X):
+        w = torch.as_tensor(P.w[sel])
+        e = torch.as_tensor(P.e[sel])
+        y = w[:, :1] * X[e[:, 0]] + w[:, 1:] * X[e[:, 1]]
+        u = torch.einsum("nij,ni->nj", torch.as_tensor(T), y - torch.as_tensor(y_n) - torch.as_tensor(dc))
+        s = torch.sqrt((u * u).sum(1))
+        f0 = torch.where(s < eps, -s ** 3 / (3 * eps ** 2) + s ** 2 / eps + eps / 3, s)
+        return (torch.as_tensor(mu * P._lam) * f0).sum()
+
+    X = torch.tensor(x, requires_grad=True)
+    E = energy(X)
+    e_np, g_np, H_np = P._friction(x, True)
+    assert np.isclose(float(E.detach()), e_np, rtol=1e-12)
+    (gt,) = torch.autograd.grad(E, X, create_graph=True)
+    free = np.flatnonzero(~kin)
+    N = 3 * len(free)
+    grad, ab = np.zeros(N), np.zeros((9, N))
+    from hairexp.physics.assembly import add_pair_blocks
+    add_pair_blocks(grad, ab, P.slot[sel], g_np, H_np)
+    assert np.allclose(grad, gt.detach().numpy()[free].ravel(), rtol=1e-9, atol=1e-12)
+    Ht = np.stack([torch.autograd.grad(gt.reshape(-1)[i], X, retain_graph=True)[0].numpy().ravel()
+                   for i in range(3 * len(x))])
+    dof = (3 * free[:, None] + np.arange(3)).ravel()
+    H = BandedAssembler.to_sparse(ab).toarray()
+    assert np.allclose(H, Ht[np.ix_(dof, dof)], rtol=1e-8, atol=1e-9 * float(np.abs(H).max()))
+    assert np.all(np.linalg.eigvalsh(H) > -1e-9 * float(np.abs(H).max()))
+
+
+class SimpleCollider:
+    """A collider stand-in for set_friction: friction, a rigid motion at rest and a spin about z."""
+
+    def __init__(self, friction, spin=0.0):
+        from hairexp.model.rigid import RigidMotion
+
+        self.friction, self.spin = friction, spin
+        self.motion = RigidMotion.static()
+
+    def spin_velocity_body(self, X):
+        return self.spin * np.stack([-X[:, 1], X[:, 0], np.zeros(len(X))], axis=1)
+
+
+@pytest.mark.parametrize("mu,holds", [(0.8, True), (0.1, False)])
+def test_plane_friction_holds_hair_on_a_slope_where_mu_exceeds_the_slope(mu, holds):
+    """A strand lying across a 20 degree slope (tan 0.36), root fixed, 1 s at dt 0.04 s: with
+    collision.plane_friction the resting contact's friction in the solve holds it where mu > tan
+    (the first step, before any normal force is known, and eps's creep leave 2.4 mm) and lets it
+    swing down where mu < tan (54 mm); the stage alone (resolve=false) holds it too (0 mm at mu
+    0.8), the planes without it let it slide 40 mm."""
+    from test_collisions import collider, make_scene, simulate
+
+    a = np.radians(20.0)
+    n = np.array([0.0, np.cos(a), np.sin(a)])
+    col = collider("plane", at=tuple(-0.002 * n), rot_deg=(20.0, 0.0, 0.0), thickness=0.002, friction=mu)
+    scene = make_scene([col], n_strands=1, n_vertices=12, length=0.2, direction=[1.0, 0.0, 0.0],
+                       root_center=[0.0, 0.0, 0.0], root_radius=1e-6)
+    _, states, infos = simulate(scene, 25, resolve_cfg(plane_friction=True))
+    assert all(i.converged for i in infos)
+    down = np.array([0.0, -np.sin(a), np.cos(a)])
+    down = down if down[1] < 0 else -down
+    slid = float(np.dot(states[-1].x[-1] - states[0].x[-1], down))
+    assert (slid < 5e-3) if holds else (slid > 2e-2), slid

@@ -353,7 +353,7 @@ def test_bdf2_history_follows_a_collision_impulse(monkeypatch):
     st.v[2] = [0.1, 0.0, 0.0]                       # the free vertex moves sideways
     calls = []
 
-    def stage(cfg, scene, hh, x0, x1, t0, t1, dt, limiter=None, volume_dt=None, dist_out=None, push=None):
+    def stage(cfg, scene, hh, x0, x1, t0, t1, dt, limiter=None, volume_dt=None, dist_out=None, push=None, solved=None):
         calls.append(t1)
         v1 = (x1 - x0) / dt
         if len(calls) == 3:                         # the third step: stopped dead
@@ -547,7 +547,7 @@ def test_trbdf2_restarts_with_implicit_euler_after_a_collision_stage_moved_verti
     sim = Simulator(sc, solver("trbdf2"))
     calls = []
 
-    def stage(cfg, scene, hh, x0, x1, t0, t1, dt, limiter=None, volume_dt=None, dist_out=None, push=None):
+    def stage(cfg, scene, hh, x0, x1, t0, t1, dt, limiter=None, volume_dt=None, dist_out=None, push=None, solved=None):
         calls.append(t1)
         x1 = x1.copy()
         if len(calls) == 4:                         # the second step's last stage: pushed up 1 mm

@@ -377,6 +377,13 @@ class CollisionConfig:
     # the collider in the solve instead of being stretched by the stage's moves (false: the stage's
     # corrections stand, as before 2026-12-07, the ablation with strain_limit)
     resolve: bool = True
+    # with resolve: Coulomb friction of resting contact inside the solve (the planes of the vertices
+    # the last step's planes pressed, with that normal force, lagged and capped as IPC's; smoothed by
+    # friction_epsilon): hair lying on a slope stays where mu > tan(slope) (without it the planes hold
+    # hair only normal to the surface and the stage's velocity friction lets it creep down: 40 mm in
+    # 1 s on 20 degrees at mu 0.8).  Off by default: it costs SQP iterations on the paper scenes
+    # (Celia 5.89 -> 6.16 a step, one step recovered by substeps; README "Contact planes")
+    plane_friction: bool = False
     # hair_hair's model: edges (edge-edge contacts) | volume (grid friction and pressure,
     # hairexp/physics/hair_volume.py; linear in the vertices, but strands may pass through each other)
     hair_hair_model: HairHairModel = HairHairModel.edges

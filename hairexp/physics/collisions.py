@@ -79,7 +79,7 @@ class CollisionInfo:
 
 
 def object_stage(colliders, x0, x1, t0, t1, dt, movable, dist_out: list | None = None, discrete: bool = False,
-                 push: np.ndarray | None = None):
+                 push: np.ndarray | None = None, solved: np.ndarray | None = None):
     """Returns corrected (x1, v1, contacts, contacts per collider).  ``dist_out``: a list that
     gets, when there was no contact (x1 is the input's), each collider's signed distance minus
     thickness of the movable vertices at x1 and t1 (``Collider.distance``), which the path test
@@ -87,7 +87,7 @@ def object_stage(colliders, x0, x1, t0, t1, dt, movable, dist_out: list | None =
     onto the shells (no path, no positional friction; the velocities' inelastic contact and
     Coulomb friction as always): after a solve that saw the contacts (``collision.resolve``), whose
     end points left a collider's surface along it, where a straight path x0 -> x1 would cut
-    through the collider and be stopped inside it.  ``push``: see ``contact_velocities``."""
+    through the collider and be stopped inside it.  ``push``, ``solved``: see ``contact_velocities``."""
     dist: list = []
     if discrete:
         x1, contacts, per = object_positions(colliders, x1, x1, t1, t1, 0.0, movable, friction=False, dist_out=dist)
@@ -96,7 +96,8 @@ def object_stage(colliders, x0, x1, t0, t1, dt, movable, dist_out: list | None =
     known = dist if contacts == 0 else None
     if dist_out is not None and known is not None:
         dist_out.extend(known)
-    return x1, contact_velocities(colliders, x1, (x1 - x0) / dt, t1, movable, dist=known, push=push), contacts, per
+    return (x1, contact_velocities(colliders, x1, (x1 - x0) / dt, t1, movable, dist=known, push=push, solved=solved),
+            contacts, per)
 
 
 def object_positions(colliders, x0, x1, t0, t1, dt, movable, friction: bool = True, dist_out: list | None = None):
@@ -524,7 +525,8 @@ class HairHair:
         return v1, int((I > 0).sum())
 
 
-def contact_velocities(colliders, x1, v1, t1, movable, dist: list | None = None, push: np.ndarray | None = None):
+def contact_velocities(colliders, x1, v1, t1, movable, dist: list | None = None, push: np.ndarray | None = None,
+                       solved: np.ndarray | None = None):
     """Inelastic contact: vertices on a collider's shell get no approaching normal velocity
     relative to the surface, and Coulomb friction on the tangential one: its velocity change at
     most the friction coefficient times the normal one (the approaching velocity removed here, plus
@@ -533,7 +535,9 @@ def contact_velocities(colliders, x1, v1, t1, movable, dist: list | None = None,
     to remove).  A vertex a collider's planes press (push > 0) is in contact with it even a little
     off its shell (a plane is the surface's tangent at the stage's point, NEAR), and keeps no
     normal velocity relative to it either way: force only at zero gap velocity (the push-out of a
-    vertex that started inside is not a bounce).
+    vertex that started inside is not a bounce).  ``solved`` (colliders, V) bool: vertices whose
+    friction with that collider acted in the solve already (``ContactPlanes.set_friction``): no
+    friction here.
     ``dist``: each collider's ``distance`` of the movable vertices at (x1, t1), when known
     (``object_stage``)."""
     near = np.flatnonzero(movable)
@@ -552,6 +556,8 @@ def contact_velocities(colliders, x1, v1, t1, movable, dist: list | None = None,
             vt = vr - vn[:, None] * n
             tn = np.linalg.norm(vt, axis=1)
             f = np.where((jn > 0) & (tn > 0), np.maximum(0.0, 1.0 - col.friction * jn / np.maximum(tn, 1e-300)), 1.0)
+            if solved is not None:
+                f = np.where(solved[i][c], 1.0, f)
             # a vertex the solve's contact forces press (push > 0) ends on the surface: no normal velocity
             # relative to it either way (force > 0 only at zero gap velocity; the push-out of a vertex
             # that started inside is not a bounce)
@@ -833,7 +839,8 @@ def limit_strain(limiter: StrainLimit, colliders, x1, t1, movable, edges: bool =
 
 
 def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter: StrainLimit | None = None,
-                    dist_out: list | None = None, discrete: bool = False, push: np.ndarray | None = None):
+                    dist_out: list | None = None, discrete: bool = False, push: np.ndarray | None = None,
+                    solved: np.ndarray | None = None):
     """Filter (x1, v1) for contacts.  Returns (x1, v1, CollisionInfo).  With ``limiter``, a
     step with object contacts ends with strain limiting (``StrainLimit``).  ``dist_out``: a list
     that gets each collider's ``distance`` of the movable vertices at the returned x1 and t1 when
@@ -844,7 +851,8 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
     velocities and moves no position, so the Simulator applies it (``Simulator._stage``) and
     these passes see the solve's path.  ``discrete``: the object passes test the end points only
     (``object_stage``).  ``push``: the normal velocity (colliders, V) m/s the solve's contact forces
-    gave the vertices, which bounds their Coulomb friction as well (``contact_velocities``)."""
+    gave the vertices, which bounds their Coulomb friction as well; ``solved``: the vertices whose
+    friction acted in the solve (``contact_velocities``)."""
     tic = time.perf_counter()
     info = CollisionInfo()
     movable = ~scene.strands.kinematic
@@ -867,7 +875,7 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
         if scene.colliders:
             found: list = []
             x1, v1, n_obj, per = object_stage(scene.colliders, x0, x1, t0, t1, dt, movable, dist_out=found,
-                                              discrete=discrete, push=push)
+                                              discrete=discrete, push=push, solved=solved)
             dist = found or None    # (filled only when the pass had no contact)
             for k, c in per.items():
                 info.per_collider[k] = info.per_collider.get(k, 0) + c
@@ -893,7 +901,7 @@ def collision_stage(cfg, scene, hh: HairHair | None, x0, x1, t0, t1, dt, limiter
         x1, info.strain_limited, info.limit_rounds = limit_strain(limiter, scene.colliders, x1, t1, movable, edges)
         moved_after = True
     if moved_after:   # the velocities of the final positions, once
-        v1 = contact_velocities(scene.colliders, x1, (x1 - x0) / dt, t1, movable, push=push)
+        v1 = contact_velocities(scene.colliders, x1, (x1 - x0) / dt, t1, movable, push=push, solved=solved)
         dist = None
     if hh is not None:
         hh.end_step(x0, x1)

@@ -48,6 +48,7 @@ from __future__ import annotations
 import numpy as np
 
 from hairexp.physics.assembly import add_pair_blocks
+from hairexp.physics.barrier import f0_friction, f1_over_y
 from hairexp.physics.contact_geometry import EdgeGaps
 
 #: penalty stiffness / the vertex's inertia m / h^2 of the step
@@ -75,6 +76,7 @@ class ContactPlanes:
         self.k = np.asarray(stiffness, dtype=np.float64)
         self.slot = np.asarray(free_slot)[self.e]                              # (n, 2), -1: kinematic
         self.collider = np.broadcast_to(np.asarray(collider, dtype=np.int64), self.k.shape).copy()
+        self._fric = None   # set_friction's (planes (m,), mu lambda (m,), T (m, 3, 2), y_n (m, 3), dc (m, 3), eps)
 
     def __len__(self) -> int:
         return len(self.e)
@@ -123,18 +125,98 @@ class ContactPlanes:
             np.add.at(out, (self.collider, self.e[:, j]), self.w[:, j] * f)
         return out
 
+    # -- friction of resting contact: smoothed Coulomb (IPC, Li et al. 2020, sec. 5) ------------
+    def set_friction(self, colliders, x_n: np.ndarray, t0: float, t1: float, eps_v: float, lam: np.ndarray) -> None:
+        """Coulomb friction on the planes with a normal force ``lam`` (n,) N > 0 (the previous
+        step's, ``Simulator._resting_planes``: held fixed through the solve) on a collider with
+        ``friction`` mu > 0: the tangential displacement of the plane's point over the stage
+        relative to the collider's surface there, u = T^T (y(x) - y(x_n) - dc) (T the plane's
+        tangent basis, dc the surface point's displacement from t0 to t1: rigid motion and spin),
+        gets the potential mu lam f0(|u|) (``barrier.f0_friction``, eps = eps_v (t1 - t0): slower
+        slip is static).  The stage's friction on the velocities cannot stop a slide the solve
+        made: with it alone a strand lying across a 20 degree slope (mu 0.8) slid 40 mm in 1 s."""
+        mu = np.array([float(colliders[c].friction) for c in self.collider]) if len(self.e) else np.zeros(0)
+        sel = np.flatnonzero((mu > 0) & (np.asarray(lam) > 0))
+        if sel.size == 0:
+            return
+        y = self.w[sel, 0, None] * x_n[self.e[sel, 0]] + self.w[sel, 1, None] * x_n[self.e[sel, 1]]
+        dc = np.zeros_like(y)
+        dt = float(t1 - t0)
+        for i, col in enumerate(colliders):
+            on = np.flatnonzero(self.collider[sel] == i)
+            if on.size == 0:
+                continue
+            R1, T1 = col.motion.pose(t1)
+            R0, T0 = col.motion.pose(t0)
+            Xb = (y[on] - T1) @ R1
+            dc[on] = (y[on] - (Xb @ R0.T + T0)) + dt * (col.spin_velocity_body(Xb) @ R1.T)
+        n = self.n[sel]
+        a = np.where(np.abs(n[:, 0:1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+        t1v = np.cross(n, a)
+        t1v /= np.linalg.norm(t1v, axis=1, keepdims=True)
+        T = np.stack([t1v, np.cross(n, t1v)], axis=2)                         # (m, 3, 2)
+        self._fric = (sel, mu[sel], T, y, dc, max(float(eps_v) * dt, 1e-12))
+        self._cap = np.asarray(lam, dtype=np.float64)[sel]
+        self._lam = self._cap.copy()
+
+    def friction_vertices(self, n_colliders: int, n_vertices: int) -> np.ndarray:
+        """(colliders, V) bool: the vertices whose planes carry friction in the solve."""
+        out = np.zeros((n_colliders, n_vertices), dtype=bool)
+        if self._fric is not None:
+            sel = self._fric[0]
+            for j in range(2):
+                out[self.collider[sel], self.e[sel, j]] |= self.w[sel, j] > 0
+        return out
+
+    def _friction(self, x: np.ndarray, need_hessian: bool):
+        """(energy, gradient (m, 6), Hessian (m, 6, 6) or None) of the friction planes at x."""
+        sel, mu, T, y_n, dc, eps = self._fric
+        mulam = mu * self._lam
+        w = self.w[sel]
+        y = w[:, 0, None] * x[self.e[sel, 0]] + w[:, 1, None] * x[self.e[sel, 1]]
+        u = np.einsum("nij,ni->nj", T, y - y_n - dc)                         # (m, 2)
+        r = np.linalg.norm(u, axis=1)
+        e = float(np.dot(mulam, f0_friction(r, eps)))
+        g3 = np.einsum("nij,nj->ni", T, (mulam * f1_over_y(r, eps))[:, None] * u)
+        g = (w[:, :, None] * g3[:, None, :]).reshape(-1, 6)
+        if not need_hessian:
+            return e, g, None
+        small = r < eps
+        uh = u / np.maximum(r, 1e-300)[:, None]
+        coef = np.where(small, -r / eps ** 2, -1.0 / np.maximum(r, 1e-300))
+        M = f1_over_y(r, eps)[:, None, None] * np.eye(2) + coef[:, None, None] * uh[:, :, None] * uh[:, None, :]
+        H3 = np.einsum("nij,njk,nlk->nil", T, M * mulam[:, None, None], T)   # (m, 3, 3) PSD (barrier's doc)
+        H = (w[:, :, None, None, None] * w[:, None, :, None, None]) * H3[:, None, None]
+        return e, g, H.transpose(0, 1, 3, 2, 4).reshape(-1, 6, 6)
+
     # -- the objective's contact hooks ------------------------------------------------------
-    #: no lagged quantity: the solvers' values need not be re-taken after an evaluation
-    lagged = False
+    @property
+    def lagged(self) -> bool:
+        """With friction its normal forces are lagged (``update_lag``): the solvers re-take the
+        objective's value after each evaluation; without, nothing is lagged."""
+        return self._fric is not None
+
+    def update_lag(self, x: np.ndarray) -> None:
+        """The friction's normal forces at x: each friction plane's penalty force k max(-g, 0),
+        at most the previous step's (a first iterate deep in the collider does not lock the hair)."""
+        if self._fric is not None:
+            sel = self._fric[0]
+            self._lam = np.minimum(self._cap, -self.psi(self.gap(x)[sel], sel)[1])
 
     def energy(self, x: np.ndarray) -> float:
-        return float(self.psi(self.gap(x))[0].sum())
+        e = float(self.psi(self.gap(x))[0].sum())
+        if self._fric is not None:
+            e += self._friction(x, False)[0]
+        return e
 
     def add_to(self, x: np.ndarray, grad: np.ndarray, ab: np.ndarray | None) -> float:
         """Add the gradient to ``grad`` (N,) and the Hessian to the lower band ``ab`` (bw + 1, N)
         of the free DOFs; returns the norm of the penalty force."""
         g = self.gap(x)
         on = g < 0.0
+        if self._fric is not None:
+            _, gf, Hf = self._friction(x, ab is not None)
+            add_pair_blocks(grad, ab, self.slot[self._fric[0]], gf, Hf)
         if not on.any():
             return 0.0
         _, d1, d2 = self.psi(g[on], on)
@@ -147,9 +229,6 @@ class ContactPlanes:
         add_pair_blocks(grad, ab, slot, ge, H)
         free = np.repeat(slot >= 0, 3, axis=1)
         return float(np.sqrt(np.sum(ge[free] ** 2)))   # the planes' forces on the free ends, each counted alone
-
-    def update_lag(self, x: np.ndarray) -> None:
-        """No lagged quantities (friction stays in the collision stage)."""
 
     def max_step(self, x: np.ndarray, p: np.ndarray) -> float:
         """The penalty is finite everywhere: no step bound."""

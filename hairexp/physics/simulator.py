@@ -352,6 +352,11 @@ class Simulator:
         #: collision.resolve: the stage's object contacts as planes of a second solve (``_resolve_contacts``)
         self.resolve = bool(self.collide_objects and _value(getattr(cc, "resolve", False)))
         self.resolve_failures = 0
+        #: (colliders, V) N: the normal forces of the last step's planes at its end (its last stage),
+        #: the friction's normal forces of the next solve's resting contacts (``_with_friction``)
+        self._plane_forces = None
+        #: collision.plane_friction: resting contact's Coulomb friction inside the solve (``_with_friction``)
+        self.plane_friction = bool(self.resolve and _value(getattr(cc, "plane_friction", False)))
         self._resolve_spent = None   # the SolveInfo of a failed second solve (``_resolve_contacts``)
         self.max_travel = float(getattr(cc, "max_travel", 0.0)) if cc is not None else 0.0
         self.max_travel_substeps = int(getattr(cc, "max_travel_substeps", 1)) if cc is not None else 1
@@ -530,9 +535,18 @@ class Simulator:
                 t_volume = time.perf_counter() - tic
             dist: list = []       # the colliders' distances at x_new, when the stage computed them
             if self.collide_objects or hh is not None:
-                push = None if carried is None else self._plane_push(carried, x_new, plan, len(sc.colliders))
+                push = solved = None
+                if carried is not None:
+                    forces = carried.vertex_forces(x_new, len(sc.colliders))
+                    push = self._plane_push(forces, plan)
+                    solved = carried.friction_vertices(len(sc.colliders), len(x_new))
+                    if last:
+                        self._plane_forces = forces
+                elif last:
+                    self._plane_forces = None
                 x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_new,
-                                                        state.time, t_next, dt, self.limiter, dist_out=dist, push=push)
+                                                        state.time, t_next, dt, self.limiter, dist_out=dist, push=push,
+                                                        solved=solved)
                 if (last and carried is not None and cinfo.object_contacts > 0 and cinfo.edge_contacts == 0
                         and self._planes_hold(carried, x_solve, sc.colliders, t_next)
                         and self._stage_kept(x_new, x_solve, sc.colliders)):
@@ -563,10 +577,13 @@ class Simulator:
                         # the planes' normal forces bound the friction of the vertices they press
                         # (they leave no approaching velocity for the stage's inelastic contact):
                         # the velocity they gave, h^2 / h_v F / m in the scheme's v = (x - x_ref) / h_v
-                        push = self._plane_push(planes, x_solve, plan, len(sc.colliders))
+                        forces = planes.vertex_forces(x_solve, len(sc.colliders))
+                        self._plane_forces = forces
                         x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_solve,
                                                                 state.time, t_next, dt, self.limiter, dist_out=dist,
-                                                                discrete=True, push=push)
+                                                                discrete=True, push=self._plane_push(forces, plan),
+                                                                solved=planes.friction_vertices(len(sc.colliders),
+                                                                                                len(x_solve)))
                         cinfo.seconds += first.seconds
                         cinfo.resolved = len(planes)
                         # the contact frames are those the first stage found (the re-solve leaves its
@@ -647,7 +664,8 @@ class Simulator:
                 resting[c[slide < near]] = True
         if not resting.any():
             return None
-        return stage_planes(cols, state.x, t_next, s.edges, resting, s.free_slot, self.objective.vertex_inertia())
+        return self._with_friction(stage_planes(cols, state.x, t_next, s.edges, resting, s.free_slot,
+                                                self.objective.vertex_inertia()), state, t_next)
 
     def _planes_hold(self, planes, x: np.ndarray, colliders, t: float) -> bool:
         """Whether the solve's positions x (V, 3) with ``planes`` need no further solve: no movable
@@ -667,11 +685,34 @@ class Simulator:
         tol = KEPT_MOVE * min(c.thickness for c in colliders) + 1e-9
         return bool(np.abs(x_stage - x_solve).max(initial=0.0) <= tol)
 
-    def _plane_push(self, planes, x: np.ndarray, plan, n_colliders: int) -> np.ndarray:
-        """(colliders, V) m/s: the normal velocity the planes' forces at x gave each vertex in the
-        stage's scheme, h^2 / h_v F / m (v = (x - x_ref) / h_v), which bounds the stage's Coulomb
-        friction (``contact_velocities``; the planes leave it no approaching velocity to remove)."""
-        return planes.vertex_forces(x, n_colliders) * (plan.h ** 2 / plan.h_v) / self.scene.strands.masses
+    def _plane_push(self, forces: np.ndarray, plan) -> np.ndarray:
+        """(colliders, V) m/s: the normal velocity the planes' forces (colliders, V) N gave each
+        vertex in the stage's scheme, h^2 / h_v F / m (v = (x - x_ref) / h_v), which bounds the
+        stage's Coulomb friction (``contact_velocities``; the planes leave it no approaching velocity
+        to remove)."""
+        return forces * (plan.h ** 2 / plan.h_v) / self.scene.strands.masses
+
+    def _with_friction(self, planes, state: State, t_next: float):
+        """With ``collision.plane_friction``: ``planes`` (the resting hair's, ``_resting_planes``)
+        with Coulomb friction in the solve on the vertex planes of the vertices the last step's
+        planes pressed, its normal force capped by that force (``_plane_forces``;
+        ``ContactPlanes.update_lag``); a new contact has none yet and gets its friction from the
+        stage, bounded by the planes' push.  Measured (2026-12-07): a strand lying across a slope
+        stays where mu > tan(slope) (20 degrees, mu 0.5 and 0.8: 2.8 and 2.4 mm in 1 s, the first
+        step's slide; 35 degrees: mu 0.5 slides 51 mm, 0.8 holds, 5 mm), where without it it slid
+        40 mm at mu 0.8; Celia tracked 5.89 -> 6.16 SQP iterations a step with one step recovered
+        by substeps, goaling 8.21 -> 8.71 (the lag turns the SQP's secant correction and non-
+        monotone search off in those solves).  Friction in the second solves too (lagged the same
+        way) gave Celia 6.15 / 38, and with the normal force held fixed through a solve 6.34 / 65
+        with two steps recovered."""
+        F = self._plane_forces
+        if planes is None or not self.plane_friction or F is None or F.shape[1] != len(state.x):
+            return planes
+        vp = planes.e[:, 0] == planes.e[:, 1]
+        lam = np.where(vp, F[planes.collider, planes.e[:, 0]], 0.0)
+        eps_v = float(getattr(self.collision_cfg, "friction_epsilon", 1e-3))
+        planes.set_friction(self.scene.colliders, state.x, state.time, t_next, eps_v, lam)
+        return planes
 
     def _resolve_contacts(self, state: State, dt: float, t_next: float, motion, x_stage: np.ndarray,
                           x_first: np.ndarray, colliders, keep=None):
