@@ -48,7 +48,7 @@ from hairexp.errors import MIN_STEP_DT, InputError, SimulationError, finite_numb
 from hairexp.model.scene import Scene
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact, sweep_substeps
 from hairexp.physics.collisions import (CollisionInfo, HairHair, StrainLimit, collision_stage, contact_velocities,
-                                        edge_response, limit_strain, object_positions)
+                                        edge_response, limit_strain, object_positions, path_test)
 from hairexp.physics.contact_planes import NEAR, stage_planes
 from hairexp.physics.controller import Controller
 from hairexp.physics.hair_volume import HairVolume
@@ -658,7 +658,8 @@ class Simulator:
         resting = np.zeros(len(state.x), dtype=bool)
         for col in cols:
             near = col.shell_tolerance() + NEAR * col.thickness
-            c = movable[np.abs(col.distance(state.x[movable], t_next)) < near]
+            d = path_test(col, state.x, state.x, movable, t_next, t_next)[3]   # compiled: Celia 1.7 -> 0.2 ms
+            c = movable[np.abs(d) < near]
             if c.size:
                 slide = np.linalg.norm(state.v[c] - col.surface_velocity(state.x[c], t_next), axis=1) * dt
                 resting[c[slide < near]] = True
