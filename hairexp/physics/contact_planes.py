@@ -38,7 +38,10 @@ collider, whose steps along n it cut by the stiffness).
 The re-solved positions then go through the collision stage again, which places the small
 penetrations the penalty leaves (micrometres) and applies the inelastic contact and
 Coulomb friction to the velocities: the hair wraps around the collider in the solve instead of
-being stretched by the stage.  Interface: the objective's ``contact`` hooks
+being stretched by the stage; its friction is bounded by the normal velocity the planes' forces
+gave (``vertex_forces``), as they leave it no approaching velocity to remove.  With
+``collision.plane_friction`` the resting contacts' friction is in the solve instead
+(``set_friction``: IPC's smoothed, lagged friction).  Interface: the objective's ``contact`` hooks
 (hairexp/physics/objective.py, as the barrier's ObjectContact): ``energy``, ``add_to``,
 ``update_lag``, ``max_step``.
 """
@@ -76,7 +79,8 @@ class ContactPlanes:
         self.k = np.asarray(stiffness, dtype=np.float64)
         self.slot = np.asarray(free_slot)[self.e]                              # (n, 2), -1: kinematic
         self.collider = np.broadcast_to(np.asarray(collider, dtype=np.int64), self.k.shape).copy()
-        self._fric = None   # set_friction's (planes (m,), mu lambda (m,), T (m, 3, 2), y_n (m, 3), dc (m, 3), eps)
+        self._fric = None   # set_friction's (planes (m,), mu (m,), T (m, 3, 2), y_n (m, 3), dc (m, 3), eps);
+        #                     its normal forces' cap ``_cap`` and lag ``_lam`` (m,) (``update_lag``)
 
     def __len__(self) -> int:
         return len(self.e)
@@ -128,8 +132,9 @@ class ContactPlanes:
     # -- friction of resting contact: smoothed Coulomb (IPC, Li et al. 2020, sec. 5) ------------
     def set_friction(self, colliders, x_n: np.ndarray, t0: float, t1: float, eps_v: float, lam: np.ndarray) -> None:
         """Coulomb friction on the planes with a normal force ``lam`` (n,) N > 0 (the previous
-        step's, ``Simulator._resting_planes``: held fixed through the solve) on a collider with
-        ``friction`` mu > 0: the tangential displacement of the plane's point over the stage
+        step's, ``Simulator._with_friction``: the cap of the force lagged at each evaluation,
+        ``update_lag``) on a collider with ``friction`` mu > 0: the tangential displacement of
+        the plane's point over the stage
         relative to the collider's surface there, u = T^T (y(x) - y(x_n) - dc) (T the plane's
         tangent basis, dc the surface point's displacement from t0 to t1: rigid motion and spin),
         gets the potential mu lam f0(|u|) (``barrier.f0_friction``, eps = eps_v (t1 - t0): slower
