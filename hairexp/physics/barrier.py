@@ -180,6 +180,50 @@ def f1_over_y(y, eps):
     return np.where(y < eps, -y / eps ** 2 + 2 / eps, 1.0 / np.maximum(y, 1e-300))
 
 
+def tangent_bases(n: np.ndarray) -> np.ndarray:
+    """(m, 3, 2) orthonormal tangent bases T of the unit normals n (m, 3) (the friction's)."""
+    a = np.where(np.abs(n[:, 0:1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    t1 = np.cross(n, a)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(n, t1)
+    return np.stack([t1, t2], axis=2)
+
+
+def surface_displacement(col, P: np.ndarray, R1: np.ndarray, T1: np.ndarray, t0: float, dt: float) -> np.ndarray:
+    """(m, 3) the displacement from t0 to t1 = t0 + dt of the collider's surface points at the world
+    points P (m, 3) at t1 (pose (R1, T1)): its rigid motion and spin (the friction's dc)."""
+    Xb = (P - T1) @ R1
+    R0, T0 = col.motion.pose(t0)
+    return (P - (Xb @ R0.T + T0)) + dt * (col.spin_velocity_body(Xb) @ R1.T)
+
+
+def smoothed_friction(T: np.ndarray, mulam: np.ndarray, rel: np.ndarray, Jw: np.ndarray | None, eps: float,
+                      need_hessian: bool, derivatives: bool = True):
+    """IPC's lagged friction (module doc) on m contact points: energy sum mu lam f0(|u|),
+    u = T^T rel (T (m, 3, 2) tangent bases, rel (m, 3) the points' displacement relative to the
+    surface, mulam (m,) mu lambda), and with ``derivatives`` its gradient (m, 6) and with
+    ``need_hessian`` its PSD Hessian (m, 6, 6) for the two vertices of each point, weighted Jw (m, 2)
+    (None where not asked)."""
+    u = np.einsum("nij,ni->nj", T, rel)                                  # (m, 2)
+    y = np.linalg.norm(u, axis=1)
+    e = float(np.dot(mulam, f0_friction(y, eps)))
+    if not derivatives:
+        return e, None, None
+    gu = (mulam * f1_over_y(y, eps))[:, None] * u                       # dD/du (m, 2)
+    g3 = np.einsum("nij,nj->ni", T, gu)                                 # dD/d(contact point) (m, 3)
+    g = (Jw[:, :, None] * g3[:, None, :]).reshape(-1, 6)
+    if not need_hessian:
+        return e, g, None
+    small = y < eps
+    uh = u / np.maximum(y, 1e-300)[:, None]
+    coef_uu = np.where(small, -y / eps ** 2, -1.0 / np.maximum(y, 1e-300))   # (f1' y - f1)/y^3 |u|^2
+    M = f1_over_y(y, eps)[:, None, None] * np.eye(2) + coef_uu[:, None, None] * uh[:, :, None] * uh[:, None, :]
+    M *= mulam[:, None, None]
+    H3 = np.einsum("nij,njk,nlk->nil", T, M, T)                         # (m, 3, 3)
+    H = (Jw[:, :, None, None, None] * Jw[:, None, :, None, None]) * H3[:, None, None]   # (m, 2, 2, 3, 3)
+    return e, g, H.transpose(0, 1, 3, 2, 4).reshape(-1, 6, 6)
+
+
 @dataclass
 class ContactStats:
     """The barrier's view of one step, for ``StepInfo`` (pure data)."""
@@ -571,16 +615,9 @@ class ObjectContact:
             lam = self.kappa * self.w[idx] * wf * np.abs(barrier_d1(d, self.dhat[k]))
             E = self.E[idx]
             P = (1 - s)[:, None] * x[E[:, 0]] + s[:, None] * x[E[:, 1]]
-            R0, T0 = c.motion.pose(self.t0)
             gp = self.gaps[k]
-            Xb = gp.body(P)
-            P0 = Xb @ R0.T + T0                                          # the collider point at t_n
-            dc = (P - P0) + self.dt * (c.spin_velocity_body(Xb) @ gp.R.T)
-            a = np.where(np.abs(n[:, 0:1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
-            t1 = np.cross(n, a)
-            t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-            t2 = np.cross(n, t1)
-            parts.append((idx, s, np.stack([t1, t2], axis=2), lam * c.friction, dc))
+            dc = surface_displacement(c, P, gp.R, gp.T, self.t0, self.dt)
+            parts.append((idx, s, tangent_bases(n), lam * c.friction, dc))
         if not parts:
             self._lag = None
             return
@@ -593,24 +630,9 @@ class ObjectContact:
         E = self.E[idx]
         eps = self.eps_v * self.dt
         rel = ((1 - s)[:, None] * (x[E[:, 0]] - self.x_n[E[:, 0]]) + s[:, None] * (x[E[:, 1]] - self.x_n[E[:, 1]]) - dc)
-        u = np.einsum("nij,ni->nj", T, rel)                                # (n, 2)
-        y = np.linalg.norm(u, axis=1)
+        e, g, H = smoothed_friction(T, mulam, rel, np.stack([1 - s, s], axis=1), eps, need_hessian, derivatives)
         if not derivatives:
-            return (float(np.dot(mulam, f0_friction(y, eps))),)
-        Jw = np.stack([1 - s, s], axis=1)                                  # (n, 2) vertex weights
-        gu = (mulam * f1_over_y(y, eps))[:, None] * u                       # dD/du (n, 2)
-        g3 = np.einsum("nij,nj->ni", T, gu)                                 # dD/d(contact point) (n, 3)
-        g = (Jw[:, :, None] * g3[:, None, :]).reshape(-1, 6)
-        if not need_hessian:
-            return idx, g, None
-        small = y < eps
-        uh = u / np.maximum(y, 1e-300)[:, None]
-        coef_uu = np.where(small, -y / eps ** 2, -1.0 / np.maximum(y, 1e-300))   # (f1' y - f1)/y^3 |u|^2
-        M = f1_over_y(y, eps)[:, None, None] * np.eye(2) + coef_uu[:, None, None] * uh[:, :, None] * uh[:, None, :]
-        M *= mulam[:, None, None]
-        H3 = np.einsum("nij,njk,nlk->nil", T, M, T)                         # (n, 3, 3)
-        H = (Jw[:, :, None, None, None] * Jw[:, None, :, None, None]) * H3[:, None, None]   # (n, 2, 2, 3, 3)
-        H = H.transpose(0, 1, 3, 2, 4).reshape(-1, 6, 6)
+            return (e,)
         return idx, g, H
 
     # -- after the step ---------------------------------------------------------------------

@@ -51,7 +51,7 @@ from __future__ import annotations
 import numpy as np
 
 from hairexp.physics.assembly import add_pair_blocks
-from hairexp.physics.barrier import f0_friction, f1_over_y
+from hairexp.physics.barrier import smoothed_friction, surface_displacement, tangent_bases
 from hairexp.physics.contact_geometry import EdgeGaps
 
 #: penalty stiffness / the vertex's inertia m / h^2 of the step
@@ -149,18 +149,9 @@ class ContactPlanes:
         dt = float(t1 - t0)
         for i, col in enumerate(colliders):
             on = np.flatnonzero(self.collider[sel] == i)
-            if on.size == 0:
-                continue
-            R1, T1 = col.motion.pose(t1)
-            R0, T0 = col.motion.pose(t0)
-            Xb = (y[on] - T1) @ R1
-            dc[on] = (y[on] - (Xb @ R0.T + T0)) + dt * (col.spin_velocity_body(Xb) @ R1.T)
-        n = self.n[sel]
-        a = np.where(np.abs(n[:, 0:1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
-        t1v = np.cross(n, a)
-        t1v /= np.linalg.norm(t1v, axis=1, keepdims=True)
-        T = np.stack([t1v, np.cross(n, t1v)], axis=2)                         # (m, 3, 2)
-        self._fric = (sel, mu[sel], T, y, dc, max(float(eps_v) * dt, 1e-12))
+            if on.size:
+                dc[on] = surface_displacement(col, y[on], *col.motion.pose(t1), t0, dt)
+        self._fric = (sel, mu[sel], tangent_bases(self.n[sel]), y, dc, max(float(eps_v) * dt, 1e-12))
         self._cap = np.asarray(lam, dtype=np.float64)[sel]
         self._lam = self._cap.copy()
 
@@ -174,25 +165,12 @@ class ContactPlanes:
         return out
 
     def _friction(self, x: np.ndarray, need_hessian: bool):
-        """(energy, gradient (m, 6), Hessian (m, 6, 6) or None) of the friction planes at x."""
+        """(energy, gradient (m, 6), Hessian (m, 6, 6) or None) of the friction planes at x
+        (``barrier.smoothed_friction``)."""
         sel, mu, T, y_n, dc, eps = self._fric
-        mulam = mu * self._lam
         w = self.w[sel]
         y = w[:, 0, None] * x[self.e[sel, 0]] + w[:, 1, None] * x[self.e[sel, 1]]
-        u = np.einsum("nij,ni->nj", T, y - y_n - dc)                         # (m, 2)
-        r = np.linalg.norm(u, axis=1)
-        e = float(np.dot(mulam, f0_friction(r, eps)))
-        g3 = np.einsum("nij,nj->ni", T, (mulam * f1_over_y(r, eps))[:, None] * u)
-        g = (w[:, :, None] * g3[:, None, :]).reshape(-1, 6)
-        if not need_hessian:
-            return e, g, None
-        small = r < eps
-        uh = u / np.maximum(r, 1e-300)[:, None]
-        coef = np.where(small, -r / eps ** 2, -1.0 / np.maximum(r, 1e-300))
-        M = f1_over_y(r, eps)[:, None, None] * np.eye(2) + coef[:, None, None] * uh[:, :, None] * uh[:, None, :]
-        H3 = np.einsum("nij,njk,nlk->nil", T, M * mulam[:, None, None], T)   # (m, 3, 3) PSD (barrier's doc)
-        H = (w[:, :, None, None, None] * w[:, None, :, None, None]) * H3[:, None, None]
-        return e, g, H.transpose(0, 1, 3, 2, 4).reshape(-1, 6, 6)
+        return smoothed_friction(T, mu * self._lam, y - y_n - dc, w, eps, need_hessian)
 
     # -- the objective's contact hooks ------------------------------------------------------
     @property

@@ -581,9 +581,7 @@ class Simulator:
                         self._plane_forces = forces
                         x_new, v_stage, cinfo = collision_stage(self.collision_cfg, sc, hh, state.x, x_solve,
                                                                 state.time, t_next, dt, self.limiter, dist_out=dist,
-                                                                discrete=True, push=self._plane_push(forces, plan),
-                                                                solved=planes.friction_vertices(len(sc.colliders),
-                                                                                                len(x_solve)))
+                                                                discrete=True, push=self._plane_push(forces, plan))
                         cinfo.seconds += first.seconds
                         cinfo.resolved = len(planes)
                         # the contact frames are those the first stage found (the re-solve leaves its
