@@ -155,13 +155,15 @@ class ContactPlanes:
         self._cap = np.asarray(lam, dtype=np.float64)[sel]
         self._lam = self._cap.copy()
 
-    def friction_vertices(self, n_colliders: int, n_vertices: int) -> np.ndarray:
-        """(colliders, V) bool: the vertices whose planes carry friction in the solve."""
+    def friction_vertices(self, n_colliders: int, n_vertices: int) -> np.ndarray | None:
+        """(colliders, V) bool: the vertices whose planes carry friction in the solve; None when
+        none does."""
+        if self._fric is None:
+            return None
         out = np.zeros((n_colliders, n_vertices), dtype=bool)
-        if self._fric is not None:
-            sel = self._fric[0]
-            for j in range(2):
-                out[self.collider[sel], self.e[sel, j]] |= self.w[sel, j] > 0
+        sel = self._fric[0]
+        for j in range(2):
+            out[self.collider[sel], self.e[sel, j]] |= self.w[sel, j] > 0
         return out
 
     def _friction(self, x: np.ndarray, need_hessian: bool):
