@@ -248,20 +248,18 @@ def stage_planes(colliders, x: np.ndarray, t: float, edges: np.ndarray, movable:
         sel = gv[idx] < near
         if x_first is not None:
             sel |= gp.vertex_gaps(x_first[idx]) < near
-        kept_v = kept_e = None
+        forced = np.zeros(len(E), dtype=bool)
         if keep is not None:
             mine = keep.collider == ci
             vtx = mine & (keep.e[:, 0] == keep.e[:, 1])
             kept_v = np.zeros(len(x), dtype=bool)
             kept_v[keep.e[vtx, 0]] = True
             sel |= kept_v[idx]
-            kept_e = {tuple(e) for e in keep.e[mine & ~vtx].tolist()}
+            ke = keep.e[mine & ~vtx]   # the kept edge planes' edges, matched by a key a V + b
+            forced = np.isin(E[:, 0] * len(x) + E[:, 1], ke[:, 0] * len(x) + ke[:, 1])
         v = idx[sel]
         if v.size:
             add(np.stack([v, v], axis=1), np.zeros(v.size), col.normal(x[v], t), x[v], gv[v], STIFFNESS * inertia[v])
-        forced = np.zeros(len(E), dtype=bool)
-        if kept_e:
-            forced = np.array([tuple(e) in kept_e for e in E.tolist()], dtype=bool)
         cand = np.flatnonzero((gp.edge_lower_bound(x[E[:, 0]], x[E[:, 1]], gv[E[:, 0]], gv[E[:, 1]]) < near) | forced)
         if cand.size == 0:
             continue
