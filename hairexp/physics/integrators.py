@@ -65,6 +65,20 @@ alpha_f = 0 member (Wood-Bossak-Zienkiewicz; rho_inf 0.8 blows up, 0.5 is stable
 period error is +1.37 % at omega dt 0.28) and generalized-alpha with interpolated forces instead
 of positions (blows up at rho_inf 0.6 and 0.8).  BDF2 (rho_inf = 0: L-stable) is the robust one.
 
+Also tried and dropped (2026-12-07, the one-solve scheme the step-cost target of issue 13 asks
+for): the theta-method x_{n+1} = x_n + dt ((1 - theta) v_n + theta v_{n+1}),
+v_{n+1} = v_n + dt ((1 - theta) a_n + theta a_{n+1}), a minimisation of G with h = h_v = theta dt,
+x_pred = x_n + dt v_n + theta (1 - theta) dt^2 a_n, x_ref = x_n + (1 - theta) dt v_n and a_n the
+previous step's end acceleration (TR-BDF2's trapezoidal stage is theta = 1/2).  theta = 0.55 meets
+both chain targets with one solve (91.6 % amplitude per period, +0.69 % period at dt 0.04 s,
+2.38 Newton iterations a step against TR-BDF2's 4.48 and implicit Euler's 2.13; goaling free 3.91
+against 5.23 and 3.27), but its stiff modes decay only by (1 - theta)/theta = 0.82 a step, and
+goaling tracked goes unstable once the guides stop: from 1.8 s the kinetic energy grows from
+1e-3 to 5e-3 J, the edge strain from 1e-4 to 3.7e-3, 26.5 SQP iterations a step (max 422, seven
+steps substepped; TR-BDF2 8.21 / 38).  Taking a_n without the constraint forces (the physical
+forces at x_{n+1}): 23.1 / 348; with ``tracking.exact_compression``: 57 / 843.  theta = 0.6 is
+stable there (6.02 / 54) but keeps 84 % of the chain's amplitude a period, below the 90 % target.
+
 Dissipation (``EdgeDamping``, ``AirDrag``, hairexp/physics/energies.py) are Rayleigh potentials
 R(v) whose force is -dR/dv at the scheme's velocity: each is the potential h_v R((y - y_ref)/h_v)
 of the evaluation point y, whose gradient is dR/dv at v = (y - y_ref)/h_v.  With
