@@ -172,3 +172,43 @@ def test_correction_cuts_the_iterations_of_a_buckling_wisp():
     _, its_off, _, _ = _tracked("shrinking_guide", False, "tracking.targets=static", converged=False)
     assert upd > 0
     assert sum(its_on) < 0.6 * sum(its_off)
+
+
+def test_prediction_rule_needs_a_full_step_and_quadratic_decrease():
+    opts = S.SQPOptions()
+    assert not S._likely_converged([(100.0, 0.0)], 1.0, opts)                 # one iterate: no rate yet
+    assert S._likely_converged([(100.0, 5.0), (0.5, 0.01)], 1.0, opts)      # both already within
+    assert S._likely_converged([(100.0, 0.0), (5.0, 0.0)], 1.0, opts)       # 5 (5/100)^2 = 0.0125
+    assert not S._likely_converged([(100.0, 0.0), (5.0, 0.0)], 0.5, opts)   # a cut step
+    assert not S._likely_converged([(10.0, 0.0), (5.0, 0.0)], 1.0, opts)    # 5 (1/2)^2 > 1: linear rate
+    assert not S._likely_converged([(100.0, 40.0), (5.0, 20.0)], 1.0, opts)  # the constraints lag
+
+
+@pytest.mark.parametrize("integrator", ["implicit_euler", "trbdf2"])
+def test_gradient_only_evaluation_at_a_predicted_solution_changes_nothing(monkeypatch, integrator):
+    """The SQP assembles no band at an iterate predicted to converge (``_likely_converged``): the
+    same iterates, multipliers and counts bit for bit as with the band at every iterate, and fewer
+    banded evaluations."""
+    from hairexp.physics import objective as O
+    from tracking_helpers import GOALING_MOTION, build_tracked, run_steps, tracked_cfg
+
+    def run(predict: bool):
+        if not predict:
+            monkeypatch.setattr(S, "_likely_converged", lambda *a: False)
+        calls = []
+        orig = O.ImplicitEulerObjective.evaluate
+        monkeypatch.setattr(O.ImplicitEulerObjective, "evaluate",
+                            lambda self, x, need_hessian=True: (calls.append(need_hessian), orig(self, x, need_hessian))[1])
+        _, _, sim = build_tracked(tracked_cfg({"solver.integrator": integrator, **GOALING_MOTION}))
+        states, infos = run_steps(sim, 20)
+        monkeypatch.undo()
+        return states, infos, calls
+
+    s1, i1, c1 = run(True)
+    s0, i0, c0 = run(False)
+    assert [i.iterations for i in i1] == [i.iterations for i in i0]
+    assert all(i.converged for i in i1)
+    for a, b in zip(s1, s0):
+        assert np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v)
+    assert sum(c1) < sum(c0)   # bands not assembled
+    assert len(c1) - sum(c1) > len(c0) - sum(c0)

@@ -149,6 +149,19 @@ def secant_correction(BS: np.ndarray, S: np.ndarray, Y: np.ndarray):
     return BS @ (R @ Q[:, low]), np.maximum(lam[low], SECANT_FLOOR) - 1.0
 
 
+def _likely_converged(norms: list, alpha: float, opts) -> bool:
+    """Whether the next iterate is predicted to meet the tolerances: after a full step, by
+    quadratic convergence from the last two iterates' |grad L| / its tolerance and max |C| /
+    ctol, r_next = r_k (r_k / r_k-1)^2 (as ``newton._likely_converged``).  Only chooses whether
+    the band is assembled with the gradient; a wrong guess costs a second evaluation."""
+    if alpha != 1.0 or len(norms) < 2:
+        return False
+    for now, before in zip(norms[-1], norms[-2]):
+        if now > 1.0 and not (before > 0.0 and now * (now / before) ** 2 <= 1.0):
+            return False
+    return True
+
+
 def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, opts: SQPOptions,
               rho: np.ndarray | None = None):
     """Returns (x, t, lam, SolveInfo).  ``tracker`` supplies the constraints at this step.
@@ -188,9 +201,14 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
     alpha = 0.0
     last = None        # (x, gradient of H + P) at the previous iterate: the secant pair's ends
     pairs: list = []   # the last SECANT_MEMORY (step, gradient change) pairs
+    lagged = obj.contact is not None and getattr(obj.contact, "lagged", True)
+    done_norms: list[tuple[float, float]] = []   # (|grad L|, max |C|) of the iterates so far
     while True:
-        ev = obj.evaluate(x, need_hessian=True)
-        if obj.contact is not None and getattr(obj.contact, "lagged", True):   # the contact's friction lag moved with the evaluation
+        # at an iterate predicted to meet the tolerances (``_likely_converged``) the gradient alone
+        # first: the band is assembled only if it did not (the same gradient, bit for bit)
+        hess_now = lagged or not _likely_converged(done_norms, alpha, opts)
+        ev = obj.evaluate(x, need_hessian=hess_now)
+        if lagged:   # the contact's friction lag moved with the evaluation
             f, C = merit_parts(x, t)
             recent.clear()            # earlier merits were of another lag's objective: not comparable
         sec["derivatives"] += ev.seconds["derivatives"]
@@ -221,12 +239,18 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
             break
         t_ok = True if not sliding else bool(np.all(np.abs(r_t) <= opts.rtol * t_scale + opts.atol))
         gtol = opts.atol + opts.rtol * info.force_scale
+        done_norms.append((gnorm / gtol, cmax / opts.ctol))
         if gnorm <= gtol and cmax <= opts.ctol and t_ok:
             info.status = CONVERGED
             break
         if info.iterations >= opts.max_iterations:
             info.status = MAX_ITERATIONS
             break
+        if not hess_now:   # predicted converged and was not: the band at this iterate
+            ev_h = obj.evaluate(x, need_hessian=True)
+            sec["derivatives"] += ev_h.seconds["derivatives"]
+            sec["assembly"] += ev_h.seconds["assembly"]
+            ev = ev_h
         t1 = time.perf_counter()
         if opts.exact_compression and not tail:
             tail = cmax <= opts.ctol and alpha == 1.0
