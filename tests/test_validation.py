@@ -318,6 +318,10 @@ def test_every_variant_is_checked_before_the_first_runs(tmp_path):
     ("experiments.paper_scenes", ["nope"], "unknown experiment(s) nope"),
     ("experiments.stress", ["--frames", "0"], "--frames: '0' is not a positive integer"),
     ("experiments.bench_memory", ["--repo", "/"], "not a hairexp checkout"),
+    ("experiments.bench_experiment", ["--rounds", "0"], "--rounds: '0' is not a positive integer"),
+    ("experiments.bench_experiment", ["--against", "/"], "not a hairexp checkout"),
+    ("experiments.bench_experiment", ["--experiment", "nope"], "no such experiment"),
+    ("experiments.bench_experiment", ["--set", "hydra.run.dir=x"], "hydra.* keys are the script's"),
 ])
 def test_experiment_scripts_refuse_bad_arguments(module, args, says):
     """The report scripts stop at their arguments with a usage error (exit 2), before any run."""
