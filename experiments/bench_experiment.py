@@ -14,7 +14,7 @@ round, so that both meet the same load of a shared machine: compare them by the 
 rounds' ratios.  Runs whose summary is not ``completed`` stop the script with their error.
 
 Prints and writes reports/<REPORT>.{md,json} (default bench_experiment).
-Usage: python -m experiments.bench_experiment [--experiment celia] [--rounds 3] [--against PATH]
+Usage: python -m experiments.bench_experiment [--experiment celia] [--rounds 3] [--warmup 1] [--against PATH]
        [--set KEY=VALUE ...] [--report NAME]
 """
 
@@ -33,7 +33,7 @@ import numpy as np
 
 from hairexp.app.report import header, write_report
 
-from experiments.common import ROOT, check_reports, md_table, positive_int, report_name
+from experiments.common import ROOT, check_reports, md_table, nonnegative_int, positive_int, report_name
 
 #: issue 16: the whole Celia experiment in at most this many seconds of wall time
 TARGET_S = 15.0
@@ -80,6 +80,18 @@ def one_round(repo: Path, experiment: str, overrides: list[str], folder: Path) -
             "import_s": imports, "success": summary.get("success"), "variants": variants}
 
 
+def revision(repo: Path) -> str:
+    """The checkout's commit (short hash, "+ changes" when its tree differs), or "unknown"."""
+    try:
+        rev = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                             timeout=30).stdout.strip()
+        dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=30).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return (rev or "unknown") + (" + changes" if dirty else "")
+
+
 def _median(rows: list[dict], key: str) -> float:
     vals = [r[key] for r in rows if r.get(key) is not None]
     return float(np.median(vals)) if vals else float("nan")
@@ -89,6 +101,10 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--experiment", default="celia", help="the experiment to run whole (default celia)")
     ap.add_argument("--rounds", type=positive_int, default=3, help="runs of the command (default 3)")
+    ap.add_argument("--warmup", type=nonnegative_int, default=1,
+                    help="untimed runs of each checkout first (default 1): numba compiles a kernel on its first call "
+                         "in a checkout, and a kernel's 2-thread build only when solver.threads=auto first takes 2 "
+                         "(a cold one cost a round 100 s)")
     ap.add_argument("--against", type=Path, default=None,
                     help="another checkout run in turn with this one, round by round (ratios)")
     ap.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", help="overrides for every run")
@@ -107,9 +123,14 @@ def main(argv=None):
         if not (other / "hairexp" / "__main__.py").is_file():
             ap.error(f"--against {other}: not a hairexp checkout (no hairexp/__main__.py)")
         repos["against"] = other
+    revs = {k: revision(repo) for k, repo in repos.items()}
     rows = {k: [] for k in repos}
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench_experiment_") as tmp:
+        for i in range(args.warmup):
+            for key, repo in repos.items():
+                r = one_round(repo, args.experiment, args.set, Path(tmp) / f"warmup_{key}_{i}")
+                print(f"warm-up {i + 1} {key}: wall {r['wall_s']:.2f} s (not counted)", flush=True)
         for i in range(args.rounds):
             for key, repo in repos.items():
                 r = one_round(repo, args.experiment, args.set, Path(tmp) / f"{key}_{i}")
@@ -125,7 +146,9 @@ def main(argv=None):
     md += (f"Each round: `python -m hairexp experiment={args.experiment}{''.join(' ' + o for o in args.set)}` in a "
            f"fresh process into a run folder of its own (imports, composition, checks, settle, guides, every variant, "
            f"recordings, USD, metrics, comparison), then a fresh process that only imports the command line.  "
-           f"{args.rounds} round{'s' if args.rounds > 1 else ''}" + (", this checkout and the other in turn" if len(repos) > 1 else "") + ".\n\n")
+           f"{args.rounds} round{'s' if args.rounds > 1 else ''}" + (", this checkout and the other in turn" if len(repos) > 1 else "")
+           + f", after {args.warmup} untimed run{'s' if args.warmup != 1 else ''} of each checkout (numba's caches).  "
+           + "; ".join(f"{k}: `{repos[k]}` at {revs[k]}" for k in repos) + ".\n\n")
     head = ["checkout", "round", "wall (s)", "experiment's own (s)", "imports (s)", "peak RSS (MB)"]
     names = list(this[0]["variants"])
     for n in names:
@@ -153,7 +176,7 @@ def main(argv=None):
                f"{', '.join(f'{x:.3f}' for x in ratios)}; median **{float(np.median(ratios)):.3f}**.\n")
     data = {"experiment": args.experiment, "overrides": args.set, "target_s": TARGET_S, "met": ok,
             "median_wall_s": wall, "rounds": rows, "ratios": ratios,
-            "against": None if len(repos) == 1 else str(repos["against"]), "script_wall_s": time.perf_counter() - t0}
+            "against": None if len(repos) == 1 else str(repos["against"]), "revisions": revs, "script_wall_s": time.perf_counter() - t0}
     path = write_report(args.report, md, data)
     verdict = "" if ok is None else f"; target {TARGET_S:g} s: {'met' if ok else 'MISSED'}"
     print(f"median wall {wall:.2f} s{verdict}; wrote {path}")
