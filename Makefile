@@ -35,6 +35,7 @@ bench: $(STAMP)
 	$(VPY) -m experiments.bench_free
 	$(VPY) -m experiments.bench_tracking
 	$(VPY) -m experiments.bench_collisions
+	$(VPY) -m experiments.bench_experiment
 
 # CACHE=1: reuse cached results of the slow runs (paper scenes, stress, accuracy) whose config,
 # solver source (hairexp/**/*.py, conf/**/*.yaml) and torch/numpy/scipy versions match, from
