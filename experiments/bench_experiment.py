@@ -10,7 +10,7 @@ command's wall time and peak RSS (``os.wait4``), the experiment's own ``wall_sec
 ``summary.json`` (from the folder's claim to the end), and per variant its steps' wall, median
 step and SQP or Newton iterations a step.  ``--against PATH`` (another checkout, e.g. a ``git
 worktree`` at a base commit) runs the same command there in turn with this checkout, round by
-round, so that both meet the same load of a shared machine: compare them by the median of the
+round (the first one first in odd rounds, second in even ones), so that both meet the same load of a shared machine: compare them by the median of the
 rounds' ratios.  Runs whose summary is not ``completed`` stop the script with their error.
 
 Prints and writes reports/<REPORT>.{md,json} (default bench_experiment).
@@ -132,7 +132,8 @@ def main(argv=None):
                 r = one_round(repo, args.experiment, args.set, Path(tmp) / f"warmup_{key}_{i}")
                 print(f"warm-up {i + 1} {key}: wall {r['wall_s']:.2f} s (not counted)", flush=True)
         for i in range(args.rounds):
-            for key, repo in repos.items():
+            order = list(repos.items())
+            for key, repo in (order if i % 2 == 0 else order[::-1]):   # neither always runs first
                 r = one_round(repo, args.experiment, args.set, Path(tmp) / f"{key}_{i}")
                 rows[key].append(r)
                 per = ", ".join(f"{n} {v['steps']} steps median {1e3 * (v['step_seconds_median'] or 0):.1f} ms "
