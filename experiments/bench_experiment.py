@@ -8,10 +8,12 @@ temporary folder (``hydra.run.dir``), and one more fresh process that only impor
 line (``import hairexp.app.cli``: the part of the wall before anything is read).  Per round: the
 command's wall time and peak RSS (``os.wait4``), the experiment's own ``wall_seconds`` from its
 ``summary.json`` (from the folder's claim to the end), and per variant its steps' wall, median
-step and SQP or Newton iterations a step.  ``--against PATH`` (another checkout, e.g. a ``git
-worktree`` at a base commit) runs the same command there in turn with this checkout, round by
-round (the first one first in odd rounds, second in even ones), so that both meet the same load of a shared machine: compare them by the median of the
-rounds' ratios.  Runs whose summary is not ``completed`` stop the script with their error.
+step and SQP or Newton iterations a step.  ``--against PATH`` (another checkout, e.g. a
+``git worktree`` at a base commit) runs the same command there in turn with this checkout, round
+by round (each of the two first in every other round), so that both meet the same load of a
+shared machine: compare them by the median of the rounds' ratios.  ``--warmup`` untimed runs of
+each checkout come first.  Runs whose summary is not ``completed`` stop the script with their
+error.
 
 Prints and writes reports/<REPORT>.{md,json} (default bench_experiment).
 Usage: python -m experiments.bench_experiment [--experiment celia] [--rounds 3] [--warmup 1] [--against PATH]
