@@ -212,3 +212,9 @@ def test_gradient_only_evaluation_at_a_predicted_solution_changes_nothing(monkey
         assert np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v)
     assert sum(c1) < sum(c0)   # bands not assembled
     assert len(c1) - sum(c1) > len(c0) - sum(c0)
+
+
+def test_prediction_ratios_with_a_zero_tolerance():
+    """tracking.atol = 0 and a hair at rest (no force): the tolerance is 0, met by a zero residual only."""
+    assert S._ratio(0.0, 0.0) == 0.0 and S._ratio(1e-300, 0.0) == float("inf") and S._ratio(2.0, 4.0) == 0.5
+    assert not S._likely_converged([(float("inf"), 0.0), (float("inf"), 0.0)], 1.0, S.SQPOptions())

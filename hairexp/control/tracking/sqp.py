@@ -29,6 +29,7 @@ whose right-hand side holds the whole constraint force (|grad H| ~ |A^T lam| >> 
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -149,6 +150,13 @@ def secant_correction(BS: np.ndarray, S: np.ndarray, Y: np.ndarray):
     return BS @ (R @ Q[:, low]), np.maximum(lam[low], SECANT_FLOOR) - 1.0
 
 
+def _ratio(value: float, tol: float) -> float:
+    """value / tol, with a tolerance of 0 (atol = 0 and no force: a hair at rest) met only by 0."""
+    if tol > 0.0:
+        return value / tol
+    return 0.0 if value == 0.0 else math.inf
+
+
 def _likely_converged(norms: list, alpha: float, opts) -> bool:
     """Whether the next iterate is predicted to meet the tolerances: after a full step, by
     quadratic convergence from the last two iterates' |grad L| / its tolerance and max |C| /
@@ -239,7 +247,7 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
             break
         t_ok = True if not sliding else bool(np.all(np.abs(r_t) <= opts.rtol * t_scale + opts.atol))
         gtol = opts.atol + opts.rtol * info.force_scale
-        done_norms.append((gnorm / gtol, cmax / opts.ctol))
+        done_norms.append((_ratio(gnorm, gtol), _ratio(cmax, opts.ctol)))
         if gnorm <= gtol and cmax <= opts.ctol and t_ok:
             info.status = CONVERGED
             break
