@@ -218,3 +218,13 @@ def test_prediction_ratios_with_a_zero_tolerance():
     """tracking.atol = 0 and a hair at rest (no force): the tolerance is 0, met by a zero residual only."""
     assert S._ratio(0.0, 0.0) == 0.0 and S._ratio(1e-300, 0.0) == float("inf") and S._ratio(2.0, 4.0) == 0.5
     assert not S._likely_converged([(float("inf"), 0.0), (float("inf"), 0.0)], 1.0, S.SQPOptions())
+
+
+def test_a_hair_at_rest_with_a_zero_absolute_tolerance_steps():
+    """No gravity, the guide still, tracking.atol = 0: every residual and tolerance is 0 and the
+    solves converge at once (the prediction's ratios divided 0 by 0 there)."""
+    from tracking_helpers import NO_GRAVITY, build_tracked, run_steps, tracked_cfg
+
+    _, _, sim = build_tracked(tracked_cfg({"scene.gravity": NO_GRAVITY, "tracking.atol": 0.0, "frames": 3}))
+    _, infos = run_steps(sim, 3)
+    assert all(i.converged for i in infos)
