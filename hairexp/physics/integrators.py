@@ -76,8 +76,9 @@ against 5.23 and 3.27), but its stiff modes decay only by (1 - theta)/theta = 0.
 goaling tracked goes unstable once the guides stop: from 1.8 s the kinetic energy grows from
 1e-3 to 5e-3 J, the edge strain from 1e-4 to 3.7e-3, 26.5 SQP iterations a step (max 422, seven
 steps substepped; TR-BDF2 8.21 / 38).  Taking a_n without the constraint forces (the physical
-forces at x_{n+1}): 23.1 / 348; with ``tracking.exact_compression``: 57 / 843.  theta = 0.6 is
-stable there (6.02 / 54) but keeps 84 % of the chain's amplitude a period, below the 90 % target.
+forces at x_{n+1}): 23.1 / 348; with ``tracking.exact_compression``: 57 / 843.  The 90 % target
+needs theta <= 0.56 (linear analysis: 90.0 %; 0.58 86.9 %, 0.6 84.0 %), and goaling tracked is
+stable only from about 0.58 on: theta 0.56 13.6 / 284, 0.58 5.50 / 40, 0.6 6.02 / 54, 0.7 5.18 / 39.
 
 Dissipation (``EdgeDamping``, ``AirDrag``, hairexp/physics/energies.py) are Rayleigh potentials
 R(v) whose force is -dR/dv at the scheme's velocity: each is the potential h_v R((y - y_ref)/h_v)
