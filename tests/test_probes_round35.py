@@ -64,6 +64,11 @@ def test_the_simulator_names_a_collision_config_of_the_wrong_kind():
     (["variants=[]", "controller.name=tracking", "tracking.kkt=reference", "tracking.schur=krylov"],
      "tracking.schur (read with controller.name=tracking with tracking.kkt=schur)"),
     (["judge_tolerance=0.5"], "judge_tolerance (read with judge=variance_follows_targets"),
+    # the contact planes' keys (2026-12-07): read with the post-solve stage only
+    (["variants=[]", "collision.contact=barrier", "collision.plane_friction=true"], "collision.plane_friction (read with"),
+    (["variants=[]", "collision.resolve=false", "collision.plane_friction=true"], "collision.plane_friction (read with"),
+    (["variants=[]", "collision.objects=false", "collision.resolve=false"], "collision.resolve (read with"),
+    (["variants=[]", "collision.friction_epsilon=1e-4"], "collision.friction_epsilon (read with"),
 ])
 def test_settings_no_run_reads_are_named(overrides, named):
     """Keys accepted without a word though no run of the launch read them (round 35, bad B1-B6)."""
@@ -88,7 +93,11 @@ def test_settings_that_a_run_reads_are_not_named():
                       ["collision.contact=stage", "collision.strain_limit=0.3"],
                       ["collision.objects=false", "collision.hair_hair=true", "collision.strain_limit=0.3"],
                       ["controller.name=tracking", "tracking.schur=krylov", "tracking.krylov_max=500"],
-                      ["controller.name=tracking", "tracking.schur=exact"]):
+                      ["controller.name=tracking", "tracking.schur=exact"],
+                      # friction_epsilon smooths the contact planes' friction too (it was said unused there)
+                      ["collision.plane_friction=true", "collision.friction_epsilon=1e-4"],
+                      ["collision.contact=barrier", "collision.friction_epsilon=1e-4"],
+                      ["collision.resolve=false"]):
         cfg = compose_config(["experiment=goaling_smoke", "variants=[]"] + overrides)
         assert unused_settings([cfg], [o.split("=", 1)[0] for o in overrides]) == [], overrides
     spreading = compose_config(["experiment=spreading_smoke", "judge_tolerance=0.5"])

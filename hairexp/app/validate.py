@@ -193,6 +193,15 @@ def _barrier(c) -> bool:
     return bool(c.collision.objects) and _c(c, "collision.contact") == "barrier"
 
 
+def _stage_objects(c) -> bool:
+    """The post-solve stage handles object contact (its contact planes read ``collision.resolve``)."""
+    return _simulates(c) and bool(c.collision.objects) and _c(c, "collision.contact") != "barrier"
+
+
+def _plane_friction(c) -> bool:
+    return _stage_objects(c) and bool(c.collision.resolve) and bool(c.collision.plane_friction)
+
+
 #: (key, or a prefix ending in '.' or '_', whether a run's config reads it, the setting that makes it read);
 #: the first that matches a key decides.  ``unused_settings`` says a key given for a launch that no
 #: run of it reads (probe of issue 12, round 15: ``tracking.rtol`` with the free controller, the
@@ -217,7 +226,12 @@ KEY_USES = (
     ("collision.hair_hair", lambda c: _c(c, "controller.name") != "skinned",
      "a controller that simulates the hair (not skinned)"),
     ("collision.barrier_", _barrier, "collision.contact=barrier with collision.objects=true"),
-    ("collision.friction_epsilon", _barrier, "collision.contact=barrier with collision.objects=true"),
+    ("collision.friction_epsilon", lambda c: _barrier(c) or _plane_friction(c),
+     "collision.contact=barrier with collision.objects=true, or collision.plane_friction=true with "
+     "collision.resolve=true"),
+    ("collision.plane_friction", lambda c: _stage_objects(c) and bool(c.collision.resolve),
+     "collision.objects=true with collision.contact=stage and collision.resolve=true"),
+    ("collision.resolve", _stage_objects, "collision.objects=true with collision.contact=stage"),
     ("collision.contact", lambda c: bool(c.collision.objects), "collision.objects=true"),
     # accepted without a word (independent probe of issue 12, round 36)
     ("collision.hair_thickness", lambda c: _simulates(c) and (
