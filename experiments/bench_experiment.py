@@ -9,11 +9,11 @@ line (``import hairexp.app.cli``: the part of the wall before anything is read).
 command's wall time and peak RSS (``os.wait4``), the experiment's own ``wall_seconds`` from its
 ``summary.json`` (from the folder's claim to the end), and per variant its steps' wall, median
 step and SQP or Newton iterations a step.  ``--against PATH`` (another checkout, e.g. a
-``git worktree`` at a base commit) runs the same command there in turn with this checkout, round
-by round (each of the two first in every other round), so that both meet the same load of a
-shared machine: compare them by the median of the rounds' ratios.  ``--warmup`` untimed runs of
-each checkout come first.  Runs whose summary is not ``completed`` stop the script with their
-error.
+``git worktree`` at a base commit, run by this interpreter with its code first on PYTHONPATH)
+runs the same command there in turn with this checkout, round by round (each of the two first
+in every other round), so that both meet the same load of a shared machine: compare them by the
+median of the rounds' ratios.  ``--warmup`` untimed runs of each checkout come first.  Runs
+whose summary is not ``completed`` stop the script with their error.
 
 Prints and writes reports/<REPORT>.{md,json} (default bench_experiment).
 Usage: python -m experiments.bench_experiment [--experiment celia] [--rounds 3] [--warmup 1] [--against PATH]
@@ -35,45 +35,25 @@ import numpy as np
 
 from hairexp.app.report import header, write_report
 
-from experiments.common import ROOT, check_reports, md_table, nonnegative_int, positive_int, report_name
+from experiments.common import (ROOT, check_reports, check_set, experiment_names, key_value, md_table, nonnegative_int,
+                                positive_int, report_name, run_child)
 
 #: issue 16: the whole Celia experiment in at most this many seconds of wall time
 TARGET_S = 15.0
 
 
-def _python(repo: Path) -> str:
-    """The checkout's own interpreter (its .venv), else this one."""
-    own = repo / ".venv" / "bin" / "python"
-    return str(own) if own.is_file() else sys.executable
-
-
-def timed(cmd: list[str], cwd: Path) -> tuple[float, float, int, str]:
-    """(wall seconds, peak RSS MB, exit code, the end of stderr) of one child process."""
-    env = {**os.environ, "PYTHONPATH": str(cwd)}
-    with tempfile.TemporaryFile() as err:
-        t0 = time.perf_counter()
-        p = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=err)
-        _, status, usage = os.wait4(p.pid, 0)
-        wall = time.perf_counter() - t0
-        p.returncode = os.waitstatus_to_exitcode(status)
-        err.seek(0)
-        tail = err.read()[-3000:].decode(errors="replace")
-    return wall, usage.ru_maxrss / 1024, p.returncode, tail
-
-
 def one_round(repo: Path, experiment: str, overrides: list[str], folder: Path) -> dict:
-    """The command once in ``repo`` into ``folder``, and an import-only process."""
-    py = _python(repo)
-    wall, rss, code, tail = timed([py, "-m", "hairexp", f"experiment={experiment}", *overrides,
-                                   f"hydra.run.dir={folder}"], repo)
+    """The command once in ``repo`` (its code first on PYTHONPATH) into ``folder``, and an
+    import-only process (``common.run_child``: SystemExit with its error if either fails)."""
+    env = dict(os.environ, PYTHONPATH=str(repo))
+    rss, wall = run_child([sys.executable, "-m", "hairexp", f"experiment={experiment}", *overrides,
+                           f"hydra.run.dir={folder}"], repo, env)
     summary_file = folder / "summary.json"
     summary = json.loads(summary_file.read_text()) if summary_file.is_file() else {}
-    if code != 0 or summary.get("status") != "completed":
-        raise SystemExit(f"bench_experiment: the run in {repo} ended with exit {code}, status "
-                         f"{summary.get('status')!r}: {summary.get('error') or tail}")
-    imports, _, icode, itail = timed([py, "-c", "import hairexp.app.cli"], repo)
-    if icode != 0:
-        raise SystemExit(f"bench_experiment: importing hairexp.app.cli in {repo} failed: {itail}")
+    if summary.get("status") != "completed":
+        raise SystemExit(f"bench_experiment: the run in {repo} ended with status {summary.get('status')!r}: "
+                         f"{summary.get('error')}")
+    _, imports = run_child([sys.executable, "-c", "import hairexp.app.cli"], repo, env)
     variants = {}
     for name, v in (summary.get("variants") or {}).items():
         variants[name] = {k: v.get(k) for k in ("controller", "steps", "wall_seconds", "step_seconds_median",
@@ -109,16 +89,15 @@ def main(argv=None):
                          "(a cold one cost a round 100 s)")
     ap.add_argument("--against", type=Path, default=None,
                     help="another checkout run in turn with this one, round by round (ratios)")
-    ap.add_argument("--set", nargs="+", default=[], metavar="KEY=VALUE", help="overrides for every run")
+    ap.add_argument("--set", nargs="+", default=[], type=key_value, metavar="KEY=VALUE", help="overrides for every run")
     ap.add_argument("--report", type=report_name, default="bench_experiment",
                     help="reports/<REPORT>.{md,json} (a plain name; default bench_experiment)")
     args = ap.parse_args(argv)
     check_reports(ap, args.report)
-    known = sorted(f.stem for f in (ROOT / "conf" / "experiment").glob("*.yaml"))
-    if args.experiment not in known:
-        ap.error(f"--experiment {args.experiment!r}: no such experiment (one of {', '.join(known)})")
+    experiment_names(ap, [args.experiment], ())
     if any(o.split("=", 1)[0].lstrip("+~").startswith("hydra.") for o in args.set):
         ap.error("--set: hydra.* keys are the script's (each run gets a folder of its own)")
+    check_set(ap, args.set, base=(f"experiment={args.experiment}",))   # before any run
     repos = {"this": ROOT}
     if args.against is not None:
         other = args.against.resolve()

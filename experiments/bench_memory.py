@@ -30,32 +30,17 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 from hairexp.app.report import header, write_report
 
-from experiments.common import ROOT, check_reports, md_table, positive_int, report_name
+from experiments.common import ROOT, check_reports, md_table, positive_int, report_name, run_child
 
 SIZES = {"6 x 10 vertices": ["scene.n_strands=6", "scene.n_vertices=10"],
          "40 x 20 vertices": ["scene.n_strands=40", "scene.n_vertices=20"]}
 TRACED_RUN = Path(__file__).resolve().parent / "traced_run.py"
-
-
-def run_child(cmd: list[str], cwd: Path, env: dict) -> tuple[float, float]:
-    """(peak RSS in MB, wall seconds) of one child process; SystemExit if it fails."""
-    t0 = time.perf_counter()
-    p = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    err = p.stderr.read().decode(errors="replace")   # before waiting: a full pipe would block the child
-    _, status, usage = os.wait4(p.pid, 0)
-    p.returncode = os.waitstatus_to_exitcode(status)
-    p.stderr.close()
-    if p.returncode:
-        raise SystemExit(f"bench_memory: {' '.join(cmd)} failed with exit {p.returncode}:\n{err[-2000:]}")
-    return usage.ru_maxrss / 1024, time.perf_counter() - t0
 
 
 def spread(values: list[float]) -> float:

@@ -13,8 +13,10 @@ import argparse
 import errno
 import math
 import os
+import subprocess
 import sys
 import tempfile
+import time
 from dataclasses import dataclass
 from itertools import islice
 from pathlib import Path
@@ -406,6 +408,20 @@ def experiment_names(ap, names, default) -> list[str]:
     if unknown:
         ap.error(f"unknown experiment(s) {', '.join(unknown)} (conf/experiment/ has {', '.join(sorted(available))})")
     return list(names) if names else [n for n in default if n in available]
+
+
+def run_child(cmd: list[str], cwd: Path, env: dict) -> tuple[float, float]:
+    """(peak RSS in MB, wall seconds) of one child process (``os.wait4``: ``ru_maxrss``); SystemExit
+    naming the command and the end of its stderr if it fails."""
+    t0 = time.perf_counter()
+    p = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    err = p.stderr.read().decode(errors="replace")   # before waiting: a full pipe would block the child
+    _, status, usage = os.wait4(p.pid, 0)
+    p.returncode = os.waitstatus_to_exitcode(status)
+    p.stderr.close()
+    if p.returncode:
+        raise SystemExit(f"{Path(sys.argv[0]).stem}: {' '.join(cmd)} failed with exit {p.returncode}:\n{err[-2000:]}")
+    return usage.ru_maxrss / 1024, time.perf_counter() - t0
 
 
 def run_script(main) -> None:

@@ -320,7 +320,8 @@ def test_every_variant_is_checked_before_the_first_runs(tmp_path):
     ("experiments.bench_memory", ["--repo", "/"], "not a hairexp checkout"),
     ("experiments.bench_experiment", ["--rounds", "0"], "--rounds: '0' is not a positive integer"),
     ("experiments.bench_experiment", ["--against", "/"], "not a hairexp checkout"),
-    ("experiments.bench_experiment", ["--experiment", "nope"], "no such experiment"),
+    ("experiments.bench_experiment", ["--experiment", "nope"], "unknown experiment(s) nope"),
+    ("experiments.bench_experiment", ["--set", "solver.dtt=1"], "--set solver.dtt=1"),
     ("experiments.bench_experiment", ["--set", "hydra.run.dir=x"], "hydra.* keys are the script's"),
 ])
 def test_experiment_scripts_refuse_bad_arguments(module, args, says):
