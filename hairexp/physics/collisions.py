@@ -543,16 +543,15 @@ def contact_velocities(colliders, x1, v1, t1, movable, dist: list | None = None,
     near = np.flatnonzero(movable)
     for i, col in enumerate(colliders):
         shell = col.on_shell(x1[near], t1) if dist is None else dist[i] < col.shell_tolerance()
-        pressed = None if push is None else push[i]
-        if pressed is not None:
-            shell |= pressed[near] > 0.0
+        pressed = push[i] if push is not None else np.zeros(len(x1))   # m/s; none: no solve's contact forces
+        shell |= pressed[near] > 0.0
         c = near[shell]
         if c.size:
             n = col.normal(x1[c], t1)
             vs = col.surface_velocity(x1[c], t1)
             vr = v1[c] - vs
             vn = np.sum(vr * n, axis=1)
-            jn = np.maximum(-vn, 0.0) if pressed is None else np.maximum(-vn, 0.0) + pressed[c]
+            jn = np.maximum(-vn, 0.0) + pressed[c]
             vt = vr - vn[:, None] * n
             tn = np.linalg.norm(vt, axis=1)
             f = np.where((jn > 0) & (tn > 0), np.maximum(0.0, 1.0 - col.friction * jn / np.maximum(tn, 1e-300)), 1.0)
@@ -561,7 +560,7 @@ def contact_velocities(colliders, x1, v1, t1, movable, dist: list | None = None,
             # a vertex the solve's contact forces press (push > 0) ends on the surface: no normal velocity
             # relative to it either way (force > 0 only at zero gap velocity; the push-out of a vertex
             # that started inside is not a bounce)
-            vn_out = np.maximum(vn, 0.0) if pressed is None else np.where(pressed[c] > 0.0, 0.0, np.maximum(vn, 0.0))
+            vn_out = np.where(pressed[c] > 0.0, 0.0, np.maximum(vn, 0.0))
             v1[c] = vs + vt * f[:, None] + vn_out[:, None] * n
     return v1
 
