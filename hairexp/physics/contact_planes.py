@@ -89,10 +89,14 @@ class ContactPlanes:
         """The vertices with a plane of their own (s = 0 on a degenerate edge (v, v))."""
         return np.unique(self.e[self.e[:, 0] == self.e[:, 1], 0])
 
+    def points(self, x: np.ndarray, sel=slice(None)) -> np.ndarray:
+        """y_i(x) (m, 3) of the planes ``sel``: their points on the hair at full positions x (V, 3)."""
+        e, w = self.e[sel], self.w[sel]
+        return w[:, 0, None] * x[e[:, 0]] + w[:, 1, None] * x[e[:, 1]]
+
     def gap(self, x: np.ndarray) -> np.ndarray:
         """g_i(x) (n,) for full positions x (V, 3)."""
-        y = self.w[:, 0, None] * x[self.e[:, 0]] + self.w[:, 1, None] * x[self.e[:, 1]]
-        return self.c + np.einsum("ij,ij->i", self.n, y)
+        return self.c + np.einsum("ij,ij->i", self.n, self.points(x))
 
     def stale(self, colliders, x: np.ndarray, t: float) -> np.ndarray:
         """(n,) bool: planes the positions x (V, 3) press on (g < 0) whose edge is farther than
@@ -144,7 +148,7 @@ class ContactPlanes:
         sel = np.flatnonzero((mu > 0) & (np.asarray(lam) > 0))
         if sel.size == 0:
             return
-        y = self.w[sel, 0, None] * x_n[self.e[sel, 0]] + self.w[sel, 1, None] * x_n[self.e[sel, 1]]
+        y = self.points(x_n, sel)
         dc = np.zeros_like(y)
         dt = float(t1 - t0)
         for i, col in enumerate(colliders):
@@ -170,9 +174,7 @@ class ContactPlanes:
         """(energy, gradient (m, 6), Hessian (m, 6, 6) or None) of the friction planes at x
         (``barrier.smoothed_friction``)."""
         sel, mu, T, y_n, dc, eps = self._fric
-        w = self.w[sel]
-        y = w[:, 0, None] * x[self.e[sel, 0]] + w[:, 1, None] * x[self.e[sel, 1]]
-        return smoothed_friction(T, mu * self._lam, y - y_n - dc, w, eps, need_hessian)
+        return smoothed_friction(T, mu * self._lam, self.points(x, sel) - y_n - dc, self.w[sel], eps, need_hessian)
 
     # -- the objective's contact hooks ------------------------------------------------------
     @property
