@@ -24,6 +24,7 @@ hairexp's poses are column-vector ``x = R X + T``.
 
 from __future__ import annotations
 
+import math
 import re
 
 import numpy as np
@@ -258,15 +259,61 @@ def transform_times(prim) -> list[float]:
     return sorted(times)
 
 
+#: ``read_motion``: a transform is read at every frame (time code) between its first and last
+#: sample, and a segment between two reads is halved while the pose USD computes at its middle
+#: differs from the linear interpolation there (translation, slerp of the rotation) by more than
+#: POSE_TOL_M in position or POSE_TOL_RAD in rotation, at most POSE_SPLITS times (2^6 reads a frame)
+POSE_TOL_M, POSE_TOL_RAD, POSE_SPLITS = 1e-5, 1e-5, 6
+#: ``read_motion``: at most this many frames of a transform read one by one (beyond: its samples only)
+MAX_POSE_FRAMES = 200_000
+
+
+def _pose_at(xf, tc: float, where: str, allow_scale: bool):
+    return pose_from_matrix(world_transform(xf, Usd.TimeCode(tc), where), where, tc, allow_scale)
+
+
+def _mid_error(a, b, m) -> tuple[float, float]:
+    """(m, rad): how far the pose m (R, T) at the middle of the segment between poses a and b is
+    from their linear interpolation there (the translations' mean, the rotations' slerp)."""
+    Ra, Rb, Rm = (Rotation.from_matrix(p[0]) for p in (a, b, m))
+    half = Ra * Rotation.from_rotvec(0.5 * (Ra.inv() * Rb).as_rotvec())
+    return (float(np.linalg.norm(m[1] - 0.5 * (a[1] + b[1]))), float((half.inv() * Rm).magnitude()))
+
+
 def read_motion(prim, tcps: float, where: str, allow_scale: bool = False) -> tuple[RigidMotion, np.ndarray]:
-    """The prim's world transform as a linear ``RigidMotion`` (keyframes at its time samples)
-    and its scale (which must not change over time)."""
+    """The prim's world transform as a linear ``RigidMotion`` and its scale (which must not
+    change over time).
+
+    USD computes a transform from its ops' values, interpolated between their time samples (an
+    angle of ``rotateY``, a parent's rotation about a pivot): between two samples a prim can turn
+    a whole turn, or swing along an arc.  So the transform is read at every time code from its
+    first to its last sample (its own and its ancestors'; one per frame), and between two reads
+    the motion is linear only where the pose USD computes at their middle is the linear one's
+    (``POSE_TOL_M``, ``POSE_TOL_RAD``), else read there too (not a keyed matrix op, below: read at
+    its samples, as before).  Keys at only the samples read a turn
+    of 360 degrees keyed at two frames as no motion, of 270 degrees as -90, and a parent's turn as a
+    straight line (independent probe, 2026-12-07).  The motion's velocity jumps (where a time
+    integrator restarts, ``RigidMotion.velocity_jumps``) are at the samples that are keyframes: at
+    least one frame from the samples beside them; samples at every frame are a motion's samples."""
     check_transform_types(prim, where)
     xf = UsdGeom.Xformable(prim)
-    times = transform_times(prim) or [Usd.TimeCode.Default()]
-    rots, trans, scale0 = [], [], None
-    for tc in times:
-        R, T, scale = pose_from_matrix(world_transform(xf, tc, where), where, tc, allow_scale)
+    authored = transform_times(prim)
+    # a matrix op keyed at several times: USD interpolates its sixteen numbers one by one, which neither
+    # turns nor keeps the size (hairexp's own result files key the body so): read at its samples only,
+    # rigid between them
+    dense = bool(authored) and not _keyed_matrix(prim)
+    if not authored:
+        authored_secs, codes = None, [Usd.TimeCode.Default()]
+    else:
+        lo, hi = float(authored[0]), float(authored[-1])
+        frames = np.arange(math.ceil(lo), math.floor(hi) + 1.0) if dense and hi - lo <= MAX_POSE_FRAMES else np.zeros(0)
+        codes = np.union1d(np.asarray(authored, dtype=np.float64), frames).tolist()
+        authored_secs = np.asarray(authored, dtype=np.float64)
+    rots, trans, scale0, secs = [], [], None, []
+
+    def add(tc, pose):
+        nonlocal scale0
+        R, T, scale = pose
         if scale0 is None:
             scale0 = scale
         elif allow_scale and np.abs(scale - scale0).max() > 1e-9 * scale0.max():
@@ -274,7 +321,55 @@ def read_motion(prim, tcps: float, where: str, allow_scale: bool = False) -> tup
             # differ between samples; the body was refused as "a collider" for 1.0000001; round 23)
             raise InputError(f"the scale changes at {time_label(tc)} ({scale0.tolist()} -> {scale.tolist()}); "
                              "a collider's scale is part of its size, which cannot change", where)
-        rots.append(Rotation.from_matrix(R).as_rotvec())
+        rots.append(R)
         trans.append(T)
-    secs = [0.0] if isinstance(times[0], Usd.TimeCode) else [t / tcps for t in times]
-    return RigidMotion(np.asarray(secs), np.asarray(trans), np.asarray(rots), "linear", where=where), scale0
+        secs.append(0.0 if isinstance(tc, Usd.TimeCode) else tc / tcps)
+
+    if authored_secs is None:
+        add(codes[0], pose_from_matrix(world_transform(xf, codes[0], where), where, codes[0], allow_scale))
+    else:
+        prev = _pose_at(xf, codes[0], where, allow_scale)
+        add(codes[0], prev)
+        for a, b in zip(codes[:-1], codes[1:]):
+            end = _pose_at(xf, b, where, allow_scale)
+            # the segment [a, b] halved where its middle is not the linear motion's: depth first, in order
+            stack = [(a, prev, b, end, 0)]
+            while stack:
+                ta, pa, tb, pb, depth = stack.pop()
+                if dense and depth < POSE_SPLITS:
+                    tm = 0.5 * (ta + tb)
+                    pm = _pose_at(xf, tm, where, allow_scale)
+                    dx, dr = _mid_error(pa, pb, pm)
+                    if dx > POSE_TOL_M or dr > POSE_TOL_RAD:
+                        stack.append((tm, pm, tb, pb, depth + 1))
+                        stack.append((ta, pa, tm, pm, depth + 1))
+                        continue
+                add(tb, pb)
+            prev = end
+    rv = Rotation.from_matrix(np.asarray(rots)).as_rotvec()   # between keys the shortest turn: the reads are close
+    keys = _keyframes(authored_secs) if authored_secs is not None else None
+    return RigidMotion(np.asarray(secs), np.asarray(trans), rv, "linear", where=where,
+                       jump_times=None if keys is None else keys / tcps), scale0
+
+
+def _keyed_matrix(prim) -> bool:
+    """Whether the prim's transform or an ancestor's has a matrix op (``xformOp:transform``) with
+    more than one time sample."""
+    p = prim
+    while p and not p.IsPseudoRoot():
+        if p.IsA(UsdGeom.Xformable):
+            for op in UsdGeom.Xformable(p).GetOrderedXformOps():
+                if op.GetOpType() == UsdGeom.XformOp.TypeTransform and op.GetNumTimeSamples() > 1:
+                    return True
+        p = p.GetParent()
+    return False
+
+
+def _keyframes(codes: np.ndarray) -> np.ndarray:
+    """The time codes among a transform's samples ``codes`` that are keyframes: the first and the
+    last (the stillness outside them), and those more than one frame (time code) from each sample
+    beside them."""
+    gap = np.diff(codes)
+    sparse = np.concatenate([[True], gap > 1.0 + 1e-9]) & np.concatenate([gap > 1.0 + 1e-9, [True]])
+    sparse[0] = sparse[-1] = True
+    return codes[sparse]

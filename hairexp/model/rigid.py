@@ -81,6 +81,10 @@ class RigidMotion:
     rotvecs: np.ndarray        # (K, 3) rad
     interpolation: str = "cubic"
     where: str = "motion"      # the input the keyframes came from (errors name it)
+    #: s: the keys whose velocity change is a jump (``velocity_jumps``), the others samples of a
+    #: smooth motion (a USD transform read between its keyframes, hairexp/io/usd_layout.py
+    #: ``read_motion``); None: any key whose segments span MIN_SEGMENT_STEPS steps
+    jump_times: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.times = real_array(self.times, f"{self.where}.times")
@@ -155,7 +159,8 @@ class RigidMotion:
         whose segments on both sides span at least ``MIN_SEGMENT_STEPS`` x (t1 - t0) count (the
         stillness outside the keys is unbounded): keys as dense as the steps sample a motion (a USD
         stage's time samples at every frame), and restarting at each would make every step a
-        restart.  Keys at or before ``since`` are left out: a run's initial state (t = 0) already
+        restart.  With ``jump_times`` only the keys at those times count, whatever their spacing.
+        Keys at or before ``since`` are left out: a run's initial state (t = 0) already
         moves with the velocity after a key there.  A time integrator restarts at a jump
         (hairexp/physics/integrators.py, "Driver discontinuities")."""
         if self._static or self.interpolation != "linear":
@@ -163,8 +168,19 @@ class RigidMotion:
         ts = self.times
         tol = TIME_TOL * max(1.0, abs(float(t0)), abs(float(t1)))
         span = MIN_SEGMENT_STEPS * (float(t1) - float(t0)) - tol
+        keyed = None
+        if self.jump_times is not None:
+            jt = np.asarray(self.jump_times, dtype=np.float64).reshape(-1)
+            keyed = np.zeros(len(ts), dtype=bool)
+            if jt.size:
+                j = np.clip(np.searchsorted(jt, ts), 1, max(jt.size - 1, 1))
+                near = np.minimum(np.abs(jt[j - 1] - ts), np.abs(jt[np.minimum(j, jt.size - 1)] - ts))
+                keyed = near <= TIME_TOL * np.maximum(1.0, np.abs(ts))
         for k in np.flatnonzero((ts >= t0 - tol) & (ts < t1 - tol) & (ts > since + tol)):
-            if (k > 0 and ts[k] - ts[k - 1] < span) or (k < len(ts) - 1 and ts[k + 1] - ts[k] < span):
+            if keyed is not None:
+                if not keyed[k]:
+                    continue
+            elif (k > 0 and ts[k] - ts[k - 1] < span) or (k < len(ts) - 1 and ts[k + 1] - ts[k] < span):
                 continue
             before = self._segment_velocity(k - 1)
             after = self._segment_velocity(k)
