@@ -140,9 +140,14 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
     if root.GetTypeName() in SUPPORTED:   # one collider named instead of their parent: it ran with none
         raise InputError(f"is a {root.GetTypeName()}: scene.usd_colliders names the parent of the colliders (a Scope "
                          f"or Xform), each collider a child prim of it ({path}/<name>)", f"{file}:{path}")
+    if not root.IsActive():   # its colliders are not on the stage: the scene ran without them, without a word
+        logging.getLogger("hairexp").warning("%s: the colliders' prim %s is inactive: no collider used", file, path)
+        return []
     out, seen = [], {}
     prims, off, empty = [], [], []
-    it = iter(Usd.PrimRange(root, Usd.PrimAllPrimsPredicate))
+    # instance proxies too: a collider referenced as an instanceable asset is the stage's as any other
+    everything = Usd.TraverseInstanceProxies(Usd.PrimAllPrimsPredicate)
+    it = iter(Usd.PrimRange(root, everything))
     next(it)   # the root itself
     for prim in it:   # children, and the children of groups (Xform, Scope, typeless) below them
         if not prim.IsActive():
@@ -151,7 +156,7 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
         elif prim.IsAbstract() or not prim.IsDefined():   # a class or an over: no prim of the scene
             it.PruneChildren()
         elif prim.GetTypeName() in GROUPS:
-            if not prim.GetAllChildren():   # a typeless "def ball { double radius }" read as nothing: said
+            if not prim.GetFilteredChildren(everything):   # a typeless "def ball { double radius }" read as nothing: said
                 empty.append(str(prim.GetPath()))
             continue
         else:
@@ -169,7 +174,7 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
             raise InputError(f"unsupported collider type {kind}; use {', '.join(SUPPORTED)} (grouped in Xform or "
                              "Scope prims at any depth)", where)
         motion, scale = read_motion(prim, tcps, where, allow_scale=True)
-        name = _name(prim, where)
+        name = _name(prim, where, root)
         if name in seen:   # two groups' prims of one name: ``measure.collider`` could not tell them apart
             raise InputError(f"a second collider named {name!r} (the first is {seen[name]}): give one a custom string "
                              f"{NAME}", where)
@@ -203,11 +208,15 @@ def read_colliders(stage, path: str, tcps: float, file: str) -> list:
     return out
 
 
-def _name(prim, where: str) -> str:
+def _name(prim, where: str, root=None) -> str:
     """A collider's name: its ``hairexp:name`` (written where the name is not a USD identifier),
-    else the prim's name."""
+    else the prim's name; in an instance of an asset (an instance proxy), whose prims every
+    instance shares, its path below the colliders' prim ``root`` with "_" for "/" (two
+    instances of a ball asset: ``ball0_geo``, ``ball1_geo``)."""
     a = prim.GetAttribute(NAME)
     if not a.HasAuthoredValue():
+        if prim.IsInstanceProxy() and root is not None:
+            return str(prim.GetPath().MakeRelativePath(root.GetPath())).replace("/", "_")
         return prim.GetName()
     v = a.Get()
     if not isinstance(v, str) or not v.strip():

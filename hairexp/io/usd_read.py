@@ -78,7 +78,32 @@ def open_stage(path: str) -> tuple[Usd.Stage, str]:
     if UsdGeom.GetStageUpAxis(stage) not in (UsdGeom.Tokens.y, UsdGeom.Tokens.z):
         raise InputError(f"upAxis is {UsdGeom.GetStageUpAxis(stage)}; USD stages are Y or Z up "
                          "(a Z-up stage is turned to hairexp's Y up)", where)
+    _other_layer_units(stage, where)
     return stage, where
+
+
+def _other_layer_units(stage, where: str) -> None:
+    """A warning for each sublayer or reference whose metersPerUnit or upAxis differs from the
+    stage's (its root layer's, or USD's fallbacks): USD converts neither, so its values are read in
+    the stage's unit and axes (a groom in centimetres referenced into a stage in metres read its
+    20 cm strands as 20 m; independent probe, 2026-12-07)."""
+    root = stage.GetRootLayer()
+    mine = {"metersPerUnit": stage_units(stage), "upAxis": str(UsdGeom.GetStageUpAxis(stage))}
+    for layer in stage.GetUsedLayers():
+        if layer == root or layer.anonymous:
+            continue
+        info = layer.pseudoRoot
+        for key, ours in mine.items():
+            if not info.HasInfo(key):
+                continue
+            theirs = info.GetInfo(key)
+            same = (math.isclose(float(theirs), ours, rel_tol=1e-9) if key == "metersPerUnit" and
+                    isinstance(theirs, (int, float)) else str(theirs) == ours)
+            if not same:
+                log.warning("%s: %s sets %s = %s, the stage %s: USD does not convert a layer's values, so they "
+                            "are read in the stage's %s (scale or turn the referencing prim, or author the layer "
+                            "in the stage's)", where, layer.identifier, key, theirs, ours,
+                            "unit" if key == "metersPerUnit" else "axes")
 
 
 class _usd_stderr:
@@ -242,7 +267,8 @@ def curve_prims(root, key: str, what: str, noun: str, where: str) -> list:
     if root.IsA(UsdGeom.BasisCurves):
         return [root]
     prims, off = [], []
-    for p in Usd.PrimRange(root, Usd.PrimAllPrimsPredicate):   # an inactive prim's children are not on the stage
+    # an inactive prim's children are not on the stage; an instanceable prim's are, as instance proxies
+    for p in Usd.PrimRange(root, Usd.TraverseInstanceProxies(Usd.PrimAllPrimsPredicate)):
         if p.IsA(UsdGeom.BasisCurves) and p.IsDefined() and not p.IsAbstract():   # not an over or a class
             (prims if p.IsActive() else off).append(p)
     if off:
