@@ -339,3 +339,14 @@ def test_hair_authored_tip_to_root_is_said(stage, tmp_path, caplog):
     with caplog.at_level(logging.WARNING, logger="hairexp"):
         run(usd_cfg(stage), tmp_path / "run")
     assert any("the hair curves look authored tip to root" in r.getMessage() for r in caplog.records)
+
+
+def test_a_text_stage_named_usdc_says_so(tmp_path, stage):
+    """USD picks the format by the extension: a text stage named .usdc failed with 'crate bootstrap
+    section corrupt' alone (independent probe, 2026-12-07)."""
+    from hairexp.io.usd_read import open_stage
+
+    wrong = tmp_path / "scene.usdc"
+    wrong.write_bytes(stage.read_bytes())
+    with pytest.raises(InputError, match="a text \\(usda\\) stage named .usdc.*rename it .usda or .usd"):
+        open_stage(str(wrong))

@@ -56,7 +56,7 @@ def open_stage(path: str) -> tuple[Usd.Stage, str]:
             stage.Reload()  # a stage kept from an earlier read: pick up edits of the file
         except Exception as exc:  # pxr.Tf.ErrorException: not a USD file, syntax error, ...
             _open.pop(path, None)
-            raise InputError(f"cannot read the USD stage: {_message(exc)}", where) from exc
+            raise InputError(f"cannot read the USD stage: {_message(exc)}{_format_hint(path)}", where) from exc
     if not stage:
         raise InputError("cannot read the USD stage", where)
     errors = stage.GetCompositionErrors()
@@ -80,6 +80,22 @@ def open_stage(path: str) -> tuple[Usd.Stage, str]:
                          "(a Z-up stage is turned to hairexp's Y up)", where)
     _other_layer_units(stage, where)
     return stage, where
+
+
+def _format_hint(path: str) -> str:
+    """Why a file may not read: a text stage named .usdc (USD reads a .usdc file as a crate: "crate
+    bootstrap section corrupt") or a crate named .usda."""
+    suffix = os.path.splitext(str(path))[1].lower()
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8)
+    except OSError:
+        return ""
+    if suffix == ".usdc" and head.startswith(b"#usda"):
+        return "; the file is a text (usda) stage named .usdc, which USD reads as a binary crate: rename it .usda or .usd"
+    if suffix == ".usda" and head.startswith(b"PXR-USDC"):
+        return "; the file is a binary crate named .usda, which USD reads as text: rename it .usdc or .usd"
+    return ""
 
 
 def _other_layer_units(stage, where: str) -> None:
