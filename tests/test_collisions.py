@@ -237,6 +237,25 @@ def test_collider_motion_and_surface_velocity():
     np.testing.assert_allclose(w.surface_velocity(np.array([[0.1, 0.0, 0.0]]), 0.0), [[0.0, 0.0, -0.2]], atol=1e-12)
 
 
+def test_a_spinning_cylinder_carries_a_surface_point_along_its_arc():
+    """``spin_displacement_body``: the point stays on the shell (a straight move by velocity x tau
+    left it by (spin tau)^2 r / 2), matches velocity x tau to first order, and is zero without spin."""
+    w = Cylinder("w", RigidMotion.static(), radius=0.1, half_height=0.1, spin=5.0, thickness=0.002)
+    X = np.array([[0.102, 0.03, 0.0], [0.0, -0.05, 0.102], [0.0721, 0.0, -0.0721]])
+    tau = np.array([0.04, 0.01, 0.3])
+    moved = X + w.spin_displacement_body(X, tau)
+    np.testing.assert_allclose(w.sdf_body(moved), w.sdf_body(X), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(moved[:, 1], X[:, 1], rtol=0, atol=0)
+    straight = X + tau[:, None] * w.spin_velocity_body(X)
+    assert (w.sdf_body(straight) - w.sdf_body(X))[0] > 1e-3      # 2 mm off the shell at 5 rad/s x 0.04 s
+    small = np.full(3, 1e-6)
+    np.testing.assert_allclose(w.spin_displacement_body(X, small), small[:, None] * w.spin_velocity_body(X),
+                               rtol=0, atol=3e-12)   # the arc's second-order term, (spin tau)^2 r / 2 = 1.3e-12
+    still = Cylinder("s", RigidMotion.static(), radius=0.1, half_height=0.1)
+    assert not still.spin_displacement_body(X, tau).any()
+    assert not Sphere("b", RigidMotion.static(), radius=0.1).spin_displacement_body(X, tau).any()
+
+
 def _brute_force_reachable(hh, x0, x1):
     """All non-adjacent edge pairs whose segments come within h during the linear step,
     by sampling the step finely (a reference for the broad phase, O(E^2))."""

@@ -64,6 +64,11 @@ class Collider:
     def spin_velocity_body(self, X: np.ndarray) -> np.ndarray:
         return np.zeros_like(X)
 
+    def spin_displacement_body(self, X: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """(n, 3): how far the surface's spin carries the body-frame points X (n, 3) in tau (n,)
+        seconds (zero without a spin)."""
+        return np.zeros_like(X)
+
     # world queries -----------------------------------------------------------------------
     def to_body(self, x: np.ndarray, t: float) -> np.ndarray:
         return self.motion.to_body(x, t)
@@ -161,6 +166,16 @@ class Cylinder(Collider):
 
     def spin_velocity_body(self, X):
         return self.spin * np.cross(np.array([0.0, 1.0, 0.0]), X * np.array([1.0, 0.0, 1.0]))
+
+    def spin_displacement_body(self, X, tau):
+        """Along the arc about the axis (body y), by the angle spin x tau: a point on the shell stays on
+        it (the straight move tau x velocity left the shell by (spin tau)^2 r / 2: a vertex the
+        collision stage held on goaling's wheel ended 2 mm off it, out of reach of the contact planes,
+        carried 2 cm from its strand; independent probe, 2026-12-07)."""
+        a = self.spin * np.asarray(tau, dtype=np.float64)
+        c, s = np.cos(a), np.sin(a)
+        x, z = X[..., 0], X[..., 2]
+        return np.stack([x * c + z * s - x, np.zeros_like(x), -x * s + z * c - z], axis=-1)
 
     def bounding_radius(self):
         return float(np.hypot(self.radius, self.half_height))

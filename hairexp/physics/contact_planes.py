@@ -224,7 +224,7 @@ class ContactPlanes:
 
 def stage_planes(colliders, x: np.ndarray, t: float, edges: np.ndarray, movable: np.ndarray, free_slot: np.ndarray,
                  inertia: np.ndarray, x_first: np.ndarray | None = None,
-                 keep: "ContactPlanes | None" = None) -> ContactPlanes | None:
+                 keep: "ContactPlanes | None" = None, moved: np.ndarray | None = None) -> ContactPlanes | None:
     """Planes at positions x (V, 3) and time t (the collision stage's output), or None when there
     is none: one at every movable vertex within ``NEAR`` of a collider's shell there, or inside
     the shell at ``x_first`` (the solve's positions the stage corrected: the stage may leave a vertex
@@ -233,7 +233,10 @@ def stage_planes(colliders, x: np.ndarray, t: float, edges: np.ndarray, movable:
     ``inertia`` (V,): each vertex's m / h^2 of the step (0 for the kinematic ones).  ``keep``:
     planes whose vertices and edges get one again, taken at x, wherever they are (the active set
     of a solve only grows: a plane dropped because the hair sat beyond ``NEAR`` let it fall back
-    in the next solve)."""
+    in the next solve).  ``moved`` (V,) m: how far the collision stage moved each vertex from the
+    solve's positions; a moved vertex gets a plane of each collider within that distance (plus
+    ``NEAR``) of it, wherever it ends (a path the stage stopped where it met a collider can end far
+    from the collider's shell at the step's end)."""
     E = np.asarray(edges)
     E = E[movable[E[:, 0]] | movable[E[:, 1]]]
     idx = np.flatnonzero(movable)
@@ -250,6 +253,8 @@ def stage_planes(colliders, x: np.ndarray, t: float, edges: np.ndarray, movable:
         sel = gv[idx] < near
         if x_first is not None:
             sel |= gp.vertex_gaps(x_first[idx]) < near
+        if moved is not None:
+            sel |= (moved[idx] > 0.0) & (gv[idx] < moved[idx] + near)
         forced = np.zeros(len(E), dtype=bool)
         if keep is not None:
             mine = keep.collider == ci
