@@ -129,6 +129,25 @@ def test_cfg_job_checks_the_values_as_a_run_does():
     assert cli.config_error(["experiment=goaling_smoke", "--cfg", "job", "solver.dt=0.02"]) is None
 
 
+@pytest.mark.parametrize("override, said", [
+    ("fps=0", "fps: must be a finite number from 0.1 to 100000"),
+    ("frames=0", "frames: must be >= 1, got 0"),
+    ("scene.n_strands=0", "scene.n_strands: must be >= 1, got 0"),
+    ("scene.length=0", "scene.length: must be a finite number > 0"),
+    ("variants=[{name: stream, overrides: []}]", "variants[0].name: 'stream' is reserved"),
+    ("variants=[{name: a, overrides: []},{name: a, overrides: []}]", "variants[1].name: 'a' is also the name of variants[0]"),
+    ("scene.colliders=[]", "measure.collider: no collider named 'wheel' in the scene (have [])"),
+])
+def test_cfg_job_checks_what_a_run_checks_without_reading_files(override, said):
+    """``--cfg job`` with these printed the config, exit 0, where a run refuses them (an independent
+    probe, 2026-12-07): the step schedule, the sizes, the procedural scene as built, the variants'
+    names and the measure's references are checked too (no file is read)."""
+    from hairexp.app import cli
+
+    msg = cli.config_error(["experiment=goaling_smoke", "--cfg", "job", override])
+    assert msg is not None and msg.startswith(f"hairexp: error: {said}"), msg
+
+
 def test_a_key_added_to_a_composed_config_is_refused_by_the_api(tmp_path):
     """``open_dict(cfg.solver): cfg.solver.foo = 1`` then ``run_folder``: the run completed with the
     key never refused (round 35, W6); ``assemble`` took it too."""

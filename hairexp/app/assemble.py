@@ -125,7 +125,7 @@ def assemble_scene(cfg, settle: bool = True) -> tuple[object, Scene, GuideAnimat
     return _assemble_scene(cfg, settle)[:3]
 
 
-def check_config(cfg) -> None:
+def check_config(cfg, files: bool = True) -> None:
     """What ``assemble`` checks before the first step, short of settling and simulated guides:
     the config's ranges, the step schedule, a guide file, the resource guard, the scene as built
     (its keys read by the model layer: lengths, colliders, motions), the measure's references
@@ -134,16 +134,28 @@ def check_config(cfg) -> None:
     config this way before it claims its folder, and an experiment every variant's before the
     first runs: a bad ``scene.length`` or a later variant's unknown ``measure.collider`` left a
     failed summary in the folder, or was found after the earlier variants had run (probe of
-    issue 12, round 17).  The checks take 20-60 ms on the paper scenes."""
+    issue 12, round 17).  The checks take 20-60 ms on the paper scenes.
+
+    ``files=False`` (``--cfg job``, which prints the config): no file is read, so the timing and
+    the scene of a USD stage and a guide file's guides are not checked; the rest is (``fps=0``,
+    ``frames=0``, ``scene.n_strands=0`` and a measure's unknown collider were printed, exit 0;
+    independent probe, 2026-12-07)."""
     validate_config(cfg)
+    usd = str(_value(cfg.scene.builder)) == "usd"
+    if not files and (cfg.frames is None or cfg.fps is None):   # the stage's timing: a file
+        if not usd:
+            check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices), float(cfg.scene.length))
+        return
     cfg = timed_config(cfg)
     n_sub, _ = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
-    if str(_value(cfg.guides.source)) == "file":   # read now: a later variant's bad file failed after the others ran
+    from_file = str(_value(cfg.guides.source)) == "file"
+    if from_file and files:   # read now: a later variant's bad file failed after the others ran
         read_guide_file(cfg.guides, None, int(cfg.frames), float(cfg.fps))
-    usd = str(_value(cfg.scene.builder)) == "usd"
     if not usd:
         check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices), float(cfg.scene.length))
         guard_run(cfg, int(cfg.scene.n_strands) * int(cfg.scene.n_vertices), n_sub)
+    elif not files:
+        return
     scene = build_scene(cfg.scene)
     if usd:
         guard_run(cfg, scene.strands.n_vertices, n_sub)
@@ -151,6 +163,8 @@ def check_config(cfg) -> None:
     validate_measure(cfg, scene)
     check_clear_start(scene, str(_value(cfg.collision.contact)))
     check_clear_roots(scene, int(cfg.frames), float(cfg.fps), n_sub)
+    if from_file and not files:
+        return
     if str(_value(cfg.guides.source)) != "simulated":   # read or made in milliseconds
         build_guides(cfg, scene, cfg.frames, cfg.fps)
     else:   # their simulation is a run of its own: their keys, and their edits on the rest guides carried rigidly

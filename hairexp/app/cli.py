@@ -42,9 +42,9 @@ from hydra.experimental.callback import Callback
 from hairexp.app.assemble import check_config
 from hairexp.app.config import (CONF_DIR, check_bool_overrides, check_interpolations, check_keys, check_sections,
                                 compose_config, unknown_key_hint)
-from hairexp.app.experiment import apply_overrides, run_experiment
+from hairexp.app.experiment import apply_overrides, check_variant_names, run_experiment
 from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, metrics_summary, to_log_files, write_refused
-from hairexp.app.validate import unused_settings, validate_config
+from hairexp.app.validate import unused_settings
 from hairexp.app.signals import forward, read_stop_mark, take_late, watch_stop_file, worker_pids
 from hairexp.app.streams import guard_streams
 from hairexp.app.signals import exit_code as signal_exit_code
@@ -1506,9 +1506,12 @@ def _variant_overrides_error(overrides: list[str]) -> str | None:
         runs = [apply_overrides(cfg, list(v.overrides), f"variants[{i}] ({v.name})")
                 for i, v in enumerate(cfg.get("variants") or [])]
         # and their values' ranges, as a run checks them first (``solver.dt=-1`` was printed, exit 0;
-        # independent probe of issue 12, round 35): no file is read, nothing is built
+        # independent probe of issue 12, round 35), and what the run checks before it starts that reads
+        # no file (the step schedule, the sizes, a procedural scene as built, the variants' names;
+        # ``fps=0`` and two variants of one name were printed, exit 0; independent probe, 2026-12-07)
+        check_variant_names(cfg.get("variants") or [])
         for run in runs or [cfg]:
-            validate_config(run)
+            check_config(run, files=False)
     except InputError as exc:
         return str(exc)
     except Exception:  # noqa: BLE001  (compose_error's)
