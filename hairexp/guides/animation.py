@@ -85,7 +85,10 @@ class GuideAnimation:
         else:
             self.frames = real_array(positions, f"{where} positions")
         raw = real_array(offsets, f"{where} offsets") if not isinstance(offsets, np.ndarray) else offsets
-        if raw.ndim != 1 or raw.dtype.kind not in "iuf" or (raw.dtype.kind == "f" and not (
+        if raw.ndim != 1:   # "must be integers ..., got int64 (1, 4)" named the type for a shape (independent probe)
+            raise InputError(f"guide offsets must be a 1-D array (G + 1,) of integers, got shape {raw.shape}: "
+                             f"{raw.ravel()[:8].tolist()}", self.where)
+        if raw.dtype.kind not in "iuf" or (raw.dtype.kind == "f" and not (
                 np.isfinite(raw).all() and np.array_equal(raw, np.round(raw)))):
             raise InputError(f"guide offsets must be integers (G + 1,), got {raw.dtype} {raw.shape}: "
                              f"{raw.ravel()[:8].tolist()}", self.where)

@@ -59,7 +59,8 @@ def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_v
         v = int(np.flatnonzero(bad)[0])
         s = int(np.searchsorted(offsets, v, side="right") - 1)
         raise InputError(f"curve {s} vertex {v - offsets[s]} is not finite: {points[v].tolist()}", where)
-    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):   # points near 1e300: inf lengths, which the extent check names
+        seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
     within = within_curves(offsets, len(seg))
     short = within & (seg < MIN_EDGE_LENGTH)
     if short.any():
@@ -98,7 +99,8 @@ def check_folds(points: np.ndarray, counts: np.ndarray, where: str) -> None:
     transport are singular at 180 degrees (a curve folded back on itself diverged the first step,
     told as "try a smaller solver.dt"; probe of issue 12).  ``points`` finite, no zero-length edge."""
     offsets = np.concatenate([[0], np.cumsum(counts)])
-    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):   # points near 1e300: inf lengths, which the extent check names
+        seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
     within = within_curves(offsets, len(seg))
     d = np.diff(points, axis=0) / np.maximum(seg, 1e-300)[:, None]
     cos = (d[:-1] * d[1:]).sum(1)
