@@ -71,6 +71,37 @@ try:  # numba is a dependency, but a missing or broken install must not stop the
 
     _caching.Cache.save_overload = _save_or_warn
 
+    from numba.core import event as _event
+
+    class _FirstCompile(_event.Listener):
+        """Says once per process when numba compiles one of hairexp's kernels: a kernel found in the
+        on-disk cache fires no compile event, so the line comes only when compiling takes the time
+        (the first run in a checkout, or the first that takes another path, such as two threads:
+        ``solver.threads=2`` on goaling_smoke ran 130 s instead of 5 without a word; independent
+        probe, 2026-12-07)."""
+
+        said = False
+
+        def on_start(self, event):
+            if self.said:
+                return
+            data = event.data if isinstance(event.data, dict) else {}
+            func = getattr(data.get("dispatcher"), "py_func", None)
+            if func is None or not str(getattr(func, "__module__", "")).startswith("hairexp."):
+                return
+            self.said = True
+            import logging
+
+            logging.getLogger("hairexp").info(
+                "numba is compiling hairexp's kernels (%s first): once per checkout and code path, up to a few "
+                "minutes on 2 cores; later runs load them from the compile cache", func.__name__)
+
+        def on_end(self, event):
+            pass
+
+    COMPILE_NOTICE = _FirstCompile()
+    _event.register("numba:compile", COMPILE_NOTICE)
+
     def njit(*args, **kwargs):
         """numba's ``njit``; where its cache cannot be written (the checkout is read-only to this
         user and so is the user's cache folder: numba raises "no locator available" when the
