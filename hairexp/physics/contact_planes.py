@@ -233,10 +233,10 @@ def stage_planes(colliders, x: np.ndarray, t: float, edges: np.ndarray, movable:
     ``inertia`` (V,): each vertex's m / h^2 of the step (0 for the kinematic ones).  ``keep``:
     planes whose vertices and edges get one again, taken at x, wherever they are (the active set
     of a solve only grows: a plane dropped because the hair sat beyond ``NEAR`` let it fall back
-    in the next solve).  ``moved`` (V,) m: how far the collision stage moved each vertex from the
-    solve's positions; a moved vertex gets a plane of each collider within that distance (plus
-    ``NEAR``) of it, wherever it ends (a path the stage stopped where it met a collider can end far
-    from the collider's shell at the step's end)."""
+    in the next solve).  ``moved`` (V,) m: 0 for a vertex the collision stage did not move, else a
+    reach (the stage's move, or the solve's path when longer); a moved vertex gets a plane of each
+    collider within that reach (plus ``NEAR``) of it, wherever it ends (a path the stage stopped
+    where it met a collider can end far from the collider's shell at the step's end)."""
     E = np.asarray(edges)
     E = E[movable[E[:, 0]] | movable[E[:, 1]]]
     idx = np.flatnonzero(movable)

@@ -738,7 +738,10 @@ class Simulator:
         # stopped where it met it, and may end far from its shell (goaling with bdf2: a tip held 2.8 cm
         # from the solve's end, 17 mm off the wheel, its edge compressed by 43 % with no second solve;
         # independent probe, 2026-12-07)
-        moved = np.where(movable, np.linalg.norm(x_stage - x_first, axis=1), 0.0)
+        # (how far: the stage's move, or the solve's path when longer, which reached the collider that moved it;
+        # lmm2 on goaling_smoke: a tip moved 3.9 mm by the stage, ended 5.9 mm off the wheel with no plane, 13.5 %)
+        shift = np.linalg.norm(x_stage - x_first, axis=1)
+        moved = np.where(movable & (shift > 0.0), np.maximum(shift, np.linalg.norm(x_first - state.x, axis=1)), 0.0)
         planes = stage_planes(colliders, x_stage, t_next, s.edges, movable, s.free_slot, inertia, x_first, keep=keep,
                               moved=moved)
         if planes is None:
