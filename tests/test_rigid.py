@@ -105,3 +105,28 @@ def test_poses_of_small_turns_and_bad_times():
         assert np.array_equal(R[i], m.pose(t)[0])
     with pytest.raises(InputError, match="RigidMotion.poses: times"):
         m.poses([0.0, float("nan")])
+
+
+def test_linear_config_keys_about_one_axis_turn_by_their_difference():
+    """rotations_deg keys 0, 720 about y (a paddle spun twice a second): the body turns 720 degrees,
+    as cubic keys do (the shortest rotation between the keys is none: it never turned; independent
+    probe, 2026-12-07); keys about different axes keep the shortest rotation; a motion without
+    ``turns`` (rotations read from matrices) too."""
+    from hairexp.model.builders import build_motion
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.create({"interpolation": "linear", "times": [0.0, 1.0, 2.0],
+                            "translations": [[0, 0, 0]] * 3, "rotations_deg": [[0, 0, 0], [0, 720, 0], [0, 1440, 0]]})
+    m = build_motion(cfg)
+    for t, deg in ((0.125, 90.0), (0.25, 180.0), (0.375, -90.0), (1.125, 90.0)):
+        R, _ = m.pose(t)
+        assert np.degrees(np.arctan2(R[0, 2], R[0, 0])) == pytest.approx(deg, abs=1e-9), t
+    np.testing.assert_allclose(m.velocity(0.3)[0], [0.0, 4 * np.pi, 0.0], rtol=1e-12)
+    R, _ = m.poses(np.array([0.125, 1.25]))
+    np.testing.assert_allclose(np.degrees(np.arctan2(R[:, 0, 2], R[:, 0, 0])), [90.0, 180.0], atol=1e-9)
+    skew = RigidMotion(np.array([0.0, 1.0]), np.zeros((2, 3)), np.radians([[0, 0, 170.0], [0, 170.0, 0]]), "linear",
+                       turns=True)
+    plain = RigidMotion(skew.times, skew.translations, skew.rotvecs, "linear")
+    np.testing.assert_allclose(skew.pose(0.4)[0], plain.pose(0.4)[0], atol=1e-15)
+    matrices = RigidMotion(np.array([0.0, 1.0]), np.zeros((2, 3)), np.radians([[0, 0, 0], [0, 720.0, 0]]), "linear")
+    np.testing.assert_allclose(matrices.pose(0.25)[0], np.eye(3), atol=1e-12)

@@ -170,7 +170,7 @@ def build_motion(cfg, where: str = "scene.motion") -> RigidMotion:
                                  f"{where}.{key}[{i}]")
     rot = np.deg2rad(np.asarray(cfg.rotations_deg, dtype=np.float64).reshape(-1, 3))
     return RigidMotion(np.asarray(cfg.times, dtype=np.float64), np.asarray(cfg.translations, dtype=np.float64),
-                       rot, str(getattr(cfg.interpolation, "value", cfg.interpolation)), where=where)
+                       rot, str(getattr(cfg.interpolation, "value", cfg.interpolation)), where=where, turns=True)
 
 
 

@@ -85,6 +85,12 @@ class RigidMotion:
     #: smooth motion (a USD transform read between its keyframes, hairexp/io/usd_layout.py
     #: ``read_motion``); None: any key whose segments span MIN_SEGMENT_STEPS steps
     jump_times: np.ndarray | None = None
+    #: linear keys: two consecutive rotation vectors about one axis (or one of them zero) turn by
+    #: their difference, whole turns included (a config's ``rotations_deg`` keys 0, 720, 1440 about
+    #: y spin the body twice a segment; the shortest rotation between them is none: the paddle of an
+    #: independent probe, 2026-12-07, never turned), as cubic keys do; other pairs, and all of them
+    #: when False (rotations read from matrices, a USD stage's), the shortest rotation between them
+    turns: bool = False
 
     def __post_init__(self) -> None:
         self.times = real_array(self.times, f"{self.where}.times")
@@ -144,6 +150,12 @@ class RigidMotion:
             # segments' rates from the same relative rotation vectors
             self._key_R = rots.as_matrix()
             self._key_rel = (rots[:-1].inv() * rots[1:]).as_rotvec()
+            if self.turns:
+                a, b = self.rotvecs[:-1], self.rotvecs[1:]
+                cross = np.linalg.norm(np.cross(a, b), axis=1)
+                coaxial = cross <= 1e-12 * np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-300)
+                # about a common axis n, R_k^T R_k+1 = exp((theta_k+1 - theta_k) n) = exp(b - a)
+                self._key_rel[coaxial] = (b - a)[coaxial]
         self._rots = rots
         self._cache: dict = {}
 
