@@ -555,3 +555,27 @@ def test_a_killed_run_is_named_when_its_folder_is_reused(hydra_conf, tmp_path):
         run(hydra_conf([*TINY, "frames=1"]), out)
     s = run(hydra_conf([*TINY, "frames=1", "overwrite=true"]), out)
     assert s["status"] == "completed" and s["pid"] == os.getpid()
+
+
+def test_overwrite_keeps_a_run_folder_that_is_not_a_variant(tmp_path):
+    """An experiment's folder (variants free and tracked) holding a copy of another run's folder:
+    ``overwrite=true`` deleted the copy with the variants (independent probe, 2026-12-07).  Only the
+    variants its summary names are its own; the copy is named as foreign and the overwrite refused."""
+    from hairexp.outputs.folder import overwrite_refusal
+
+    def a_run(d, **extra):
+        d.mkdir()
+        (d / "summary.json").write_text(json.dumps({"status": "completed", **extra}))
+        (d / "metrics.parquet").write_bytes(b"PAR1" + b"\0" * 16)
+
+    exp = tmp_path / "exp"
+    exp.mkdir()
+    # interrupted in its second variant: tracked is in its config's list, not yet among those it ran
+    (exp / "summary.json").write_text(json.dumps({"status": "interrupted", "variants": {"free": {}},
+                                                  "config": {"variants": [{"name": "free"}, {"name": "tracked"}]}}))
+    a_run(exp / "free")
+    a_run(exp / "tracked")
+    assert overwrite_refusal(exp) is None
+    a_run(exp / "keep_this")
+    msg = overwrite_refusal(exp)
+    assert msg is not None and "keep_this" in msg

@@ -184,9 +184,35 @@ def _is_tmp(p: Path) -> bool:
     return ".tmp" in p.name
 
 
+def _variant_names(folder: Path) -> set[str]:
+    """The variants an experiment's ``summary.json`` in ``folder`` names: those it ran and those its
+    config lists (an interrupted experiment's next variant has a folder before its entry); none for
+    a single run's, or where there is none or it cannot be read."""
+    try:
+        with open(folder / SUMMARY, encoding="utf-8") as f:
+            summary = json.load(f)
+    except (OSError, ValueError):
+        return set()
+    if not isinstance(summary, dict):
+        return set()
+    names = set()
+    ran = summary.get("variants")
+    if isinstance(ran, dict):
+        names |= {str(k) for k in ran}
+    config = summary.get("config")
+    listed = config.get("variants") if isinstance(config, dict) else None
+    if isinstance(listed, list):
+        names |= {str(v["name"]) for v in listed if isinstance(v, dict) and "name" in v}
+    return names
+
+
 def _removable(folder: Path, top: bool) -> tuple[list[Path], list[Path]]:
-    """(entries a previous run wrote, entries that are not a run's) of ``folder``."""
+    """(entries a previous run wrote, entries that are not a run's) of ``folder``.  A sub-folder
+    is the previous run's only when it is one of the variants its experiment's summary names: a
+    copy of another run's folder kept inside was removed with it (independent probe,
+    2026-12-07)."""
     ours, foreign = [], []
+    variants = _variant_names(folder) if top else set()
     for p in sorted(folder.iterdir()):
         if top and _hydras(p):
             continue
@@ -201,7 +227,7 @@ def _removable(folder: Path, top: bool) -> tuple[list[Path], list[Path]]:
         elif p.name in RUN_DIRS and p.is_dir():
             strays = _strays(p)   # a user's file inside a run's folder is never deleted (probe of issue 12, round 11)
             (foreign.extend(strays) if strays else ours.append(p))
-        elif p.is_dir() and (p / SUMMARY).is_file():   # a variant's run folder
+        elif p.is_dir() and p.name in variants and (p / SUMMARY).is_file():   # a variant's run folder
             sub_ours, sub_foreign = _removable(p, top=False)
             (foreign.extend(sub_foreign) if sub_foreign else ours.append(p))
         else:
