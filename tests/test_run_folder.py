@@ -579,3 +579,32 @@ def test_overwrite_keeps_a_run_folder_that_is_not_a_variant(tmp_path):
     a_run(exp / "keep_this")
     msg = overwrite_refusal(exp)
     assert msg is not None and "keep_this" in msg
+
+
+def test_the_api_refuses_a_folder_inside_another_run(tmp_path):
+    """``run_folder(cfg, <a run's folder>/sub)`` completed where the command line refuses it (an
+    overwrite of that run then deleted it; independent probe, 2026-12-07)."""
+    from hairexp.app import compose_config, run_folder
+    from hairexp.errors import InputError
+
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "summary.json").write_text(json.dumps({"status": "completed"}))
+    cfg = compose_config(["experiment=goaling_smoke", "variants=[]", "frames=2", "logging.rerun=false"])
+    with pytest.raises(InputError, match="lies inside .*other, another run's folder"):
+        run_folder(cfg, other / "sub")
+    assert not (other / "sub").exists()
+
+
+def test_a_tracked_variant_whose_clusters_cannot_be_made_is_refused_before_any_variant_runs(tmp_path):
+    """goaling_smoke with tracking.max_guide_distance=0.0001: the tracked variant's correspondence
+    failed when it was assembled, after the free variant had run and written its folder (an
+    outside probe, 2026-12-07); now the experiment is refused before anything runs."""
+    from hairexp.app import compose_config, run_folder
+    from hairexp.errors import InputError
+
+    cfg = compose_config(["experiment=goaling_smoke", "frames=2", "logging.rerun=false",
+                          "tracking.max_guide_distance=0.0001"])
+    with pytest.raises(InputError, match="tracking.max_guide_distance"):
+        run_folder(cfg, tmp_path / "exp")
+    assert not (tmp_path / "exp" / "free").exists()

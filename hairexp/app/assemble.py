@@ -166,7 +166,7 @@ def check_config(cfg, files: bool = True) -> None:
     if from_file and not files:
         return
     if str(_value(cfg.guides.source)) != "simulated":   # read or made in milliseconds
-        build_guides(cfg, scene, cfg.frames, cfg.fps)
+        guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
     else:   # their simulation is a run of its own: their keys, and their edits on the rest guides carried rigidly
         check_simulated_guides(cfg)
         stand_in = copy.deepcopy(cfg)
@@ -174,9 +174,18 @@ def check_config(cfg, files: bool = True) -> None:
         quiet = logging.root.manager.disable
         logging.disable(logging.WARNING)   # the stand-in's warnings are not the run's (it says its own)
         try:
-            build_guides(stand_in, scene, cfg.frames, cfg.fps)
+            guides = build_guides(stand_in, scene, cfg.frames, cfg.fps)
         finally:
             logging.disable(quiet)
+    # the controller on them: the tracking's correspondence (clusters within tracking.max_guide_distance,
+    # a cluster for each tracking point) failed only when its variant was assembled, after the free one
+    # had run (an outside probe, 2026-12-07); its warnings are the run's to say
+    quiet = logging.root.manager.disable
+    logging.disable(logging.WARNING)
+    try:
+        build_controller(str(_value(cfg.controller.name)), cfg, scene, guides)
+    finally:
+        logging.disable(quiet)
 
 
 def _assemble_scene(cfg, settle: bool):

@@ -34,7 +34,7 @@ from hairexp.evaluation.judges import JUDGES
 from hairexp.evaluation.measures import experiment_key_moment
 from hairexp.app.run import config_hash, inputs_inside, run, to_log_files, warnings_once, write_ending
 from hairexp.outputs.files import write_json
-from hairexp.outputs.folder import SUMMARY, claim, free_reserve, owner, reserve, unusable_folder
+from hairexp.outputs.folder import SUMMARY, claim, enclosing_run, free_reserve, owner, reserve, unusable_folder
 
 log = logging.getLogger("hairexp")
 
@@ -199,6 +199,10 @@ def run_experiment(cfg, out_dir, on_checked=None) -> dict:
     why = unusable_folder(str(out))   # as the command line refuses it before Hydra starts (it raised mkdir's
     if why is not None:               # bare FileNotFoundError; probe of issue 12, round 34)
         raise InputError(f"cannot be the run folder: {why}", str(out))
+    parent = enclosing_run(out)   # as the command line (an overwrite of that run then deleted this one; a probe)
+    if parent is not None:
+        raise InputError(f"lies inside {parent}, another run's folder (its {SUMMARY}); a run folder belongs to one "
+                         "run: choose a folder outside it", str(out))
     if not cfg.variants:
         return run(cfg, out, on_checked)
     with warnings_once():   # the variants' checks and runs say each warning once

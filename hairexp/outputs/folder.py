@@ -184,6 +184,15 @@ def _is_tmp(p: Path) -> bool:
     return ".tmp" in p.name
 
 
+def enclosing_run(folder) -> Path | None:
+    """The run folder ``folder`` lies inside (a parent holding a run's ``summary.json``), or None:
+    a run folder belongs to one run (the command line's and the API's check)."""
+    for parent in Path(os.path.abspath(folder)).parents:
+        if (parent / SUMMARY).is_file():
+            return parent
+    return None
+
+
 def _variant_names(folder: Path) -> set[str]:
     """The variants an experiment's ``summary.json`` in ``folder`` names: those it ran and those its
     config lists (an interrupted experiment's next variant has a folder before its entry); none for
