@@ -10,10 +10,11 @@ from omegaconf import OmegaConf
 
 from helpers import run_steps
 
+from hairexp.errors import InputError
 from hairexp.app.config import ColliderConfig, CollisionConfig, SceneConfig, SolverConfig
 from hairexp.physics.collisions import HairHair, object_stage
 from hairexp.physics.kernels import HAVE_NUMBA
-from hairexp.model.colliders import Cylinder, Plane, Sphere
+from hairexp.model.colliders import Box, Capsule, Cylinder, Plane, Sphere
 import hairexp.physics.simulator as simulator_module
 from hairexp.physics.simulator import Simulator
 from hairexp.app.builders import build_scene
@@ -235,25 +236,6 @@ def test_collider_motion_and_surface_velocity():
     np.testing.assert_allclose(s.surface_velocity(x, 0.5), [[1.0, 0.0, 0.0]], atol=1e-12)
     w = Cylinder("w", RigidMotion.static(), radius=0.1, half_height=0.1, spin=2.0)
     np.testing.assert_allclose(w.surface_velocity(np.array([[0.1, 0.0, 0.0]]), 0.0), [[0.0, 0.0, -0.2]], atol=1e-12)
-
-
-def test_a_spinning_cylinder_carries_a_surface_point_along_its_arc():
-    """``spin_displacement_body``: the point stays on the shell (a straight move by velocity x tau
-    left it by (spin tau)^2 r / 2), matches velocity x tau to first order, and is zero without spin."""
-    w = Cylinder("w", RigidMotion.static(), radius=0.1, half_height=0.1, spin=5.0, thickness=0.002)
-    X = np.array([[0.102, 0.03, 0.0], [0.0, -0.05, 0.102], [0.0721, 0.0, -0.0721]])
-    tau = np.array([0.04, 0.01, 0.3])
-    moved = X + w.spin_displacement_body(X, tau)
-    np.testing.assert_allclose(w.sdf_body(moved), w.sdf_body(X), rtol=0, atol=1e-15)
-    np.testing.assert_allclose(moved[:, 1], X[:, 1], rtol=0, atol=0)
-    straight = X + tau[:, None] * w.spin_velocity_body(X)
-    assert (w.sdf_body(straight) - w.sdf_body(X))[0] > 1e-3      # 2 mm off the shell at 5 rad/s x 0.04 s
-    small = np.full(3, 1e-6)
-    np.testing.assert_allclose(w.spin_displacement_body(X, small), small[:, None] * w.spin_velocity_body(X),
-                               rtol=0, atol=3e-12)   # the arc's second-order term, (spin tau)^2 r / 2 = 1.3e-12
-    still = Cylinder("s", RigidMotion.static(), radius=0.1, half_height=0.1)
-    assert not still.spin_displacement_body(X, tau).any()
-    assert not Sphere("b", RigidMotion.static(), radius=0.1).spin_displacement_body(X, tau).any()
 
 
 def _brute_force_reachable(hh, x0, x1):
@@ -975,3 +957,23 @@ def test_edge_candidates_kernel_is_the_numpy_selection():
         n = _edge_candidates(x, a, b, g, test, tol, out)
         assert 0 < ref.size < test.sum()
         np.testing.assert_array_equal(out[:n], ref)
+
+
+@pytest.mark.parametrize("make, key, said", [
+    (lambda m: Sphere("b", m, radius=float("nan")), "colliders.b.radius", "must be a finite number > 0"),
+    (lambda m: Sphere("b", m, radius=-1.0), "colliders.b.radius", "must be a finite number > 0"),
+    (lambda m: Sphere("b", m, radius=None), "colliders.b.radius", "must be a number"),
+    (lambda m: Sphere("b", None), "colliders.b.motion", "must be a RigidMotion"),
+    (lambda m: Sphere("b", m, thickness="1"), "colliders.b.thickness", "must be a number"),
+    (lambda m: Capsule("c", m, half_length=0.0), "colliders.c.half_length", "must be a finite number > 0"),
+    (lambda m: Cylinder("w", m, half_height=float("inf")), "colliders.w.half_height", "must be a finite number > 0"),
+    (lambda m: Cylinder("w", m, spin=None), "colliders.w.spin", "must be a number"),
+    (lambda m: Box("x", m, half_extents=(0.1, 0.0, 0.1)), "colliders.x.half_extents", "must be 3 finite numbers > 0"),
+])
+def test_collider_classes_refuse_bad_sizes(make, key, said):
+    """The Python classes took a NaN or negative radius (hair passed through a sphere of radius NaN
+    without a contact), None sizes and motions failed at the first step in the barrier (an outside
+    probe, 2026-12-07): the API refuses them as the config does, naming the field."""
+    with pytest.raises(InputError, match=said) as err:
+        make(RigidMotion.static())
+    assert err.value.where == key

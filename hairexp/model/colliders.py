@@ -30,6 +30,24 @@ MAX_THICKNESS = 1.0
 MAX_FRICTION = 100.0
 
 
+def _real(c, key: str) -> float:
+    """The collider's number ``key``, refused (InputError naming it) unless a real number."""
+    v = getattr(c, key)
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        raise InputError(f"must be a number, got {type(v).__name__} {v!r:.40}", c._key(key))
+    return float(v)
+
+
+def _sizes(c, *keys: str) -> None:
+    """The collider's lengths ``keys``, each a finite number > 0 (m): the Python classes took a NaN or
+    negative radius, and hair passed through a sphere of radius NaN without a contact (an outside
+    probe, 2026-12-07; the config's colliders were checked in ``build_collider`` only)."""
+    for key in keys:
+        v = _real(c, key)
+        if not (np.isfinite(v) and v > 0):
+            raise InputError(f"must be a finite number > 0 (m), got {v}", c._key(key))
+
+
 @dataclass
 class Collider:
     name: str
@@ -39,9 +57,14 @@ class Collider:
     where: str = ""           # the input it came from (a config key): errors name ``where.thickness`` etc.
 
     def _key(self, field: str) -> str:
-        return f"{self.where}.{field}" if self.where else f"colliders.{self.name}"
+        return f"{self.where}.{field}" if self.where else f"colliders.{self.name}.{field}"
 
     def __post_init__(self):
+        if not isinstance(self.motion, RigidMotion):   # None failed at the first step, in the barrier (a probe)
+            raise InputError(f"must be a RigidMotion (the collider's keyframed pose), got {type(self.motion).__name__}",
+                             self._key("motion"))
+        for key in ("thickness", "friction"):          # "1" or None: a raw TypeError of the comparison below
+            _real(self, key)
         # at most MAX_THICKNESS m and MAX_FRICTION: 1e300 diverged, "try a smaller solver.dt" (probe of issue 12, round 14)
         if not (0 <= self.thickness <= MAX_THICKNESS):
             raise InputError(f"thickness must be a finite number >= 0 and <= {MAX_THICKNESS:g} (m), got {self.thickness}",
@@ -62,11 +85,6 @@ class Collider:
         return _unit(g)
 
     def spin_velocity_body(self, X: np.ndarray) -> np.ndarray:
-        return np.zeros_like(X)
-
-    def spin_displacement_body(self, X: np.ndarray, tau: np.ndarray) -> np.ndarray:
-        """(n, 3): how far the surface's spin carries the body-frame points X (n, 3) in tau (n,)
-        seconds (zero without a spin)."""
         return np.zeros_like(X)
 
     # world queries -----------------------------------------------------------------------
@@ -104,6 +122,10 @@ class Collider:
 class Sphere(Collider):
     radius: float = 0.1
 
+    def __post_init__(self):
+        super().__post_init__()
+        _sizes(self, "radius")
+
     def sdf_body(self, X):
         return np.linalg.norm(X, axis=-1) - self.radius
 
@@ -119,6 +141,10 @@ class Capsule(Collider):
     """Segment along the body y axis from -half_length to +half_length, with a radius."""
     radius: float = 0.05
     half_length: float = 0.1
+
+    def __post_init__(self):
+        super().__post_init__()
+        _sizes(self, "radius", "half_length")
 
     def sdf_body(self, X):
         Q = X.copy()
@@ -138,6 +164,15 @@ class Capsule(Collider):
 class Box(Collider):
     half_extents: tuple = (0.1, 0.1, 0.1)
 
+    def __post_init__(self):
+        super().__post_init__()
+        try:
+            he = np.asarray(self.half_extents, dtype=np.float64)
+        except (TypeError, ValueError):
+            he = np.zeros(0)
+        if he.shape != (3,) or not (np.isfinite(he).all() and (he > 0).all()):
+            raise InputError(f"must be 3 finite numbers > 0 (m), got {self.half_extents!r:.60}", self._key("half_extents"))
+
     def sdf_body(self, X):
         q = np.abs(X) - np.asarray(self.half_extents)
         return np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(axis=-1), 0.0)
@@ -156,7 +191,8 @@ class Cylinder(Collider):
 
     def __post_init__(self):
         super().__post_init__()
-        if not np.isfinite(self.spin):
+        _sizes(self, "radius", "half_height")
+        if not np.isfinite(_real(self, "spin")):
             raise InputError(f"spin must be a finite number (rad/s), got {self.spin}", self._key("spin"))
 
     def sdf_body(self, X):
@@ -166,16 +202,6 @@ class Cylinder(Collider):
 
     def spin_velocity_body(self, X):
         return self.spin * np.cross(np.array([0.0, 1.0, 0.0]), X * np.array([1.0, 0.0, 1.0]))
-
-    def spin_displacement_body(self, X, tau):
-        """Along the arc about the axis (body y), by the angle spin x tau: a point on the shell stays on
-        it (the straight move tau x velocity left the shell by (spin tau)^2 r / 2: a vertex the
-        collision stage held on goaling's wheel ended 2 mm off it, out of reach of the contact planes,
-        carried 2 cm from its strand; independent probe, 2026-12-07)."""
-        a = self.spin * np.asarray(tau, dtype=np.float64)
-        c, s = np.cos(a), np.sin(a)
-        x, z = X[..., 0], X[..., 2]
-        return np.stack([x * c + z * s - x, np.zeros_like(x), -x * s + z * c - z], axis=-1)
 
     def bounding_radius(self):
         return float(np.hypot(self.radius, self.half_height))

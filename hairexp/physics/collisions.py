@@ -153,7 +153,7 @@ def object_positions(colliders, x0, x1, t0, t1, dt, movable, friction: bool = Tr
         n = col.normal_body(Xc)
         Xc = Xc + np.maximum(th - col.sdf_body(Xc), 0.0)[:, None] * n      # contact point on the shell
         rest = X1[h] - Xc                                                  # remaining relative move
-        spin = col.spin_displacement_body(Xc, dt * (1.0 - sh))            # surface motion over the rest
+        spin = dt * (1.0 - sh)[:, None] * col.spin_velocity_body(Xc)       # surface motion over the rest
         rel = rest - spin
         rn = np.sum(rel * n, axis=1)
         into = np.minimum(rn, 0.0)
