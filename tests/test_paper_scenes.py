@@ -49,13 +49,25 @@ def test_smoke_experiment_runs_every_variant_and_judges(name, tmp_path):
         assert m["soft"]["residual_rel_max"] <= 1e-6
 
 
-def test_failing_variant_marks_the_experiment_failed(tmp_path):
+def test_failing_variant_marks_the_experiment_failed(tmp_path, monkeypatch):
+    """A variant that fails while it runs (its checks passed: a bad tracking.max_guide_distance is
+    now refused before any variant runs, tests/test_run_folder.py) marks the experiment failed."""
+    import hairexp.app.experiment as experiment
+
+    real = experiment.run
+
+    def run(vcfg, out, *a, **k):
+        if out.name == "tracked":
+            raise RuntimeError("the tracked variant failed")
+        return real(vcfg, out, *a, **k)
+
+    monkeypatch.setattr(experiment, "run", run)
     cfg = experiment_cfg("goaling_smoke", "frames=2")
-    cfg.variants[1].overrides = ["controller.name=tracking", "tracking.max_guide_distance=1e-6"]
-    with pytest.raises(Exception):
+    with pytest.raises(RuntimeError):
         run_experiment(cfg, tmp_path)
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["status"] == "failed" and "tracked" in s["error"] and s["success"] is None
+    assert (tmp_path / "free" / "summary.json").is_file()      # the free variant had run
 
 
 def test_unknown_variant_key_is_an_input_error(tmp_path):
