@@ -173,11 +173,18 @@ def real(value, key: str, lo: float | None = None, hi: float | None = None, lo_o
          hi_open: bool = False) -> float:
     """``number`` for the Python API: ``value`` must already be a real number (an int, a float, a
     numpy scalar), not a string, None or a bool, which ``float()`` would take or turn into 1.0."""
+    return number(real_type(value, key), key, lo, hi, lo_open, hi_open)
+
+
+def real_type(value, key: str):
+    """``value`` itself when it is a real number (an int, a float, a numpy scalar; NaN and inf
+    too), else an InputError naming ``key``: a string, None or a bool (``real``'s first check, for
+    callers that check the range with messages of their own)."""
     import numbers
 
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise InputError(f"must be a real number, got {type(value).__name__} {value!r}", key)
-    return number(value, key, lo, hi, lo_open, hi_open)
+    return value
 
 
 def real_array(value, key: str):

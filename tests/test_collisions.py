@@ -962,12 +962,12 @@ def test_edge_candidates_kernel_is_the_numpy_selection():
 @pytest.mark.parametrize("make, key, said", [
     (lambda m: Sphere("b", m, radius=float("nan")), "colliders.b.radius", "must be a finite number > 0"),
     (lambda m: Sphere("b", m, radius=-1.0), "colliders.b.radius", "must be a finite number > 0"),
-    (lambda m: Sphere("b", m, radius=None), "colliders.b.radius", "must be a number"),
+    (lambda m: Sphere("b", m, radius=None), "colliders.b.radius", "must be a real number"),
     (lambda m: Sphere("b", None), "colliders.b.motion", "must be a RigidMotion"),
-    (lambda m: Sphere("b", m, thickness="1"), "colliders.b.thickness", "must be a number"),
+    (lambda m: Sphere("b", m, thickness="1"), "colliders.b.thickness", "must be a real number"),
     (lambda m: Capsule("c", m, half_length=0.0), "colliders.c.half_length", "must be a finite number > 0"),
     (lambda m: Cylinder("w", m, half_height=float("inf")), "colliders.w.half_height", "must be a finite number > 0"),
-    (lambda m: Cylinder("w", m, spin=None), "colliders.w.spin", "must be a number"),
+    (lambda m: Cylinder("w", m, spin=None), "colliders.w.spin", "must be a real number"),
     (lambda m: Box("x", m, half_extents=(0.1, 0.0, 0.1)), "colliders.x.half_extents", "must be 3 finite numbers > 0"),
 ])
 def test_collider_classes_refuse_bad_sizes(make, key, said):

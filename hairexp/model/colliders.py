@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, real_type
 from hairexp.model.rigid import RigidMotion
 
 EPS = 1e-12
@@ -28,24 +28,6 @@ def _unit(v):
 MAX_THICKNESS = 1.0
 #: a Coulomb friction coefficient at most this (rubber on rubber is about 1-2)
 MAX_FRICTION = 100.0
-
-
-def _real(c, key: str) -> float:
-    """The collider's number ``key``, refused (InputError naming it) unless a real number."""
-    v = getattr(c, key)
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        raise InputError(f"must be a number, got {type(v).__name__} {v!r:.40}", c._key(key))
-    return float(v)
-
-
-def _sizes(c, *keys: str) -> None:
-    """The collider's lengths ``keys``, each a finite number > 0 (m): the Python classes took a NaN or
-    negative radius, and hair passed through a sphere of radius NaN without a contact (an outside
-    probe, 2026-12-07; the config's colliders were checked in ``build_collider`` only)."""
-    for key in keys:
-        v = _real(c, key)
-        if not (np.isfinite(v) and v > 0):
-            raise InputError(f"must be a finite number > 0 (m), got {v}", c._key(key))
 
 
 @dataclass
@@ -64,7 +46,7 @@ class Collider:
             raise InputError(f"must be a RigidMotion (the collider's keyframed pose), got {type(self.motion).__name__}",
                              self._key("motion"))
         for key in ("thickness", "friction"):          # "1" or None: a raw TypeError of the comparison below
-            _real(self, key)
+            real_type(getattr(self, key), self._key(key))
         # at most MAX_THICKNESS m and MAX_FRICTION: 1e300 diverged, "try a smaller solver.dt" (probe of issue 12, round 14)
         if not (0 <= self.thickness <= MAX_THICKNESS):
             raise InputError(f"thickness must be a finite number >= 0 and <= {MAX_THICKNESS:g} (m), got {self.thickness}",
@@ -72,6 +54,15 @@ class Collider:
         if not (0 <= self.friction <= MAX_FRICTION):
             raise InputError(f"friction must be a finite number >= 0 and <= {MAX_FRICTION:g}, got {self.friction}",
                              self._key("friction"))
+
+    def _sizes(self, *keys: str) -> None:
+        """The lengths ``keys``, each a finite number > 0 (m): the Python classes took a NaN or
+        negative radius, and hair passed through a sphere of radius NaN without a contact (an
+        outside probe, 2026-12-07; the config's colliders were checked in ``build_collider`` only)."""
+        for key in keys:
+            v = float(real_type(getattr(self, key), self._key(key)))
+            if not (np.isfinite(v) and v > 0):
+                raise InputError(f"must be a finite number > 0 (m), got {v}", self._key(key))
 
     # shape interface (body frame) ------------------------------------------------------
     def sdf_body(self, X: np.ndarray) -> np.ndarray:
@@ -124,7 +115,7 @@ class Sphere(Collider):
 
     def __post_init__(self):
         super().__post_init__()
-        _sizes(self, "radius")
+        self._sizes("radius")
 
     def sdf_body(self, X):
         return np.linalg.norm(X, axis=-1) - self.radius
@@ -144,7 +135,7 @@ class Capsule(Collider):
 
     def __post_init__(self):
         super().__post_init__()
-        _sizes(self, "radius", "half_length")
+        self._sizes("radius", "half_length")
 
     def sdf_body(self, X):
         Q = X.copy()
@@ -191,8 +182,8 @@ class Cylinder(Collider):
 
     def __post_init__(self):
         super().__post_init__()
-        _sizes(self, "radius", "half_height")
-        if not np.isfinite(_real(self, "spin")):
+        self._sizes("radius", "half_height")
+        if not np.isfinite(real_type(self.spin, self._key("spin"))):
             raise InputError(f"spin must be a finite number (rad/s), got {self.spin}", self._key("spin"))
 
     def sdf_body(self, X):
