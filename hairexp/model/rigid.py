@@ -158,6 +158,16 @@ class RigidMotion:
                 self._key_rel[coaxial] = (b - a)[coaxial]
         self._rots = rots
         self._cache: dict = {}
+        # (K,) bool: the keys at ``jump_times`` (within TIME_TOL), found once (``velocity_jumps`` runs every step)
+        self._jump_keys = None
+        if self.jump_times is not None:
+            jt = np.sort(np.asarray(self.jump_times, dtype=np.float64).reshape(-1))
+            self._jump_keys = np.zeros(K, dtype=bool)
+            if jt.size:
+                j = np.searchsorted(jt, self.times)
+                near = np.minimum(np.abs(jt[np.clip(j - 1, 0, jt.size - 1)] - self.times),
+                                  np.abs(jt[np.clip(j, 0, jt.size - 1)] - self.times))
+                self._jump_keys = near <= TIME_TOL * np.maximum(1.0, np.abs(self.times))
 
     @staticmethod
     def static() -> "RigidMotion":
@@ -180,14 +190,7 @@ class RigidMotion:
         ts = self.times
         tol = TIME_TOL * max(1.0, abs(float(t0)), abs(float(t1)))
         span = MIN_SEGMENT_STEPS * (float(t1) - float(t0)) - tol
-        keyed = None
-        if self.jump_times is not None:
-            jt = np.asarray(self.jump_times, dtype=np.float64).reshape(-1)
-            keyed = np.zeros(len(ts), dtype=bool)
-            if jt.size:
-                j = np.clip(np.searchsorted(jt, ts), 1, max(jt.size - 1, 1))
-                near = np.minimum(np.abs(jt[j - 1] - ts), np.abs(jt[np.minimum(j, jt.size - 1)] - ts))
-                keyed = near <= TIME_TOL * np.maximum(1.0, np.abs(ts))
+        keyed = self._jump_keys
         for k in np.flatnonzero((ts >= t0 - tol) & (ts < t1 - tol) & (ts > since + tol)):
             if keyed is not None:
                 if not keyed[k]:
