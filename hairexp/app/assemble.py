@@ -171,19 +171,23 @@ def check_config(cfg, files: bool = True) -> None:
         check_simulated_guides(cfg)
         stand_in = copy.deepcopy(cfg)
         stand_in.guides.source = "rigid"
-        quiet = logging.root.manager.disable
-        logging.disable(logging.WARNING)   # the stand-in's warnings are not the run's (it says its own)
-        try:
+        with _no_warnings():   # the stand-in's warnings are not the run's (it says its own)
             guides = build_guides(stand_in, scene, cfg.frames, cfg.fps)
-        finally:
-            logging.disable(quiet)
     # the controller on them: the tracking's correspondence (clusters within tracking.max_guide_distance,
     # a cluster for each tracking point) failed only when its variant was assembled, after the free one
     # had run (an outside probe, 2026-12-07); its warnings are the run's to say
+    with _no_warnings():
+        build_controller(str(_value(cfg.controller.name)), cfg, scene, guides)
+
+
+@contextmanager
+def _no_warnings():
+    """Within it, no log record at WARNING or below is emitted (a check's build whose warnings the
+    run itself will say)."""
     quiet = logging.root.manager.disable
     logging.disable(logging.WARNING)
     try:
-        build_controller(str(_value(cfg.controller.name)), cfg, scene, guides)
+        yield
     finally:
         logging.disable(quiet)
 
