@@ -297,18 +297,19 @@ def read_motion(prim, tcps: float, where: str, allow_scale: bool = False) -> tup
     least one frame from the samples beside them; samples at every frame are a motion's samples."""
     check_transform_types(prim, where)
     xf = UsdGeom.Xformable(prim)
-    authored = transform_times(prim)
+    authored = np.asarray(transform_times(prim), dtype=np.float64)
+    if not authored.size:   # no time sample: the untimed value, still
+        tc = Usd.TimeCode.Default()
+        R, T, scale = pose_from_matrix(world_transform(xf, tc, where), where, tc, allow_scale)
+        return RigidMotion(np.zeros(1), T[None], Rotation.from_matrix(R).as_rotvec()[None], "linear",
+                           where=where), scale
     # a matrix op keyed at several times: USD interpolates its sixteen numbers one by one, which neither
     # turns nor keeps the size (hairexp's own result files key the body so): read at its samples only,
     # rigid between them
-    dense = bool(authored) and not _keyed_matrix(prim)
-    if not authored:
-        authored_secs, codes = None, [Usd.TimeCode.Default()]
-    else:
-        lo, hi = float(authored[0]), float(authored[-1])
-        frames = np.arange(math.ceil(lo), math.floor(hi) + 1.0) if dense and hi - lo <= MAX_POSE_FRAMES else np.zeros(0)
-        codes = np.union1d(np.asarray(authored, dtype=np.float64), frames).tolist()
-        authored_secs = np.asarray(authored, dtype=np.float64)
+    dense = not _keyed_matrix(prim)
+    lo, hi = float(authored[0]), float(authored[-1])
+    frames = np.arange(math.ceil(lo), math.floor(hi) + 1.0) if dense and hi - lo <= MAX_POSE_FRAMES else np.zeros(0)
+    codes = np.union1d(authored, frames).tolist()
     rots, trans, scale0, secs = [], [], None, []
 
     def add(tc, pose):
@@ -323,33 +324,29 @@ def read_motion(prim, tcps: float, where: str, allow_scale: bool = False) -> tup
                              "a collider's scale is part of its size, which cannot change", where)
         rots.append(R)
         trans.append(T)
-        secs.append(0.0 if isinstance(tc, Usd.TimeCode) else tc / tcps)
+        secs.append(tc / tcps)
 
-    if authored_secs is None:
-        add(codes[0], pose_from_matrix(world_transform(xf, codes[0], where), where, codes[0], allow_scale))
-    else:
-        prev = _pose_at(xf, codes[0], where, allow_scale)
-        add(codes[0], prev)
-        for a, b in zip(codes[:-1], codes[1:]):
-            end = _pose_at(xf, b, where, allow_scale)
-            # the segment [a, b] halved where its middle is not the linear motion's: depth first, in order
-            stack = [(a, prev, b, end, 0)]
-            while stack:
-                ta, pa, tb, pb, depth = stack.pop()
-                if dense and depth < POSE_SPLITS:
-                    tm = 0.5 * (ta + tb)
-                    pm = _pose_at(xf, tm, where, allow_scale)
-                    dx, dr = _mid_error(pa, pb, pm)
-                    if dx > POSE_TOL_M or dr > POSE_TOL_RAD:
-                        stack.append((tm, pm, tb, pb, depth + 1))
-                        stack.append((ta, pa, tm, pm, depth + 1))
-                        continue
-                add(tb, pb)
-            prev = end
+    prev = _pose_at(xf, codes[0], where, allow_scale)
+    add(codes[0], prev)
+    for a, b in zip(codes[:-1], codes[1:]):
+        end = _pose_at(xf, b, where, allow_scale)
+        # the segment [a, b] halved where its middle is not the linear motion's: depth first, in order
+        stack = [(a, prev, b, end, 0)]
+        while stack:
+            ta, pa, tb, pb, depth = stack.pop()
+            if dense and depth < POSE_SPLITS:
+                tm = 0.5 * (ta + tb)
+                pm = _pose_at(xf, tm, where, allow_scale)
+                dx, dr = _mid_error(pa, pb, pm)
+                if dx > POSE_TOL_M or dr > POSE_TOL_RAD:
+                    stack.append((tm, pm, tb, pb, depth + 1))
+                    stack.append((ta, pa, tm, pm, depth + 1))
+                    continue
+            add(tb, pb)
+        prev = end
     rv = Rotation.from_matrix(np.asarray(rots)).as_rotvec()   # between keys the shortest turn: the reads are close
-    keys = _keyframes(authored_secs) if authored_secs is not None else None
     return RigidMotion(np.asarray(secs), np.asarray(trans), rv, "linear", where=where,
-                       jump_times=None if keys is None else keys / tcps), scale0
+                       jump_times=_keyframes(authored) / tcps), scale0
 
 
 def _keyed_matrix(prim) -> bool:
