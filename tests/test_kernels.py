@@ -495,15 +495,15 @@ def test_degenerate_iterate_is_non_finite_not_an_exception():
 
 
 def test_newton_predicts_the_last_evaluation():
-    """``newton._likely_converged``: after a full step, quadratic convergence from the last two
+    """``newton.likely_converged``: after a full step, quadratic convergence from the last two
     gradient norms; never after a shortened step or without two norms.  It only picks the fused
     pass or evaluate + solve, whose results are the same (test_newton_solve_agrees_...)."""
-    from hairexp.physics.newton import _likely_converged
+    from hairexp.physics.newton import likely_converged
 
-    assert _likely_converged([1e-2, 1e-4], 1.0, 1e-7)        # predicted 1e-8
-    assert not _likely_converged([1e-2, 1e-4], 1.0, 1e-9)
-    assert not _likely_converged([1e-2, 1e-4], 0.5, 1e-7)    # shortened step: no rate
-    assert not _likely_converged([1e-4], 1.0, 1.0)
+    assert likely_converged([1e-2, 1e-4], 1.0, 1e-7)        # predicted 1e-8
+    assert not likely_converged([1e-2, 1e-4], 1.0, 1e-9)
+    assert not likely_converged([1e-2, 1e-4], 0.5, 1e-7)    # shortened step: no rate
+    assert not likely_converged([1e-4], 1.0, 1.0)
 
 
 @pytest.mark.parametrize("kind", ["straight", "bent", "mixed"])

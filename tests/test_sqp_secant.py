@@ -175,13 +175,12 @@ def test_correction_cuts_the_iterations_of_a_buckling_wisp():
 
 
 def test_prediction_rule_needs_a_full_step_and_quadratic_decrease():
-    opts = S.SQPOptions()
-    assert not S._likely_converged([(100.0, 0.0)], 1.0, opts)                 # one iterate: no rate yet
-    assert S._likely_converged([(100.0, 5.0), (0.5, 0.01)], 1.0, opts)      # both already within
-    assert S._likely_converged([(100.0, 0.0), (5.0, 0.0)], 1.0, opts)       # 5 (5/100)^2 = 0.0125
-    assert not S._likely_converged([(100.0, 0.0), (5.0, 0.0)], 0.5, opts)   # a cut step
-    assert not S._likely_converged([(10.0, 0.0), (5.0, 0.0)], 1.0, opts)    # 5 (1/2)^2 > 1: linear rate
-    assert not S._likely_converged([(100.0, 40.0), (5.0, 20.0)], 1.0, opts)  # the constraints lag
+    assert not S._likely_converged([(100.0, 0.0)], 1.0)                 # one iterate: no rate yet
+    assert S._likely_converged([(100.0, 5.0), (0.5, 0.01)], 1.0)      # both already within
+    assert S._likely_converged([(100.0, 0.0), (5.0, 0.0)], 1.0)       # 5 (5/100)^2 = 0.0125
+    assert not S._likely_converged([(100.0, 0.0), (5.0, 0.0)], 0.5)   # a cut step
+    assert not S._likely_converged([(10.0, 0.0), (5.0, 0.0)], 1.0)    # 5 (1/2)^2 > 1: linear rate
+    assert not S._likely_converged([(100.0, 40.0), (5.0, 20.0)], 1.0)  # the constraints lag
 
 
 @pytest.mark.parametrize("integrator", ["implicit_euler", "trbdf2"])
@@ -217,7 +216,7 @@ def test_gradient_only_evaluation_at_a_predicted_solution_changes_nothing(monkey
 def test_prediction_ratios_with_a_zero_tolerance():
     """tracking.atol = 0 and a hair at rest (no force): the tolerance is 0, met by a zero residual only."""
     assert S._ratio(0.0, 0.0) == 0.0 and S._ratio(1e-300, 0.0) == float("inf") and S._ratio(2.0, 4.0) == 0.5
-    assert not S._likely_converged([(float("inf"), 0.0), (float("inf"), 0.0)], 1.0, S.SQPOptions())
+    assert not S._likely_converged([(float("inf"), 0.0), (float("inf"), 0.0)], 1.0)
 
 
 def test_a_hair_at_rest_with_a_zero_absolute_tolerance_steps():

@@ -67,7 +67,7 @@ def _evaluate(obj, x: np.ndarray, want_step: bool = True):
     return step(x)
 
 
-def _likely_converged(norms: list, alpha: float, tol: float) -> bool:
+def likely_converged(norms: list, alpha: float, tol: float) -> bool:
     """Whether the next iterate's gradient norm is predicted below ``tol``: after a full step, by
     quadratic convergence from the last two norms, g_next = g_k (g_k / g_k-1)^2.  Only chooses
     between the fused pass and evaluate + solve (the same results); a wrong guess costs time only:
@@ -129,6 +129,6 @@ def newton_solve(obj: ImplicitEulerObjective, x0: np.ndarray, opts: NewtonOption
         f = f_new
         # gradient and Hessian together: a separate gradient-only check would repeat most of
         # the derivative work on every iterate that is not yet converged
-        ev, p = _evaluate(obj, x, not _likely_converged(norms, alpha, opts.atol + opts.rtol * ev.force_scale))
+        ev, p = _evaluate(obj, x, not likely_converged(norms, alpha, opts.atol + opts.rtol * ev.force_scale))
         if obj.contact is not None and getattr(obj.contact, "lagged", True):
             f = obj.value(x)   # the contact's friction lag moved with the evaluation

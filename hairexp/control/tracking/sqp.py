@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hairexp.physics.assembly import band_product
+from hairexp.physics.newton import likely_converged
 from hairexp.physics.info import CONVERGED, DIVERGED, LINE_SEARCH_FAILED, MAX_ITERATIONS, SINGULAR, SolveInfo
 from hairexp.control.tracking.kkt import reference_solve
 
@@ -157,17 +158,15 @@ def _ratio(value: float, tol: float) -> float:
     return 0.0 if value == 0.0 else math.inf
 
 
-def _likely_converged(norms: list, alpha: float, opts) -> bool:
-    """Whether the next iterate is predicted to meet the tolerances: after a full step, by
-    quadratic convergence from the last two iterates' |grad L| / its tolerance and max |C| /
-    ctol, r_next = r_k (r_k / r_k-1)^2 (as ``newton._likely_converged``).  Only chooses whether
-    the band is assembled with the gradient; a wrong guess costs a second evaluation."""
+def _likely_converged(norms: list, alpha: float) -> bool:
+    """Whether the next iterate is predicted to meet the tolerances: after a full step, each of
+    the last iterate's |grad L| / its tolerance and max |C| / ctol within 1 already, or predicted
+    within 1 by quadratic convergence from the last two (``newton.likely_converged``).  Only
+    chooses whether the band is assembled with the gradient; a wrong guess costs a second
+    evaluation."""
     if alpha != 1.0 or len(norms) < 2:
         return False
-    for now, before in zip(norms[-1], norms[-2]):
-        if now > 1.0 and not (before > 0.0 and now * (now / before) ** 2 <= 1.0):
-            return False
-    return True
+    return all(now <= 1.0 or likely_converged([before, now], alpha, 1.0) for now, before in zip(norms[-1], norms[-2]))
 
 
 def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, opts: SQPOptions,
@@ -214,7 +213,7 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
     while True:
         # at an iterate predicted to meet the tolerances (``_likely_converged``) the gradient alone
         # first: the band is assembled only if it did not (the same gradient, bit for bit)
-        hess_now = lagged or not _likely_converged(done_norms, alpha, opts)
+        hess_now = lagged or not _likely_converged(done_norms, alpha)
         ev = obj.evaluate(x, need_hessian=hess_now)
         if lagged:   # the contact's friction lag moved with the evaluation
             f, C = merit_parts(x, t)
