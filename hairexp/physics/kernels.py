@@ -38,6 +38,7 @@ cache (the inlined loops are compiled once per kernel that contains them).
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -61,8 +62,6 @@ try:  # numba is a dependency, but a missing or broken install must not stop the
             _numba_save_overload(self, sig, data)
         except OSError as exc:
             if not _CACHE_WARNED:
-                import logging
-
                 where = getattr(self, "_cache_path", "numba's cache folder")
                 _CACHE_WARNED.append(str(exc))
                 logging.getLogger("hairexp").warning(
@@ -90,8 +89,6 @@ try:  # numba is a dependency, but a missing or broken install must not stop the
             if func is None or not str(getattr(func, "__module__", "")).startswith("hairexp."):
                 return
             self.said = True
-            import logging
-
             logging.getLogger("hairexp").info(
                 "numba is compiling hairexp's kernels (%s first): once per checkout and code path, up to a few "
                 "minutes on 2 cores; later runs load them from the compile cache", func.__name__)
@@ -113,8 +110,6 @@ try:  # numba is a dependency, but a missing or broken install must not stop the
             except RuntimeError as exc:
                 if not kwargs.get("cache") or "cannot cache" not in str(exc):
                     raise
-                import logging
-
                 logging.getLogger(__name__).debug("numba cache unavailable for %s (%s)", f.__name__, exc)
                 return _numba_njit(**dict(kwargs, cache=False))(f)
 
