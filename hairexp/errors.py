@@ -158,6 +158,27 @@ def number(value, key: str, lo: float | None = None, hi: float | None = None, lo
     return v
 
 
+def choice(value, key: str, choices) -> str:
+    """``value`` (a string, or a string Enum such as the config's) when it is one of ``choices``,
+    else an InputError naming ``key`` and the choices.  For the Python API, where a dataclass
+    config takes any value: ``SolverConfig(on_failure="ignore")`` ran as ``substep`` would not
+    and ``derivatives="bogus"`` as the closed forms (probe of issue 16)."""
+    raw = getattr(value, "value", value)
+    if not isinstance(raw, str) or raw not in choices:
+        raise InputError(f"must be one of {'|'.join(choices)}, got {type(raw).__name__} {raw!r:.60}", key)
+    return raw
+
+
+def flag(value, key: str) -> bool:
+    """``value`` when it is a bool (numpy's too), else an InputError naming ``key``: in the Python
+    API ``CollisionConfig(objects="no")`` was true, and switched the colliders on (probe of issue 16)."""
+    import numpy as np
+
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputError(f"must be true or false, got {type(value).__name__} {value!r:.60}", key)
+    return bool(value)
+
+
 def integer(value, key: str, lo: int) -> int:
     """``value`` as an int >= lo (a bool is not one; a numpy integer is), or an InputError naming ``key``."""
     import numbers

@@ -24,7 +24,7 @@ def _one_strand_scene():
     ({"skin": float("inf"), "hair_hair": True}, "collision.skin", "got inf"),
     ({"max_passes": 0, "hair_hair": True}, "collision.max_passes", "must be >= 1, got 0"),
     ({"strain_limit": -0.5}, "collision.strain_limit", "must be >= 0 and < 1, got -0.5"),
-    ({"contact": "nope"}, "collision.contact", "unknown contact 'nope' (barrier|stage)"),
+    ({"contact": "nope"}, "collision.contact", "must be one of barrier|stage, got str 'nope'"),
 ])
 def test_the_simulator_checks_its_collision_settings_as_the_command_line_does(settings, key, said):
     """``Simulator(..., collision_cfg=CollisionConfig(hair_thickness=10, hair_hair=True))`` ran three

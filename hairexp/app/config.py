@@ -811,6 +811,12 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
             hint = " (an override is key=value)" if bad is not None and "=" not in bad else ""
             raise InputError(f"not a valid override: {(why or ['a syntax error'])[0].strip()}{hint}",
                              bad if bad is not None else "overrides") from exc
+        ambiguous = re.match(r"Ambiguous value for argument '([^=']+)=([^']*)'", str(exc))
+        if ambiguous and not unknown:   # a sweep's comma list: Hydra's four-line message (probe of issue 16)
+            raise InputError(f"{ambiguous.group(2)!r} is several values: compose_config composes one config; give "
+                             f"one value, a list as {ambiguous.group(1)}=[a,b], a string with commas quoted "
+                             f"({ambiguous.group(1)}='a,b'), or sweep on the command line (python -m hairexp -m ...)",
+                             ambiguous.group(1)) from exc
         group = re.search(r"Config group override must be a string or a list. Got (\w+)", str(exc))
         if group and not unknown:   # experiment=null: Hydra's message named no key (probe, round 14)
             key = next((o.split("=", 1)[0].lstrip("+~") for o in overrides if re.fullmatch(r"[+~]{0,2}[\w/]+=(null|~)?", o)),

@@ -12,10 +12,10 @@ hairexp/guides/, tracking.points_per_guide and tracking.variance.* in hairexp/co
 controller.attract_stiffness hairexp/control/attract.py).  The rest are checked here, and so are
 the ranges of controller.attract_stiffness and scene.body.* whether or not their layer reads
 them (``_unused``: a free run never builds the attract controller, a keyframed body no block).
-The tracking layer's own checks of tracking.points_per_guide (and the point placement and
-assignment) and tracking.variance.* are called here too (``check_correspondence_options``,
-``check_variance_config``): an experiment checks every variant's config before the first runs,
-and a free variant never builds the tracking controller (probe of issue 12, round 9).
+The tracking layer's own checks of tracking.* (hairexp/control/tracking/controller.py
+``check_tracking_config``, which the controller runs when built) are called here too: an
+experiment checks every variant's config before the first runs, and a free variant never builds
+the tracking controller (probe of issue 12, round 9).
 ``solver.integrator`` is checked by hairexp/physics/integrators.py ``make_integrator`` (and
 ``solver.kernels`` / ``solver.threads`` by hairexp/physics/strand_kernels.py ``check_options``), called
 here too so that a bad name fails before the settle phase and the guides are simulated.
@@ -30,9 +30,8 @@ from omegaconf import OmegaConf
 
 from hairexp.app.config import ColliderConfig, MeasureConfig, changed_keys
 from hairexp.errors import MAX_SPEED, InputError, integer, number
-from hairexp.control.tracking.correspondence import check_correspondence_options
+from hairexp.control.tracking.controller import MAX_POINTS_PER_GUIDE, check_tracking_config  # noqa: F401
 from hairexp.control.tracking.kkt import MAX_SCHUR_BYTES, schur_bytes
-from hairexp.control.tracking.variance import check_variance_config
 from hairexp.evaluation.judges import JUDGE_MEASURES, missing_controllers
 from hairexp.guides.authoring import check_edits
 from hairexp.model.builders import check_spin
@@ -53,9 +52,6 @@ def _value(x):
     return getattr(x, "value", x)
 
 
-#: ``tracking.krylov_max`` at most this: a KKT solve's GMRES keeps krylov_max basis rows as long
-#: as the hair's vertex coordinates (Celia: 188 kB a row); the default is 16
-MAX_KRYLOV = 1000
 
 
 def keyframes(times, key_times: str, values: dict) -> None:
@@ -76,11 +72,6 @@ def keyframes(times, key_times: str, values: dict) -> None:
 
 def _solver(s) -> None:
     check_solver_config(s)   # hairexp/physics/simulator.py: the Simulator checks the same when built directly
-
-
-#: tracking.points_per_guide at most: beyond, most clusters are empty (a warning each) and the
-#: correspondence's (vertices, points) distance table grows without bound (1e7 points: 14 GB for 60 vertices)
-MAX_POINTS_PER_GUIDE = 256
 
 
 #: guides.count x tracking.points_per_guide at most, for the guides the config makes (a guide file's or
@@ -113,39 +104,7 @@ def _clusters(cfg) -> None:
 
 
 def _tracking(t) -> None:
-    rtol = number(t.rtol, "tracking.rtol", lo=0, hi=1, hi_open=True)   # >= 1 accepts the first iterate (round 14)
-    atol = number(t.atol, "tracking.atol", lo=0, hi=MAX_ATOL)
-    if rtol == 0 and atol == 0:
-        raise InputError("tracking.rtol and tracking.atol are both 0: no step can converge; give one > 0",
-                         "tracking.rtol")
-    number(t.ctol_rel, "tracking.ctol_rel", lo=0, hi=0.1, lo_open=True)   # of the hair length: 1e300 met nothing
-    if integer(t.max_iterations, "tracking.max_iterations", 1) > MAX_ITERATION_BUDGET:
-        raise InputError(f"must be at most {MAX_ITERATION_BUDGET} (an SQP solve takes 2-60 iterations; one that has "
-                         f"not converged in {MAX_ITERATION_BUDGET} will not), got {t.max_iterations}",
-                         "tracking.max_iterations")
-    if integer(t.nonmonotone, "tracking.nonmonotone", 1) > MAX_ITERATION_BUDGET:   # a window of past merits
-        raise InputError(f"must be <= {MAX_ITERATION_BUDGET}, got {t.nonmonotone}", "tracking.nonmonotone")
-    number(t.krylov_tol, "tracking.krylov_tol", lo=0, hi=1e-2, lo_open=True)   # relative residual of each KKT solve
-    if integer(t.krylov_max, "tracking.krylov_max", 1) > MAX_KRYLOV:   # 1e9: a 536 GiB basis (probe, round 14)
-        raise InputError(f"must be <= {MAX_KRYLOV} (GMRES iterations of one KKT solve before the Schur complement is "
-                         f"rebuilt; each keeps a basis row of every hair vertex), got {t.krylov_max}", "tracking.krylov_max")
-    number(t.max_guide_distance, "tracking.max_guide_distance", lo=0)
-    number(t.elastic_stiffness, "tracking.elastic_stiffness", lo=0, hi=1e9, lo_open=True)
-    number(t.blend_width, "tracking.blend_width", lo=0, hi=10.0, lo_open=True)   # m; 1e300 overflowed (round 14)
-    n = t.points_per_guide   # >= 1: hairexp/control/tracking/correspondence.py, checked here too
-    check_correspondence_options(n, str(_value(t.point_placement)), str(_value(t.assignment)))
-    check_variance_config(t.variance)   # hairexp/control/tracking/variance.py
-    if isinstance(n, int) and n > MAX_POINTS_PER_GUIDE:
-        raise InputError(f"must be <= {MAX_POINTS_PER_GUIDE} (the paper uses 8; each point is a cluster with 3 "
-                         "constraints per guide, and the correspondence holds a vertices x points distance table), "
-                         f"got {n}", "tracking.points_per_guide")
-    for i, p in enumerate(t.variance.points):
-        if integer(p, f"tracking.variance.points[{i}]", 0) >= max(int(n), 1):
-            raise InputError(f"is {p}, but tracking points are numbered 0..{int(n) - 1} along each guide "
-                             f"(tracking.points_per_guide={n})", f"tracking.variance.points[{i}]")
-        if p in list(t.variance.points)[:i]:   # accepted without a word (probe of issue 12, round 13)
-            raise InputError(f"is {p}, given twice (at [{list(t.variance.points).index(p)}] too): list each tracking "
-                             "point once", f"tracking.variance.points[{i}]")
+    check_tracking_config(t)   # hairexp/control/tracking/controller.py: the controller checks the same when built directly
 
 
 def _collision(c) -> None:

@@ -23,7 +23,7 @@ from hairexp.model.colliders import SHAPES
 from hairexp.model.dynamic_body import build_dynamic_body
 from hairexp.model.rigid import MAX_KEY_DEGREES, RigidMotion
 from hairexp.model.scene import MATERIAL_MAX, MAX_GRAVITY, MIN_LINEAR_DENSITY, Material, Scene
-from hairexp.model.strands import Strands
+from hairexp.model.strands import MAX_STRAND_LENGTH, Strands
 
 
 def vec3(v, key: str) -> np.ndarray:
@@ -67,7 +67,7 @@ def line_points(n: int, radius: float) -> np.ndarray:
 
 
 #: m, the longest hair and the widest root disk a procedural builder makes (hair is metres long at most)
-MAX_HAIR_SIZE = 100.0
+MAX_HAIR_SIZE = MAX_STRAND_LENGTH
 #: m, the shortest rest edge a built strand may have (scene.length / (n_vertices - 1)): 30 cm in
 #: 4,000 vertices (75 um edges) already failed its first step, 100,000 ran for minutes without one
 MIN_REST_EDGE = 1e-4

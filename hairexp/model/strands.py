@@ -12,12 +12,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hairexp.errors import MAX_COORDINATE, InputError, real, real_array, whole_array
+from hairexp.errors import MAX_COORDINATE, InputError, check_extent, real, real_array, whole_array
 
 #: Vertices per strand held kinematically by the root rigid body.
 N_ROOT_VERTICES = 2
 #: An edge shorter than this (m) is treated as zero-length input.
 MIN_EDGE_LENGTH = 1e-9
+#: m, the longest strand ``Strands.from_polylines`` builds (hair is metres long at most; the
+#: procedural builders' scene.length has the same bound): a 22 km strand of a stage in millimetres
+#: read as metres was built, and a curve at 1e300 m made an infinite length (probe of issue 16)
+MAX_STRAND_LENGTH = 100.0
 
 
 #: the largest turn between two consecutive edges of a curve that ``validate_polylines`` accepts (degrees)
@@ -59,6 +63,7 @@ def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_v
         v = int(np.flatnonzero(bad)[0])
         s = int(np.searchsorted(offsets, v, side="right") - 1)
         raise InputError(f"curve {s} vertex {v - offsets[s]} is not finite: {points[v].tolist()}", where)
+    check_extent(points, where, counts)   # a point 1e300 away: a unit error, named before its infinite length
     with np.errstate(over="ignore", invalid="ignore"):   # points near 1e300: inf lengths, which the extent check names
         seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
     within = within_curves(offsets, len(seg))
@@ -183,6 +188,12 @@ class Strands:
         starts = np.flatnonzero(~is_last)
         edges = np.stack([starts, starts + 1], axis=1)
         rest_lengths = np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)
+        lengths = np.add.reduceat(rest_lengths, first - np.arange(len(first))) if len(rest_lengths) else np.zeros(0)
+        long = np.flatnonzero(lengths > MAX_STRAND_LENGTH)
+        if len(long):
+            c = int(long[0])
+            raise InputError(f"curve {c} is {lengths[c]:.6g} m long, more than {MAX_STRAND_LENGTH:g} m: hair is metres long "
+                             "at most; hairexp reads metres (check the units of the input)", where)
         mids = np.flatnonzero(~is_first & ~is_last)
         bends = np.stack([mids - 1, mids, mids + 1], axis=1)
         masses = np.zeros(V)

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from hairexp import tune_runtime
-from hairexp.errors import MIN_STEP_DT, InputError, SimulationError, finite_number, integer, number
+from hairexp.errors import MIN_STEP_DT, InputError, SimulationError, choice, finite_number, flag, integer, number
 from hairexp.model.scene import Scene
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact, sweep_substeps
 from hairexp.physics.collisions import (CollisionInfo, HairHair, StrainLimit, collision_stage, contact_velocities,
@@ -179,9 +179,11 @@ def check_solver_config(s) -> None:
                          f"dt, rtol, atol, max_iterations, ...), got {type(s).__name__}", "solver")
     make_integrator(getattr(s, "integrator", DEFAULT_INTEGRATOR))   # InputError naming solver.integrator
     check_options(getattr(s, "kernels", "numba"), getattr(s, "threads", "auto"))   # solver.kernels, solver.threads
-    if hasattr(s, "restart_at_jumps") and not isinstance(_value(s.restart_at_jumps), (bool, np.bool_)):
-        raise InputError(f"must be true or false, got {type(_value(s.restart_at_jumps)).__name__} "
-                         f"{_value(s.restart_at_jumps)!r:.40}", "solver.restart_at_jumps")
+    if hasattr(s, "restart_at_jumps"):
+        flag(_value(s.restart_at_jumps), "solver.restart_at_jumps")
+    for key, choices in SOLVER_CHOICES.items():   # the config's Enums; any value in a dataclass of the API
+        if hasattr(s, key):
+            choice(getattr(s, key), f"solver.{key}", choices)
     # >= 1, or an absolute tolerance above hair's forces (mN), accepts the first iterate (probe of issue 12, round 14)
     rtol = number(s.rtol, "solver.rtol", lo=0, hi=1, hi_open=True)
     if hasattr(s, "stage_rtol_factor"):
@@ -214,6 +216,14 @@ def check_solver_config(s) -> None:
                          f"{2 ** MAX_SUBSTEP_LEVELS} at {MAX_SUBSTEP_LEVELS}), got {s.max_substep_levels}",
                          "solver.max_substep_levels")
 
+
+#: the solver's choices (hairexp/app/config.py's Enums, which a test compares): checked by
+#: ``check_solver_config`` for a config of the Python API, whose dataclass takes any value
+SOLVER_CHOICES = {"derivatives": ("closed_form", "autograd"), "stretch_hessian": ("primal_dual", "penalty"),
+                  "compile": ("auto", "on", "off"), "on_failure": ("substep", "warn", "fail")}
+#: the collision settings' choices and switches (``check_collision_config``)
+COLLISION_CHOICES = {"contact": ("barrier", "stage"), "hair_hair_model": ("edges", "volume")}
+COLLISION_FLAGS = ("objects", "hair_hair", "friction", "edge_response", "resolve", "plane_friction")
 
 #: solver.stage_rtol_factor at most this (rtol x the factor is capped at STAGE_RTOL_CAP anyway)
 MAX_STAGE_RTOL_FACTOR = 1e6
@@ -269,11 +279,12 @@ def check_collision_config(c) -> None:
         if c.max_travel_substeps > MAX_TRAVEL_SUBSTEPS:   # each substep is a whole step's solve
             raise InputError(f"must be <= {MAX_TRAVEL_SUBSTEPS}, got {c.max_travel_substeps}",
                              "collision.max_travel_substeps")
-    for key, choices in (("contact", ("barrier", "stage")), ("hair_hair_model", ("edges", "volume"))):
+    for key, choices in COLLISION_CHOICES.items():
         if hasattr(c, key):
-            mode = str(_value(getattr(c, key)))
-            if mode not in choices:
-                raise InputError(f"unknown {key} {mode!r} ({'|'.join(choices)})", f"collision.{key}")
+            choice(getattr(c, key), f"collision.{key}", choices)
+    for key in COLLISION_FLAGS:
+        if hasattr(c, key):
+            flag(_value(getattr(c, key)), f"collision.{key}")
 
 
 class Simulator:
@@ -860,14 +871,21 @@ class Simulator:
         if dt < MIN_STEP_DT:   # 1e-300: the inertia M/dt^2 overflowed and the step "diverged" (probe of issue 12)
             raise InputError(f"dt={dt!r} s is below {MIN_STEP_DT:g} s: the inertia term M/dt^2 then swamps every force "
                              "in double precision (or overflows)", "Simulator.step")
+        # InputErrors (ValueErrors) naming the state's field, the vertex and its strand (probe of issue 16)
         if not isinstance(state.time, (int, float, np.integer, np.floating)) or not np.isfinite(state.time):
-            raise ValueError(f"Simulator.step: the state's time must be a finite number (s), got {state.time!r}")
+            raise InputError(f"the state's time must be a finite number (s), got {state.time!r}", "Simulator.step: state.time")
         shape = (self.scene.strands.n_vertices, 3)
         if np.shape(state.x) != shape or np.shape(state.v) != shape:   # an IndexError deep in the step (probe of issue 12)
-            raise ValueError(f"Simulator.step: the state's positions and velocities must have the scene's shape {shape}, "
-                             f"got {np.shape(state.x)} and {np.shape(state.v)}")
-        if not (np.isfinite(state.x).all() and np.isfinite(state.v).all()):
-            raise ValueError("Simulator.step: the state's positions or velocities are not finite")
+            raise InputError(f"the state's positions and velocities must have the scene's shape {shape}, "
+                             f"got {np.shape(state.x)} and {np.shape(state.v)}", "Simulator.step: state.x, state.v")
+        for field, what in (("x", "positions"), ("v", "velocities")):
+            values = np.asarray(getattr(state, field))
+            if not np.isfinite(values).all():
+                bad = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
+                strand = int(self.scene.strands.strand_of_vertex[bad])
+                raise InputError(f"the state's {what} are not finite: vertex {bad} (strand {strand}, vertex "
+                                 f"{bad - int(self.scene.strands.offsets[strand])} along it) is {values[bad].tolist()}",
+                                 f"Simulator.step: state.{field}")
         t0 = time.perf_counter()
         self._attempted = 0
         self._last_attempts, self._last_failed = 0, False

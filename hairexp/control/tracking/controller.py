@@ -10,14 +10,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.linalg
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, choice, flag, integer, number
 from hairexp.control.tracking.constraints import TrackingConstraints
-from hairexp.control.tracking.correspondence import build_correspondence
+from hairexp.control.tracking.correspondence import build_correspondence, check_correspondence_options
 from hairexp.control.tracking.kkt import KRYLOV_TOL, SCHUR_MODES, SchurKKT
 from hairexp.control.tracking.sqp import SQPOptions, sqp_solve
-from hairexp.control.tracking.variance import VarianceControl
+from hairexp.control.tracking.variance import VarianceControl, check_variance_config
 from hairexp.guides.animation import GuideAnimation
 from hairexp.physics.controller import Controller, scaled_iterations
+from hairexp.physics.simulator import MAX_ATOL, MAX_ITERATION_BUDGET
 
 
 def _v(x):
@@ -35,6 +36,69 @@ RESTORE_MIN_SHARE = 0.25
 #: ``restore_unmet``: a cluster still this far off target (a fraction of the hair length) after the
 #: restore's last round is reported relaxed (issue 14's residual bound)
 RESTORE_REPORT_TOL = 1e-6
+
+
+#: ``tracking.krylov_max`` at most this: a KKT solve's GMRES keeps krylov_max basis rows as long
+#: as the hair's vertex coordinates (Celia: 188 kB a row); the default is 16
+MAX_KRYLOV = 1000
+#: tracking.points_per_guide at most: beyond, most clusters are empty (a warning each) and the
+#: correspondence's (vertices, points) distance table grows without bound (1e7 points: 14 GB for 60 vertices)
+MAX_POINTS_PER_GUIDE = 256
+#: the tracking settings' choices (hairexp/app/config.py's Enums, which a test compares) and switches
+TRACKING_CHOICES = {"targets": ("static", "sliding"), "kkt": ("schur", "reference"), "schur": SCHUR_MODES}
+TRACKING_FLAGS = ("exact_compression", "secant", "elastic", "restore")
+
+
+def check_tracking_config(t) -> None:
+    """The tracking settings (``tracking.*``: hairexp/app/config.py TrackingConfig, or any object
+    with its attributes) an SQP can run with, or an InputError naming the key: checked by the
+    config's validation and by ``TrackingController`` itself, so that the Python API refuses what
+    the command line does (a dataclass config took ``kkt="bogus"`` as the Schur solve and
+    ``elastic="no"`` as true; probe of issue 16).  Optional attributes the object lacks are left
+    out (their defaults apply)."""
+    if isinstance(t, (dict, str, bytes)) or not hasattr(t, "rtol"):
+        raise InputError(f"must be a tracking config (hairexp.app.config.TrackingConfig, or an object with its "
+                         f"attributes: targets, assignment, points_per_guide, rtol, ...), got {type(t).__name__}",
+                         "tracking")
+    for key, choices in TRACKING_CHOICES.items():
+        if hasattr(t, key):
+            choice(getattr(t, key), f"tracking.{key}", choices)
+    for key in TRACKING_FLAGS:
+        if hasattr(t, key):
+            flag(_v(getattr(t, key)), f"tracking.{key}")
+    rtol = number(t.rtol, "tracking.rtol", lo=0, hi=1, hi_open=True)   # >= 1 accepts the first iterate (round 14)
+    atol = number(t.atol, "tracking.atol", lo=0, hi=MAX_ATOL)
+    if rtol == 0 and atol == 0:
+        raise InputError("tracking.rtol and tracking.atol are both 0: no step can converge; give one > 0",
+                         "tracking.rtol")
+    number(t.ctol_rel, "tracking.ctol_rel", lo=0, hi=0.1, lo_open=True)   # of the hair length: 1e300 met nothing
+    if integer(t.max_iterations, "tracking.max_iterations", 1) > MAX_ITERATION_BUDGET:
+        raise InputError(f"must be at most {MAX_ITERATION_BUDGET} (an SQP solve takes 2-60 iterations; one that has "
+                         f"not converged in {MAX_ITERATION_BUDGET} will not), got {t.max_iterations}",
+                         "tracking.max_iterations")
+    if integer(getattr(t, "nonmonotone", 1), "tracking.nonmonotone", 1) > MAX_ITERATION_BUDGET:   # a window of past merits
+        raise InputError(f"must be <= {MAX_ITERATION_BUDGET}, got {t.nonmonotone}", "tracking.nonmonotone")
+    number(getattr(t, "krylov_tol", KRYLOV_TOL), "tracking.krylov_tol", lo=0, hi=1e-2, lo_open=True)   # relative residual of each KKT solve
+    if integer(getattr(t, "krylov_max", 1), "tracking.krylov_max", 1) > MAX_KRYLOV:   # 1e9: a 536 GiB basis (probe, round 14)
+        raise InputError(f"must be <= {MAX_KRYLOV} (GMRES iterations of one KKT solve before the Schur complement is "
+                         f"rebuilt; each keeps a basis row of every hair vertex), got {t.krylov_max}", "tracking.krylov_max")
+    number(t.max_guide_distance, "tracking.max_guide_distance", lo=0)
+    number(getattr(t, "elastic_stiffness", 1e3), "tracking.elastic_stiffness", lo=0, hi=1e9, lo_open=True)
+    number(t.blend_width, "tracking.blend_width", lo=0, hi=10.0, lo_open=True)   # m; 1e300 overflowed (round 14)
+    n = t.points_per_guide   # >= 1: hairexp/control/tracking/correspondence.py, checked here too
+    check_correspondence_options(n, str(_v(t.point_placement)), str(_v(t.assignment)))
+    check_variance_config(t.variance)   # hairexp/control/tracking/variance.py
+    if isinstance(n, int) and n > MAX_POINTS_PER_GUIDE:
+        raise InputError(f"must be <= {MAX_POINTS_PER_GUIDE} (the paper uses 8; each point is a cluster with 3 "
+                         "constraints per guide, and the correspondence holds a vertices x points distance table), "
+                         f"got {n}", "tracking.points_per_guide")
+    for i, p in enumerate(t.variance.points):
+        if integer(p, f"tracking.variance.points[{i}]", 0) >= max(int(n), 1):
+            raise InputError(f"is {p}, but tracking points are numbered 0..{int(n) - 1} along each guide "
+                             f"(tracking.points_per_guide={n})", f"tracking.variance.points[{i}]")
+        if p in list(t.variance.points)[:i]:   # accepted without a word (probe of issue 12, round 13)
+            raise InputError(f"is {p}, given twice (at [{list(t.variance.points).index(p)}] too): list each tracking "
+                             "point once", f"tracking.variance.points[{i}]")
 
 
 @dataclass
@@ -81,6 +145,7 @@ class TrackingController(Controller):
     name = "tracking"
 
     def __init__(self, scene, guides: GuideAnimation, tcfg):
+        check_tracking_config(tcfg)
         s = scene.strands
         self.scene, self.guides, self.tcfg = scene, guides, tcfg
         free = ~s.kinematic
@@ -89,13 +154,8 @@ class TrackingController(Controller):
                                          tcfg.max_guide_distance, self.assignment,
                                          float(tcfg.blend_width), str(_v(tcfg.point_placement)), s.masses)
         targets = str(_v(tcfg.targets))
-        if targets not in ("static", "sliding"):
-            raise InputError(f"unknown targets {targets!r} (static|sliding)", "tracking.targets")
         self.cons = TrackingConstraints(scene, self.corr, guides, sliding=targets == "sliding")
         check_independent(self.cons, self.corr)
-        schur = str(_v(getattr(tcfg, "schur", "krylov")))
-        if schur not in SCHUR_MODES:
-            raise InputError(f"unknown schur {schur!r} ({'|'.join(SCHUR_MODES)})", "tracking.schur")
         self.kkt = None   # bound to the objective's band (``bind``)
         self.hair_length = float(np.mean(s.strand_lengths()))
         rest_free = scene.initial_positions()[free].reshape(-1)

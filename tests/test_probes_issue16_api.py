@@ -1,0 +1,158 @@
+"""Findings of a probe of the Python API (2026-12-07), fixed: settings a dataclass config takes
+without a word, a state with a NaN named only as "not finite", a sweep's comma list in
+``compose_config``, and strands of impossible size."""
+
+from __future__ import annotations
+
+import dataclasses
+from enum import Enum
+
+import numpy as np
+import pytest
+
+from hairexp.errors import InputError
+
+
+def _one_strand_scene():
+    from hairexp.model import Material, RigidMotion, Scene, Strands
+
+    line = np.stack([np.zeros(10), -np.linspace(0.0, 0.2, 10), np.zeros(10)], 1)
+    strands = Strands.from_polylines(line, np.array([10]), 1e-4)
+    still = RigidMotion(np.zeros(1), np.zeros((1, 3)), np.zeros((1, 3)))
+    return Scene("one", strands, Material(1e-4, 10.0, 1e-7), still, np.array([0.0, -9.81, 0.0]), line)
+
+
+@pytest.mark.parametrize("key, bad", [("derivatives", "bogus"), ("stretch_hessian", "exact"), ("compile", "maybe"),
+                                      ("on_failure", "ignore"), ("on_failure", None), ("derivatives", 1)])
+def test_the_simulator_refuses_a_solver_choice_the_config_does_not_have(key, bad):
+    """``SolverConfig(on_failure="ignore")`` ran (and would not have substepped a failed step);
+    ``derivatives="bogus"`` ran as the closed forms."""
+    from hairexp.app.config import SolverConfig
+    from hairexp.physics import Simulator
+
+    with pytest.raises(InputError) as err:
+        Simulator(_one_strand_scene(), dataclasses.replace(SolverConfig(), **{key: bad}))
+    assert str(err.value).startswith(f"solver.{key}: must be one of ") and repr(bad) in str(err.value)
+
+
+@pytest.mark.parametrize("key, bad", [("objects", "no"), ("hair_hair", "yes"), ("resolve", 1), ("friction", None),
+                                      ("edge_response", "false"), ("plane_friction", 0.0)])
+def test_the_simulator_refuses_a_collision_switch_that_is_not_a_bool(key, bad):
+    """``CollisionConfig(objects="no")`` was true: the colliders stayed on; ``hair_hair="yes"``
+    built the hair-hair stage from a string."""
+    from hairexp.app.config import CollisionConfig, SolverConfig
+    from hairexp.physics import Simulator
+
+    with pytest.raises(InputError) as err:
+        Simulator(_one_strand_scene(), SolverConfig(), collision_cfg=dataclasses.replace(CollisionConfig(), **{key: bad}))
+    assert str(err.value).startswith(f"collision.{key}: must be true or false, got {type(bad).__name__}")
+
+
+def test_the_simulator_takes_every_choice_the_config_offers():
+    from hairexp.app.config import CollisionConfig, SolverConfig
+    from hairexp.physics import Simulator
+
+    Simulator(_one_strand_scene(), SolverConfig(derivatives="autograd", stretch_hessian="penalty", compile="off",
+                                                on_failure="warn"),
+              collision_cfg=CollisionConfig(objects=np.bool_(False), hair_hair=False))
+
+
+@pytest.mark.parametrize("key, bad, said", [
+    ("kkt", "bogus", "must be one of schur|reference, got str 'bogus'"),
+    ("schur", "lu", "must be one of exact|krylov"),
+    ("targets", "moving", "must be one of static|sliding"),
+    ("elastic", "no", "must be true or false, got str 'no'"),
+    ("secant", 0, "must be true or false, got int 0"),
+    ("restore", "yes", "must be true or false"),
+    ("exact_compression", None, "must be true or false"),
+    ("krylov_tol", float("nan"), "got nan"),
+    ("rtol", 2.0, "must be >= 0 and < 1, got 2"),
+])
+def test_the_tracking_controller_checks_its_settings_as_the_command_line_does(key, bad, said):
+    """A TrackingConfig of the Python API took ``kkt="bogus"`` as the Schur solve and
+    ``elastic="no"`` as true: the controller now checks its settings first (before it reads the
+    scene or the guides), with the checks the config's validation runs."""
+    from hairexp.app.config import TrackingConfig
+    from hairexp.control.tracking.controller import TrackingController
+
+    with pytest.raises(InputError) as err:
+        TrackingController(None, None, dataclasses.replace(TrackingConfig(), **{key: bad}))
+    assert str(err.value).startswith(f"tracking.{key}: ") and said in str(err.value)
+    with pytest.raises(InputError, match=r"^tracking: must be a tracking config .* got dict"):
+        TrackingController(None, None, {"rtol": 1e-5})
+
+
+def _choices(enum: type[Enum]) -> tuple:
+    return tuple(e.value for e in enum)
+
+
+def test_the_layers_choices_are_the_configs():
+    """The physics and tracking layers list the choices they accept (they cannot import the app's
+    config); they must be the config's Enums, and their switches its bool fields."""
+    from hairexp.app import config as C
+    from hairexp.control.tracking.controller import TRACKING_CHOICES, TRACKING_FLAGS
+    from hairexp.physics.simulator import COLLISION_CHOICES, COLLISION_FLAGS, SOLVER_CHOICES
+
+    fields = {f.name: f for f in dataclasses.fields(C.SolverConfig)}
+    for key, choices in SOLVER_CHOICES.items():
+        assert set(choices) == set(_choices(fields[key].type if isinstance(fields[key].type, type)
+                                            else getattr(C, fields[key].type))), key
+    enum_fields = {cls: {f.name: getattr(C, f.type) if isinstance(f.type, str) else f.type for f in dataclasses.fields(cls)
+                         if isinstance(getattr(C, f.type, None) if isinstance(f.type, str) else f.type, type)
+                         and issubclass(getattr(C, f.type) if isinstance(f.type, str) else f.type, Enum)}
+                   for cls in (C.SolverConfig, C.CollisionConfig, C.TrackingConfig)}
+    assert set(enum_fields[C.SolverConfig]) == set(SOLVER_CHOICES)
+    assert set(enum_fields[C.CollisionConfig]) == set(COLLISION_CHOICES)
+    for key, enum in enum_fields[C.CollisionConfig].items():
+        assert set(COLLISION_CHOICES[key]) == set(_choices(enum)), key
+    checked_elsewhere = {"assignment", "point_placement"}   # correspondence.check_correspondence_options
+    assert set(enum_fields[C.TrackingConfig]) == set(TRACKING_CHOICES) | checked_elsewhere
+    for key, enum in enum_fields[C.TrackingConfig].items():
+        if key not in checked_elsewhere:
+            assert set(TRACKING_CHOICES[key]) == set(_choices(enum)), key
+
+    def bools(cls):
+        return {f.name for f in dataclasses.fields(cls) if f.type in (bool, "bool")}
+
+    assert bools(C.CollisionConfig) == set(COLLISION_FLAGS)
+    assert bools(C.TrackingConfig) == set(TRACKING_FLAGS)
+
+
+@pytest.mark.parametrize("field, what", [("x", "positions"), ("v", "velocities")])
+def test_a_state_that_is_not_finite_is_named_by_field_vertex_and_strand(field, what):
+    """It said "the state's positions or velocities are not finite" (a ValueError)."""
+    from hairexp.app.config import SolverConfig
+    from hairexp.physics import Simulator
+
+    sim = Simulator(_one_strand_scene(), SolverConfig())
+    state = sim.initial_state()
+    values = getattr(state, field).copy()
+    values[7, 1] = np.nan
+    with pytest.raises(InputError) as err:
+        sim.step(dataclasses.replace(state, **{field: values}), 0.01)
+    assert str(err.value).startswith(f"Simulator.step: state.{field}: the state's {what} are not finite: vertex 7 "
+                                     "(strand 0, vertex 7 along it)")
+
+
+def test_compose_config_names_a_sweeps_comma_list():
+    """Hydra's four-line "Ambiguous value for argument" came through the Python API."""
+    from hairexp.app.config import compose_config
+
+    with pytest.raises(InputError) as err:
+        compose_config(["solver.rtol=1e-4,1e-6"])
+    msg = str(err.value)
+    assert msg.startswith("solver.rtol: '1e-4,1e-6' is several values") and "\n" not in msg and "-m" in msg
+
+
+def test_strands_of_impossible_size_are_named():
+    """A curve at 1e300 m got an infinite length and one 120 m long was built."""
+    from hairexp.errors import ExtentError
+    from hairexp.model import Strands
+
+    line = np.stack([np.zeros(10), -np.linspace(0.0, 0.2, 10), np.zeros(10)], 1)
+    with pytest.raises(ExtentError, match=r"^hair: curve 1 vertex 1 is at .* more than 10000 m from the origin"):
+        Strands.from_polylines(np.concatenate([line, 1e300 * line]), np.array([10, 10]), 1e-4, where="hair")
+    with pytest.raises(InputError, match=r"^hair: curve 2 is 120 m long, more than 100 m: .*check the units"):
+        Strands.from_polylines(np.concatenate([line, 3 * line, 600 * line]), np.array([10, 10, 10]), 1e-4, where="hair")
+    s = Strands.from_polylines(np.concatenate([line, 3 * line, 400 * line]), np.array([10, 10, 10]), 1e-4)
+    assert np.allclose(s.strand_lengths(), [0.2, 0.6, 80.0])
