@@ -37,7 +37,7 @@ MOTION = motion_overrides([0.0, 0.2, 0.3, 10.0], [[0, 0, 0], [0, 0, 0], [0, 0.12
 
 def config(n: int, controller: str, steps: int):
     radius = 0.025 * float(np.sqrt(n / 301.0))
-    return compose(["experiment=celia", "variants=[]", "scene.colliders=[]", "measure.name=none", "judge=none", f"scene.n_strands={n}",
+    return compose(["experiment=celia", "variants=[]", "scene.colliders=[]", "measure.name=none", "measure.collider=", "judge=none", f"scene.n_strands={n}",
                     f"scene.root_radius={radius}", f"controller.name={controller}",
                     f"frames={frames_for(WARMUP + steps, 0.04, 25.0)}", *MOTION])
 

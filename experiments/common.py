@@ -376,7 +376,7 @@ def celia_bench(controller: str = "free", steps: int = 50, overrides=(), typed=(
     frames = frames_for(WARMUP + steps, float(base.solver.dt), float(base.fps))
     # a benchmark times the steps: no measure (Celia's names the goblet, which a benchmark may replace)
     return compose(["experiment=celia", "variants=[]", f"controller={controller}", f"collision={collision}",
-                    "measure.name=none", "judge=none", f"frames={frames}", *motion_overrides(*jerk(jerk_start(base))), *overrides], typed, "benchmark")
+                    "measure.name=none", "measure.collider=", "judge=none", f"frames={frames}", *motion_overrides(*jerk(jerk_start(base))), *overrides], typed, "benchmark")
 
 
 def jerk_start(cfg=None) -> float:

@@ -40,7 +40,7 @@ from experiments.common import ROOT, check_set, compose, fail, fmt, key_value, m
 EDGE_SAMPLES = 16
 #: stress cases: the stress matrix's scene (experiments/stress.py BASE) with a fast collider
 STRESS_BASE = ["experiment=goaling", "variants=[]", "scene.n_strands=12", "scene.n_vertices=12", "frames=30",
-               "measure.name=none", "solver.compile=off"]
+               "measure.name=none", "measure.collider=", "solver.compile=off"]
 BALL_10MS = ('scene.colliders=[{name: ball, shape: sphere, radius: 0.05, friction: 0.3, motion: {interpolation: linear, '
              'times: [0.0, 0.5], translations: [[0.01, -0.15, -2.5], [0.01, -0.15, 2.5]], '
              'rotations_deg: [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]}}]')

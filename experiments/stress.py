@@ -30,7 +30,7 @@ import numpy as np
 from experiments.common import check_reports, check_set, compose, fmt, key_value, md_table, positive_int
 
 BASE = ["experiment=goaling", "variants=[]", "scene.n_strands=12", "scene.n_vertices=12", "frames=30",
-        "logging.rerun=false", "logging.progress=false", "solver.compile=off", "measure.name=none"]
+        "logging.rerun=false", "logging.progress=false", "solver.compile=off", "measure.name=none", "measure.collider="]
 NO_WHEEL = ["scene.colliders=[]"]
 RIGID = ["guides.source=rigid", "guides.edits=[]"]
 # high k_v (100 x the spreading scene's 5 J/m^4), constant in time, on the tip clusters

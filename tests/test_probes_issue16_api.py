@@ -156,3 +156,31 @@ def test_strands_of_impossible_size_are_named():
         Strands.from_polylines(np.concatenate([line, 3 * line, 600 * line]), np.array([10, 10, 10]), 1e-4, where="hair")
     s = Strands.from_polylines(np.concatenate([line, 3 * line, 400 * line]), np.array([10, 10, 10]), 1e-4)
     assert np.allclose(s.strand_lengths(), [0.2, 0.6, 80.0])
+
+
+def test_guide_animation_names_a_motion_or_a_file_of_the_wrong_kind(tmp_path):
+    """``GuideAnimation(..., motion="x")`` was taken (and failed at the first shape_at), and
+    ``save(None)`` said "'NoneType' object has no attribute 'write'"."""
+    import io
+
+    from hairexp.guides.animation import GuideAnimation
+    from hairexp.model import RigidMotion
+
+    P = np.zeros((2, 4, 3))
+    P[:, :, 1] = -np.linspace(0.0, 0.3, 4)
+    for wrong in ("x", 5, {"times": [0.0]}):
+        with pytest.raises(InputError, match=r"^guides: the body motion must be a rigid motion .* got " + type(wrong).__name__):
+            GuideAnimation(P, np.array([0, 4]), 25.0, motion=wrong)
+    still = RigidMotion(np.zeros(1), np.zeros((1, 3)), np.zeros((1, 3)))
+    g = GuideAnimation(P, np.array([0, 4]), 25.0, motion=still)
+    assert np.allclose(g.shape_at(0.02), P[0])
+    for wrong in (None, 3):
+        with pytest.raises(InputError, match=r"^guides: save needs a path or a binary file open for writing"):
+            g.save(wrong)
+    buf = io.BytesIO()
+    g.save(buf)
+    g.save(tmp_path / "g.npz")
+    buf.seek(0)
+    for src in (buf, tmp_path / "g.npz"):
+        with np.load(src) as z:
+            assert np.array_equal(z["guide_positions"], P) and list(z["guide_offsets"]) == [0, 4]

@@ -24,6 +24,9 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -135,8 +138,13 @@ class GuideAnimation:
         A dynamic body: the positions are in its ``reference`` pose (authoring), ``shape_at``
         maps them with the live block.  A frame's body-frame shape is computed when it is
         first needed (four frames are kept: a Catmull-Rom segment's)."""
+        ref = None if motion is None else authoring_motion(motion)
+        if ref is not None and not (callable(getattr(ref, "to_body", None)) and callable(getattr(ref, "pose", None))):
+            # motion="x" was taken, and failed at the first shape_at (probe of issue 16)
+            raise InputError(f"the body motion must be a rigid motion (hairexp.model RigidMotion, a scene's motion, or "
+                             f"a dynamic body) or None, got {type(motion).__name__} {motion!r:.40}", self.where)
         self.motion = motion
-        self._ref = None if motion is None else authoring_motion(motion)
+        self._ref = ref
         self._body_cache = {}
 
     def _body(self, f: int) -> np.ndarray:
@@ -192,8 +200,10 @@ class GuideAnimation:
         """guides.npz (``guide_positions``, ``guide_offsets``, ``fps``, compressed as
         ``np.savez_compressed``) to the path or binary file ``f``, written a block of frames at
         a time."""
-        import zipfile
-
+        if not (isinstance(f, (str, os.PathLike)) or callable(getattr(f, "write", None))):
+            # save(None) said "'NoneType' object has no attribute 'write'" (probe of issue 16)
+            raise InputError(f"save needs a path or a binary file open for writing, got {type(f).__name__} {f!r:.40}",
+                             self.where)
         with zipfile.ZipFile(f, mode="w", compression=zipfile.ZIP_DEFLATED, allowZip64=True) as zf:
             with zf.open("guide_positions.npy", "w", force_zip64=True) as dst:
                 np.lib.format.write_array_header_1_0(dst, {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float64)),
@@ -277,9 +287,6 @@ def unreadable_npz(path: Path, exc: BaseException) -> str:
     """What is wrong with an npz that np.load could not read: a zip archive that ends early (a
     copy or download cut short: its central directory, at the end, is missing), or whose members
     are damaged (CRC, deflate or header errors), named as such with the reader's own words."""
-    import zipfile
-    import zlib
-
     size = path.stat().st_size if path.exists() else 0
     said = f"{type(exc).__name__}: {exc}"
     if isinstance(exc, zipfile.BadZipFile) and "not a zip file" in str(exc):
