@@ -29,6 +29,7 @@ from hairexp.errors import InputError, check_extent, regular_file
 from hairexp.io.usd_colliders import read_colliders
 from hairexp.io.usd_layout import (COUNTS_TYPES, POINTS_TYPES, TOKEN_TYPES, check_transform_types, check_type,
                                    read_motion, stage_units, time_label, world_transform)
+from hairexp.io.usd_layout import HAIR_WIDTH as DEFAULT_HAIR_WIDTH
 from hairexp.io.usd_layout import tf_message as _message
 from hairexp.guides.animation import MAX_FPS, MIN_FPS, GuideAnimation, check_fps
 from hairexp.guides.store import FrameStore
@@ -309,8 +310,50 @@ def hair_prims(stage, cfg, file: str) -> list:
     return curve_prims(root, "scene.usd_hair", "the detail hair", "hair", f"{file}:{cfg.usd_hair}")
 
 
-def read_hair(hair, body, cfg, file: str) -> tuple[np.ndarray, np.ndarray]:
-    """(points in the body's space at rest, curveVertexCounts) of one hair prim, checked."""
+#: m: a hair curve authored wider than this is warned of (a unit error, most likely: hair is
+#: 0.02-0.2 mm thick); its widths are still written back to the result as authored
+WIDE_HAIR = 0.01
+
+
+def read_widths(curves: UsdGeom.BasisCurves, tc, counts: np.ndarray, where: str) -> np.ndarray | None:
+    """(V,) m, the curves' ``widths`` at ``tc`` per vertex (constant: one for all; uniform: one a
+    curve; varying or vertex: one a vertex, as for linear curves), or None when none are authored
+    or their count does not fit their interpolation (warned: the result's hair is then drawn at
+    the default width).  A width that is not finite or is negative is an InputError naming the
+    curve and vertex; widths of zero (tapered tips) are taken."""
+    attr = curves.GetWidthsAttr()
+    if not attr.HasAuthoredValue():
+        return None
+    w = _array(attr, tc, where, np.float64)
+    if w is None or w.size == 0:
+        return None
+    V, S = int(counts.sum()), len(counts)
+    interp = curves.GetWidthsInterpolation()
+    expect = {UsdGeom.Tokens.constant: 1, UsdGeom.Tokens.uniform: S, UsdGeom.Tokens.varying: V,
+              UsdGeom.Tokens.vertex: V}.get(interp)
+    if expect is None or len(w) != expect:
+        log.warning("%s: widths has %d values with %s interpolation (%s curves, %d vertices): not used; the result's "
+                    "hair is drawn %g mm wide", where, len(w), interp, S, V, 1e3 * DEFAULT_HAIR_WIDTH)
+        return None
+    per_vertex = np.full(V, w[0]) if expect == 1 else (np.repeat(w, counts) if expect == S and S != V else w)
+    bad = np.flatnonzero(~(np.isfinite(per_vertex) & (per_vertex >= 0)))
+    if len(bad):
+        v = int(bad[0])
+        offsets = np.concatenate([[0], np.cumsum(counts)])
+        c = int(np.searchsorted(offsets, v, side="right") - 1)
+        raise InputError(f"widths: curve {c} vertex {v - offsets[c]} has the width {float(per_vertex[v]):.6g}; widths are "
+                         "finite and >= 0", where)
+    s = stage_units(curves.GetPrim().GetStage())
+    per_vertex = per_vertex * s
+    if per_vertex.max() > WIDE_HAIR:
+        log.warning("%s: widths up to %.4g m: wider than hair (%g m at most here; hairexp reads metres: check the "
+                    "stage's metersPerUnit); written back as authored", where, per_vertex.max(), WIDE_HAIR)
+    return per_vertex
+
+
+def read_hair(hair, body, cfg, file: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(points in the body's space at rest, curveVertexCounts, widths per vertex or None) of one
+    hair prim, checked."""
     where = f"{file}:{hair.GetPath()}"
     check_curve_types(hair, where)   # before the samples are counted and the rest time chosen
     tc = rest_time(UsdGeom.BasisCurves(hair).GetPointsAttr())
@@ -325,6 +368,7 @@ def read_hair(hair, body, cfg, file: str) -> tuple[np.ndarray, np.ndarray]:
         validate_polylines(pts, counts, where, min_vertices=N_ROOT_VERTICES + 1, folds=False)  # before any transform
         check_extent(pts, where, counts)
         check_folds(pts, counts, where)   # after the extent: a point 1e30 away is a unit error, not a fold
+    widths = read_widths(UsdGeom.BasisCurves(hair), tc, counts, where)
     check_hair_rides_body(hair, body, where, cfg.usd_body)
     # hair space -> body space at the rest time (identity for hair authored under the body); no body
     # prim (scene.usd_body=none): hair space -> world (``build_usd_scene`` takes it to scene.motion's body)
@@ -332,7 +376,7 @@ def read_hair(hair, body, cfg, file: str) -> tuple[np.ndarray, np.ndarray]:
     rel = world_transform(UsdGeom.Xformable(hair), t0, where)
     if body is not None:
         rel = rel * world_transform(UsdGeom.Xformable(body), t0, f"{file}:{cfg.usd_body}").GetInverse()
-    return (pts if np.allclose(np.array(rel), np.eye(4), rtol=0, atol=1e-12) else apply(pts, rel)), counts
+    return (pts if np.allclose(np.array(rel), np.eye(4), rtol=0, atol=1e-12) else apply(pts, rel)), counts, widths
 
 
 class units_hint:
@@ -373,17 +417,20 @@ def build_usd_scene(cfg):
         with units_hint(stage):
             motion, _ = read_motion(body, tcps, f"{file}:{cfg.usd_body}")
     parts = [read_hair(h, body, cfg, file) for h in hair_prims(stage, cfg, file)]
-    body_pts = np.concatenate([p for p, _ in parts]) if len(parts) > 1 else parts[0][0]
+    body_pts = np.concatenate([p for p, _, _ in parts]) if len(parts) > 1 else parts[0][0]
     if body is None:   # the stage's world at rest -> scene.motion's body space at t = 0
         body_pts = motion.to_body(body_pts, 0.0)
-    counts = np.concatenate([c for _, c in parts]) if len(parts) > 1 else parts[0][1]
+    counts = np.concatenate([c for _, c, _ in parts]) if len(parts) > 1 else parts[0][1]
+    # the authored widths, written back to the result (a prim without any: the default display width)
+    widths = None if all(w is None for _, _, w in parts) else np.concatenate(
+        [np.full(len(p), DEFAULT_HAIR_WIDTH) if w is None else w for p, _, w in parts])
     where = f"{file}:{cfg.usd_hair}"
     material = build_material(cfg.hair)
     with units_hint(stage):
         strands = Strands.from_polylines(motion.transform(body_pts, 0.0), counts, material.linear_density, where=where)
     colliders = read_colliders(stage, cfg.usd_colliders, tcps, file)
     colliders += [build_collider(c, i) for i, c in enumerate(getattr(cfg, "colliders", []) or [])]
-    return Scene(cfg.name, strands, material, motion, gravity(cfg.gravity), body_pts, colliders)
+    return Scene(cfg.name, strands, material, motion, gravity(cfg.gravity), body_pts, colliders, widths=widths)
 
 
 def _rescaled_hint(attr) -> str:

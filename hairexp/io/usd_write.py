@@ -156,13 +156,32 @@ def _frame_poses(motion, fps: float, frames: int, saves: Saves | None):
             saves.add(MATRIX_BYTES + SAMPLE_BYTES)
 
 
-def define_curves(stage, path: str, counts, width: float) -> UsdGeom.BasisCurves:
+def hair_widths(scene):
+    """The detail hair's display widths: the (V,) widths a USD stage authored (``Scene.widths``),
+    else HAIR_WIDTH for all."""
+    return HAIR_WIDTH if getattr(scene, "widths", None) is None else scene.widths
+
+
+def _half_width(width) -> float:
+    """Half the largest of ``width`` (a number or per-vertex widths): the extent's margin."""
+    return 0.5 * float(np.max(width))
+
+
+def define_curves(stage, path: str, counts, width) -> UsdGeom.BasisCurves:
+    """A linear BasisCurves prim; ``width``: one width for all (constant interpolation; so are
+    per-vertex widths that are all equal) or one per vertex."""
     c = UsdGeom.BasisCurves.Define(stage, path)
     c.CreateTypeAttr(UsdGeom.Tokens.linear)
     c.CreateWrapAttr(UsdGeom.Tokens.nonperiodic)
     c.CreateCurveVertexCountsAttr(Vt.IntArray([int(n) for n in counts]))
-    c.CreateWidthsAttr(Vt.FloatArray([width]))
-    c.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+    if np.ndim(width) == 1 and len(width) and np.all(np.float32(width) == np.float32(width[0])):
+        width = float(width[0])
+    if np.ndim(width) == 0:
+        c.CreateWidthsAttr(Vt.FloatArray([float(width)]))
+        c.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+    else:
+        c.CreateWidthsAttr(Vt.FloatArray.FromNumpy(np.ascontiguousarray(width, dtype=np.float32)))
+        c.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
     c.CreatePointsAttr()
     c.CreateExtentAttr()
     return c
@@ -184,14 +203,14 @@ def finite_frame(P, f: int, what: str, file) -> np.ndarray:
 def set_points(curves: UsdGeom.BasisCurves, points: np.ndarray, tc=Usd.TimeCode.Default()) -> None:
     p = np.ascontiguousarray(points, dtype=np.float32)
     curves.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(p), tc)
-    r = 0.5 * curves.GetWidthsAttr().Get()[0]
+    r = _half_width(curves.GetWidthsAttr().Get())
     curves.GetExtentAttr().Set(Vt.Vec3fArray.FromNumpy(_extent(p, r)), tc)
 
 
 def write_body(stage, scene, samples) -> None:
     """``/Root/Body`` with its transform samples and ``/Root/Body/Hair`` at rest (body space)."""
     set_transform(UsdGeom.Xform.Define(stage, BODY), samples)
-    set_points(define_curves(stage, HAIR, scene.strands.counts, HAIR_WIDTH), scene.root_body)
+    set_points(define_curves(stage, HAIR, scene.strands.counts, hair_widths(scene)), scene.root_body)
 
 
 def write_animation(stage, path: str, frames, offsets: np.ndarray, width: float, saves: Saves | None = None,
@@ -289,7 +308,7 @@ def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps
             write_animation(stage, GUIDES, guide_positions, guide_offsets, GUIDE_WIDTH, saves, "guide_positions")
         write_colliders(stage, scene.colliders, samples)
         UsdGeom.Scope.Define(stage, RESULT)
-        write_animation(stage, RESULT_HAIR, positions, scene.strands.offsets, HAIR_WIDTH, saves, "positions")
+        write_animation(stage, RESULT_HAIR, positions, scene.strands.offsets, hair_widths(scene), saves, "positions")
         if path.suffix == ".usda":
             save(stage, path)
         else:
@@ -323,7 +342,7 @@ def _curve_channels(path: str, frames, width: float, what: str, file) -> list:
         if f not in cache:
             cache.clear()
             p = finite_frame(frames[f], f, what, file)
-            cache[f] = (Vt.Vec3fArray.FromNumpy(p), Vt.Vec3fArray.FromNumpy(_extent(p, 0.5 * width)))
+            cache[f] = (Vt.Vec3fArray.FromNumpy(p), Vt.Vec3fArray.FromNumpy(_extent(p, _half_width(width))))
         return cache[f]
 
     n = len(frames[0])
@@ -387,8 +406,8 @@ def write_clipped(path, scene, positions, guide_positions, guide_offsets, fps: f
             if moving(c.motion):
                 channels.append(_pose_channel(prim, c.motion, fps))
         UsdGeom.Scope.Define(stage, RESULT)
-        define_curves(stage, RESULT_HAIR, np.diff(scene.strands.offsets), HAIR_WIDTH)
-        channels += _curve_channels(RESULT_HAIR, positions, HAIR_WIDTH, "positions", path)
+        define_curves(stage, RESULT_HAIR, np.diff(scene.strands.offsets), hair_widths(scene))
+        channels += _curve_channels(RESULT_HAIR, positions, hair_widths(scene), "positions", path)
 
         starts = list(range(0, frames, CLIP_FRAMES)) or [0]
         assets = []

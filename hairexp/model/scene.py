@@ -63,6 +63,10 @@ class Scene:
     root_body: np.ndarray
     colliders: list = field(default_factory=list)
     initial: np.ndarray | None = None
+    #: (V,) m, the hair's widths per vertex as a USD stage authored them (its curves' ``widths``),
+    #: written back to the result's curves; display only (contact thickness is the config's
+    #: collision.hair_thickness and the colliders' thickness); None: the default display width
+    widths: np.ndarray | None = None
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:
@@ -95,6 +99,15 @@ class Scene:
                 raise InputError(f"must be finite, got {arr[tuple(bad)]} at index {bad}", f"Scene.{key}")
             if key == "gravity" and float(np.linalg.norm(arr)) > MAX_GRAVITY:   # as scene.gravity (round 14)
                 raise InputError(f"is {arr.tolist()}, larger than {MAX_GRAVITY:g} m/s^2 (about 100 g)", "Scene.gravity")
+        if self.widths is not None:
+            w = np.array(self.widths, dtype=np.float64) if not isinstance(self.widths, (str, bytes)) else None
+            if w is None or w.shape != (V,):
+                raise InputError(f"must be None or an array of {V} widths (m, one per vertex), got "
+                                 f"{np.shape(self.widths) if w is not None else repr(self.widths)}", "Scene.widths")
+            bad = np.flatnonzero(~(np.isfinite(w) & (w >= 0)))
+            if len(bad):
+                raise InputError(f"must be finite and >= 0 (m), got {w[bad[0]]} at vertex {int(bad[0])}", "Scene.widths")
+            object.__setattr__(self, "widths", w)   # frozen: the checked float64 copy
         for c in self.colliders:
             if not hasattr(c, "name") or isinstance(c, str):
                 raise InputError(f"must be collider objects (hairexp.model.colliders), got {c!r}", "Scene.colliders")
