@@ -63,7 +63,6 @@ def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_v
         v = int(np.flatnonzero(bad)[0])
         s = int(np.searchsorted(offsets, v, side="right") - 1)
         raise InputError(f"curve {s} vertex {v - offsets[s]} is not finite: {points[v].tolist()}", where)
-    check_extent(points, where, counts)   # a point 1e300 away: a unit error, named before its infinite length
     with np.errstate(over="ignore", invalid="ignore"):   # points near 1e300: inf lengths, which the extent check names
         seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
     within = within_curves(offsets, len(seg))
@@ -176,6 +175,7 @@ class Strands:
     def from_polylines(points: np.ndarray, counts: np.ndarray, linear_density: float, where: str = "strands") -> "Strands":
         """Build strands from packed rest polylines.  ``linear_density`` in kg/m."""
         points, counts = validate_polylines(points, counts, where, min_vertices=N_ROOT_VERTICES + 1)
+        check_extent(points, where, counts)   # a point 1e300 away: a unit error, not an infinite length
         real(linear_density, f"{where} linear density (kg/m)", lo=0.0, lo_open=True)
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
         V = points.shape[0]
