@@ -184,3 +184,18 @@ def test_guide_animation_names_a_motion_or_a_file_of_the_wrong_kind(tmp_path):
     for src in (buf, tmp_path / "g.npz"):
         with np.load(src) as z:
             assert np.array_equal(z["guide_positions"], P) and list(z["guide_offsets"]) == [0, 4]
+
+
+def test_a_scenes_arrays_are_read_only_copies():
+    """``scene.gravity[1] = -20`` after the Simulator was built changed the scene under its
+    gravity term without a word; a scene with other values is ``dataclasses.replace``'s."""
+    scene = _one_strand_scene()
+    g = np.array([0.0, -9.81, 0.0])
+    scene = dataclasses.replace(scene, gravity=g)
+    g[1] = -20.0
+    assert scene.gravity[1] == -9.81
+    for key in ("gravity", "root_body"):
+        with pytest.raises(ValueError, match="read-only"):
+            getattr(scene, key)[0] = 1.0
+    moved = dataclasses.replace(scene, gravity=[0.0, -3.7, 0.0])
+    assert moved.gravity.dtype == np.float64 and moved.gravity[1] == -3.7 and scene.gravity[1] == -9.81

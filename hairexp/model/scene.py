@@ -99,6 +99,12 @@ class Scene:
                 raise InputError(f"must be finite, got {arr[tuple(bad)]} at index {bad}", f"Scene.{key}")
             if key == "gravity" and float(np.linalg.norm(arr)) > MAX_GRAVITY:   # as scene.gravity (round 14)
                 raise InputError(f"is {arr.tolist()}, larger than {MAX_GRAVITY:g} m/s^2 (about 100 g)", "Scene.gravity")
+            # a read-only float64 copy: the Simulator built its gravity and root terms from these, and a
+            # caller's later edit (scene.gravity[1] = -20) changed the scene under them without a word
+            # (probe of issue 16; ``dataclasses.replace`` makes a scene with other values)
+            arr = np.array(arr, dtype=np.float64)
+            arr.setflags(write=False)
+            object.__setattr__(self, key, arr)
         if self.widths is not None:
             w = np.array(self.widths, dtype=np.float64) if not isinstance(self.widths, (str, bytes)) else None
             if w is None or w.shape != (V,):
@@ -107,7 +113,8 @@ class Scene:
             bad = np.flatnonzero(~(np.isfinite(w) & (w >= 0)))
             if len(bad):
                 raise InputError(f"must be finite and >= 0 (m), got {w[bad[0]]} at vertex {int(bad[0])}", "Scene.widths")
-            object.__setattr__(self, "widths", w)   # frozen: the checked float64 copy
+            w.setflags(write=False)
+            object.__setattr__(self, "widths", w)   # frozen: the checked float64 copy, read-only
         for c in self.colliders:
             if not hasattr(c, "name") or isinstance(c, str):
                 raise InputError(f"must be collider objects (hairexp.model.colliders), got {c!r}", "Scene.colliders")
