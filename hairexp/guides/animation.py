@@ -173,7 +173,9 @@ class GuideAnimation:
         return [P[a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:])]
 
     def shape_at(self, t: float, motion=None) -> np.ndarray:
-        """(Vg, 3) guide vertices at time t (between frames as ``interpolation`` says); ``motion``:
+        """(Vg, 3) guide vertices at time t (between frames as ``interpolation`` says; before the
+        first frame and after the last, that frame held, as a DCC holds an animation outside its
+        range: a run checks that its guides reach its last frame, ``Run``); ``motion``:
         the body's poses at t when they are not those the animation was attached to (a dynamic
         body's step window, hairexp/model/dynamic_body.py)."""
         try:
