@@ -199,3 +199,16 @@ def test_a_scenes_arrays_are_read_only_copies():
             getattr(scene, key)[0] = 1.0
     moved = dataclasses.replace(scene, gravity=[0.0, -3.7, 0.0])
     assert moved.gravity.dtype == np.float64 and moved.gravity[1] == -3.7 and scene.gravity[1] == -9.81
+
+
+def test_run_names_an_out_dir_or_config_of_the_wrong_kind():
+    """``run(cfg, 5)`` said "expected str, bytes or os.PathLike object, not int"."""
+    from hairexp.app.config import compose_config
+    from hairexp.app.run import run
+
+    cfg = compose_config(["experiment=goaling_smoke", "variants=[]"])
+    for bad in (5, "", None):
+        with pytest.raises(TypeError, match=r"^run: out_dir must be a folder path \(str or pathlib.Path\), got"):
+            run(cfg, bad)
+    with pytest.raises(TypeError, match=r"^run: cfg must be a composed config"):
+        run({}, "/tmp/nowhere")

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from hairexp.app.assemble import assemble, check_config
-from hairexp.app.config import to_plain
+from hairexp.app.config import require_config, to_plain
 from hairexp.app.signals import InterruptSignals, note_late, stop_requested
 from hairexp.errors import InputError, Interrupted, SimulationError
 from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
@@ -295,6 +295,9 @@ def _stage_files(path: str) -> list[str]:
 def run(cfg, out_dir: str | Path, on_checked=None) -> dict:
     """Run ``cfg`` into the folder ``out_dir`` (claimed once the config is checked: ``check_config``;
     then ``on_checked()``, if given, is called) and return its summary."""
+    require_config(cfg, "run")
+    if not isinstance(out_dir, (str, os.PathLike)) or not str(out_dir):   # Path(5): a TypeError naming nothing
+        raise TypeError(f"run: out_dir must be a folder path (str or pathlib.Path), got {out_dir!r}")
     with warnings_once():
         return _checked_run(cfg, Path(out_dir), on_checked)
 
