@@ -212,3 +212,60 @@ def test_run_names_an_out_dir_or_config_of_the_wrong_kind():
             run(cfg, bad)
     with pytest.raises(TypeError, match=r"^run: cfg must be a composed config"):
         run({}, "/tmp/nowhere")
+
+
+@pytest.fixture(scope="module")
+def tracked_smoke():
+    """A tracked goaling_smoke run of 6 strands and 4 frames, and one with 8 strands."""
+    from hairexp.app.assemble import assemble
+    from hairexp.app.config import compose_config
+
+    base = ["experiment=goaling_smoke", "variants=[]", "controller.name=tracking", "frames=4", "logging.rerun=false"]
+    return (assemble(compose_config([*base, "scene.n_strands=6"])),
+            assemble(compose_config([*base, "scene.n_strands=8"])))
+
+
+def test_simulator_step_refuses_states_a_tracked_run_cannot_take(tracked_smoke):
+    """Each of these gave a raw traceback deep in the step, or ran: a free run's state (control
+    None: an AttributeError in the SQP), another run's iterates or history (a matmul or broadcast
+    error), a state at t = 1e6 (tracked still guides and said converged), integer positions
+    ("diverged ... try a smaller solver.dt"), positions with a zero-length edge."""
+    from hairexp.physics.state import State
+
+    run, other = tracked_smoke
+    sim, s = run.simulator, run.initial_state()
+    step_state = sim.step(s, run.dt)[0]
+    x0 = s.x.copy()
+    other_state = other.simulator.step(other.initial_state(), other.dt)[0]
+    cases = [
+        (dataclasses.replace(s, control=None), "state.control: must be the tracking controller's iterates"),
+        (dataclasses.replace(s, control="x"), "state.control: must be the tracking controller's iterates"),
+        (dataclasses.replace(step_state, history=other_state.history), "has the shape (80, 3), not the scene's (60, 3)"),
+        (dataclasses.replace(s, time=1e6), "state.time: the step reaches t = 1e+06 s, outside the guide animation"),
+        (dataclasses.replace(s, time=-1.0), "outside the guide animation"),
+        (dataclasses.replace(s, x=s.x.astype(int)), "state.x: the state's positions must be floating-point numbers, got dtype int64"),
+        (dataclasses.replace(s, v=s.v.astype(complex)), "state.v: the state's velocities must be floating-point numbers"),
+    ]
+    zero = s.x.copy()
+    zero[4] = zero[3]
+    cases.append((dataclasses.replace(s, x=zero), "state.x: the state's positions put vertices 3 and 4 (strand 0, vertices 3 and 4"))
+    for state, said in cases:
+        with pytest.raises(InputError) as err:
+            sim.step(state, run.dt)
+        assert str(err.value).startswith("Simulator.step: ") and said in str(err.value), str(err.value)
+    assert np.array_equal(s.x, x0)    # never modified
+    # lists are numbers too: the same step as the arrays'
+    as_lists = State(s.time, s.x.tolist(), s.v.tolist(), s.tensions, s.control, s.body, s.history)
+    a, b = sim.step(s, run.dt)[0], sim.step(as_lists, run.dt)[0]
+    assert np.array_equal(a.x, b.x)
+
+
+def test_simulator_observe_checks_the_state_as_step_does(tracked_smoke):
+    """``observe`` of an 8-strand state on a 6-strand run returned a residual of the wrong hair;
+    ``observe(None)`` an AttributeError."""
+    run, other = tracked_smoke
+    with pytest.raises(InputError, match=r"^Simulator.observe: state.x, state.v: .* must have the scene's shape \(60, 3\)"):
+        run.simulator.observe(other.initial_state())
+    with pytest.raises(TypeError, match=r"^Simulator.observe: state must be a hairexp State"):
+        run.simulator.observe(None)
+    assert run.simulator.observe(run.initial_state())["residual_rel_max"] < 1e-9

@@ -19,6 +19,7 @@ class AttractController(Controller):
 
     def __init__(self, scene, guides, stiffness: float):
         self.skinning = GuideSkinning(scene, guides)
+        self.guides = guides
         s = scene.strands
         self.attraction = Attraction(s.masses, stiffness, np.flatnonzero(~s.kinematic))
 
@@ -26,6 +27,7 @@ class AttractController(Controller):
         return [self.attraction]
 
     def begin(self, t: float, motion) -> None:
+        self.guides.check_time(t, "Simulator.step: state.time")
         self.attraction.set_target(self.skinning.free_positions(t, motion))
 
     def control_effort(self, sim, state) -> float:

@@ -172,6 +172,21 @@ class GuideAnimation:
     def guides(self, P: np.ndarray) -> list[np.ndarray]:
         return [P[a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:])]
 
+    def check_time(self, t: float, where: str) -> None:
+        """InputError naming ``where`` when a controller that follows the guides is asked for a
+        time outside the animation, by more than half a frame: ``shape_at`` holds the first and
+        last frames there, and a step there tracked still guides and said converged (one frame:
+        still guides, taken at any time)
+        (``Simulator.step`` with a state at t = 1e6 or -1; probe of issue 16; ``Run.steps``
+        refuses such a run before its first step)."""
+        if self.n_frames == 1:   # one frame: still guides, a pose for all times
+            return
+        last = (self.n_frames - 1) / self.fps
+        if not (-0.5 / self.fps <= t <= last + 0.5 / self.fps):
+            raise InputError(f"the step reaches t = {t:g} s, outside the guide animation (0 .. {last:g} s, frames "
+                             f"0..{self.n_frames - 1} at {self.fps:g} fps): the controller follows the guides; step a state "
+                             "within it", where)
+
     def shape_at(self, t: float, motion=None) -> np.ndarray:
         """(Vg, 3) guide vertices at time t (between frames as ``interpolation`` says; before the
         first frame and after the last, that frame held, as a DCC holds an animation outside its

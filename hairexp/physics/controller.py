@@ -73,6 +73,10 @@ class Controller:
         xf, info = newton_solve(sim.objective, sim.objective.initial_guess(), scaled_iterations(sim.newton, sim))
         return sim.objective.positions(xf).numpy(), None, info
 
+    def check_control(self, control, where: str) -> None:
+        """InputError naming ``where`` when ``control`` (a State's) is not iterates this
+        controller can start from; the free controller reads none."""
+
     def observe(self, sim, state, motion) -> dict:
         """Per-state quantities for the metrics and the recording (scalars become columns)."""
         return {}

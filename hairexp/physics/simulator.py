@@ -46,6 +46,7 @@ import torch
 from hairexp import tune_runtime
 from hairexp.errors import MIN_STEP_DT, InputError, SimulationError, choice, finite_number, flag, integer, number
 from hairexp.model.scene import Scene
+from hairexp.model.strands import MIN_EDGE_LENGTH
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact, sweep_substeps
 from hairexp.physics.collisions import (CollisionInfo, HairHair, StrainLimit, collision_stage, contact_velocities,
                                         edge_response, limit_strain, object_positions, path_test)
@@ -54,7 +55,7 @@ from hairexp.physics.controller import Controller
 from hairexp.physics.hair_volume import HairVolume
 from hairexp.physics.energies import AirDrag, Bending, EdgeDamping, Gravity, Stretch
 from hairexp.physics.info import CONVERGED, DIVERGED, MAX_ITERATIONS, SolveInfo, StepInfo
-from hairexp.physics.integrators import DEFAULT_INTEGRATOR, ImplicitEuler, Restart, make_integrator
+from hairexp.physics.integrators import DEFAULT_INTEGRATOR, History, ImplicitEuler, Restart, make_integrator
 from hairexp.physics.newton import NewtonOptions
 from hairexp.physics.objective import ImplicitEulerObjective
 from hairexp.physics.state import State
@@ -456,10 +457,12 @@ class Simulator:
 
     def control_effort(self, state: State) -> float | None:
         """The controller's control effort at ``state`` (|F_c| / |m g|), None where it has none."""
-        return self.controller.control_effort(self, state)
+        return self.controller.control_effort(self, self.checked_state(state, "Simulator.control_effort"))
 
     def observe(self, state: State) -> dict:
-        """The controller's per-state quantities (metrics, recording) at ``state``."""
+        """The controller's per-state quantities (metrics, recording) at ``state`` (checked as a
+        step checks it: a state of another scene gave a residual of the wrong hair)."""
+        state = self.checked_state(state, "Simulator.observe")
         return self.controller.observe(self, state, self.motion_of(state))
 
     # -- one attempt ----------------------------------------------------------------------
@@ -858,6 +861,65 @@ class Simulator:
         return new, [info]
 
     # -- public ---------------------------------------------------------------------------
+    def checked_state(self, state: State, where: str) -> State:
+        """``state`` as a step reads it, or an InputError (a TypeError for what is not a State)
+        naming ``where`` and the state's field: a time that is not a finite number, positions or
+        velocities of another shape or not real numbers (lists and integers are taken as float64
+        copies: integer positions "diverged ... try a smaller solver.dt"), a non-finite vertex (named
+        with its strand), an integrator history of another scene, or controller iterates this
+        controller cannot use (``Controller.check_control``: a free run's state in a tracked
+        simulator was an AttributeError deep in the SQP; probe of issue 16).  The state given is
+        never modified."""
+        if not isinstance(state, State):
+            raise TypeError(f"{where}: state must be a hairexp State (Simulator.initial_state() or a step's), "
+                            f"got {type(state).__name__}")
+        if (isinstance(state.time, (bool, np.bool_)) or not isinstance(state.time, (int, float, np.integer, np.floating))
+                or not np.isfinite(state.time)):
+            raise InputError(f"the state's time must be a finite number (s), got {state.time!r}", f"{where}: state.time")
+        shape = (self.scene.strands.n_vertices, 3)
+        if np.shape(state.x) != shape or np.shape(state.v) != shape:   # an IndexError deep in the step (probe of issue 12)
+            raise InputError(f"the state's positions and velocities must have the scene's shape {shape}, "
+                             f"got {np.shape(state.x)} and {np.shape(state.v)}", f"{where}: state.x, state.v")
+        arrays = {}
+        for field, what in (("x", "positions"), ("v", "velocities")):
+            given = getattr(state, field)
+            values = np.asarray(given)
+            if values.dtype.kind != "f" and not (values.dtype.kind == "O" and values.size == 0):
+                # complex, object or strings: numba's and numpy's own errors; integers: a cast that dropped
+                # everything below a metre, which then "diverged ... try a smaller solver.dt"
+                raise InputError(f"the state's {what} must be floating-point numbers, got dtype {values.dtype}"
+                                 + (" (positions cast to integers lose everything below a metre)" if values.dtype.kind in "biu"
+                                    else ""), f"{where}: state.{field}")
+            if not isinstance(given, np.ndarray) or values.dtype != np.float64:
+                arrays[field] = values = np.array(values, dtype=np.float64)
+            if not np.isfinite(values).all():
+                bad = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
+                strand = int(self.scene.strands.strand_of_vertex[bad])
+                raise InputError(f"the state's {what} are not finite: vertex {bad} (strand {strand}, vertex "
+                                 f"{bad - int(self.scene.strands.offsets[strand])} along it) is {values[bad].tolist()}",
+                                 f"{where}: state.{field}")
+        x = arrays.get("x", np.asarray(state.x))
+        seg = np.linalg.norm(x[self.scene.strands.edges[:, 1]] - x[self.scene.strands.edges[:, 0]], axis=1)
+        if seg.min(initial=np.inf) < MIN_EDGE_LENGTH:   # the stretch's direction is undefined: the step "diverged"
+            e = int(np.argmin(seg))
+            v = int(self.scene.strands.edges[e, 0])
+            strand = int(self.scene.strands.strand_of_vertex[v])
+            raise InputError(f"the state's positions put vertices {v} and {v + 1} (strand {strand}, vertices "
+                             f"{v - int(self.scene.strands.offsets[strand])} and {v + 1 - int(self.scene.strands.offsets[strand])} "
+                             f"along it) {seg[e]:.3g} m apart: an edge of zero length cannot be stepped", f"{where}: state.x")
+        h = state.history
+        if h is not None:
+            if not isinstance(h, History):
+                raise InputError(f"must be None or the integrator's History (a step's state carries it), got "
+                                 f"{type(h).__name__}", f"{where}: state.history")
+            for field in ("x", "v", "a", "a_prev"):
+                a = getattr(h, field)
+                if a is not None and np.shape(a) != shape:
+                    raise InputError(f"{field} has the shape {np.shape(a)}, not the scene's {shape}: a state of another "
+                                     "scene", f"{where}: state.history")
+        self.controller.check_control(state.control, f"{where}: state.control")
+        return replace(state, **arrays) if arrays else state
+
     def step(self, state: State, dt: float) -> tuple[State, StepInfo]:
         if not isinstance(state, State):
             raise TypeError(f"Simulator.step: state must be a hairexp State (Simulator.initial_state() or a step's), "
@@ -871,21 +933,7 @@ class Simulator:
         if dt < MIN_STEP_DT:   # 1e-300: the inertia M/dt^2 overflowed and the step "diverged" (probe of issue 12)
             raise InputError(f"dt={dt!r} s is below {MIN_STEP_DT:g} s: the inertia term M/dt^2 then swamps every force "
                              "in double precision (or overflows)", "Simulator.step")
-        # InputErrors (ValueErrors) naming the state's field, the vertex and its strand (probe of issue 16)
-        if not isinstance(state.time, (int, float, np.integer, np.floating)) or not np.isfinite(state.time):
-            raise InputError(f"the state's time must be a finite number (s), got {state.time!r}", "Simulator.step: state.time")
-        shape = (self.scene.strands.n_vertices, 3)
-        if np.shape(state.x) != shape or np.shape(state.v) != shape:   # an IndexError deep in the step (probe of issue 12)
-            raise InputError(f"the state's positions and velocities must have the scene's shape {shape}, "
-                             f"got {np.shape(state.x)} and {np.shape(state.v)}", "Simulator.step: state.x, state.v")
-        for field, what in (("x", "positions"), ("v", "velocities")):
-            values = np.asarray(getattr(state, field))
-            if not np.isfinite(values).all():
-                bad = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
-                strand = int(self.scene.strands.strand_of_vertex[bad])
-                raise InputError(f"the state's {what} are not finite: vertex {bad} (strand {strand}, vertex "
-                                 f"{bad - int(self.scene.strands.offsets[strand])} along it) is {values[bad].tolist()}",
-                                 f"Simulator.step: state.{field}")
+        state = self.checked_state(state, "Simulator.step")
         t0 = time.perf_counter()
         self._attempted = 0
         self._last_attempts, self._last_failed = 0, False

@@ -196,9 +196,28 @@ class TrackingController(Controller):
         """Targets (and variance keys) at the end-of-step time t.  Always rebuilt: a step retried
         as substeps reaches the same t again, and on a dynamic body (scene.body) the guides ride
         with a block whose pose at t depends on the attempt."""
+        self.guides.check_time(t, "Simulator.step: state.time")
         self.time, self.tg = t, self.cons.targets(t, motion)
         if self.use_variance:
             self._kv, self._vbar = self.variance.at(t)
+
+    def check_control(self, control, where: str) -> None:
+        """The SQP's warm start: TrackingIterates with t (K,) and lam (3K,) of these clusters (a free
+        run's state, control None, was an AttributeError in the SQP; another run's a matmul
+        mismatch; probe of issue 16)."""
+        K = self.cons.K
+        if not isinstance(control, TrackingIterates):
+            raise InputError(f"must be the tracking controller's iterates (TrackingIterates: a tracked run's state, or "
+                             f"Simulator.initial_state()), got {type(control).__name__}", where)
+        for name, n in (("t", K), ("lam", 3 * K)):
+            a = getattr(control, name)
+            try:
+                finite = np.shape(a) == (n,) and bool(np.isfinite(np.asarray(a, dtype=np.float64)).all())
+            except (TypeError, ValueError):
+                finite = False
+            if not finite:
+                raise InputError(f"{name} must be {n} finite numbers for this run's {K} clusters, got shape "
+                                 f"{np.shape(a)}: iterates of another run?", where)
 
     def solve(self, sim, state, dt, t_next, motion):
         obj = sim.objective
