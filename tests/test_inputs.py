@@ -58,7 +58,7 @@ def test_inf_point_is_rejected():
 
 @pytest.mark.parametrize("counts,match", [((4, 5, 4), "add up to"), ((4, 5), "add up to"),
                                           # a curve's own count is named first (a negative one said only the sum)
-                                          ((4, 5, 1), "curve 2 has 1 vertices"), ((4, -5, 4), "curve 1 has -5 vertices")])
+                                          ((4, 5, 1), "curve 2 has 1 vertex"), ((4, -5, 4), "curve 1 has -5 vertices")])
 def test_counts_not_matching_points(counts, match):
     pts, _ = three_curves()
     with pytest.raises(InputError, match=match):

@@ -130,7 +130,7 @@ CASES = {  # name: (edit, prim, message regex)
     "hair_two_vertices": (with_counts(HAIR, [N_VERTICES] * 4 + [2 * N_VERTICES - 2, 2]), HAIR,
                           r"curve 5 has 2 vertices, needs at least 3"),
     "guide_one_vertex": (with_counts(GUIDES, [2 * GUIDE_VERTICES - 1, 1]), GUIDES + " frame 0",
-                         r"curve 1 has 1 vertices, needs at least 2"),
+                         r"curve 1 has 1 vertex, needs at least 2"),
     "guide_no_samples": (guide_without_samples, GUIDES, r"points have no time samples"),
     "guide_missing_frame": (lambda s: guides_attr(s).ClearAtTime(3), GUIDES,
                             r"no time sample at time code 3 \(frame 3\)"),

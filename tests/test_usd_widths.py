@@ -7,7 +7,7 @@ import logging
 
 import numpy as np
 import pytest
-from pxr import Usd, UsdGeom, Vt
+from pxr import Sdf, Usd, UsdGeom, Vt
 from usd_helpers import N_STRANDS, N_VERTICES, edit_stage, source_cfg, usd_cfg, write_stage
 
 from hairexp.errors import InputError
@@ -108,3 +108,40 @@ def test_the_scene_checks_widths_given_through_the_python_api(stage):
                         ("thin", "must be None or an array of")):
         with pytest.raises(InputError, match=said):
             dataclasses.replace(scene, widths=wrong)
+
+
+def test_widths_follow_the_curve_prims_own_scale(stage, tmp_path):
+    """The points were scaled by the prim's ``xformOp:scale`` and the widths were not."""
+    from pxr import Gf
+
+    def edit(s):
+        with_widths([5e-5], UsdGeom.Tokens.constant)(s)
+        UsdGeom.Xformable(s.GetPrimAtPath(HAIR)).AddScaleOp().Set(Gf.Vec3f(2.0, 2.0, 2.0))
+    edit_stage(stage, edit)
+    scene = build_usd_scene(usd_cfg(stage).scene)
+    assert np.allclose(scene.widths, 1e-4, rtol=1e-6)
+
+
+def test_primvars_widths_are_read(stage):
+    """Widths authored as ``primvars:widths`` (as DCC exporters write them) were ignored without a word."""
+    taper = np.tile(np.linspace(6e-5, 0.0, N_VERTICES), N_STRANDS)
+
+    def edit(s):
+        c = UsdGeom.BasisCurves.Get(s, HAIR)
+        c.GetWidthsAttr().Clear()
+        pv = UsdGeom.PrimvarsAPI(c.GetPrim()).CreatePrimvar("widths", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
+        pv.Set(Vt.FloatArray([float(v) for v in taper]))
+    edit_stage(stage, edit)
+    scene = build_usd_scene(usd_cfg(stage).scene)
+    assert np.allclose(scene.widths, taper, rtol=1e-6, atol=0)
+
+
+def test_the_stage_unit_is_said_with_length_errors_only(stage):
+    """A centimetre stage's count mismatch carried "(the stage's lengths are read in metres ...)"."""
+    def edit(s):
+        s.SetMetadata("metersPerUnit", 0.01)
+        UsdGeom.BasisCurves.Get(s, HAIR).GetCurveVertexCountsAttr().Set(Vt.IntArray([N_VERTICES] * (N_STRANDS - 1) + [N_VERTICES + 1]))
+    edit_stage(stage, edit)
+    with pytest.raises(InputError) as err:
+        build_usd_scene(usd_cfg(stage).scene)
+    assert "vertex counts add up to" in str(err.value) and "metersPerUnit" not in str(err.value)

@@ -17,6 +17,7 @@ import copy
 import logging
 import math
 import os
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -321,19 +322,22 @@ def read_widths(curves: UsdGeom.BasisCurves, tc, counts: np.ndarray, where: str)
     or their count does not fit their interpolation (warned: the result's hair is then drawn at
     the default width).  A width that is not finite or is negative is an InputError naming the
     curve and vertex; widths of zero (tapered tips) are taken."""
-    attr = curves.GetWidthsAttr()
+    primvar = UsdGeom.PrimvarsAPI(curves.GetPrim()).GetPrimvar("widths")
+    if primvar and primvar.HasAuthoredValue():   # primvars:widths (DCC exporters; UsdImaging reads it first)
+        attr, interp = primvar.GetAttr(), primvar.GetInterpolation()
+    else:
+        attr, interp = curves.GetWidthsAttr(), curves.GetWidthsInterpolation()
     if not attr.HasAuthoredValue():
         return None
     w = _array(attr, tc, where, np.float64)
     if w is None or w.size == 0:
         return None
     V, S = int(counts.sum()), len(counts)
-    interp = curves.GetWidthsInterpolation()
     expect = {UsdGeom.Tokens.constant: 1, UsdGeom.Tokens.uniform: S, UsdGeom.Tokens.varying: V,
               UsdGeom.Tokens.vertex: V}.get(interp)
     if expect is None or len(w) != expect:
-        log.warning("%s: widths has %d values with %s interpolation (%s curves, %d vertices): not used; the result's "
-                    "hair is drawn %g mm wide", where, len(w), interp, S, V, 1e3 * DEFAULT_HAIR_WIDTH)
+        log.warning("%s: %s has %d values with %s interpolation (%s curves, %d vertices): not used; the result's "
+                    "hair is drawn %g mm wide", where, attr.GetName(), len(w), interp, S, V, 1e3 * DEFAULT_HAIR_WIDTH)
         return None
     per_vertex = np.full(V, w[0]) if expect == 1 else (np.repeat(w, counts) if expect == S and S != V else w)
     bad = np.flatnonzero(~(np.isfinite(per_vertex) & (per_vertex >= 0)))
@@ -341,7 +345,7 @@ def read_widths(curves: UsdGeom.BasisCurves, tc, counts: np.ndarray, where: str)
         v = int(bad[0])
         offsets = np.concatenate([[0], np.cumsum(counts)])
         c = int(np.searchsorted(offsets, v, side="right") - 1)
-        raise InputError(f"widths: curve {c} vertex {v - offsets[c]} has the width {float(per_vertex[v]):.6g}; widths are "
+        raise InputError(f"{attr.GetName()}: curve {c} vertex {v - offsets[c]} has the width {float(per_vertex[v]):.6g}; widths are "
                          "finite and >= 0", where)
     s = stage_units(curves.GetPrim().GetStage())
     per_vertex = per_vertex * s
@@ -374,9 +378,15 @@ def read_hair(hair, body, cfg, file: str) -> tuple[np.ndarray, np.ndarray, np.nd
     # prim (scene.usd_body=none): hair space -> world (``build_usd_scene`` takes it to scene.motion's body)
     t0 = Usd.TimeCode(0) if tc.IsDefault() else tc
     rel = world_transform(UsdGeom.Xformable(hair), t0, where)
+    if widths is not None:   # widths are in the prim's space, as its points: scaled by its transform's (mean) scale
+        widths = widths * abs(float(np.linalg.det(np.array(rel)[:3, :3]))) ** (1.0 / 3.0)
     if body is not None:
         rel = rel * world_transform(UsdGeom.Xformable(body), t0, f"{file}:{cfg.usd_body}").GetInverse()
     return (pts if np.allclose(np.array(rel), np.eye(4), rtol=0, atol=1e-12) else apply(pts, rel)), counts, widths
+
+
+#: an error about a length or a distance (``units_hint`` adds the stage's unit to those only)
+LENGTH_ERROR = re.compile(r"zero-length|from the origin| long\b| apart\b|\d m\b")
 
 
 class units_hint:
@@ -396,6 +406,8 @@ class units_hint:
         text = str(exc)
         if exc.where and text.startswith(f"{exc.where}: "):
             text = text[len(exc.where) + 2:]
+        if not LENGTH_ERROR.search(text):   # a count, a fold, a rotation: not about lengths (probe of issue 16)
+            return False
         raise type(exc)(f"{text} (the stage's lengths are read in metres: its values x its metersPerUnit "
                         f"{self.s:g})", exc.where) from exc
 

@@ -54,7 +54,8 @@ def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_v
         raise InputError("no curves given", where)
     # a curve's own count first: a negative one was named only as a sum that did not add up (probe, round 19)
     for s in np.flatnonzero(counts < min_vertices):
-        raise InputError(f"curve {s} has {counts[s]} vertices, needs at least {min_vertices}", where)
+        raise InputError(f"curve {s} has {counts[s]} {'vertex' if counts[s] == 1 else 'vertices'}, needs at least "
+                         f"{min_vertices}", where)
     if counts.sum() != points.shape[0]:
         raise InputError(f"vertex counts add up to {int(counts.sum())} but there are {points.shape[0]} points", where)
     offsets = np.concatenate([[0], np.cumsum(counts)])
