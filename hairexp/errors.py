@@ -179,6 +179,19 @@ def flag(value, key: str) -> bool:
     return bool(value)
 
 
+def check_switches(cfg, section: str, choices: dict, flags=()) -> None:
+    """``choice`` for each of ``choices`` (key -> its choices) and ``flag`` for each of ``flags``
+    that the settings object ``cfg`` has, named ``<section>.<key>`` (attributes it lacks are
+    left to their defaults)."""
+    for key, options in choices.items():
+        if hasattr(cfg, key):
+            choice(getattr(cfg, key), f"{section}.{key}", options)
+    for key in flags:
+        if hasattr(cfg, key):
+            value = getattr(cfg, key)
+            flag(getattr(value, "value", value), f"{section}.{key}")
+
+
 def integer(value, key: str, lo: int) -> int:
     """``value`` as an int >= lo (a bool is not one; a numpy integer is), or an InputError naming ``key``."""
     import numbers

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from hairexp import tune_runtime
-from hairexp.errors import MIN_STEP_DT, InputError, SimulationError, choice, finite_number, flag, integer, number
+from hairexp.errors import MIN_STEP_DT, InputError, SimulationError, check_switches, finite_number, flag, integer, number
 from hairexp.model.scene import Scene
 from hairexp.model.strands import MIN_EDGE_LENGTH
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact, sweep_substeps
@@ -182,9 +182,7 @@ def check_solver_config(s) -> None:
     check_options(getattr(s, "kernels", "numba"), getattr(s, "threads", "auto"))   # solver.kernels, solver.threads
     if hasattr(s, "restart_at_jumps"):
         flag(_value(s.restart_at_jumps), "solver.restart_at_jumps")
-    for key, choices in SOLVER_CHOICES.items():   # the config's Enums; any value in a dataclass of the API
-        if hasattr(s, key):
-            choice(getattr(s, key), f"solver.{key}", choices)
+    check_switches(s, "solver", SOLVER_CHOICES)   # the config's Enums; any value in a dataclass of the API
     # >= 1, or an absolute tolerance above hair's forces (mN), accepts the first iterate (probe of issue 12, round 14)
     rtol = number(s.rtol, "solver.rtol", lo=0, hi=1, hi_open=True)
     if hasattr(s, "stage_rtol_factor"):
@@ -280,12 +278,7 @@ def check_collision_config(c) -> None:
         if c.max_travel_substeps > MAX_TRAVEL_SUBSTEPS:   # each substep is a whole step's solve
             raise InputError(f"must be <= {MAX_TRAVEL_SUBSTEPS}, got {c.max_travel_substeps}",
                              "collision.max_travel_substeps")
-    for key, choices in COLLISION_CHOICES.items():
-        if hasattr(c, key):
-            choice(getattr(c, key), f"collision.{key}", choices)
-    for key in COLLISION_FLAGS:
-        if hasattr(c, key):
-            flag(_value(getattr(c, key)), f"collision.{key}")
+    check_switches(c, "collision", COLLISION_CHOICES, COLLISION_FLAGS)
 
 
 class Simulator:

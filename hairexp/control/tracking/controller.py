@@ -10,7 +10,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.linalg
 
-from hairexp.errors import InputError, choice, flag, integer, number
+from hairexp.errors import InputError, check_switches, integer, number
 from hairexp.control.tracking.constraints import TrackingConstraints
 from hairexp.control.tracking.correspondence import build_correspondence, check_correspondence_options
 from hairexp.control.tracking.kkt import KRYLOV_TOL, SCHUR_MODES, SchurKKT
@@ -60,12 +60,7 @@ def check_tracking_config(t) -> None:
         raise InputError(f"must be a tracking config (hairexp.app.config.TrackingConfig, or an object with its "
                          f"attributes: targets, assignment, points_per_guide, rtol, ...), got {type(t).__name__}",
                          "tracking")
-    for key, choices in TRACKING_CHOICES.items():
-        if hasattr(t, key):
-            choice(getattr(t, key), f"tracking.{key}", choices)
-    for key in TRACKING_FLAGS:
-        if hasattr(t, key):
-            flag(_v(getattr(t, key)), f"tracking.{key}")
+    check_switches(t, "tracking", TRACKING_CHOICES, TRACKING_FLAGS)
     rtol = number(t.rtol, "tracking.rtol", lo=0, hi=1, hi_open=True)   # >= 1 accepts the first iterate (round 14)
     atol = number(t.atol, "tracking.atol", lo=0, hi=MAX_ATOL)
     if rtol == 0 and atol == 0:
