@@ -103,7 +103,7 @@ def linearised(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(K, M_diag, free vertices): the exact Hessian of stretch + bending at the chain's
     equilibrium over the free DOFs (gravity is linear: no Hessian) and the lumped masses."""
     s, m = scene.strands, scene.material
-    x0 = torch.as_tensor(scene.initial_positions(), dtype=torch.float64)
+    x0 = torch.tensor(scene.initial_positions(), dtype=torch.float64)   # a copy: the scene's arrays are read-only
     free = np.flatnonzero(~s.kinematic)
     terms = [Stretch(s.edges, s.rest_lengths, m.stretch_stiffness), Bending(s.bends, s.rest, m.bending_stiffness)]
 
