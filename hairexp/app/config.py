@@ -813,10 +813,10 @@ def compose_config(overrides: list[str] | tuple[str, ...] = ()):
                              bad if bad is not None else "overrides") from exc
         ambiguous = re.match(r"Ambiguous value for argument '([^=']+)=([^']*)'", str(exc))
         if ambiguous and not unknown:   # a sweep's comma list: Hydra's four-line message (probe of issue 16)
-            raise InputError(f"{ambiguous.group(2)!r} is several values: compose_config composes one config; give "
-                             f"one value, a list as {ambiguous.group(1)}=[a,b], a string with commas quoted "
-                             f"({ambiguous.group(1)}='a,b'), or sweep on the command line (python -m hairexp -m ...)",
-                             ambiguous.group(1)) from exc
+            key, value = ambiguous.group(1), ambiguous.group(2)
+            raise InputError(f"{value!r} is several values and a run takes one: give one value, a list as {key}=[a,b], "
+                             f"a string with commas quoted ({key}='a,b'), or sweep them with -m (python -m hairexp -m "
+                             f"{key}={value})", key) from exc
         group = re.search(r"Config group override must be a string or a list. Got (\w+)", str(exc))
         if group and not unknown:   # experiment=null: Hydra's message named no key (probe, round 14)
             key = next((o.split("=", 1)[0].lstrip("+~") for o in overrides if re.fullmatch(r"[+~]{0,2}[\w/]+=(null|~)?", o)),
