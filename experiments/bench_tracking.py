@@ -9,7 +9,7 @@ the tracking registered on the settled hair, as ``python -m hairexp`` does; Celi
 guides (10 vertices, settled the same way, guide 0 edited) x 8 tracking points = 24 clusters (72
 constraints), sliding targets.  The runs' steps are interleaved (step i of every run, then step
 i + 1), so their ratios are measured under the same machine load.  Prints and writes
-reports/bench_tracking.{md,json}.   Usage: python -m experiments.bench_tracking [--steps 50]
+reports/bench_tracking.{md,json}.   Usage: python -m experiments.bench_tracking [--steps 50] [--report NAME]
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import numpy as np
 from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 
-from experiments.common import (check_reports, TIME_KEYS, WARMUP, Timing, celia_bench, describe_run, fmt, md_table, pct, positive_int,
+from experiments.common import (check_reports, report_name, TIME_KEYS, WARMUP, Timing, celia_bench, describe_run, fmt, md_table, pct, positive_int,
                                 stretch_max)
 
 
@@ -68,8 +68,10 @@ def summarise(run, tm) -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=positive_int, default=50)
+    ap.add_argument("--report", type=report_name, default="bench_tracking",
+                    help="the report's name: reports/<NAME>.{md,json} (default bench_tracking; another name leaves the committed one as it is)")
     args = ap.parse_args(argv)
-    check_reports(ap, "bench_tracking")
+    check_reports(ap, args.report)
     runs, assemble_s = {}, {}
     for name, controller, typed in (("free", "free", ()), ("tracked", "tracking", ()),
                                     ("tracked_exact", "tracking", ("tracking.schur=exact",))):
@@ -128,7 +130,7 @@ def main(argv=None):
            f"{kr['krylov_solves']} Krylov solves with {kr['krylov_iterations']} iterations "
            f"({kr['krylov_iterations'] / max(kr['krylov_solves'], 1):.1f} a solve), {kr['krylov_fallbacks']} fallbacks "
            f"to the exact solve; exact {ke['factors']} factorisations, {ke['builds']} Schur builds.\n")
-    path = write_report("bench_tracking", md, {"targets": targets, "met": met, "ratio": ratio, "ratio_exact": ratio_exact,
+    path = write_report(args.report, md, {"targets": targets, "met": met, "ratio": ratio, "ratio_exact": ratio_exact,
                                                "krylov_vs_exact": speedup, "same_iterations": same_iterations,
                                                "results": res, "clusters": K, "constraints": 3 * K,
                                                "assemble_s": assemble_s})

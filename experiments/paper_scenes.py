@@ -9,7 +9,7 @@ and torch/numpy/scipy versions match an entry of reports/cache/paper_scenes/ is 
 figures (and timings) are those of the cached run, and the report says so with the entry's date and
 hash; no run folder is written for it.  Without ``--cache`` every scene runs fresh and refreshes
 its entry.
-Usage: python -m experiments.paper_scenes [names ...] [--cache] [--set KEY=VALUE ...]
+Usage: python -m experiments.paper_scenes [names ...] [--cache] [--set KEY=VALUE ...] [--report NAME]
        (default: every paper scene)
 """
 
@@ -25,7 +25,8 @@ from hairexp.app.experiment import run_experiment
 from hairexp.app.report import header, write_report
 from hairexp.app.report_cache import cached, describe
 
-from experiments.common import ROOT, check_reports, compose, experiment_names, fail, fmt, key_value, md_row, md_table
+from experiments.common import (ROOT, check_reports, compose, experiment_names, fail, fmt, key_value, md_row, md_table,
+                                report_name)
 from experiments.scene_pictures import render_key_moment
 
 SCENES = ["goaling", "splitting", "spreading", "stylization", "celia", "fanning"]
@@ -40,6 +41,8 @@ SHOW = {"collider_contact": ("hit", "contacts", "min_distance", "first_hit_time"
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("names", nargs="*", default=None)
+    ap.add_argument("--report", type=report_name, default="paper_scenes",
+                    help="the report's name: reports/<NAME>.{md,json} (default paper_scenes; another name leaves the committed one as it is)")
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/paper_scenes/ entries with the same config, solver source and versions")
     ap.add_argument("--set", nargs="*", default=[], type=key_value, metavar="KEY=VALUE",
@@ -50,7 +53,7 @@ def main(argv=None):
         ap.error(f"--set {' '.join(launch)}: the scenes run in outputs/paper_scenes/<name>/, replaced each time; "
                  "hydra.* and overwrite are a command line's keys")
     names = experiment_names(ap, args.names, SCENES)
-    check_reports(ap, "paper_scenes")
+    check_reports(ap, args.report)
     md = header("The paper's scenes, judged")
     md += ("Each experiment runs its variants as `python -m hairexp experiment=<name>` does; `success` is the "
            "judge's verdict on the scene's measure (README, \"Paper scenes\").  Every scene and variant states the "
@@ -114,20 +117,20 @@ def main(argv=None):
                           f"{v['step_seconds_median']:.4f}", f"{v['stretch_max']:.3g}", fmt(v["residual_rel_max"], ".4g"),
                           f"`{v.get('config_hash')}`"])
         md += "\n"
-        png = ROOT / "reports" / "paper_scenes" / f"{name}.png"
+        png = ROOT / "reports" / args.report / f"{name}.png"   # beside the report, named as it is
         if not info["hit"]:   # a fresh run: its picture at the key moment (experiments/scene_pictures.py)
             png.parent.mkdir(parents=True, exist_ok=True)
             pic = render_key_moment(out, png)
             data[name]["picture"] = {k: pic[k] for k in ("frame", "time", "axis")} | {"key": pic["key"]}
         if png.is_file():
-            md += (f"![{name} at its key moment](paper_scenes/{name}.png)\n\n"
+            md += (f"![{name} at its key moment]({args.report}/{name}.png)\n\n"
                    f"{'Picture of the run above' if not info['hit'] else 'Picture of an earlier fresh run'}: "
                    "the variants at the key moment, from `result.npz` (`experiments/scene_pictures.py`); "
                    f"the variants side by side in rerun: `outputs/paper_scenes/{name}/comparison.rrd`.\n\n")
     if names and len(failed) == len(names):   # nothing to report: the committed report stays as it was
-        return fail(f"every scene failed ({', '.join(failed)}: see above); reports/paper_scenes.md/.json left as "
+        return fail(f"every scene failed ({', '.join(failed)}: see above); reports/{args.report}.md/.json left as "
                     "they were")
-    path = write_report("paper_scenes", md, {"scenes": data})
+    path = write_report(args.report, md, {"scenes": data})
     print(f"wrote {path}")
     if failed:
         return fail(f"{len(failed)} of {len(names)} scenes failed: {', '.join(failed)} (recorded as failed in the report)")
