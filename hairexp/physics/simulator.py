@@ -857,9 +857,10 @@ class Simulator:
     def checked_state(self, state: State, where: str) -> State:
         """``state`` as a step reads it, or an InputError (a TypeError for what is not a State)
         naming ``where`` and the state's field: a time that is not a finite number, positions or
-        velocities of another shape or not real numbers (lists and integers are taken as float64
-        copies: integer positions "diverged ... try a smaller solver.dt"), a non-finite vertex (named
-        with its strand), an integrator history of another scene, or controller iterates this
+        velocities of another shape or not floating-point numbers (integer positions, a cast that
+        dropped everything below a metre, "diverged ... try a smaller solver.dt"; lists of floats and
+        float32 arrays are taken as float64 copies), a non-finite vertex (named with its strand), a
+        zero-length edge, an integrator history of another scene, or controller iterates this
         controller cannot use (``Controller.check_control``: a free run's state in a tracked
         simulator was an AttributeError deep in the SQP; probe of issue 16).  The state given is
         never modified."""
@@ -877,7 +878,7 @@ class Simulator:
         for field, what in (("x", "positions"), ("v", "velocities")):
             given = getattr(state, field)
             values = np.asarray(given)
-            if values.dtype.kind != "f" and not (values.dtype.kind == "O" and values.size == 0):
+            if values.dtype.kind != "f":
                 # complex, object or strings: numba's and numpy's own errors; integers: a cast that dropped
                 # everything below a metre, which then "diverged ... try a smaller solver.dt"
                 raise InputError(f"the state's {what} must be floating-point numbers, got dtype {values.dtype}"
