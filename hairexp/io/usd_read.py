@@ -36,7 +36,7 @@ from hairexp.guides.animation import MAX_FPS, MIN_FPS, GuideAnimation, check_fps
 from hairexp.guides.store import FrameStore
 from hairexp.model.builders import build_collider, build_material, build_motion, gravity
 from hairexp.model.scene import Scene
-from hairexp.model.strands import N_ROOT_VERTICES, Strands, check_folds, validate_polylines
+from hairexp.model.strands import N_ROOT_VERTICES, Strands, check_folds, curve_vertex, validate_polylines
 
 _open: dict = {}   # path -> stage of the last read (reloaded when the file changes)
 _warned: set = set()   # the prims whose cubic type was warned about
@@ -339,13 +339,17 @@ def read_widths(curves: UsdGeom.BasisCurves, tc, counts: np.ndarray, where: str)
         log.warning("%s: %s has %d values with %s interpolation (%s curves, %d vertices): not used; the result's "
                     "hair is drawn %g mm wide", where, attr.GetName(), len(w), interp, S, V, 1e3 * DEFAULT_HAIR_WIDTH)
         return None
-    per_vertex = np.full(V, w[0]) if expect == 1 else (np.repeat(w, counts) if expect == S and S != V else w)
+    if interp == UsdGeom.Tokens.constant:
+        per_vertex = np.full(V, w[0])
+    elif interp == UsdGeom.Tokens.uniform:
+        per_vertex = np.repeat(w, counts)
+    else:   # varying, vertex: one a vertex (linear curves)
+        per_vertex = w
     bad = np.flatnonzero(~(np.isfinite(per_vertex) & (per_vertex >= 0)))
     if len(bad):
         v = int(bad[0])
-        offsets = np.concatenate([[0], np.cumsum(counts)])
-        c = int(np.searchsorted(offsets, v, side="right") - 1)
-        raise InputError(f"{attr.GetName()}: curve {c} vertex {v - offsets[c]} has the width {float(per_vertex[v]):.6g}; widths are "
+        c, k = curve_vertex(np.concatenate([[0], np.cumsum(counts)]), v)
+        raise InputError(f"{attr.GetName()}: curve {c} vertex {k} has the width {float(per_vertex[v]):.6g}; widths are "
                          "finite and >= 0", where)
     s = stage_units(curves.GetPrim().GetStage())
     per_vertex = per_vertex * s

@@ -36,6 +36,22 @@ def within_curves(offsets: np.ndarray, n_steps: int) -> np.ndarray:
     return within
 
 
+def curve_vertex(offsets: np.ndarray, v: int) -> tuple[int, int]:
+    """(curve, index along it) of the packed vertex ``v`` of curves with vertex ``offsets``."""
+    c = int(np.searchsorted(offsets, v, side="right") - 1)
+    return c, int(v) - int(offsets[c])
+
+
+def first_short_edge(points: np.ndarray, offsets: np.ndarray) -> int | None:
+    """The first edge within a curve shorter than MIN_EDGE_LENGTH, as the packed index of its
+    first vertex, or None (squared lengths: points near 1e300 give inf, not a short edge)."""
+    d = np.diff(points, axis=0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        sq = np.einsum("ij,ij->i", d, d)
+    short = within_curves(offsets, len(sq)) & (sq < MIN_EDGE_LENGTH ** 2)
+    return int(np.flatnonzero(short)[0]) if short.any() else None
+
+
 def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_vertices: int = 2,
                        folds: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Check packed polylines and return them as float64 ``(V,3)`` and int64 counts.
@@ -62,16 +78,12 @@ def validate_polylines(points: np.ndarray, counts: np.ndarray, where: str, min_v
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
         v = int(np.flatnonzero(bad)[0])
-        s = int(np.searchsorted(offsets, v, side="right") - 1)
-        raise InputError(f"curve {s} vertex {v - offsets[s]} is not finite: {points[v].tolist()}", where)
-    with np.errstate(over="ignore", invalid="ignore"):   # points near 1e300: inf lengths, which the extent check names
-        seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    within = within_curves(offsets, len(seg))
-    short = within & (seg < MIN_EDGE_LENGTH)
-    if short.any():
-        e = int(np.flatnonzero(short)[0])
-        s = int(np.searchsorted(offsets, e, side="right") - 1)
-        raise InputError(f"curve {s} has a zero-length edge between vertices {e - offsets[s]} and {e - offsets[s] + 1}", where)
+        c, k = curve_vertex(offsets, v)
+        raise InputError(f"curve {c} vertex {k} is not finite: {points[v].tolist()}", where)
+    e = first_short_edge(points, offsets)   # points near 1e300: inf lengths, which the extent check names
+    if e is not None:
+        c, k = curve_vertex(offsets, e)
+        raise InputError(f"curve {c} has a zero-length edge between vertices {k} and {k + 1}", where)
     if folds:
         check_folds(points, counts, where)
     return points, counts
@@ -112,9 +124,9 @@ def check_folds(points: np.ndarray, counts: np.ndarray, where: str) -> None:
     fold = within[:-1] & within[1:] & (cos < np.cos(np.radians(MAX_TURN_DEG)))
     if fold.any():
         e = int(np.flatnonzero(fold)[0])
-        s = int(np.searchsorted(offsets, e, side="right") - 1)
+        c, k = curve_vertex(offsets, e)
         turn = float(np.degrees(np.arccos(np.clip(cos[e], -1.0, 1.0))))
-        raise InputError(f"curve {s} folds back on itself at vertex {e - offsets[s] + 1} (its edges turn by {turn:.1f} "
+        raise InputError(f"curve {c} folds back on itself at vertex {k + 1} (its edges turn by {turn:.1f} "
                          f"degrees there, more than {MAX_TURN_DEG:g})", where)
 
 

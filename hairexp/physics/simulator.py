@@ -46,7 +46,7 @@ import torch
 from hairexp import tune_runtime
 from hairexp.errors import MIN_STEP_DT, InputError, SimulationError, check_switches, finite_number, flag, integer, number
 from hairexp.model.scene import Scene
-from hairexp.model.strands import MIN_EDGE_LENGTH
+from hairexp.model.strands import curve_vertex, first_short_edge
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact, sweep_substeps
 from hairexp.physics.collisions import (CollisionInfo, HairHair, StrainLimit, collision_stage, contact_velocities,
                                         edge_response, limit_strain, object_positions, path_test)
@@ -874,6 +874,7 @@ class Simulator:
         if np.shape(state.x) != shape or np.shape(state.v) != shape:   # an IndexError deep in the step (probe of issue 12)
             raise InputError(f"the state's positions and velocities must have the scene's shape {shape}, "
                              f"got {np.shape(state.x)} and {np.shape(state.v)}", f"{where}: state.x, state.v")
+        offsets = self.scene.strands.offsets
         arrays = {}
         for field, what in (("x", "positions"), ("v", "velocities")):
             given = getattr(state, field)
@@ -888,19 +889,16 @@ class Simulator:
                 arrays[field] = values = np.array(values, dtype=np.float64)
             if not np.isfinite(values).all():
                 bad = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
-                strand = int(self.scene.strands.strand_of_vertex[bad])
-                raise InputError(f"the state's {what} are not finite: vertex {bad} (strand {strand}, vertex "
-                                 f"{bad - int(self.scene.strands.offsets[strand])} along it) is {values[bad].tolist()}",
-                                 f"{where}: state.{field}")
+                strand, k = curve_vertex(offsets, bad)
+                raise InputError(f"the state's {what} are not finite: vertex {bad} (strand {strand}, vertex {k} along it) "
+                                 f"is {values[bad].tolist()}", f"{where}: state.{field}")
         x = arrays.get("x", np.asarray(state.x))
-        seg = np.linalg.norm(x[self.scene.strands.edges[:, 1]] - x[self.scene.strands.edges[:, 0]], axis=1)
-        if seg.min(initial=np.inf) < MIN_EDGE_LENGTH:   # the stretch's direction is undefined: the step "diverged"
-            e = int(np.argmin(seg))
-            v = int(self.scene.strands.edges[e, 0])
-            strand = int(self.scene.strands.strand_of_vertex[v])
-            raise InputError(f"the state's positions put vertices {v} and {v + 1} (strand {strand}, vertices "
-                             f"{v - int(self.scene.strands.offsets[strand])} and {v + 1 - int(self.scene.strands.offsets[strand])} "
-                             f"along it) {seg[e]:.3g} m apart: an edge of zero length cannot be stepped", f"{where}: state.x")
+        e = first_short_edge(x, offsets)   # the stretch's direction is undefined there: the step "diverged"
+        if e is not None:
+            strand, k = curve_vertex(offsets, e)
+            raise InputError(f"the state's positions put vertices {e} and {e + 1} (strand {strand}, vertices {k} and "
+                             f"{k + 1} along it) {float(np.linalg.norm(x[e + 1] - x[e])):.3g} m apart: an edge of zero "
+                             "length cannot be stepped", f"{where}: state.x")
         h = state.history
         if h is not None:
             if not isinstance(h, History):
