@@ -51,7 +51,7 @@ from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
 from hairexp.outputs.files import atomic_write_bytes, stream_frames, write_json
 from hairexp.outputs.metrics import read_parts
-from hairexp.outputs.folder import (LOCK, OUTCOME, RESERVE, RUN_DIRS, RUN_FILES, STREAM, SUMMARY, enclosing_run,
+from hairexp.outputs.folder import (LOCK, OUTCOME, RESERVE, RUN_DIRS, RUN_FILES, STREAM, SUMMARY, inside_run_refusal,
                                     held_elsewhere, hold,
                                     hydra_link_refusal, note_job_logs, overwrite_refusal, owner, pinned,
                                     refused_summary, reserved_part, running_run, unusable_folder, used_entries,
@@ -1070,11 +1070,8 @@ def restore_previous_record(out) -> None:
 def inside_run_error(folder: Path, key: str) -> str | None:
     """The error line when ``folder`` lies inside another run's folder (a parent holds a run's
     ``summary.json``): that folder then mixed two runs (probe of issue 12, round 12), or None."""
-    parent = enclosing_run(folder)
-    if parent is not None:
-        return (f"hairexp: error: {folder}: lies inside {parent}, another run's folder (its {SUMMARY}); a run "
-                f"folder belongs to one run: choose a {key} outside it")
-    return None
+    why = inside_run_refusal(folder, key)
+    return None if why is None else f"hairexp: error: {folder}: {why}"
 
 
 def live_folder_error(argv: list[str]) -> str | None:

@@ -32,9 +32,9 @@ from hairexp.app.signals import InterruptSignals, note_late, take_late
 from hairexp.errors import InputError, Interrupted
 from hairexp.evaluation.judges import JUDGES
 from hairexp.evaluation.measures import experiment_key_moment
-from hairexp.app.run import config_hash, inputs_inside, run, to_log_files, warnings_once, write_ending
+from hairexp.app.run import config_hash, inputs_inside, run, run_arguments, to_log_files, warnings_once, write_ending
 from hairexp.outputs.files import write_json
-from hairexp.outputs.folder import SUMMARY, claim, enclosing_run, free_reserve, owner, reserve, unusable_folder
+from hairexp.outputs.folder import SUMMARY, claim, free_reserve, inside_run_refusal, owner, reserve, unusable_folder
 
 log = logging.getLogger("hairexp")
 
@@ -192,17 +192,13 @@ def run_experiment(cfg, out_dir, on_checked=None) -> dict:
     """Run the experiment of ``cfg`` into ``out_dir``.  Every run's config is checked before the
     folder is claimed; ``on_checked()``, if given, is called then (the command line's warnings
     about unused keys: said above a refused run's error line, they hid it)."""
-    require_config(cfg, "run_folder")
-    if not isinstance(out_dir, (str, Path)) or not str(out_dir):
-        raise TypeError(f"run_folder: out_dir must be a folder path (str or pathlib.Path), got {out_dir!r}")
-    out = Path(out_dir)
+    out = run_arguments(cfg, out_dir, "run_folder")
     why = unusable_folder(str(out))   # as the command line refuses it before Hydra starts (it raised mkdir's
     if why is not None:               # bare FileNotFoundError; probe of issue 12, round 34)
         raise InputError(f"cannot be the run folder: {why}", str(out))
-    parent = enclosing_run(out)   # as the command line (an overwrite of that run then deleted this one; a probe)
-    if parent is not None:
-        raise InputError(f"lies inside {parent}, another run's folder (its {SUMMARY}); a run folder belongs to one "
-                         "run: choose a folder outside it", str(out))
+    why = inside_run_refusal(out)   # as the command line (an overwrite of that run then deleted this one; a probe)
+    if why is not None:
+        raise InputError(why, str(out))
     if not cfg.variants:
         return run(cfg, out, on_checked)
     with warnings_once():   # the variants' checks and runs say each warning once

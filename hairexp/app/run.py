@@ -295,11 +295,19 @@ def _stage_files(path: str) -> list[str]:
 def run(cfg, out_dir: str | Path, on_checked=None) -> dict:
     """Run ``cfg`` into the folder ``out_dir`` (claimed once the config is checked: ``check_config``;
     then ``on_checked()``, if given, is called) and return its summary."""
-    require_config(cfg, "run")
-    if not isinstance(out_dir, (str, os.PathLike)) or not str(out_dir):   # Path(5): a TypeError naming nothing
-        raise TypeError(f"run: out_dir must be a folder path (str or pathlib.Path), got {out_dir!r}")
+    out = run_arguments(cfg, out_dir, "run")
     with warnings_once():
-        return _checked_run(cfg, Path(out_dir), on_checked)
+        return _checked_run(cfg, out, on_checked)
+
+
+def run_arguments(cfg, out_dir, where: str) -> Path:
+    """``out_dir`` as a Path, after a TypeError naming ``where`` for a ``cfg`` that is not a
+    composed config or an ``out_dir`` that is not a folder path (``Path(5)`` said "expected str,
+    bytes or os.PathLike object, not int"): ``run``'s and ``run_folder``'s arguments."""
+    require_config(cfg, where)
+    if not isinstance(out_dir, (str, os.PathLike)) or not str(out_dir):
+        raise TypeError(f"{where}: out_dir must be a folder path (str or pathlib.Path), got {out_dir!r}")
+    return Path(out_dir)
 
 
 def _checked_run(cfg, out: Path, on_checked) -> dict:

@@ -184,12 +184,14 @@ def _is_tmp(p: Path) -> bool:
     return ".tmp" in p.name
 
 
-def enclosing_run(folder) -> Path | None:
-    """The run folder ``folder`` lies inside (a parent holding a run's ``summary.json``), or None:
-    a run folder belongs to one run (the command line's and the API's check)."""
+def inside_run_refusal(folder, choose: str = "folder") -> str | None:
+    """Why ``folder`` cannot be a run folder because it lies inside another run's (a parent holding
+    a run's ``summary.json``: a run folder belongs to one run; the command line's and the API's
+    check), naming what to ``choose`` instead, or None."""
     for parent in Path(os.path.abspath(folder)).parents:
         if (parent / SUMMARY).is_file():
-            return parent
+            return (f"lies inside {parent}, another run's folder (its {SUMMARY}); a run folder belongs to one run: "
+                    f"choose a {choose} outside it")
     return None
 
 
