@@ -72,3 +72,29 @@ def test_variants_share_one_guide_simulation_attached_to_their_own_body(monkeypa
     np.testing.assert_array_equal(b.guides.frames, fresh.guides.frames)
     for t in (0.0, 0.03, 0.07):
         np.testing.assert_array_equal(b.guides.shape_at(t), fresh.guides.shape_at(t))
+
+
+def test_an_experiment_checks_each_variant_once(monkeypatch, tmp_path):
+    """``run_experiment`` checks every variant's config (``check_config``: its scene, guides and
+    controller built) before the first runs; the variant's run does not check it again
+    (``run_checked``), while ``run`` on its own does."""
+    from hairexp.app import experiment as experiment_mod
+    from hairexp.app import run as run_mod
+
+    calls = []
+    real = assemble_mod.check_config
+
+    def counting(cfg, files=True):
+        calls.append(str(getattr(cfg.controller.name, "value", cfg.controller.name)))
+        return real(cfg, files)
+
+    monkeypatch.setattr(experiment_mod, "check_config", counting)
+    monkeypatch.setattr(run_mod, "check_config", counting)
+    cfg = compose_config(["experiment=goaling_smoke", "frames=2", "logging=off"])
+    assert [str(v.name) for v in cfg.variants] == ["free", "tracked"]
+    summary = experiment_mod.run_experiment(cfg, tmp_path / "exp")
+    assert summary["status"] == "completed"
+    assert sorted(calls) == ["free", "tracking"]
+    calls.clear()
+    run_mod.run(compose_config(["experiment=goaling_smoke", "variants=[]", "frames=2", "logging=off"]), tmp_path / "one")
+    assert len(calls) == 1

@@ -1668,6 +1668,11 @@ JOBLIB_MMAP_MODES = (None, "r", "r+", "w+", "c")
 NAME_BYTES = 200
 
 
+#: Hydra's own keys whose value is a folder given as text (``RunDir.dir``, ``SweepDir.dir``/``subdir``):
+#: Hydra's config takes any text there
+TEXT_FOLDER_KEYS = frozenset({"hydra.run.dir", "hydra.sweep.dir", "hydra.sweep.subdir"})
+
+
 def hydra_key_error(hydra_args: list[str]) -> str | None:
     """The message of ``hydra.*`` overrides Hydra's own config refuses (a typo such as
     ``hydra.foo=1``, ``hydra.job.chdir=maybe``), or None: composed here with Hydra's config, so
@@ -1690,6 +1695,13 @@ def hydra_key_error(hydra_args: list[str]) -> str | None:
         bad = _hydra_value_error(o.get_key_element(), o.value()) if not o.is_sweep_override() else None
         if bad is not None:
             return bad
+    if all(not o.is_sweep_override() and not (o.is_add() or o.is_force_add() or o.is_delete())
+           and o.get_key_element() in TEXT_FOLDER_KEYS and isinstance(o.value(), str) for o in parsed):
+        # the folders alone (the benchmarks' and many a command line's ``hydra.run.dir=<path>``): text
+        # keys of Hydra's schema that take any text, their values checked by run_dir_value_error and
+        # run_dir_error; composing Hydra's config to find nothing took 0.2-0.3 s of every such launch
+        return None
+
     def composed(overrides):
         GlobalHydra.instance().clear()
         try:

@@ -32,7 +32,7 @@ from hairexp.app.signals import InterruptSignals, note_late, take_late
 from hairexp.errors import InputError, Interrupted
 from hairexp.evaluation.judges import JUDGES
 from hairexp.evaluation.measures import experiment_key_moment
-from hairexp.app.run import config_hash, inputs_inside, run, run_arguments, to_log_files, warnings_once, write_ending
+from hairexp.app.run import config_hash, inputs_inside, run, run_arguments, run_checked, to_log_files, warnings_once, write_ending
 from hairexp.outputs.files import write_json
 from hairexp.outputs.folder import SUMMARY, claim, free_reserve, inside_run_refusal, owner, reserve, unusable_folder
 
@@ -309,7 +309,7 @@ def _run_variants(out: Path, names: list[str], vcfgs: list, summary: dict, measu
     for name, vcfg in zip(names, vcfgs):
         try:
             facts[name] = _variant_facts(vcfg)
-            s = run(vcfg, out / name)
+            s = run_checked(vcfg, out / name)   # checked with the others (_checked_variants)
         except BaseException as exc:
             status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
             # the figures of the steps it ran, from its own ending summary, as for the other variants
