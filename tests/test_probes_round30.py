@@ -206,3 +206,30 @@ def test_overwrite_of_a_sweep_jobs_folder_removes_its_outcome(tmp_path):
     (tmp_path / OUTCOME).write_text(json.dumps({"status": "running", "code": 1, "pid": os.getpid()}))
     claim(tmp_path, overwrite=True)
     assert json.loads((tmp_path / OUTCOME).read_text())["status"] == "running"
+
+
+def _plate(times: str, translations: str, half: float = 0.003) -> list[str]:
+    return ["experiment=goaling_smoke", "variants=[]", "measure.collider=plate",
+            f"scene.colliders=[{{name: plate, shape: box, half_extents: [{half}, 0.3, 0.3], motion: {{interpolation: linear, "
+            f"times: {times}, translations: {translations}, rotations_deg: [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]}}}}]"]
+
+
+@pytest.mark.parametrize("times", ["[0.1, 0.12]", "[0.1, 0.9]"])
+def test_a_plate_swept_through_the_roots_between_two_steps_is_refused(times):
+    """A 6 mm plate crossing the roots (x within 17 mm of 0) 1 m along x between two samples of the
+    check (one step of 0.04 s: 50 m/s; or 5 cm a step, the body moving too) was never seen at a
+    sample and passed (noticed 2026-12-07).  Between samples the check now halves every interval
+    in which a root moved far enough to have gone in and out (the signed distance changes no faster
+    than the root moves)."""
+    cfg = compose_config(_plate(times, "[[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]]"))
+    with pytest.raises(InputError, match=r"^scene\.colliders\[0\]: collider 'plate': the hair's roots go into it "
+                                         r"\(strand \d+ root by [\d.]+ mm at t = [\d.]+ s\)"):
+        check_config(cfg)
+
+
+def test_a_plate_that_passes_beside_the_roots_or_a_thin_one_through_them():
+    """The same plate 0.2 m above the roots (y from 0.2 to 0.8) passes; a 2 mm plate (thinner than
+    twice the 2 mm thickness allowed) through them is refused: a root gone halfway into it."""
+    check_config(compose_config(_plate("[0.1, 0.12]", "[[-0.5, 0.5, 0.0], [0.5, 0.5, 0.0]]")))
+    with pytest.raises(InputError, match="collider 'plate': the hair's roots go into it"):
+        check_config(compose_config(_plate("[0.1, 0.12]", "[[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]]", half=0.001)))

@@ -326,9 +326,12 @@ def check_clear_roots(scene, frames: int, fps: float, steps_per_frame: int) -> N
     with the hair stretched by 518 %, and the tracked variant took 85 s for 21 steps; probe of
     issue 12, round 29).  A root that starts inside a collider moving with it is the scalp under a
     head sphere (celia: 7 mm inside) and is allowed: only a root that goes deeper than it started,
-    by more than the collider's thickness or 1 mm, is refused.  The poses are sampled at every
-    step (at most 2000 times); a dynamic body (``scene.body.dynamic``) moves as the run computes
-    it and is not checked."""
+    by more than the collider's thickness or 1 mm (at most half its centre's depth: a thin plate), is
+    refused.  The poses are sampled at every
+    step (at most 2000 times), and between two samples wherever the root moved (in the collider's
+    frame) far enough to have gone in and out again (``_passes_between``: a thin plate or a fast
+    ball swept through the roots within a step).  A dynamic body (``scene.body.dynamic``) moves as
+    the run computes it and is not checked."""
     if not scene.colliders or scene.body is not None:
         return
     k = np.flatnonzero(scene.strands.kinematic)
@@ -339,26 +342,90 @@ def check_clear_roots(scene, frames: int, fps: float, steps_per_frame: int) -> N
     X = scene.root_body[k]
     block = max(1, ROOT_CHECK_POINTS // len(k))   # samples a block: the roots' positions of a block at once
     for i, c in enumerate(scene.colliders):
-        d0 = None
+        where = getattr(c, "where", None) or f"scene.colliders[{i}]"
+        gap = max(float(c.thickness), 1e-3)
+        deep = -float(c.sdf_body(np.zeros((1, 3)))[0])   # its centre's depth: a plate's half-thickness
+        if deep > 0:   # a collider thinner than the gap: a root gone halfway through it (else never refused)
+            gap = min(gap, 0.5 * deep)
+        d0, prev, budget = None, None, [PASS_BUDGET]
         for a in range(0, len(ts), block):
             tb = ts[a:a + block]
-            Rb, Tb = motion_poses(scene.motion, tb)   # the body's poses, then the collider's
-            Rc, Tc = motion_poses(c.motion, tb)
-            W = np.matmul(X[None], np.swapaxes(Rb, 1, 2)) + Tb[:, None, :]
-            D = c.sdf_body(np.matmul(W - Tc[:, None, :], Rc).reshape(-1, 3)).reshape(len(tb), len(k))
+            P, D = _roots_in_collider(scene, c, X, tb)
             if d0 is None:
                 d0 = np.minimum(D[0], 0.0)
-            deeper = d0[None] - D - max(float(c.thickness), 1e-3)
+            deeper = d0[None] - D - gap
             hit = np.flatnonzero((deeper > 0).any(axis=1))
             if hit.size:   # the first sample where a root went deeper
                 r = int(hit[0])
-                t, d, j = tb[r], D[r], int(np.argmax(deeper[r]))
-                v = int(k[j])
-                s_ = int(scene.strands.strand_of_vertex[v])
-                raise InputError(f"collider {c.name!r}: the hair's roots go into it (strand {s_} "
-                                 f"root by {1e3 * -float(d[j]):.3g} mm at t = {float(t):.4g} s); a root is held by "
-                                 f"the body, so its strand would be pinned inside: keep the collider off the "
-                                 f"roots' path", getattr(c, "where", None) or f"scene.colliders[{i}]")
+                j = int(np.argmax(deeper[r]))
+                _roots_refusal(scene, c, where, k[j], float(tb[r]), float(D[r, j]))
+            if prev is not None:   # the interval between the blocks too
+                tb, P, D = np.concatenate([prev[0], tb]), np.concatenate([prev[1], P]), np.concatenate([prev[2], D])
+            found = _passes_between(scene, c, X, tb, P, D, d0 - gap, budget)
+            if found is not None:
+                _roots_refusal(scene, c, where, k[found[0]], found[1], found[2])
+            prev = (tb[-1:], P[-1:], D[-1:])
+
+
+def _roots_in_collider(scene, c, X: np.ndarray, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(P, D): the body-held points ``X`` (R, 3) at the times ``ts`` (T,) in collider ``c``'s
+    frame, (T, R, 3), and their signed distances to it (T, R)."""
+    Rb, Tb = motion_poses(scene.motion, ts)   # the body's poses, then the collider's
+    Rc, Tc = motion_poses(c.motion, ts)
+    W = np.matmul(X[None], np.swapaxes(Rb, 1, 2)) + Tb[:, None, :]
+    P = np.matmul(W - Tc[:, None, :], Rc)
+    return P, c.sdf_body(P.reshape(-1, 3)).reshape(len(ts), len(X))
+
+
+def _roots_refusal(scene, c, where: str, v: int, t: float, d: float):
+    """The InputError of root vertex ``v`` at signed distance ``d`` inside collider ``c`` at time ``t``."""
+    s_ = int(scene.strands.strand_of_vertex[int(v)])
+    raise InputError(f"collider {c.name!r}: the hair's roots go into it (strand {s_} root by {1e3 * -d:.3g} mm at "
+                     f"t = {t:.4g} s); a root is held by the body, so its strand would be pinned inside: keep the "
+                     f"collider off the roots' path", where)
+
+
+#: ``_passes_between``: a root's path between two samples is taken as at most this many times its
+#: chord (in the collider's frame: a body turning 90 degrees between samples makes 1.11)
+PATH_OVER_CHORD = 2.0
+#: ... an interval is halved at most this many times (a plate crossing 1 m in a step found within
+#: 1e-9 m), and at most this many halvings are made for one collider (a root gliding along the
+#: refused depth)
+PASS_DEPTH = 40
+PASS_BUDGET = 4096
+
+
+def _passes_between(scene, c, X, ts, P, D, level, budget: list | None = None, depth: int = 0):
+    """(root index, time, signed distance) of a root that goes below its refused depth ``level``
+    (R,) between two of the samples ``ts`` (T,), where none is below (P: the roots' positions in
+    the collider's frame (T, R, 3), D: their signed distances (T, R)), or None.  The signed distance
+    changes by at most the path's length: a root whose margins above ``level`` at an interval's
+    ends sum to more than PATH_OVER_CHORD x its chord cannot have gone below between them; where
+    they do not, the interval is halved and both halves checked in turn (PASS_DEPTH deep, PASS_BUDGET
+    halvings at most: a root that grazes the depth all along is not refused for it)."""
+    budget = [PASS_BUDGET] if budget is None else budget
+    if len(ts) < 2 or depth >= PASS_DEPTH:
+        return None
+    M = D - level[None]
+    chord = np.linalg.norm(P[1:] - P[:-1], axis=2)                     # (T - 1, R)
+    maybe = M[1:] + M[:-1] <= PATH_OVER_CHORD * chord
+    for a in np.flatnonzero(maybe.any(axis=1)):
+        if budget[0] <= 0:
+            return None
+        budget[0] -= 1
+        roots = np.flatnonzero(maybe[a])
+        tm = 0.5 * (float(ts[a]) + float(ts[a + 1]))
+        Pm, Dm = _roots_in_collider(scene, c, X[roots], np.array([tm]))
+        below = Dm[0] - level[roots]
+        if (below < 0).any():
+            j = int(np.argmin(below))
+            return int(roots[j]), tm, float(Dm[0, j])
+        found = _passes_between(scene, c, X[roots], np.array([ts[a], tm, ts[a + 1]]),
+                                np.stack([P[a, roots], Pm[0], P[a + 1, roots]]),
+                                np.stack([D[a, roots], Dm[0], D[a + 1, roots]]), level[roots], budget, depth + 1)
+        if found is not None:
+            return int(roots[found[0]]), found[1], found[2]
+    return None
 
 
 def assemble(cfg) -> Run:
