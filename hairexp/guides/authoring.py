@@ -49,12 +49,11 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from scipy.interpolate import CubicHermiteSpline, CubicSpline
 from scipy.spatial.transform import Rotation
 
 from hairexp.errors import MAX_COORDINATE, InputError
 from hairexp.guides.store import FrameStore
-from hairexp.model.rigid import MAX_KEY_DEGREES, motion_poses
+from hairexp.model.rigid import MAX_KEY_DEGREES, cubic_spline, motion_poses
 from hairexp.model.strands import validate_polylines
 
 #: Largest turn (degrees) of a guide's first edge away from its rest direction, in the body frame.
@@ -121,6 +120,8 @@ class KeyedWeight:
         self.weights = w
         self._curve = None
         if w.size > 1:
+            from scipy.interpolate import CubicHermiteSpline   # imported when used (see rigid.cubic_spline)
+
             self._curve = CubicHermiteSpline(self.times, w, self.slopes(self.times, w))
 
     @staticmethod
@@ -363,7 +364,7 @@ def keyframed_positions(gcfg, motion, frames: int, fps: float) -> tuple[FrameSto
     root = np.repeat(K[0, roots], nv, axis=0)                  # (Vg, 3), exactly the same in every frame
     rel = K - root
     rel[:, roots] = 0.0                                        # the spline keeps the roots exactly
-    spline = None if len(keys) == 1 else CubicSpline(key_times, rel, axis=0, bc_type="clamped")
+    spline = None if len(keys) == 1 else cubic_spline()(key_times, rel, axis=0, bc_type="clamped")
     world = FrameStore(root.shape)
     turn = RootTurn(offsets, "guides.keyframes")
     for start in range(0, frames + 1, BLOCK_FRAMES):          # a block of frames at a time

@@ -19,7 +19,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation
 
 from hairexp.errors import MAX_COORDINATE, MAX_SPEED, InputError, real_array
@@ -72,6 +71,15 @@ MIN_SEGMENT_STEPS = 2.0
 
 #: degrees, a keyframed rotation's angles at most this (also a guide edit's angle_deg bound, 100 turns)
 MAX_KEY_DEGREES = 36000.0
+
+
+def cubic_spline():
+    """scipy's ``CubicSpline``, imported when first asked for: ``scipy.interpolate`` (with the
+    ``scipy.optimize`` it imports) takes 0.3-0.4 s to import, which a run whose keys are all
+    linear (Celia's) does not need."""
+    from scipy.interpolate import CubicSpline
+
+    return CubicSpline
 
 
 @dataclass
@@ -142,6 +150,7 @@ class RigidMotion:
         self._static = K == 1
         self._pos = self._rot = None
         if K > 1 and self.interpolation == "cubic":
+            CubicSpline = cubic_spline()
             self._pos = CubicSpline(self.times, self.translations, bc_type="clamped")
             self._rot = CubicSpline(self.times, self.rotvecs, bc_type="clamped")
         elif K > 1:
