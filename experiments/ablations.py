@@ -17,8 +17,9 @@ the tracked controller (``variants=[] controller.name=tracking``):
 
 The table gives each run's iterations, converged fraction, step time, stretch, residual and
 the scene's measure.  Scenes default to the small ``*_smoke`` ones (a few minutes in all);
-``--full`` uses the full scenes and writes reports/ablations_full.{md,json} instead.
-Usage: python -m experiments.ablations [--full] [--scenes goaling spreading ...] [--launcher submitit_local]
+``--full`` uses the full scenes and writes reports/ablations_full.{md,json} instead; ``--report NAME``
+writes reports/NAME.{md,json}.
+Usage: python -m experiments.ablations [--full] [--scenes goaling spreading ...] [--launcher submitit_local] [--report NAME]
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-from experiments.common import ROOT, check_reports, fail, fmt, md_row, md_table
+from experiments.common import ROOT, check_reports, fail, fmt, md_row, md_table, report_name
 
 COMPARISONS = {
     "targets": ["tracking.targets=static,sliding"],
@@ -105,8 +106,11 @@ def main(argv=None):
     ap.add_argument("--comparisons", nargs="*", default=list(COMPARISONS), choices=list(COMPARISONS))
     ap.add_argument("--launcher", default=None, choices=LAUNCHERS,
                     help="a Hydra launcher (default: conf/hydra/launcher/parallel.yaml, joblib with 2 jobs)")
+    ap.add_argument("--report", type=report_name, default=None,
+                    help="the report's name: reports/<NAME>.{md,json} (default ablations, with --full ablations_full; "
+                         "another name leaves the committed one as it is)")
     args = ap.parse_args(argv)
-    report = "ablations_full" if args.full else "ablations"
+    report = args.report or ("ablations_full" if args.full else "ablations")
     check_reports(ap, report)
     from hairexp.app.report import header, write_report
 

@@ -19,7 +19,7 @@ original run, and the report marks them with the cache date and entry.
 Each grid row is run with every ``--integrators`` value (``solver.integrator``, default implicit_euler and
 bdf2); the reference uses ``--ref-integrator`` (default bdf2, second order).
 Usage: python -m experiments.accuracy [--scenes goaling celia] [--frames N] [--budget 0.01 0.03 0.1]
-       [--integrators implicit_euler bdf2 trbdf2] [--ref-integrator bdf2] [--cache]
+       [--integrators implicit_euler bdf2 trbdf2] [--ref-integrator bdf2] [--cache] [--report NAME]
 """
 
 from __future__ import annotations
@@ -36,7 +36,8 @@ from hairexp.app.report_cache import cached, describe
 from hairexp.app.run import config_hash, run
 from hairexp.physics.integrators import INTEGRATORS
 
-from experiments.common import ROOT, check_reports, check_set, compose, fmt, key_value, md_row, md_table, positive_float, positive_int
+from experiments.common import (ROOT, check_reports, check_set, compose, fmt, key_value, md_row, md_table, positive_float, positive_int,
+                                report_name)
 
 DTS = [0.005, 0.01, 0.02, 0.04]
 RTOLS = [1e-3, 1e-5, 1e-7]
@@ -105,8 +106,9 @@ def main(argv=None):
     ap.add_argument("--set", nargs="*", default=[], type=key_value, metavar="KEY=VALUE",
                     help="overrides applied to every run, the reference's included (e.g. "
                          "scene.motion.interpolation=cubic): a variant of the study, written with --report")
-    ap.add_argument("--report", default="accuracy", choices=["accuracy", "accuracy_variant"],
-                    help="the report's name under reports/ (default: accuracy; a --set study: accuracy_variant)")
+    ap.add_argument("--report", type=report_name, default="accuracy",
+                    help="the report's name: reports/<NAME>.{md,json,png} (default accuracy; a --set study: "
+                         "accuracy_variant; another name leaves the committed one as it is)")
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/accuracy/ entries (same config, solver source and versions)")
     args = ap.parse_args(argv)

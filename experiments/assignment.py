@@ -8,7 +8,7 @@ variant once; no judge (the measures are tabulated instead).  Per run: the scene
 lower halves at 3 cm per frame: the most clumps, the frames with more than one, the widest gap),
 the largest tracking residual over the hair length, the SQP iterations (mean / max) and the
 converged fraction.  Runs go into outputs/assignment/<scene>/.
-Usage: python -m experiments.assignment [scenes ...] [--set KEY=VALUE ...]
+Usage: python -m experiments.assignment [scenes ...] [--set KEY=VALUE ...] [--report NAME]
        (default: goaling splitting celia)
 """
 
@@ -24,7 +24,7 @@ from hairexp.app.config import VariantConfig
 from hairexp.app.experiment import run_experiment
 from hairexp.app.report import header, write_report
 
-from experiments.common import ROOT, check_reports, check_set, compose, experiment_names, fmt, key_value, md_row, md_table
+from experiments.common import ROOT, check_reports, check_set, compose, experiment_names, fmt, key_value, md_row, md_table, report_name
 
 SCENES = ["goaling", "splitting", "celia"]
 
@@ -81,9 +81,11 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenes", nargs="*", default=None)
     ap.add_argument("--set", nargs="*", default=[], type=key_value, metavar="KEY=VALUE", help="hydra overrides on every scene")
+    ap.add_argument("--report", type=report_name, default="assignment",
+                    help="the report's name: reports/<NAME>.{md,json} (default assignment; another name leaves the committed one as it is)")
     args = ap.parse_args(argv)
     check_set(ap, args.set)   # before anything runs (a bad key would fail every run)
-    check_reports(ap, "assignment")
+    check_reports(ap, args.report)
     names = experiment_names(ap, args.scenes, SCENES)
     md = header("Hard and soft hair-to-guide assignment")
     md += ("Each scene's variants run as `python -m hairexp experiment=<name>` runs them, every tracked variant "
@@ -115,7 +117,7 @@ def main(argv=None):
             print("  " + "  ".join(str(c) for c in cells), flush=True)
         md += "\n" + "soft / hard mean iterations: " + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()) + "\n\n"
         print("  soft/hard iterations: " + ", ".join(f"{k} {v:.2f}" for k, v in ratios.items()), flush=True)
-    path = write_report("assignment", md, {"scenes": data})
+    path = write_report(args.report, md, {"scenes": data})
     print(f"wrote {path}")
 
 

@@ -21,7 +21,7 @@ clusters it tracks, so its tracking error here is that of the hard clusters' cen
 per-run rule of the scene's judge (``hairexp.evaluation.judges.RUN_RULES``).  A run that fails (or a controller
 that cannot drive a scene, e.g. skinning on a dynamic body) is recorded with its error.
 Writes reports/baselines.{md,json}.
-Usage: python -m experiments.baselines [--experiments goaling splitting ...] [--frames N]
+Usage: python -m experiments.baselines [--experiments goaling splitting ...] [--frames N] [--report NAME]
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ from hairexp.evaluation.judges import RUN_RULES
 from hairexp.evaluation.measures import RunData, compute
 from hairexp.model.dynamic_body import POSITION
 
-from experiments.common import check_reports, compose, fail, md_row, md_table, positive_int, writable_dir
+from experiments.common import check_reports, compose, fail, md_row, md_table, positive_int, report_name, writable_dir
 
 EXPERIMENTS = ("goaling", "splitting", "spreading", "stylization", "celia")
 STIFFNESSES = (10.0, 100.0, 1000.0)
@@ -488,12 +488,14 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=writable_dir, default=None,
                     help="keep the run folders here (default: a temporary folder)")
     ap.add_argument("--no-report", action="store_true")
+    ap.add_argument("--report", type=report_name, default="baselines",
+                    help="the report's name: reports/<NAME>.{md,json} (default baselines; another name leaves the committed one as it is)")
     args = ap.parse_args(argv)
     if args.frames is not None and args.frames <= WINDOW:
         ap.error(f"--frames must be > {WINDOW} (the tip high-frequency window is {WINDOW} frames)")
     check_scenes(ap, args.experiments, args.frames)
     if not args.no_report:
-        check_reports(ap, "baselines")
+        check_reports(ap, args.report)
     root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="baselines_"))
     t0 = time.perf_counter()
     scenes = []
@@ -512,9 +514,9 @@ def main(argv=None) -> int:
         rest = "" if len(failed) == total else ", the rest not applicable"
         return fail(f"no run completed ({len(failed)} of {total} failed{rest}; the first: "
                     f"{' '.join(first.split())[:300]})"
-                    + ("" if args.no_report else "; reports/baselines.md/.json left as they were"))
+                    + ("" if args.no_report else f"; reports/{args.report}.md/.json left as they were"))
     if not args.no_report:
-        path = write_report("baselines", report(scenes, wall),
+        path = write_report(args.report, report(scenes, wall),
                             {"experiments": args.experiments, "frames_override": args.frames,
                              "stiffnesses": list(STIFFNESSES), "window_frames": WINDOW, "wall_seconds": wall,
                              "scenes": scenes})

@@ -15,7 +15,7 @@ ones, the numba kernels without the fused Newton pass, autograd derivatives), ea
 the same config with the one setting changed (settle included, as such a run would do it).  The
 runs but the autograd one step in turn (``time_interleaved``) so that a shared machine's load
 weighs on each alike.
-Usage:  python -m experiments.bench_free [--steps 50] [--quick]
+Usage:  python -m experiments.bench_free [--steps 50] [--quick] [--report NAME]
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from hairexp.app.report import header, write_report
 from hairexp.physics.simulator import TIME_KEYS
 
 from experiments.common import (check_reports, WARMUP, Timing, celia_bench, describe_run, md_table, pct, stretch_max, time_steps,
-                                positive_int)
+                                positive_int, report_name)
 
 AUTOGRAD_STEPS = 15   # the autograd row: the first (violent) steps only
 
@@ -111,8 +111,10 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=positive_int, default=50)
     ap.add_argument("--quick", action="store_true", help="skip the slow autograd ablation")
+    ap.add_argument("--report", type=report_name, default="bench_free",
+                    help="the report's name: reports/<NAME>.{md,json} (default bench_free; another name leaves the committed one as it is)")
     args = ap.parse_args(argv)
-    check_reports(ap, "bench_free")
+    check_reports(ap, args.report)
     t0 = time.perf_counter()
     built = [build_case(name, ov, args.steps, fused) for name, ov, fused in CASES]
     timings = time_interleaved([b[0] for b in built], args.steps, WARMUP, observe=stretch_max)
@@ -172,8 +174,8 @@ def main(argv=None):
         md += (f"\nThe autograd row is timed over the first {min(args.steps, AUTOGRAD_STEPS)} steps only (the violent "
                "ones) and uses the exact Hessian with eigenvalue clamping, without the primal-dual tension; its run "
                "settles with autograd derivatives too.\n")
-    path = write_report("bench_free", md, {"target_s": target, "met": ok, "results": results,
-                                           "wall_s": time.perf_counter() - t0})
+    path = write_report(args.report, md, {"target_s": target, "met": ok, "results": results,
+                                          "wall_s": time.perf_counter() - t0})
     print(f"target {target} s/step: {'met' if ok else 'MISSED'}; wrote {path}")
 
 

@@ -20,7 +20,7 @@ untimed warm-up steps.
    steps each, a controller's runs stepped in turn; the per-phase split.
 
 Prints and writes reports/bench_kernels.{md,json}.
-Usage:  python -m experiments.bench_kernels [--steps 30] [--repeats 30]
+Usage:  python -m experiments.bench_kernels [--steps 30] [--repeats 30] [--report NAME]
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from hairexp.physics.objective import ImplicitEulerObjective
 from hairexp.physics.simulator import TIME_KEYS
 
 from experiments.bench_free import time_interleaved
-from experiments.common import check_reports, WARMUP, celia_bench, describe_run, md_table, pct, positive_int
+from experiments.common import check_reports, WARMUP, celia_bench, describe_run, md_table, pct, positive_int, report_name
 
 PHASES = ("evaluate", "solve", "value", "tensions")
 PHASE_NAMES = {"evaluate": "derivatives + assembly", "solve": "factor + solve", "value": "line-search energy",
@@ -191,8 +191,10 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=positive_int, default=30)
     ap.add_argument("--repeats", type=positive_int, default=30)
+    ap.add_argument("--report", type=report_name, default="bench_kernels",
+                    help="the report's name: reports/<NAME>.{md,json} (default bench_kernels; another name leaves the committed one as it is)")
     args = ap.parse_args(argv)
-    check_reports(ap, "bench_kernels")
+    check_reports(ap, args.report)
     t_start = time.perf_counter()
     load0 = os.getloadavg()
     # 3. whole steps (first: the runs give the states the micro-benchmarks start from)
@@ -294,10 +296,10 @@ def main(argv=None):
            f"({1e3 * fr['median_s']:.1f}); tracked <= {TARGETS['tracked_ms']:g} ms/step: "
            f"**{'met' if met['tracked_ms'] else 'missed'}** ({1e3 * tr['median_s']:.1f}); tracked/free <= "
            f"{TARGETS['ratio']:g}: **{'met' if met['ratio'] else 'missed'}** ({ratio:.2f}).\n")
-    path = write_report("bench_kernels", md, {"targets": TARGETS, "met": met, "newton_iteration": newton, "schur": schur,
-                                              "steps": list(steps.values()), "positions_max_diff_m": agree,
-                                              "load_average": {"start": load0, "end": load1},
-                                              "wall_s": time.perf_counter() - t_start})
+    path = write_report(args.report, md, {"targets": TARGETS, "met": met, "newton_iteration": newton, "schur": schur,
+                                          "steps": list(steps.values()), "positions_max_diff_m": agree,
+                                          "load_average": {"start": load0, "end": load1},
+                                          "wall_s": time.perf_counter() - t_start})
     print(f"free {1e3 * fr['median_s']:.1f} ms/step, tracked {1e3 * tr['median_s']:.1f} ms/step, ratio {ratio:.2f}; "
           f"wrote {path}")
 

@@ -14,8 +14,8 @@ steps are timed.  Each size and controller runs in its own process, whose peak r
 (``ru_maxrss``, settle included) is reported next to the memory before the run was assembled.
 Targets: tracked at 10,000 strands <= 0.3 s/step and <= 4 GB peak; 10,000 strands <= 40 x the time
 of 301 (linear: 33 x); an earlier issue's 3000 strands <= 12 x the time of 301 is kept beside it.
-Writes reports/bench_scale.{md,json,png}.
-Usage: python -m experiments.bench_scale [--sizes 301 1000 3000 10000] [--steps 10]
+Writes reports/bench_scale.{md,json,png} (--report NAME: reports/NAME.{md,json,png}).
+Usage: python -m experiments.bench_scale [--sizes 301 1000 3000 10000] [--steps 10] [--report NAME]
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import sys
 import numpy as np
 
 from experiments.common import (ROOT, check_reports, compose, fail, frames_for, md_table, motion_overrides, positive_int,
-                                strand_count, time_steps)
+                                report_name, strand_count, time_steps)
 
 WARMUP = 2
 MOTION = motion_overrides([0.0, 0.2, 0.3, 10.0], [[0, 0, 0], [0, 0, 0], [0, 0.12, 0], [0, 0.12, 0]])
@@ -75,6 +75,9 @@ def main(argv=None):
     ap.add_argument("--sizes", type=strand_count, nargs="*", default=[301, 1000, 3000, 10000])
     ap.add_argument("--steps", type=positive_int, default=10)
     ap.add_argument("--one", nargs=2, metavar=("STRANDS", "CONTROLLER"), help=argparse.SUPPRESS)
+    ap.add_argument("--report", type=report_name, default="bench_scale",
+                    help="the report's name: reports/<NAME>.{md,json,png} (default bench_scale; another name leaves the "
+                         "committed one as it is)")
     args = ap.parse_args(argv)
     if args.one:
         try:
@@ -88,7 +91,7 @@ def main(argv=None):
     if not args.sizes:
         ap.error("argument --sizes: give at least one size")
     check_sizes(ap, args.sizes, args.steps)
-    check_reports(ap, "bench_scale")
+    check_reports(ap, args.report)
     from hairexp.app.report import header, write_report
 
     res = []
@@ -99,7 +102,7 @@ def main(argv=None):
             if proc.returncode != 0:
                 print(proc.stderr[-2000:], file=sys.stderr)
                 return fail(f"the {controller} run of {n} strands failed (exit {proc.returncode}); "
-                            "reports/bench_scale.md left as it was")
+                            f"reports/{args.report}.md left as it was")
             r = json.loads(proc.stdout.strip().splitlines()[-1])
             res.append(r)
             print(f"{controller:>8} {n:5d} strands ({r['constraints']} constraints): median {1e3 * r['median_s']:8.1f} "
@@ -134,7 +137,7 @@ def main(argv=None):
                      f"{r['rss_before_mb']:.0f}"] for r in res])
     for v in verdicts:
         md += "\n" + v + "\n"
-    md += "\n\n![time per step](bench_scale.png)\n"
+    md += f"\n\n![time per step]({args.report}.png)\n"
     try:
         import matplotlib
 
@@ -156,11 +159,11 @@ def main(argv=None):
             a_.legend()
             a_.grid(True, which="both", alpha=0.3)
         fig.tight_layout()
-        fig.savefig(ROOT / "reports" / "bench_scale.png", dpi=110)
+        fig.savefig(ROOT / "reports" / f"{args.report}.png", dpi=110)
     except ImportError:
         md += "\n(matplotlib is not installed: no plot)\n"
-    path = write_report("bench_scale", md, {"results": res, "ratios": ratio, "targets": {"3000_over_301": 12, "10000_over_301": 40,
-                                                                             "tracking_10000_s_per_step": 0.3, "tracking_10000_peak_gb": 4}})
+    path = write_report(args.report, md, {"results": res, "ratios": ratio, "targets": {"3000_over_301": 12, "10000_over_301": 40,
+                                                                           "tracking_10000_s_per_step": 0.3, "tracking_10000_peak_gb": 4}})
     print(f"wrote {path}")
 
 

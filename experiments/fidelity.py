@@ -1,4 +1,5 @@
-"""Physical fidelity against analytic results (issue 13): reports/fidelity.{md,json,png}.
+"""Physical fidelity against analytic results (issue 13): reports/fidelity.{md,json,png} (--report NAME:
+reports/NAME.{md,json,png}).
 
 1. Dynamics: the hanging chain (``hairexp.evaluation.fidelity_chain.measure_chain``: 30 cm,
    20 vertices, soft bending, no damping configured, swung 1 cm by its root, then free): the
@@ -12,7 +13,7 @@
 
 The energy, invariance and period checks of the default test suite (tests/test_analytic.py,
 tests/test_integrator.py, tests/test_invariants.py) assert these same figures with tolerances.
-Usage:  python -m experiments.fidelity [--dts 0.001 0.01 0.04] [--integrators implicit_euler bdf2 trbdf2 lmm2]
+Usage:  python -m experiments.fidelity [--dts 0.001 0.01 0.04] [--integrators implicit_euler bdf2 trbdf2 lmm2] [--report NAME]
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from hairexp.evaluation import fidelity_static
 from hairexp.evaluation.fidelity_chain import linear_prediction, measure_chain
 from hairexp.physics.integrators import INTEGRATORS
 
-from experiments.common import ROOT, check_reports, md_table, positive_float, strand_vertices
+from experiments.common import ROOT, check_reports, md_table, positive_float, report_name, strand_vertices
 
 #: the targets of issue 13 at dt 0.04 s (the default solver, no damping configured)
 AMPLITUDE_TARGET, PERIOD_TARGET = 0.90, 0.01
@@ -96,8 +97,11 @@ def main(argv=None):
     ap.add_argument("--dts", type=positive_float, nargs="+", default=[0.001, 0.01, 0.04])
     ap.add_argument("--integrators", nargs="+", default=["implicit_euler", "bdf2", "trbdf2", "lmm2"], choices=list(INTEGRATORS))
     ap.add_argument("--vertices", type=strand_vertices, nargs="+", default=[10, 20, 40, 80])
+    ap.add_argument("--report", type=report_name, default="fidelity",
+                    help="the report's name: reports/<NAME>.{md,json,png} (default fidelity; another name leaves the "
+                         "committed one as it is)")
     args = ap.parse_args(argv)
-    check_reports(ap, "fidelity")
+    check_reports(ap, args.report)
     chain = chain_rows(args.integrators, args.dts)
     static = {"before": fidelity_static.table(args.vertices, clamp="voronoi"),
               "after": fidelity_static.table(args.vertices)}
@@ -148,10 +152,10 @@ def main(argv=None):
            "Splitting sets `scene.hair.air_drag: 1.0` (a loose wisp): its free hair must gather again behind "
            "the sphere, which undamped hair does not do (conf/experiment/splitting.yaml); no other scene sets "
            "damping.\n")
-    path_png = ROOT / "reports" / "fidelity.png"
+    path_png = ROOT / "reports" / f"{args.report}.png"
     if plot(chain, static, args.integrators, path_png):
-        md += "\n![fidelity](fidelity.png)\n"
-    path = write_report("fidelity", md, {"chain": chain, "cantilever": static})
+        md += f"\n![fidelity]({args.report}.png)\n"
+    path = write_report(args.report, md, {"chain": chain, "cantilever": static})
     print(f"wrote {path}")
 
 

@@ -8,7 +8,7 @@ report, never from the file name.  Several reports of one integrator and dt are 
 (e.g. one scene re-run after it was re-authored: ``paper_scenes goaling --set ...``): a scene of the
 later report replaces the earlier one's.  Writes reports/integrator_verdicts.{md,json}.
 
-Usage: python -m experiments.integrator_verdicts reports/verdicts/*.json
+Usage: python -m experiments.integrator_verdicts [--report NAME] reports/verdicts/*.json
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 from hairexp.app.report import header, write_report
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR
 
-from experiments.common import check_reports, fmt, md_row, md_table
+from experiments.common import check_reports, fmt, md_row, md_table, report_name
 
 #: scene -> the variant figures shown beside the verdict (variant, measure key)
 KEY_FIGURES = {
@@ -121,14 +121,16 @@ def markdown(cols: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("reports", nargs="+", type=Path, help="paper_scenes JSON reports, one per integrator and dt")
+    ap.add_argument("--report", type=report_name, default="integrator_verdicts",
+                    help="the report's name: reports/<NAME>.{md,json} (default integrator_verdicts; another name leaves the committed one as it is)")
     a = ap.parse_args(argv)
     try:
         cols = load(a.reports)
     except SystemExit as exc:   # an unreadable or foreign report: a usage error (exit 2), before anything is written
         ap.error(str(exc).removeprefix("integrator_verdicts: "))
-    check_reports(ap, "integrator_verdicts")
+    check_reports(ap, a.report)
     md = markdown(cols)
-    path = write_report("integrator_verdicts", md, {"columns": [
+    path = write_report(a.report, md, {"columns": [
         {"integrator": i, "dt": dt, "report": c["path"], "command": c["command"],
          "success": {n: s.get("success") for n, s in c["scenes"].items()}} for (i, dt), c in cols.items()]})
     print(md)

@@ -9,6 +9,7 @@
    ratios compare like with like on the same machine.
 
 Usage: python -m experiments.integrators [--dts 0.001 0.01 0.04] [--reps 3] [--cost-integrators implicit_euler bdf2 trbdf2 lmm2]
+       [--report NAME]
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ import time
 
 import numpy as np
 
-from experiments.common import ROOT, check_reports, compose, md_table, positive_float, positive_int, time_steps
+from experiments.common import ROOT, check_reports, compose, md_table, positive_float, positive_int, report_name, time_steps
 from hairexp.evaluation.fidelity_chain import linear_prediction, measure_chain
 from hairexp.physics.integrators import INTEGRATORS
 
@@ -81,8 +82,10 @@ def main(argv=None) -> None:
     ap.add_argument("--reps", type=positive_int, default=7)
     ap.add_argument("--cost-integrators", nargs="+", default=["implicit_euler", "bdf2", "trbdf2", "lmm2"], choices=list(INTEGRATORS))
     ap.add_argument("--no-chain", action="store_true", help="only the cost table (reuses nothing: the chain section is left out)")
+    ap.add_argument("--report", type=report_name, default="integrators",
+                    help="the report's name: reports/<NAME>.md (default integrators; another name leaves the committed one as it is)")
     a = ap.parse_args(argv)
-    check_reports(ap, "integrators")
+    check_reports(ap, a.report)
     t0 = time.time()
     chain = "(not run: --no-chain)\n" if a.no_chain else chain_table(a.dts)
     cost = cost_table(a.cost_integrators, a.reps)
@@ -101,7 +104,7 @@ dt 0.04 s: >= 90 % amplitude per period and the period within 1 %.
 ## Goaling step cost (experiment=goaling, one process, {a.reps} interleaved rounds of 56 steps, load: {' '.join(f'{x:.2f}' for x in os.getloadavg())})
 
 {cost}"""
-    out = ROOT / "reports" / "integrators.md"
+    out = ROOT / "reports" / f"{a.report}.md"
     out.write_text(text)
     print(f"wrote {out}")
 

@@ -23,7 +23,7 @@ per case (``CASES``): ``no_restart``, the default ``trbdf2`` stepping through th
 with one implicit Euler step (hairexp/physics/integrators.py, "Driver discontinuities");
 ``implicit_euler``.
 
-Usage: python -m experiments.sqp_curvature [--steps 5] [--cases NAME ...]
+Usage: python -m experiments.sqp_curvature [--steps 5] [--cases NAME ...] [--report NAME]
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from hairexp.errors import InputError
 from hairexp.outputs.metrics import stretch
 from hairexp.physics.controller import scaled_iterations
 
-from experiments.common import celia_bench, check_reports, describe_run, md_table, positive_int
+from experiments.common import celia_bench, check_reports, describe_run, md_table, positive_int, report_name
 
 #: a solve with more iterations than this is slow
 SLOW = 20
@@ -140,8 +140,10 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--steps", type=positive_int, default=5, help="steps of each run (default 5: the jerk and after)")
     ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    ap.add_argument("--report", type=report_name, default="sqp_curvature",
+                    help="the report's name: reports/<NAME>.{md,json} (default sqp_curvature; another name leaves the committed one as it is)")
     args = ap.parse_args()
-    check_reports(ap, "sqp_curvature")
+    check_reports(ap, args.report)
     res = {}
     for name in args.cases:
         try:
@@ -184,7 +186,7 @@ def main() -> int:
             rows.append([name, f"t = {p['t']:.4f}, {p['compressed']}/{p['edges']} compressed", k, f"{m:.3e}", f"{e:.3e}", ""])
         rows.append([name, "", "**total**", f"{tot_m:.3e}", f"{tot_e:.3e}", f"{tot_m / tot_e:.2f}" if tot_e > 0 else "-"])
     md += md_table(["case", "solve", "term", "model d^T H d", "true d^T H d", "model / true"], rows)
-    path = write_report("sqp_curvature", md, {"steps": args.steps, "slow": SLOW, "probe_at": PROBE_AT, "cases": res})
+    path = write_report(args.report, md, {"steps": args.steps, "slow": SLOW, "probe_at": PROBE_AT, "cases": res})
     print(f"wrote {path}")
     return 0
 

@@ -14,7 +14,7 @@ contraction near 1 with full steps is Newton converging linearly, i.e. a Hessian
 the true one along the slow direction, not a line search that cuts the steps.
 
 Prints and writes reports/sqp_trace.{md,json}.
-Usage: python -m experiments.sqp_trace [--steps 12] [--cases NAME=OVERRIDES ...]
+Usage: python -m experiments.sqp_trace [--steps 12] [--cases NAME=OVERRIDES ...] [--report NAME]
 (a case: ``name=key=value,key=value``; ``default`` has no overrides)
 """
 
@@ -30,7 +30,7 @@ from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 from hairexp.errors import InputError
 
-from experiments.common import check_reports, celia_bench, describe_run, md_table, positive_int
+from experiments.common import check_reports, celia_bench, describe_run, md_table, positive_int, report_name
 
 #: a solve with more iterations than this counts as slow
 SLOW = 20
@@ -84,8 +84,10 @@ def main() -> int:
     ap.add_argument("--steps", type=positive_int, default=12, help="steps of each run (default 12: the jerk and after)")
     ap.add_argument("--cases", type=parse_case, nargs="+", default=[(n, o) for n, o in CASES.items()],
                     help="cases as NAME=key=value,key=value (default: " + ", ".join(CASES) + ")")
+    ap.add_argument("--report", type=report_name, default="sqp_trace",
+                    help="the report's name: reports/<NAME>.{md,json} (default sqp_trace; another name leaves the committed one as it is)")
     args = ap.parse_args()
-    check_reports(ap, "sqp_trace")
+    check_reports(ap, args.report)
     res = {}
     for name, overrides in args.cases:
         try:
@@ -116,7 +118,7 @@ def main() -> int:
     md += "\nIterations of each solve, step by step (a cell: the solves of one step, in order):\n\n"
     md += md_table(["case", *[str(k + 1) for k in range(args.steps)]],
                    [[name, *[" ".join(map(str, p["solves"])) for p in r["steps"]]] for name, r in res.items()])
-    path = write_report("sqp_trace", md, {"steps": args.steps, "slow": SLOW, "cases": res})
+    path = write_report(args.report, md, {"steps": args.steps, "slow": SLOW, "cases": res})
     print(f"wrote {path}")
     return 0
 

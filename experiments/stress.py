@@ -13,7 +13,7 @@ For each case and controller: finite (every recorded state, result.npz ``positio
 summary's figures are finite), stretch max, converged fraction, iterations mean / max, recovered
 (substepped) steps, outcome (completed, recovered = completed with substepped steps, failed with
 the error's message) and wall time.  Writes reports/stress.{md,json}.
-Usage: python -m experiments.stress [--cases NAME ...] [--frames 30] [--cache]
+Usage: python -m experiments.stress [--cases NAME ...] [--frames 30] [--cache] [--report NAME]
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import check_reports, check_set, compose, fmt, key_value, md_table, positive_int
+from experiments.common import check_reports, check_set, compose, fmt, key_value, md_table, positive_int, report_name
 
 BASE = ["experiment=goaling", "variants=[]", "scene.n_strands=12", "scene.n_vertices=12", "frames=30",
         "logging.rerun=false", "logging.progress=false", "solver.compile=off", "measure.name=none", "measure.collider="]
@@ -247,8 +247,9 @@ def main(argv=None) -> int:
     ap.add_argument("--set", nargs="*", default=[], type=key_value, metavar="KEY=VALUE",
                     help="overrides applied to every case and controller after the case's own "
                          "(e.g. solver.integrator=bdf2)")
-    ap.add_argument("--report", default="stress", choices=["stress", "stress_bdf2", "stress_trbdf2", "stress_lmm2"],
-                    help="the report's name under reports/ (default: stress)")
+    ap.add_argument("--report", type=report_name, default="stress",
+                    help="the report's name: reports/<NAME>.{md,json} (default stress; a --set study, e.g. stress_bdf2; "
+                         "another name leaves the committed one as it is)")
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/stress/ entries whose config, solver source and versions match "
                          "(default: run every case fresh, refreshing the cache)")
