@@ -1,10 +1,9 @@
 """Every experiments/ script that writes a report takes ``--report NAME`` (reports/NAME.md and
 .json; the default is the committed report), so that a run that should not replace the committed
 report need not: a name with path parts is a usage error (exit 2, "is not a report name") before
-anything runs or is written, checked on the command line (``python -m experiments.<name> --report
-../x``, a subprocess per script); and ``--help`` shows the option, checked in this process (``main``
-with ``--help``: one import of torch for all the scripts, where a subprocess costs 2-3 s of start-up
-each).
+anything runs or is written, checked in this process (each script's ``main`` with ``--report ../x``: one import of torch for all
+the scripts, where a subprocess costs 2-3 s of start-up each) and for one script on the command
+line; and ``--help`` shows the option.
 
 The scripts are found by their text (a call of ``write_report(``, or a ``--report`` of type
 ``report_name`` for a script that writes its markdown itself), so a new report script is covered
@@ -49,15 +48,26 @@ def test_the_report_scripts_are_found():
 
 
 @pytest.mark.parametrize("module", SCRIPTS)
-def test_a_report_name_with_path_parts_is_a_usage_error(module):
+def test_a_report_name_with_path_parts_is_a_usage_error(module, monkeypatch, capsys):
     outside = [REPO / f"x{suffix}" for suffix in (".md", ".json", ".png")]   # where reports/../x would go
     before = {p: p.exists() for p in outside}
-    proc = run(module, "--report", "../x")
-    assert proc.returncode == 2, (proc.returncode, proc.stdout[-2000:], proc.stderr[-3000:])
-    assert "is not a report name" in proc.stderr, proc.stderr
-    assert "Traceback" not in proc.stderr, proc.stderr
-    assert proc.stdout == "", proc.stdout
+    main = importlib.import_module(f"experiments.{module}").main
+    monkeypatch.setattr(sys, "argv", [f"{module}.py", "--report", "../x"])
+    with pytest.raises(SystemExit) as exc:
+        main()
+    captured = capsys.readouterr()
+    assert exc.value.code == 2, (captured.out[-2000:], captured.err[-3000:])
+    assert "is not a report name" in captured.err, captured.err
+    assert captured.out == "", captured.out
     assert {p: p.exists() for p in outside} == before
+
+
+def test_on_the_command_line_too():
+    """One script as a user runs it (a subprocess): exit 2, the usage line, no traceback."""
+    proc = run("bench_free", "--report", "../x")
+    assert proc.returncode == 2, (proc.returncode, proc.stdout[-2000:], proc.stderr[-3000:])
+    assert "is not a report name" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stdout == ""
 
 
 @pytest.mark.parametrize("module", SCRIPTS)
