@@ -54,14 +54,14 @@ def test_failing_variant_marks_the_experiment_failed(tmp_path, monkeypatch):
     now refused before any variant runs, tests/test_run_folder.py) marks the experiment failed."""
     import hairexp.app.experiment as experiment
 
-    real = experiment.run
+    real = experiment.run_checked   # a variant's run (checked with the others before the first ran)
 
     def run(vcfg, out, *a, **k):
         if out.name == "tracked":
             raise RuntimeError("the tracked variant failed")
         return real(vcfg, out, *a, **k)
 
-    monkeypatch.setattr(experiment, "run", run)
+    monkeypatch.setattr(experiment, "run_checked", run)
     cfg = experiment_cfg("goaling_smoke", "frames=2")
     with pytest.raises(RuntimeError):
         run_experiment(cfg, tmp_path)

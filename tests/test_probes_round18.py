@@ -398,12 +398,12 @@ def test_a_variants_write_failure_names_the_variants_folder(tmp_path, monkeypatc
     import hairexp.app.experiment as experiment
     from hairexp.app.config import compose_config
 
-    def full(cfg, folder, on_checked=None):
+    def full(cfg, folder):
         if Path(folder).name == "tracked":
             raise OSError(28, "No space left on device")
         return {"measures": {}, "status": "completed"}
 
-    monkeypatch.setattr(experiment, "run", full)
+    monkeypatch.setattr(experiment, "run_checked", full)   # a variant's run
     out = tmp_path / "r"
     res = cli.job(compose_config(["experiment=goaling_smoke", "frames=3", "logging.rerun=false"]), str(out),
                   overrides=[])
