@@ -573,6 +573,9 @@ def stage_timing(cfg):
         if not stage.GetRootLayer().HasEndTimeCode():
             raise InputError("the stage has no endTimeCode to take frames from: set frames=N", file)
         exact = stage.GetEndTimeCode() * fps / tcps
+        if not math.isfinite(exact):   # inf, nan, 1e308 (x fps): OverflowError / ValueError tracebacks (a probe)
+            raise InputError(f"endTimeCode {stage.GetEndTimeCode():g} is {exact:g} frames at {fps:g} fps, not a finite "
+                             f"number: end the stage on a frame, or set frames=N", file)
         frames = int(math.floor(exact + 1e-9))
         if frames < 1:
             raise InputError(f"endTimeCode {stage.GetEndTimeCode():g} gives no frame after frame 0", file)

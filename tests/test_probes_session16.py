@@ -1,0 +1,32 @@
+"""Findings of the user-input probe of 2026-12-07 (the sixteenth session), fixed."""
+
+from __future__ import annotations
+
+import pytest
+from pxr import Usd, UsdGeom
+
+from hairexp.app import compose_config
+from hairexp.app.assemble import check_config
+from hairexp.errors import InputError
+
+
+def _stage(path, end=None) -> str:
+    stage = Usd.Stage.CreateNew(str(path))
+    stage.SetTimeCodesPerSecond(24)
+    if end is not None:
+        stage.SetEndTimeCode(end)
+    curves = UsdGeom.BasisCurves.Define(stage, "/Hair")
+    curves.CreateTypeAttr("linear")
+    curves.CreateCurveVertexCountsAttr([3])
+    curves.CreatePointsAttr([(0, 0, 0), (0, 0, -0.05), (0, 0, -0.1)])
+    stage.GetRootLayer().Save()
+    return str(path)
+
+
+@pytest.mark.parametrize("end", [float("inf"), float("nan"), 1e308])
+def test_an_end_time_code_that_is_not_a_finite_number_of_frames_is_refused(tmp_path, end):
+    """endTimeCode inf, nan or 1e308 (inf frames at the run's rate) with the frames taken from the
+    stage: OverflowError / ValueError tracebacks, exit 1; now the stage and the value, exit 2."""
+    cfg = compose_config(["experiment=from_usd", f"scene.usd={_stage(tmp_path / 's.usda', end)}"])
+    with pytest.raises(InputError, match=r"endTimeCode \S+ is (inf|nan) frames at 24 fps, not a finite number"):
+        check_config(cfg)
