@@ -30,3 +30,25 @@ def test_an_end_time_code_that_is_not_a_finite_number_of_frames_is_refused(tmp_p
     cfg = compose_config(["experiment=from_usd", f"scene.usd={_stage(tmp_path / 's.usda', end)}"])
     with pytest.raises(InputError, match=r"endTimeCode \S+ is (inf|nan) frames at 24 fps, not a finite number"):
         check_config(cfg)
+
+
+def test_the_guides_prim_named_as_the_hair_is_refused(tmp_path):
+    """``scene.usd_hair`` naming the guides prim itself (or a curve set inside it) simulated the
+    animated guides as detail hair, exit 0, only "the hair's points are animated" said; a parent
+    holding the guides was refused already.  Now both are, naming scene.usd_guides."""
+    path = tmp_path / "g.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    stage.SetTimeCodesPerSecond(24)
+    stage.SetEndTimeCode(2)
+    for xform in ("/Root", "/Root/Body", "/Root/Guides"):
+        UsdGeom.Xform.Define(stage, xform)
+    curves = UsdGeom.BasisCurves.Define(stage, "/Root/Guides/A")
+    curves.CreateTypeAttr("linear")
+    curves.CreateCurveVertexCountsAttr([3])
+    curves.CreatePointsAttr([(0, 0, 0), (0, -0.05, 0), (0, -0.1, 0)])
+    stage.GetRootLayer().Save()
+    for hair, said in (("/Root/Guides", "is the guides"), ("/Root/Guides/A", "is inside the guides"),
+                       ("/Root", "holds the guides")):
+        cfg = compose_config(["experiment=from_usd", f"scene.usd={path}", f"scene.usd_hair={hair}"])
+        with pytest.raises(InputError, match=rf":{hair}: {said} \(/Root/Guides, scene\.usd_guides\)"):
+            check_config(cfg)
