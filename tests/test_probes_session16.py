@@ -33,9 +33,9 @@ def test_an_end_time_code_that_is_not_a_finite_number_of_frames_is_refused(tmp_p
 
 
 def test_the_guides_prim_named_as_the_hair_is_refused(tmp_path):
-    """``scene.usd_hair`` naming the guides prim itself (or a curve set inside it) simulated the
-    animated guides as detail hair, exit 0, only "the hair's points are animated" said; a parent
-    holding the guides was refused already.  Now both are, naming scene.usd_guides."""
+    """``scene.usd_hair`` naming the guides prim itself simulated the animated guides as detail
+    hair, exit 0, only "the hair's points are animated" said; a parent holding the guides, and
+    (by the guides' reader) guides holding the hair, were refused already.  Now it is too."""
     path = tmp_path / "g.usda"
     stage = Usd.Stage.CreateNew(str(path))
     stage.SetTimeCodesPerSecond(24)
@@ -47,8 +47,9 @@ def test_the_guides_prim_named_as_the_hair_is_refused(tmp_path):
     curves.CreateCurveVertexCountsAttr([3])
     curves.CreatePointsAttr([(0, 0, 0), (0, -0.05, 0), (0, -0.1, 0)])
     stage.GetRootLayer().Save()
-    for hair, said in (("/Root/Guides", "is the guides"), ("/Root/Guides/A", "is inside the guides"),
-                       ("/Root", "holds the guides")):
+    for hair, said in (("/Root/Guides", r":/Root/Guides: is the guides \(/Root/Guides, scene\.usd_guides\)"),
+                       ("/Root", r":/Root: holds the guides \(/Root/Guides, scene\.usd_guides\)"),
+                       ("/Root/Guides/A", r"holds the detail hair \(/Root/Guides/A, scene\.usd_hair\)")):
         cfg = compose_config(["experiment=from_usd", f"scene.usd={path}", f"scene.usd_hair={hair}"])
-        with pytest.raises(InputError, match=rf":{hair}: {said} \(/Root/Guides, scene\.usd_guides\)"):
+        with pytest.raises(InputError, match=said):
             check_config(cfg)
