@@ -53,3 +53,34 @@ def test_the_guides_prim_named_as_the_hair_is_refused(tmp_path):
         cfg = compose_config(["experiment=from_usd", f"scene.usd={path}", f"scene.usd_hair={hair}"])
         with pytest.raises(InputError, match=said):
             check_config(cfg)
+
+
+def test_abstract_prims_are_refused_when_named_and_said_inside_a_group(tmp_path, caplog):
+    """A ``class`` BasisCurves named by scene.usd_hair was read and simulated, and one inside a
+    hair group skipped, both without a word (USD's traversal and viewers skip abstract prims).
+    Now a named one is refused as an inactive one is, and one inside a group is said and not used."""
+    from pxr import Sdf
+
+    path = tmp_path / "c.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    stage.SetTimeCodesPerSecond(24)
+    stage.SetEndTimeCode(2)
+    for xform in ("/Root", "/Root/Body", "/Root/Body/Grp"):
+        UsdGeom.Xform.Define(stage, xform)
+    for name, x in (("A", 0.0), ("B", 0.02)):
+        curves = UsdGeom.BasisCurves.Define(stage, f"/Root/Body/Grp/{name}")
+        curves.CreateTypeAttr("linear")
+        curves.CreateCurveVertexCountsAttr([3])
+        curves.CreatePointsAttr([(x, 0, 0), (x, -0.05, 0), (x, -0.1, 0)])
+    stage.GetRootLayer().GetPrimAtPath("/Root/Body/Grp/B").specifier = Sdf.SpecifierClass
+    stage.GetRootLayer().Save()
+    base = ["experiment=from_usd", f"scene.usd={path}", "guides.source=rigid", "guides.count=1"]
+    with pytest.raises(InputError, match=r":/Root/Body/Grp/B: is abstract \(a class, or inside one\): not a prim of "
+                                         r"the scene \(the detail hair\)"):
+        check_config(compose_config([*base, "scene.usd_hair=/Root/Body/Grp/B"]))
+    from hairexp.app.assemble import assemble_scene
+
+    with caplog.at_level("WARNING"):
+        _, scene, _ = assemble_scene(compose_config([*base, "scene.usd_hair=/Root/Body/Grp"]), settle=False)
+    assert scene.strands.n_vertices == 3
+    assert "abstract hair curves (classes, or inside one) not used: /Root/Body/Grp/B" in caplog.text

@@ -173,6 +173,9 @@ def get_prim(stage, path: str, where: str, what: str, key: str, schema=None, hin
     if not prim.IsActive():   # it was simulated as if active (probe of issue 12)
         raise InputError(f"is inactive (active = false) ({what}): activate it, or name another prim with {key}",
                          f"{where}:{path}")
+    if prim.IsAbstract():   # a class (or inside one): read and simulated, where USD's traversal skips it (a probe)
+        raise InputError(f"is abstract (a class, or inside one): not a prim of the scene ({what}); define it with "
+                         f"'def', or name another prim with {key}", f"{where}:{path}")
     if schema is not None and not prim.IsA(schema):
         raise InputError(f"is a {prim.GetTypeName() or 'typeless prim'}, expected {schema.__name__} ({what})",
                          f"{where}:{path}")
@@ -284,13 +287,16 @@ def curve_prims(root, key: str, what: str, noun: str, where: str) -> list:
     and ``what`` it names."""
     if root.IsA(UsdGeom.BasisCurves):
         return [root]
-    prims, off = [], []
+    prims, off, classes = [], [], []
     # an inactive prim's children are not on the stage; an instanceable prim's are, as instance proxies
     for p in Usd.PrimRange(root, Usd.TraverseInstanceProxies(Usd.PrimAllPrimsPredicate)):
-        if p.IsA(UsdGeom.BasisCurves) and p.IsDefined() and not p.IsAbstract():   # not an over or a class
-            (prims if p.IsActive() else off).append(p)
+        if p.IsA(UsdGeom.BasisCurves) and p.IsDefined():   # not an over
+            (classes if p.IsAbstract() else prims if p.IsActive() else off).append(p)
     if off:
         log.warning("%s: inactive %s curves not used: %s", where, noun, ", ".join(str(p.GetPath()) for p in off))
+    if classes:   # skipped without a word (a probe)
+        log.warning("%s: abstract %s curves (classes, or inside one) not used: %s", where, noun,
+                    ", ".join(str(p.GetPath()) for p in classes))
     if not prims:
         raise InputError(f"is a {root.GetTypeName() or 'typeless prim'} with no active BasisCurves under it; "
                          f"{key} names {what}: a BasisCurves, or a prim holding them", where)
