@@ -84,3 +84,27 @@ def test_abstract_prims_are_refused_when_named_and_said_inside_a_group(tmp_path,
         _, scene, _ = assemble_scene(compose_config([*base, "scene.usd_hair=/Root/Body/Grp"]), settle=False)
     assert scene.strands.n_vertices == 3
     assert "abstract hair curves (classes, or inside one) not used: /Root/Body/Grp/B" in caplog.text
+
+
+def test_a_results_guides_read_back_with_the_same_edits_are_warned(tmp_path, caplog):
+    """A run's result.usdc read back (``guides.source=usd``) with the experiment's own
+    ``guides.edits`` applied them a second time without a word (the guides 0.22 m off); a guide
+    file in the same case was warned.  The result's guides prim now says which edits its guides
+    carry (customData ``hairexp:edits_applied``), and the reading run is warned the same way."""
+    from hairexp.app.assemble import assemble_scene
+    from hairexp.app.run import run
+
+    base = ["experiment=goaling_smoke", "variants=[]", "controller=tracking", "frames=3", "logging=off"]
+    run(compose_config(base), tmp_path / "a")
+    stage = Usd.Stage.Open(str(tmp_path / "a" / "result.usdc"))
+    said = stage.GetPrimAtPath("/Root/Guides").GetCustomDataByKey("hairexp:edits_applied")
+    assert said.startswith("1 edit: rotate of guide 0 keyed at")
+    again = [*base, "scene.builder=usd", "guides.source=usd", f"scene.usd={tmp_path / 'a' / 'result.usdc'}",
+             "scene.colliders=[]"]
+    with caplog.at_level("WARNING"):
+        assemble_scene(compose_config(again), settle=False)
+    assert f"(its guides) was saved by a run that had applied its guides.edits ({said})" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        assemble_scene(compose_config([*again, "guides.edits=[]"]), settle=False)
+    assert "applied its guides.edits" not in caplog.text

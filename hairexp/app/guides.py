@@ -202,10 +202,12 @@ def build_guides(cfg, scene, frames: int, fps: float, source_of=None) -> GuideAn
                          "scene.root_radius x guides.layout_radius and the body's motion (scene.motion): check those "
                          "values", "guides") from exc
     if cfg.guides.edits and anim.edits_applied:
+        usd = str(getattr(cfg.guides.source, "value", cfg.guides.source)) == "usd"
+        source = f"scene.usd={cfg.scene.usd} (its guides)" if usd else f"guides.file={cfg.guides.file}"
         logging.getLogger("hairexp").warning(
-            "guides.file=%s was saved by a run that had applied its guides.edits (%s); this run's %d guides.edits "
-            "are applied to it again: give guides.edits=[] to track the file as it is",
-            cfg.guides.file, anim.edits_applied, len(cfg.guides.edits))
+            "%s was saved by a run that had applied its guides.edits (%s); this run's %d guides.edits are applied to "
+            "it again: give guides.edits=[] to track %s", source, anim.edits_applied,
+            len(cfg.guides.edits), "the stage's guides as they are" if usd else "the file as it is")
     if cfg.guides.edits:
         done = edits_summary(cfg.guides.edits)
         pos = apply_edits(anim.frames, anim.offsets, anim.fps, authoring_motion(scene.motion), cfg.guides.edits)

@@ -464,7 +464,8 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     for p in (usd, clips_dir(usd)):   # the clips folder (if any) goes with the stage
         own_result(sinks, p)
     write_result_usd(usd, wscene, positions, recorder.frames_of("guide_positions"), guides.offsets, cfg.fps,
-                     clips=str(getattr(cfg.output.usd_clips, "value", cfg.output.usd_clips)))
+                     clips=str(getattr(cfg.output.usd_clips, "value", cfg.output.usd_clips)),
+                     edits_applied=guides.edits_applied)
     recorder.close()
     release()
     view = None

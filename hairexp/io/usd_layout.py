@@ -47,6 +47,9 @@ THICKNESS, FRICTION, SPIN = "hairexp:thickness", "hairexp:friction", "hairexp:sp
 #: the prim ball_1); read back as the collider's name, so that measure.collider and the metrics'
 #: contacts_<name> still match after a re-import
 NAME = "hairexp:name"
+#: customData key on the guides prim of a run's result: which ``guides.edits`` the guides there
+#: carry (``GuideAnimation.edits_applied``; a stage read back with the same edits applies them again)
+EDITS_APPLIED = "hairexp:edits_applied"
 #: Collider attributes read when a prim does not author them (the config's defaults).
 COLLIDER_DEFAULTS = {THICKNESS: 0.002, FRICTION: 0.3, SPIN: 0.0}
 

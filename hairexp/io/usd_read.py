@@ -28,7 +28,7 @@ from pxr import Sdf, Tf, Usd, UsdGeom
 
 from hairexp.errors import InputError, check_extent, regular_file
 from hairexp.io.usd_colliders import read_colliders
-from hairexp.io.usd_layout import (COUNTS_TYPES, POINTS_TYPES, TOKEN_TYPES, check_transform_types, check_type,
+from hairexp.io.usd_layout import (COUNTS_TYPES, EDITS_APPLIED, POINTS_TYPES, TOKEN_TYPES, check_transform_types, check_type,
                                    read_motion, stage_units, time_label, world_transform)
 from hairexp.io.usd_layout import HAIR_WIDTH as DEFAULT_HAIR_WIDTH
 from hairexp.io.usd_layout import tf_message as _message
@@ -560,7 +560,10 @@ def read_guides(cfg, scene, frames: int, fps: float):
     offsets = np.concatenate([[0], np.cumsum(counts0)])
     where = f"{file}:{path}"
     with units_hint(stage):
-        return GuideAnimation(frames_pos, offsets, tcps, where=where, motion=scene.motion)   # extent, folds: checked there
+        anim = GuideAnimation(frames_pos, offsets, tcps, where=where, motion=scene.motion)   # extent, folds: checked there
+    named = stage.GetPrimAtPath(path)   # a run's result says which guides.edits its guides carry (usd_write.mark_edits)
+    anim.edits_applied = str(named.GetCustomDataByKey(EDITS_APPLIED) or "") if named else ""
+    return anim
 
 
 def stage_timing(cfg):

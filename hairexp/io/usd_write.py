@@ -45,7 +45,7 @@ from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 from hairexp.errors import errno_in_text
 from hairexp.io.usd_colliders import write_colliders
 from hairexp.memory import release
-from hairexp.io.usd_layout import (BODY, GUIDE_WIDTH, GUIDES, HAIR, HAIR_WIDTH, RESULT, RESULT_HAIR, ROOT,
+from hairexp.io.usd_layout import (BODY, EDITS_APPLIED, GUIDE_WIDTH, GUIDES, HAIR, HAIR_WIDTH, RESULT, RESULT_HAIR, ROOT,
                                    matrix_from_pose, set_transform)
 
 log = logging.getLogger(__name__)
@@ -258,6 +258,7 @@ def write_scene_usd(path, scene, guides, fps: float, frames: int) -> None:
     write_body(stage, scene, samples(scene.motion))
     shapes = np.stack([guides.shape_at(f / fps) for f in range(frames + 1)])
     write_animation(stage, GUIDES, shapes, guides.offsets, GUIDE_WIDTH)
+    mark_edits(stage, getattr(guides, "edits_applied", ""))
     write_colliders(stage, scene.colliders, samples)
     save(stage, path)
 
@@ -276,14 +277,16 @@ def clips_dir(path) -> Path:
 
 
 def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps: float,
-                     clips: str = "auto") -> None:
+                     clips: str = "auto", edits_applied: str = "") -> None:
     """A run's result.usdc (or .usda: the format follows the suffix): positions (frames+1, V, 3)
     and guide_positions (frames+1, Vg, 3) in world space (arrays, or sequences of frames such
     as ``NpyFrames``), body and colliders sampled at every frame.
 
     ``clips`` (``output.usd_clips``): ``never``: one layer; ``always``: value clips
     (``write_clipped``); ``auto``: clips when there are more than CLIP_FRAMES frames.  A
-    ``<stem>.clips`` folder left beside ``path`` by an earlier write is removed.
+    ``<stem>.clips`` folder left beside ``path`` by an earlier write is removed.  ``edits_applied``:
+    the ``guides.edits`` the guides carry (``GuideAnimation.edits_applied``), said on the guides
+    prim (customData ``EDITS_APPLIED``) for a run that reads the stage back.
 
     One layer: the stage is written as a crate file under a temporary name, saved every
     ``SAVE_BYTES`` of samples, transforms included, then renamed; an ASCII result is exported
@@ -294,7 +297,7 @@ def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps
         raise ValueError(f"{path}: a USD file name ends with one of {', '.join(FORMATS)}")
     frames = len(positions) - 1
     if clipped(str(getattr(clips, "value", clips)), frames):
-        write_clipped(path, scene, positions, guide_positions, guide_offsets, fps)
+        write_clipped(path, scene, positions, guide_positions, guide_offsets, fps, edits_applied)
         return
     crate = path.with_name(path.stem + ".tmp.usdc")
     stage = None
@@ -306,6 +309,7 @@ def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps
         write_body(stage, scene, samples(scene.motion))
         if _has_guides(guide_positions):
             write_animation(stage, GUIDES, guide_positions, guide_offsets, GUIDE_WIDTH, saves, "guide_positions")
+            mark_edits(stage, edits_applied)
         write_colliders(stage, scene.colliders, samples)
         UsdGeom.Scope.Define(stage, RESULT)
         write_animation(stage, RESULT_HAIR, positions, scene.strands.offsets, hair_widths(scene), saves, "positions")
@@ -319,6 +323,12 @@ def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps
     finally:
         stage = None   # releases the layer (a traceback keeps this frame alive) before its file goes
         _discard(crate)
+
+
+def mark_edits(stage, edits_applied: str) -> None:
+    """The guides prim's customData ``EDITS_APPLIED``: the edits its guides carry (none: not set)."""
+    if edits_applied:
+        stage.GetPrimAtPath(GUIDES).SetCustomDataByKey(EDITS_APPLIED, str(edits_applied))
 
 
 def _has_guides(guide_positions) -> bool:
@@ -377,7 +387,7 @@ def _write_clip(file: Path, channels: list, first: int, last: int, fps: float) -
     return layer
 
 
-def write_clipped(path, scene, positions, guide_positions, guide_offsets, fps: float) -> None:
+def write_clipped(path, scene, positions, guide_positions, guide_offsets, fps: float, edits_applied: str = "") -> None:
     """``write_result_usd`` with value clips (module docstring): ``<stem>.clips/<k>.usdc`` with
     frames k x CLIP_FRAMES .. (k + 1) x CLIP_FRAMES of every time-sampled attribute, a manifest,
     and the root layer ``path`` with the rest and the clip set on /Root.  Memory: one chunk."""
@@ -401,6 +411,7 @@ def write_clipped(path, scene, positions, guide_positions, guide_offsets, fps: f
             channels.append(_pose_channel(BODY, scene.motion, fps))
         if _has_guides(guide_positions):
             define_curves(stage, GUIDES, np.diff(guide_offsets), GUIDE_WIDTH)
+            mark_edits(stage, edits_applied)
             channels += _curve_channels(GUIDES, guide_positions, GUIDE_WIDTH, "guide_positions", path)
         for prim, c in write_colliders(stage, scene.colliders, samples):
             if moving(c.motion):
