@@ -146,7 +146,7 @@ def test_api_steps_past_the_guide_animation_are_refused():
 
     r = assemble(compose_config([*SMALL, "frames=3", "controller.name=tracking"]))
     assert len(list(r.steps(frames=3))) == 3
-    with pytest.raises(ValueError, match=r"past the guide animation's end \(0.12 s, frames 0..3\)"):
+    with pytest.raises(InputError, match=r"^Run.steps: frames: 10 frames .* past the guide animation.s end \(0.12 s, frames 0..3\)"):
         next(iter(r.steps(frames=10)))
     free = assemble(compose_config([*SMALL, "frames=3", "controller.name=free"]))
     assert len(list(free.steps(frames=5))) == 5   # a free run does not follow the guides

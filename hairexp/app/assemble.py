@@ -97,9 +97,10 @@ class Run:
         end, last = t0 + int(frames) / fps, (self.guides.n_frames - 1) / self.guides.fps
         if self.controller_name != "free" and end > last + 0.5 / fps:
             # past the animation the guides froze at their last frame, and the run said converged (probe of issue 12)
-            raise ValueError(f"Run.steps: {int(frames)} frames from t = {t0:g} s end at {end:g} s, past the "
-                             f"guide animation's end ({last:g} s, frames 0..{self.guides.n_frames - 1}); the "
-                             f"{self.controller_name} controller follows the guides: assemble the run with enough frames")
+            # an InputError (a ValueError) naming the argument, as the other entry points' (a probe)
+            raise InputError(f"{int(frames)} frames from t = {t0:g} s end at {end:g} s, past the guide animation's "
+                             f"end ({last:g} s, frames 0..{self.guides.n_frames - 1}); the {self.controller_name} "
+                             "controller follows the guides: assemble the run with enough frames", "Run.steps: frames")
         step = 0
         for frame in range(1, int(frames) + 1):
             for _ in range(self.steps_per_frame):
