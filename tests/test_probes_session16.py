@@ -108,3 +108,22 @@ def test_a_results_guides_read_back_with_the_same_edits_are_warned(tmp_path, cap
     with caplog.at_level("WARNING"):
         assemble_scene(compose_config([*again, "guides.edits=[]"]), settle=False)
     assert "applied its guides.edits" not in caplog.text
+
+
+def test_a_collider_touching_the_hair_at_rest_by_round_off_is_not_refused():
+    """A plane at the hair tips' exact height (written as float32) was refused as the hair starting
+    inside it "by 2.98e-06 mm".  Without the barrier a vertex within 1 um of the surface is on it;
+    a millimetre inside is still refused."""
+    from hairexp.app.assemble import assemble_scene
+
+    base = ["experiment=goaling_smoke", "variants=[]", "measure.collider=floor"]
+    _, scene, _ = assemble_scene(compose_config([*base, "scene.colliders=[]", "measure.name=none", "measure.collider="]), settle=False)
+    low = float(scene.initial_positions()[~scene.strands.kinematic][:, 1].min())
+
+    def floor(y: float) -> list[str]:
+        return [*base, f"scene.colliders=[{{name: floor, shape: plane, motion: {{times: [0.0], "
+                       f"translations: [[0.0, {y!r}, 0.0]], rotations_deg: [[0.0, 0.0, 0.0]]}}}}]"]
+
+    check_config(compose_config(floor(low + 3e-9)))
+    with pytest.raises(InputError, match=r"collider 'floor': the hair starts inside it \(strand \d+ vertex \d+ by 1 mm"):
+        check_config(compose_config(floor(low + 1e-3)))
