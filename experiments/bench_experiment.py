@@ -150,18 +150,20 @@ def main(argv=None):
            f"imports {_median(this, 'import_s'):.2f} s, peak {_median(this, 'peak_rss_mb'):.0f} MB)")
     if ok is not None:
         md += f"; issue 16's target <= {TARGET_S:g} s: **{'met' if ok else 'missed'}**"
-    md += ".\n"
+    quickest = min(r["wall_s"] for r in this)
+    md += (f".  Its quickest round: {quickest:.2f} s (the target is judged on the median; on a shared machine the "
+           "quickest round is the nearest to the command on a quiet one).\n")
     ratios = None
     if len(repos) > 1:
         ratios = [a["wall_s"] / b["wall_s"] for a, b in zip(rows["this"], rows["against"])]
         md += (f"\nThis checkout / the other (`{repos['against']}`), round by round: "
                f"{', '.join(f'{x:.3f}' for x in ratios)}; median **{float(np.median(ratios)):.3f}**.\n")
     data = {"experiment": args.experiment, "overrides": args.set, "target_s": TARGET_S, "met": ok,
-            "median_wall_s": wall, "rounds": rows, "ratios": ratios,
+            "median_wall_s": wall, "quickest_wall_s": quickest, "rounds": rows, "ratios": ratios,
             "against": None if len(repos) == 1 else str(repos["against"]), "revisions": revs, "script_wall_s": time.perf_counter() - t0}
     path = write_report(args.report, md, data)
     verdict = "" if ok is None else f"; target {TARGET_S:g} s: {'met' if ok else 'MISSED'}"
-    print(f"median wall {wall:.2f} s{verdict}; wrote {path}")
+    print(f"median wall {wall:.2f} s (quickest round {quickest:.2f} s){verdict}; wrote {path}")
 
 
 if __name__ == "__main__":
