@@ -416,7 +416,7 @@ def _passes_between(scene, c, X, ts, P, D, level, budget: list | None = None, de
         return None
     M = D - level[None]
     chord = np.linalg.norm(P[1:] - P[:-1], axis=2)                     # (T - 1, R)
-    maybe = M[1:] + M[:-1] <= PATH_OVER_CHORD * chord
+    maybe = M[1:] + M[:-1] < PATH_OVER_CHORD * chord   # strict: a root that does not move cannot go in
     for a in np.flatnonzero(maybe.any(axis=1)):
         if budget[0] <= 0:
             return None
