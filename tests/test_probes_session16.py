@@ -10,16 +10,26 @@ from hairexp.app.assemble import check_config
 from hairexp.errors import InputError
 
 
-def _stage(path, end=None) -> str:
+def _new_stage(path, end=None, xforms=(), curves=(("/Hair", 0.0),)):
+    """A stage at 24 fps (``end``: its endTimeCode) with the Xforms ``xforms`` and a 3-vertex
+    hanging linear curve at each (path, x) of ``curves``; saved, and returned open."""
     stage = Usd.Stage.CreateNew(str(path))
     stage.SetTimeCodesPerSecond(24)
     if end is not None:
         stage.SetEndTimeCode(end)
-    curves = UsdGeom.BasisCurves.Define(stage, "/Hair")
-    curves.CreateTypeAttr("linear")
-    curves.CreateCurveVertexCountsAttr([3])
-    curves.CreatePointsAttr([(0, 0, 0), (0, 0, -0.05), (0, 0, -0.1)])
+    for xform in xforms:
+        UsdGeom.Xform.Define(stage, xform)
+    for prim, x in curves:
+        c = UsdGeom.BasisCurves.Define(stage, prim)
+        c.CreateTypeAttr("linear")
+        c.CreateCurveVertexCountsAttr([3])
+        c.CreatePointsAttr([(x, 0, 0), (x, -0.05, 0), (x, -0.1, 0)])
     stage.GetRootLayer().Save()
+    return stage
+
+
+def _stage(path, end=None) -> str:
+    _new_stage(path, end)
     return str(path)
 
 
@@ -37,16 +47,7 @@ def test_the_guides_prim_named_as_the_hair_is_refused(tmp_path):
     hair, exit 0, only "the hair's points are animated" said; a parent holding the guides, and
     (by the guides' reader) guides holding the hair, were refused already.  Now it is too."""
     path = tmp_path / "g.usda"
-    stage = Usd.Stage.CreateNew(str(path))
-    stage.SetTimeCodesPerSecond(24)
-    stage.SetEndTimeCode(2)
-    for xform in ("/Root", "/Root/Body", "/Root/Guides"):
-        UsdGeom.Xform.Define(stage, xform)
-    curves = UsdGeom.BasisCurves.Define(stage, "/Root/Guides/A")
-    curves.CreateTypeAttr("linear")
-    curves.CreateCurveVertexCountsAttr([3])
-    curves.CreatePointsAttr([(0, 0, 0), (0, -0.05, 0), (0, -0.1, 0)])
-    stage.GetRootLayer().Save()
+    _new_stage(path, 2, ("/Root", "/Root/Body", "/Root/Guides"), (("/Root/Guides/A", 0.0),))
     for hair, said in (("/Root/Guides", r":/Root/Guides: is the guides \(/Root/Guides, scene\.usd_guides\)"),
                        ("/Root", r":/Root: holds the guides \(/Root/Guides, scene\.usd_guides\)"),
                        ("/Root/Guides/A", r"holds the detail hair \(/Root/Guides/A, scene\.usd_hair\)")):
@@ -62,16 +63,8 @@ def test_abstract_prims_are_refused_when_named_and_said_inside_a_group(tmp_path,
     from pxr import Sdf
 
     path = tmp_path / "c.usda"
-    stage = Usd.Stage.CreateNew(str(path))
-    stage.SetTimeCodesPerSecond(24)
-    stage.SetEndTimeCode(2)
-    for xform in ("/Root", "/Root/Body", "/Root/Body/Grp"):
-        UsdGeom.Xform.Define(stage, xform)
-    for name, x in (("A", 0.0), ("B", 0.02)):
-        curves = UsdGeom.BasisCurves.Define(stage, f"/Root/Body/Grp/{name}")
-        curves.CreateTypeAttr("linear")
-        curves.CreateCurveVertexCountsAttr([3])
-        curves.CreatePointsAttr([(x, 0, 0), (x, -0.05, 0), (x, -0.1, 0)])
+    stage = _new_stage(path, 2, ("/Root", "/Root/Body", "/Root/Body/Grp"),
+                       (("/Root/Body/Grp/A", 0.0), ("/Root/Body/Grp/B", 0.02)))
     stage.GetRootLayer().GetPrimAtPath("/Root/Body/Grp/B").specifier = Sdf.SpecifierClass
     stage.GetRootLayer().Save()
     base = ["experiment=from_usd", f"scene.usd={path}", "guides.source=rigid", "guides.count=1"]
