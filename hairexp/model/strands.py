@@ -201,12 +201,6 @@ class Strands:
         starts = np.flatnonzero(~is_last)
         edges = np.stack([starts, starts + 1], axis=1)
         rest_lengths = np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)
-        lengths = np.add.reduceat(rest_lengths, first - np.arange(len(first))) if len(rest_lengths) else np.zeros(0)
-        long = np.flatnonzero(lengths > MAX_STRAND_LENGTH)
-        if len(long):
-            c = int(long[0])
-            raise InputError(f"curve {c} is {lengths[c]:.6g} m long, more than {MAX_STRAND_LENGTH:g} m: hair is metres long "
-                             "at most; hairexp reads metres (check the units of the input)", where)
         mids = np.flatnonzero(~is_first & ~is_last)
         bends = np.stack([mids - 1, mids, mids + 1], axis=1)
         masses = np.zeros(V)
@@ -219,4 +213,11 @@ class Strands:
         free_slot[~kinematic] = np.arange(int((~kinematic).sum()))
         for a in (points, offsets, masses, edges, rest_lengths, bends, kinematic, free_slot):
             a.setflags(write=False)
-        return Strands(points, offsets, masses, edges, rest_lengths, bends, kinematic, free_slot)
+        strands = Strands(points, offsets, masses, edges, rest_lengths, bends, kinematic, free_slot)
+        lengths = strands.strand_lengths()
+        long = np.flatnonzero(lengths > MAX_STRAND_LENGTH)
+        if len(long):
+            c = int(long[0])
+            raise InputError(f"curve {c} is {lengths[c]:.6g} m long, more than {MAX_STRAND_LENGTH:g} m: hair is metres long "
+                             "at most; hairexp reads metres (check the units of the input)", where)
+        return strands
