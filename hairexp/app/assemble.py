@@ -355,21 +355,21 @@ def check_clear_roots(scene, frames: int, fps: float, steps_per_frame: int) -> N
         deep = -float(c.sdf_body(np.zeros((1, 3)))[0])   # its centre's depth: a plate's half-thickness
         if deep > 0:   # a collider thinner than the gap: a root gone halfway through it (else never refused)
             gap = min(gap, 0.5 * deep)
-        d0, prev, budget = None, None, [PASS_BUDGET]
+        level, prev, budget = None, None, [PASS_BUDGET]   # level: each root's refused signed distance
         for a in range(0, len(ts), block):
             tb = ts[a:a + block]
             P, D = _roots_in_collider(scene, c, X, tb)
-            if d0 is None:
-                d0 = np.minimum(D[0], 0.0)
-            deeper = d0[None] - D - gap
-            hit = np.flatnonzero((deeper > 0).any(axis=1))
+            if level is None:
+                level = np.minimum(D[0], 0.0) - gap
+            below = D - level[None]
+            hit = np.flatnonzero((below < 0).any(axis=1))
             if hit.size:   # the first sample where a root went deeper
                 r = int(hit[0])
-                j = int(np.argmax(deeper[r]))
+                j = int(np.argmin(below[r]))
                 _roots_refusal(scene, c, where, k[j], float(tb[r]), float(D[r, j]))
             if prev is not None:   # the interval between the blocks too
                 tb, P, D = np.concatenate([prev[0], tb]), np.concatenate([prev[1], P]), np.concatenate([prev[2], D])
-            found = _passes_between(scene, c, X, tb, P, D, d0 - gap, budget)
+            found = _passes_between(scene, c, X, tb, P, D, level, budget)
             if found is not None:
                 _roots_refusal(scene, c, where, k[found[0]], found[1], found[2])
             prev = (tb[-1:], P[-1:], D[-1:])
@@ -403,15 +403,15 @@ PASS_DEPTH = 40
 PASS_BUDGET = 4096
 
 
-def _passes_between(scene, c, X, ts, P, D, level, budget: list | None = None, depth: int = 0):
+def _passes_between(scene, c, X, ts, P, D, level, budget: list, depth: int = 0):
     """(root index, time, signed distance) of a root that goes below its refused depth ``level``
     (R,) between two of the samples ``ts`` (T,), where none is below (P: the roots' positions in
     the collider's frame (T, R, 3), D: their signed distances (T, R)), or None.  The signed distance
     changes by at most the path's length: a root whose margins above ``level`` at an interval's
     ends sum to more than PATH_OVER_CHORD x its chord cannot have gone below between them; where
     they do not, the interval is halved and both halves checked in turn (PASS_DEPTH deep, PASS_BUDGET
-    halvings at most: a root that grazes the depth all along is not refused for it)."""
-    budget = [PASS_BUDGET] if budget is None else budget
+    halvings at most, counted down in ``budget[0]``: a root that grazes the depth all along is not
+    refused for it)."""
     if len(ts) < 2 or depth >= PASS_DEPTH:
         return None
     M = D - level[None]
