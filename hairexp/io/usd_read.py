@@ -309,16 +309,16 @@ def hair_prims(stage, cfg, file: str) -> list:
     clump)."""
     root = get_prim(stage, cfg.usd_hair, file, "the detail hair", "scene.usd_hair")
     guides = Sdf.Path(cfg.usd_guides) if str(cfg.usd_guides).startswith("/") else None
-    if (not root.IsA(UsdGeom.BasisCurves) and guides is not None and guides.HasPrefix(root.GetPath())
-            and guides != root.GetPath() and stage.GetPrimAtPath(guides)):
-        # the guides' frame 0 would have been read as hair
-        raise InputError(f"holds the guides ({cfg.usd_guides}, scene.usd_guides): scene.usd_hair names the detail "
-                         "hair's own BasisCurves or a prim holding only hair curves", f"{file}:{cfg.usd_hair}")
     if guides is not None and root.GetPath() == guides:
         # the guides themselves simulated as detail hair, with only "the hair's points are animated" said (a
         # probe); hair inside a guides parent is the guides reader's to refuse ("holds the detail hair")
         raise InputError(f"is the guides ({cfg.usd_guides}, scene.usd_guides): scene.usd_hair names the detail hair's "
                          "own BasisCurves or a prim holding only hair curves", f"{file}:{cfg.usd_hair}")
+    if (not root.IsA(UsdGeom.BasisCurves) and guides is not None and guides.HasPrefix(root.GetPath())
+            and stage.GetPrimAtPath(guides)):
+        # the guides' frame 0 would have been read as hair
+        raise InputError(f"holds the guides ({cfg.usd_guides}, scene.usd_guides): scene.usd_hair names the detail "
+                         "hair's own BasisCurves or a prim holding only hair curves", f"{file}:{cfg.usd_hair}")
     return curve_prims(root, "scene.usd_hair", "the detail hair", "hair", f"{file}:{cfg.usd_hair}")
 
 
