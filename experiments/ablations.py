@@ -31,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-from experiments.common import ROOT, check_reports, fail, fmt, md_row, md_table, report_name
+from experiments.common import add_report_option, ROOT, check_reports, fail, fmt, md_row, md_table
 
 COMPARISONS = {
     "targets": ["tracking.targets=static,sliding"],
@@ -106,9 +106,7 @@ def main(argv=None):
     ap.add_argument("--comparisons", nargs="*", default=list(COMPARISONS), choices=list(COMPARISONS))
     ap.add_argument("--launcher", default=None, choices=LAUNCHERS,
                     help="a Hydra launcher (default: conf/hydra/launcher/parallel.yaml, joblib with 2 jobs)")
-    ap.add_argument("--report", type=report_name, default=None,
-                    help="the report's name: reports/<NAME>.{md,json} (default ablations, with --full ablations_full; "
-                         "another name leaves the committed one as it is)")
+    add_report_option(ap, None, default_text="ablations, with --full ablations_full")
     args = ap.parse_args(argv)
     report = args.report or ("ablations_full" if args.full else "ablations")
     check_reports(ap, report)

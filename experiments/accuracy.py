@@ -36,8 +36,8 @@ from hairexp.app.report_cache import cached, describe
 from hairexp.app.run import config_hash, run
 from hairexp.physics.integrators import INTEGRATORS
 
-from experiments.common import (ROOT, check_reports, check_set, compose, fmt, key_value, md_row, md_table, positive_float, positive_int,
-                                report_name)
+from experiments.common import (add_report_option, ROOT, check_reports, check_set, compose, fmt, key_value, md_row, md_table, positive_float,
+                                positive_int)
 
 DTS = [0.005, 0.01, 0.02, 0.04]
 RTOLS = [1e-3, 1e-5, 1e-7]
@@ -106,9 +106,7 @@ def main(argv=None):
     ap.add_argument("--set", nargs="*", default=[], type=key_value, metavar="KEY=VALUE",
                     help="overrides applied to every run, the reference's included (e.g. "
                          "scene.motion.interpolation=cubic): a variant of the study, written with --report")
-    ap.add_argument("--report", type=report_name, default="accuracy",
-                    help="the report's name: reports/<NAME>.{md,json,png} (default accuracy; a --set study: "
-                         "accuracy_variant; another name leaves the committed one as it is)")
+    add_report_option(ap, "accuracy", files="md,json,png", default_text="accuracy; a --set study: accuracy_variant")
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/accuracy/ entries (same config, solver source and versions)")
     args = ap.parse_args(argv)

@@ -24,7 +24,7 @@ from hairexp.app.config import VariantConfig
 from hairexp.app.experiment import run_experiment
 from hairexp.app.report import header, write_report
 
-from experiments.common import ROOT, check_reports, check_set, compose, experiment_names, fmt, key_value, md_row, md_table, report_name
+from experiments.common import add_report_option, ROOT, check_reports, check_set, compose, experiment_names, fmt, key_value, md_row, md_table
 
 SCENES = ["goaling", "splitting", "celia"]
 
@@ -81,8 +81,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenes", nargs="*", default=None)
     ap.add_argument("--set", nargs="*", default=[], type=key_value, metavar="KEY=VALUE", help="hydra overrides on every scene")
-    ap.add_argument("--report", type=report_name, default="assignment",
-                    help="the report's name: reports/<NAME>.{md,json} (default assignment; another name leaves the committed one as it is)")
+    add_report_option(ap, "assignment")
     args = ap.parse_args(argv)
     check_set(ap, args.set)   # before anything runs (a bad key would fail every run)
     check_reports(ap, args.report)

@@ -47,7 +47,7 @@ from hairexp.evaluation.judges import RUN_RULES
 from hairexp.evaluation.measures import RunData, compute
 from hairexp.model.dynamic_body import POSITION
 
-from experiments.common import check_reports, compose, fail, md_row, md_table, positive_int, report_name, writable_dir
+from experiments.common import add_report_option, check_reports, compose, fail, md_row, md_table, positive_int, writable_dir
 
 EXPERIMENTS = ("goaling", "splitting", "spreading", "stylization", "celia")
 STIFFNESSES = (10.0, 100.0, 1000.0)
@@ -488,8 +488,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=writable_dir, default=None,
                     help="keep the run folders here (default: a temporary folder)")
     ap.add_argument("--no-report", action="store_true")
-    ap.add_argument("--report", type=report_name, default="baselines",
-                    help="the report's name: reports/<NAME>.{md,json} (default baselines; another name leaves the committed one as it is)")
+    add_report_option(ap, "baselines")
     args = ap.parse_args(argv)
     if args.frames is not None and args.frames <= WINDOW:
         ap.error(f"--frames must be > {WINDOW} (the tip high-frequency window is {WINDOW} frames)")

@@ -21,8 +21,8 @@ import numpy as np
 from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 
-from experiments.common import (check_reports, positive_int, WARMUP, celia_bench, describe_run, jerk, jerk_start, md_table, motion_record,
-                                report_name, time_steps)
+from experiments.common import (add_report_option, check_reports, positive_int, WARMUP, celia_bench, describe_run, jerk, jerk_start, md_table, motion_record,
+                                time_steps)
 
 #: case -> (collision group, overrides)
 CASES = {"head + hair-hair": ("hair_hair", ()),
@@ -85,8 +85,7 @@ def main(argv=None):
     ap.add_argument("--steps", type=positive_int, default=50)
     ap.add_argument("--trade-steps", type=positive_int, default=20,
                     help="steps of the crossing study (implicit Euler, not timed)")
-    ap.add_argument("--report", type=report_name, default="bench_collisions",
-                    help="the report's name: reports/<NAME>.{md,json} (default bench_collisions; another name leaves the committed one as it is)")
+    add_report_option(ap, "bench_collisions")
     args = ap.parse_args(argv)
     check_reports(ap, args.report)
     t0 = time.perf_counter()

@@ -35,8 +35,8 @@ import numpy as np
 
 from hairexp.app.report import header, write_report
 
-from experiments.common import (ROOT, check_reports, check_set, experiment_names, key_value, md_table, nonnegative_int,
-                                positive_int, report_name, run_child)
+from experiments.common import (add_report_option, ROOT, check_reports, check_set, experiment_names, key_value, md_table, nonnegative_int,
+                                positive_int, run_child)
 
 #: issue 16: the whole Celia experiment in at most this many seconds of wall time
 TARGET_S = 15.0
@@ -90,8 +90,7 @@ def main(argv=None):
     ap.add_argument("--against", type=Path, default=None,
                     help="another checkout run in turn with this one, round by round (ratios)")
     ap.add_argument("--set", nargs="+", default=[], type=key_value, metavar="KEY=VALUE", help="overrides for every run")
-    ap.add_argument("--report", type=report_name, default="bench_experiment",
-                    help="reports/<REPORT>.{md,json} (a plain name; default bench_experiment)")
+    add_report_option(ap, "bench_experiment")
     args = ap.parse_args(argv)
     check_reports(ap, args.report)
     experiment_names(ap, [args.experiment], ())

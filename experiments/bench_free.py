@@ -31,8 +31,8 @@ from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 from hairexp.physics.simulator import TIME_KEYS
 
-from experiments.common import (check_reports, WARMUP, Timing, celia_bench, describe_run, md_table, pct, stretch_max, time_steps,
-                                positive_int, report_name)
+from experiments.common import (add_report_option, check_reports, WARMUP, Timing, celia_bench, describe_run, md_table, pct, stretch_max, time_steps,
+                                positive_int)
 
 AUTOGRAD_STEPS = 15   # the autograd row: the first (violent) steps only
 
@@ -111,8 +111,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=positive_int, default=50)
     ap.add_argument("--quick", action="store_true", help="skip the slow autograd ablation")
-    ap.add_argument("--report", type=report_name, default="bench_free",
-                    help="the report's name: reports/<NAME>.{md,json} (default bench_free; another name leaves the committed one as it is)")
+    add_report_option(ap, "bench_free")
     args = ap.parse_args(argv)
     check_reports(ap, args.report)
     t0 = time.perf_counter()

@@ -38,7 +38,7 @@ from hairexp.physics.objective import ImplicitEulerObjective
 from hairexp.physics.simulator import TIME_KEYS
 
 from experiments.bench_free import time_interleaved
-from experiments.common import check_reports, WARMUP, celia_bench, describe_run, md_table, pct, positive_int, report_name
+from experiments.common import add_report_option, check_reports, WARMUP, celia_bench, describe_run, md_table, pct, positive_int
 
 PHASES = ("evaluate", "solve", "value", "tensions")
 PHASE_NAMES = {"evaluate": "derivatives + assembly", "solve": "factor + solve", "value": "line-search energy",
@@ -191,8 +191,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=positive_int, default=30)
     ap.add_argument("--repeats", type=positive_int, default=30)
-    ap.add_argument("--report", type=report_name, default="bench_kernels",
-                    help="the report's name: reports/<NAME>.{md,json} (default bench_kernels; another name leaves the committed one as it is)")
+    add_report_option(ap, "bench_kernels")
     args = ap.parse_args(argv)
     check_reports(ap, args.report)
     t_start = time.perf_counter()

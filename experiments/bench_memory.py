@@ -36,7 +36,7 @@ from pathlib import Path
 
 from hairexp.app.report import header, write_report
 
-from experiments.common import ROOT, check_reports, md_table, positive_int, report_name, run_child
+from experiments.common import add_report_option, ROOT, check_reports, md_table, positive_int, run_child
 
 SIZES = {"6 x 10 vertices": ["scene.n_strands=6", "scene.n_vertices=10"],
          "40 x 20 vertices": ["scene.n_strands=40", "scene.n_vertices=20"]}
@@ -55,8 +55,7 @@ def main(argv=None):
     ap.add_argument("--repo", type=Path, default=ROOT, help="the checkout whose code runs (default: this one)")
     ap.add_argument("--sizes", nargs="+", choices=list(SIZES), default=list(SIZES))
     ap.add_argument("--rerun", nargs="+", choices=["off", "on"], default=["off", "on"], help="recording off / on")
-    ap.add_argument("--report", type=report_name, default="bench_memory",
-                    help="reports/<REPORT>.{md,json} (a plain name; default bench_memory)")
+    add_report_option(ap, "bench_memory")
     args = ap.parse_args(argv)
     if args.frames[0] >= args.frames[1]:
         ap.error(f"--frames {args.frames[0]} {args.frames[1]}: SHORT must be less than LONG")

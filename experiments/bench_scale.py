@@ -28,8 +28,8 @@ import sys
 
 import numpy as np
 
-from experiments.common import (ROOT, check_reports, compose, fail, frames_for, md_table, motion_overrides, positive_int,
-                                report_name, strand_count, time_steps)
+from experiments.common import (add_report_option, ROOT, check_reports, compose, fail, frames_for, md_table, motion_overrides, positive_int,
+                                strand_count, time_steps)
 
 WARMUP = 2
 MOTION = motion_overrides([0.0, 0.2, 0.3, 10.0], [[0, 0, 0], [0, 0, 0], [0, 0.12, 0], [0, 0.12, 0]])
@@ -75,9 +75,7 @@ def main(argv=None):
     ap.add_argument("--sizes", type=strand_count, nargs="*", default=[301, 1000, 3000, 10000])
     ap.add_argument("--steps", type=positive_int, default=10)
     ap.add_argument("--one", nargs=2, metavar=("STRANDS", "CONTROLLER"), help=argparse.SUPPRESS)
-    ap.add_argument("--report", type=report_name, default="bench_scale",
-                    help="the report's name: reports/<NAME>.{md,json,png} (default bench_scale; another name leaves the "
-                         "committed one as it is)")
+    add_report_option(ap, "bench_scale", files="md,json,png")
     args = ap.parse_args(argv)
     if args.one:
         try:

@@ -23,7 +23,7 @@ import numpy as np
 from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 
-from experiments.common import (check_reports, report_name, TIME_KEYS, WARMUP, Timing, celia_bench, describe_run, fmt, md_table, pct, positive_int,
+from experiments.common import (add_report_option, check_reports, TIME_KEYS, WARMUP, Timing, celia_bench, describe_run, fmt, md_table, pct, positive_int,
                                 stretch_max)
 
 
@@ -68,8 +68,7 @@ def summarise(run, tm) -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=positive_int, default=50)
-    ap.add_argument("--report", type=report_name, default="bench_tracking",
-                    help="the report's name: reports/<NAME>.{md,json} (default bench_tracking; another name leaves the committed one as it is)")
+    add_report_option(ap, "bench_tracking")
     args = ap.parse_args(argv)
     check_reports(ap, args.report)
     runs, assemble_s = {}, {}

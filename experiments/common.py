@@ -168,6 +168,15 @@ def report_name(text: str) -> str:
     return text
 
 
+def add_report_option(ap, default: str | None, files: str = "md,json", default_text: str | None = None) -> None:
+    """``--report NAME`` on the parser ``ap``: the report's name (``report_name``), written as
+    reports/NAME.{``files``}; ``default`` the committed report's (``default_text`` says it where
+    it depends on other options)."""
+    ap.add_argument("--report", type=report_name, default=default,
+                    help=f"the report's name: reports/<NAME>.{{{files}}} (default {default_text or default}; another name "
+                         "leaves the committed one as it is)")
+
+
 def check_reports(ap, *names: str) -> None:
     """reports/ (where ``hairexp.app.report.write_report`` and the scripts' pictures go) and the
     reports ``names`` (stems) can be written, else a usage error (``ap.error``: exit 2) before the

@@ -28,7 +28,7 @@ from hairexp.evaluation import fidelity_static
 from hairexp.evaluation.fidelity_chain import linear_prediction, measure_chain
 from hairexp.physics.integrators import INTEGRATORS
 
-from experiments.common import ROOT, check_reports, md_table, positive_float, report_name, strand_vertices
+from experiments.common import add_report_option, ROOT, check_reports, md_table, positive_float, strand_vertices
 
 #: the targets of issue 13 at dt 0.04 s (the default solver, no damping configured)
 AMPLITUDE_TARGET, PERIOD_TARGET = 0.90, 0.01
@@ -97,9 +97,7 @@ def main(argv=None):
     ap.add_argument("--dts", type=positive_float, nargs="+", default=[0.001, 0.01, 0.04])
     ap.add_argument("--integrators", nargs="+", default=["implicit_euler", "bdf2", "trbdf2", "lmm2"], choices=list(INTEGRATORS))
     ap.add_argument("--vertices", type=strand_vertices, nargs="+", default=[10, 20, 40, 80])
-    ap.add_argument("--report", type=report_name, default="fidelity",
-                    help="the report's name: reports/<NAME>.{md,json,png} (default fidelity; another name leaves the "
-                         "committed one as it is)")
+    add_report_option(ap, "fidelity", files="md,json,png")
     args = ap.parse_args(argv)
     check_reports(ap, args.report)
     chain = chain_rows(args.integrators, args.dts)

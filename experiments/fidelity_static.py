@@ -16,14 +16,13 @@ import argparse
 from hairexp.app.report import header, write_report
 from hairexp.evaluation import fidelity_static as fs
 
-from experiments.common import check_reports, md_table, report_name, strand_vertices
+from experiments.common import add_report_option, check_reports, md_table, strand_vertices
 
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--vertices", type=strand_vertices, nargs="+", default=[10, 20, 40, 80])
-    ap.add_argument("--report", type=report_name, default="fidelity_static",
-                    help="the report's name: reports/<NAME>.{md,json} (default fidelity_static; another name leaves the committed one as it is)")
+    add_report_option(ap, "fidelity_static")
     args = ap.parse_args(argv)
     check_reports(ap, args.report)
     ns = args.vertices

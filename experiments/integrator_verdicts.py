@@ -21,7 +21,7 @@ from pathlib import Path
 from hairexp.app.report import header, write_report
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR
 
-from experiments.common import check_reports, fmt, md_row, md_table, report_name
+from experiments.common import add_report_option, check_reports, fmt, md_row, md_table
 
 #: scene -> the variant figures shown beside the verdict (variant, measure key)
 KEY_FIGURES = {
@@ -121,8 +121,7 @@ def markdown(cols: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("reports", nargs="+", type=Path, help="paper_scenes JSON reports, one per integrator and dt")
-    ap.add_argument("--report", type=report_name, default="integrator_verdicts",
-                    help="the report's name: reports/<NAME>.{md,json} (default integrator_verdicts; another name leaves the committed one as it is)")
+    add_report_option(ap, "integrator_verdicts")
     a = ap.parse_args(argv)
     try:
         cols = load(a.reports)

@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from experiments.common import ROOT, check_reports, compose, md_table, positive_float, positive_int, report_name, time_steps
+from experiments.common import add_report_option, ROOT, check_reports, compose, md_table, positive_float, positive_int, time_steps
 from hairexp.evaluation.fidelity_chain import linear_prediction, measure_chain
 from hairexp.physics.integrators import INTEGRATORS
 
@@ -82,8 +82,7 @@ def main(argv=None) -> None:
     ap.add_argument("--reps", type=positive_int, default=7)
     ap.add_argument("--cost-integrators", nargs="+", default=["implicit_euler", "bdf2", "trbdf2", "lmm2"], choices=list(INTEGRATORS))
     ap.add_argument("--no-chain", action="store_true", help="only the cost table (reuses nothing: the chain section is left out)")
-    ap.add_argument("--report", type=report_name, default="integrators",
-                    help="the report's name: reports/<NAME>.md (default integrators; another name leaves the committed one as it is)")
+    add_report_option(ap, "integrators", files="md")
     a = ap.parse_args(argv)
     check_reports(ap, a.report)
     t0 = time.time()

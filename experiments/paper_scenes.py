@@ -25,8 +25,8 @@ from hairexp.app.experiment import run_experiment
 from hairexp.app.report import header, write_report
 from hairexp.app.report_cache import cached, describe
 
-from experiments.common import (ROOT, check_reports, compose, experiment_names, fail, fmt, key_value, md_row, md_table,
-                                report_name)
+from experiments.common import (add_report_option, ROOT, check_reports, compose, experiment_names, fail, fmt, key_value, md_row,
+                                md_table)
 from experiments.scene_pictures import render_key_moment
 
 SCENES = ["goaling", "splitting", "spreading", "stylization", "celia", "fanning"]
@@ -41,8 +41,7 @@ SHOW = {"collider_contact": ("hit", "contacts", "min_distance", "first_hit_time"
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("names", nargs="*", default=None)
-    ap.add_argument("--report", type=report_name, default="paper_scenes",
-                    help="the report's name: reports/<NAME>.{md,json} (default paper_scenes; another name leaves the committed one as it is)")
+    add_report_option(ap, "paper_scenes")
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/paper_scenes/ entries with the same config, solver source and versions")
     ap.add_argument("--set", nargs="*", default=[], type=key_value, metavar="KEY=VALUE",

@@ -43,7 +43,7 @@ from hairexp.errors import InputError
 from hairexp.outputs.metrics import stretch
 from hairexp.physics.controller import scaled_iterations
 
-from experiments.common import celia_bench, check_reports, describe_run, md_table, positive_int, report_name
+from experiments.common import add_report_option, celia_bench, check_reports, describe_run, md_table, positive_int
 
 #: a solve with more iterations than this is slow
 SLOW = 20
@@ -140,8 +140,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--steps", type=positive_int, default=5, help="steps of each run (default 5: the jerk and after)")
     ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
-    ap.add_argument("--report", type=report_name, default="sqp_curvature",
-                    help="the report's name: reports/<NAME>.{md,json} (default sqp_curvature; another name leaves the committed one as it is)")
+    add_report_option(ap, "sqp_curvature")
     args = ap.parse_args()
     check_reports(ap, args.report)
     res = {}

@@ -30,7 +30,7 @@ from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 from hairexp.errors import InputError
 
-from experiments.common import check_reports, celia_bench, describe_run, md_table, positive_int, report_name
+from experiments.common import add_report_option, check_reports, celia_bench, describe_run, md_table, positive_int
 
 #: a solve with more iterations than this counts as slow
 SLOW = 20
@@ -84,8 +84,7 @@ def main() -> int:
     ap.add_argument("--steps", type=positive_int, default=12, help="steps of each run (default 12: the jerk and after)")
     ap.add_argument("--cases", type=parse_case, nargs="+", default=[(n, o) for n, o in CASES.items()],
                     help="cases as NAME=key=value,key=value (default: " + ", ".join(CASES) + ")")
-    ap.add_argument("--report", type=report_name, default="sqp_trace",
-                    help="the report's name: reports/<NAME>.{md,json} (default sqp_trace; another name leaves the committed one as it is)")
+    add_report_option(ap, "sqp_trace")
     args = ap.parse_args()
     check_reports(ap, args.report)
     res = {}

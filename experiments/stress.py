@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments.common import check_reports, check_set, compose, fmt, key_value, md_table, positive_int, report_name
+from experiments.common import add_report_option, check_reports, check_set, compose, fmt, key_value, md_table, positive_int
 
 BASE = ["experiment=goaling", "variants=[]", "scene.n_strands=12", "scene.n_vertices=12", "frames=30",
         "logging.rerun=false", "logging.progress=false", "solver.compile=off", "measure.name=none", "measure.collider="]
@@ -247,9 +247,7 @@ def main(argv=None) -> int:
     ap.add_argument("--set", nargs="*", default=[], type=key_value, metavar="KEY=VALUE",
                     help="overrides applied to every case and controller after the case's own "
                          "(e.g. solver.integrator=bdf2)")
-    ap.add_argument("--report", type=report_name, default="stress",
-                    help="the report's name: reports/<NAME>.{md,json} (default stress; a --set study, e.g. stress_bdf2; "
-                         "another name leaves the committed one as it is)")
+    add_report_option(ap, "stress", default_text="stress; a --set study, e.g. stress_bdf2")
     ap.add_argument("--cache", action="store_true",
                     help="reuse reports/cache/stress/ entries whose config, solver source and versions match "
                          "(default: run every case fresh, refreshing the cache)")

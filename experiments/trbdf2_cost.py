@@ -34,7 +34,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from experiments.common import ROOT, check_reports, _number, compose, md_table, report_name, time_steps
+from experiments.common import add_report_option, ROOT, check_reports, _number, compose, md_table, time_steps
 
 STEPS = 56   # goaling: 56 frames of one 0.04 s step
 fraction = _number(float, 0.0, True, "a number >= 0")
@@ -192,8 +192,7 @@ def _fmt(its: dict) -> str:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--eps", type=fraction, nargs="+", default=[0.01, 0.1, 0.3, 1.0])
-    ap.add_argument("--report", type=report_name, default="trbdf2_cost",
-                    help="the report's name: reports/<NAME>.md (default trbdf2_cost; another name leaves the committed one as it is)")
+    add_report_option(ap, "trbdf2_cost", files="md")
     a = ap.parse_args(argv)
     check_reports(ap, a.report)
     t0 = time.time()
