@@ -5,8 +5,9 @@ anything runs or is written, checked in this process (each script's ``main`` wit
 the scripts, where a subprocess costs 2-3 s of start-up each) and for one script on the command
 line; and ``--help`` shows the option.
 
-The scripts are found by their text (a call of ``write_report(``, or a ``--report`` of type
-``report_name`` for a script that writes its markdown itself), so a new report script is covered
+The scripts are found by their text (a call of ``write_report(``, or a ``--report`` option,
+``add_report_option(`` or of type ``report_name``, for a script that writes its markdown itself),
+so a new report script is covered
 without a change here.
 """
 
@@ -30,7 +31,7 @@ def report_scripts() -> list[str]:
         if path.stem in ("__init__", "common"):
             continue
         text = path.read_text(encoding="utf-8")
-        if "write_report(" in text or "type=report_name" in text:
+        if "write_report(" in text or "add_report_option(" in text or "type=report_name" in text:
             names.append(path.stem)
     return names
 
