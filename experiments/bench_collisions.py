@@ -21,7 +21,7 @@ import numpy as np
 from hairexp.app.assemble import assemble
 from hairexp.app.report import header, write_report
 
-from experiments.common import (add_report_option, check_reports, positive_int, WARMUP, celia_bench, describe_run, jerk, jerk_start, md_table, motion_record,
+from experiments.common import (add_report_option, check_reports, positive_int, WARMUP, celia_bench, describe_run, md_table,
                                 time_steps)
 
 #: case -> (collision group, overrides)
@@ -30,12 +30,6 @@ CASES = {"head + hair-hair": ("hair_hair", ()),
          "head only": ("default", ()), "collisions off": ("off", ())}
 #: m: pairs of edges (not sharing a vertex) closer than this at a step's end count as touching
 TOUCH = 0.001
-
-
-def head_collider() -> str:
-    """``scene.colliders`` with the head alone, moving with the body (the benchmarks' jerk)."""
-    return ("scene.colliders=[{name: head, shape: sphere, radius: 0.085, thickness: 0.002, friction: 0.3, "
-            f"motion: {motion_record(*jerk(jerk_start()))}}}]")
 
 
 def touching(strands):
@@ -67,7 +61,7 @@ def touching(strands):
 
 
 def run(collision: str, steps: int, overrides=(), observe: bool = False) -> dict:
-    r = assemble(celia_bench("free", steps, overrides, typed=[head_collider()], collision=collision))
+    r = assemble(celia_bench("free", steps, overrides, collision=collision))
     tm = time_steps(r, steps, WARMUP, observe=touching(r.scene.strands) if observe else None)
     s = tm.summary()
     seen = ({"touching_mean": float(tm.column("touching").mean()), "touching_max": int(tm.column("touching").max()),

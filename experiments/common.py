@@ -376,13 +376,25 @@ def jerk(t0: float) -> tuple[list[float], list[list[float]]]:
     return times, tr
 
 
+def head_collider(cfg=None) -> str:
+    """``scene.colliders`` with Celia's head alone, moving with the body (the benchmarks' jerk)."""
+    return ("scene.colliders=[{name: head, shape: sphere, radius: 0.085, thickness: 0.002, friction: 0.3, "
+            f"motion: {motion_record(*jerk(jerk_start(cfg)))}}}]")
+
+
 def celia_bench(controller: str = "free", steps: int = 50, overrides=(), typed=(), collision: str = "off"):
     """The benchmarks' run config: ``experiment=celia variants=[] controller=<controller>
     collision=<collision>`` (the Celia ponytail, its simulated guides and edit, its
-    ``scene.settle``), the head's motion replaced by ``jerk`` starting after the WARMUP steps,
-    and ``frames`` covering the warm-up and the timed steps (the guides are built for them)."""
+    ``scene.settle``), the body's motion replaced by ``jerk`` starting after the WARMUP steps, the
+    colliders by the head alone moving with it (``head_collider``; a ``typed`` ``scene.colliders``
+    replaces it), and ``frames`` covering the warm-up and the timed steps (the guides are built for
+    them).  The head moves with the body: with Celia's own head, which stays still, the jerked roots
+    would pass through it, which a run refuses (``check_clear_roots``) whether or not the collision
+    stage is on."""
     base = compose(["experiment=celia", "variants=[]"])
     frames = frames_for(WARMUP + steps, float(base.solver.dt), float(base.fps))
+    if not any(str(t).startswith("scene.colliders=") for t in typed):
+        typed = [head_collider(base), *typed]
     # a benchmark times the steps: no measure (Celia's names the goblet, which a benchmark may replace)
     return compose(["experiment=celia", "variants=[]", f"controller={controller}", f"collision={collision}",
                     "measure.name=none", "measure.collider=", "judge=none", f"frames={frames}", *motion_overrides(*jerk(jerk_start(base))), *overrides], typed, "benchmark")
