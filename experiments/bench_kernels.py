@@ -40,6 +40,10 @@ from hairexp.physics.simulator import TIME_KEYS
 from experiments.bench_free import time_interleaved
 from experiments.common import add_report_option, check_reports, WARMUP, celia_bench, describe_run, md_table, pct, positive_int
 
+#: the micro-benchmarks (Newton and Schur phases) start after WARMUP + MICRO_STEPS - 1 steps, into the
+#: jerk, and step once more: their runs cover that many steps at least
+MICRO_STEPS = 4
+
 PHASES = ("evaluate", "solve", "value", "tensions")
 PHASE_NAMES = {"evaluate": "derivatives + assembly", "solve": "factor + solve", "value": "line-search energy",
                "tensions": "dual update"}
@@ -204,19 +208,22 @@ def main(argv=None):
         done = whole_steps([(controller, "numba" if k == "unfused" else k, f) for k, f in cases], args.steps)
         for (k, _), (res, final) in zip(cases, done):
             steps[(controller, k)], finals[(controller, k)] = res, final
-    # 1. and 2. on fresh runs at the state after the warm-up steps
-    free_run = assemble(celia_bench("free", args.steps))
+    # 1. and 2. on fresh runs at the state after the warm-up steps: WARMUP + 3 steps into the jerk and
+    # the Schur phases' step after them, whatever --steps (with --steps 1 or 2 the tracked run's guides
+    # ended before that step: "outside the guide animation", exit 2)
+    micro_steps = max(args.steps, MICRO_STEPS)
+    free_run = assemble(celia_bench("free", micro_steps))
     state = free_run.initial_state()
-    for _ in range(WARMUP + 3):   # into the jerk: a moving, stretched state
+    for _ in range(WARMUP + MICRO_STEPS - 1):   # into the jerk: a moving, stretched state
         state, _ = free_run.simulator.step(state, free_run.dt)
     newton = newton_phases(free_run, state, args.repeats)
     for name, r in newton.items():
         print(f"Newton iteration, {name:>16}: " + "  ".join(f"{PHASE_NAMES[p]} {r['ms'][p]:.3f}" for p in PHASES)
               + f"  = {r['ms']['iteration']:.3f} ms (CPU {r['ms']['iteration_cpu']:.3f})  (step rel. err. vs torch "
               f"{r['step_rel_err']:.1e})", flush=True)
-    tr_run = assemble(celia_bench("tracking", args.steps))
+    tr_run = assemble(celia_bench("tracking", micro_steps))
     st = tr_run.initial_state()
-    for _ in range(WARMUP + 3):
+    for _ in range(WARMUP + MICRO_STEPS - 1):
         st, _ = tr_run.simulator.step(st, tr_run.dt)
     schur = schur_phases(tr_run, st, args.repeats)
     print(f"Schur complement ({schur['K']} clusters, numba on {schur['threads']} thread(s)): torch factor "

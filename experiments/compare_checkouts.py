@@ -12,8 +12,9 @@ Newton pass (``ImplicitEulerObjective.evaluate_step``) at the same iterate, alte
 round with the other worker.  At the end the final positions of both are compared.
 
 Usage:  python -m experiments.compare_checkouts OTHER [--steps 50] [--repeats 30] [--threads 1]
-(OTHER: the path of another checkout, e.g. a ``git worktree`` at the base commit; "this": the
-checkout this file is in.)
+(OTHER: the path of another checkout, e.g. a ``git worktree`` at the base commit.  The output
+labels the two workers "other" (OTHER's) and "this" (the checkout this file is in); "this" is a
+label, not a value for OTHER.)
 """
 
 from __future__ import annotations

@@ -69,14 +69,14 @@ class StageProbe:
     def reset(self):
         self.iterations, self.index, self.a_g, self.starts = defaultdict(list), 0, None, []
 
-    def stage(self, state, dt, integ, step_dt):
+    def stage(self, state, dt, integ, step_dt, last=True):
         self.kind = type(integ).__name__
         self.starts.append((state.time, state.x))
         self.t_end = state.time + dt
         if self.guess == "warm" and state.control is not None:
             state = replace(state, control=self.converged[self.index][1])
-        new, info = self._loose(state, dt, integ, step_dt) if self.first_rtol is not None and \
-            self.kind != "_StageBDF2" else self._stage(state, dt, integ, step_dt)
+        new, info = self._loose(state, dt, integ, step_dt, last) if self.first_rtol is not None and \
+            self.kind != "_StageBDF2" else self._stage(state, dt, integ, step_dt, last=last)
         self.iterations[self.kind].append(info.iterations)
         if self.guess is None:
             self.solutions.append(new.x)
@@ -86,7 +86,7 @@ class StageProbe:
         self.index += 1
         return new, info
 
-    def _loose(self, state, dt, integ, step_dt):
+    def _loose(self, state, dt, integ, step_dt, last=True):
         """The first stage with Newton's and the SQP's ``rtol`` set to ``first_rtol`` (and, with
         ``first_one``, one iteration, its end accepted as converged)."""
         from hairexp.physics.info import CONVERGED, MAX_ITERATIONS
@@ -99,7 +99,7 @@ class StageProbe:
         if sqp is not None:
             ctl.opts = replace(sqp, rtol=self.first_rtol, **cap)
         try:
-            new, info = self._stage(state, dt, integ, step_dt)
+            new, info = self._stage(state, dt, integ, step_dt, last=last)
         finally:
             sim.newton = newton
             if sqp is not None:

@@ -48,3 +48,20 @@ def test_celia_own_head_with_the_jerk_is_refused():
 
 def test_head_collider_is_a_typed_override():
     assert head_collider(compose(["experiment=celia"])).startswith("scene.colliders=[{name: head")
+
+
+def test_the_trbdf2_cost_probe_takes_what_the_simulator_passes_a_stage():
+    """experiments/trbdf2_cost.py swaps its own ``stage`` in for ``Simulator._stage``; when the
+    simulator began passing ``last=`` the script stopped at its first step with a TypeError
+    (found 2026-12-07).  The probe must accept every parameter ``_stage`` has."""
+    import inspect
+
+    from hairexp.physics.simulator import Simulator
+
+    from experiments.trbdf2_cost import StageProbe
+
+    want = list(inspect.signature(Simulator._stage).parameters)[1:]
+    have = inspect.signature(StageProbe.stage).parameters
+    assert [p for p in want if p not in have] == []
+    assert all(have[p].default is not inspect.Parameter.empty for p in want
+               if inspect.signature(Simulator._stage).parameters[p].default is not inspect.Parameter.empty)

@@ -218,3 +218,21 @@ def test_compositions_share_the_config_store_without_changing_it():
         compose_config(["experiment=goaling_smoke", "solver.dt=fast"])
     assert snapshot(cs.repo) == before
     assert OmegaConf.to_yaml(compose_config(["experiment=goaling_smoke"])) == first
+
+
+@pytest.mark.parametrize("name", [n for n in EXPERIMENTS if n != "from_usd"])
+def test_every_variant_of_an_experiment_passes_the_run_checks(hydra_conf, name):
+    """What ``python -m hairexp experiment=<name>`` checks before its first step, for every
+    variant (``_checked_variants``: ``check_config`` and the judge): a check made stricter (the
+    roots' path through the colliders, session of 2026-12-07) must not refuse a shipped scene.
+    ``from_usd`` needs a stage (``test_experiment_composes_and_builds`` builds one)."""
+    from hairexp.app.experiment import _checked_variants
+
+    cfg = hydra_conf([f"experiment={name}"])
+    if not cfg.variants:
+        from hairexp.app.assemble import check_config
+
+        check_config(cfg)
+        return
+    names, vcfgs = _checked_variants(cfg)
+    assert len(names) == len(cfg.variants) == len(vcfgs) >= 1
