@@ -355,11 +355,11 @@ def test_input_files_that_are_not_regular_files(base, tmp_path, key, kind):
 
 def test_benchmark_configs_assemble():
     """The benchmarks replace Celia's colliders: their configs must not keep a measure naming the goblet."""
-    from experiments.bench_collisions import head_collider
     from experiments.bench_scale import config as scale_config
-    from experiments.common import celia_bench
+    from experiments.common import celia_bench, head_collider
 
-    for cfg in (celia_bench("free", 1, typed=[head_collider()], collision="default"), scale_config(30, "free", 1)):
+    for cfg in (celia_bench("free", 1, typed=[head_collider()], collision="default"), celia_bench("free", 1),
+                scale_config(30, "free", 1)):
         cfg, scene, _ = assemble_scene(cfg, settle=False)
         assert str(cfg.measure.name) in ("none", "MeasureName.none")
 
