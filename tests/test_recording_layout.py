@@ -324,3 +324,40 @@ def test_frame_columns_send_every_frame_as_logged_in_a_few_chunks(tmp_path, leng
                     np.testing.assert_array_equal(np.array(a, np.float32), b)
             else:
                 np.testing.assert_array_equal(np.array(got[f], np.float32), pts)
+
+
+def test_bounds_add_is_the_points_range_without_the_non_finite_ones():
+    """``Bounds.add`` reduces the points as contiguous columns (fast path); the same box as the
+    plain per-axis min and max, with non-finite points ignored and no points a no-op."""
+    from hairexp.outputs.layout import Bounds
+
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 7, 7826):
+        p = rng.normal(size=(n, 3)) * [1.0, 10.0, 0.1]
+        b = Bounds()
+        b.add(p)
+        np.testing.assert_array_equal(b.lo, p.min(axis=0))
+        np.testing.assert_array_equal(b.hi, p.max(axis=0))
+        q = p.copy()
+        q[0] = [np.nan, 1e9, -np.inf]
+        b2 = Bounds()
+        b2.add(q)
+        rest = q[1:]
+        if len(rest):
+            np.testing.assert_array_equal(b2.lo, rest.min(axis=0))
+            np.testing.assert_array_equal(b2.hi, rest.max(axis=0))
+        else:
+            assert b2.empty
+    b3 = Bounds()
+    b3.add(np.zeros((0, 3)))
+    assert b3.empty
+    b3.add(np.array([[np.inf, 0.0, 0.0]]))
+    assert b3.empty
+
+
+def test_usd_extent_is_the_points_range_widened():
+    from hairexp.io.usd_write import _extent
+
+    p = np.random.default_rng(4).normal(size=(500, 3))
+    e = _extent(p, 0.01)
+    np.testing.assert_array_equal(e, np.stack([p.min(axis=0) - 0.01, p.max(axis=0) + 0.01]).astype(np.float32))

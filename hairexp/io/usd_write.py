@@ -188,7 +188,10 @@ def define_curves(stage, path: str, counts, width) -> UsdGeom.BasisCurves:
 
 
 def _extent(p: np.ndarray, r: float) -> np.ndarray:
-    return np.stack([p.min(axis=0) - r, p.max(axis=0) + r]).astype(np.float32)
+    """USD's extent of points p (n, 3) with half width r.  Reduced as 3 contiguous rows: numpy's
+    axis-0 reduction of an (n, 3) array is about 40 x slower (0.6 ms a frame at Celia's size)."""
+    c = np.ascontiguousarray(np.asarray(p).T)
+    return np.stack([c.min(axis=1) - r, c.max(axis=1) + r]).astype(np.float32)
 
 
 def finite_frame(P, f: int, what: str, file) -> np.ndarray:

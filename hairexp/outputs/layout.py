@@ -28,6 +28,16 @@ AZIMUTH_DEG = 25.0
 KEY_HALF_WINDOW = 0.3
 
 
+def _column_range(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(min, max) of each column of p (n, 3), or (inf, -inf) for no rows.  Reduced as 3 contiguous
+    rows: numpy's axis-0 reduction of an (n, 3) array took 0.64 ms at Celia's 7,826 vertices, this
+    14 us (the recording adds the hair's points every frame)."""
+    if not len(p):
+        return np.full(3, np.inf), np.full(3, -np.inf)
+    c = np.ascontiguousarray(p.T)
+    return c.min(axis=1), c.max(axis=1)
+
+
 @dataclass
 class Bounds:
     """Axis-aligned bounds grown by ``add`` (non-finite points are ignored); empty until then."""
@@ -36,10 +46,13 @@ class Bounds:
 
     def add(self, points) -> None:
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        p = p[np.isfinite(p).all(axis=1)]
+        lo, hi = _column_range(p)
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all()):   # a non-finite point: the others only
+            p = p[np.isfinite(p).all(axis=1)]
+            lo, hi = _column_range(p)
         if len(p):
-            self.lo = np.minimum(self.lo, p.min(axis=0))
-            self.hi = np.maximum(self.hi, p.max(axis=0))
+            self.lo = np.minimum(self.lo, lo)
+            self.hi = np.maximum(self.hi, hi)
 
     def add_sphere(self, center, radius: float) -> None:
         """A ball of ``radius`` around ``center`` (a collider's bounding ball)."""
