@@ -525,3 +525,33 @@ def test_export_writes_the_initial_pose_and_the_stage_runs_dynamic_again(hydra_c
     assert summary["status"] == "completed"
     res = np.load(tmp_path / "run" / "result.npz")
     assert res["body_positions"].shape == (7, 3) and res["body_positions"][-1, 0] > 1e-4
+
+
+def test_the_stylization_report_reads_an_experiment_folder_as_its_variants(tmp_path, capsys):
+    """README's commands: ``python -m hairexp experiment=stylization hydra.run.dir=out`` runs both
+    variants into out/free and out/tracked; ``python -m hairexp.evaluation.stylization out`` reports
+    each (it said "not a finished run folder": the README ran the experiment twice, into folders
+    that hold variants, and gave those to the report)."""
+    import json as _json
+
+    from hairexp.app.config import compose_config
+    from hairexp.app.experiment import run_experiment
+    from hairexp.evaluation.stylization import main, run_folders
+
+    out = tmp_path / "out"
+    run_experiment(compose_config(["experiment=stylization_smoke", "frames=4", "logging.rerun=false",
+                                   "logging.progress=false"]), out)
+    assert run_folders(out) == [out / "free", out / "tracked"]
+    assert run_folders(out / "tracked") == [out / "tracked"]
+    assert main([str(out)]) == 0
+    text, runs, dec = capsys.readouterr().out.strip(), [], _json.JSONDecoder()
+    while text:   # one JSON object a run
+        obj, end = dec.raw_decode(text)
+        runs.append(obj)
+        text = text[end:].strip()
+    assert [r["run"] for r in runs] == [str(out / "free"), str(out / "tracked")]
+    assert [r["controller"] for r in runs] == ["free", "tracking"]
+    # a variant folder that did not finish is named
+    (out / "tracked" / "result.npz").unlink()
+    assert main([str(out)]) == 2
+    assert "tracked: not a finished run folder" in capsys.readouterr().err

@@ -7,10 +7,12 @@ the pose translation, i.e. the block's rail contact point, hairexp/model/dynamic
 reports how far it travelled along the rail (x) and whether and when it left the rail: past the
 rail's end in x, or below the rail's height, by more than ``tolerance``.
 
-    python -m hairexp.evaluation.stylization <run folder> [<run folder> ...]
+    python -m hairexp.evaluation.stylization <run or experiment folder> [...]
 
 prints, per run, the measure with the rail of the run's config (``scene.body``) and the run's
-figures (steps, SQP/Newton iterations, tracking residual, cluster variance range).
+figures (steps, SQP/Newton iterations, tracking residual, cluster variance range).  An
+experiment's folder (``python -m hairexp experiment=stylization``: its variants ``free`` and
+``tracked`` in subfolders) stands for its variants' run folders, in the experiment's order.
 """
 
 from __future__ import annotations
@@ -98,9 +100,27 @@ def run_report(run_dir) -> dict:
     return out
 
 
+def run_folders(path) -> list[Path]:
+    """The run folders ``path`` stands for: itself when it holds a run's result (or is no
+    experiment's folder: ``run_report`` then says what is missing), else, for an experiment's
+    folder (its summary.json lists ``variants``), each variant's subfolder in the experiment's
+    order (the README's stylization commands ran an experiment of two variants into one folder,
+    which was refused as "not a finished run folder")."""
+    d = Path(path)
+    if (d / "result.npz").is_file():
+        return [d]
+    try:
+        variants = json.loads((d / "summary.json").read_text()).get("variants")
+    except (OSError, ValueError, AttributeError):
+        return [d]
+    if not isinstance(variants, dict) or not variants:
+        return [d]
+    return [d / str(name) for name in variants]
+
+
 def main(argv=None) -> int:
     args = sys.argv[1:] if argv is None else list(argv)
-    usage = "usage: " + __doc__.strip().splitlines()[-4].strip()
+    usage = "usage: " + next(line.strip() for line in __doc__.splitlines() if "python -m hairexp.evaluation" in line)
     if any(a in ("-h", "--help") for a in args):
         print(usage)
         return 0
@@ -110,11 +130,12 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 2
     for a in args:
-        try:
-            print(json.dumps({"run": a, **run_report(a)}, indent=1))
-        except InputError as exc:
-            print(f"hairexp: error: {exc}", file=sys.stderr)
-            return 2
+        for d in run_folders(a):
+            try:
+                print(json.dumps({"run": str(d), **run_report(d)}, indent=1))
+            except InputError as exc:
+                print(f"hairexp: error: {exc}", file=sys.stderr)
+                return 2
     return 0
 
 
