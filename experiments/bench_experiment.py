@@ -6,7 +6,9 @@ process: imports, Hydra's composition, the checks, the settle, the guide simulat
 variant's steps, recordings, USD, metrics, the comparison), into a run folder of its own under a
 temporary folder (``hydra.run.dir``), and one more fresh process that only imports the command
 line (``import hairexp.app.cli``: the part of the wall before anything is read).  Per round: the
-command's wall time and peak RSS (``os.wait4``), the experiment's own ``wall_seconds`` from its
+command's wall time and peak RSS (``os.wait4``: the largest single process; variants run side by side,
+``variants_mode``, each have a process of their own, and their memory adds up), how many variants ran
+at once, the experiment's own ``wall_seconds`` from its
 ``summary.json`` (from the folder's claim to the end), and per variant its steps' wall, median
 step and SQP or Newton iterations a step.  ``--against PATH`` (another checkout, e.g. a
 ``git worktree`` at a base commit, run by this interpreter with its code first on PYTHONPATH)
@@ -58,8 +60,9 @@ def one_round(repo: Path, experiment: str, overrides: list[str], folder: Path) -
     for name, v in (summary.get("variants") or {}).items():
         variants[name] = {k: v.get(k) for k in ("controller", "steps", "wall_seconds", "step_seconds_median",
                                                 "iterations_mean", "iterations_max", "converged")}
+    at_once = (summary.get("variants_at_once") or {}).get("at_once", 1)   # before 2026-12-07: always 1
     return {"wall_s": wall, "peak_rss_mb": rss, "experiment_wall_s": summary.get("wall_seconds"),
-            "import_s": imports, "success": summary.get("success"), "variants": variants}
+            "import_s": imports, "success": summary.get("success"), "variants": variants, "at_once": at_once}
 
 
 def revision(repo: Path) -> str:
@@ -119,7 +122,8 @@ def main(argv=None):
                 per = ", ".join(f"{n} {v['steps']} steps median {1e3 * (v['step_seconds_median'] or 0):.1f} ms "
                                 f"it {v['iterations_mean']:.2f}" for n, v in r["variants"].items())
                 print(f"round {i + 1} {key}: wall {r['wall_s']:.2f} s (experiment {r['experiment_wall_s']:.2f} s, "
-                      f"imports {r['import_s']:.2f} s), peak {r['peak_rss_mb']:.0f} MB; {per}", flush=True)
+                      f"imports {r['import_s']:.2f} s, variants {r['at_once']} at once), peak "
+                      f"{r['peak_rss_mb']:.0f} MB; {per}", flush=True)
     this = rows["this"]
     wall = _median(this, "wall_s")
     ok = wall <= TARGET_S if args.experiment == "celia" and not args.set else None
@@ -130,7 +134,8 @@ def main(argv=None):
            f"{args.rounds} round{'s' if args.rounds > 1 else ''}" + (", this checkout and the other in turn" if len(repos) > 1 else "")
            + f", after {args.warmup} untimed run{'s' if args.warmup != 1 else ''} of each checkout (numba's caches).  "
            + "; ".join(f"{k}: `{repos[k]}` at {revs[k]}" for k in repos) + ".\n\n")
-    head = ["checkout", "round", "wall (s)", "experiment's own (s)", "imports (s)", "peak RSS (MB)"]
+    head = ["checkout", "round", "wall (s)", "experiment's own (s)", "imports (s)", "variants at once",
+            "peak RSS (MB)"]
     names = list(this[0]["variants"])
     for n in names:
         head += [f"{n}: median step (ms)", f"{n}: it/step"]
@@ -138,7 +143,7 @@ def main(argv=None):
     for key, rs in rows.items():
         for i, r in enumerate(rs):
             line = [key, str(i + 1), f"{r['wall_s']:.2f}", f"{r['experiment_wall_s']:.2f}", f"{r['import_s']:.2f}",
-                    f"{r['peak_rss_mb']:.0f}"]
+                    str(r["at_once"]), f"{r['peak_rss_mb']:.0f}"]
             for n in names:
                 v = r["variants"].get(n, {})
                 line += [f"{1e3 * (v.get('step_seconds_median') or float('nan')):.1f}",

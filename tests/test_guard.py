@@ -49,7 +49,8 @@ def test_small_runs_pass_and_big_ones_are_refused():
     check(estimate(60, 30, 1), "k", allow_large=False, available=None)   # unknown memory: no refusal
 
 
-def test_allow_large_runs_with_a_warning(caplog):
+def test_allow_large_runs_with_a_warning(caplog, monkeypatch):
+    monkeypatch.setattr(guard, "_ANNOUNCED", set())   # said once a process: another test may have said it
     with caplog.at_level(logging.WARNING, logger="hairexp.app.guard"):
         check(estimate(10 ** 7, 30, 1), "k", allow_large=True, available=1e6)
     assert "running anyway" in caplog.text

@@ -48,6 +48,7 @@ from hairexp.app.validate import unused_settings
 from hairexp.app.signals import forward, read_stop_mark, take_late, watch_stop_file, worker_pids
 from hairexp.app.streams import guard_streams
 from hairexp.app.signals import exit_code as signal_exit_code
+from hairexp.app.variant_processes import keep_sequential
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
 from hairexp.outputs.files import atomic_write_bytes, stream_frames, write_json
 from hairexp.outputs.metrics import read_parts
@@ -141,6 +142,8 @@ def _job(cfg, out: str, sweep: bool = False, sweep_dir: str | None = None, overr
     # where a single run and the basic launcher completed; independent probe of issue 12, round 33)
     guard_streams()
     note_job_logs(Path(out))   # what its logs hold now is a previous run's (overwrite=true drops it)
+    # a sweep's jobs run their variants one after the other unless asked (the workers use the cores)
+    keep_sequential("a sweep's job (the sweep's workers share the cores)" if sweep else None)
     if sweep:
         # the sweep's stop mark is read between steps too: a signal forwarded while the job was starting
         # could be lost (independent probe of issue 12, round 35)

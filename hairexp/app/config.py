@@ -464,6 +464,12 @@ class UsdClips(str, Enum):
     never = "never"     # one layer whatever the length (its writer's memory grows with the frames)
 
 
+class VariantsMode(str, Enum):
+    auto = "auto"               # side by side when two cores are idle and the variants are long enough
+    parallel = "parallel"       # side by side, one process each, as many at once as usable cores
+    sequential = "sequential"   # one after the other in the experiment's process
+
+
 class OnUnconverged(str, Enum):
     warn = "warn"   # a run with unconverged steps completes (summary converged: false), a warning, exit 0
     fail = "fail"   # such a run fails (status failed, no result files), exit 3
@@ -493,6 +499,9 @@ class Config:
     variants: list[VariantConfig] = field(default_factory=list)   # [] = one run; else one run per variant
     judge: JudgeName = JudgeName.none  # how the variants' measures decide the experiment's success
     judge_tolerance: float = 0.35      # variance_follows_targets: largest relative miss of a target
+    # how an experiment's variants run: auto | parallel | sequential (README "Variants side by side",
+    # hairexp/app/variant_processes.py); the results are the same
+    variants_mode: VariantsMode = VariantsMode.auto
     frames: Optional[int] = 50        # output frames after the initial one; null: the USD stage's endTimeCode
     fps: Optional[float] = 25.0       # null: the USD stage's timeCodesPerSecond
     output: OutputConfig = field(default_factory=OutputConfig)

@@ -29,6 +29,7 @@ from hairexp.app.guard import planning
 from hairexp.app.config import SAFE_NAME, check_bool, require_config, to_plain, unknown_key_hint
 from hairexp.app.validate import validate_judge, validate_judge_controllers
 from hairexp.app.signals import InterruptSignals, note_late, take_late
+from hairexp.app.variant_processes import choose_width, run_side_by_side
 from hairexp.errors import InputError, Interrupted
 from hairexp.evaluation.judges import JUDGES
 from hairexp.evaluation.measures import experiment_key_moment
@@ -112,6 +113,9 @@ def apply_overrides(cfg, overrides: list[str], where: str):
         if key in ("experiment", "variants"):   # it ran the parent's scene under the other's name (probe of issue 12)
             raise InputError(f"{o}: a variant cannot set {key!r}: it belongs to the experiment (run the other "
                              "experiment on its own)", where)
+        if key == "variants_mode":   # how the experiment runs its variants, not a variant's setting
+            raise InputError(f"{o}: a variant cannot set 'variants_mode': it belongs to the experiment (set it on "
+                             "the command line)", where)
         if key == "overwrite":   # taken silently, and meaningless: the experiment's folder is claimed once (probe, round 12)
             raise InputError(f"{o}: a variant cannot set 'overwrite': it belongs to the launch (the experiment's "
                              "run folder is replaced or not as a whole; set overwrite=true on the command line)", where)
@@ -153,22 +157,27 @@ def _every_variants(cfg, exc: InputError) -> bool:
     return False
 
 
-def _checked_variants(cfg) -> tuple[list[str], list]:
+def _checked_variants(cfg, sizes: list | None = None) -> tuple[list[str], list]:
     """The variants' names and configs, every one checked (``check_config``, the judge) before
-    the first runs; InputError naming the variant."""
+    the first runs; InputError naming the variant.  ``sizes``: gets each variant's (estimated
+    seconds, estimated memory) from the resource guard, in order."""
     names = check_variant_names(cfg.variants)
-    with planning():   # the variants share the folder's disk: checked together against it
-        return _checked_each(cfg, names)
+    with planning() as planned:   # the variants share the folder's disk: checked together against it
+        return _checked_each(cfg, names, planned, sizes)
 
 
-def _checked_each(cfg, names: list[str]) -> tuple[list[str], list]:
+def _checked_each(cfg, names: list[str], planned: list, sizes: list | None) -> tuple[list[str], list]:
     vcfgs = []
     for i, (name, v) in enumerate(zip(names, cfg.variants)):   # every variant's config, before the first runs
         vcfg = apply_overrides(cfg, list(v.overrides), f"variants[{i}] ({name})")
         vcfg.variants = []
         vcfgs.append(vcfg)
+        before = len(planned)
         try:
             check_config(vcfg)
+            if sizes is not None:
+                own = planned[before:]
+                sizes.append((sum(e.seconds for e in own), sum(e.memory for e in own)))
             validate_judge(cfg, vcfg.measure)
         except InputError as exc:   # the key's own message, said to be the variant's
             if _every_variants(cfg, exc):   # the experiment's own setting (scene.n_strands=-5): not one variant's
@@ -206,7 +215,8 @@ def run_experiment(cfg, out_dir, on_checked=None) -> dict:
 
 
 def _experiment(cfg, out: Path, on_checked) -> dict:
-    names, vcfgs = _checked_variants(cfg)
+    sizes: list = []
+    names, vcfgs = _checked_variants(cfg, sizes)
     if on_checked is not None:
         on_checked()
     plain = to_plain(cfg)
@@ -232,8 +242,14 @@ def _experiment(cfg, out: Path, on_checked) -> dict:
         try:
             if signals.pending is not None:
                 raise Interrupted(signals.pending)
-            with shared_settle():   # variants that differ in their controller settle once
-                _run_variants(out, names, vcfgs, summary, measures, facts, t0)
+            width, why = choose_width(cfg.variants_mode, len(names), [z[0] for z in sizes], [z[1] for z in sizes])
+            summary["variants_at_once"] = {"mode": str(getattr(cfg.variants_mode, "value", cfg.variants_mode)), "at_once": width, "why": why}
+            if width > 1:   # one process each; each settles on its own core
+                log.info("%s: the %d variants run %d at once (%s)", out, len(names), width, why)
+                _run_parallel(out, names, vcfgs, width, summary, measures, facts, t0, signals)
+            else:
+                with shared_settle():   # variants that differ in their controller settle once
+                    _run_variants(out, names, vcfgs, summary, measures, facts, t0)
             judge = plain["judge"]
             if judge != "none":
                 ok, details = JUDGES[judge](measures, facts, float(cfg.judge_tolerance))
@@ -280,6 +296,53 @@ def _experiment(cfg, out: Path, on_checked) -> dict:
     return summary
 
 
+def _run_parallel(out: Path, names: list[str], vcfgs: list, width: int, summary: dict, measures: dict, facts: dict,
+                  t0: float, signals) -> None:
+    """Run the variants ``width`` at a time, one process each (``variant_processes``); the summary's
+    entries in the experiment's order, and the first failure raised as ``_run_variants`` raises it."""
+    for name, vcfg in zip(names, vcfgs):
+        facts[name] = _variant_facts(vcfg)
+    entries: dict[int, dict] = {}
+    errors: dict[int, BaseException] = {}
+
+    def done(i: int, s: dict) -> None:
+        entries[i] = _done_entry(names[i], facts, s, measures)
+
+    def failed(i: int, exc: BaseException) -> None:
+        entries[i] = _failed_entry(out, names[i], facts, exc)
+        errors[i] = exc
+
+    def gather() -> None:
+        summary["variants"] = {names[i]: entries[i] for i in sorted(entries)}
+
+    try:
+        index, exc = run_side_by_side(out, names, vcfgs, width, signals, done, failed)
+    except BaseException as exc:   # a signal to the experiment: every running variant was stopped by it
+        gather()
+        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        stopped = [names[i] for i in sorted(errors)]
+        summary.update(status=status, wall_seconds=time.perf_counter() - t0,
+                       error=(f"variant{'s' if len(stopped) > 1 else ''} {', '.join(stopped)}: " if stopped else "")
+                       + (str(exc) or type(exc).__name__))
+        if stopped and not hasattr(exc, "run_folder"):
+            exc.run_folder = str(out / stopped[0])
+        raise
+    gather()
+    if exc is None:
+        return
+    name = names[index]
+    status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+    if index not in errors:   # completed, then a signal came (a late one): "after variant" as _run_variants says
+        summary.update(status=status, error=f"interrupted by {signal.Signals(exc.signum).name} after variant {name}",
+                       wall_seconds=time.perf_counter() - t0)
+        raise exc
+    summary.update(status=status, error=f"variant {name}: {exc}", wall_seconds=time.perf_counter() - t0)
+    raised = _variant_error(exc, out, name)
+    if raised is not exc:
+        raise raised from exc
+    raise exc
+
+
 #: a variant with fewer of its steps converged than this, or stretched more than MAX_JUDGED_STRETCH,
 #: gets no verdict: with tracking.max_iterations=1 the tracked goaling wisp "hit" the wheel by
 #: stretching 581 % with 26 of 30 steps unconverged, and the experiment said success (probe of
@@ -303,6 +366,40 @@ def unjudgeable(variants: dict) -> str | None:
             f"<= {100 * MAX_JUDGED_STRETCH:.0f} % stretch)")
 
 
+def _failed_entry(out: Path, name: str, facts: dict, exc: BaseException) -> dict:
+    """The summary's entry of a variant that failed or was interrupted: the figures of the steps it
+    ran, from its own ending summary, as for the other variants (it had only status and error;
+    probe of issue 12, round 10)."""
+    status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+    try:
+        own = json.loads((out / name / SUMMARY).read_text())
+    except (OSError, ValueError):
+        own = {}
+    own = own if isinstance(own, dict) else {}
+    return {**{k: own.get(k) for k in VARIANT_FIELDS}, **facts.get(name, {}),
+            "status": status, "error": str(exc) or type(exc).__name__}
+
+
+def _done_entry(name: str, facts: dict, s: dict, measures: dict) -> dict:
+    """The summary's entry of a completed variant (its summary ``s``); its measures go to ``measures``."""
+    measures[name] = s["measures"]
+    coh = s.get("cohesion") or {}
+    return {**{k: s.get(k) for k in VARIANT_FIELDS}, **facts[name], "measures": s["measures"], "cohesion": coh}
+
+
+def _variant_error(exc: BaseException, out: Path, name: str) -> BaseException:
+    """The variant's error as the experiment raises it: a key checked once the variant's scene is
+    built is said to be the variant's (probe of issue 12, round 14), and the command line names the
+    variant's folder (round 18) and looks there for its partial metrics (round 26)."""
+    if type(exc) is InputError:
+        new = InputError(f"{exc} (variant {name}: {out / name})")
+        new.__cause__ = exc
+        return new
+    if not hasattr(exc, "run_folder"):
+        exc.run_folder = str(out / name)
+    return exc
+
+
 def _run_variants(out: Path, names: list[str], vcfgs: list, summary: dict, measures: dict, facts: dict,
                   t0: float) -> None:
     """Run each variant's config (``vcfgs``, built and checked by ``run_experiment``) in order."""
@@ -312,25 +409,13 @@ def _run_variants(out: Path, names: list[str], vcfgs: list, summary: dict, measu
             s = run_checked(vcfg, out / name)   # checked with the others (_checked_variants)
         except BaseException as exc:
             status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
-            # the figures of the steps it ran, from its own ending summary, as for the other variants
-            # (it had only status and error; probe of issue 12, round 10)
-            try:
-                own = json.loads((out / name / SUMMARY).read_text())
-            except (OSError, ValueError):
-                own = {}
-            own = own if isinstance(own, dict) else {}
-            summary["variants"][name] = {**{k: own.get(k) for k in VARIANT_FIELDS}, **facts.get(name, {}),
-                                         "status": status, "error": str(exc) or type(exc).__name__}
+            summary["variants"][name] = _failed_entry(out, name, facts, exc)
             summary.update(status=status, error=f"variant {name}: {exc}", wall_seconds=time.perf_counter() - t0)
-            if type(exc) is InputError:   # a key checked once the variant's scene is built: said to be the variant's
-                raise InputError(f"{exc} (variant {name}: {out / name})") from exc   # (probe of issue 12, round 14)
-            if not hasattr(exc, "run_folder"):   # the command line names the variant's folder (round 18), and
-                exc.run_folder = str(out / name)   # looks there for its partial metrics (round 26)
+            raised = _variant_error(exc, out, name)
+            if raised is not exc:
+                raise raised from exc
             raise
-        measures[name] = s["measures"]
-        coh = s.get("cohesion") or {}
-        summary["variants"][name] = {**{k: s.get(k) for k in VARIANT_FIELDS}, **facts[name], "measures": s["measures"],
-                                     "cohesion": coh}
+        summary["variants"][name] = _done_entry(name, facts, s, measures)
         late = take_late()   # a signal after this variant had completed: it stays so, the next ones do not run
         if late is not None:
             summary.update(status="interrupted", error=f"interrupted by {signal.Signals(late).name} after variant {name}",

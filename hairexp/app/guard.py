@@ -259,11 +259,12 @@ _PLANNED: list | None = None
 @contextmanager
 def planning():
     """Runs checked inside this block are checked together against the disk: each run's estimate
-    is added to the ones checked before it."""
+    is added to the ones checked before it.  Yields the list of their estimates (``Estimate``), in
+    the order they were checked."""
     global _PLANNED
     old, _PLANNED = _PLANNED, []
     try:
-        yield
+        yield _PLANNED
     finally:
         _PLANNED = old
 
@@ -289,11 +290,11 @@ def guard_run(cfg, n_vertices: int, steps_per_frame: int, run: bool = True) -> E
     keys = "scene.usd" if str(_value(cfg.scene.builder)) == "usd" else "scene.n_strands x scene.n_vertices"
     keys += ", frames, solver.dt" + (", scene.settle" if hair_settle else "")
     folder = run_folder() if run else None
-    planned = sum(_PLANNED) if _PLANNED is not None else 0.0
+    planned = sum(e.disk for e in _PLANNED) if _PLANNED is not None else 0.0
     check(est, keys, bool(getattr(getattr(cfg, "guard", None), "allow_large", False)), available_memory(),
           None if folder is None else available_disk(folder), folder, total_memory(), planned)
     if _PLANNED is not None and run:
-        _PLANNED.append(est.disk)
+        _PLANNED.append(est)
     return est
 
 

@@ -39,6 +39,17 @@ THREAD_CHOICES = ("auto", "1", "2")
 AUTO_MIN_VERTICES = 2000
 
 
+#: at most this many kernel threads in this process (``cap_threads``): an experiment's variant run
+#: beside another in its own process takes one core (hairexp/app/variant_processes.py)
+_CAP = 2
+
+
+def cap_threads(n: int) -> None:
+    """Every later ``pick_threads`` of this process gives at most ``n`` (>= 1) threads."""
+    global _CAP
+    _CAP = max(1, int(n))
+
+
 def pick_threads(setting="auto", current: int | None = None, vertices: int | None = None) -> int:
     """Threads for the kernels: ``1`` or ``2`` as asked (at most the usable cores), ``auto``: 2
     when the process may use >= 2 cores, the load average says one is idle and the scene has at
@@ -60,7 +71,7 @@ def pick_threads(setting="auto", current: int | None = None, vertices: int | Non
         want = 2 if load <= limit else 1
     else:
         want = int(setting)
-    return max(1, min(want, cores, 2))
+    return max(1, min(want, cores, 2, _CAP))
 
 
 def set_threads(n: int) -> None:
