@@ -119,17 +119,25 @@ def _gone(pid: int) -> bool:
     return False
 
 
-@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork")
-def test_sigterm_to_the_experiment_ends_every_variant_interrupted(tmp_path):
-    out = tmp_path / "exp"
-    p = _cli([*SMOKE, "variants_mode=parallel", "frames=3000", "guides.source=rigid", f"hydra.run.dir={out}"], tmp_path)
+def _run_then(out: Path, act):
+    """A long goaling_smoke experiment, its variants side by side, into ``out``; ``act(process,
+    running summaries)`` once both variants have steps on disk; (process, stderr, running summaries)."""
+    p = _cli([*SMOKE, "variants_mode=parallel", "frames=3000", "guides.source=rigid", f"hydra.run.dir={out}"], out.parent)
     try:
         running = _wait_running(out, ["free", "tracked"], p)
-        p.send_signal(signal.SIGTERM)   # to the experiment's process only: it forwards the signal
+        act(p, running)
         _, err = p.communicate(timeout=120)
     finally:
         if p.poll() is None:
             p.kill()
+    return p, err, running
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork")
+def test_sigterm_to_the_experiment_ends_every_variant_interrupted(tmp_path):
+    out = tmp_path / "exp"
+    # to the experiment's process only: it forwards the signal
+    p, err, running = _run_then(out, lambda p, running: p.send_signal(signal.SIGTERM))
     assert p.returncode == 143, err
     s = _summary(out)
     assert s["status"] == "interrupted" and s["success"] is None
@@ -145,14 +153,7 @@ def test_sigterm_to_the_experiment_ends_every_variant_interrupted(tmp_path):
 @pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork")
 def test_a_killed_variant_process_is_named(tmp_path):
     out = tmp_path / "exp"
-    p = _cli([*SMOKE, "variants_mode=parallel", "frames=3000", "guides.source=rigid", f"hydra.run.dir={out}"], tmp_path)
-    try:
-        running = _wait_running(out, ["free", "tracked"], p)
-        os.kill(running["tracked"]["pid"], signal.SIGKILL)
-        _, err = p.communicate(timeout=120)
-    finally:
-        if p.poll() is None:
-            p.kill()
+    p, err, running = _run_then(out, lambda p, running: os.kill(running["tracked"]["pid"], signal.SIGKILL))
     assert p.returncode == 3, err
     assert "variant tracked: its process was killed by SIGKILL" in err
     s = _summary(out)
