@@ -172,12 +172,24 @@ def number(value, key: str, lo: float | None = None, hi: float | None = None, lo
     return v
 
 
+def enum_value(x):
+    """A string Enum member's value (OmegaConf gives the schema's Enum fields as members); anything
+    else as it is."""
+    return getattr(x, "value", x)
+
+
+def choice_name(x) -> str:
+    """A config choice as its name: ``enum_value`` as a string (``solver.kernels`` given as the
+    string "numba" or as an Enum member reads alike)."""
+    return str(getattr(x, "value", x))
+
+
 def choice(value, key: str, choices) -> str:
     """``value`` (a string, or a string Enum such as the config's) when it is one of ``choices``,
     else an InputError naming ``key`` and the choices.  For the Python API, where a dataclass
     config takes any value: ``SolverConfig(on_failure="ignore")`` ran as ``substep`` would not
     and ``derivatives="bogus"`` as the closed forms (probe of issue 16)."""
-    raw = getattr(value, "value", value)
+    raw = enum_value(value)
     if not isinstance(raw, str) or raw not in choices:
         raise InputError(f"must be one of {'|'.join(choices)}, got {type(raw).__name__} {raw!r:.60}", key)
     return raw
@@ -203,7 +215,7 @@ def check_switches(cfg, section: str, choices: dict, flags=()) -> None:
     for key in flags:
         if hasattr(cfg, key):
             value = getattr(cfg, key)
-            flag(getattr(value, "value", value), f"{section}.{key}")
+            flag(enum_value(value), f"{section}.{key}")
 
 
 def integer(value, key: str, lo: int) -> int:

@@ -36,7 +36,7 @@ from hairexp.app.guard import guard_hair_hair, guard_run
 from hairexp.app.guides import build_guides, check_simulated_guides, read_guide_file, source_guides
 from hairexp.app.validate import late_keys, validate_config, validate_measure
 from hairexp.control import build_controller
-from hairexp.errors import InputError
+from hairexp.errors import InputError, choice_name
 from hairexp.guides.animation import GuideAnimation
 from hairexp.model.builders import check_counts
 from hairexp.model.rigid import motion_poses
@@ -49,10 +49,6 @@ from hairexp.physics.simulator import Simulator
 from hairexp.physics.state import State
 
 log = logging.getLogger(__name__)
-
-
-def _value(x):
-    return getattr(x, "value", x)
 
 
 @dataclass(frozen=True)
@@ -73,7 +69,7 @@ class Run:
 
     @property
     def controller_name(self) -> str:
-        return str(_value(self.cfg.controller.name))
+        return choice_name(self.cfg.controller.name)
 
     def initial_state(self) -> State:
         return self.simulator.initial_state()
@@ -142,14 +138,14 @@ def check_config(cfg, files: bool = True) -> None:
     ``frames=0``, ``scene.n_strands=0`` and a measure's unknown collider were printed, exit 0;
     independent probe, 2026-12-07)."""
     validate_config(cfg)
-    usd = str(_value(cfg.scene.builder)) == "usd"
+    usd = choice_name(cfg.scene.builder) == "usd"
     if not files and (cfg.frames is None or cfg.fps is None):   # the stage's timing: a file
         if not usd:
             check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices), float(cfg.scene.length))
         return
     cfg = timed_config(cfg)
     n_sub, _ = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)
-    from_file = str(_value(cfg.guides.source)) == "file"
+    from_file = choice_name(cfg.guides.source) == "file"
     if from_file and files:   # read now: a later variant's bad file failed after the others ran
         read_guide_file(cfg.guides, None, int(cfg.frames), float(cfg.fps))
     if not usd:
@@ -162,11 +158,11 @@ def check_config(cfg, files: bool = True) -> None:
         guard_run(cfg, scene.strands.n_vertices, n_sub)
     guard_hair_hair(cfg, scene.strands.rest, scene.strands.edges)
     validate_measure(cfg, scene)
-    check_clear_start(scene, str(_value(cfg.collision.contact)))
+    check_clear_start(scene, choice_name(cfg.collision.contact))
     check_clear_roots(scene, int(cfg.frames), float(cfg.fps), n_sub)
     if from_file and not files:
         return
-    if str(_value(cfg.guides.source)) != "simulated":   # read or made in milliseconds
+    if choice_name(cfg.guides.source) != "simulated":   # read or made in milliseconds
         guides = build_guides(cfg, scene, cfg.frames, cfg.fps)
     else:   # their simulation is a run of its own: their keys, and their edits on the rest guides carried rigidly
         check_simulated_guides(cfg)
@@ -178,7 +174,7 @@ def check_config(cfg, files: bool = True) -> None:
     # a cluster for each tracking point) failed only when its variant was assembled, after the free one
     # had run (an outside probe, 2026-12-07); its warnings are the run's to say
     with _no_warnings():
-        build_controller(str(_value(cfg.controller.name)), cfg, scene, guides)
+        build_controller(choice_name(cfg.controller.name), cfg, scene, guides)
 
 
 @contextmanager
@@ -198,7 +194,7 @@ def _assemble_scene(cfg, settle: bool):
     validate_config(cfg)                                # the config's ranges (hairexp/app/validate.py)
     cfg = timed_config(cfg)
     n_sub, dt = step_schedule(cfg.fps, cfg.solver.dt, cfg.frames)   # validated before anything is built
-    usd = str(_value(cfg.scene.builder)) == "usd"
+    usd = choice_name(cfg.scene.builder) == "usd"
     if not usd:   # the resource guard (hairexp/app/guard.py) before the hair is built
         check_counts(int(cfg.scene.n_strands), int(cfg.scene.n_vertices), float(cfg.scene.length))
         guard_run(cfg, int(cfg.scene.n_strands) * int(cfg.scene.n_vertices), n_sub, run=settle)
@@ -206,7 +202,7 @@ def _assemble_scene(cfg, settle: bool):
     if usd:       # a stage's size is known once it is read
         guard_run(cfg, scene.strands.n_vertices, n_sub, run=settle)
     validate_measure(cfg, scene)
-    check_clear_start(scene, str(_value(cfg.collision.contact)))
+    check_clear_start(scene, choice_name(cfg.collision.contact))
     check_clear_roots(scene, int(cfg.frames), float(cfg.fps), n_sub)
     if settle:
         scene = _settled(scene, cfg)   # scene.settle > 0: start from the hair at rest under gravity
@@ -255,8 +251,8 @@ def _shared_source(cfg, scene, frames, fps):
     (``guides.source=simulated``, which read ``cfg.guides``, the scene built from ``cfg.scene``,
     ``cfg.solver``, ``cfg.collision``, frames and fps) made once for runs whose settings are equal
     (Celia: 1.3-1.5 s a variant), each run getting a copy; other sources are read or built anew."""
-    source = str(_value(cfg.guides.source))
-    if _SHARED is None or source != "simulated" or str(_value(cfg.scene.builder)) == "usd":
+    source = choice_name(cfg.guides.source)
+    if _SHARED is None or source != "simulated" or choice_name(cfg.scene.builder) == "usd":
         return source_guides(cfg, scene, frames, fps)
     hit, reused = _shared("guides", {"guides": cfg.guides, "scene": cfg.scene, "solver": cfg.solver,
                                      "collision": cfg.collision, "frames": int(frames), "fps": float(fps)},
@@ -276,7 +272,7 @@ def _settled(scene, cfg):
     run settled there (an experiment's variants that differ in their controller) gets a copy of
     its settled scene instead of settling again (Celia: 1.3-1.9 s a variant).  A USD stage is read
     from a file that may change between runs: always settled."""
-    if _SHARED is None or str(_value(cfg.scene.builder)) == "usd":
+    if _SHARED is None or choice_name(cfg.scene.builder) == "usd":
         return settle_scene(scene, cfg)
     hit, reused = _shared("settle", {"scene": cfg.scene, "solver": cfg.solver, "collision": cfg.collision},
                           lambda: settle_scene(scene, cfg))
@@ -444,6 +440,6 @@ def assemble(cfg) -> Run:
                     "(hairexp.app.experiment.run_experiment runs each variant; variants=[] silences this)",
                     len(cfg.variants))
     cfg, scene, guides, n_sub, dt = _assemble_scene(cfg, settle=True)
-    controller = build_controller(str(_value(cfg.controller.name)), cfg, scene, guides)
+    controller = build_controller(choice_name(cfg.controller.name), cfg, scene, guides)
     sim = Simulator(scene, cfg.solver, controller, cfg.collision)
     return Run(cfg, scene, guides, controller, sim, n_sub, dt)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import logging
 
 from hairexp.app.config import SceneConfig, changed_keys
-from hairexp.errors import InputError
+from hairexp.errors import InputError, choice_name
 from hairexp.model.builders import build_procedural_scene, with_dynamic_body
 from hairexp.model.scene import Scene
 
@@ -24,7 +24,7 @@ def unused_procedural_keys(cfg) -> list[str]:
 
 def build_scene(cfg) -> Scene:
     """The Scene of ``cfg`` (the ``scene`` config group), at rest and unsettled."""
-    builder = str(getattr(cfg.builder, "value", cfg.builder))
+    builder = choice_name(cfg.builder)
     if builder == "usd":  # a user's USD stage (pxr is imported only then)
         from hairexp.io.usd_read import build_usd_scene, no_body
 

@@ -49,7 +49,7 @@ from hairexp.app.signals import forward, read_stop_mark, take_late, watch_stop_f
 from hairexp.app.streams import guard_streams
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.app.variant_processes import keep_sequential
-from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError
+from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError, choice_name
 from hairexp.outputs.files import atomic_write_bytes, stream_frames, write_json
 from hairexp.outputs.metrics import read_parts
 from hairexp.outputs.folder import (LOCK, OUTCOME, RESERVE, RUN_DIRS, RUN_FILES, STREAM, SUMMARY, inside_run_refusal,
@@ -1263,7 +1263,7 @@ def _escaping_job_folder(argv: list[str], sub: str | None) -> str | None:
                 v = OmegaConf.select(cfg, key, default=None) if cfg is not False else None
             except Exception:  # noqa: BLE001
                 v = None
-            return "x" if v is None else str(getattr(v, "value", v))
+            return "x" if v is None else choice_name(v)
 
         path = _INTERPOLATION.sub(value, sub)
         norm = os.path.normpath(path)

@@ -20,7 +20,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
 from hairexp.control import REGISTRY as CONTROLLERS
-from hairexp.errors import InputError
+from hairexp.errors import InputError, enum_value
 from hairexp.physics.integrators import DEFAULT_INTEGRATOR
 
 
@@ -910,7 +910,7 @@ def changed_keys(node, default, keys) -> dict:
             v = OmegaConf.to_container(v, enum_to_str=True)
             d = OmegaConf.to_container(OmegaConf.create({"d": d}), enum_to_str=True)["d"]
         else:
-            v, d = getattr(v, "value", v), list(d) if isinstance(d, (list, tuple)) else getattr(d, "value", d)
+            v, d = enum_value(v), list(d) if isinstance(d, (list, tuple)) else enum_value(d)
         if v != d:
             out[key] = v
     return out

@@ -30,7 +30,7 @@ from hairexp.app.config import SAFE_NAME, check_bool, require_config, to_plain, 
 from hairexp.app.validate import validate_judge, validate_judge_controllers
 from hairexp.app.signals import InterruptSignals, note_late, take_late
 from hairexp.app.variant_processes import choose_width, run_side_by_side
-from hairexp.errors import InputError, Interrupted
+from hairexp.errors import InputError, Interrupted, choice_name
 from hairexp.evaluation.judges import JUDGES
 from hairexp.evaluation.measures import experiment_key_moment
 from hairexp.app.run import config_hash, inputs_inside, run, run_arguments, run_checked, to_log_files, warnings_once, write_ending
@@ -243,7 +243,7 @@ def _experiment(cfg, out: Path, on_checked) -> dict:
             if signals.pending is not None:
                 raise Interrupted(signals.pending)
             width, why = choose_width(cfg.variants_mode, len(names), [z[0] for z in sizes], [z[1] for z in sizes])
-            summary["variants_at_once"] = {"mode": str(getattr(cfg.variants_mode, "value", cfg.variants_mode)), "at_once": width, "why": why}
+            summary["variants_at_once"] = {"mode": choice_name(cfg.variants_mode), "at_once": width, "why": why}
             if width > 1:   # one process each; each settles on its own core
                 log.info("%s: the %d variants run %d at once (%s)", out, len(names), width, why)
                 _run_parallel(out, names, vcfgs, width, summary, measures, facts, t0, signals)

@@ -39,7 +39,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, choice_name
 from hairexp.physics.collisions import bounding_spheres, edge_boxes
 from hairexp.physics.settle import settle_seconds, settle_step
 
@@ -245,10 +245,6 @@ def _refuse(msg: str, keys: str, kind: str, allow_large: bool, folder: str | Non
 _ANNOUNCED: set = set()   # allow_large warnings: (keys, kind, the run folder)
 
 
-def _value(x):
-    return getattr(x, "value", x)
-
-
 #: the disk (bytes) of the runs checked before this one in the same launch while ``planning()`` is
 #: on: an experiment's variants share its folder's disk, and each was checked alone (the second of
 #: two variants that fitted one at a time was refused after the first had run; independent probe
@@ -276,18 +272,18 @@ def guard_run(cfg, n_vertices: int, steps_per_frame: int, run: bool = True) -> E
     seconds, dt = settle_seconds(cfg.scene), settle_step(cfg.scene)
     hair_settle = max(1, int(math.ceil(seconds / dt - 1e-9))) if seconds > 0 else 0   # as settle_state counts
     g = cfg.guides
-    simulated = str(_value(g.source)) == "simulated"
+    simulated = choice_name(g.source) == "simulated"
     gv = int(g.count) * int(g.n_vertices) if simulated else 0
     gsteps = int(cfg.frames) * steps_per_frame + hair_settle if simulated else 0   # the guides settle too
     frames = int(cfg.frames) if run else 0
     est = estimate(n_vertices, frames, steps_per_frame, hair_settle if run else 0, gv, gsteps)
     if run and bool(getattr(getattr(cfg, "logging", None), "rerun", False)):
         vertices = float(n_vertices + int(g.count) * int(g.n_vertices))
-        tracked = str(_value(cfg.controller.name)) != "free"
+        tracked = choice_name(cfg.controller.name) != "free"
         per_frame = vertices * RECORDING_BYTES_PER_VERTEX_FRAME + (RECORDING_BYTES_PER_TRACKED_FRAME if tracked else 0)
         est = replace(est, disk=est.disk + RECORDING_BYTES + (frames + 1.0) * per_frame
                       + est.steps * RECORDING_BYTES_PER_STEP)
-    keys = "scene.usd" if str(_value(cfg.scene.builder)) == "usd" else "scene.n_strands x scene.n_vertices"
+    keys = "scene.usd" if choice_name(cfg.scene.builder) == "usd" else "scene.n_strands x scene.n_vertices"
     keys += ", frames, solver.dt" + (", scene.settle" if hair_settle else "")
     folder = run_folder() if run else None
     planned = sum(e.disk for e in _PLANNED) if _PLANNED is not None else 0.0
@@ -329,8 +325,8 @@ def guard_hair_hair(cfg, rest: np.ndarray, edges: np.ndarray) -> None:
     and swap: always).  30,000 strands in goaling's 2 cm bundle started without a word and reached
     12.4 GB before scipy's bad_alloc (about 7.6e9 pairs; independent probe of issue 12, round 33)."""
     cc = cfg.collision
-    if not bool(cc.hair_hair) or str(_value(cc.hair_hair_model)) != "edges" or \
-            str(_value(cfg.controller.name)) == "skinned":
+    if not bool(cc.hair_hair) or choice_name(cc.hair_hair_model) != "edges" or \
+            choice_name(cfg.controller.name) == "skinned":
         return
     pairs = hair_hair_pairs(rest, edges, float(cc.hair_thickness) + float(cc.skin))
     need = pairs * HAIR_HAIR_BYTES_PER_PAIR

@@ -11,7 +11,7 @@ import numpy as np
 
 from hairexp.app.config import GuidesConfig
 from hairexp.model.builders import check_counts
-from hairexp.errors import ExtentError, InputError, SimulationError, regular_file
+from hairexp.errors import ExtentError, InputError, SimulationError, choice_name, regular_file
 from hairexp.guides.animation import EDITS_MEMBER, GuideAnimation, carried_guides, file_guides, rest_guides
 from hairexp.guides.authoring import apply_edits, keyframed_positions
 from hairexp.guides.store import FrameStore
@@ -28,7 +28,7 @@ def source_guides(cfg, scene, frames: int, fps: float) -> GuideAnimation:
     """Guide animation for frames 0..frames from ``cfg.guides`` (see module doc; ``keyframed``:
     ``authoring.keyframed_positions``), before the edits."""
     g = cfg.guides
-    source = str(getattr(g.source, "value", g.source))
+    source = choice_name(g.source)
     motion = authoring_motion(scene.motion)   # a dynamic body: its initial pose held still
     if source == "file":
         anim = read_guide_file(g, scene.motion, frames, fps)
@@ -180,7 +180,7 @@ def simulate_guides(cfg, scene, body: np.ndarray, offsets: np.ndarray, frames: i
 def edits_summary(edits) -> str:
     """``guides.edits`` in one line: each edit's kind, guides and key times."""
     def one(e) -> str:
-        kind = str(getattr(e.kind, "value", e.kind))
+        kind = choice_name(e.kind)
         return f"{kind} of guide {e.guide} keyed at {[float(t) for t in e.times]} s"
     return f"{len(edits)} edit{'s' if len(edits) != 1 else ''}: " + "; ".join(one(e) for e in edits)
 
@@ -202,7 +202,7 @@ def build_guides(cfg, scene, frames: int, fps: float, source_of=None) -> GuideAn
                          "scene.root_radius x guides.layout_radius and the body's motion (scene.motion): check those "
                          "values", "guides") from exc
     if cfg.guides.edits and anim.edits_applied:
-        usd = str(getattr(cfg.guides.source, "value", cfg.guides.source)) == "usd"
+        usd = choice_name(cfg.guides.source) == "usd"
         source = f"scene.usd={cfg.scene.usd} (its guides)" if usd else f"guides.file={cfg.guides.file}"
         logging.getLogger("hairexp").warning(
             "%s was saved by a run that had applied its guides.edits (%s); this run's %d guides.edits are applied to "
@@ -214,8 +214,8 @@ def build_guides(cfg, scene, frames: int, fps: float, source_of=None) -> GuideAn
         before = anim.edits_applied
         anim = GuideAnimation(pos, anim.offsets, anim.fps, where="guides.edits", motion=scene.motion)
         anim.edits_applied = f"{before}; then {done}" if before else done
-    anim.interpolation = str(getattr(cfg.guides.interpolation, "value", cfg.guides.interpolation))
-    if str(getattr(cfg.controller.name, "value", cfg.controller.name)) != "free":
+    anim.interpolation = choice_name(cfg.guides.interpolation)
+    if choice_name(cfg.controller.name) != "free":
         warn_far_guides(scene, anim, frames)
     return anim
 

@@ -38,7 +38,7 @@ import numpy as np
 from hairexp.app.assemble import assemble, check_config
 from hairexp.app.config import require_config, to_plain
 from hairexp.app.signals import InterruptSignals, note_late, stop_requested
-from hairexp.errors import InputError, Interrupted, SimulationError
+from hairexp.errors import InputError, Interrupted, SimulationError, choice_name
 from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
@@ -433,7 +433,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     df = table.write(out / "metrics.parquet")
     shutil.rmtree(out / STREAM / "metrics", ignore_errors=True)
     release()
-    why = convergence_error(df, str(getattr(cfg.on_unconverged, "value", cfg.on_unconverged)))
+    why = convergence_error(df, choice_name(cfg.on_unconverged))
     if why:
         exc = SimulationError(why)
         exc.every_step_ran = True   # a policy on the steps in metrics.parquet, not a step that failed
@@ -464,7 +464,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     for p in (usd, clips_dir(usd)):   # the clips folder (if any) goes with the stage
         own_result(sinks, p)
     write_result_usd(usd, wscene, positions, recorder.frames_of("guide_positions"), guides.offsets, cfg.fps,
-                     clips=str(getattr(cfg.output.usd_clips, "value", cfg.output.usd_clips)),
+                     clips=choice_name(cfg.output.usd_clips),
                      edits_applied=guides.edits_applied)
     recorder.close()
     release()
@@ -472,7 +472,7 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
     if rerun_sink is not None:
         own_result(sinks, out / "recording.rrd")
         sinks.rerun = None
-        view = rerun_sink.close(success=True, key=key_moment(str(getattr(cfg.measure.name, "value", cfg.measure.name)),
+        view = rerun_sink.close(success=True, key=key_moment(choice_name(cfg.measure.name),
                                                               measures), metrics=df)
     summary = summarize(None, plain, scene_name, controller, time.perf_counter() - t_start, "completed", agg=agg)
     summary["measures"] = measures

@@ -29,7 +29,7 @@ import math
 from omegaconf import OmegaConf
 
 from hairexp.app.config import ColliderConfig, MeasureConfig, changed_keys
-from hairexp.errors import MAX_SPEED, InputError, integer, number
+from hairexp.errors import MAX_SPEED, InputError, choice_name, enum_value, integer, number
 from hairexp.control.tracking.controller import MAX_POINTS_PER_GUIDE, check_tracking_config  # noqa: F401
 from hairexp.control.tracking.kkt import MAX_SCHUR_BYTES, schur_bytes
 from hairexp.evaluation.judges import JUDGE_MEASURES, missing_controllers
@@ -48,12 +48,6 @@ MAX_SCALE_FACTOR = 1e3
 log = logging.getLogger("hairexp")
 
 
-def _value(x):
-    return getattr(x, "value", x)
-
-
-
-
 def keyframes(times, key_times: str, values: dict) -> None:
     """``times`` finite and strictly increasing, each list of ``values`` (key -> list) as long."""
     t = [number(x, f"{key_times}[{i}]") for i, x in enumerate(times)]
@@ -68,8 +62,6 @@ def keyframes(times, key_times: str, values: dict) -> None:
             number(x, f"{key}[{i}]")
 
 
-
-
 def _solver(s) -> None:
     check_solver_config(s)   # hairexp/physics/simulator.py: the Simulator checks the same when built directly
 
@@ -82,22 +74,22 @@ MAX_CLUSTERS = 1024
 
 
 def _clusters(cfg) -> None:
-    if str(_value(cfg.controller.name)) != "tracking" or str(_value(cfg.guides.source)) in ("file", "usd"):
+    if choice_name(cfg.controller.name) != "tracking" or choice_name(cfg.guides.source) in ("file", "usd"):
         return
     g, n = cfg.guides.count, cfg.tracking.points_per_guide
     if isinstance(g, int) and isinstance(n, int) and g >= 1 and n >= 1 and g * n > MAX_CLUSTERS:
         raise InputError(f"x tracking.points_per_guide = {g} x {n} = {g * n} clusters, more than {MAX_CLUSTERS}: "
                          "each is 3 tracking constraints in a dense Schur complement factored at every SQP "
                          "iteration (the paper's Celia has 24)", "guides.count")
-    builder = str(_value(cfg.scene.builder))
+    builder = choice_name(cfg.scene.builder)
     if builder != "usd" and isinstance(g, int) and isinstance(n, int) and g >= 1 and n >= 1:
         # the per-strand Schur blocks, at most (soft assignment: a strand may share every guide's
         # points), checked here before any variant runs; SchurKKT checks the real size
-        shared = 1 if str(_value(cfg.tracking.assignment)) == "hard" else g
+        shared = 1 if choice_name(cfg.tracking.assignment) == "hard" else g
         need = schur_bytes(int(cfg.scene.n_strands), 3 * n * shared, 3 * int(cfg.scene.n_vertices))
         if need > MAX_SCHUR_BYTES:
             raise InputError(f"with guides.count={g}, {cfg.scene.n_strands} strands of {cfg.scene.n_vertices} "
-                             f"vertices and tracking.assignment={_value(cfg.tracking.assignment)}, the tracked step's "
+                             f"vertices and tracking.assignment={enum_value(cfg.tracking.assignment)}, the tracked step's "
                              f"per-strand Schur blocks could take {need / 2 ** 30:.1f} GiB (at most "
                              f"{MAX_SCHUR_BYTES / 2 ** 30:g} GiB): use fewer points, guides or strands, or "
                              "tracking.assignment=hard", "tracking.points_per_guide")
@@ -113,7 +105,7 @@ def _collision(c) -> None:
 
 def _guides(cfg) -> None:
     g = cfg.guides
-    source = str(_value(g.source))
+    source = choice_name(g.source)
     number(g.layout_radius, "guides.layout_radius", lo=0, hi=10.0)   # of the root radius; 1e300 diverged (round 14)
     keyframes(g.scale_times, "guides.scale_times", {"guides.scale_factors": g.scale_factors})
     for i, f in enumerate(g.scale_factors):   # 1e9 was blamed on scene.length and the body (probe, round 12)
@@ -137,7 +129,7 @@ def _guides(cfg) -> None:
 
 
 def _c(cfg, key: str) -> str:
-    return str(_value(OmegaConf.select(cfg, key)))
+    return choice_name(OmegaConf.select(cfg, key))
 
 
 def _tracked(c) -> bool:
@@ -273,11 +265,11 @@ def _scene(cfg) -> None:
     s = cfg.scene
     if not str(s.name or "").strip():   # named as the API's Scene.name (probe of issue 12, round 14)
         raise InputError(f"must be a non-empty name, got {s.name!r}", "scene.name")
-    builder = str(_value(s.builder))
-    if str(s.usd) and builder != "usd" and str(_value(cfg.guides.source)) != "usd":
+    builder = choice_name(s.builder)
+    if str(s.usd) and builder != "usd" and choice_name(cfg.guides.source) != "usd":
         # an error, not a warning: the run would simulate another scene than the stage named, with exit 0
         raise InputError(f"is set ({s.usd}) but scene.builder={builder} and guides.source="
-                         f"{_value(cfg.guides.source)} do not read it: set scene.builder=usd (or guides.source=usd) "
+                         f"{enum_value(cfg.guides.source)} do not read it: set scene.builder=usd (or guides.source=usd) "
                          "or leave scene.usd empty", "scene.usd")
 
 
@@ -321,9 +313,8 @@ def _measure(cfg) -> None:
         raise InputError(f"must be < 1 (the largest relative miss of a variance target the judge accepts: at 1 a "
                          f"variance of zero would pass; the default is 0.35), got {cfg.judge_tolerance:g}",
                          "judge_tolerance")
-    if str(_value(m.name)) == "collider_contact" and not str(m.collider):
+    if choice_name(m.name) == "collider_contact" and not str(m.collider):
         raise InputError("measure.name=collider_contact needs the name of a collider", "measure.collider")
-
 
 
 def _positive(x) -> bool:
@@ -363,7 +354,7 @@ def _collider_sizes(cfg) -> None:
     an error (a sphere's ``half_height=0.3`` was ignored without a word while its ``spin`` was
     refused; probe of issue 12, round 12)."""
     for i, c in enumerate(cfg.scene.colliders):
-        shape = str(_value(c.shape))
+        shape = choice_name(c.shape)
         check_spin(shape, c.spin, f"scene.colliders[{i}]")   # the builder's own check, first: the shape's other key
         unread = [k for k in ("radius", "half_length", "half_height", "half_extents") if k not in SHAPE_SIZES.get(shape, ())]
         for k, v in changed_keys(c, ColliderConfig(), unread).items():
@@ -375,7 +366,7 @@ def _unused_measure_keys(cfg) -> None:
     """A warning for the ``measure.*`` keys, set to other than the schema's default, that the
     chosen measure does not read (``measure.time`` with collider_contact was accepted without a
     word; probe of issue 12, round 13)."""
-    name = str(_value(cfg.measure.name))
+    name = choice_name(cfg.measure.name)
     reads = MEASURE_KEYS.get(name, ())
     unread = [k for keys in MEASURE_KEYS.values() for k in keys if k not in reads]
     unused = changed_keys(cfg.measure, MeasureConfig(), list(dict.fromkeys(unread)))
@@ -402,7 +393,7 @@ def validate_config(cfg) -> None:
 def validate_judge(cfg, measure_cfg) -> None:
     """An experiment's ``judge`` reads the measure its variants record (``measure_cfg``: a
     variant's ``measure``); a single run (``variants=[]``) has no judge to check."""
-    judge, name = str(_value(cfg.judge)), str(_value(measure_cfg.name))
+    judge, name = choice_name(cfg.judge), choice_name(measure_cfg.name)
     if judge != "none" and JUDGE_MEASURES[judge] != name:
         raise InputError(f"judge {judge} reads the measure {JUDGE_MEASURES[judge]}, but measure.name is {name}; "
                          f"set measure.name={JUDGE_MEASURES[judge]} (and its keys) or judge=none", "judge")
@@ -411,7 +402,7 @@ def validate_judge(cfg, measure_cfg) -> None:
 def validate_judge_controllers(cfg, names: list[str], controllers: list[str]) -> None:
     """An experiment's ``judge`` compares runs of the controllers it needs (``JUDGE_NEEDS``): its
     variants (``names``, with their ``controllers``) must include each, else it has no verdict."""
-    judge = str(_value(cfg.judge))
+    judge = choice_name(cfg.judge)
     missing = missing_controllers(judge, controllers)
     if missing:
         raise InputError(f"{judge} needs a variant with " + " and one with ".join(f"controller.name={c}" for c in missing)
@@ -421,11 +412,11 @@ def validate_judge_controllers(cfg, names: list[str], controllers: list[str]) ->
 def validate_measure(cfg, scene) -> None:
     """The measure's references into the built scene (``measure.collider``, the dynamic block of
     ``block_rail``), before the first step rather than after the whole simulation."""
-    if str(_value(cfg.measure.name)) == "block_rail" and scene.body is None:
+    if choice_name(cfg.measure.name) == "block_rail" and scene.body is None:
         # it read a keyframed body's motion as a block leaving its rail, exit 0 (probe of issue 12)
         raise InputError("block_rail measures a dynamic block on its rail (scene.body.dynamic=true, the stylization "
                          "scene); this scene's body is keyframed", "measure.name")
-    if str(_value(cfg.measure.name)) == "block_rail":
+    if choice_name(cfg.measure.name) == "block_rail":
         # the measure judges the body's own rail: with scene.body.rail_end=1.0 and the measure's 0.1 it
         # said the block left its rail at 0.12 s while it was on it, exit 0 (probe of issue 12)
         for key in ("rail_height", "rail_end"):
@@ -434,9 +425,9 @@ def validate_measure(cfg, scene) -> None:
                 raise InputError(f"is {mine:g}, but the dynamic body's rail has scene.body.{key} = {body:g}: block_rail "
                                  f"measures the block against its own rail; set measure.{key}={body:g} too",
                                  f"measure.{key}")
-    if str(_value(cfg.measure.name)) == "collider_contact":
+    if choice_name(cfg.measure.name) == "collider_contact":
         collider_named(scene, str(cfg.measure.collider))
-    if str(_value(cfg.measure.name)) == "clumps":   # measured at measure.time; < 0: the last frame
+    if choice_name(cfg.measure.name) == "clumps":   # measured at measure.time; < 0: the last frame
         end = int(cfg.frames) / float(cfg.fps)
         if float(cfg.measure.time) > end + 1e-9:
             raise InputError(f"is {float(cfg.measure.time)} s, after the run's end at {end:.6g} s (frames / fps); "

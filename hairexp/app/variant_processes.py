@@ -43,7 +43,7 @@ from pathlib import Path
 from hairexp.app.guard import LARGE_RUN_SHARE, available_memory
 from hairexp.app.run import run_checked
 from hairexp.app.signals import SIGNALS, take_late
-from hairexp.errors import HairexpError, Interrupted, SimulationError
+from hairexp.errors import HairexpError, Interrupted, SimulationError, choice_name
 from hairexp.outputs.files import write_json
 from hairexp.outputs.folder import SUMMARY
 from hairexp.outputs.progress import set_slot
@@ -83,7 +83,7 @@ def usable_cores() -> int:
 def choose_width(mode: str, n_variants: int, seconds: list[float], memory: list[float]) -> tuple[int, str]:
     """(how many variants run at once, why): 1 is the sequential experiment.  ``seconds`` and
     ``memory``: the guard's estimates of each variant (may be empty when unknown)."""
-    mode = str(getattr(mode, "value", mode))
+    mode = choice_name(mode)
     if n_variants < 2 or mode == "sequential" or not hasattr(os, "fork"):
         return 1, "sequential" if mode == "sequential" else "one variant" if n_variants < 2 else "no fork here"
     cores = usable_cores()

@@ -46,7 +46,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, choice_name
 from hairexp.evaluation.stylization import block_rail_measure
 
 log = logging.getLogger(__name__)
@@ -317,7 +317,7 @@ def experiment_key_moment(name: str, variant_measures: dict[str, dict]) -> tuple
 
 
 def compute(cfg_measure, data: RunData) -> dict:
-    name = str(getattr(cfg_measure.name, "value", cfg_measure.name))
+    name = choice_name(cfg_measure.name)
     if name == "none":
         return {}
     return MEASURES[name](data, cfg_measure)

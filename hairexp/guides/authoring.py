@@ -51,7 +51,7 @@ import logging
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hairexp.errors import MAX_COORDINATE, InputError
+from hairexp.errors import MAX_COORDINATE, InputError, choice_name
 from hairexp.guides.store import FrameStore
 from hairexp.model.rigid import MAX_KEY_DEGREES, cubic_spline, motion_poses
 from hairexp.model.strands import validate_polylines
@@ -63,7 +63,7 @@ ROOT_TOLERANCE = 1e-9
 
 
 def _kind(value) -> str:
-    return str(getattr(value, "value", value))
+    return choice_name(value)
 
 
 def _vector(value, where: str, nonzero: bool = False) -> np.ndarray:

@@ -26,7 +26,7 @@ import numpy as np
 from omegaconf import OmegaConf
 from pxr import Sdf, Tf, Usd, UsdGeom
 
-from hairexp.errors import InputError, check_extent, regular_file
+from hairexp.errors import InputError, check_extent, choice_name, regular_file
 from hairexp.io.usd_colliders import read_colliders
 from hairexp.io.usd_layout import (COUNTS_TYPES, EDITS_APPLIED, POINTS_TYPES, TOKEN_TYPES, check_transform_types, check_type,
                                    read_motion, stage_units, time_label, world_transform)
@@ -569,7 +569,7 @@ def read_guides(cfg, scene, frames: int, fps: float):
 def stage_timing(cfg):
     """A copy of ``cfg`` with ``frames: null`` (the stage's endTimeCode, converted to the run's
     rate) and ``fps: null`` (the stage's timeCodesPerSecond) filled in."""
-    if str(getattr(cfg.scene.builder, "value", cfg.scene.builder)) != "usd":
+    if choice_name(cfg.scene.builder) != "usd":
         key = "frames" if cfg.frames is None else "fps"
         raise InputError("null (take it from the USD stage) needs scene.builder=usd; give a number", key)
     stage, file = open_stage(cfg.scene.usd)

@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 from pxr import Sdf, Tf, Usd, UsdGeom, Vt
 
-from hairexp.errors import errno_in_text, points_range
+from hairexp.errors import choice_name, errno_in_text, points_range
 from hairexp.io.usd_colliders import write_colliders
 from hairexp.memory import release
 from hairexp.io.usd_layout import (BODY, EDITS_APPLIED, GUIDE_WIDTH, GUIDES, HAIR, HAIR_WIDTH, RESULT, RESULT_HAIR, ROOT,
@@ -298,7 +298,7 @@ def write_result_usd(path, scene, positions, guide_positions, guide_offsets, fps
     if path.suffix not in FORMATS:
         raise ValueError(f"{path}: a USD file name ends with one of {', '.join(FORMATS)}")
     frames = len(positions) - 1
-    if clipped(str(getattr(clips, "value", clips)), frames):
+    if clipped(choice_name(clips), frames):
         write_clipped(path, scene, positions, guide_positions, guide_offsets, fps, edits_applied)
         return
     crate = path.with_name(path.stem + ".tmp.usdc")

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from hairexp.errors import MAX_COORDINATE, InputError
+from hairexp.errors import MAX_COORDINATE, InputError, choice_name
 from hairexp.model.colliders import SHAPES
 from hairexp.model.dynamic_body import build_dynamic_body
 from hairexp.model.rigid import MAX_KEY_DEGREES, RigidMotion
@@ -170,8 +170,7 @@ def build_motion(cfg, where: str = "scene.motion") -> RigidMotion:
                                  f"{where}.{key}[{i}]")
     rot = np.deg2rad(np.asarray(cfg.rotations_deg, dtype=np.float64).reshape(-1, 3))
     return RigidMotion(np.asarray(cfg.times, dtype=np.float64), np.asarray(cfg.translations, dtype=np.float64),
-                       rot, str(getattr(cfg.interpolation, "value", cfg.interpolation)), where=where, turns=True)
-
+                       rot, choice_name(cfg.interpolation), where=where, turns=True)
 
 
 #: N, the softest stretch stiffness (EA) a config's hair may have (the API's Material takes less, for tests)
@@ -204,7 +203,7 @@ def build_material(h) -> Material:
 
 def build_procedural_scene(cfg) -> Scene:
     """The ``wisp`` and ``ponytail`` builders (see the module doc), before ``with_dynamic_body``."""
-    builder = str(getattr(cfg.builder, "value", cfg.builder))
+    builder = choice_name(cfg.builder)
     direction = _unit(cfg.direction, "scene.direction")
     center = vec3(cfg.root_center, "scene.root_center")
     if np.abs(center).max() > MAX_COORDINATE:   # it ended as a diverged guide simulation, exit 3 (probe, round 12)
@@ -213,7 +212,7 @@ def build_procedural_scene(cfg) -> Scene:
     if builder in ("wisp", "ponytail"):
         body_pts = straight_strands(cfg.n_strands, cfg.n_vertices, cfg.length, cfg.root_radius, center,
                                     direction, cfg.spread, cfg.seed, fan=builder == "ponytail",
-                                    layout=str(getattr(cfg.root_layout, "value", cfg.root_layout)))
+                                    layout=choice_name(cfg.root_layout))
     else:  # pragma: no cover - the schema's Enum rejects other names
         raise InputError(f"unknown builder {builder!r}", "scene.builder")
     material = build_material(cfg.hair)
@@ -247,7 +246,7 @@ MAX_SPIN = 1e4
 
 
 def build_collider(c, i: int):
-    shape = str(getattr(c.shape, "value", c.shape))
+    shape = choice_name(c.shape)
     key = f"scene.colliders[{i}]"
     if c.name is None or not str(c.name).strip():   # it became ``collider0`` without a word (probe of issue 12, round 17)
         raise InputError(f"must be a non-empty name, got {c.name!r} (a collider is found by its name: "

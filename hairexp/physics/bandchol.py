@@ -23,6 +23,7 @@ import os
 
 import numpy as np
 
+from hairexp.errors import choice_name
 from hairexp.physics.kernels import HAVE_NUMBA, njit, prange
 
 #: ``solver.threads=auto`` starts 2 threads only while the 1-minute load average leaves about a core
@@ -55,7 +56,7 @@ def pick_threads(setting="auto", current: int | None = None, vertices: int | Non
     when the process may use >= 2 cores, the load average says one is idle and the scene has at
     least ``AUTO_MIN_VERTICES`` free ``vertices`` (None: not known), else 1; ``current``: the
     threads ``auto`` runs with now (their own load is allowed for)."""
-    setting = str(getattr(setting, "value", setting))
+    setting = choice_name(setting)
     if setting == "auto" and vertices is not None and vertices < AUTO_MIN_VERTICES:
         return 1
     try:

@@ -161,7 +161,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, choice_name
 
 #: rho_inf of ``generalized_alpha`` (high-frequency spectral radius).
 ALPHA_RHO_INF = 0.8
@@ -525,7 +525,7 @@ INTEGRATORS = {"implicit_euler": ImplicitEuler, "bdf2": BDF2, "trbdf2": TRBDF2,
 
 def make_integrator(name: str):
     """The scheme named by ``solver.integrator`` (InputError naming the key if unknown)."""
-    name = str(getattr(name, "value", name))
+    name = choice_name(name)
     if name not in INTEGRATORS:
         raise InputError(f"unknown integrator {name!r} (one of {', '.join(INTEGRATORS)})", "solver.integrator")
     return INTEGRATORS[name]()

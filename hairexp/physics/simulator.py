@@ -44,7 +44,8 @@ import numpy as np
 import torch
 
 from hairexp import tune_runtime
-from hairexp.errors import MIN_STEP_DT, InputError, SimulationError, check_switches, finite_number, flag, integer, number
+from hairexp.errors import (MIN_STEP_DT, InputError, SimulationError, check_switches, choice_name, enum_value,
+                            finite_number, flag, integer, number)
 from hairexp.model.scene import Scene
 from hairexp.model.strands import curve_vertex, first_short_edge
 from hairexp.physics.barrier import begin_contact_step, contact_collision_info, make_object_contact, sweep_substeps
@@ -78,10 +79,6 @@ KEPT_MOVE = 0.01
 RESTORE_ROUNDS = 8
 
 log = logging.getLogger(__name__)
-
-
-def _value(x):
-    return getattr(x, "value", x)
 
 
 def _merge_stages(infos: list[SolveInfo]) -> SolveInfo:
@@ -181,7 +178,7 @@ def check_solver_config(s) -> None:
     make_integrator(getattr(s, "integrator", DEFAULT_INTEGRATOR))   # InputError naming solver.integrator
     check_options(getattr(s, "kernels", "numba"), getattr(s, "threads", "auto"))   # solver.kernels, solver.threads
     if hasattr(s, "restart_at_jumps"):
-        flag(_value(s.restart_at_jumps), "solver.restart_at_jumps")
+        flag(enum_value(s.restart_at_jumps), "solver.restart_at_jumps")
     check_switches(s, "solver", SOLVER_CHOICES)   # the config's Enums; any value in a dataclass of the API
     # >= 1, or an absolute tolerance above hair's forces (mN), accepts the first iterate (probe of issue 12, round 14)
     rtol = number(s.rtol, "solver.rtol", lo=0, hi=1, hi_open=True)
@@ -304,7 +301,7 @@ class Simulator:
         #: a step where the keyed roots' velocity jumps is an implicit Euler step, and the scheme
         #: restarts after it (``solver.restart_at_jumps``; not for implicit Euler itself, nor with a
         #: dynamic body, whose motion is simulated)
-        self.restart_at_jumps = (bool(_value(getattr(solver_cfg, "restart_at_jumps", True)))
+        self.restart_at_jumps = (bool(enum_value(getattr(solver_cfg, "restart_at_jumps", True)))
                                  and type(self.integrator) is not ImplicitEuler and scene.body is None)
         self._restart = Restart()
         self.controller = controller = Controller() if controller is None else controller
@@ -321,17 +318,17 @@ class Simulator:
         self.terms, self.external = terms, external
         kernels, threads = check_options(getattr(solver_cfg, "kernels", "numba"), getattr(solver_cfg, "threads", "auto"))
         self.objective = ImplicitEulerObjective(terms, s.masses, s.kinematic, s.free_slot,
-                                                str(_value(solver_cfg.derivatives)), external,
-                                                primal_dual=str(_value(solver_cfg.stretch_hessian)) == "primal_dual",
+                                                choice_name(solver_cfg.derivatives), external,
+                                                primal_dual=choice_name(solver_cfg.stretch_hessian) == "primal_dual",
                                                 kernels=kernels, threads=threads)
         self.newton = NewtonOptions(solver_cfg.rtol, solver_cfg.atol, solver_cfg.max_iterations, solver_cfg.max_backtracks)
         #: a multi-stage scheme's stages before the last are solved to this many times each solver's
         #: rtol (``solver.stage_rtol_factor``; a config without the key: 1): the controllers' solves
         #: read it from ``stage_tolerance`` while a stage before the last runs (``_stage``,
         #: ``controller.scaled_iterations``)
-        self.stage_rtol_factor = float(_value(getattr(solver_cfg, "stage_rtol_factor", 1.0)))
+        self.stage_rtol_factor = float(enum_value(getattr(solver_cfg, "stage_rtol_factor", 1.0)))
         self.stage_tolerance = None
-        self.on_failure = str(_value(solver_cfg.on_failure))
+        self.on_failure = choice_name(solver_cfg.on_failure)
         #: the solves' iteration budget, as a multiple of their max_iterations (the controllers
         #: read it); above 1 only during a step's last attempt (``solver.last_attempt_iterations``)
         self.iteration_scale = 1
@@ -361,13 +358,13 @@ class Simulator:
         # is split into equal substeps (``sweep_substeps``), in either contact mode
         self.sweep_colliders = list(scene.colliders) if (self.contact is not None or self.collide_objects) else []
         #: collision.resolve: the stage's object contacts as planes of a second solve (``_resolve_contacts``)
-        self.resolve = bool(self.collide_objects and _value(getattr(cc, "resolve", False)))
+        self.resolve = bool(self.collide_objects and enum_value(getattr(cc, "resolve", False)))
         self.resolve_failures = 0
         #: (colliders, V) N: the normal forces of the last step's planes at its end (its last stage),
         #: the friction's normal forces of the next solve's resting contacts (``_with_friction``)
         self._plane_forces = None
         #: collision.plane_friction: resting contact's Coulomb friction inside the solve (``_with_friction``)
-        self.plane_friction = bool(self.resolve and _value(getattr(cc, "plane_friction", False)))
+        self.plane_friction = bool(self.resolve and enum_value(getattr(cc, "plane_friction", False)))
         self._resolve_spent = None   # the SolveInfo of a failed second solve (``_resolve_contacts``)
         self.max_travel = float(getattr(cc, "max_travel", 0.0)) if cc is not None else 0.0
         self.max_travel_substeps = int(getattr(cc, "max_travel_substeps", 1)) if cc is not None else 1
@@ -376,19 +373,19 @@ class Simulator:
         if (self.collide_objects or (cc is not None and cc.hair_hair)) and cc.strain_limit > 0:
             self.limiter = StrainLimit(s, cc.strain_limit)
         if cc is not None and cc.hair_hair:
-            if str(_value(getattr(cc, "hair_hair_model", "edges"))) == "volume":
+            if choice_name(getattr(cc, "hair_hair_model", "edges")) == "volume":
                 self.hair_hair = HairVolume(s, cc.volume_cell, cc.volume_friction, cc.volume_pressure_speed)
             else:
                 self.hair_hair = HairHair(s, cc.hair_thickness, cc.skin)
         controller.bind(self)
         #: internal terms (their forces on the roots are the hair's force on a dynamic body)
         self._internal = [t for t in terms if t.name in ("stretch", "bending", "edge_damping")]
-        mode = str(_value(getattr(solver_cfg, "compile", "off")))
+        mode = choice_name(getattr(solver_cfg, "compile", "off"))
         if mode == "on" or (mode == "auto" and s.n_vertices >= COMPILE_MIN_VERTICES):
             self._compile()
 
     def _compile(self) -> None:
-        if str(_value(self.cfg.derivatives)) != "closed_form":
+        if choice_name(self.cfg.derivatives) != "closed_form":
             return
         for t in self.objective.torch_terms:   # the terms without a compiled numba kernel
             t.compile()  # compiles lazily at the first call; falls back to eager if that fails

@@ -21,7 +21,7 @@ import time
 import numpy as np
 import torch
 
-from hairexp.errors import InputError
+from hairexp.errors import InputError, choice_name
 from hairexp.physics import bandchol, kernels
 from hairexp.physics.bandchol import AUTO_RECHECK_S, THREAD_CHOICES, pick_threads, set_threads
 from hairexp.physics.energies import Bending, Gravity, Stretch
@@ -37,10 +37,10 @@ log = logging.getLogger(__name__)
 
 def check_options(kernels_opt, threads) -> tuple[str, str]:
     """(kernels, threads) as strings; InputError naming ``solver.kernels`` / ``solver.threads``."""
-    k = str(getattr(kernels_opt, "value", kernels_opt))
+    k = choice_name(kernels_opt)
     if k not in KERNEL_CHOICES:
         raise InputError(f"unknown kernels {k!r} (one of {', '.join(KERNEL_CHOICES)})", "solver.kernels")
-    t = str(getattr(threads, "value", threads))
+    t = choice_name(threads)
     if t not in THREAD_CHOICES:
         raise InputError(f"must be one of {', '.join(THREAD_CHOICES)}, got {t!r}", "solver.threads")
     return k, t
@@ -129,7 +129,7 @@ class StrandKernels:
         gravity = len(external) == 1 and type(external[0]) is Gravity
         k = cls(st[0], be[0], gravity, free_slot, free_vertices, bandwidth, blk_vert,
                 pick_threads(threads, vertices=n_free))
-        k.thread_setting = str(getattr(threads, "value", threads))
+        k.thread_setting = choice_name(threads)
         return k
 
     def retune(self) -> None:

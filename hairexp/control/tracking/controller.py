@@ -10,7 +10,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.linalg
 
-from hairexp.errors import InputError, check_switches, integer, number
+from hairexp.errors import InputError, check_switches, choice_name, integer, number
 from hairexp.control.tracking.constraints import TrackingConstraints
 from hairexp.control.tracking.correspondence import build_correspondence, check_correspondence_options
 from hairexp.control.tracking.kkt import KRYLOV_TOL, SCHUR_MODES, SchurKKT
@@ -19,10 +19,6 @@ from hairexp.control.tracking.variance import VarianceControl, check_variance_co
 from hairexp.guides.animation import GuideAnimation
 from hairexp.physics.controller import Controller, scaled_iterations
 from hairexp.physics.simulator import MAX_ATOL, MAX_ITERATION_BUDGET
-
-
-def _v(x):
-    return getattr(x, "value", x)
 
 
 #: relative to the hair length: the constraints are restored after the collision stage where a
@@ -81,7 +77,7 @@ def check_tracking_config(t) -> None:
     number(getattr(t, "elastic_stiffness", 1e3), "tracking.elastic_stiffness", lo=0, hi=1e9, lo_open=True)
     number(t.blend_width, "tracking.blend_width", lo=0, hi=10.0, lo_open=True)   # m; 1e300 overflowed (round 14)
     n = t.points_per_guide   # >= 1: hairexp/control/tracking/correspondence.py, checked here too
-    check_correspondence_options(n, str(_v(t.point_placement)), str(_v(t.assignment)))
+    check_correspondence_options(n, choice_name(t.point_placement), choice_name(t.assignment))
     check_variance_config(t.variance)   # hairexp/control/tracking/variance.py
     if isinstance(n, int) and n > MAX_POINTS_PER_GUIDE:
         raise InputError(f"must be <= {MAX_POINTS_PER_GUIDE} (the paper uses 8; each point is a cluster with 3 "
@@ -144,11 +140,11 @@ class TrackingController(Controller):
         s = scene.strands
         self.scene, self.guides, self.tcfg = scene, guides, tcfg
         free = ~s.kinematic
-        self.assignment = str(_v(tcfg.assignment))
+        self.assignment = choice_name(tcfg.assignment)
         self.corr = build_correspondence(scene.initial_positions(), s.offsets, free, guides.guides(guides.rest), tcfg.points_per_guide,
                                          tcfg.max_guide_distance, self.assignment,
-                                         float(tcfg.blend_width), str(_v(tcfg.point_placement)), s.masses)
-        targets = str(_v(tcfg.targets))
+                                         float(tcfg.blend_width), choice_name(tcfg.point_placement), s.masses)
+        targets = choice_name(tcfg.targets)
         self.cons = TrackingConstraints(scene, self.corr, guides, sliding=targets == "sliding")
         check_independent(self.cons, self.corr)
         self.kkt = None   # bound to the objective's band (``bind``)
@@ -157,7 +153,7 @@ class TrackingController(Controller):
         self.variance = VarianceControl(tcfg.variance, self.cons, rest_free)
         self.use_variance = self.variance.active          # k_v = 0: no penalty term at all
         self.opts = SQPOptions(rtol=tcfg.rtol, atol=tcfg.atol, ctol=tcfg.ctol_rel * self.hair_length,
-                               max_iterations=tcfg.max_iterations, kkt=str(_v(tcfg.kkt)),
+                               max_iterations=tcfg.max_iterations, kkt=choice_name(tcfg.kkt),
                                nonmonotone=int(getattr(tcfg, "nonmonotone", 5)),
                                exact_compression=bool(getattr(tcfg, "exact_compression", False)),
                                secant=bool(getattr(tcfg, "secant", True)))
@@ -181,7 +177,7 @@ class TrackingController(Controller):
     def bind(self, sim) -> None:
         t = self.tcfg
         self.kkt = SchurKKT(self.scene.strands, self.cons, sim.objective.assembler.bandwidth, sim.objective.kernels,
-                            schur=str(_v(getattr(t, "schur", "krylov"))), krylov_tol=float(getattr(t, "krylov_tol", KRYLOV_TOL)),
+                            schur=choice_name(getattr(t, "schur", "krylov")), krylov_tol=float(getattr(t, "krylov_tol", KRYLOV_TOL)),
                             krylov_max=int(getattr(t, "krylov_max", 16)))
 
     def initial_control(self) -> TrackingIterates:
