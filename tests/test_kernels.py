@@ -536,3 +536,53 @@ def test_metrics_potential_energy_by_the_kernels_is_the_terms_totals(kind):
     assert kin_k == kin_t
     with pytest.raises(ValueError, match="shape"):
         sims["numba"].objective.kernels.elastic_energies(x[:-1])
+
+
+def _readonly_twins(dispatcher) -> list:
+    """Pairs of the dispatcher's compiled signatures that differ only in arrays' read-only flags."""
+    import numba
+
+    def plain(t):
+        return t.copy(readonly=False) if isinstance(t, numba.types.Array) else t
+
+    sigs = list(dispatcher.signatures)
+    seen, twins = {}, []
+    for sig in sigs:
+        key = tuple(plain(t) for t in sig)
+        if key in seen and seen[key] != sig:
+            twins.append((seen[key], sig))
+        seen.setdefault(key, sig)
+    return twins
+
+
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba missing")
+def test_one_build_whether_the_topology_is_read_only_or_not():
+    """The kernels take the topology (free slots, edges, bends) as read-only arrays whether the
+    scene's are (``Strands`` as built) or not (a deep copy, as an experiment's second variant
+    gets): numba types the flag, and each big kernel was compiled twice, 39 s of a cold goaling
+    run's 89 s (``strand_kernels._frozen``).  Same results either way."""
+    def build(writable: bool):
+        scene = polyline_scene(strands_of("mixed"))
+        s, m = scene.strands, scene.material
+        fs, ed, be = (np.array(a) for a in (s.free_slot, s.edges, s.bends))   # copies: writable
+        if not writable:
+            for a in (fs, ed, be):
+                a.setflags(write=False)
+        terms = [Stretch(ed, s.rest_lengths, m.stretch_stiffness), Bending(be, s.rest, m.bending_stiffness)]
+        ext = [Gravity(s.masses, scene.gravity, np.flatnonzero(~s.kinematic))]
+        obj = ImplicitEulerObjective(terms, s.masses, s.kinematic, fs, "closed_form", ext, True, "numba", "1")
+        return scene, obj
+
+    results = []
+    for writable in (False, True):
+        scene, obj = build(writable)
+        k = obj.kernels
+        assert not (k.free_slot.flags.writeable or k.edges.flags.writeable or k.bends.flags.writeable)
+        xf = start(scene, obj, np.random.default_rng(3))
+        ev, p = obj.evaluate_step(xf)
+        ev0 = obj.evaluate(xf)
+        results.append((ev.grad, p, ev0.banded, obj.value(xf)))
+    for a, b in zip(*results):
+        np.testing.assert_array_equal(a, b)
+    for d in (kernels.assemble_serial, kernels.direction_serial, kernels.energies_serial):
+        assert d.signatures and _readonly_twins(d) == [], d

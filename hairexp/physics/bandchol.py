@@ -162,7 +162,7 @@ def factor_serial(A, L, blk_dof, ok):
 def solve1_parallel(L, b, x, blk_dof):
     """x = A^-1 b (vectors) with the factor L of every block."""
     for blk in prange(blk_dof.shape[0] - 1):
-        solve_block(blk, L, b, x, blk_dof)
+        solve_block(np.int64(blk), L, b, x, blk_dof)   # prange's index is unsigned: one build with the serial loop's
 
 
 @njit(cache=True, error_model="numpy")
@@ -176,7 +176,7 @@ def solve_parallel(L, B, X, blk_dof):
     """X[:, r] = A^-1 B[:, r] for every column r (B, X: (N, R)) with the factor L of every block."""
     for blk in prange(blk_dof.shape[0] - 1):
         for r in range(B.shape[1]):
-            solve_block(blk, L, B[:, r], X[:, r], blk_dof)
+            solve_block(np.int64(blk), L, B[:, r], X[:, r], blk_dof)
 
 
 @njit(cache=True, error_model="numpy")
@@ -260,7 +260,7 @@ def schur_parallel(L, Bt, first, dof_off, out):
     ``scatter_grouped`` sums the blocks into the Schur complement S = A H^-1 A^T (paper eq. 8,
     hairexp/control/tracking/kkt.py)."""
     for s in prange(Bt.shape[0]):
-        schur_block(s, L, Bt, first, dof_off, out)
+        schur_block(np.int64(s), L, Bt, first, dof_off, out)   # as solve1_parallel
 
 
 @njit(cache=True, error_model="numpy")

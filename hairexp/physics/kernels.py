@@ -758,7 +758,7 @@ def direction_serial(Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edg
         nmax = max(nmax, blk_dof[blk + 1] - blk_dof[blk])
     W = np.zeros(SCRATCH)
     bands = np.empty((GROUP, nmax, BW + 1))
-    blk = 0
+    blk = np.int64(0)   # not the literal 0: direction_block was built a second time for it
     while blk < nb:
         blk += direction_blocks(blk, Y, xf, x_pred, g_ext, free_slot, blk_dof, e_ptr, e_idx, edges, k_l0, l0,
                                 tension, use_tension, b_ptr, b_idx, bends, w, s_rest, h_scale, mass_diag, grad, p,

@@ -78,6 +78,18 @@ def _group(stencil: np.ndarray, free_slot: np.ndarray, blk_vert: np.ndarray):
     return idx.astype(np.int64), ptr, np.flatnonzero(~has).astype(np.int64), ordered
 
 
+def _frozen(a) -> np.ndarray:
+    """``a`` as a contiguous int64 array that cannot be written (a read-only view, no copy, when it
+    is one already).  numba types an array with its read-only flag, so each compiled kernel was
+    built twice: for a scene's read-only topology as built (``Strands``) and for the writable
+    copies of a deep copy (an experiment's variants share a settled scene by copies) or a pickle;
+    a cold goaling experiment built assemble, energies, direction and tensions (serial and
+    parallel) twice.  The kernels never write these."""
+    v = np.ascontiguousarray(a, dtype=np.int64).view()
+    v.setflags(write=False)
+    return v
+
+
 def _np(t) -> np.ndarray:
     return np.ascontiguousarray(t.detach().numpy() if isinstance(t, torch.Tensor) else t, dtype=np.float64)
 
@@ -86,7 +98,7 @@ class StrandKernels:
     def __init__(self, stretch: Stretch, bending: Bending, gravity: bool, free_slot, free_vertices,
                  bandwidth: int, blk_vert: np.ndarray, threads: int):
         self.stretch, self.bending, self.handles_gravity = stretch, bending, gravity
-        self.free_slot = np.ascontiguousarray(free_slot, dtype=np.int64)
+        self.free_slot = _frozen(free_slot)
         self.free_vertices = np.ascontiguousarray(free_vertices, dtype=np.int64)
         #: the vertices that are not free (their rows of the evaluation point come from x_full)
         self.fixed_vertices = np.setdiff1d(np.arange(len(self.free_slot)), self.free_vertices).astype(np.int64)
@@ -96,8 +108,8 @@ class StrandKernels:
         self.threads = threads   # 1: the serial kernels; 2: the prange ones
         self.thread_setting = "auto"
         self._checked = time.monotonic()
-        self.edges = np.ascontiguousarray(stretch.stencil, dtype=np.int64)
-        self.bends = np.ascontiguousarray(bending.stencil, dtype=np.int64)
+        self.edges = _frozen(stretch.stencil)
+        self.bends = _frozen(bending.stencil)
         self.e_idx, self.e_ptr, self.e_rest, _ = _group(self.edges, self.free_slot, blk_vert)
         self.b_idx, self.b_ptr, self.b_rest, _ = _group(self.bends, self.free_slot, blk_vert)
         self.k_l0, self.l0 = _np(stretch.k_l0), _np(stretch.l0)
