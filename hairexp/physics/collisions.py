@@ -708,7 +708,11 @@ def edge_response(colliders, E: np.ndarray, w: np.ndarray, x1, t1, movable, dist
     first round (the others' edges are known to be clear: the strain limiter's rounds pass the
     vertices they moved); later rounds test the edges of the vertices the pushes moved.  Returns
     (x1, edges pushed, summed over the rounds)."""
-    a_all, b_all = E[:, 0], E[:, 1]
+    # read-only views whatever E's flags (the scene's edges as built, or a deep copy's): numba types the
+    # flag and built _edge_candidates once for each
+    a_all, b_all = E[:, 0].view(), E[:, 1].view()
+    a_all.setflags(write=False)
+    b_all.setflags(write=False)
     w = np.where(movable, w, 0.0)
     mov = movable[a_all] | movable[b_all]
     pushed_total = 0
