@@ -166,16 +166,22 @@ def test_a_killed_variant_process_is_named(tmp_path):
 
 def test_auto_chooses_by_cores_load_length_and_memory(monkeypatch):
     monkeypatch.setattr(vp, "usable_cores", lambda: 2)
+    monkeypatch.setattr(vp.os, "cpu_count", lambda: 2)
     monkeypatch.setattr(vp, "available_memory", lambda: 8e9)
     idle = lambda setting="auto", *a, **k: 2   # noqa: E731
     busy = lambda setting="auto", *a, **k: 1   # noqa: E731
     monkeypatch.setattr(vp, "pick_threads", idle)
+    monkeypatch.setattr(vp, "idle_cores", lambda: 1.9)
     assert vp.choose_width("auto", 2, [20.0, 20.0], [5e7, 5e7])[0] == 2
     assert vp.choose_width("auto", 3, [20.0] * 3, [5e7] * 3)[0] == 2          # at most the cores
     assert vp.choose_width("auto", 1, [20.0], [5e7])[0] == 1
     assert vp.choose_width("auto", 2, [0.2, 0.3], [5e7, 5e7])[0] == 1         # short variants
     assert vp.choose_width("auto", 2, [20.0, 20.0], [1.5e9, 1.5e9])[0] == 1   # 3 GB > a quarter of 8 GB
     assert vp.choose_width("sequential", 2, [20.0, 20.0], [5e7, 5e7])[0] == 1
+    monkeypatch.setattr(vp, "idle_cores", lambda: 0.9)
+    assert vp.choose_width("auto", 2, [20.0, 20.0], [5e7, 5e7]) == (1, "0.9 of 2 cores idle")   # one core busy
+    monkeypatch.setattr(vp, "idle_cores", lambda: None)   # no /proc/stat: the load average decides
+    assert vp.choose_width("auto", 2, [20.0, 20.0], [5e7, 5e7])[0] == 2
     monkeypatch.setattr(vp, "pick_threads", busy)
     assert vp.choose_width("auto", 2, [20.0, 20.0], [5e7, 5e7])[0] == 1       # no idle core
     assert vp.choose_width("parallel", 2, [0.2, 0.3], [5e7, 5e7])[0] == 2     # asked for
@@ -188,6 +194,32 @@ def test_auto_chooses_by_cores_load_length_and_memory(monkeypatch):
         vp.keep_sequential(None)
     monkeypatch.setattr(vp, "usable_cores", lambda: 1)
     assert vp.choose_width("parallel", 2, [20.0, 20.0], [5e7, 5e7])[0] == 1   # one core
+
+
+def test_idle_cores_reads_the_machine_now():
+    """``idle_cores`` is now's: with this process busy on one core the window sees at most the
+    others idle; asleep, about all of them (a loaded machine may show fewer: only bounds here)."""
+    n = os.cpu_count() or 1
+    idle = vp.idle_cores(0.2)
+    if idle is None:
+        pytest.skip("no /proc/stat")
+    assert 0.0 <= idle <= n + 1e-9
+    import threading
+
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set():
+            pass
+
+    t = threading.Thread(target=spin)
+    t.start()
+    try:
+        busy = vp.idle_cores(0.3)
+    finally:
+        stop.set()
+        t.join()
+    assert busy <= n - 0.5   # the spinning thread kept about one core busy
 
 
 def test_a_variant_cannot_set_the_mode(hydra_conf, tmp_path):

@@ -12,10 +12,11 @@ as the sequential experiment does (``run_checked`` into ``<out>/<name>/``), with
 - ``sequential``: one variant after the other, in the experiment's process (the only mode before
   2026-12-07);
 - ``parallel``: at most as many variants at once as the process may use cores;
-- ``auto`` (the default): parallel when the process may use at least two cores, the load average
-  leaves one idle (``pick_threads``' test), the longest variant is estimated to take at least
-  ``PARALLEL_MIN_SECONDS`` (the resource guard's estimate: a variant of a second or less gains
-  nothing worth a process) and the variants that would run together fit in the share of the
+- ``auto`` (the default): parallel when the process may use at least two cores, the machine's
+  cores were idle but for at most ``AUTO_BUSY_CORES`` over ``IDLE_WINDOW_S`` (``idle_cores``,
+  /proc/stat; the load average where it cannot be read), the longest variant is estimated to
+  take at least ``PARALLEL_MIN_SECONDS`` (the resource guard's estimate: a variant of a second or
+  less gains nothing worth a process) and the variants that would run together fit in the share of the
   available memory a run may take without being called large; else sequential.
 
 The experiment's contract is the sequential one: the summary lists the variants in the
@@ -80,6 +81,45 @@ def usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+#: s: how long ``idle_cores`` watches the machine's CPU time
+IDLE_WINDOW_S = 0.15
+#: ``auto``: the other processes may keep at most this many cores busy (as ``pick_threads``' test)
+AUTO_BUSY_CORES = 0.75
+
+
+def _cpu_times() -> tuple[float, float] | None:
+    """(idle, total) jiffies of all CPUs from /proc/stat, or None where it cannot be read."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+    except OSError:
+        return None
+    if not fields or fields[0] != "cpu":
+        return None
+    try:
+        v = [float(x) for x in fields[1:]]
+    except ValueError:
+        return None
+    total = sum(v[:8])   # user nice system idle iowait irq softirq steal (guest time is in user)
+    return v[3] + (v[4] if len(v) > 4 else 0.0), total
+
+
+def idle_cores(window: float = IDLE_WINDOW_S) -> float | None:
+    """How many of the machine's cores were idle over the next ``window`` seconds (this process
+    sleeps meanwhile), or None where /proc/stat cannot be read.  Unlike the load average, a minute
+    behind (after a heavy command it still said busy, and ``auto`` ran Celia's variants one after
+    the other on an idle machine: reports/bench_experiment_parallel.md, round 3), it is now's."""
+    a = _cpu_times()
+    if a is None:
+        return None
+    time.sleep(window)
+    b = _cpu_times()
+    if b is None or b[1] <= a[1]:
+        return None
+    n = os.cpu_count() or 1
+    return n * (b[0] - a[0]) / (b[1] - a[1])
+
+
 def choose_width(mode: str, n_variants: int, seconds: list[float], memory: list[float]) -> tuple[int, str]:
     """(how many variants run at once, why): 1 is the sequential experiment.  ``seconds`` and
     ``memory``: the guard's estimates of each variant (may be empty when unknown)."""
@@ -94,10 +134,14 @@ def choose_width(mode: str, n_variants: int, seconds: list[float], memory: list[
         return width, f"variants_mode=parallel, {width} at once"
     if _HELD is not None:
         return 1, _HELD
-    if pick_threads("auto") < 2:
-        return 1, "the load average leaves no core idle"
     if seconds and max(seconds) < PARALLEL_MIN_SECONDS:
         return 1, f"short variants (estimated {max(seconds):.2f} s at most)"
+    idle = idle_cores()
+    if idle is None:   # no /proc/stat: the load average
+        if pick_threads("auto") < 2:
+            return 1, "the load average leaves no core idle"
+    elif idle < min(cores, os.cpu_count() or cores) - AUTO_BUSY_CORES:
+        return 1, f"{idle:.1f} of {os.cpu_count()} cores idle"
     avail = available_memory()
     together = sum(sorted(memory, reverse=True)[:width]) if memory else 0.0
     if avail is not None and together > LARGE_RUN_SHARE * avail:
