@@ -211,24 +211,28 @@ def _torch_threads(n: int) -> None:
             pass
 
 
-def _start(vcfg, folder: Path, index: int, slot: int, name: str) -> _Child:
+def _start(vcfg, folder: Path, index: int, slot: int, name: str, live: dict) -> _Child:
+    """Fork the variant's process and put it in ``live`` before a signal can come: signals are
+    blocked from before the fork (in the child, one would raise in the parent's frames) until the
+    child is known here (a SIGTERM between the two left a variant running unseen by the stop)."""
     rfd, wfd = os.pipe()
-    # no signal between the fork and the child's own handlers: it would raise in the parent's frames, in the child
     old = signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
     try:
-        pid = os.fork()
+        try:
+            pid = os.fork()
+        except OSError as exc:   # EAGAIN (a process limit: ulimit -u), ENOMEM
+            os.close(rfd)
+            os.close(wfd)
+            raise SimulationError(f"variant {name}: could not start a process for it: {exc} (variants_mode="
+                                  "sequential runs the variants one after the other in this process)") from exc
         if pid == 0:   # the child never returns from here
             os.close(rfd)
             _child_main(vcfg, folder, slot, name, wfd, old)
-    except OSError as exc:   # EAGAIN (a process limit: ulimit -u), ENOMEM
-        os.close(rfd)
         os.close(wfd)
-        raise SimulationError(f"variant {name}: could not start a process for it: {exc} (variants_mode=sequential "
-                              "runs the variants one after the other in this process)") from exc
+        child = live[pid] = _Child(name, index, pid, rfd, slot)
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
-    os.close(wfd)
-    return _Child(name, index, pid, rfd, slot)
+    return child
 
 
 def _read(child: _Child) -> bool:
@@ -303,8 +307,7 @@ def run_side_by_side(out: Path, names: list[str], vcfgs: list, width: int, signa
             while pending and len(live) < width and first is None:
                 i = pending.pop(0)
                 slot = slots.pop(0)
-                c = _start(vcfgs[i], out / names[i], i, slot, names[i])
-                live[c.pid] = c
+                _start(vcfgs[i], out / names[i], i, slot, names[i], live)
             if not live:
                 break
             for c in _wait_some(live, POLL_SECONDS):
