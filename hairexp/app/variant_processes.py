@@ -53,8 +53,13 @@ from hairexp.physics.bandchol import cap_threads, pick_threads
 log = logging.getLogger("hairexp")
 
 #: s: ``auto`` runs the variants side by side only when the longest is estimated to take at least this
-#: long (the guard's estimate: goaling 0.9 s a variant, Celia 21.6 s; the smoke scenes 0.07-0.3 s)
-PARALLEL_MIN_SECONDS = 0.5
+#: long (the guard's estimate: spreading 0.72 s a variant, goaling 0.91, splitting 1.07, stylization
+#: 2.76, Celia 21.6; the smoke scenes 0.07-1.5).  Side by side, each variant settles and simulates
+#: its guides itself (one after the other they share them: ``shared_settle``), which the short
+#: scenes' steps do not repay (2026-12-07, whole commands, sequential -> parallel: spreading 8.82 ->
+#: 9.42 s, goaling 4.98 -> 5.22, splitting 8.44 -> 8.10, stylization 8.45 -> 8.35; Celia about
+#: 14 -> 12 s)
+PARALLEL_MIN_SECONDS = 2.0
 #: s: after a stop, the variants still running are waited for this long to write their endings
 STOP_WAIT_SECONDS = 60.0
 #: s: the wait loop's poll of the children (a signal interrupts it at once)
