@@ -43,7 +43,7 @@ from pathlib import Path
 
 from hairexp.app.guard import LARGE_RUN_SHARE, available_memory
 from hairexp.app.run import run_checked
-from hairexp.app.signals import SIGNALS, take_late
+from hairexp.app.signals import SIGNALS, note_late, take_late
 from hairexp.errors import HairexpError, Interrupted, SimulationError, choice_name
 from hairexp.outputs.files import write_json
 from hairexp.outputs.folder import SUMMARY
@@ -64,8 +64,6 @@ PARALLEL_MIN_SECONDS = 2.0
 STOP_WAIT_SECONDS = 60.0
 #: s: the wait loop's poll of the children (a signal interrupts it at once)
 POLL_SECONDS = 0.5
-
-MODES = ("auto", "parallel", "sequential")
 
 #: why ``auto`` keeps this process's experiments sequential (``keep_sequential``), or None
 _HELD: str | None = None
@@ -178,6 +176,11 @@ def _child_main(vcfg, folder: Path, slot: int, name: str, wfd: int, mask) -> Non
             _torch_threads(1)
             set_slot(slot, name)
             s = run_checked(vcfg, folder)
+            # the run is whole: a signal from here on is kept as a late one (as the run's own handler
+            # does after its completed ending), not raised into the message's writing
+            for sig in SIGNALS:
+                if signal.getsignal(sig) != signal.SIG_IGN:
+                    signal.signal(sig, lambda signum, frame: note_late(signum))
             message = ("ok", s, take_late())
         except KeyboardInterrupt as exc:
             message = ("interrupted", int(getattr(exc, "signum", signal.SIGINT)))
