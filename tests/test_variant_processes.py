@@ -160,6 +160,9 @@ def test_a_killed_variant_process_is_named(tmp_path):
     assert s["status"] == "failed" and "killed by SIGKILL" in s["error"]
     tracked = _summary(out / "tracked")   # left "running" by the killed process: said failed
     assert tracked["status"] == "failed" and "SIGKILL" in tracked["error"]
+    # ended as a killed sweep job's run is (app/run.py end_dead_run): the steps it streamed, no reserve left
+    assert tracked["steps"] > 0 and tracked["frames_kept"] > 0 and s["variants"]["tracked"]["steps"] == tracked["steps"]
+    assert not (out / "tracked" / ".ending.reserve").exists()
     assert s["variants"]["free"]["status"] == "interrupted"   # stopped by the experiment
     assert _gone(running["free"]["pid"])
 

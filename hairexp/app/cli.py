@@ -43,16 +43,15 @@ from hairexp.app.assemble import check_config
 from hairexp.app.config import (CONF_DIR, check_bool_overrides, check_interpolations, check_keys, check_sections,
                                 compose_config, unknown_key_hint)
 from hairexp.app.experiment import apply_overrides, check_variant_names, run_experiment
-from hairexp.app.run import INPUT_KEYS, implausible, inputs_inside, metrics_summary, to_log_files, write_refused
+from hairexp.app.run import INPUT_KEYS, end_dead_run, implausible, inputs_inside, to_log_files, write_refused
 from hairexp.app.validate import unused_settings
 from hairexp.app.signals import forward, read_stop_mark, take_late, watch_stop_file, worker_pids
 from hairexp.app.streams import guard_streams
 from hairexp.app.signals import exit_code as signal_exit_code
 from hairexp.app.variant_processes import keep_sequential
 from hairexp.errors import InputError, Interrupted, ScratchError, SimulationError, choice_name
-from hairexp.outputs.files import atomic_write_bytes, stream_frames, write_json
-from hairexp.outputs.metrics import read_parts
-from hairexp.outputs.folder import (LOCK, OUTCOME, RESERVE, RUN_DIRS, RUN_FILES, STREAM, SUMMARY, inside_run_refusal,
+from hairexp.outputs.files import atomic_write_bytes, write_json
+from hairexp.outputs.folder import (LOCK, OUTCOME, RUN_DIRS, RUN_FILES, SUMMARY, inside_run_refusal,
                                     held_elsewhere, hold,
                                     hydra_link_refusal, note_job_logs, overwrite_refusal, owner, pinned,
                                     refused_summary, reserved_part, running_run, unusable_folder, used_entries,
@@ -486,28 +485,7 @@ def _end_killed_jobs(rows: list, signum: int | None, workers_gone: bool = False)
         # "running" under its failed experiment; independent probe of issue 12, round 24)
         for f, s in [(d, summary)] + [(v, r[1]) for v in sorted(p for p in d.iterdir() if p.is_dir())
                                        if (r := running_run(v)) is not None and r[0] in ("killed", "live")]:
-            try:
-                s.update(status=status, error=why)
-                # the steps it had streamed: the summary said none while stream/ held 825 frames (round 18)
-                done = read_parts(f / STREAM / "metrics")
-                if done is not None and len(done):
-                    try:
-                        s.update(metrics_summary(done))
-                    except (KeyError, ValueError, TypeError):   # parts of another layout: the status and error only
-                        pass
-                kept = stream_frames(f / STREAM)   # as a failed run's ending says them (round 28: null)
-                if kept is not None:
-                    s["frames_kept"] = kept
-                write_json(f / SUMMARY, s)
-                (f / RESERVE).unlink(missing_ok=True)
-                # a file the run was writing when its process was ended (a 0-byte metrics.parquet.tmp
-                # under hydra.launcher.timeout; independent probe of issue 12, round 36): its rows are
-                # in stream/metrics/, which the summary names
-                for tmp in f.glob("*.tmp"):
-                    if tmp.is_file() and not tmp.is_symlink():
-                        tmp.unlink(missing_ok=True)
-            except OSError:
-                pass
+            end_dead_run(f, s, status, why)
         # killed (the out-of-memory killer, a SIGKILL): a run that could not continue, exit 3 as an
         # allocation that failed; 1 is a bug's traceback (probe of issue 12, round 18)
         res.update(status=status, code=signal_exit_code(signum) if signum is not None else 3, message=why)

@@ -42,11 +42,12 @@ from hairexp.errors import InputError, Interrupted, SimulationError, choice_name
 from hairexp.evaluation.measures import RunData, cohesion, compute, key_moment
 from hairexp.model.dynamic_body import HAIR_FORCE, POSITION, RAIL_FORCE, VELOCITY
 from hairexp.model.rigid import RigidMotion
-from hairexp.outputs.files import ResultRecorder, atomic_write_bytes, json_bytes, save_npy, write_json, write_npz
+from hairexp.outputs.files import (ResultRecorder, atomic_write_bytes, json_bytes, save_npy, stream_frames, write_json,
+                                   write_npz)
 from hairexp.outputs.folder import (REFUSED, RESERVE, STREAM, SUMMARY, claim, free_reserve, owner, refused_summary,
                                     remove_tmp, reserve, used_entries)
 from hairexp.memory import release, release_every
-from hairexp.outputs.metrics import MetricsTable, measure
+from hairexp.outputs.metrics import MetricsTable, measure, read_parts
 from hairexp.outputs.progress import Progress, progress_enabled
 
 log = logging.getLogger("hairexp")
@@ -510,6 +511,36 @@ def _run(sinks: _Sinks, out: Path, t_start: float) -> dict:
                     "false (on_unconverged=fail makes this an error)", out, summary["unconverged_steps"],
                     summary["steps"])
     return summary
+
+
+def end_dead_run(folder: Path, summary: dict, status: str, why: str) -> None:
+    """End, as ``status`` with the error ``why``, the run in ``folder`` whose process ended before it
+    wrote its ending (``summary``: its ``running`` summary.json, ``outputs.folder.running_run``): a
+    sweep's job whose worker was killed (hairexp/app/cli.py), an experiment's variant whose process
+    was (hairexp/app/variant_processes.py).  Never raises: the folder is left as it is where it
+    cannot be written."""
+    try:
+        summary.update(status=status, error=why)
+        # the steps it had streamed: the summary said none while stream/ held 825 frames (round 18)
+        done = read_parts(folder / STREAM / "metrics")
+        if done is not None and len(done):
+            try:
+                summary.update(metrics_summary(done))
+            except (KeyError, ValueError, TypeError):   # parts of another layout: the status and error only
+                pass
+        kept = stream_frames(folder / STREAM)   # as a failed run's ending says them (round 28: null)
+        if kept is not None:
+            summary["frames_kept"] = kept
+        write_json(folder / SUMMARY, summary)
+        (folder / RESERVE).unlink(missing_ok=True)
+        # a file the run was writing when its process was ended (a 0-byte metrics.parquet.tmp under
+        # hydra.launcher.timeout; independent probe of issue 12, round 36): its rows are in
+        # stream/metrics/, which the summary names
+        for tmp in folder.glob("*.tmp"):
+            if tmp.is_file() and not tmp.is_symlink():
+                tmp.unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 def write_ending(path: Path, summary: dict) -> None:

@@ -42,11 +42,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from hairexp.app.guard import LARGE_RUN_SHARE, available_memory
-from hairexp.app.run import run_checked
+from hairexp.app.run import end_dead_run, run_checked
 from hairexp.app.signals import SIGNALS, note_late, take_late
 from hairexp.errors import HairexpError, Interrupted, SimulationError, choice_name
-from hairexp.outputs.files import write_json
-from hairexp.outputs.folder import SUMMARY
+from hairexp.outputs.folder import running_run
 from hairexp.outputs.progress import set_slot
 from hairexp.physics.bandchol import cap_threads, pick_threads
 
@@ -181,18 +180,16 @@ def _child_main(vcfg, folder: Path, slot: int, name: str, wfd: int, mask) -> Non
             for sig in SIGNALS:
                 if signal.getsignal(sig) != signal.SIG_IGN:
                     signal.signal(sig, lambda signum, frame: note_late(signum))
-            message = ("ok", s, take_late())
+            data = pickle.dumps(("ok", s, take_late()))
         except KeyboardInterrupt as exc:
-            message = ("interrupted", int(getattr(exc, "signum", signal.SIGINT)))
+            data = pickle.dumps(("interrupted", int(getattr(exc, "signum", signal.SIGINT))))
         except BaseException as exc:  # noqa: BLE001  (sent to the experiment, which raises it)
             tb = "".join(traceback.format_exception(exc))
             try:
-                payload = pickle.dumps(("error", exc, tb))
-                pickle.loads(payload)
+                data = pickle.dumps(("error", exc, tb))
+                pickle.loads(data)
             except Exception:  # noqa: BLE001  (an exception that does not pickle: its text)
-                payload = pickle.dumps(("error", f"{type(exc).__name__}: {exc}", tb))
-            message = None
-        data = pickle.dumps(message) if message is not None else payload
+                data = pickle.dumps(("error", f"{type(exc).__name__}: {exc}", tb))
         view = memoryview(data)
         while view:
             n = os.write(wfd, view)
@@ -282,22 +279,6 @@ def _died(child: _Child) -> str:
     return f"its process ended (exit {code}) without a result"
 
 
-def _mark_dead(folder: Path, why: str) -> None:
-    """A variant's summary left ``running`` by a killed child says ``failed``."""
-    import json
-
-    try:
-        s = json.loads((folder / SUMMARY).read_text())
-    except (OSError, ValueError):
-        return
-    if isinstance(s, dict) and s.get("status") == "running":
-        s.update(status="failed", error=why)
-        try:
-            write_json(folder / SUMMARY, s)
-        except OSError:
-            pass
-
-
 def run_side_by_side(out: Path, names: list[str], vcfgs: list, width: int, signals, on_done, on_failed):
     """Run the variants ``width`` at a time.  ``on_done(index, summary)`` for each completed variant
     (in the order they end), ``on_failed(index, exc)`` for a failed, interrupted or killed one.
@@ -319,22 +300,13 @@ def run_side_by_side(out: Path, names: list[str], vcfgs: list, width: int, signa
             if not live:
                 break
             for c in _wait_some(live, POLL_SECONDS):
-                del live[c.pid]
                 slots.append(c.slot)
-                exc = _outcome(c, out)
-                if exc is None:
-                    on_done(c.index, c.message[1])
-                    late = c.message[2]
-                    if late is not None and first is None:   # a signal after it had completed: the others stop
-                        first = (c.index, Interrupted(late))
-                        _stop(live, late)
-                else:
-                    on_failed(c.index, exc)
-                    if first is None:
-                        first = (c.index, exc)
-                        _stop(live, exc.signum if isinstance(exc, Interrupted) else int(signal.SIGTERM))
-            if first is not None and not live:
-                break
+                exc = _reap(c, live, out, on_done, on_failed)
+                if exc is None and c.message[2] is not None:   # a signal after it had completed: the others stop
+                    exc = Interrupted(c.message[2])
+                if exc is not None and first is None:
+                    first = (c.index, exc)
+                    _stop(live, exc.signum if isinstance(exc, Interrupted) else int(signal.SIGTERM))
     except BaseException as exc:   # a signal to the experiment (Interrupted), or a bug here
         sig = exc.signum if isinstance(exc, Interrupted) else int(signal.SIGTERM)
         with signals.deferred():
@@ -358,20 +330,22 @@ def _finish(live: dict[int, _Child], out: Path, on_done, on_failed) -> None:
     while live:
         left = end - time.monotonic()
         if left <= 0:
-            for c in live.values():
-                try:
-                    os.kill(c.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
+            _stop(live, signal.SIGKILL)
             end = float("inf")
             left = POLL_SECONDS
         for c in _wait_some(live, min(left, POLL_SECONDS)):
-            del live[c.pid]
-            exc = _outcome(c, out)
-            if exc is None:
-                on_done(c.index, c.message[1])
-            else:
-                on_failed(c.index, exc)
+            _reap(c, live, out, on_done, on_failed)
+
+
+def _reap(c: _Child, live: dict[int, _Child], out: Path, on_done, on_failed) -> BaseException | None:
+    """An ended child out of ``live``, told to ``on_done`` or ``on_failed``; its exception, or None."""
+    del live[c.pid]
+    exc = _outcome(c, out)
+    if exc is None:
+        on_done(c.index, c.message[1])
+    else:
+        on_failed(c.index, exc)
+    return exc
 
 
 def _outcome(c: _Child, out: Path) -> BaseException | None:
@@ -390,5 +364,7 @@ def _outcome(c: _Child, out: Path) -> BaseException | None:
             exc.add_note(f"in variant {c.name}'s process:\n{tb}")
         return exc
     why = _died(c)
-    _mark_dead(out / c.name, why)
+    found = running_run(out / c.name)   # its summary left "running": ended as a killed sweep job's is
+    if found is not None and found[0] == "killed":
+        end_dead_run(out / c.name, found[1], "failed", why)
     return SimulationError(f"variant {c.name}: {why}")
