@@ -40,7 +40,7 @@ from hairexp.physics.broad_phase import (centred_cross, contact_impulses, edge_e
                                          swept_boxes)
 from hairexp.physics.contact_geometry import EdgeGaps
 from hairexp.physics.edge_ccd import BISECTIONS, _closest_segment_params, edge_edge_ccd
-from hairexp.physics.kernels import HAVE_NUMBA, njit
+from hairexp.physics.kernels import HAVE_NUMBA, njit, read_only
 
 #: Conservative-advancement iterations and tolerance (fraction of the thickness or 1e-6 m).
 CA_ITERATIONS, CA_TOL = 40, 1e-6
@@ -708,11 +708,8 @@ def edge_response(colliders, E: np.ndarray, w: np.ndarray, x1, t1, movable, dist
     first round (the others' edges are known to be clear: the strain limiter's rounds pass the
     vertices they moved); later rounds test the edges of the vertices the pushes moved.  Returns
     (x1, edges pushed, summed over the rounds)."""
-    # read-only views whatever E's flags (the scene's edges as built, or a deep copy's): numba types the
-    # flag and built _edge_candidates once for each
-    a_all, b_all = E[:, 0].view(), E[:, 1].view()
-    a_all.setflags(write=False)
-    b_all.setflags(write=False)
+    # read-only whatever E's flags (the scene's edges as built, or a deep copy's): one build of _edge_candidates
+    a_all, b_all = read_only(E[:, 0]), read_only(E[:, 1])
     w = np.where(movable, w, 0.0)
     mov = movable[a_all] | movable[b_all]
     pushed_total = 0

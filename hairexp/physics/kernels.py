@@ -126,6 +126,17 @@ except ImportError:  # pragma: no cover - exercised by monkeypatching HAVE_NUMBA
 
     prange = range
 
+
+def read_only(a: np.ndarray) -> np.ndarray:
+    """A read-only view of ``a`` (no copy; its layout kept).  numba types an array with its
+    read-only flag: a kernel given a scene's topology read-only as built (``Strands``) and
+    writable from a deep copy (an experiment's variants share a settled scene by copies) was
+    compiled once for each; the kernels take such constant arrays through this, never writing them."""
+    v = a.view()
+    v.setflags(write=False)
+    return v
+
+
 #: Below this |kb| the bending direction is undefined (hairexp/physics/energies.py KB_EPS).
 KB_EPS = 1e-14
 

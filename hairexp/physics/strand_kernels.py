@@ -79,15 +79,10 @@ def _group(stencil: np.ndarray, free_slot: np.ndarray, blk_vert: np.ndarray):
 
 
 def _frozen(a) -> np.ndarray:
-    """``a`` as a contiguous int64 array that cannot be written (a read-only view, no copy, when it
-    is one already).  numba types an array with its read-only flag, so each compiled kernel was
-    built twice: for a scene's read-only topology as built (``Strands``) and for the writable
-    copies of a deep copy (an experiment's variants share a settled scene by copies) or a pickle;
-    a cold goaling experiment built assemble, energies, direction and tensions (serial and
-    parallel) twice.  The kernels never write these."""
-    v = np.ascontiguousarray(a, dtype=np.int64).view()
-    v.setflags(write=False)
-    return v
+    """``a`` as a contiguous int64 array, read-only (``kernels.read_only``): a cold goaling
+    experiment built assemble, energies, direction and tensions (serial and parallel) twice, for
+    the scene's read-only topology and a deep copy's writable one."""
+    return kernels.read_only(np.ascontiguousarray(a, dtype=np.int64))
 
 
 def _np(t) -> np.ndarray:
