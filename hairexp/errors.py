@@ -181,7 +181,7 @@ def enum_value(x):
 def choice_name(x) -> str:
     """A config choice as its name: ``enum_value`` as a string (``solver.kernels`` given as the
     string "numba" or as an Enum member reads alike)."""
-    return str(getattr(x, "value", x))
+    return str(enum_value(x))
 
 
 def choice(value, key: str, choices) -> str:
