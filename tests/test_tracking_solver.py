@@ -413,16 +413,61 @@ def test_interleaved_substitution_is_the_banded_solve(case):
     for v in rng.normal(size=(3, kkt.Smat.shape[0])):
         x = np.empty((kkt.nmax, kkt.S))
         Sv = np.empty(v.size)
-        schur_product(kkt._m_rows, kkt._m_wts, v, kkt._L_il, kkt._inv_il, x, Sv)
+        schur_product(kkt._m_rows, kkt._m_wts, *kkt._scatter, v, kkt._L_il, kkt._inv_il, x, Sv)
         np.testing.assert_allclose(Sv, kkt.Smat @ v, rtol=0, atol=1e-11 * np.abs(kkt.Smat @ v).max())
         want = kkt.hinv(kkt.AT_sparse @ v)
         np.testing.assert_allclose(x.reshape(-1)[kkt._il_of_dof], want, rtol=0, atol=1e-12 * np.abs(want).max())
         # the per-vertex lists (the Krylov solve's product) give the same sums in the same order
         assert kkt._v_rows is not None
         x2, Sv2 = np.empty_like(x), np.empty_like(Sv)
-        schur_product_vertex(kkt._v_rows, kkt._v_wts, v, kkt._L_il, kkt._inv_il, x2, Sv2)
+        schur_product_vertex(kkt._v_rows, kkt._v_wts, *kkt._scatter, v, kkt._L_il, kkt._inv_il, x2, Sv2)
         np.testing.assert_allclose(Sv2, Sv, rtol=1e-14, atol=0)
         np.testing.assert_allclose(x2, x, rtol=1e-14, atol=1e-300)
+
+
+@pytest.mark.parametrize("case", ["wisp_3_guides", "unequal_strands_2_guides"])
+def test_interleaved_kernels_on_two_threads_give_the_same_numbers(case):
+    """The interleaved band, factor and Schur products run chunk by chunk on the kernels' threads
+    (``interleave_band_parallel``, ``factor_interleaved_parallel``, ``_products(parallel=True)``)
+    or on all strands in one pass: the same numbers, bit for bit, on 1 and 2 threads (A x is summed
+    by chunks in both), and the product is S v."""
+    from hairexp.control.tracking import kkt as kkt_mod
+    from hairexp.physics import bandchol
+
+    _, sim = kkt_scene(case)
+    ab, _, _, rng, _ = kkt_system(sim, seed=6)
+    kkt = krylov_kkt(sim)
+    if kkt.kernels is None:
+        pytest.skip("numba is not installed")
+    kkt.factor(ab)
+    assert kkt.fresh and kkt.Smat is not None
+    AT = np.ascontiguousarray(ab.T)
+    facs = []
+    for threads, par in ((1, False), (1, True), (2, True)):
+        bandchol.set_threads(threads)
+        L, inv = np.empty_like(kkt._il_buffers(ab.shape[0])[0]), np.empty((kkt.nmax, kkt.S))
+        ok = np.zeros(kkt.S, dtype=np.bool_)
+        (kkt_mod.interleave_band_parallel if par else kkt_mod.interleave_band)(AT, kkt._dof_off, kkt._blk_end, kkt.nmax, L)
+        (kkt_mod.factor_interleaved_parallel if par else kkt_mod.factor_interleaved)(L, inv, ok)
+        assert ok.all()
+        facs.append((L, inv))
+    for L, inv in facs[1:]:
+        assert np.array_equal(L, facs[0][0]) and np.array_equal(inv, facs[0][1])
+    L, inv = facs[0]
+    v = rng.normal(size=kkt.Smat.shape[0])
+    lists = ((kkt._v_rows, kkt._v_wts, True),) if kkt._v_rows is not None else ()
+    outs = []
+    for rows, wts, per_vertex in ((kkt._m_rows, kkt._m_wts, False), *lists):
+        for threads, par in ((1, False), (1, True), (2, True)):
+            bandchol.set_threads(threads)
+            x, Av = np.empty((kkt.nmax, kkt.S)), np.empty(v.size)
+            kkt_mod._products(rows, wts, *kkt._scatter, v, L, inv, x, Av, np.empty((kkt_mod.IL_CHUNKS, v.size)),
+                              per_vertex, par)
+            outs.append((x, Av))
+    bandchol.set_threads(2)
+    for x, Av in outs[1:]:
+        assert np.array_equal(Av, outs[0][1]) and np.array_equal(x, outs[0][0])
+    np.testing.assert_allclose(outs[0][1], kkt.Smat @ v, rtol=0, atol=1e-11 * np.abs(kkt.Smat @ v).max())
 
 
 @pytest.mark.parametrize("case", ["wisp_3_guides", "unequal_strands_2_guides"])

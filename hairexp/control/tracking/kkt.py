@@ -55,7 +55,7 @@ import torch
 
 from hairexp.physics import bandchol
 from hairexp.physics.assembly import BandedAssembler
-from hairexp.physics.kernels import HAVE_NUMBA, njit
+from hairexp.physics.kernels import HAVE_NUMBA, njit, prange
 
 #: ``tracking.schur``: how the Schur complement enters each solve (``SchurKKT``)
 SCHUR_MODES = ("exact", "krylov")
@@ -69,6 +69,23 @@ KRYLOV_TOL = 1e-6
 #: Krylov mode: iterations (solves with H) before S is built again for the current factor (at
 #: Celia's size an iteration costs about a twentieth of building S)
 KRYLOV_MAX = 16
+
+
+#: The strand-interleaved kernels (factor, products) split the strands into this many contiguous
+#: chunks, run on the kernels' threads (``prange``) or one after the other: the same chunks, and so
+#: the same sums, on any thread count.  Eight: both threads take four, and a chunk of Celia's 301
+#: strands (38) still fills the vector loops.
+IL_CHUNKS = 2
+
+
+#: the interleaved kernels run on 2 threads from this many strands on (``SchurKKT._threaded``)
+IL_PARALLEL_MIN_STRANDS = 1000
+
+
+@njit(cache=True, error_model="numpy")
+def il_chunk(S, c):
+    """(s0, s1): the strands of chunk ``c`` of ``IL_CHUNKS`` (contiguous, sizes within 1)."""
+    return (S * c) // IL_CHUNKS, (S * (c + 1)) // IL_CHUNKS
 
 
 #: bytes the per-strand Schur blocks may take (``SchurKKT``): Celia's 301 strands x 54 columns
@@ -201,6 +218,9 @@ class SchurKKT:
             if same and 3 * K < np.iinfo(np.int32).max:
                 self._v_rows = np.ascontiguousarray(np.where(pad, 0, k0), dtype=np.int32)
                 self._v_wts = np.ascontiguousarray(w3[:, 0])
+        # A's rows as lists per chunk of strands (``scatter_lists``), for the products' A x
+        self._scatter = (scatter_lists(self._v_rows, self._v_wts, K, True) if self._v_rows is not None
+                         else scatter_lists(self._m_rows, self._m_wts, 3 * K, False))
         self._uniform = bool(np.all(n == nmax))
         self._W_buf = None                    # the Krylov products' rows (``_krylov``), kept between solves
         jj, aa = np.meshgrid(np.arange(nmax), np.arange(bandwidth + 1), indexing="ij")
@@ -254,11 +274,22 @@ class SchurKKT:
         band is not positive definite: ``kernels.factor`` then takes its fallback band or shift."""
         buf = self._il_buffers(ab.shape[0])
         AT = ab.T if ab.T.flags.c_contiguous else np.ascontiguousarray(ab.T)
-        interleave_band(AT, self._dof_off, self._blk_end, self.nmax, buf[0])
-        factor_interleaved(buf[0], buf[1], self._ok_il)
+        par = self._threaded()
+        (interleave_band_parallel if par else interleave_band)(AT, self._dof_off, self._blk_end, self.nmax, buf[0])
+        (factor_interleaved_parallel if par else factor_interleaved)(buf[0], buf[1], self._ok_il)
         if not self._ok_il.all():
             return False
         self._L_il, self._inv_il = buf
+        return True
+
+    def _threaded(self) -> bool:
+        """Whether the interleaved kernels run their chunks on the objective kernels' threads
+        (``StrandKernels.threads``, ``solver.threads``: 2 where the machine has a core free), which
+        it then sets; the results are the same either way (``IL_CHUNKS``)."""
+        k = self.kernels
+        if k is None or not k.parallel or self.S < IL_PARALLEL_MIN_STRANDS:
+            return False
+        bandchol.set_threads(k.threads)
         return True
 
     def _il_buffers(self, bw1: int) -> tuple:
@@ -458,7 +489,8 @@ class SchurKKT:
         while True:   # Arnoldi iterations up to one whose residual estimate reaches tol, then the checks
             if HAVE_NUMBA:
                 done, code = gmres_arnoldi(P[0], P[1], M0c, b, bnorm, tol, kmax, m, vr, vw, self._m_rows, self._m_wts,
-                                           self._L_il, self._inv_il, j0, V, Z, W, Hh, R, g, cs, sn, hist)
+                                           *self._scatter, self._L_il, self._inv_il, j0, V, Z, W, Hh, R, g, cs, sn,
+                                           hist, self._threaded())
             else:
                 done, code = self._arnoldi_python(P, M0, b, bnorm, tol, kmax, m, j0, V, Z, W, Hh, R, g, cs, sn, hist)
             self.stats["krylov_iterations"] += int(done) - j0
@@ -562,16 +594,18 @@ def lu_apply(lu, piv, b, out):
 
 
 @njit(cache=True, error_model="numpy")
-def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_wts, L, inv, j0, V, Z, W, Hh, R, g,
-                  cs, sn, hist):
+def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_wts, ptr, pos, wt, L, inv, j0, V, Z,
+                  W, Hh, R, g, cs, sn, hist, parallel):
     """The Arnoldi loop of ``SchurKKT._krylov`` (GMRES, right-preconditioned, no restart, Givens
     rotations; Saad 2003, "Iterative methods for sparse linear systems", Alg. 9.5) on the reduced
-    system M z = b, M z = M0 z + [A H^-1 A^T z[:m]; 0], preconditioner P = (lu, piv).  V[0] = b /
+    system M z = b, M z = M0 z + [A H^-1 A^T z[:m]; 0], preconditioner P = (lu, piv); A's rows
+    (ptr, pos, wt): ``scatter_lists`` of the lists the products use.  V[0] = b /
     bnorm and g[0] = bnorm on entry.  From iteration j0 (0, or the one after a candidate whose
     error estimate was not yet small: the earlier iterations' state in V, Z, W, Hh, R, g and the
     Givens rotations cs, sn) it fills V, Z, W (rows H^-1 A^T Z[j, :m], strand-interleaved, from
     ``schur_product_vertex`` when ``v_rows`` is not empty, else ``schur_product``), Hh, R, g, cs,
-    sn and hist (the relative residual estimate after each iteration).  Returns (iterations done,
+    sn and hist (the relative residual estimate after each iteration); ``parallel``: the products'
+    chunks on the kernels' threads (``_products``: the same sums).  Returns (iterations done,
     ARNOLDI_CANDIDATE when the last one reached ``tol`` or broke down, else ARNOLDI_GAVE_UP: a
     non-finite value, ``kmax`` reached, or a rate at which kmax iterations would not do), the
     same decisions as ``SchurKKT._arnoldi_python``."""
@@ -582,6 +616,7 @@ def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_
     zl = np.empty(m)
     Av = np.empty(m)
     col = np.empty(kmax + 1)
+    Avc = np.empty((IL_CHUNKS, m))
     per_vertex = v_rows.shape[0] > 0
     for j in range(j0, kmax):
         z = Z[j]
@@ -595,9 +630,9 @@ def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_
             zl[i] = z[i]
         x = W[j].reshape((nmax, S))
         if per_vertex:
-            schur_product_vertex(v_rows, v_wts, zl, L, inv, x, Av)
+            _products(v_rows, v_wts, ptr, pos, wt, zl, L, inv, x, Av, Avc, True, parallel)
         else:
-            schur_product(m_rows, m_wts, zl, L, inv, x, Av)
+            _products(m_rows, m_wts, ptr, pos, wt, zl, L, inv, x, Av, Avc, False, parallel)
         for i in range(m):
             w[i] += Av[i]
         for _ in range(2):     # classical Gram-Schmidt, twice
@@ -648,7 +683,7 @@ def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_
 
 
 @njit(cache=True, error_model="numpy")
-def _interleave_rows(AT, dof_off, blk_end, nmax, out, inv, factor):
+def _interleave_rows(AT, dof_off, blk_end, nmax, out, inv, factor, s0, s1):
     """Rows of the band storage ``AT`` (N, bw + 1) (bandchol's layout: AT[j, a] = A[j + a, j])
     strand-interleaved: out[j, a, s] = AT[dof_off[s] + j, a], a strand a column of a (nmax, S)
     array (``solve_interleaved``, ``factor_interleaved``).  ``factor``: AT is a factor
@@ -659,10 +694,9 @@ def _interleave_rows(AT, dof_off, blk_end, nmax, out, inv, factor):
     strand's rows of AT are read once, contiguously, and its writes (a stride of S doubles) stay
     within the cache lines the neighbouring strands fill next (at Celia's size 0.22 ms against 0.39
     for a row-major pass over blocks of 64 strands, whose inner loop gathered AT with a stride of a
-    strand, 2026-12-06)."""
-    S = dof_off.shape[0] - 1
+    strand, 2026-12-06); strands s0 to s1 (a chunk of ``IL_CHUNKS``, or all)."""
     bw1 = AT.shape[1]
-    for s in range(S):
+    for s in range(s0, s1):
         d0 = dof_off[s]
         n = dof_off[s + 1] - d0
         for j in range(nmax):
@@ -689,7 +723,13 @@ def interleave_factor(LT, dof_off, nmax, out, inv):
     """The factor ``LT`` (N, bw + 1) strand-interleaved (``_interleave_rows``): out[j, a, s] =
     LT[dof_off[s] + j, a] for the band inside strand s, 0 elsewhere, and inv[j, s] = 1 / L[j, j]
     (1 on the padding rows)."""
-    _interleave_rows(LT, dof_off, dof_off, nmax, out, inv, True)
+    _interleave_rows(LT, dof_off, dof_off, nmax, out, inv, True, 0, dof_off.shape[0] - 1)
+
+
+@njit(cache=True, error_model="numpy")
+def _interleave_band_chunk(AT, dof_off, blk_end, nmax, out, c):
+    s0, s1 = il_chunk(dof_off.shape[0] - 1, c)
+    _interleave_rows(AT, dof_off, blk_end, nmax, out, out[0], False, s0, s1)
 
 
 @njit(cache=True, error_model="numpy")
@@ -699,7 +739,47 @@ def interleave_band(AT, dof_off, blk_end, nmax, out):
     block (``blk_end``: (N,) the end of each DOF's block, bandchol's blocks; the band's entries
     across a block's end are never written by the assembly), 0 elsewhere; the padding rows j >= the
     strand's DOFs are the identity (pivot 1)."""
-    _interleave_rows(AT, dof_off, blk_end, nmax, out, out[0], False)
+    _interleave_rows(AT, dof_off, blk_end, nmax, out, out[0], False, 0, dof_off.shape[0] - 1)
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def interleave_band_parallel(AT, dof_off, blk_end, nmax, out):
+    """``interleave_band``, its chunks on the kernels' threads (the same values)."""
+    for c in prange(IL_CHUNKS):
+        _interleave_band_chunk(AT, dof_off, blk_end, nmax, out, np.int64(c))
+
+
+@njit(cache=True, error_model="numpy")
+def _factor_range(L, inv, ok, s0, s1):
+    """``factor_interleaved`` on strands s0 to s1 (rows as slices, as in ``_solve_chunk``)."""
+    n, bw1, S = L.shape
+    w = s1 - s0
+    okc = ok[s0:s1]
+    for s in range(w):
+        okc[s] = True
+    for j in range(n):
+        Lj0 = L[j, 0, s0:s1]
+        ij = inv[j, s0:s1]
+        for s in range(w):
+            p = Lj0[s]
+            if not p > 0.0:
+                okc[s] = False
+                p = 1.0
+            r = math.sqrt(p)
+            Lj0[s] = r
+            ij[s] = 1.0 / r
+        m = min(bw1 - 1, n - 1 - j)
+        for a in range(1, m + 1):
+            la = L[j, a, s0:s1]
+            for s in range(w):
+                la[s] *= ij[s]
+        for a in range(1, m + 1):
+            la = L[j, a, s0:s1]
+            for b in range(a, m + 1):
+                lb = L[j, b, s0:s1]
+                t = L[j + a, b - a, s0:s1]
+                for s in range(w):
+                    t[s] -= lb[s] * la[s]
 
 
 @njit(cache=True, error_model="numpy")
@@ -713,33 +793,16 @@ def factor_interleaved(L, inv, ok):
     0.64 for bandchol.factor_serial and 0.21 for ``interleave_factor``, 2026-12-06).  ok[s]:
     strand s's pivots were all > 0 (a strand that fails goes on with pivot 1: its factor is
     not used)."""
-    n, bw1, S = L.shape
-    for s in range(S):
-        ok[s] = True
-    for j in range(n):
-        Lj = L[j]
-        ij = inv[j]
-        for s in range(S):
-            p = Lj[0, s]
-            if not p > 0.0:
-                ok[s] = False
-                p = 1.0
-            r = math.sqrt(p)
-            Lj[0, s] = r
-            ij[s] = 1.0 / r
-        m = min(bw1 - 1, n - 1 - j)
-        for a in range(1, m + 1):
-            la = Lj[a]
-            for s in range(S):
-                la[s] *= ij[s]
-        for a in range(1, m + 1):
-            La = L[j + a]
-            la = Lj[a]
-            for b in range(a, m + 1):
-                lb = Lj[b]
-                t = La[b - a]
-                for s in range(S):
-                    t[s] -= lb[s] * la[s]
+    _factor_range(L, inv, ok, 0, L.shape[2])
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def factor_interleaved_parallel(L, inv, ok):
+    """``factor_interleaved``, its chunks on the kernels' threads (bit for bit the same factor)."""
+    S = L.shape[2]
+    for c in prange(IL_CHUNKS):
+        s0, s1 = il_chunk(S, np.int64(c))
+        _factor_range(L, inv, ok, s0, s1)
 
 
 @njit(cache=True, error_model="numpy")
@@ -758,96 +821,193 @@ def deinterleave_factor(L, dof_off, LT):
 
 
 @njit(cache=True, error_model="numpy", fastmath=True)
+def _solve_chunk(L, inv, x, s0, s1):
+    """x <- (L L^T)^-1 x on strands s0 to s1 (``solve_interleaved``).  The rows are taken as slices
+    [s0, s1) (the loops then run from 0: with run-time bounds on the whole rows LLVM vectorised
+    them about 3 times slower, 2026-12-08)."""
+    n, bw1, S = L.shape
+    m = s1 - s0
+    for j in range(n):
+        xj = x[j, s0:s1]
+        ij = inv[j, s0:s1]
+        for s in range(m):
+            xj[s] *= ij[s]
+        for a in range(1, min(bw1 - 1, n - 1 - j) + 1):
+            xa = x[j + a, s0:s1]
+            la = L[j, a, s0:s1]
+            for s in range(m):
+                xa[s] -= la[s] * xj[s]
+    for j in range(n - 1, -1, -1):
+        xj = x[j, s0:s1]
+        for a in range(1, min(bw1 - 1, n - 1 - j) + 1):
+            xa = x[j + a, s0:s1]
+            la = L[j, a, s0:s1]
+            for s in range(m):
+                xj[s] -= la[s] * xa[s]
+        ij = inv[j, s0:s1]
+        for s in range(m):
+            xj[s] *= ij[s]
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
 def solve_interleaved(L, inv, x):
     """x <- (L L^T)^-1 x for every strand at once; x (nmax, S) strand-interleaved, L and inv from
     ``interleave_factor``.  The strands' substitutions are independent: the innermost loop runs
     over strands (contiguous, vectorised), where one strand's substitution alone is a dependency
     chain (bandchol.solve_block: about 2.5 times slower at Celia's size)."""
-    n, bw1, S = L.shape
-    for j in range(n):
-        xj = x[j]
-        ij = inv[j]
-        for s in range(S):
-            xj[s] *= ij[s]
-        for a in range(1, min(bw1 - 1, n - 1 - j) + 1):
-            xa = x[j + a]
-            la = L[j, a]
-            for s in range(S):
-                xa[s] -= la[s] * xj[s]
-    for j in range(n - 1, -1, -1):
-        xj = x[j]
-        for a in range(1, min(bw1 - 1, n - 1 - j) + 1):
-            xa = x[j + a]
-            la = L[j, a]
-            for s in range(S):
-                xj[s] -= la[s] * xa[s]
-        ij = inv[j]
-        for s in range(S):
-            xj[s] *= ij[s]
+    _solve_chunk(L, inv, x, 0, L.shape[2])
 
 
 @njit(cache=True, error_model="numpy", fastmath=True)
-def schur_product(rows, wts, v, L, inv, x, Av):
-    """x = H^-1 A^T v (strand-interleaved, (nmax, S)) and Av = A x: a product with the Schur
-    complement, S v = A H^-1 A^T v, in one pass.  A^T's row at interleaved position (j, s) is
-    sum_q wts[j, s, q] e_{rows[j, s, q]} (padding: weight 0)."""
-    n, S, c = rows.shape
+def _gather_chunk(rows, wts, v, x, s0, s1):
+    """x[j, s] = (A^T v) at interleaved position (j, s) for the strands s0 to s1: A^T's row there
+    is sum_q wts[j, s, q] e_{rows[j, s, q]} (padding: weight 0)."""
+    n, S, q = rows.shape
     for j in range(n):
-        for s in range(S):
+        for s in range(s0, s1):
             acc = 0.0
-            for q in range(c):
-                acc += wts[j, s, q] * v[rows[j, s, q]]
+            for k in range(q):
+                acc += wts[j, s, k] * v[rows[j, s, k]]
             x[j, s] = acc
-    solve_interleaved(L, inv, x)
-    for i in range(Av.shape[0]):
-        Av[i] = 0.0
-    for j in range(n):
-        for s in range(S):
-            xv = x[j, s]
-            for q in range(c):
-                Av[rows[j, s, q]] += wts[j, s, q] * xv
 
 
 @njit(cache=True, error_model="numpy", fastmath=True)
-def schur_product_vertex(rows, wts, v, L, inv, x, Av):
-    """``schur_product`` with A^T's rows per vertex: DOF 3 i + c of every strand has the rows
-    3 rows[i, s, q] + c with weights wts[i, s, q] (A = W (x) I3; padding: weight 0), so the
-    lists are a sixth of the bytes (int32 clusters, one weight for the vertex's three DOFs: at
-    10,000 strands 9 MB instead of 33 MB streamed twice a product).  Every entry of x and Av
-    gets the same operations in the same order as in ``schur_product`` (Av's sums run over
-    (DOF, strand, membership))."""
-    nv, S, c = rows.shape
+def _gather_vertex_chunk(rows, wts, v, x, s0, s1):
+    """``_gather_chunk`` with A^T's rows per vertex (``schur_product_vertex``)."""
+    nv, S, q = rows.shape
     for i in range(nv):
         x0 = x[3 * i]
         x1 = x[3 * i + 1]
         x2 = x[3 * i + 2]
-        for s in range(S):
+        for s in range(s0, s1):
             a0 = 0.0
             a1 = 0.0
             a2 = 0.0
-            for q in range(c):
-                w = wts[i, s, q]
-                r = 3 * rows[i, s, q]
+            for k in range(q):
+                w = wts[i, s, k]
+                r = 3 * rows[i, s, k]
                 a0 += w * v[r]
                 a1 += w * v[r + 1]
                 a2 += w * v[r + 2]
             x0[s] = a0
             x1[s] = a1
             x2[s] = a2
-    solve_interleaved(L, inv, x)
-    for k in range(Av.shape[0]):
-        Av[k] = 0.0
-    for i in range(nv):
-        x0 = x[3 * i]
-        x1 = x[3 * i + 1]
-        x2 = x[3 * i + 2]
-        for s in range(S):
-            for q in range(c):
-                w = wts[i, s, q]
-                r = 3 * rows[i, s, q]
-                Av[r] += w * x0[s]
-                Av[r + 1] += w * x1[s]
-                Av[r + 2] += w * x2[s]
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def _scatter_chunk(xf, S, ptr, pos, wt, out, c):
+    """out = chunk c's part of A x (x flat, strand-interleaved), row by row from the chunk's lists
+    (``scatter_lists``): each row's sum in a register (a scatter into out, entry by entry, waited
+    on its own stores: at Celia's size it took three times the solve).  Rows per cluster (``ptr``
+    (IL_CHUNKS, K + 1), ``pos`` the vertex's x position, its 3 DOFs S apart) when out has 3 K
+    entries per list row, else per DOF."""
+    nr = ptr.shape[1] - 1
+    if out.shape[0] == 3 * nr:
+        for r in range(nr):
+            a0 = 0.0
+            a1 = 0.0
+            a2 = 0.0
+            for e in range(ptr[c, r], ptr[c, r + 1]):
+                p = pos[e]
+                w = wt[e]
+                a0 += w * xf[p]
+                a1 += w * xf[p + S]
+                a2 += w * xf[p + 2 * S]
+            out[3 * r] = a0
+            out[3 * r + 1] = a1
+            out[3 * r + 2] = a2
+    else:
+        for r in range(nr):
+            a = 0.0
+            for e in range(ptr[c, r], ptr[c, r + 1]):
+                a += wt[e] * xf[pos[e]]
+            out[r] = a
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def _gather_solve(rows, wts, v, L, inv, x, s0, s1, per_vertex):
+    """x's columns s0 to s1: H^-1 A^T v on those strands."""
+    if per_vertex:
+        _gather_vertex_chunk(rows, wts, v, x, s0, s1)
+    else:
+        _gather_chunk(rows, wts, v, x, s0, s1)
+    _solve_chunk(L, inv, x, s0, s1)
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=True)
+def _products_parallel(rows, wts, ptr, pos, wt, v, L, inv, x, Avc, per_vertex):
+    S = L.shape[2]
+    xf = x.reshape(-1)
+    for c in prange(IL_CHUNKS):
+        s0, s1 = il_chunk(S, np.int64(c))
+        _gather_solve(rows, wts, v, L, inv, x, s0, s1, per_vertex)
+        _scatter_chunk(xf, S, ptr, pos, wt, Avc[c], np.int64(c))
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, Avc, per_vertex, parallel):
+    """x = H^-1 A^T v and Av = A x.  ``parallel``: chunk by chunk (``IL_CHUNKS``) on the kernels'
+    threads; else on all strands at once (each strand's solve is the same either way).  A x is
+    summed chunk by chunk in both (``_scatter_chunk``), the chunks' parts then in chunk order: the
+    same sums on any thread count."""
+    S = L.shape[2]
+    if parallel:
+        _products_parallel(rows, wts, ptr, pos, wt, v, L, inv, x, Avc, per_vertex)
+    else:
+        _gather_solve(rows, wts, v, L, inv, x, 0, S, per_vertex)
+        xf = x.reshape(-1)
+        for c in range(IL_CHUNKS):
+            _scatter_chunk(xf, S, ptr, pos, wt, Avc[c], c)
+    for i in range(Av.shape[0]):
+        a = 0.0
+        for c in range(IL_CHUNKS):
+            a += Avc[c, i]
+        Av[i] = a
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def schur_product(rows, wts, ptr, pos, wt, v, L, inv, x, Av):
+    """x = H^-1 A^T v (strand-interleaved, (nmax, S)) and Av = A x: a product with the Schur
+    complement, S v = A H^-1 A^T v, in one pass.  A^T's row at interleaved position (j, s) is
+    sum_q wts[j, s, q] e_{rows[j, s, q]} (padding: weight 0); A's rows are the lists (ptr, pos,
+    wt) of ``scatter_lists``.  One thread (``gmres_arnoldi`` runs the chunks on the kernels'
+    threads)."""
+    _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, np.zeros((IL_CHUNKS, Av.shape[0])), False, False)
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def schur_product_vertex(rows, wts, ptr, pos, wt, v, L, inv, x, Av):
+    """``schur_product`` with A^T's rows per vertex: DOF 3 i + c of every strand has the rows
+    3 rows[i, s, q] + c with weights wts[i, s, q] (A = W (x) I3; padding: weight 0), so the
+    lists are a sixth of the bytes (int32 clusters, one weight for the vertex's three DOFs: at
+    10,000 strands 9 MB instead of 33 MB streamed twice a product).  Every entry of x and Av
+    gets the same operations in the same order as in ``schur_product`` (Av's sums run over
+    (chunk, vertex, strand))."""
+    _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, np.zeros((IL_CHUNKS, Av.shape[0])), True, False)
+
+
+def scatter_lists(rows: np.ndarray, wts: np.ndarray, n_rows: int, per_vertex: bool):
+    """A's rows as lists for ``_scatter_chunk``, from A^T's interleaved lists (rows, wts) (n, S, q):
+    (ptr (IL_CHUNKS, n_rows + 1), pos (E,), wt (E,)), chunk c's row r the entries
+    ptr[c, r]:ptr[c, r + 1], each the x position pos (per vertex: of its first DOF, j = 3 i) and
+    weight, in the order (vertex or DOF, strand); ``n_rows``: K clusters (per vertex) or 3 K."""
+    n, S, q = rows.shape
+    j, s, _ = np.nonzero(wts != 0.0)
+    r = rows[wts != 0.0].astype(np.int64)
+    w = wts[wts != 0.0]
+    chunk = np.searchsorted(np.array([(S * (c + 1)) // IL_CHUNKS for c in range(IL_CHUNKS)]), s, side="right")
+    order = np.lexsort((s, j, r, chunk))
+    key = chunk[order] * n_rows + r[order]
+    ptr = np.zeros(IL_CHUNKS * n_rows + 1, dtype=np.int64)
+    np.add.at(ptr, key + 1, 1)
+    ptr = np.cumsum(ptr)
+    # chunk c's row r spans ptr[c n_rows + r] to ptr[c n_rows + r + 1]: as (IL_CHUNKS, n_rows + 1)
+    ptr2 = np.empty((IL_CHUNKS, n_rows + 1), dtype=np.int64)
+    for c in range(IL_CHUNKS):
+        ptr2[c] = ptr[c * n_rows:(c + 1) * n_rows + 1]
+    jj = 3 * j if per_vertex else j
+    pos = (jj * S + s)[order]
+    return ptr2, np.ascontiguousarray(pos, dtype=np.int64), np.ascontiguousarray(w[order])
 
 
 def distinct_columns(AT: np.ndarray):
