@@ -428,7 +428,8 @@ def test_interleaved_substitution_is_the_banded_solve(case):
 @pytest.mark.parametrize("case", ["wisp_3_guides", "unequal_strands_2_guides"])
 def test_interleaved_kernels_on_two_threads_give_the_same_numbers(case):
     """The interleaved band, factor and Schur products run chunk by chunk on the kernels' threads
-    (``interleave_band_parallel``, ``factor_interleaved_parallel``, ``_products(parallel=True)``)
+    (``interleave_band_parallel``, ``factor_interleaved_parallel``, ``_products(parallel=True)``,
+    ``solve_interleaved_parallel``)
     or on all strands in one pass: the same numbers, bit for bit, on 1 and 2 threads (A x is summed
     by chunks in both), and the product is S v."""
     from hairexp.control.tracking import kkt as kkt_mod
@@ -467,6 +468,13 @@ def test_interleaved_kernels_on_two_threads_give_the_same_numbers(case):
     bandchol.set_threads(2)
     for x, Av in outs[1:]:
         assert np.array_equal(Av, outs[0][1]) and np.array_equal(x, outs[0][0])
+    r = rng.normal(size=(kkt.nmax, kkt.S))
+    xs = []
+    for threads, solve in ((1, kkt_mod.solve_interleaved), (2, kkt_mod.solve_interleaved_parallel)):
+        bandchol.set_threads(threads)
+        xs.append(r.copy())
+        solve(L, inv, xs[-1])
+    assert np.array_equal(xs[0], xs[1])
     np.testing.assert_allclose(outs[0][1], kkt.Smat @ v, rtol=0, atol=1e-11 * np.abs(kkt.Smat @ v).max())
 
 

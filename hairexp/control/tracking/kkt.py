@@ -359,7 +359,7 @@ class SchurKKT:
             return out
         self._interleave()
         x = np.array(r_il, dtype=np.float64).reshape(self.nmax, self.S)
-        solve_interleaved(self._L_il, self._inv_il, x)
+        (solve_interleaved_parallel if self._threaded() else solve_interleaved)(self._L_il, self._inv_il, x)
         return x.reshape(-1)
 
     def _interleave(self) -> None:
@@ -856,6 +856,16 @@ def solve_interleaved(L, inv, x):
     over strands (contiguous, vectorised), where one strand's substitution alone is a dependency
     chain (bandchol.solve_block: about 2.5 times slower at Celia's size)."""
     _solve_chunk(L, inv, x, 0, L.shape[2])
+
+
+@njit(cache=True, parallel=True, error_model="numpy", fastmath=True)
+def solve_interleaved_parallel(L, inv, x):
+    """``solve_interleaved``, its chunks of strands (``IL_CHUNKS``) on the kernels' threads (the
+    same numbers: each strand's substitution is the same)."""
+    S = L.shape[2]
+    for c in prange(IL_CHUNKS):
+        s0, s1 = il_chunk(S, np.int64(c))
+        _solve_chunk(L, inv, x, s0, s1)
 
 
 @njit(cache=True, error_model="numpy", fastmath=True)
