@@ -45,6 +45,50 @@ def test_band_product_equals_the_dense_product(monkeypatch):
         assert len(calls) == (1 if assembly.HAVE_NUMBA else 0)   # the transposed view took the compiled product
 
 
+def test_band_product_by_runs_of_blocks_is_the_whole_band_product(monkeypatch):
+    """A block-diagonal band (zeros across the blocks' ends, as the assembly writes it) by runs of
+    blocks on two threads (``bandchol.band_product_parallel``, chosen from
+    ``bandchol.PARALLEL_MIN_BLOCKS`` blocks on when the objective's kernels run 2 threads): the
+    whole band's product bit for bit, and the dense product; fewer blocks, or 1 thread, take the
+    whole-band product."""
+    from types import SimpleNamespace
+
+    from hairexp.physics import assembly, bandchol
+    if not assembly.HAVE_NUMBA:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(3)
+    sizes = rng.integers(3, 30, size=40)
+    blk_dof = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    n, bw = int(blk_dof[-1]), 8
+    B = np.zeros((n, n))
+    for b in range(len(sizes)):
+        d0, d1 = blk_dof[b], blk_dof[b + 1]
+        Bb, _ = _band(rng, d1 - d0, min(bw, d1 - d0 - 1))
+        B[d0:d1, d0:d1] = Bb
+    abT = np.zeros((n, bw + 1))
+    for d in range(bw + 1):
+        abT[: n - d, d] = np.diagonal(B, -d)
+    v = rng.normal(size=n)
+    whole = np.empty(n)
+    bandchol.band_product_lt(abT, v, whole)
+    for threads in (1, 2):
+        bandchol.set_threads(threads)
+        out = np.empty(n)
+        bandchol.band_product_parallel(abT, v, out, blk_dof)
+        assert np.array_equal(out, whole)
+    np.testing.assert_allclose(whole, B @ v, rtol=1e-13, atol=1e-12)
+    calls = []
+    par = bandchol.band_product_parallel
+    monkeypatch.setattr(bandchol, "band_product_parallel", lambda *a: (calls.append(1), par(*a)))
+    monkeypatch.setattr(bandchol, "PARALLEL_MIN_BLOCKS", 40)
+    for threads, blocks, want in ((2, 40, 1), (1, 40, 0), (2, 41, 0)):
+        monkeypatch.setattr(bandchol, "PARALLEL_MIN_BLOCKS", blocks)
+        calls.clear()
+        kernels = SimpleNamespace(parallel=threads > 1, threads=threads, blk_dof=blk_dof)
+        assert np.array_equal(band_product(abT.T, v, kernels), whole)
+        assert len(calls) == want
+
+
 @pytest.mark.parametrize("ratio", [-0.8, 0.05, 0.3])
 def test_correction_sets_the_curvature_along_the_step_and_stays_definite(ratio):
     """Where s^T y < SECANT_RATIO s^T B s: B' = B + U D U^T has s^T B' s = max(s^T y, floor),

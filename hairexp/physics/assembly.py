@@ -111,13 +111,21 @@ class BandedAssembler:
         return (L + sp.triu(L.T, k=1)).tocsc()
 
 
-def band_product(ab: np.ndarray, v: np.ndarray) -> np.ndarray:
+def band_product(ab: np.ndarray, v: np.ndarray, kernels=None) -> np.ndarray:
     """B v for the symmetric band B in LAPACK's lower storage (ab[d, j] = B[j + d, j]).  When
     ``ab`` is the transposed view of a C-order (N, bw + 1) array (the compiled kernels' band,
-    ``bandchol``'s layout) the product is compiled (``bandchol.band_product_lt``)."""
+    ``bandchol``'s layout) the product is compiled (``bandchol.band_product_lt``); with the objective's
+    ``kernels`` (hairexp/physics/strand_kernels.py) on 2 threads and at least
+    ``bandchol.PARALLEL_MIN_BLOCKS`` strands, by runs of strands on both (the same sums)."""
     if HAVE_NUMBA and ab.T.flags.c_contiguous and ab.dtype == np.float64 and v.ndim == 1:
         out = np.empty(ab.shape[1])
-        bandchol.band_product_lt(ab.T, np.ascontiguousarray(v, dtype=np.float64), out)
+        vv = np.ascontiguousarray(v, dtype=np.float64)
+        if (kernels is not None and kernels.parallel and len(kernels.blk_dof) - 1 >= bandchol.PARALLEL_MIN_BLOCKS
+                and kernels.blk_dof[-1] == ab.shape[1]):
+            bandchol.set_threads(kernels.threads)
+            bandchol.band_product_parallel(ab.T, vv, out, kernels.blk_dof)
+        else:
+            bandchol.band_product_lt(ab.T, vv, out)
         return out
     out = ab[0] * v
     for d in range(1, ab.shape[0]):

@@ -40,6 +40,15 @@ THREAD_CHOICES = ("auto", "1", "2")
 AUTO_MIN_VERTICES = 2000
 
 
+#: The tracked step's memory-bound kernels (the strand-interleaved band, factor, Krylov products and
+#: solve, hairexp/control/tracking/kkt.py; the band product ``band_product_parallel``) run on 2 threads
+#: from this many strands (blocks) on, where ``pick_threads`` gives 2.  Measured 2026-12-08, one
+#: thread / two (idle machine; a parallel region's start costs about 0.1 ms): 301 strands, a Krylov
+#: product 156 / 197 us, band + factor 406 / 520 us; 1,000: 510 / 385 and 1,237 / 1,034; 3,000:
+#: 1,806 / 1,485 and 5,460 / 3,172 (the whole tracked step at 3,000 strands 0.42-0.44 s -> 0.32-0.33).
+PARALLEL_MIN_BLOCKS = 1000
+
+
 #: at most this many kernel threads in this process (``cap_threads``): an experiment's variant run
 #: beside another in its own process takes one core (hairexp/app/variant_processes.py)
 _CAP = 2
@@ -280,3 +289,32 @@ def band_product_lt(A, v, out):
             out[j + a] += l * vj
             acc += l * v[j + a]
         out[j] += acc
+
+
+@njit(cache=True, error_model="numpy")
+def _band_product_blocks(A, v, out, blk_dof, b0, b1):
+    """``band_product_lt`` on blocks b0 to b1 (their rows, and no entry across a block's end: those
+    are 0 in every band the assembly writes, so the sums are ``band_product_lt``'s bit for bit)."""
+    bw1 = A.shape[1]
+    j0, j1 = blk_dof[b0], blk_dof[b1]
+    for j in range(j0, j1):
+        out[j] = A[j, 0] * v[j]
+    for blk in range(b0, b1):
+        e = blk_dof[blk + 1]
+        for j in range(blk_dof[blk], e):
+            vj = v[j]
+            acc = 0.0
+            for a in range(1, min(bw1, e - j)):
+                l = A[j, a]
+                out[j + a] += l * vj
+                acc += l * v[j + a]
+            out[j] += acc
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def band_product_parallel(A, v, out, blk_dof):
+    """``band_product_lt`` for a block-diagonal band (``blk_dof``), two runs of blocks on the
+    kernels' threads."""
+    nb = blk_dof.shape[0] - 1
+    for c in prange(2):
+        _band_product_blocks(A, v, out, blk_dof, (nb * c) // 2, (nb * (c + 1)) // 2)

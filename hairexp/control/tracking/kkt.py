@@ -71,15 +71,12 @@ KRYLOV_TOL = 1e-6
 KRYLOV_MAX = 16
 
 
-#: The strand-interleaved kernels (factor, products) split the strands into this many contiguous
-#: chunks, run on the kernels' threads (``prange``) or one after the other: the same chunks, and so
-#: the same sums, on any thread count.  Eight: both threads take four, and a chunk of Celia's 301
-#: strands (38) still fills the vector loops.
+#: The strand-interleaved kernels (band, factor, the Krylov products, the solve) on 2 threads split the
+#: strands into this many contiguous chunks (``prange``), one a thread; the products' A x is summed by
+#: the same chunks on one thread too, so the numbers do not depend on the thread count.  They run on 2
+#: threads from ``bandchol.PARALLEL_MIN_BLOCKS`` strands on (``SchurKKT._threaded``).  More chunks cost
+#: more than they balance: 8 took 1.8 x the time of one pass for the solve at Celia's size, 2 took 1.15.
 IL_CHUNKS = 2
-
-
-#: the interleaved kernels run on 2 threads from this many strands on (``SchurKKT._threaded``)
-IL_PARALLEL_MIN_STRANDS = 1000
 
 
 @njit(cache=True, error_model="numpy")
@@ -287,7 +284,7 @@ class SchurKKT:
         (``StrandKernels.threads``, ``solver.threads``: 2 where the machine has a core free), which
         it then sets; the results are the same either way (``IL_CHUNKS``)."""
         k = self.kernels
-        if k is None or not k.parallel or self.S < IL_PARALLEL_MIN_STRANDS:
+        if k is None or not k.parallel or self.S < bandchol.PARALLEL_MIN_BLOCKS:
             return False
         bandchol.set_threads(k.threads)
         return True

@@ -304,7 +304,7 @@ def sqp_solve(obj, tracker, x0: np.ndarray, t0: np.ndarray, lam0: np.ndarray, op
             if opts.secant and pairs and fallback is None and (obj.contact is None or not getattr(obj.contact, "lagged", True)):
                 Sm = np.column_stack([p_[0] for p_ in pairs])
                 Ym = np.column_stack([p_[1] for p_ in pairs])
-                BS = np.column_stack([band_product(ev.banded, Sm[:, j]) for j in range(Sm.shape[1])])
+                BS = np.column_stack([band_product(ev.banded, Sm[:, j], getattr(obj, "kernels", None)) for j in range(Sm.shape[1])])
                 if U is not None:
                     BS += U @ (U.T @ Sm)
                 corr = secant_correction(BS, Sm, Ym)
