@@ -478,6 +478,68 @@ def test_interleaved_kernels_on_two_threads_give_the_same_numbers(case):
     np.testing.assert_allclose(outs[0][1], kkt.Smat @ v, rtol=0, atol=1e-11 * np.abs(kkt.Smat @ v).max())
 
 
+def test_each_compiled_kkt_kernel_has_one_signature():
+    """Every compiled kernel of the KKT solve (hairexp/control/tracking/kkt.py) and the band
+    products (bandchol) is built for one signature only, on one thread and two: a second signature
+    is a second build of a cold run, and numba's on-disk cache pairs each function's index with its
+    data files by position, so two processes that compile two signatures of one function at once
+    (the default suite's two workers on a fresh clone) can pair one's index with the other's code,
+    which then crashes whoever loads it (seen 2026-12-08: a segmentation fault in gmres_arnoldi after
+    ``_products`` was built for int32 and int64 rows, and for literal flags).  The kernels that call
+    others are compiled afresh here (without the cache: a cached caller asks its callees for
+    nothing), so that every call site's types are seen."""
+    import numba
+    import numba.core.dispatcher as nd
+
+    from hairexp.control.tracking import kkt as kkt_mod
+    from hairexp.physics import bandchol
+    from hairexp.physics.assembly import band_product
+
+    _, sim = kkt_scene("wisp_3_guides")
+    tr = sim.controller
+    ab, r_x, C, rng, K = kkt_system(sim, seed=7)
+    if sim.objective.kernels is None:
+        pytest.skip("numba is not installed")
+    args = (*structured_sliding_args(tr, rng, K), None)
+    for threads in (1, 2):
+        bandchol.set_threads(threads)
+        kkt = krylov_kkt(sim, krylov_max=30)
+        kkt._threaded = (lambda t=threads: t > 1)    # the 2-thread kernels on this small scene too
+        kkt.factor(nearby_hessian(sim, 0, 1e-5))
+        kkt.factor(ab)
+        kkt.solve(r_x, C, *args)
+        assert kkt.stats["krylov_solves"] >= 1
+        kkt._hinv_il(np.zeros(kkt._A_il.shape[1]))
+        kkt._interleave()
+        kkt_mod.interleave_factor(kkt.LT, kkt._dof_off, kkt.nmax, np.empty_like(kkt._L_il), np.empty_like(kkt._inv_il))
+        v = rng.normal(size=kkt.Smat.shape[0])
+        x, Av = np.empty((kkt.nmax, kkt.S)), np.empty(v.size)
+        kkt_mod.schur_product(kkt._m_rows, kkt._m_wts, *kkt._scatter, v, kkt._L_il, kkt._inv_il, x, Av)
+        kkt_mod.schur_product_vertex(kkt._v_rows, kkt._v_wts, *kkt._scatter, v, kkt._L_il, kkt._inv_il, x, Av)
+        kernels = sim.objective.kernels
+        band_product(ab, rng.normal(size=ab.shape[1]), kernels)
+        bandchol.band_product_parallel(np.ascontiguousarray(ab.T), rng.normal(size=ab.shape[1]), np.empty(ab.shape[1]),
+                                       kernels.blk_dof)
+    bandchol.set_threads(2)
+    compiled = [(m.__name__, name, d) for m in (kkt_mod, bandchol) for name, d in vars(m).items()
+                if isinstance(d, nd.Dispatcher)]
+    callers = ("gmres_arnoldi", "_products", "_products_parallel", "factor_interleaved", "factor_interleaved_parallel",
+               "interleave_band", "interleave_band_parallel", "interleave_factor", "solve_interleaved",
+               "solve_interleaved_parallel", "band_product_parallel")
+    done = set()
+    for _ in range(3):    # a fresh caller asks its callees, which may be callers themselves
+        for _, name, d in compiled:
+            if name in callers and name not in done and d.signatures:
+                done.add(name)
+                opts = {k: v for k, v in d.targetoptions.items() if k not in ("cache", "nopython")}
+                fresh = numba.njit(**opts)(d.py_func)
+                for sig in d.signatures:
+                    fresh.compile(sig)
+    assert done == set(callers)
+    used = [(m, name, d.signatures) for m, name, d in compiled if d.signatures]
+    assert [u for u in used if len(u[2]) > 1] == []
+
+
 @pytest.mark.parametrize("case", ["wisp_3_guides", "unequal_strands_2_guides"])
 def test_interleaved_factor_is_the_block_factor_bit_for_bit(case):
     """``SchurKKT.factor`` on the compiled path factors all strands at once, interleaved

@@ -317,4 +317,5 @@ def band_product_parallel(A, v, out, blk_dof):
     kernels' threads."""
     nb = blk_dof.shape[0] - 1
     for c in prange(2):
-        _band_product_blocks(A, v, out, blk_dof, (nb * c) // 2, (nb * (c + 1)) // 2)
+        k = np.int64(c)   # prange's index is unsigned
+        _band_product_blocks(A, v, out, blk_dof, (nb * k) // 2, (nb * (k + 1)) // 2)

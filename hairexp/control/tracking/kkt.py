@@ -191,7 +191,10 @@ class SchurKKT:
         ATc = self._AT_il.tocsr()
         cnt = np.diff(ATc.indptr)
         cmax = max(int(cnt.max(initial=0)), 1)
-        self._m_rows = np.zeros((nmax * S, cmax), dtype=np.int64)
+        # int32 as the per-vertex lists: one type, so each compiled product kernel has one signature
+        # (numba's on-disk cache pairs an index and data files per function; two processes compiling
+        # two signatures of one function at once can pair one's index with the other's code)
+        self._m_rows = np.zeros((nmax * S, cmax), dtype=np.int32)
         self._m_wts = np.zeros((nmax * S, cmax))
         slot = np.arange(ATc.nnz) - np.repeat(ATc.indptr[:-1], cnt)
         pos_of = np.repeat(np.arange(nmax * S), cnt)
@@ -626,10 +629,9 @@ def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_
         for i in range(m):
             zl[i] = z[i]
         x = W[j].reshape((nmax, S))
-        if per_vertex:
-            _products(v_rows, v_wts, ptr, pos, wt, zl, L, inv, x, Av, Avc, True, parallel)
-        else:
-            _products(m_rows, m_wts, ptr, pos, wt, zl, L, inv, x, Av, Avc, False, parallel)
+        # the lists by a run-time flag (a literal one would build ``_products`` for each)
+        _products(v_rows if per_vertex else m_rows, v_wts if per_vertex else m_wts, ptr, pos, wt, zl, L, inv, x, Av,
+                  Avc, per_vertex, parallel)
         for i in range(m):
             w[i] += Av[i]
         for _ in range(2):     # classical Gram-Schmidt, twice
@@ -720,13 +722,13 @@ def interleave_factor(LT, dof_off, nmax, out, inv):
     """The factor ``LT`` (N, bw + 1) strand-interleaved (``_interleave_rows``): out[j, a, s] =
     LT[dof_off[s] + j, a] for the band inside strand s, 0 elsewhere, and inv[j, s] = 1 / L[j, j]
     (1 on the padding rows)."""
-    _interleave_rows(LT, dof_off, dof_off, nmax, out, inv, True, 0, dof_off.shape[0] - 1)
+    _interleave_rows(LT, dof_off, dof_off, nmax, out, inv, np.bool_(True), np.int64(0), dof_off.shape[0] - 1)
 
 
 @njit(cache=True, error_model="numpy")
 def _interleave_band_chunk(AT, dof_off, blk_end, nmax, out, c):
     s0, s1 = il_chunk(dof_off.shape[0] - 1, c)
-    _interleave_rows(AT, dof_off, blk_end, nmax, out, out[0], False, s0, s1)
+    _interleave_rows(AT, dof_off, blk_end, nmax, out, out[0], np.bool_(False), s0, s1)
 
 
 @njit(cache=True, error_model="numpy")
@@ -736,7 +738,7 @@ def interleave_band(AT, dof_off, blk_end, nmax, out):
     block (``blk_end``: (N,) the end of each DOF's block, bandchol's blocks; the band's entries
     across a block's end are never written by the assembly), 0 elsewhere; the padding rows j >= the
     strand's DOFs are the identity (pivot 1)."""
-    _interleave_rows(AT, dof_off, blk_end, nmax, out, out[0], False, 0, dof_off.shape[0] - 1)
+    _interleave_rows(AT, dof_off, blk_end, nmax, out, out[0], np.bool_(False), np.int64(0), dof_off.shape[0] - 1)
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -790,7 +792,7 @@ def factor_interleaved(L, inv, ok):
     0.64 for bandchol.factor_serial and 0.21 for ``interleave_factor``, 2026-12-06).  ok[s]:
     strand s's pivots were all > 0 (a strand that fails goes on with pivot 1: its factor is
     not used)."""
-    _factor_range(L, inv, ok, 0, L.shape[2])
+    _factor_range(L, inv, ok, np.int64(0), L.shape[2])   # int64 0: one build with the chunks' bounds
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -852,7 +854,7 @@ def solve_interleaved(L, inv, x):
     ``interleave_factor``.  The strands' substitutions are independent: the innermost loop runs
     over strands (contiguous, vectorised), where one strand's substitution alone is a dependency
     chain (bandchol.solve_block: about 2.5 times slower at Celia's size)."""
-    _solve_chunk(L, inv, x, 0, L.shape[2])
+    _solve_chunk(L, inv, x, np.int64(0), L.shape[2])
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=True)
@@ -961,7 +963,7 @@ def _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, Avc, per_vertex, parall
     if parallel:
         _products_parallel(rows, wts, ptr, pos, wt, v, L, inv, x, Avc, per_vertex)
     else:
-        _gather_solve(rows, wts, v, L, inv, x, 0, S, per_vertex)
+        _gather_solve(rows, wts, v, L, inv, x, np.int64(0), S, per_vertex)
         xf = x.reshape(-1)
         for c in range(IL_CHUNKS):
             _scatter_chunk(xf, S, ptr, pos, wt, Avc[c], c)
@@ -972,17 +974,16 @@ def _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, Avc, per_vertex, parall
         Av[i] = a
 
 
-@njit(cache=True, error_model="numpy", fastmath=True)
 def schur_product(rows, wts, ptr, pos, wt, v, L, inv, x, Av):
     """x = H^-1 A^T v (strand-interleaved, (nmax, S)) and Av = A x: a product with the Schur
     complement, S v = A H^-1 A^T v, in one pass.  A^T's row at interleaved position (j, s) is
     sum_q wts[j, s, q] e_{rows[j, s, q]} (padding: weight 0); A's rows are the lists (ptr, pos,
     wt) of ``scatter_lists``.  One thread (``gmres_arnoldi`` runs the chunks on the kernels'
-    threads)."""
+    threads).  Python: the flags reach ``_products`` as plain booleans, the type ``gmres_arnoldi``
+    gives them (literals would compile it a second time)."""
     _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, np.zeros((IL_CHUNKS, Av.shape[0])), False, False)
 
 
-@njit(cache=True, error_model="numpy", fastmath=True)
 def schur_product_vertex(rows, wts, ptr, pos, wt, v, L, inv, x, Av):
     """``schur_product`` with A^T's rows per vertex: DOF 3 i + c of every strand has the rows
     3 rows[i, s, q] + c with weights wts[i, s, q] (A = W (x) I3; padding: weight 0), so the
