@@ -526,10 +526,11 @@ def test_each_compiled_kkt_kernel_has_one_signature():
     # the same caller in the same order, so two processes give their cache files the same names)
     compiled = [(m.__name__, name, d) for m in (kkt_mod, bandchol) for name, d in vars(m).items()
                 if isinstance(d, nd.Dispatcher)
-                and (m is kkt_mod or name in ("band_product_lt", "band_product_parallel", "_band_product_blocks"))]
+                and (m is kkt_mod
+                     or name in ("band_product_lt", "band_product_parallel", "_band_product_blocks", "_band_rows"))]
     callers = ("gmres_arnoldi", "_products", "_products_parallel", "factor_interleaved", "factor_interleaved_parallel",
                "interleave_band", "interleave_band_parallel", "interleave_factor", "solve_interleaved",
-               "solve_interleaved_parallel", "band_product_parallel")
+               "solve_interleaved_parallel", "band_product_parallel", "band_product_lt", "_band_product_blocks")
     done = set()
     for _ in range(3):    # a fresh caller asks its callees, which may be callers themselves
         for _, name, d in compiled:

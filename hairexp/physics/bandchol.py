@@ -273,18 +273,14 @@ def schur_parallel(L, Bt, first, dof_off, out):
 
 
 @njit(cache=True, error_model="numpy")
-def band_product_lt(A, v, out):
-    """out = A v for the symmetric band in this module's storage (A[j, d] = A[j + d, j], (N, bw + 1),
-    C order): each column's entries are read once, contiguously, for both triangles (numpy on
-    LAPACK's (bw + 1, N) view reads them with a stride of bw + 1 doubles, 2 x each: 0.79 ms at
-    Celia's size against 0.22 here, 2026-12-06)."""
-    N, bw1 = A.shape
-    for j in range(N):
-        out[j] = A[j, 0] * v[j]
-    for j in range(N):
+def _band_rows(A, v, out, j0, j1, e):
+    """out[j] += the band's products of rows j0 to j1 (their entries up to column e, exclusive):
+    below the diagonal into out[j + a], above it summed in a register into out[j]."""
+    bw1 = A.shape[1]
+    for j in range(j0, j1):
         vj = v[j]
         acc = 0.0
-        for a in range(1, min(bw1, N - j)):
+        for a in range(1, min(bw1, e - j)):
             l = A[j, a]
             out[j + a] += l * vj
             acc += l * v[j + a]
@@ -292,23 +288,25 @@ def band_product_lt(A, v, out):
 
 
 @njit(cache=True, error_model="numpy")
+def band_product_lt(A, v, out):
+    """out = A v for the symmetric band in this module's storage (A[j, d] = A[j + d, j], (N, bw + 1),
+    C order): each column's entries are read once, contiguously, for both triangles (numpy on
+    LAPACK's (bw + 1, N) view reads them with a stride of bw + 1 doubles, 2 x each: 0.79 ms at
+    Celia's size against 0.22 here, 2026-12-06)."""
+    N = A.shape[0]
+    for j in range(N):
+        out[j] = A[j, 0] * v[j]
+    _band_rows(A, v, out, np.int64(0), N, N)
+
+
+@njit(cache=True, error_model="numpy")
 def _band_product_blocks(A, v, out, blk_dof, b0, b1):
     """``band_product_lt`` on blocks b0 to b1 (their rows, and no entry across a block's end: those
     are 0 in every band the assembly writes, so the sums are ``band_product_lt``'s bit for bit)."""
-    bw1 = A.shape[1]
-    j0, j1 = blk_dof[b0], blk_dof[b1]
-    for j in range(j0, j1):
+    for j in range(blk_dof[b0], blk_dof[b1]):
         out[j] = A[j, 0] * v[j]
     for blk in range(b0, b1):
-        e = blk_dof[blk + 1]
-        for j in range(blk_dof[blk], e):
-            vj = v[j]
-            acc = 0.0
-            for a in range(1, min(bw1, e - j)):
-                l = A[j, a]
-                out[j + a] += l * vj
-                acc += l * v[j + a]
-            out[j] += acc
+        _band_rows(A, v, out, blk_dof[blk], blk_dof[blk + 1], blk_dof[blk + 1])
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
