@@ -428,7 +428,7 @@ def test_interleaved_substitution_is_the_banded_solve(case):
 @pytest.mark.parametrize("case", ["wisp_3_guides", "unequal_strands_2_guides"])
 def test_interleaved_kernels_on_two_threads_give_the_same_numbers(case):
     """The interleaved band, factor and Schur products run chunk by chunk on the kernels' threads
-    (``interleave_band_parallel``, ``factor_interleaved_parallel``, ``_products(parallel=True)``,
+    (``interleave_band_parallel``, ``factor_interleaved_parallel``, ``_products_threaded``,
     ``solve_interleaved_parallel``)
     or on all strands in one pass: the same numbers, bit for bit, on 1 and 2 threads (A x is summed
     by chunks in both), and the product is S v."""
@@ -462,8 +462,8 @@ def test_interleaved_kernels_on_two_threads_give_the_same_numbers(case):
         for threads, par in ((1, False), (1, True), (2, True)):
             bandchol.set_threads(threads)
             x, Av = np.empty((kkt.nmax, kkt.S)), np.empty(v.size)
-            kkt_mod._products(rows, wts, *kkt._scatter, v, L, inv, x, Av, np.empty((kkt_mod.IL_CHUNKS, v.size)),
-                              per_vertex, par)
+            (kkt_mod._products_threaded if par else kkt_mod._products)(
+                rows, wts, *kkt._scatter, v, L, inv, x, Av, np.empty((kkt_mod.IL_CHUNKS, v.size)), per_vertex)
             outs.append((x, Av))
     bandchol.set_threads(2)
     for x, Av in outs[1:]:
@@ -528,7 +528,7 @@ def test_each_compiled_kkt_kernel_has_one_signature():
                 if isinstance(d, nd.Dispatcher)
                 and (m is kkt_mod
                      or name in ("band_product_lt", "band_product_parallel", "_band_product_blocks", "_band_rows"))]
-    callers = ("gmres_arnoldi", "_products", "_products_parallel", "factor_interleaved", "factor_interleaved_parallel",
+    callers = ("gmres_arnoldi", "gmres_arnoldi_threaded", "_products", "_products_threaded", "_products_parallel", "factor_interleaved", "factor_interleaved_parallel",
                "interleave_band", "interleave_band_parallel", "interleave_factor", "solve_interleaved",
                "solve_interleaved_parallel", "band_product_parallel", "band_product_lt", "_band_product_blocks")
     done = set()
@@ -543,6 +543,40 @@ def test_each_compiled_kkt_kernel_has_one_signature():
     assert done == set(callers)
     used = [(m, name, d.signatures) for m, name, d in compiled if d.signatures]
     assert [u for u in used if len(u[2]) > 1] == []
+
+
+def test_a_one_thread_kkt_solve_starts_no_kernel_threads():
+    """On one kernel thread (a variant's forked process, hairexp/app/variant_processes.py) the
+    Krylov KKT solve and the secant's band product load no parallel kernel: a compiled function
+    that calls a parallel one starts numba's OpenMP threads when it is loaded, even where the call
+    is never taken, and in a forked variant that left torch's next parallel region waiting forever
+    (Celia's variants side by side hung, 2026-12-08).  Run in a fresh process, which reports
+    whether numba started its threads."""
+    code = (
+        "import json, sys\n"
+        f"sys.path.insert(0, {os.path.dirname(os.path.abspath(__file__))!r})\n"
+        "from hairexp.physics import bandchol\n"
+        "bandchol.cap_threads(1)\n"
+        "import numba.np.ufunc.parallel as P\n"
+        "from test_tracking_solver import kkt_scene, kkt_system, krylov_kkt, nearby_hessian\n"
+        "from tracking_helpers import structured_sliding_args\n"
+        "from hairexp.physics.assembly import band_product\n"
+        "_, sim = kkt_scene('wisp_3_guides')\n"
+        "ab, r_x, C, rng, K = kkt_system(sim, seed=8)\n"
+        "kkt = krylov_kkt(sim, krylov_max=30)\n"
+        "kkt.factor(nearby_hessian(sim, 0, 1e-5))\n"
+        "kkt.factor(ab)\n"
+        "kkt.solve(r_x, C, *structured_sliding_args(sim.controller, rng, K), None)\n"
+        "band_product(ab, r_x, sim.objective.kernels)\n"
+        "print(json.dumps({'launched': bool(P._is_initialized), 'krylov': kkt.stats['krylov_solves'],\n"
+        "                  'kernels': sim.objective.kernels is not None}))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-3000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    if not got["kernels"]:
+        pytest.skip("numba is not installed")
+    assert got["krylov"] >= 1
+    assert got["launched"] is False
 
 
 @pytest.mark.parametrize("case", ["wisp_3_guides", "unequal_strands_2_guides"])

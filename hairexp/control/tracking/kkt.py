@@ -488,9 +488,9 @@ class SchurKKT:
         j0 = 0
         while True:   # Arnoldi iterations up to one whose residual estimate reaches tol, then the checks
             if HAVE_NUMBA:
-                done, code = gmres_arnoldi(P[0], P[1], M0c, b, bnorm, tol, kmax, m, vr, vw, self._m_rows, self._m_wts,
-                                           *self._scatter, self._L_il, self._inv_il, j0, V, Z, W, Hh, R, g, cs, sn,
-                                           hist, self._threaded())
+                arnoldi = gmres_arnoldi_threaded if self._threaded() else gmres_arnoldi
+                done, code = arnoldi(P[0], P[1], M0c, b, bnorm, tol, kmax, m, vr, vw, self._m_rows, self._m_wts,
+                                     *self._scatter, self._L_il, self._inv_il, j0, V, Z, W, Hh, R, g, cs, sn, hist)
             else:
                 done, code = self._arnoldi_python(P, M0, b, bnorm, tol, kmax, m, j0, V, Z, W, Hh, R, g, cs, sn, hist)
             self.stats["krylov_iterations"] += int(done) - j0
@@ -594,8 +594,79 @@ def lu_apply(lu, piv, b, out):
 
 
 @njit(cache=True, error_model="numpy")
+def _arnoldi_extend(j, w, Av, m, V, Hh, R, g, cs, sn, hist, h, col, bnorm, tol, kmax):
+    """Arnoldi iteration j of ``gmres_arnoldi`` after its product: w += [A x; 0], then
+    Gram-Schmidt, the Givens rotations and the residual estimate.  Returns (iterations done,
+    outcome), or (-1, -1) to iterate on."""
+    n = w.shape[0]
+    for i in range(m):
+        w[i] += Av[i]
+    for _ in range(2):     # classical Gram-Schmidt, twice
+        for i in range(j + 1):
+            s = 0.0
+            for k in range(n):
+                s += V[i, k] * w[k]
+            h[i] = s
+        for i in range(j + 1):
+            Hh[i, j] += h[i]
+            for k in range(n):
+                w[k] -= h[i] * V[i, k]
+    s = 0.0
+    for k in range(n):
+        s += w[k] * w[k]
+    hn = math.sqrt(s)
+    if not np.isfinite(hn):
+        return j, ARNOLDI_GAVE_UP
+    Hh[j + 1, j] = hn
+    for k in range(n):
+        V[j + 1, k] = w[k] / hn if hn > 1e-300 * bnorm else 0.0
+    for i in range(j + 2):
+        col[i] = Hh[i, j]
+    for i in range(j):
+        a = cs[i] * col[i] + sn[i] * col[i + 1]
+        col[i + 1] = -sn[i] * col[i] + cs[i] * col[i + 1]
+        col[i] = a
+    rr = math.hypot(col[j], col[j + 1])
+    if rr > 0:
+        cs[j] = col[j] / rr
+        sn[j] = col[j + 1] / rr
+    else:
+        cs[j] = 1.0
+        sn[j] = 0.0
+    col[j] = rr
+    col[j + 1] = 0.0
+    for i in range(j + 2):
+        R[i, j] = col[i]
+    gj = g[j]
+    g[j] = cs[j] * gj
+    g[j + 1] = -sn[j] * gj
+    rel = abs(g[j + 1]) / bnorm
+    hist[j] = rel
+    out = arnoldi_outcome(rel, hn, bnorm, tol, j, kmax)
+    if out >= 0:
+        return j + 1, out
+    return -1, -1
+
+
+@njit(cache=True, error_model="numpy")
+def _arnoldi_start(j, lu, piv, M0, V, Z, w, zl, m):
+    """Arnoldi iteration j of ``gmres_arnoldi`` before its product: Z[j] = P^-1 V[j], w = M0 Z[j],
+    zl = its multiplier part."""
+    n = w.shape[0]
+    z = Z[j]
+    lu_apply(lu, piv, V[j], z)
+    for i in range(n):
+        s = 0.0
+        for k in range(n):
+            s += M0[i, k] * z[k]
+        w[i] = s
+    for i in range(m):
+        zl[i] = z[i]
+
+
+@njit(cache=True, error_model="numpy")
 def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_wts, ptr, pos, wt, L, inv, j0, V, Z,
-                  W, Hh, R, g, cs, sn, hist, parallel):
+                  W, Hh, R, g, cs, sn, hist):
     """The Arnoldi loop of ``SchurKKT._krylov`` (GMRES, right-preconditioned, no restart, Givens
     rotations; Saad 2003, "Iterative methods for sparse linear systems", Alg. 9.5) on the reduced
     system M z = b, M z = M0 z + [A H^-1 A^T z[:m]; 0], preconditioner P = (lu, piv); A's rows
@@ -604,80 +675,40 @@ def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_
     error estimate was not yet small: the earlier iterations' state in V, Z, W, Hh, R, g and the
     Givens rotations cs, sn) it fills V, Z, W (rows H^-1 A^T Z[j, :m], strand-interleaved, from
     ``schur_product_vertex`` when ``v_rows`` is not empty, else ``schur_product``), Hh, R, g, cs,
-    sn and hist (the relative residual estimate after each iteration); ``parallel``: the products'
-    chunks on the kernels' threads (``_products``: the same sums).  Returns (iterations done,
+    sn and hist (the relative residual estimate after each iteration).  Returns (iterations done,
     ARNOLDI_CANDIDATE when the last one reached ``tol`` or broke down, else ARNOLDI_GAVE_UP: a
     non-finite value, ``kmax`` reached, or a rate at which kmax iterations would not do), the
-    same decisions as ``SchurKKT._arnoldi_python``."""
-    n = b.shape[0]
+    same decisions as ``SchurKKT._arnoldi_python``.  Its products on one thread
+    (``gmres_arnoldi_threaded``: on the kernels' threads, the same numbers)."""
     nmax, S = inv.shape
-    w = np.empty(n)
-    h = np.empty(kmax + 1)
-    zl = np.empty(m)
-    Av = np.empty(m)
-    col = np.empty(kmax + 1)
+    w, h, zl, Av, col = np.empty(b.shape[0]), np.empty(kmax + 1), np.empty(m), np.empty(m), np.empty(kmax + 1)
+    Avc = np.empty((IL_CHUNKS, m))
+    per_vertex = v_rows.shape[0] > 0    # the lists by a run-time flag (a literal one would build ``_products`` twice)
+    for j in range(j0, kmax):
+        _arnoldi_start(j, lu, piv, M0, V, Z, w, zl, m)
+        _products(v_rows if per_vertex else m_rows, v_wts if per_vertex else m_wts, ptr, pos, wt, zl, L, inv,
+                  W[j].reshape((nmax, S)), Av, Avc, per_vertex)
+        done, out = _arnoldi_extend(j, w, Av, m, V, Hh, R, g, cs, sn, hist, h, col, bnorm, tol, kmax)
+        if done >= 0:
+            return done, out
+    return kmax, ARNOLDI_GAVE_UP
+
+
+@njit(cache=True, error_model="numpy")
+def gmres_arnoldi_threaded(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_wts, ptr, pos, wt, L, inv, j0,
+                           V, Z, W, Hh, R, g, cs, sn, hist):
+    """``gmres_arnoldi`` with its products on the kernels' threads (``_products_threaded``)."""
+    nmax, S = inv.shape
+    w, h, zl, Av, col = np.empty(b.shape[0]), np.empty(kmax + 1), np.empty(m), np.empty(m), np.empty(kmax + 1)
     Avc = np.empty((IL_CHUNKS, m))
     per_vertex = v_rows.shape[0] > 0
     for j in range(j0, kmax):
-        z = Z[j]
-        lu_apply(lu, piv, V[j], z)
-        for i in range(n):
-            s = 0.0
-            for k in range(n):
-                s += M0[i, k] * z[k]
-            w[i] = s
-        for i in range(m):
-            zl[i] = z[i]
-        x = W[j].reshape((nmax, S))
-        # the lists by a run-time flag (a literal one would build ``_products`` for each)
-        _products(v_rows if per_vertex else m_rows, v_wts if per_vertex else m_wts, ptr, pos, wt, zl, L, inv, x, Av,
-                  Avc, per_vertex, parallel)
-        for i in range(m):
-            w[i] += Av[i]
-        for _ in range(2):     # classical Gram-Schmidt, twice
-            for i in range(j + 1):
-                s = 0.0
-                for k in range(n):
-                    s += V[i, k] * w[k]
-                h[i] = s
-            for i in range(j + 1):
-                Hh[i, j] += h[i]
-                for k in range(n):
-                    w[k] -= h[i] * V[i, k]
-        s = 0.0
-        for k in range(n):
-            s += w[k] * w[k]
-        hn = math.sqrt(s)
-        if not np.isfinite(hn):
-            return j, ARNOLDI_GAVE_UP
-        Hh[j + 1, j] = hn
-        for k in range(n):
-            V[j + 1, k] = w[k] / hn if hn > 1e-300 * bnorm else 0.0
-        for i in range(j + 2):
-            col[i] = Hh[i, j]
-        for i in range(j):
-            a = cs[i] * col[i] + sn[i] * col[i + 1]
-            col[i + 1] = -sn[i] * col[i] + cs[i] * col[i + 1]
-            col[i] = a
-        rr = math.hypot(col[j], col[j + 1])
-        if rr > 0:
-            cs[j] = col[j] / rr
-            sn[j] = col[j + 1] / rr
-        else:
-            cs[j] = 1.0
-            sn[j] = 0.0
-        col[j] = rr
-        col[j + 1] = 0.0
-        for i in range(j + 2):
-            R[i, j] = col[i]
-        gj = g[j]
-        g[j] = cs[j] * gj
-        g[j + 1] = -sn[j] * gj
-        rel = abs(g[j + 1]) / bnorm
-        hist[j] = rel
-        out = arnoldi_outcome(rel, hn, bnorm, tol, j, kmax)
-        if out >= 0:
-            return j + 1, out
+        _arnoldi_start(j, lu, piv, M0, V, Z, w, zl, m)
+        _products_threaded(v_rows if per_vertex else m_rows, v_wts if per_vertex else m_wts, ptr, pos, wt, zl, L, inv,
+                           W[j].reshape((nmax, S)), Av, Avc, per_vertex)
+        done, out = _arnoldi_extend(j, w, Av, m, V, Hh, R, g, cs, sn, hist, h, col, bnorm, tol, kmax)
+        if done >= 0:
+            return done, out
     return kmax, ARNOLDI_GAVE_UP
 
 
@@ -954,24 +985,38 @@ def _products_parallel(rows, wts, ptr, pos, wt, v, L, inv, x, Avc, per_vertex):
 
 
 @njit(cache=True, error_model="numpy", fastmath=True)
-def _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, Avc, per_vertex, parallel):
-    """x = H^-1 A^T v and Av = A x.  ``parallel``: chunk by chunk (``IL_CHUNKS``) on the kernels'
-    threads; else on all strands at once (each strand's solve is the same either way).  A x is
-    summed chunk by chunk in both (``_scatter_chunk``), the chunks' parts then in chunk order: the
-    same sums on any thread count."""
-    S = L.shape[2]
-    if parallel:
-        _products_parallel(rows, wts, ptr, pos, wt, v, L, inv, x, Avc, per_vertex)
-    else:
-        _gather_solve(rows, wts, v, L, inv, x, np.int64(0), S, per_vertex)
-        xf = x.reshape(-1)
-        for c in range(IL_CHUNKS):
-            _scatter_chunk(xf, S, ptr, pos, wt, Avc[c], c)
+def _sum_chunks(Avc, Av):
+    """Av = the chunks' parts of A x summed in chunk order."""
     for i in range(Av.shape[0]):
         a = 0.0
         for c in range(IL_CHUNKS):
             a += Avc[c, i]
         Av[i] = a
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, Avc, per_vertex):
+    """x = H^-1 A^T v and Av = A x on one thread, on all strands at once (each strand's solve is
+    ``_products_threaded``'s); A x summed by the chunks as there (``_scatter_chunk``), the chunks'
+    parts then in chunk order: the same sums on any thread count."""
+    S = L.shape[2]
+    _gather_solve(rows, wts, v, L, inv, x, np.int64(0), S, per_vertex)
+    xf = x.reshape(-1)
+    for c in range(IL_CHUNKS):
+        _scatter_chunk(xf, S, ptr, pos, wt, Avc[c], c)
+    _sum_chunks(Avc, Av)
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def _products_threaded(rows, wts, ptr, pos, wt, v, L, inv, x, Av, Avc, per_vertex):
+    """``_products`` chunk by chunk (``IL_CHUNKS``) on the kernels' threads.  A kernel of its own,
+    not a flag of ``_products``: a compiled function that calls a parallel one starts numba's
+    OpenMP threads wherever it is loaded, and in a variant's forked process (one thread,
+    hairexp/app/variant_processes.py) that set libgomp's thread count under torch, whose next
+    parallel region then waited forever on the team the fork had left behind (Celia's variants
+    side by side hung in the tracked variant's observation, 2026-12-08)."""
+    _products_parallel(rows, wts, ptr, pos, wt, v, L, inv, x, Avc, per_vertex)
+    _sum_chunks(Avc, Av)
 
 
 def schur_product(rows, wts, ptr, pos, wt, v, L, inv, x, Av):
@@ -981,7 +1026,7 @@ def schur_product(rows, wts, ptr, pos, wt, v, L, inv, x, Av):
     wt) of ``scatter_lists``.  One thread (``gmres_arnoldi`` runs the chunks on the kernels'
     threads).  Python: the flags reach ``_products`` as plain booleans, the type ``gmres_arnoldi``
     gives them (literals would compile it a second time)."""
-    _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, np.zeros((IL_CHUNKS, Av.shape[0])), False, False)
+    _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, np.zeros((IL_CHUNKS, Av.shape[0])), False)
 
 
 def schur_product_vertex(rows, wts, ptr, pos, wt, v, L, inv, x, Av):
@@ -991,7 +1036,7 @@ def schur_product_vertex(rows, wts, ptr, pos, wt, v, L, inv, x, Av):
     10,000 strands 9 MB instead of 33 MB streamed twice a product).  Every entry of x and Av
     gets the same operations in the same order as in ``schur_product`` (Av's sums run over
     (chunk, vertex, strand))."""
-    _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, np.zeros((IL_CHUNKS, Av.shape[0])), True, False)
+    _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, np.zeros((IL_CHUNKS, Av.shape[0])), True)
 
 
 def scatter_lists(rows: np.ndarray, wts: np.ndarray, n_rows: int, per_vertex: bool):
