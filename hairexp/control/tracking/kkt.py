@@ -218,9 +218,11 @@ class SchurKKT:
             if same and 3 * K < np.iinfo(np.int32).max:
                 self._v_rows = np.ascontiguousarray(np.where(pad, 0, k0), dtype=np.int32)
                 self._v_wts = np.ascontiguousarray(w3[:, 0])
-        # A's rows as lists per chunk of strands (``scatter_lists``), for the products' A x
-        self._scatter = (scatter_lists(self._v_rows, self._v_wts, K, True) if self._v_rows is not None
-                         else scatter_lists(self._m_rows, self._m_wts, 3 * K, False))
+        # the Krylov products' lists of A^T's rows (per vertex where A = W (x) I3, else per DOF) and
+        # A's rows as lists per chunk of strands (``scatter_lists``), for their A x
+        per_vertex = self._v_rows is not None
+        self._lists = (self._v_rows, self._v_wts, True) if per_vertex else (self._m_rows, self._m_wts, False)
+        self._scatter = scatter_lists(self._lists[0], self._lists[1], K if per_vertex else 3 * K, per_vertex)
         self._uniform = bool(np.all(n == nmax))
         self._W_buf = None                    # the Krylov products' rows (``_krylov``), kept between solves
         jj, aa = np.meshgrid(np.arange(nmax), np.arange(bandwidth + 1), indexing="ij")
@@ -482,15 +484,13 @@ class SchurKKT:
         hist = np.zeros(kmax)
         if HAVE_NUMBA:    # the whole Arnoldi loop compiled (``gmres_arnoldi``): at Celia's size its Python
             self._interleave()   # form spent about 1.4 ms a solve outside the products
-            vr, vw = ((self._v_rows, self._v_wts) if self._v_rows is not None
-                      else (np.zeros((0, 0, 0), dtype=np.int32), np.zeros((0, 0, 0))))
             M0c = np.ascontiguousarray(M0)
         j0 = 0
         while True:   # Arnoldi iterations up to one whose residual estimate reaches tol, then the checks
             if HAVE_NUMBA:
                 arnoldi = gmres_arnoldi_threaded if self._threaded() else gmres_arnoldi
-                done, code = arnoldi(P[0], P[1], M0c, b, bnorm, tol, kmax, m, vr, vw, self._m_rows, self._m_wts,
-                                     *self._scatter, self._L_il, self._inv_il, j0, V, Z, W, Hh, R, g, cs, sn, hist)
+                done, code = arnoldi(P[0], P[1], M0c, b, bnorm, tol, kmax, m, *self._lists, *self._scatter, self._L_il,
+                                     self._inv_il, j0, V, Z, W, Hh, R, g, cs, sn, hist)
             else:
                 done, code = self._arnoldi_python(P, M0, b, bnorm, tol, kmax, m, j0, V, Z, W, Hh, R, g, cs, sn, hist)
             self.stats["krylov_iterations"] += int(done) - j0
@@ -665,29 +665,28 @@ def _arnoldi_start(j, lu, piv, M0, V, Z, w, zl, m):
 
 
 @njit(cache=True, error_model="numpy")
-def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_wts, ptr, pos, wt, L, inv, j0, V, Z,
-                  W, Hh, R, g, cs, sn, hist):
+def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, rows, wts, per_vertex, ptr, pos, wt, L, inv, j0, V, Z, W, Hh,
+                  R, g, cs, sn, hist):
     """The Arnoldi loop of ``SchurKKT._krylov`` (GMRES, right-preconditioned, no restart, Givens
     rotations; Saad 2003, "Iterative methods for sparse linear systems", Alg. 9.5) on the reduced
-    system M z = b, M z = M0 z + [A H^-1 A^T z[:m]; 0], preconditioner P = (lu, piv); A's rows
-    (ptr, pos, wt): ``scatter_lists`` of the lists the products use.  V[0] = b /
+    system M z = b, M z = M0 z + [A H^-1 A^T z[:m]; 0], preconditioner P = (lu, piv); A^T's rows
+    (rows, wts): the per-vertex lists where ``per_vertex``, else the per-DOF ones (``_products``);
+    A's rows (ptr, pos, wt): ``scatter_lists`` of them.  V[0] = b /
     bnorm and g[0] = bnorm on entry.  From iteration j0 (0, or the one after a candidate whose
     error estimate was not yet small: the earlier iterations' state in V, Z, W, Hh, R, g and the
-    Givens rotations cs, sn) it fills V, Z, W (rows H^-1 A^T Z[j, :m], strand-interleaved, from
-    ``schur_product_vertex`` when ``v_rows`` is not empty, else ``schur_product``), Hh, R, g, cs,
-    sn and hist (the relative residual estimate after each iteration).  Returns (iterations done,
+    Givens rotations cs, sn) it fills V, Z, W (rows H^-1 A^T Z[j, :m], strand-interleaved), Hh, R,
+    g, cs, sn and hist (the relative residual estimate after each iteration).  Returns (iterations done,
     ARNOLDI_CANDIDATE when the last one reached ``tol`` or broke down, else ARNOLDI_GAVE_UP: a
     non-finite value, ``kmax`` reached, or a rate at which kmax iterations would not do), the
     same decisions as ``SchurKKT._arnoldi_python``.  Its products on one thread
-    (``gmres_arnoldi_threaded``: on the kernels' threads, the same numbers)."""
+    (``gmres_arnoldi_threaded``: on the kernels' threads, the same numbers; a loop of its own, as
+    no one-thread kernel may call a parallel one, ``_products_threaded``)."""
     nmax, S = inv.shape
     w, h, zl, Av, col = np.empty(b.shape[0]), np.empty(kmax + 1), np.empty(m), np.empty(m), np.empty(kmax + 1)
     Avc = np.empty((IL_CHUNKS, m))
-    per_vertex = v_rows.shape[0] > 0    # the lists by a run-time flag (a literal one would build ``_products`` twice)
     for j in range(j0, kmax):
         _arnoldi_start(j, lu, piv, M0, V, Z, w, zl, m)
-        _products(v_rows if per_vertex else m_rows, v_wts if per_vertex else m_wts, ptr, pos, wt, zl, L, inv,
-                  W[j].reshape((nmax, S)), Av, Avc, per_vertex)
+        _products(rows, wts, ptr, pos, wt, zl, L, inv, W[j].reshape((nmax, S)), Av, Avc, per_vertex)
         done, out = _arnoldi_extend(j, w, Av, m, V, Hh, R, g, cs, sn, hist, h, col, bnorm, tol, kmax)
         if done >= 0:
             return done, out
@@ -695,17 +694,15 @@ def gmres_arnoldi(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_
 
 
 @njit(cache=True, error_model="numpy")
-def gmres_arnoldi_threaded(lu, piv, M0, b, bnorm, tol, kmax, m, v_rows, v_wts, m_rows, m_wts, ptr, pos, wt, L, inv, j0,
-                           V, Z, W, Hh, R, g, cs, sn, hist):
+def gmres_arnoldi_threaded(lu, piv, M0, b, bnorm, tol, kmax, m, rows, wts, per_vertex, ptr, pos, wt, L, inv, j0, V, Z,
+                           W, Hh, R, g, cs, sn, hist):
     """``gmres_arnoldi`` with its products on the kernels' threads (``_products_threaded``)."""
     nmax, S = inv.shape
     w, h, zl, Av, col = np.empty(b.shape[0]), np.empty(kmax + 1), np.empty(m), np.empty(m), np.empty(kmax + 1)
     Avc = np.empty((IL_CHUNKS, m))
-    per_vertex = v_rows.shape[0] > 0
     for j in range(j0, kmax):
         _arnoldi_start(j, lu, piv, M0, V, Z, w, zl, m)
-        _products_threaded(v_rows if per_vertex else m_rows, v_wts if per_vertex else m_wts, ptr, pos, wt, zl, L, inv,
-                           W[j].reshape((nmax, S)), Av, Avc, per_vertex)
+        _products_threaded(rows, wts, ptr, pos, wt, zl, L, inv, W[j].reshape((nmax, S)), Av, Avc, per_vertex)
         done, out = _arnoldi_extend(j, w, Av, m, V, Hh, R, g, cs, sn, hist, h, col, bnorm, tol, kmax)
         if done >= 0:
             return done, out
