@@ -406,21 +406,23 @@ def test_interleaved_substitution_is_the_banded_solve(case):
     pad[kkt._il_of_dof] = False
     assert pad.any() != uniform and np.all(got[pad] == 0.0)
     # the fused product with S (A^T v, the interleaved solve, A x) against the S built
-    from hairexp.control.tracking.kkt import schur_product, schur_product_vertex
+    from hairexp.control.tracking.kkt import IL_CHUNKS, _products
 
     assert kkt.fresh and kkt.Smat is not None
     kkt._interleave()
     for v in rng.normal(size=(3, kkt.Smat.shape[0])):
         x = np.empty((kkt.nmax, kkt.S))
         Sv = np.empty(v.size)
-        schur_product(kkt._m_rows, kkt._m_wts, *kkt._scatter, v, kkt._L_il, kkt._inv_il, x, Sv)
+        _products(kkt._m_rows, kkt._m_wts, *kkt._scatter, v, kkt._L_il, kkt._inv_il, x, Sv, np.empty((IL_CHUNKS, v.size)),
+                  False)
         np.testing.assert_allclose(Sv, kkt.Smat @ v, rtol=0, atol=1e-11 * np.abs(kkt.Smat @ v).max())
         want = kkt.hinv(kkt.AT_sparse @ v)
         np.testing.assert_allclose(x.reshape(-1)[kkt._il_of_dof], want, rtol=0, atol=1e-12 * np.abs(want).max())
         # the per-vertex lists (the Krylov solve's product) give the same sums in the same order
         assert kkt._v_rows is not None
         x2, Sv2 = np.empty_like(x), np.empty_like(Sv)
-        schur_product_vertex(kkt._v_rows, kkt._v_wts, *kkt._scatter, v, kkt._L_il, kkt._inv_il, x2, Sv2)
+        _products(kkt._v_rows, kkt._v_wts, *kkt._scatter, v, kkt._L_il, kkt._inv_il, x2, Sv2,
+                  np.empty((IL_CHUNKS, v.size)), True)
         np.testing.assert_allclose(Sv2, Sv, rtol=1e-14, atol=0)
         np.testing.assert_allclose(x2, x, rtol=1e-14, atol=1e-300)
 
@@ -514,8 +516,9 @@ def test_each_compiled_kkt_kernel_has_one_signature():
         kkt_mod.interleave_factor(kkt.LT, kkt._dof_off, kkt.nmax, np.empty_like(kkt._L_il), np.empty_like(kkt._inv_il))
         v = rng.normal(size=kkt.Smat.shape[0])
         x, Av = np.empty((kkt.nmax, kkt.S)), np.empty(v.size)
-        kkt_mod.schur_product(kkt._m_rows, kkt._m_wts, *kkt._scatter, v, kkt._L_il, kkt._inv_il, x, Av)
-        kkt_mod.schur_product_vertex(kkt._v_rows, kkt._v_wts, *kkt._scatter, v, kkt._L_il, kkt._inv_il, x, Av)
+        for rows, wts, per_vertex in ((kkt._m_rows, kkt._m_wts, False), (kkt._v_rows, kkt._v_wts, True)):
+            kkt_mod._products(rows, wts, *kkt._scatter, v, kkt._L_il, kkt._inv_il, x, Av,
+                              np.empty((kkt_mod.IL_CHUNKS, v.size)), per_vertex)
         kernels = sim.objective.kernels
         band_product(ab, rng.normal(size=ab.shape[1]), kernels)
         bandchol.band_product_parallel(np.ascontiguousarray(ab.T), rng.normal(size=ab.shape[1]), np.empty(ab.shape[1]),

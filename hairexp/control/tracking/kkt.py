@@ -187,7 +187,7 @@ class SchurKKT:
         self._il_buf = None                   # its buffers, kept from factor to factor (``_il_buffers``)
         self._LT = self._cb = None            # the factor in bandchol's / LAPACK's layout (``LT``, ``cb``)
         # A^T's rows in the interleaved order as (position, membership) lists, padded with weight 0
-        # (``schur_product``: A^T v, the solve and A x in one pass)
+        # (``_products``: A^T v, the solve and A x in one pass)
         ATc = self._AT_il.tocsr()
         cnt = np.diff(ATc.indptr)
         cmax = max(int(cnt.max(initial=0)), 1)
@@ -202,7 +202,7 @@ class SchurKKT:
         self._m_wts[pos_of, slot] = ATc.data
         self._m_rows = self._m_rows.reshape(nmax, S, cmax)
         self._m_wts = self._m_wts.reshape(nmax, S, cmax)
-        # the same lists per vertex (``schur_product_vertex``): a DOF's rows are its vertex's clusters'
+        # the same lists per vertex (``_products``, ``per_vertex``): a DOF's rows are its vertex's clusters'
         # rows at the DOF's coordinate, with the vertex's weights (A = W (x) I3), so (nmax / 3, S, cmax)
         # cluster indices (int32) and weights: a sixth of the bytes the product streams per call
         # (at 10,000 strands 33 MB -> 9 MB), the same sums in the same order
@@ -910,7 +910,7 @@ def _gather_chunk(rows, wts, v, x, s0, s1):
 
 @njit(cache=True, error_model="numpy", fastmath=True)
 def _gather_vertex_chunk(rows, wts, v, x, s0, s1):
-    """``_gather_chunk`` with A^T's rows per vertex (``schur_product_vertex``)."""
+    """``_gather_chunk`` with A^T's rows per vertex (``_products``, ``per_vertex``)."""
     nv, S, q = rows.shape
     for i in range(nv):
         x0 = x[3 * i]
@@ -993,7 +993,13 @@ def _sum_chunks(Avc, Av):
 
 @njit(cache=True, error_model="numpy", fastmath=True)
 def _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, Avc, per_vertex):
-    """x = H^-1 A^T v and Av = A x on one thread, on all strands at once (each strand's solve is
+    """x = H^-1 A^T v (strand-interleaved, (nmax, S)) and Av = A x: a product with the Schur
+    complement, S v = A H^-1 A^T v, in one pass.  A^T's rows (rows, wts): per DOF, the row at
+    interleaved position (j, s) is sum_q wts[j, s, q] e_{rows[j, s, q]}; ``per_vertex``: per vertex,
+    DOF 3 i + c of every strand has the rows 3 rows[i, s, q] + c with weights wts[i, s, q] (A = W (x)
+    I3; a sixth of the bytes: at 10,000 strands 9 MB instead of 33 MB streamed twice a product);
+    padding: weight 0.  Both give every entry of x and Av the same operations in the same order.
+    A's rows: the lists (ptr, pos, wt) of ``scatter_lists``.  On one thread, on all strands at once (each strand's solve is
     ``_products_threaded``'s); A x summed by the chunks as there (``_scatter_chunk``), the chunks'
     parts then in chunk order: the same sums on any thread count."""
     S = L.shape[2]
@@ -1014,26 +1020,6 @@ def _products_threaded(rows, wts, ptr, pos, wt, v, L, inv, x, Av, Avc, per_verte
     side by side hung in the tracked variant's observation, 2026-12-08)."""
     _products_parallel(rows, wts, ptr, pos, wt, v, L, inv, x, Avc, per_vertex)
     _sum_chunks(Avc, Av)
-
-
-def schur_product(rows, wts, ptr, pos, wt, v, L, inv, x, Av):
-    """x = H^-1 A^T v (strand-interleaved, (nmax, S)) and Av = A x: a product with the Schur
-    complement, S v = A H^-1 A^T v, in one pass.  A^T's row at interleaved position (j, s) is
-    sum_q wts[j, s, q] e_{rows[j, s, q]} (padding: weight 0); A's rows are the lists (ptr, pos,
-    wt) of ``scatter_lists``.  One thread (``gmres_arnoldi`` runs the chunks on the kernels'
-    threads).  Python: the flags reach ``_products`` as plain booleans, the type ``gmres_arnoldi``
-    gives them (literals would compile it a second time)."""
-    _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, np.zeros((IL_CHUNKS, Av.shape[0])), False)
-
-
-def schur_product_vertex(rows, wts, ptr, pos, wt, v, L, inv, x, Av):
-    """``schur_product`` with A^T's rows per vertex: DOF 3 i + c of every strand has the rows
-    3 rows[i, s, q] + c with weights wts[i, s, q] (A = W (x) I3; padding: weight 0), so the
-    lists are a sixth of the bytes (int32 clusters, one weight for the vertex's three DOFs: at
-    10,000 strands 9 MB instead of 33 MB streamed twice a product).  Every entry of x and Av
-    gets the same operations in the same order as in ``schur_product`` (Av's sums run over
-    (chunk, vertex, strand))."""
-    _products(rows, wts, ptr, pos, wt, v, L, inv, x, Av, np.zeros((IL_CHUNKS, Av.shape[0])), True)
 
 
 def scatter_lists(rows: np.ndarray, wts: np.ndarray, n_rows: int, per_vertex: bool):
